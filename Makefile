@@ -1,0 +1,100 @@
+# rotor_id: everything from a clean clone.
+#
+#   make test   venv + build + the tests         make demo   venv + build + ./rotor-id demo
+#   make venv   .venv with the pinned wheels     make build  colcon build of both packages
+#   make bench  python bench/run_all.py          make clean  build/install/log and caches
+#   make lock   rewrite constraints-jazzy.txt    make distclean  clean + .venv
+#
+# Nothing has to be installed or sourced by hand: missing system tools (cmake, g++, Python
+# 3.11 venv/headers) are installed with apt-get, the Python packages come from the pins in
+# requirements-jazzy.in + constraints-jazzy.txt (installed with uv, pip as fallback).
+# See README.md and shared TOOLCHAIN.md for the why.
+
+SHELL := /bin/bash
+.SHELLFLAGS := -eu -o pipefail -c
+.DEFAULT_GOAL := test
+# Every target builds on the previous one (venv -> build -> test); never run them in parallel.
+.NOTPARALLEL:
+MAKEFLAGS += --no-print-directory
+
+PYTHON ?= python3.11
+VENV := .venv
+VENV_ABS := $(CURDIR)/$(VENV)
+VPY := $(VENV)/bin/python
+REQS := requirements-jazzy.in
+CONS := constraints-jazzy.txt
+PATCH := tools/patch_cmake_exports.py
+
+# The venv is keyed on the content of the pins and of the patch script, and on where the
+# clone lives (the venv is not relocatable): a stamp with that key makes `make venv` a no-op.
+VENV_KEY := $(shell cat $(REQS) $(CONS) $(PATCH) | { cat; echo '$(CURDIR) $(PYTHON)'; } \
+                | sha256sum | cut -c1-16)
+VENV_STAMP := $(VENV)/.stamp-$(VENV_KEY)
+
+COLCON_PKG_ARGS := --base-paths . msg_defs
+# No live status line / desktop notification / terminal title: plain logs for CI.
+COLCON_BUILD_ARGS := --event-handlers status- desktop_notification- terminal_title-
+
+# Sources the workspace environment (tools/env.sh) in a recipe.
+WS_ENV := source tools/env.sh
+VENV_ENV := source tools/env.sh --venv-only
+
+.PHONY: all venv build test demo bench clean distclean lock sysdeps help
+
+all: test
+
+help:
+	@sed -n '2,8p' Makefile | sed 's/^# \{0,1\}//'
+
+sysdeps:
+	@bash tools/ensure_system_deps.sh $(PYTHON)
+
+venv: $(VENV_STAMP)
+
+$(VENV_STAMP): | sysdeps
+	@echo "== venv: installing the pinned wheels into $(VENV) (key $(VENV_KEY))"
+	@if [ -d $(VENV) ] && [ "$$(cat $(VENV)/.origin 2>/dev/null)" != "$(CURDIR)" ]; then \
+	  echo "   $(VENV) was made elsewhere (or is incomplete): recreating it"; rm -rf $(VENV); fi
+	@if [ ! -x $(VPY) ]; then $(PYTHON) -m venv $(VENV) && echo "$(CURDIR)" > $(VENV)/.origin; fi
+	@rm -f $(VENV)/.stamp-*
+	@if $(VPY) -m pip install -q --disable-pip-version-check -c $(CONS) uv 2>/dev/null; then \
+	  echo "   installer: uv $$($(VENV)/bin/uv --version | cut -d' ' -f2)"; \
+	  UV_PYTHON_DOWNLOADS=never UV_NO_PROGRESS=1 $(VENV)/bin/uv pip install -q \
+	    --python $(VPY) -r $(REQS) -c $(CONS); \
+	else \
+	  echo "   installer: pip (uv not installable here)"; \
+	  $(VPY) -m pip install -q --disable-pip-version-check -r $(REQS) -c $(CONS); \
+	fi
+	@$(VPY) $(PATCH) --quiet
+	@$(VPY) $(PATCH) --check --quiet
+	@touch $@
+	@echo "== venv: ready"
+
+build: venv | sysdeps
+	@echo "== build: colcon build (rotor_id_msgs, rotor_id)"
+	@$(VENV_ENV) && colcon build $(COLCON_PKG_ARGS) $(COLCON_BUILD_ARGS)
+
+test: build
+	@echo "== test: pytest"
+	@$(WS_ENV) && python -m pytest
+
+demo: build
+	./rotor-id demo
+
+bench: build
+	@$(WS_ENV) && python bench/run_all.py
+
+# Re-lock after editing requirements-jazzy.in: the new packages resolve freely, every
+# existing pin is kept; then the venv is re-keyed on the new lock (a no-op install).
+lock: venv
+	@{ sed -n '/^#/p' $(CONS); $(VPY) -m pip freeze --all --disable-pip-version-check \
+	    | grep -v -i '^pip=='; } > $(CONS).new && mv $(CONS).new $(CONS)
+	@$(MAKE) venv
+	@git diff --stat -- $(CONS) || true
+
+clean:
+	rm -rf build install log .pytest_cache .hypothesis *.egg-info
+	find . -path ./$(VENV) -prune -o -name __pycache__ -type d -prune -exec rm -rf {} +
+
+distclean: clean
+	rm -rf $(VENV)
