@@ -1,0 +1,481 @@
+"""Output-error maximum likelihood (report Ch.2 steps 1-8, Ch.1 eq. 25; MODELS.md §0.1).
+
+For measurement noise only, the negative log-likelihood of samples y_j is
+
+    J(θ) = ½ Σ_j ν_jᵀ R⁻¹ ν_j + (N/2) log det R,     ν_j = y_j − H x̂_j(θ)
+
+It is minimised by Gauss-Newton with the information matrix M = Σ (∂ŷ/∂θ)ᵀ R⁻¹ (∂ŷ/∂θ) from the
+analytic sensitivities of :func:`rotor_id.estimation.simulate.simulate`. Safeguards: step halving
+and a Levenberg-Marquardt damping when a step does not lower the cost, and the parameters'
+physical bounds. R is diagonal (one variance per channel); when not given it is re-estimated
+from the residuals after every accepted step (the usual relaxation of the maximum-likelihood
+equations, Maine & Iliff). Initial states are unknowns when asked for; several experiments
+(runs) can share one parameter vector; a Gaussian prior adds Ch.1 eq. 25's a-priori term.
+
+The Cramér-Rao bound M⁻¹ is evaluated at the estimate with the estimated R. Where the report is
+silent (starting initial states, convergence test, noise estimation) the choices are documented
+on the functions below.
+"""
+
+from dataclasses import dataclass, field
+import math
+import time
+
+import numpy as np
+
+from rotor_id.estimation.simulate import DEFAULT_MAX_STEP, simulate
+
+INITIAL_STATE_MODES = ('estimate', 'positions', 'equilibrium', 'zero')
+
+
+class IdentificationError(ValueError):
+    """The identification problem is malformed (message says what to change)."""
+
+
+@dataclass
+class Experiment:
+    """One run: a model, its input, the sample times and the measured outputs.
+
+    Attributes
+    ----------
+    model : LinearModel
+    inputs : callable
+        ``u = inputs(t)`` (e.g. StirringSchedule or SampledInput).
+    t : ndarray, shape (T,)
+        Sample times (nondimensional).
+    y : ndarray, shape (T, m) or None
+        Measurements in the model's output channels (None: only for information predictions).
+    initial_state : str or array_like
+        'estimate' (all states at t[0] unknown), 'positions' (deflections unknown, rates zero;
+        report multiblade case c and the 7-parameter wake case), 'equilibrium' (steady state at
+        the current parameters for the input held at t[0]), 'zero', or a fixed state vector.
+    x0_guess : array_like, optional
+        Start for estimated initial states. Default: the exact linear least-squares fit of the
+        initial state to the data at the starting parameters.
+    name : str
+
+    """
+
+    model: object
+    inputs: object
+    t: np.ndarray
+    y: np.ndarray = None
+    initial_state: object = 'estimate'
+    x0_guess: object = None
+    name: str = 'run'
+
+    def free_states(self):
+        """Indices of states whose initial value is estimated."""
+        mode = self.initial_state
+        if isinstance(mode, str):
+            if mode == 'estimate':
+                return list(range(self.model.n_states))
+            if mode == 'positions':
+                return [i for i, s in enumerate(self.model.state_names)
+                        if not s.endswith('_dot')]
+            if mode in ('equilibrium', 'zero'):
+                return []
+            raise IdentificationError(f'unknown initial_state {mode!r}; use one of '
+                                      f'{", ".join(INITIAL_STATE_MODES)} or a state vector')
+        return []
+
+
+@dataclass
+class Estimate:
+    """Result of an identification, with everything a user or a message needs."""
+
+    names: list
+    values: np.ndarray
+    covariance: np.ndarray
+    information: np.ndarray
+    noise_std: np.ndarray
+    channel_names: list
+    cost: float
+    neg_log_likelihood: float
+    iterations: int
+    converged: bool
+    message: str
+    n_samples: int
+    history: list = field(default_factory=list)
+    residuals: list = field(default_factory=list)
+    fitted: list = field(default_factory=list)
+    initial_states: list = field(default_factory=list)
+    warnings: list = field(default_factory=list)
+    model_parameters: dict = field(default_factory=dict)
+    method: str = 'output-error'
+
+    @property
+    def std(self):
+        """Cramér-Rao standard deviations √diag(M⁻¹)."""
+        return np.sqrt(np.clip(np.diag(self.covariance), 0.0, None))
+
+    @property
+    def correlation(self):
+        """Correlation matrix of the Cramér-Rao bound."""
+        s = self.std
+        with np.errstate(invalid='ignore', divide='ignore'):
+            corr = self.covariance / np.outer(s, s)
+        return np.nan_to_num(corr)
+
+    def value(self, name):
+        """Estimated value of parameter ``name``."""
+        return float(self.values[self.names.index(name)])
+
+    def std_of(self, name):
+        """Cramér-Rao σ of parameter ``name``."""
+        return float(self.std[self.names.index(name)])
+
+    def residual_rms(self):
+        """RMS of all residuals, per channel."""
+        res = np.concatenate(self.residuals, axis=0)
+        return np.sqrt(np.mean(res**2, axis=0))
+
+    def as_dict(self):
+        """JSON-ready dictionary with the keys fixed by issue 3."""
+        return {
+            'method': self.method,
+            'parameters': {n: {'value': float(v), 'std': float(s)}
+                           for n, v, s in zip(self.names, self.values, self.std)},
+            'covariance': {'names': list(self.names),
+                           'matrix': [[float(c) for c in row] for row in self.covariance]},
+            'correlation': [[float(c) for c in row] for row in self.correlation],
+            'noise_std': [float(s) for s in self.noise_std],
+            'channels': list(self.channel_names),
+            'cost': float(self.cost),
+            'neg_log_likelihood': float(self.neg_log_likelihood),
+            'iterations': int(self.iterations),
+            'converged': bool(self.converged),
+            'message': self.message,
+            'warnings': list(self.warnings),
+            'n_samples': int(self.n_samples),
+        }
+
+
+def _initial_state_name(state, run_index, n_runs):
+    suffix = f'[{run_index + 1}]' if n_runs > 1 else ''
+    return f'{state}(t0){suffix}'
+
+
+class _Problem:
+    """Bookkeeping of θ = [free model parameters, free initial states of each run]."""
+
+    def __init__(self, experiments, unknowns, guess, known):
+        if not experiments:
+            raise IdentificationError('no experiment (run) to identify from')
+        self.experiments = experiments
+        model = experiments[0].model
+        names = model.parameter_names
+        for exp in experiments[1:]:
+            if exp.model.parameter_names != names:
+                raise IdentificationError('all runs combined in one estimate must share the '
+                                          'same model parameters')
+        for name in list(unknowns) + list(known or {}) + list(guess or {}):
+            if name not in names:
+                raise IdentificationError(
+                    f'unknown parameter {name!r} for model {model.name!r}; '
+                    f'its parameters are {", ".join(names)}')
+        self.model = model
+        self.unknowns = list(unknowns)
+        self.param_index = [names.index(n) for n in self.unknowns]
+        self.p_base = model.parameter_vector(known)
+        for name, value in (guess or {}).items():
+            self.p_base[names.index(name)] = float(value)
+        self.free_states = [exp.free_states() for exp in experiments]
+        self.names = list(self.unknowns)
+        self.bounds_lo = [model.parameter(n).lower for n in self.unknowns]
+        self.bounds_hi = [model.parameter(n).upper for n in self.unknowns]
+        self.state_slices = []
+        for r, (exp, free) in enumerate(zip(experiments, self.free_states)):
+            start = len(self.names)
+            self.names += [_initial_state_name(exp.model.state_names[i], r, len(experiments))
+                           for i in free]
+            self.bounds_lo += [-np.inf] * len(free)
+            self.bounds_hi += [np.inf] * len(free)
+            self.state_slices.append(slice(start, len(self.names)))
+        self.lo = np.array(self.bounds_lo)
+        self.hi = np.array(self.bounds_hi)
+
+    def full_parameters(self, theta):
+        p = self.p_base.copy()
+        p[self.param_index] = theta[:len(self.param_index)]
+        return p
+
+    def initial_state(self, r, theta, p):
+        """x0 of run r and ∂x0/∂θ_r (columns: model unknowns, then this run's free states)."""
+        exp = self.experiments[r]
+        n = exp.model.n_states
+        k_par = len(self.param_index)
+        free = self.free_states[r]
+        jac = np.zeros((n, k_par + len(free)))
+        mode = exp.initial_state
+        if isinstance(mode, str) and mode == 'equilibrium':
+            u0 = exp.inputs(exp.t[:1])
+            x0 = exp.model.equilibrium(exp.t[:1], p, u0)
+            jac[:, :k_par] = exp.model.equilibrium_jacobian(exp.t[:1], p, u0)[:, self.param_index]
+            return x0, jac
+        if isinstance(mode, str):
+            x0 = np.zeros(n)
+        else:
+            x0 = np.asarray(mode, dtype=float).copy()
+            if x0.shape != (n,):
+                raise IdentificationError(f'initial state of run {exp.name!r} needs {n} values '
+                                          f'({", ".join(exp.model.state_names)})')
+        x0[free] = theta[self.state_slices[r]]
+        jac[free, k_par + np.arange(len(free))] = 1.0
+        return x0, jac
+
+
+def _fit_initial_states(problem, theta, max_step):
+    """Least-squares initial states at fixed model parameters (y is linear in x0)."""
+    p = problem.full_parameters(theta)
+    for r, exp in enumerate(problem.experiments):
+        free = problem.free_states[r]
+        if not free or exp.y is None:
+            continue
+        if exp.x0_guess is not None:
+            theta[problem.state_slices[r]] = np.asarray(exp.x0_guess, dtype=float)[free]
+            continue
+        x0, _ = problem.initial_state(r, theta, p)
+        x0[free] = 0.0
+        jac = np.zeros((exp.model.n_states, len(free)))
+        jac[free, np.arange(len(free))] = 1.0
+        sim = simulate(exp.model, p, exp.inputs, exp.t, x0, param_index=(), x0_jacobian=jac,
+                       max_step=max_step)
+        A = sim.dy.reshape(-1, len(free))
+        b = (exp.y - sim.y).ravel()
+        ok = np.isfinite(b)
+        theta[problem.state_slices[r]] = np.linalg.lstsq(A[ok], b[ok], rcond=None)[0]
+    return theta
+
+
+def evaluate(problem, theta, max_step=DEFAULT_MAX_STEP, sensitivities=True):
+    """Residuals and output sensitivities of every run at θ.
+
+    Returns a list of (residual (T, m), dy/dθ (T, m, len(θ)) or None, simulation) per run.
+    """
+    p = problem.full_parameters(theta)
+    k_par = len(problem.param_index)
+    out = []
+    for r, exp in enumerate(problem.experiments):
+        x0, jac = problem.initial_state(r, theta, p)
+        if sensitivities:
+            sim = simulate(exp.model, p, exp.inputs, exp.t, x0,
+                           param_index=problem.param_index, x0_jacobian=jac, max_step=max_step)
+            dy = np.zeros(sim.y.shape + (len(theta),))
+            dy[:, :, :k_par] = sim.dy[:, :, :k_par]
+            dy[:, :, problem.state_slices[r]] = sim.dy[:, :, k_par:]
+        else:
+            sim = simulate(exp.model, p, exp.inputs, exp.t, x0, max_step=max_step)
+            dy = None
+        res = None if exp.y is None else exp.y - sim.y
+        out.append((res, dy, sim))
+    return out
+
+
+def information_matrix(dys, noise_var):
+    """M = Σ_j (∂ŷ_j/∂θ)ᵀ R⁻¹ (∂ŷ_j/∂θ) over all runs (R = diag(noise_var))."""
+    k = dys[0].shape[-1]
+    M = np.zeros((k, k))
+    w = 1.0 / np.asarray(noise_var, dtype=float)
+    for dy in dys:
+        M += np.einsum('tmi,m,tmj->ij', dy, w, dy)
+    return M
+
+
+def dependence_warnings(names, M, threshold=1e-7):
+    """Eigen-analysis of the scaled information matrix: name near-dependent combinations."""
+    d = np.sqrt(np.clip(np.diag(M), 1e-300, None))
+    Ms = M / np.outer(d, d)
+    vals, vecs = np.linalg.eigh(Ms)
+    warnings = []
+    if np.any(np.diag(M) <= 0):
+        zero = [n for n, v in zip(names, np.diag(M)) if v <= 0]
+        warnings.append('no information at all on ' + ', '.join(zero)
+                        + ': the data do not depend on them; fix them or change the input')
+    ratio = vals[0] / vals[-1] if vals[-1] > 0 else 0.0
+    if ratio < threshold:
+        vec = vecs[:, 0]
+        order = np.argsort(-np.abs(vec))
+        terms = [f'{vec[i]:+.3f}·{names[i]}' for i in order if abs(vec[i]) > 0.1]
+        warnings.append('near-dependent parameters (scaled information eigenvalue ratio '
+                        f'{ratio:.1e}): the combination {" ".join(terms)} is not identifiable '
+                        'from these data; fix one of them or add a prior')
+    return warnings, vals
+
+
+def fit_output_error(experiments, unknowns, guess=None, known=None, noise_std=None,
+                     prior=None, max_iter=50, step_tol=1e-6, max_step=DEFAULT_MAX_STEP,
+                     progress=None, label='output-error ML'):
+    """Output-error maximum likelihood over one or more runs.
+
+    Parameters
+    ----------
+    experiments : list of Experiment
+    unknowns : list of str
+        Model parameters to identify (the initial states follow from each run's
+        ``initial_state``).
+    guess : dict, optional
+        Starting values (default: the model's nominal values).
+    known : dict, optional
+        Values of the parameters held fixed (default: nominal).
+    noise_std : float or array_like, optional
+        Measurement noise σ per output channel. When None, R is estimated from the residuals.
+    prior : dict, optional
+        ``{'mean': {name: value}, 'std': {name: σ}}``: independent Gaussian a-priori information
+        on model parameters (Ch.1 eq. 25); it adds ½Σ((θ−θp)/σp)² to J and 1/σp² to M.
+    max_iter : int
+    step_tol : float
+        Converged when every step component is below ``step_tol`` times its Cramér-Rao σ
+        (after taking that step) or below 1e-12 relative to the parameter.
+    progress : callable, optional
+        Called as ``progress(info)`` with a dict (iteration, cost, values, names, elapsed,
+        message) after every iteration.
+
+    Returns
+    -------
+    Estimate
+
+    """
+    problem = _Problem(experiments, unknowns, guess, known)
+    names = problem.names
+    k = len(names)
+    theta = np.concatenate([problem.p_base[problem.param_index],
+                            np.zeros(k - len(problem.param_index))])
+    theta = _fit_initial_states(problem, theta, max_step)
+    m = experiments[0].model.n_outputs
+    for exp in experiments:
+        if exp.y is None:
+            raise IdentificationError(f'run {exp.name!r} has no measurements to fit')
+        if exp.y.shape != (exp.t.size, exp.model.n_outputs):
+            raise IdentificationError(
+                f'run {exp.name!r}: measurements have shape {exp.y.shape}, the model needs '
+                f'({exp.t.size}, {exp.model.n_outputs}) = samples x '
+                f'({", ".join(exp.model.output_names)})')
+        if not np.all(np.isfinite(exp.y)):
+            raise IdentificationError(f'run {exp.name!r}: measurements contain NaN or inf; '
+                                      'drop those samples before identifying')
+    n_total = sum(exp.t.size for exp in experiments)
+    prior_mean = np.zeros(k)
+    prior_info = np.zeros(k)
+    if prior:
+        for name, sigma in prior.get('std', {}).items():
+            if name not in names:
+                raise IdentificationError(f'prior on unknown parameter {name!r}')
+            i = names.index(name)
+            prior_info[i] = 1.0 / float(sigma)**2
+            prior_mean[i] = float(prior['mean'][name])
+    fixed_noise = noise_std is not None
+    if fixed_noise:
+        noise_var = np.broadcast_to(np.asarray(noise_std, dtype=float)**2, (m,)).copy()
+    t_start = time.perf_counter()
+    history = []
+    warnings = []
+
+    def cost_of(results, var):
+        data = sum(0.5 * np.sum(res**2 / var) for res, _, _ in results)
+        return data + 0.5 * np.sum(prior_info * (theta_eval - prior_mean)**2)
+
+    def estimate_var(results):
+        sq = sum(np.sum(res**2, axis=0) for res, _, _ in results)
+        var = sq / n_total
+        floor = 1e-24 * max(1.0, float(np.max(np.abs(np.concatenate(
+            [exp.y for exp in experiments])))))**2
+        return np.maximum(var, floor)
+
+    theta_eval = theta
+    results = evaluate(problem, theta, max_step)
+    if not fixed_noise:
+        noise_var = estimate_var(results)
+    cost = cost_of(results, noise_var)
+    if not math.isfinite(cost):
+        raise IdentificationError('the model response at the starting values is not finite; '
+                                  'check the starting values and the run description')
+    converged = False
+    message = 'maximum iterations reached'
+    lm = 0.0
+    iteration = 0
+    for iteration in range(1, max_iter + 1):
+        dys = [dy for _, dy, _ in results]
+        M = information_matrix(dys, noise_var) + np.diag(prior_info)
+        grad = -sum(np.einsum('tmi,m,tm->i', dy, 1.0 / noise_var, res)
+                    for res, dy, _ in results) + prior_info * (theta - prior_mean)
+        scale = np.sqrt(np.clip(np.diag(M), 1e-300, None))
+        Ms = M / np.outer(scale, scale)
+        accepted = False
+        step = None
+        for _attempt in range(12):
+            A = Ms + lm * np.eye(k)
+            try:
+                step = -np.linalg.solve(A, grad / scale) / scale
+            except np.linalg.LinAlgError:
+                step = -np.linalg.lstsq(A, grad / scale, rcond=None)[0] / scale
+            for _halving in range(6):
+                trial = np.clip(theta + step, problem.lo, problem.hi)
+                theta_eval = trial
+                trial_results = evaluate(problem, trial, max_step)
+                trial_cost = cost_of(trial_results, noise_var)
+                if math.isfinite(trial_cost) and trial_cost <= cost * (1 + 1e-12):
+                    accepted = True
+                    break
+                step = 0.5 * step
+            if accepted:
+                break
+            lm = max(1e-3, 10.0 * lm)
+        if not accepted:
+            theta_eval = theta
+            message = ('no step lowers the cost any more (stopped at a minimum or a bound; '
+                       'the bound-limited parameters are reported)')
+            converged = bool(np.all(np.abs(grad) * np.sqrt(np.clip(
+                np.diag(np.linalg.pinv(M)), 0, None)) < 1e-3 * max(1.0, cost)))
+            break
+        lm = lm / 10.0 if lm > 1e-6 else 0.0
+        applied = trial - theta
+        theta = trial
+        results = trial_results
+        if not fixed_noise:
+            noise_var = estimate_var(results)
+            theta_eval = theta
+        cost = cost_of(results, noise_var)
+        sigma = np.sqrt(np.clip(np.diag(np.linalg.pinv(M)), 0.0, None))
+        small = np.abs(applied) <= np.maximum(step_tol * sigma, 1e-12 * np.abs(theta))
+        info = {'iteration': iteration, 'cost': float(cost), 'names': names,
+                'values': theta.copy(), 'elapsed': time.perf_counter() - t_start,
+                'label': label, 'noise_std': np.sqrt(noise_var).copy()}
+        history.append(info)
+        if progress is not None:
+            progress(info)
+        at_bound = (theta <= problem.lo) | (theta >= problem.hi)
+        if np.any(at_bound):
+            bound_names = [n for n, b in zip(names, at_bound) if b]
+            message = 'parameter at a physical bound: ' + ', '.join(bound_names)
+        if np.all(small):
+            converged = True
+            message = 'converged' if not np.any(at_bound) else message
+            break
+    theta_eval = theta
+    dys = [dy for _, dy, _ in results]
+    M = information_matrix(dys, noise_var) + np.diag(prior_info)
+    dep, _ = dependence_warnings(names, M)
+    warnings += dep
+    try:
+        cov = np.linalg.inv(M)
+        if not np.all(np.isfinite(cov)) or np.any(np.diag(cov) < 0):
+            raise np.linalg.LinAlgError
+    except np.linalg.LinAlgError:
+        cov = np.linalg.pinv(M)
+        warnings.append('information matrix is singular: the Cramér-Rao bound is a '
+                        'pseudo-inverse and meaningless for the dependent combination')
+    if not converged and 'bound' not in message:
+        warnings.append(message)
+    data_cost = sum(0.5 * np.sum(res**2 / noise_var) for res, _, _ in results)
+    nll = data_cost + 0.5 * n_total * (np.sum(np.log(noise_var)) + m * math.log(2 * math.pi))
+    p_final = problem.full_parameters(theta)
+    init_states = [problem.initial_state(r, theta, p_final)[0] for r in range(len(experiments))]
+    return Estimate(
+        names=names, values=theta, covariance=cov, information=M,
+        noise_std=np.sqrt(noise_var), channel_names=list(experiments[0].model.output_names),
+        cost=float(cost), neg_log_likelihood=float(nll), iterations=iteration,
+        converged=converged, message=message, n_samples=n_total, history=history,
+        residuals=[res for res, _, _ in results], fitted=[sim.y for _, _, sim in results],
+        initial_states=init_states, warnings=warnings,
+        model_parameters=dict(zip(problem.model.parameter_names, p_final)))

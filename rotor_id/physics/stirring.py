@@ -1,0 +1,145 @@
+"""Pitch-stirring inputs of CR-137965 (Ch.2 eqs 1-6, Ch.3 eq. 29, as corrected in MODELS.md §0).
+
+Time ``t`` is the report's nondimensional time: the azimuth of blade 1 (2π per revolution).
+Angles are in whatever unit the caller uses consistently (the report uses degrees; the ROS
+boundary uses radians): every model is linear in the pitch, so flapping comes out in that unit.
+
+Multiblade pitch follows the report's eq. 3:
+
+    θ_k = θ0 − θI sin ψ_k + θII cos ψ_k,    ψ_k = t + (k − 1)·2π/N
+
+θI is forward cyclic and θII left cyclic. The model input vector used throughout the library is
+``u = [θ0, θI, θII]`` (:data:`INPUT_NAMES`).
+"""
+
+from dataclasses import dataclass
+import math
+
+import numpy as np
+
+INPUT_NAMES = ('theta_0', 'theta_I', 'theta_II')
+PROGRESSING_OMEGADOT = -0.1 / math.pi   # MODELS.md §1.3: Ch.2 eq. 6 corrected to -0.1/π
+
+
+@dataclass(frozen=True)
+class StirringSchedule:
+    """Lateral-cyclic step, then constant-acceleration pitch stirring (Ch.2 eqs 1-5).
+
+    Attributes
+    ----------
+    collective : float
+        θ0, collective pitch (report: 2°).
+    amplitude : float
+        Cyclic amplitude (report: 1.5°).
+    omegadot : float
+        ω̇ of eq. 1; negative = progressing, positive = regressing stirring. The phase law is
+        φ = ω̇ (t − t0)² exactly as printed, so the instantaneous stirring rate is 2 ω̇ (t − t0)
+        (MODELS.md §0 and §5 item 3).
+    t0 : float
+        Stirring start (report: 12 at μ = 0.4, 70 at μ = 0).
+    t_step : float
+        Time of the lateral-cyclic step (report: 0). Before it the pitch is collective only.
+
+    """
+
+    collective: float = 2.0
+    amplitude: float = 1.5
+    omegadot: float = PROGRESSING_OMEGADOT
+    t0: float = 12.0
+    t_step: float = 0.0
+
+    @property
+    def direction(self):
+        """'progressing' for ω̇ < 0, 'regressing' for ω̇ > 0."""
+        return 'progressing' if self.omegadot < 0 else 'regressing'
+
+    def phase(self, t):
+        """Stirring phase φ(t) = ω̇ (t − t0)² for t > t0, else 0 (eq. 2)."""
+        t = np.asarray(t, dtype=float)
+        tau = np.maximum(t - self.t0, 0.0)
+        return self.omegadot * tau * tau
+
+    def stirring_rate(self, t):
+        """dφ/dt = 2 ω̇ (t − t0) for t > t0 (per unit nondimensional time)."""
+        t = np.asarray(t, dtype=float)
+        return 2.0 * self.omegadot * np.maximum(t - self.t0, 0.0)
+
+    def multiblade(self, t):
+        """Return ``(θI, θII)`` at times t (eqs 4-5, step at ``t_step``)."""
+        t = np.asarray(t, dtype=float)
+        on = (t >= self.t_step).astype(float) * self.amplitude
+        phi = self.phase(t)
+        return on * np.sin(phi), on * np.cos(phi)
+
+    def inputs(self, t):
+        """Model input ``u = [θ0, θI, θII]`` at times t, shape ``(len(t), 3)``."""
+        t = np.atleast_1d(np.asarray(t, dtype=float))
+        theta_i, theta_ii = self.multiblade(t)
+        return np.column_stack([np.full_like(t, self.collective), theta_i, theta_ii])
+
+    def blade_pitch(self, t, n_blades=4):
+        """Per-blade pitch θ_k(t), shape ``(len(t), n_blades)`` (eq. 3)."""
+        return blade_pitch_from_multiblade(np.atleast_1d(t), self.inputs(t), n_blades)
+
+    def __call__(self, t):
+        """Alias of :meth:`inputs` so a schedule can be used wherever an input signal is."""
+        return self.inputs(t)
+
+
+def blade_azimuths(t, n_blades):
+    """ψ_k = t + (k − 1)·2π/N, shape ``(len(t), N)`` (MODELS.md §0)."""
+    t = np.atleast_1d(np.asarray(t, dtype=float))
+    return t[:, None] + 2.0 * np.pi * np.arange(n_blades)[None, :] / n_blades
+
+
+def blade_pitch_from_multiblade(t, u, n_blades):
+    """θ_k = θ0 − θI sin ψ_k + θII cos ψ_k for the inputs ``u = [θ0, θI, θII]`` (eq. 3)."""
+    psi = blade_azimuths(t, n_blades)
+    u = np.asarray(u, dtype=float)
+    return u[:, :1] - u[:, 1:2] * np.sin(psi) + u[:, 2:3] * np.cos(psi)
+
+
+def multiblade_from_blade_pitch(t, blade_pitch):
+    """Invert eq. 3: ``u = [θ0, θI, θII]`` from per-blade pitch (least squares for N ≥ 3)."""
+    blade_pitch = np.asarray(blade_pitch, dtype=float)
+    n_blades = blade_pitch.shape[1]
+    psi = blade_azimuths(t, n_blades)
+    collective = blade_pitch.mean(axis=1)
+    theta_i = -(2.0 / n_blades) * np.sum(blade_pitch * np.sin(psi), axis=1)
+    theta_ii = (2.0 / n_blades) * np.sum(blade_pitch * np.cos(psi), axis=1)
+    return np.column_stack([collective, theta_i, theta_ii])
+
+
+class SampledInput:
+    """Model input interpolated linearly from samples (e.g. measured blade pitch).
+
+    Parameters
+    ----------
+    t : array_like, shape (n,)
+        Nondimensional sample times, increasing.
+    u : array_like, shape (n, 3)
+        ``[θ0, θI, θII]`` at those times.
+
+    Outside the sampled span the end values are held (no extrapolation).
+
+    """
+
+    def __init__(self, t, u):
+        self.t = np.asarray(t, dtype=float)
+        self.u = np.asarray(u, dtype=float)
+        if self.t.ndim != 1 or self.u.shape != (self.t.size, len(INPUT_NAMES)):
+            raise ValueError(f'SampledInput needs t of shape (n,) and u of shape (n, 3); '
+                             f'got {self.t.shape} and {self.u.shape}')
+        if self.t.size < 2 or np.any(np.diff(self.t) <= 0):
+            raise ValueError('SampledInput needs at least two strictly increasing sample times')
+
+    @classmethod
+    def from_blade_pitch(cls, t, blade_pitch):
+        """Build from measured per-blade pitch (eq. 3 inverted at each sample)."""
+        return cls(t, multiblade_from_blade_pitch(t, blade_pitch))
+
+    def __call__(self, t):
+        """``u`` at times t, shape ``(len(t), 3)``."""
+        t = np.atleast_1d(np.asarray(t, dtype=float))
+        return np.column_stack([np.interp(t, self.t, self.u[:, j])
+                                for j in range(self.u.shape[1])])
