@@ -1,24 +1,57 @@
-"""The ``rotor-id`` command line (placeholder: the commands are being written).
+"""The ``rotor-id`` command line.
 
 Run it from a clone with ``./rotor-id <command>`` (no sourcing needed) or, in a sourced
-workspace, as ``ros2 run rotor_id rotor-id <command>``.
+workspace, as ``ros2 run rotor_id rotor-id <command>``. Each command lives in its own module
+under :mod:`rotor_id.commands` with ``add_arguments(parser)`` and ``run(args) -> int``.
+
+Errors a user can act on (bad bag, bad run description, unidentifiable problem) end the command
+with one line on stderr and exit code 2; an unexpected failure prints one line and the hint to
+re-run with ``--debug`` for the traceback (exit code 3).
 """
 
 import argparse
+import importlib
 import sys
 
+#: command name -> (module, one-line help)
 COMMANDS = {
-    'demo': 'identify the built-in simulated rotor end to end',
+    'demo': ('rotor_id.commands.demo',
+             'start the five nodes on the simulated rotor, identify it live and offline'),
+    'identify': ('rotor_id.commands.identify',
+                 'identify model parameters from a bag (output-error ML by default)'),
+    'diagnose': ('rotor_id.commands.diagnose',
+                 'locate and explain where a recording and the model disagree'),
+    'plan': ('rotor_id.commands.plan',
+             'predict the accuracy of candidate stirring transients before a run'),
+    'reproduce-report': ('rotor_id.commands.reproduce_report',
+                         "run the report's cases and print our numbers beside the report's"),
+    'simulate': ('rotor_id.commands.simulate',
+                 'write a simulated test-stand bag (the built-in rotor) for a run description'),
 }
 
 
+def _user_errors():
+    errors = [ValueError, FileNotFoundError, PermissionError, KeyError]
+    return tuple(errors)
+
+
 def build_parser():
-    """Return the argument parser with one subcommand per entry of COMMANDS."""
+    """Return the argument parser with one subcommand per available command module."""
     parser = argparse.ArgumentParser(
-        prog='rotor-id', description='Identify rotor flapping dynamics.')
+        prog='rotor-id', description='Identify rotor flapping dynamics from transient tests.')
+    parser.add_argument('--debug', action='store_true',
+                        help='show the full traceback of an unexpected error')
     sub = parser.add_subparsers(dest='command', metavar='COMMAND')
-    for name, help_text in COMMANDS.items():
-        sub.add_parser(name, help=help_text)
+    for name, (module_name, help_text) in COMMANDS.items():
+        try:
+            module = importlib.import_module(module_name)
+        except ModuleNotFoundError as exc:
+            if exc.name != module_name:
+                raise
+            continue
+        command = sub.add_parser(name, help=help_text, description=help_text)
+        module.add_arguments(command)
+        command.set_defaults(_run=module.run)
     return parser
 
 
@@ -29,8 +62,23 @@ def main(argv=None):
     if args.command is None:
         parser.print_help()
         return 2
-    print(f'rotor-id {args.command}: not implemented yet', file=sys.stderr)
-    return 1
+    try:
+        return int(args._run(args) or 0)
+    except KeyboardInterrupt:
+        print(f'rotor-id {args.command}: interrupted', file=sys.stderr)
+        return 130
+    except _user_errors() as exc:
+        if args.debug:
+            raise
+        message = str(exc).strip() or type(exc).__name__
+        print(f'rotor-id {args.command}: error: {message}', file=sys.stderr)
+        return 2
+    except Exception as exc:  # noqa: B902 - the last line of defence: one line, not a traceback
+        if args.debug:
+            raise
+        print(f'rotor-id {args.command}: unexpected {type(exc).__name__}: {exc} '
+              '(re-run with --debug for the traceback and please report it)', file=sys.stderr)
+        return 3
 
 
 if __name__ == '__main__':

@@ -1,0 +1,1 @@
+"""One module per ``rotor-id`` command (see rotor_id.cli)."""

@@ -1,0 +1,227 @@
+"""From a recorded run to an estimate: the one path shared by the CLI, the nodes, diagnosis and plan.
+
+record (rad, s)  →  window  →  model of the run description  →  Experiment(s) in the report's
+nondimensional time  →  estimator  →  :class:`Identification` (estimate + what it was fitted to).
+
+No ROS here: records come from :mod:`rotor_id.io.bag` or from the identifier node's buffers.
+"""
+
+from dataclasses import dataclass
+import itertools
+import math
+
+import numpy as np
+
+from rotor_id.estimation.output_error import Experiment, fit_output_error, IdentificationError
+from rotor_id.physics.models import build_model, RotorConstants
+from rotor_id.physics.stirring import SampledInput
+
+#: Default output channels per model when the run description does not say.
+DEFAULT_MEASUREMENT = {
+    'single_blade': 'blades',
+    'multiblade': 'multiblade',
+    'multiblade_constant': 'multiblade',
+    'multiblade_wake': 'eq30',
+}
+
+
+@dataclass
+class Identification:
+    """An estimate with the model, runs and window it came from."""
+
+    estimate: object
+    model: object
+    experiments: list
+    description: object
+    window_s: tuple
+    omega_rad_s: float
+    unknowns: list
+
+    def as_json(self):
+        """The JSON of ``rotor-id identify`` (keys fixed by issue 3; more keys allowed)."""
+        est = self.estimate
+        idx = [est.names.index(n) for n in self.unknowns]
+        cov = est.covariance[np.ix_(idx, idx)]
+        out = {
+            'model': self.model.name,
+            'method': est.method,
+            'parameters': {n: {'value': float(est.values[i]), 'std': float(est.std[i])}
+                           for n, i in zip(self.unknowns, idx)},
+            'covariance': {'names': list(self.unknowns),
+                           'matrix': [[float(c) for c in row] for row in cov]},
+            'correlation': [[float(c) for c in row] for row in est.correlation[np.ix_(idx, idx)]],
+            'noise_std': [float(s) for s in est.noise_std],
+            'channels': list(est.channel_names),
+            'iterations': int(est.iterations),
+            'converged': bool(est.converged),
+            'message': est.message,
+            'window_s': [float(self.window_s[0]), float(self.window_s[1])],
+            'omega_rad_s': float(self.omega_rad_s),
+            'n_samples': int(est.n_samples),
+            'neg_log_likelihood': float(est.neg_log_likelihood),
+            'initial_states': {n: {'value': float(v), 'std': float(s)}
+                               for n, v, s in zip(est.names, est.values, est.std)
+                               if n not in self.unknowns},
+            'warnings': list(est.warnings),
+        }
+        return out
+
+
+def rotor_constants(description):
+    """RotorConstants from a run description's ``rotor`` block."""
+    rotor = description.rotor
+    return RotorConstants(n_blades=int(rotor.blades), advance_ratio=float(rotor.advance_ratio),
+                          flap_frequency=float(rotor.flap_frequency),
+                          tip_loss=float(rotor.tip_loss))
+
+
+def model_for(description, **options):
+    """The identification model a run description names, in radians."""
+    rotor = rotor_constants(description)
+    measurement = description.measurement or DEFAULT_MEASUREMENT[description.model]
+    if description.model == 'multiblade':
+        options.setdefault('outputs', 'blades' if measurement == 'blades' else 'multiblade')
+    if description.model == 'multiblade_wake' and measurement not in ('eq30', 'multiblade'):
+        raise IdentificationError(
+            "the wake model measures (β1−β3)/2 and (β2−β4)/2 (report eq. 30); set "
+            "measurement: eq30 (or leave it out) in the run description")
+    collective = 'delta' if 'delta' in description.unknowns else 'theta0'
+    return build_model(description.model, rotor, collective=collective, angle_unit='rad',
+                       **({} if description.model in ('multiblade_constant', 'multiblade_wake')
+                          else options))
+
+
+def _known_values(description, model, record):
+    known = dict(description.known)
+    if model.name == 'multiblade_wake' and 'gamma' in known:
+        gamma = known.pop('gamma')
+        known['A'] = gamma * model.rotor.tip_loss**4 / 8.0           # Ch.2 eq. 27
+    names = model.parameter_names
+    if 'theta0' in names and 'theta0' not in known and 'theta0' not in description.unknowns:
+        known['theta0'] = float(np.mean(_pitch_input(record)(record.t)[:, 0]))
+    return {k: v for k, v in known.items() if k in names}
+
+
+def _pitch_input(record):
+    return SampledInput.from_blade_pitch(record.t, record.blade_pitch)
+
+
+def experiments_from_record(record, description, model=None, window_s=None):
+    """Experiments (one per modelled blade for single_blade, else one) over the window."""
+    model = model or model_for(description)
+    window_s = tuple(window_s or description.window_s)
+    part = record.window(*window_s)
+    if len(part) < 3:
+        raise IdentificationError(
+            f'the window {window_s[0]:.4g}-{window_s[1]:.4g} s holds {len(part)} samples; '
+            'identification needs a window of at least a few samples (widen window_s)')
+    inputs = _pitch_input(record)
+    initial_state = description.initial_state
+    if model.name == 'single_blade':
+        rotor = model.rotor
+        collective = model.collective
+        runs = []
+        for blade in range(1, record.n_blades + 1):
+            blade_model = build_model('single_blade', rotor, collective=collective,
+                                      angle_unit='rad', blade=blade)
+            runs.append(Experiment(blade_model, inputs, part.t,
+                                   blade_model.observe_blades(part.t, part.blade_flap),
+                                   initial_state=initial_state, name=f'blade_{blade}'))
+        return runs
+    return [Experiment(model, inputs, part.t, model.observe_blades(part.t, part.blade_flap),
+                       initial_state=initial_state, name='run')]
+
+
+def _start_candidates(model, unknowns, guess):
+    """Starting points: the guess, and each unknown scaled by 1/2 and 2 (a coarse grid)."""
+    base = {n: guess[n] for n in unknowns}
+    scales = (0.5, 1.0, 2.0)
+    for combo in itertools.product(scales, repeat=len(unknowns)):
+        yield {n: base[n] * s for n, s in zip(unknowns, combo)}
+
+
+def starting_values(record, description, model, experiments, known, multi_start=True):
+    """Starting values: the run description's guess, or the best of a coarse grid of starts.
+
+    The report starts from guesses 20-50 % off. A test stand's rotor may be further off the
+    nominal values, so unless the description gives ``initial_guess`` for every unknown the
+    cost (with initial states fitted by linear least squares) is evaluated on a 3^k grid around
+    the nominal values and the best point starts Gauss-Newton.
+    """
+    unknowns = list(description.unknowns)
+    guess = {n: model.parameter(n).nominal for n in unknowns}
+    if 'theta0' in unknowns:
+        guess['theta0'] = float(np.mean(_pitch_input(record)(record.t)[:, 0])) or guess['theta0']
+    guess.update({k: v for k, v in description.initial_guess.items() if k in guess})
+    if not multi_start or all(n in description.initial_guess for n in unknowns):
+        return guess
+    best, best_cost = guess, math.inf
+    for cand in _start_candidates(model, unknowns, guess):
+        try:
+            est = fit_output_error(experiments, unknowns, guess=cand, known=known, max_iter=0)
+        except (IdentificationError, np.linalg.LinAlgError, FloatingPointError):
+            continue
+        if est.neg_log_likelihood < best_cost:
+            best, best_cost = cand, est.neg_log_likelihood
+    return best
+
+
+def identify(record, description, method=None, progress=None, window_s=None,
+             multi_start=True, max_iter=50):
+    """Identify the run description's unknowns from a record.
+
+    Parameters
+    ----------
+    record : rotor_id.io.record.Record
+    description : rotor_id.io.run_description.RunDescription
+    method : str, optional
+        'output-error' (default) | 'filter-error' | 'equation-error'.
+    progress : callable, optional
+        Called with a dict per iteration (see fit_output_error).
+
+    Returns
+    -------
+    Identification
+
+    """
+    method = method or description.method or 'output-error'
+    model = model_for(description)
+    window_s = tuple(window_s or description.window_s)
+    experiments = experiments_from_record(record, description, model, window_s)
+    known = _known_values(description, model, record)
+    unknowns = list(description.unknowns)
+    if model.name == 'multiblade_wake' and 'gamma' in unknowns:
+        raise IdentificationError('the wake model is identified in A = γB⁴/8 (Ch.2 eq. 27); '
+                                  'list A instead of gamma among the unknowns')
+    guess = starting_values(record, description, model, experiments, known, multi_start)
+    noise = description.noise_std_rad
+    noise_std = None if noise is None else _channel_noise(model, float(noise))
+    if method == 'output-error':
+        estimate = fit_output_error(experiments, unknowns, guess=guess, known=known,
+                                    noise_std=noise_std, progress=progress, max_iter=max_iter)
+    elif method == 'filter-error':
+        from rotor_id.estimation.filter_error import fit_filter_error
+        estimate = fit_filter_error(experiments, unknowns, guess=guess, known=known,
+                                    noise_std=noise_std, progress=progress, max_iter=max_iter)
+    elif method == 'equation-error':
+        from rotor_id.estimation.equation_error import fit_equation_error_experiments
+        estimate = fit_equation_error_experiments(experiments, unknowns, guess=guess,
+                                                  known=known, progress=progress)
+    else:
+        raise IdentificationError(f'unknown method {method!r}; use output-error, '
+                                  'filter-error or equation-error')
+    return Identification(estimate=estimate, model=experiments[0].model, experiments=experiments,
+                          description=description, window_s=window_s,
+                          omega_rad_s=record.window(*window_s).omega_mean, unknowns=unknowns)
+
+
+def _channel_noise(model, blade_noise):
+    """Noise σ of the model's channels for independent per-blade flap noise σ (N = 4)."""
+    names = model.output_names
+    if model.name == 'multiblade_wake':
+        return blade_noise / math.sqrt(2.0)             # (β1 − β3)/2
+    if names and names[0] == 'beta_0':
+        # β0 and βd average four blades; βI, βII are (2/N) Σ β cos ψ
+        return np.array([blade_noise / 2.0 if n in ('beta_0', 'beta_d')
+                         else blade_noise / math.sqrt(2.0) for n in names])
+    return blade_noise
