@@ -1,0 +1,120 @@
+"""The recording of one test-stand run as plain numpy arrays (no ROS)."""
+
+from dataclasses import dataclass, field, replace
+
+import numpy as np
+
+from rotor_id.io.timebase import blade_azimuths, multiblade_coordinates
+
+# Window ends are inclusive; this absorbs float rounding of a stamp written as seconds.
+_WINDOW_TOL_S = 1e-9
+
+
+@dataclass
+class Record:
+    """Blade pitch and flap of a rotor on the test stand, on the flap sensors' time base.
+
+    Attributes:
+        time_s: (n,) seconds since the first flap stamp of the recording (a window keeps the
+            recording's origin).
+        t: (n,) nondimensional time: unwrapped azimuth of blade 1, rad (MODELS.md §0).
+        rotor_speed_rad_s: (n,) measured rotor speed Ω.
+        blade_flap: (n, N) flap angle of each blade, up positive, rad.
+        blade_pitch: (n, N) pitch of each blade, rad, interpolated onto the flap stamps.
+        blade_names: Joint name of each column (blade_1..blade_N).
+        source: Where the data came from (bag path, topics).
+        warnings: Non-fatal problems met while reading (dropped samples, gaps, ...).
+        stamp0_ns: Absolute ``header.stamp`` of the first flap sample, ns.
+    """
+
+    time_s: np.ndarray
+    t: np.ndarray
+    rotor_speed_rad_s: np.ndarray
+    blade_flap: np.ndarray
+    blade_pitch: np.ndarray
+    blade_names: list
+    source: str = ''
+    warnings: list = field(default_factory=list)
+    stamp0_ns: int = 0
+
+    def __post_init__(self):
+        """Convert to float arrays and check that the shapes agree."""
+        for name in ('time_s', 't', 'rotor_speed_rad_s', 'blade_flap', 'blade_pitch'):
+            setattr(self, name, np.asarray(getattr(self, name), dtype=float))
+        n = self.time_s.shape[0]
+        if self.blade_flap.ndim != 2:
+            raise ValueError(f'blade_flap must be (n, N), got shape {self.blade_flap.shape}')
+        shapes = {
+            'time_s': (self.time_s.shape, (n,)),
+            't': (self.t.shape, (n,)),
+            'rotor_speed_rad_s': (self.rotor_speed_rad_s.shape, (n,)),
+            'blade_flap': (self.blade_flap.shape, (n, self.n_blades)),
+            'blade_pitch': (self.blade_pitch.shape, (n, self.n_blades)),
+        }
+        for name, (shape, expected) in shapes.items():
+            if shape != expected:
+                raise ValueError(f'Record.{name} has shape {shape}, expected {expected}')
+        self.blade_names = list(self.blade_names)
+        if len(self.blade_names) != self.n_blades:
+            raise ValueError(f'{len(self.blade_names)} blade names for {self.n_blades} blades')
+
+    def __len__(self):
+        """Return the number of samples."""
+        return self.time_s.shape[0]
+
+    @property
+    def n_blades(self):
+        """Number of blades N."""
+        return self.blade_flap.shape[1]
+
+    @property
+    def omega_mean(self):
+        """Mean rotor speed, rad/s."""
+        return float(np.mean(self.rotor_speed_rad_s))
+
+    @property
+    def duration_s(self):
+        """Time from the first to the last sample, s."""
+        return float(self.time_s[-1] - self.time_s[0]) if len(self) else 0.0
+
+    @property
+    def sample_period_s(self):
+        """Median sampling interval, s."""
+        return float(np.median(np.diff(self.time_s))) if len(self) > 1 else float('nan')
+
+    def azimuths(self):
+        """Return the (n, N) blade azimuths ψ_k = t + (k − 1)·2π/N."""
+        return blade_azimuths(self.t, self.n_blades)
+
+    def t_at(self, time_s):
+        """Nondimensional time at ``time_s`` (seconds since the first stamp), interpolated."""
+        return np.interp(time_s, self.time_s, self.t)
+
+    def multiblade(self, quantity='flap'):
+        """Multiblade coordinates of 'flap' or 'pitch' (see :mod:`rotor_id.io.timebase`)."""
+        values = {'flap': self.blade_flap, 'pitch': self.blade_pitch}[quantity]
+        return multiblade_coordinates(values, self.t)
+
+    def window(self, t0_s, t1_s):
+        """Return the samples with t0_s ≤ time_s ≤ t1_s (seconds since the first stamp).
+
+        The sub-record keeps the recording's time origin, so a run description's window_s
+        means the same in both.
+
+        Raises:
+            ValueError: The window is reversed or holds no sample.
+        """
+        if not t1_s >= t0_s:
+            raise ValueError(f'window end {t1_s} s is before its start {t0_s} s')
+        keep = (self.time_s >= t0_s - _WINDOW_TOL_S) & (self.time_s <= t1_s + _WINDOW_TOL_S)
+        if not keep.any():
+            raise ValueError(
+                f'window [{t0_s}, {t1_s}] s holds no sample; the record spans '
+                f'[{self.time_s[0]:.6f}, {self.time_s[-1]:.6f}] s')
+        return replace(
+            self,
+            time_s=self.time_s[keep], t=self.t[keep],
+            rotor_speed_rad_s=self.rotor_speed_rad_s[keep],
+            blade_flap=self.blade_flap[keep], blade_pitch=self.blade_pitch[keep],
+            source=f'{self.source} [window {t0_s}..{t1_s} s]',
+            warnings=list(self.warnings))
