@@ -1,0 +1,485 @@
+"""Run descriptions: what the experimenter knows about a recording (YAML).
+
+The schema of /work/shared/recordings/README.md::
+
+    rotor: {blades: 4, advance_ratio: 0.0, flap_frequency: 1.2, tip_loss: 0.97}
+    topics: {blade_pitch: /rotor/blade_pitch, blade_flap: /rotor/blade_flap,
+             azimuth: /rotor/azimuth}
+    model: multiblade_wake
+    unknowns: [A, AL_over_tau, inv_tau]
+    window_s: [0.809, 0.937]
+
+extended, without breaking it, by optional keys::
+
+    joint_names: [b1, b2, b3, b4]        # or {blade_1: b1, ...} or {blade_pitch: [...],
+                                         #    blade_flap: [...]}; joint of each blade
+    known: {gamma: 5.0}                  # parameters held fixed
+    initial_guess: {gamma: 4.0}          # start of the iteration
+    initial_state: estimate              # estimate | equilibrium | zero
+    noise_std_rad: 0.0017                # known flap-sensor noise, rad
+    method: output-error
+    measurement: blades                  # blades | multiblade | eq30 (default: model's)
+    lock_number: 4.52                    # γ of the wake model (same as known: {gamma: ...})
+
+Errors raise :class:`RunDescriptionError` naming the file, the line and what to do; unknown
+keys only warn (:class:`RunDescriptionWarning`), so that newer files still load.
+"""
+
+from dataclasses import dataclass, field
+import math
+from pathlib import Path
+import re
+import warnings
+
+from rotor_id.io.errors import RunDescriptionError, RunDescriptionWarning
+import yaml
+
+MODEL_PARAMETERS = {
+    'single_blade': ('gamma', 'theta0', 'delta'),
+    'multiblade': ('gamma', 'theta0', 'delta'),
+    'multiblade_constant': ('gamma', 'theta0', 'delta'),
+    'multiblade_wake': ('A', 'AL_over_tau', 'inv_tau', 'gamma'),
+}
+MODELS = tuple(MODEL_PARAMETERS)
+POSITIVE_PARAMETERS = ('gamma', 'A', 'AL_over_tau', 'inv_tau')
+ANGLE_PARAMETERS = ('theta0',)  # radians: a value above MAX_ANGLE_RAD is taken for degrees
+MAX_ANGLE_RAD = 1.0
+INITIAL_STATES = ('estimate', 'equilibrium', 'zero')
+METHODS = ('output-error', 'filter-error', 'equation-error')
+MEASUREMENTS = ('blades', 'multiblade', 'eq30')
+TOPIC_ROLES = ('blade_pitch', 'blade_flap', 'azimuth')
+DEFAULT_TOPICS = {
+    'blade_pitch': '/rotor/blade_pitch',
+    'blade_flap': '/rotor/blade_flap',
+    'azimuth': '/rotor/azimuth',
+}
+ROTOR_KEYS = ('blades', 'advance_ratio', 'flap_frequency', 'tip_loss')
+TOP_LEVEL_KEYS = (
+    'rotor', 'topics', 'model', 'unknowns', 'window_s', 'joint_names', 'known',
+    'initial_guess', 'initial_state', 'noise_std_rad', 'method', 'measurement', 'lock_number',
+)
+BLADE_JOINT_ROLES = ('blade_pitch', 'blade_flap')
+
+
+@dataclass(frozen=True)
+class RotorSpec:
+    """The rotor of the test stand.
+
+    Attributes:
+        blades: Number of blades N.
+        advance_ratio: μ.
+        flap_frequency: P, rotating flap natural frequency, per rev.
+        tip_loss: B.
+    """
+
+    blades: int
+    advance_ratio: float
+    flap_frequency: float
+    tip_loss: float
+
+
+@dataclass(frozen=True)
+class RunDescription:
+    """A validated run description. Treat the dict fields as read-only.
+
+    Attributes:
+        rotor: RotorSpec.
+        topics: Role ('blade_pitch', 'blade_flap', 'azimuth') -> topic name.
+        model: One of :data:`MODELS`.
+        unknowns: Parameters to identify, in the file's order.
+        window_s: (t0, t1), seconds after the first flap stamp.
+        joint_names: None, or role ('blade_pitch', 'blade_flap') -> tuple of joint names in
+            blade order.
+        known: Parameter -> value held fixed (``lock_number`` is merged in as 'gamma').
+        initial_guess: Parameter -> starting value.
+        initial_state: 'estimate' | 'equilibrium' | 'zero'.
+        noise_std_rad: Known flap-measurement noise, or None.
+        method: Estimation method, 'output-error' by default.
+        measurement: 'blades' | 'multiblade' | 'eq30', or None for the model's default.
+        lock_number: γ for the wake model, or None.
+        path: File the description was read from ('<string>' if parsed from text).
+        warnings: Non-fatal remarks (unknown keys).
+        extra: Unknown top-level keys and their values, kept for newer tools.
+    """
+
+    rotor: RotorSpec
+    topics: dict
+    model: str
+    unknowns: tuple
+    window_s: tuple
+    joint_names: object = None
+    known: dict = field(default_factory=dict)
+    initial_guess: dict = field(default_factory=dict)
+    initial_state: str = 'estimate'
+    noise_std_rad: object = None
+    method: str = 'output-error'
+    measurement: object = None
+    lock_number: object = None
+    path: str = '<string>'
+    warnings: tuple = ()
+    extra: dict = field(default_factory=dict)
+
+    @property
+    def parameters(self):
+        """Parameter names of the model."""
+        return MODEL_PARAMETERS[self.model]
+
+    def bag_path(self):
+        """Return the conventional bag of this description: NAME/ beside NAME.yaml."""
+        if self.path == '<string>':
+            raise ValueError('a description parsed from text has no bag beside it')
+        return Path(self.path).with_suffix('')
+
+
+def normalize_joint_names(value, n_blades=None):
+    """Bring the accepted forms of ``joint_names`` to {role: tuple of names in blade order}.
+
+    Accepted forms: a list (blade 1 first), a mapping blade -> name with keys 'blade_<k>' or
+    integers k, or a mapping with keys 'blade_pitch' / 'blade_flap' whose values are either of
+    the former (a role not given uses the other role's names).
+
+    Args:
+        value: The ``joint_names`` value.
+        n_blades: Expected number of blades, or None.
+
+    Returns:
+        Dict with keys 'blade_pitch' and 'blade_flap'.
+
+    Raises:
+        ValueError: Malformed value (the message says which form is expected).
+    """
+    if isinstance(value, dict) and value and set(value) <= set(BLADE_JOINT_ROLES):
+        roles = {role: _joint_list(names, n_blades, role) for role, names in value.items()}
+        for role in BLADE_JOINT_ROLES:
+            roles.setdefault(role, next(iter(roles.values())))
+        return roles
+    names = _joint_list(value, n_blades, 'joint_names')
+    return {role: names for role in BLADE_JOINT_ROLES}
+
+
+def _joint_list(value, n_blades, what):
+    if isinstance(value, dict):
+        blades = {}
+        for key, name in value.items():
+            match = re.fullmatch(r'blade_(\d+)', key) if isinstance(key, str) else None
+            number = int(match.group(1)) if match else key
+            if isinstance(number, bool) or not isinstance(number, int):
+                raise ValueError(
+                    f'{what}: key {key!r} is not a blade; use blade_1..blade_N or 1..N')
+            blades[number] = name
+        if sorted(blades) != list(range(1, len(blades) + 1)):
+            raise ValueError(f'{what}: blades {sorted(blades)} are not 1..{len(blades)}')
+        value = [blades[k] for k in range(1, len(blades) + 1)]
+    if not isinstance(value, (list, tuple)) or not value:
+        raise ValueError(
+            f'{what} must be a non-empty list of joint names (blade 1 first) or a mapping '
+            'blade_k: name')
+    if not all(isinstance(name, str) and name for name in value):
+        raise ValueError(f'{what}: every joint name must be a non-empty string, got {value!r}')
+    if len(set(value)) != len(value):
+        raise ValueError(f'{what}: joint names repeat: {list(value)}')
+    if n_blades is not None and len(value) != n_blades:
+        raise ValueError(f'{what}: {len(value)} joint names for {n_blades} blades')
+    return tuple(value)
+
+
+class _Lines:
+    """Line numbers of the keys and items of a composed YAML document, by path."""
+
+    def __init__(self, node):
+        self.lines = {}
+        self.duplicates = []
+        self._walk(node, ())
+
+    def _walk(self, node, path):
+        if isinstance(node, yaml.MappingNode):
+            seen = {}
+            for key_node, value_node in node.value:
+                key = key_node.value if isinstance(key_node, yaml.ScalarNode) else None
+                if key in seen:
+                    self.duplicates.append((path + (key,), seen[key], _line(key_node)))
+                seen[key] = _line(key_node)
+                self.lines[path + (key,)] = _line(key_node)
+                self._walk(value_node, path + (key,))
+        elif isinstance(node, yaml.SequenceNode):
+            for index, item in enumerate(node.value):
+                self.lines[path + (index,)] = _line(item)
+                self._walk(item, path + (index,))
+
+    def __call__(self, *path):
+        """Line of ``path``, else of its nearest ancestor that has one."""
+        while path:
+            if path in self.lines:
+                return self.lines[path]
+            path = path[:-1]
+        return 1
+
+
+def _line(node):
+    return node.start_mark.line + 1
+
+
+class _Parser:
+    """Validate a loaded document, raising errors that point at the file and line."""
+
+    def __init__(self, data, lines, path):
+        self.data = data
+        self.lines = lines
+        self.path = path
+        self.warnings = []
+
+    def fail(self, message, *path):
+        line = self.lines(*path) if path else None
+        where = f'{self.path}:{line}' if line else self.path
+        raise RunDescriptionError(f'{where}: {message}', self.path, line)
+
+    def warn(self, message, *path):
+        text = f'{self.path}:{self.lines(*path)}: {message}'
+        self.warnings.append(text)
+        warnings.warn(text, RunDescriptionWarning, stacklevel=4)
+
+    def mapping(self, value, *path):
+        if not isinstance(value, dict):
+            name = '.'.join(str(p) for p in path) or 'the document'
+            self.fail(f'{name} must be a mapping (key: value), got {_kind(value)}', *path)
+        for key in value:
+            if not isinstance(key, str):
+                self.fail(f'key {key!r} must be a string', *path)
+        return value
+
+    def require(self, mapping, key, *path):
+        if key not in mapping:
+            name = '.'.join(str(p) for p in path + (key,))
+            self.fail(f'missing required key {name!r}; see the run-description schema in '
+                      'recordings/README.md', *path)
+        return mapping[key]
+
+    def number(self, value, *path, minimum=None, positive=False, integer=False):
+        name = '.'.join(str(p) for p in path)
+        kind = 'an integer' if integer else 'a number'
+        if isinstance(value, bool) or not isinstance(value, (int, float)) or (
+                integer and not isinstance(value, int)):
+            self.fail(f'{name} must be {kind}, got {value!r}', *path)
+        try:
+            finite = math.isfinite(value)
+        except OverflowError:
+            finite = False
+        if not finite:
+            self.fail(f'{name} must be a finite number, got {value!r}', *path)
+        if positive and value <= 0:
+            self.fail(f'{name} must be positive, got {value!r}', *path)
+        if minimum is not None and value < minimum:
+            self.fail(f'{name} must be at least {minimum}, got {value!r}; negative values '
+                      'have no meaning here', *path)
+        return value if integer else float(value)
+
+    def choice(self, value, options, *path):
+        if not isinstance(value, str) or value not in options:
+            name = '.'.join(str(p) for p in path)
+            self.fail(f'unknown {name} {value!r}; valid: {", ".join(options)}', *path)
+        return value
+
+    def parameter_values(self, key, model):
+        """Validate a {parameter: value} mapping such as ``known``."""
+        values = self.mapping(self.data[key], key)
+        out = {}
+        for name, value in values.items():
+            self.parameter_name(name, model, key, name)
+            out[name] = self.parameter_value(name, value, key, name)
+        return out
+
+    def parameter_name(self, name, model, *path):
+        valid = MODEL_PARAMETERS[model]
+        if name not in valid:
+            self.fail(f'unknown parameter {name!r} for model {model}; valid: '
+                      f'{", ".join(valid)}', *path)
+
+    def parameter_value(self, name, value, *path):
+        value = self.number(value, *path, positive=name in POSITIVE_PARAMETERS)
+        if name in ANGLE_PARAMETERS and abs(value) > MAX_ANGLE_RAD:
+            self.fail(f'{name} = {value} rad is implausibly large: angles are in radians '
+                      f'(the value looks like degrees; use {math.radians(value):.6g})', *path)
+        return value
+
+
+def _kind(value):
+    return 'nothing' if value is None else type(value).__name__
+
+
+def parse_run_description(text, path='<string>'):
+    """Parse and validate a run description.
+
+    Args:
+        text: The YAML text.
+        path: Name of its file, used in messages.
+
+    Returns:
+        RunDescription.
+
+    Raises:
+        RunDescriptionError: Malformed YAML or invalid content.
+    """
+    path = str(path)
+    try:
+        loader = yaml.SafeLoader(text)
+        try:
+            node = loader.get_single_node()
+            data = loader.construct_document(node) if node is not None else None
+        finally:
+            loader.dispose()
+        lines = _Lines(node if node is not None else yaml.ScalarNode('', ''))
+    except yaml.YAMLError as err:
+        mark = getattr(err, 'problem_mark', None)
+        line = mark.line + 1 if mark is not None else None
+        where = f'{path}:{line}' if line else path
+        raise RunDescriptionError(
+            f'{where}: malformed YAML ({err}); fix the syntax', path, line) from None
+    except (ValueError, TypeError, RecursionError) as err:  # e.g. bad dates, deep nesting
+        raise RunDescriptionError(f'{path}: unreadable YAML ({err})', path) from None
+    return _validate(_Parser(data, lines, path))
+
+
+def load_run_description(path):
+    """Read and validate the run description in file ``path`` (see module docstring).
+
+    Raises:
+        RunDescriptionError: File unreadable, malformed YAML or invalid content.
+    """
+    try:
+        text = Path(path).read_text(encoding='utf-8')
+    except (OSError, UnicodeDecodeError) as err:
+        raise RunDescriptionError(
+            f'{path}: cannot read the run description ({err}); give the path of a YAML file',
+            str(path)) from None
+    return parse_run_description(text, path)
+
+
+def _validate(parser):
+    data = parser.mapping(parser.data)
+    if parser.lines.duplicates:
+        where, first, second = parser.lines.duplicates[0]
+        parser.fail(f'key {".".join(str(p) for p in where)!r} is given twice (lines {first} '
+                    f'and {second}); keep one', *where)
+    for key in data:
+        if key not in TOP_LEVEL_KEYS:
+            parser.warn(f'unknown key {key!r} ignored (known keys: {", ".join(TOP_LEVEL_KEYS)})',
+                        key)
+
+    rotor = parser.mapping(parser.require(data, 'rotor'), 'rotor')
+    for key in rotor:
+        if key not in ROTOR_KEYS:
+            parser.warn(f'unknown key rotor.{key} ignored', 'rotor', key)
+    spec = RotorSpec(
+        blades=parser.number(parser.require(rotor, 'blades', 'rotor'), 'rotor', 'blades',
+                             integer=True, minimum=1),
+        advance_ratio=parser.number(parser.require(rotor, 'advance_ratio', 'rotor'),
+                                    'rotor', 'advance_ratio', minimum=0),
+        flap_frequency=parser.number(parser.require(rotor, 'flap_frequency', 'rotor'),
+                                     'rotor', 'flap_frequency', positive=True),
+        tip_loss=parser.number(parser.require(rotor, 'tip_loss', 'rotor'),
+                               'rotor', 'tip_loss', positive=True),
+    )
+    if spec.tip_loss > 1:
+        parser.fail(f'rotor.tip_loss must be in (0, 1], got {spec.tip_loss}', 'rotor', 'tip_loss')
+
+    topics = dict(DEFAULT_TOPICS)
+    if 'topics' in data:
+        for role, topic in parser.mapping(data['topics'], 'topics').items():
+            if role not in TOPIC_ROLES:
+                parser.warn(f'unknown key topics.{role} ignored (roles: '
+                            f'{", ".join(TOPIC_ROLES)})', 'topics', role)
+                continue
+            if role == 'azimuth' and topic is None:
+                topics[role] = None  # azimuth not recorded: t from the rotor speed
+                continue
+            if not isinstance(topic, str) or not topic.startswith('/') or len(topic) < 2:
+                parser.fail(f'topics.{role} must be an absolute topic name such as '
+                            f'{DEFAULT_TOPICS[role]}, got {topic!r}', 'topics', role)
+            topics[role] = topic
+
+    model = parser.choice(parser.require(data, 'model'), MODELS, 'model')
+
+    unknowns = parser.require(data, 'unknowns')
+    if isinstance(unknowns, str):
+        unknowns = [unknowns]
+    if not isinstance(unknowns, list) or not unknowns:
+        parser.fail('unknowns must be a non-empty list of parameter names, valid for model '
+                    f'{model}: {", ".join(MODEL_PARAMETERS[model])}', 'unknowns')
+    for index, name in enumerate(unknowns):
+        parser.parameter_name(name, model, 'unknowns', index)
+    if len(set(unknowns)) != len(unknowns):
+        parser.fail(f'unknowns repeat a parameter: {unknowns}', 'unknowns')
+
+    window = parser.require(data, 'window_s')
+    if not isinstance(window, list) or len(window) != 2:
+        parser.fail(f'window_s must be two numbers [t0, t1] (seconds after the first stamp), '
+                    f'got {window!r}', 'window_s')
+    t0 = parser.number(window[0], 'window_s', 0, minimum=0)
+    t1 = parser.number(window[1], 'window_s', 1, minimum=0)
+    if not t1 > t0:
+        parser.fail(f'window_s must be increasing [t0, t1] with t1 > t0, got {window}',
+                    'window_s')
+
+    options = {}
+    if 'joint_names' in data:
+        try:
+            options['joint_names'] = normalize_joint_names(data['joint_names'], spec.blades)
+        except ValueError as err:
+            parser.fail(str(err), 'joint_names')
+    for key in ('known', 'initial_guess'):
+        if key in data:
+            options[key] = parser.parameter_values(key, model)
+    known = options.setdefault('known', {})
+    if 'lock_number' in data:
+        gamma = parser.number(data['lock_number'], 'lock_number', positive=True)
+        if known.get('gamma', gamma) != gamma:
+            parser.fail(f'lock_number {gamma} contradicts known.gamma {known["gamma"]}; '
+                        'give one of them', 'lock_number')
+        options['lock_number'] = known['gamma'] = gamma
+    both = sorted(set(known) & set(unknowns))
+    if both:
+        parser.fail(f'parameters {both} are both unknown and known; remove them from one '
+                    'list', 'known' if 'known' in data else 'lock_number')
+    if 'initial_state' in data:
+        options['initial_state'] = parser.choice(data['initial_state'], INITIAL_STATES,
+                                                 'initial_state')
+    if 'noise_std_rad' in data:
+        noise = parser.number(data['noise_std_rad'], 'noise_std_rad', positive=True)
+        if noise > MAX_ANGLE_RAD:
+            parser.fail(f'noise_std_rad = {noise} rad is implausibly large: the unit is '
+                        'radians (degrees?)', 'noise_std_rad')
+        options['noise_std_rad'] = noise
+    if 'method' in data:
+        options['method'] = parser.choice(data['method'], METHODS, 'method')
+    if 'measurement' in data:
+        options['measurement'] = parser.choice(data['measurement'], MEASUREMENTS,
+                                               'measurement')
+
+    return RunDescription(
+        rotor=spec, topics=topics, model=model, unknowns=tuple(unknowns), window_s=(t0, t1),
+        path=parser.path, warnings=tuple(parser.warnings),
+        extra={k: v for k, v in data.items() if k not in TOP_LEVEL_KEYS}, **options)
+
+
+def validate_window(description, record):
+    """Check that the description's window lies inside the record.
+
+    The ends may overshoot the record by up to one sample period (a window written as a time
+    rounded up, as in the recordings, whose window ends 0.6 ms after the last 1 kHz sample).
+
+    Args:
+        description: RunDescription.
+        record: Record read from the bag.
+
+    Raises:
+        RunDescriptionError: The window is not inside the record's span.
+    """
+    t0, t1 = description.window_s
+    first, last = float(record.time_s[0]), float(record.time_s[-1])
+    tolerance = record.sample_period_s if len(record) > 1 else 0.0
+    if t0 < first - tolerance or t1 > last + tolerance:
+        raise RunDescriptionError(
+            f'{description.path}: window_s [{t0}, {t1}] s is outside the record, which spans '
+            f'[{first:.6f}, {last:.6f}] s after the first flap stamp ({record.source}); '
+            'shorten the window or check that the description belongs to this bag',
+            description.path)
