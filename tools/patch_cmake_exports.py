@@ -1,5 +1,6 @@
 #!/usr/bin/env python3
-"""Point the ros-* wheels' CMake exports at this interpreter's headers.
+"""
+Point the ros-* wheels' CMake exports at this interpreter's headers.
 
 The ros-* message wheels were built in a manylinux container whose Python lived in
 ``/opt/python/cp3XX-cp3XX``. Their ``share/<pkg>/cmake/*.cmake`` export files carry that
@@ -61,14 +62,14 @@ def leftovers(text):
 
 def main(argv=None):
     """Patch (or, with --check, verify) the CMake exports under a prefix."""
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(description=__doc__.strip().splitlines()[0])
     parser.add_argument(
         '--prefix', default=sys.prefix,
-        help='install prefix holding share/<pkg>/cmake (default: this interpreter\'s '
+        help="install prefix holding share/<pkg>/cmake (default: this interpreter's "
              'sys.prefix, i.e. the venv)')
     parser.add_argument(
         '--check', action='store_true',
-        help='change nothing; exit 1 if any file still names the builder\'s paths')
+        help="change nothing; exit 1 if any file still names the builder's paths")
     parser.add_argument('-q', '--quiet', action='store_true', help='print only problems')
     args = parser.parse_args(argv)
 
