@@ -1,0 +1,62 @@
+"""Shared pytest fixtures: repository paths, the built workspace, ROS isolation."""
+
+import itertools
+import os
+from pathlib import Path
+import sys
+
+import pytest
+
+try:
+    from hypothesis import settings
+except ImportError:  # the pure tests still run without hypothesis
+    settings = None
+
+REPO_ROOT = Path(__file__).resolve().parents[1]
+
+if settings is not None:
+    # Timing on the 2-core CI machine is noisy: no per-example deadline.
+    settings.register_profile('rotor_id', deadline=None, print_blob=True)
+    settings.load_profile(os.environ.get('HYPOTHESIS_PROFILE', 'rotor_id'))
+
+_domain_ids = itertools.count()
+
+
+@pytest.fixture(scope='session')
+def repo_root():
+    """Return the repository root (the rotor_id package's source directory)."""
+    return REPO_ROOT
+
+
+@pytest.fixture(scope='session')
+def venv_prefix():
+    """Return the prefix of the venv running the tests; skip if not run from a venv."""
+    if sys.prefix == sys.base_prefix:
+        pytest.skip('not running in a venv (run `make test`, which uses .venv)')
+    return Path(sys.prefix)
+
+
+@pytest.fixture(scope='session')
+def install_prefix(repo_root):
+    """Return <repo>/install of the colcon build; skip if the workspace is not built."""
+    prefix = repo_root / 'install'
+    if not (prefix / 'local_setup.sh').is_file():
+        pytest.skip(f'no colcon install tree at {prefix} (run `make test`, which builds it)')
+    return prefix
+
+
+@pytest.fixture
+def ros_domain_id():
+    """Return a ROS_DOMAIN_ID unique to this test within the session (1..100)."""
+    return 1 + (os.getpid() + next(_domain_ids)) % 100
+
+
+@pytest.fixture
+def ros_env(ros_domain_id, tmp_path):
+    """Return an environment for ROS subprocesses isolated to this test and to loopback."""
+    env = dict(os.environ)
+    env['ROS_DOMAIN_ID'] = str(ros_domain_id)
+    env['ROS_AUTOMATIC_DISCOVERY_RANGE'] = 'LOCALHOST'
+    env['ROS_LOG_DIR'] = str(tmp_path / 'ros_log')
+    env['PYTHONUNBUFFERED'] = '1'
+    return env

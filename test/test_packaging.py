@@ -1,0 +1,300 @@
+"""
+The package as ROS users meet it: executables, interfaces, and a colcon build.
+
+* every console script of setup.py is found the way ``ros2 run rotor_id <exe>`` finds it;
+* the rotor_id_msgs messages import, serialize and carry the documented fields, and rosbags
+  (our bag library) reads the same definitions with the same type hash as rosidl;
+* a fresh workspace with the repository under ``src/`` builds with the documented command.
+"""
+
+import ast
+import json
+import os
+from pathlib import Path
+import re
+import shutil
+import subprocess
+import sys
+
+import pytest
+
+REPO_ROOT = Path(__file__).resolve().parents[1]
+MSG_DIR = REPO_ROOT / 'msg_defs' / 'msg'
+SRV_DIR = REPO_ROOT / 'msg_defs' / 'srv'
+
+# The contract other parts of rotor_id (nodes, io, estimation) are written against.
+EXPECTED_FIELDS = {
+    'ParameterEstimate': [
+        'header', 'model', 'names', 'units', 'values', 'std', 'covariance', 'correlation',
+        'noise_std', 'channel_names', 'cost', 'iteration', 'status', 'message',
+        'window_start', 'window_end', 'window_s', 'target_met', 'additional_data_s'],
+    'StateEstimate': [
+        'header', 'names', 'units', 'values', 'covariance', 'azimuth', 'rotor_speed'],
+    'StirringCommand': [
+        'header', 'collective', 'cyclic_forward', 'cyclic_left', 'stirring_phase',
+        'stirring_rate', 'phase'],
+    'IdentificationProgress': [
+        'header', 'iteration', 'cost', 'values', 'names', 'elapsed', 'message'],
+}
+EXPECTED_CONSTANTS = {
+    'ParameterEstimate': {'STATUS_ITERATING': 0, 'STATUS_CONVERGED': 1, 'STATUS_FAILED': 2,
+                          'STATUS_MAX_ITERATIONS': 3},
+    'StirringCommand': {'PHASE_TRIM': 0, 'PHASE_CYCLIC_STEP': 1, 'PHASE_STIRRING': 2,
+                        'PHASE_DONE': 3},
+}
+
+
+def console_scripts():
+    """Return the console_scripts names declared in setup.py (read, not executed)."""
+    tree = ast.parse((REPO_ROOT / 'setup.py').read_text(encoding='utf-8'))
+    for node in ast.walk(tree):
+        if isinstance(node, ast.keyword) and node.arg == 'entry_points':
+            entry_points = ast.literal_eval(node.value)
+            return [spec.split('=')[0].strip() for spec in entry_points['console_scripts']]
+    raise AssertionError('setup.py declares no entry_points')
+
+
+def ros2_run_lookup(package, executable):
+    """
+    Resolve ``ros2 run <package> <executable>`` like ros2run does; return the paths.
+
+    The package prefix is the first AMENT_PREFIX_PATH entry whose ament index lists the
+    package; the candidates are the executable files below ``<prefix>/lib/<package>/``
+    (dot-directories skipped) whose basename is ``executable``.
+    """
+    from ament_index_python.packages import get_package_prefix
+    base = Path(get_package_prefix(package)) / 'lib' / package
+    found = []
+    for dirpath, dirnames, filenames in os.walk(base):
+        dirnames[:] = sorted(d for d in dirnames if not d.startswith('.'))
+        for name in sorted(filenames):
+            path = Path(dirpath, name)
+            if name == executable and os.access(path, os.X_OK):
+                found.append(path)
+    return found
+
+
+def msg_fields(text):
+    """Yield (type, name, comment) of the fields of a .msg text, constants excluded."""
+    comment_above = False
+    for line in text.splitlines():
+        stripped = line.strip()
+        if not stripped:
+            comment_above = False
+            continue
+        if stripped.startswith('#'):
+            comment_above = True
+            continue
+        body, _, comment = stripped.partition('#')
+        typ, name = body.split()[:2]
+        if '=' in name:  # constant
+            continue
+        yield typ, name, comment.strip() or (comment_above and 'above')
+        comment_above = False
+
+
+@pytest.fixture(scope='module')
+def ament_index():
+    """Skip unless both packages are on AMENT_PREFIX_PATH (a built, sourced workspace)."""
+    pytest.importorskip('ament_index_python')
+    from ament_index_python.packages import get_package_prefix
+    from ament_index_python.packages import PackageNotFoundError
+    try:
+        return {pkg: Path(get_package_prefix(pkg)) for pkg in ('rotor_id', 'rotor_id_msgs')}
+    except PackageNotFoundError as exc:
+        pytest.skip(f'{exc}: the workspace is not built or not sourced (`make test` does both)')
+
+
+# --- (a) ros2 run -----------------------------------------------------------------------
+
+def test_setup_py_declares_the_nodes_and_the_cli():
+    assert set(console_scripts()) >= {
+        'stirring_input', 'rotor_plant', 'state_estimator', 'identifier', 'recorder',
+        'rotor-id'}
+
+
+@pytest.mark.parametrize('executable', console_scripts())
+def test_ros2_run_finds_console_script(ament_index, executable):
+    found = ros2_run_lookup('rotor_id', executable)
+    assert len(found) == 1, \
+        f'ros2 run rotor_id {executable}: found {found} under {ament_index["rotor_id"]}/lib'
+    shebang = found[0].read_text(encoding='utf-8').splitlines()[0]
+    interpreter = shebang[2:].split()[0]
+    assert os.access(interpreter, os.X_OK), f'{found[0]}: interpreter {interpreter} missing'
+
+
+def test_ros2_run_rejects_unknown_executable(ament_index):
+    assert ros2_run_lookup('rotor_id', 'no_such_node') == []
+
+
+def test_installed_cli_starts(ament_index):
+    # Loads the entry point through importlib.metadata: needs the egg-info on PYTHONPATH.
+    exe = ros2_run_lookup('rotor_id', 'rotor-id')[0]
+    result = subprocess.run([str(exe), '--help'], capture_output=True, text=True, timeout=60)
+    assert result.returncode == 0, result.stderr
+    assert 'usage: rotor-id' in result.stdout
+
+
+def test_share_directory_is_complete(ament_index):
+    share = ament_index['rotor_id'] / 'share' / 'rotor_id'
+    assert (share / 'package.xml').is_file()
+    msgs = ament_index['rotor_id_msgs'] / 'share' / 'rotor_id_msgs'
+    for name in EXPECTED_FIELDS:
+        # rosbags builds its typestore from these installed definitions
+        assert (msgs / 'msg' / f'{name}.msg').is_file()
+    assert (msgs / 'srv' / 'Identify.srv').is_file()
+
+
+# --- (b) interfaces ---------------------------------------------------------------------
+
+def test_every_field_is_documented():
+    for path in sorted(MSG_DIR.glob('*.msg')) + sorted(SRV_DIR.glob('*.srv')):
+        lines = [ln for ln in path.read_text(encoding='utf-8').splitlines() if ln != '---']
+        for typ, name, comment in msg_fields('\n'.join(lines)):
+            assert comment, f'{path.name}: field `{typ} {name}` has no comment (units!)'
+
+
+def test_messages_start_with_header():
+    for name in EXPECTED_FIELDS:
+        first = next(msg_fields((MSG_DIR / f'{name}.msg').read_text(encoding='utf-8')))
+        assert first[:2] == ('std_msgs/Header', 'header'), name
+
+
+def _sample_value(typ):
+    """Return a non-default value for a field of rosidl type string ``typ``."""
+    sequence = re.fullmatch(r'sequence<(.+)>', typ)
+    if sequence:
+        return [_sample_value(sequence.group(1)) for _ in range(3)]
+    scalars = {'double': -1.25, 'float': 0.5, 'boolean': True, 'string': 'rotor_hub',
+               'uint8': 3, 'uint32': 7, 'int32': -7, 'uint64': 9, 'int64': -9}
+    if typ in scalars:
+        return scalars[typ]
+    package, name = typ.split('/')
+    cls = getattr(__import__(f'{package}.msg', fromlist=[name]), name)
+    return _filled(cls)
+
+
+def _filled(cls):
+    """Return a ``cls`` message with every field set to a non-default value."""
+    msg = cls()
+    for field, typ in cls.get_fields_and_field_types().items():
+        setattr(msg, field, _sample_value(typ))
+    return msg
+
+
+@pytest.fixture(scope='module')
+def interfaces(ament_index):
+    msg = pytest.importorskip('rotor_id_msgs.msg')
+    srv = pytest.importorskip('rotor_id_msgs.srv')
+    return msg, srv
+
+
+@pytest.mark.parametrize('name', sorted(EXPECTED_FIELDS))
+def test_message_round_trips_through_cdr(interfaces, name):
+    from rclpy.serialization import deserialize_message
+    from rclpy.serialization import serialize_message
+    msg_module, _ = interfaces
+    cls = getattr(msg_module, name)
+    assert list(cls.get_fields_and_field_types()) == EXPECTED_FIELDS[name]
+    for constant, value in EXPECTED_CONSTANTS.get(name, {}).items():
+        assert getattr(cls, constant) == value
+    original = _filled(cls)
+    assert original != cls()
+    assert deserialize_message(serialize_message(original), cls) == original
+
+
+def test_identify_service_round_trips(interfaces):
+    from rclpy.serialization import deserialize_message
+    from rclpy.serialization import serialize_message
+    msg_module, srv_module = interfaces
+    request = srv_module.Identify.Request(window_start_s=1.5, window_end_s=30.0)
+    response = srv_module.Identify.Response(
+        success=True, message='ok', estimate=_filled(msg_module.ParameterEstimate))
+    for value in (request, response):
+        assert deserialize_message(serialize_message(value), type(value)) == value
+
+
+@pytest.mark.parametrize('name', sorted(EXPECTED_FIELDS))
+def test_rosbags_type_hash_matches_rosidl(ament_index, name):
+    # Bags written with rosbags must carry the type hash a ROS 2 Jazzy reader expects.
+    typesys = pytest.importorskip('rosbags.typesys')
+    store = typesys.get_typestore(typesys.Stores.ROS2_JAZZY)
+    share = ament_index['rotor_id_msgs'] / 'share' / 'rotor_id_msgs' / 'msg'
+    types = {}
+    for path in sorted(share.glob('*.msg')):
+        types.update(typesys.get_types_from_msg(
+            path.read_text(encoding='utf-8'), f'rotor_id_msgs/msg/{path.stem}'))
+    store.register(types)
+    rosidl = json.loads((share / f'{name}.json').read_text(encoding='utf-8'))
+    expected = rosidl['type_hashes'][0]
+    assert expected['type_name'] == f'rotor_id_msgs/msg/{name}'
+    assert store.hash_rihs01(f'rotor_id_msgs/msg/{name}') == expected['hash_string']
+
+
+# --- (c) colcon -------------------------------------------------------------------------
+
+def _colcon_env(venv_prefix, tmp_path):
+    """Environment of a user with only the venv (no built workspace) active."""
+    env = {k: v for k, v in os.environ.items()
+           if k not in ('PYTHONPATH', 'COLCON_PREFIX_PATH', 'LD_LIBRARY_PATH',
+                        'COLCON_DEFAULTS_FILE')}
+    env['VIRTUAL_ENV'] = str(venv_prefix)
+    env['PATH'] = f'{venv_prefix / "bin"}{os.pathsep}{env.get("PATH", "")}'
+    env['AMENT_PREFIX_PATH'] = str(venv_prefix)
+    env['CMAKE_PREFIX_PATH'] = str(venv_prefix)
+    env['COLCON_HOME'] = str(tmp_path / 'colcon_home')  # no personal colcon defaults
+    return env
+
+
+def _colcon(args, cwd, env, timeout=60):
+    colcon = Path(env['VIRTUAL_ENV'], 'bin', 'colcon')
+    if not colcon.exists():
+        pytest.skip(f'colcon is not installed in {env["VIRTUAL_ENV"]}')
+    return subprocess.run([str(colcon), *args], cwd=cwd, env=env, capture_output=True,
+                          text=True, timeout=timeout, stdin=subprocess.DEVNULL)
+
+
+def _listed(result):
+    assert result.returncode == 0, result.stderr
+    return sorted(result.stdout.split())
+
+
+def test_colcon_in_repo_root_finds_both_packages(venv_prefix, tmp_path):
+    # colcon_defaults.yaml in the root adds msg_defs as a base path.
+    env = _colcon_env(venv_prefix, tmp_path)
+    assert _listed(_colcon(['list', '--names-only'], REPO_ROOT, env)) == \
+        ['rotor_id', 'rotor_id_msgs']
+
+
+def _copy_ignore(directory, names):
+    generated = {'__pycache__', '.pytest_cache', '.hypothesis'}
+    if Path(directory).resolve() == REPO_ROOT:
+        generated |= {'.venv', 'build', 'install', 'log', 'out', '.git'}
+    return [n for n in names if n in generated or n.endswith('.egg-info')]
+
+
+@pytest.mark.slow
+def test_fresh_workspace_builds_with_documented_command(venv_prefix, tmp_path):
+    ws = tmp_path / 'ws'
+    shutil.copytree(REPO_ROOT, ws / 'src' / 'rotor_id', ignore=_copy_ignore, symlinks=True)
+    env = _colcon_env(venv_prefix, tmp_path)
+
+    # What README.md says: colcon's crawl stops at the root package ...
+    assert _listed(_colcon(['list', '--names-only', '--base-paths', 'src'], ws, env)) == \
+        ['rotor_id']
+    # ... so msg_defs is named as a second base path.
+    base_paths = ['--base-paths', 'src', 'src/rotor_id/msg_defs']
+    assert _listed(_colcon(['list', '--names-only', *base_paths], ws, env)) == \
+        ['rotor_id', 'rotor_id_msgs']
+
+    result = _colcon(
+        ['build', *base_paths, '--event-handlers', 'status-', 'desktop_notification-',
+         'terminal_title-'], ws, env, timeout=900)
+    assert result.returncode == 0, result.stdout[-3000:] + result.stderr[-3000:]
+    install = ws / 'install'
+    for exe in console_scripts():
+        assert os.access(install / 'rotor_id' / 'lib' / 'rotor_id' / exe, os.X_OK), exe
+    site = install / 'rotor_id_msgs' / 'lib' / f'python{sys.version_info[0]}.' \
+        f'{sys.version_info[1]}' / 'site-packages' / 'rotor_id_msgs'
+    assert (site / 'msg' / '_parameter_estimate.py').is_file()
+    assert (site / 'srv' / '_identify.py').is_file()
