@@ -24,6 +24,8 @@ VPY := $(VENV)/bin/python
 REQS := requirements-jazzy.in
 CONS := constraints-jazzy.txt
 PATCH := tools/patch_cmake_exports.py
+# uv (fast) or pip; uv falls back to pip by itself if uv cannot be installed.
+INSTALLER ?= uv
 
 # The venv is keyed on the content of the pins and of the patch script, and on where the
 # clone lives (the venv is not relocatable): a stamp with that key makes `make venv` a no-op.
@@ -57,12 +59,13 @@ $(VENV_STAMP): | sysdeps
 	  echo "   $(VENV) was made elsewhere (or is incomplete): recreating it"; rm -rf $(VENV); fi
 	@if [ ! -x $(VPY) ]; then $(PYTHON) -m venv $(VENV) && echo "$(CURDIR)" > $(VENV)/.origin; fi
 	@rm -f $(VENV)/.stamp-*
-	@if $(VPY) -m pip install -q --disable-pip-version-check -c $(CONS) uv 2>/dev/null; then \
+	@if [ "$(INSTALLER)" = uv ] && \
+	    $(VPY) -m pip install -q --disable-pip-version-check -c $(CONS) uv 2>/dev/null; then \
 	  echo "   installer: uv $$($(VENV)/bin/uv --version | cut -d' ' -f2)"; \
 	  UV_PYTHON_DOWNLOADS=never UV_NO_PROGRESS=1 $(VENV)/bin/uv pip install -q \
 	    --python $(VPY) -r $(REQS) -c $(CONS); \
 	else \
-	  echo "   installer: pip (uv not installable here)"; \
+	  echo "   installer: pip"; \
 	  $(VPY) -m pip install -q --disable-pip-version-check -r $(REQS) -c $(CONS); \
 	fi
 	@$(VPY) $(PATCH) --quiet
