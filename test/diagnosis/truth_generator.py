@@ -1,0 +1,222 @@
+"""Independent generator of "real" test-stand recordings with concealed effects (issue 4).
+
+This is the test suite's stand-in for the rotor. It is written from the blade equations, blade
+by blade, with scipy's adaptive integrator, and shares no code with the identification models
+of :mod:`rotor_id.physics` or the simulator of :mod:`rotor_id.estimation` (only the Record
+container is used, to hand the data over). Each blade k at azimuth ψ_k = t + (k−1)2π/N obeys
+the Sissingh rigid-blade equation (MODELS.md §1.1, corrected Ch.3 eq. 24), with its own Lock
+number γ_k, pitch θ_k and a cubic flap spring:
+
+    β_k″ + (γ_k/2) C(ψ_k) β_k′ + [P² + (γ_k/2) K(ψ_k)] β_k + κ β_k³
+        = (γ_k/2) m_θ(ψ_k) (θ_k + λ_k)
+
+The inflow angle λ_k (up positive, the report's sign) acts like a pitch change. It holds the
+first-harmonic dynamic wake (Crews-Hohenemser-Ormiston gain L, Peters time constant τ), driven by
+the first harmonics of the blades' aerodynamic moments,
+
+    τ λ_c′ + λ_c = −L (2/N) Σ M_k cos ψ_k,   τ λ_s′ + λ_s = −L (2/N) Σ M_k sin ψ_k,
+    M_k = (γ_k/2) [m_θ (θ_k + λ_k) − C β_k′ − K β_k],    λ_k = λ_c cos ψ_k + λ_s sin ψ_k + w_k
+
+plus a random inflow (turbulence) w_k = w_0 + w_c cos ψ_k + w_s sin ψ_k whose three components
+are independent Gauss-Markov processes (σ ``turbulence``, correlation time ``turbulence_corr``
+in rad of azimuth). The sensors: each flap sensor lags (first order, time constant
+``sensor_lag`` rad of azimuth), is read ``time_delay_s`` late with respect to the pitch, has a
+constant bias and white noise; pitch sensors have white noise and do not see a blade's
+aerodynamic pitch offset ``pitch_offset``.
+
+The record starts in trim at collective pitch only (settled over ``t_settle`` from rest), the
+lateral cyclic is stepped on at ``t_step``, and pitch stirring θI = a sin φ, θII = a cos φ,
+φ = ω̇ (t − t_step − t0)² starts t0 later and lasts ``t_stir`` (recordings README).
+"""
+
+from dataclasses import asdict, dataclass, field, replace
+import math
+
+import numpy as np
+from scipy.integrate import solve_ivp
+
+from rotor_id.io.record import Record
+
+
+@dataclass
+class TruthConfig:
+    """The knobs of the generator (the ``truth`` blocks of recordings/answers.json)."""
+
+    mu: float = 0.0
+    gamma: float = 8.0 * 0.5 / 0.97**4          # A = γB⁴/8 = 0.5
+    theta0: float = math.radians(2.0)
+    tip_loss: float = 0.97
+    flap_freq: float = 1.2
+    cyclic: float = math.radians(1.5)
+    t_step: float = 2.0 * math.pi
+    t0: float = 70.0
+    omegadot: float = -0.1 / math.pi
+    t_stir: float = 24.0
+    t_settle: float = 80.0
+    wake: bool = True
+    wake_L: float = 4.0
+    wake_tau: float = 8.0
+    omega_rad_s: float = 94.24777960769379
+    rate_hz: float = 1000.0
+    flap_noise: float = math.radians(0.05)
+    pitch_noise: float = math.radians(0.005)
+    seed: int = 0
+    sensor_lag: float = 0.0
+    time_delay_s: float = 0.0
+    sensor_bias: list = field(default_factory=lambda: [0.0, 0.0, 0.0, 0.0])
+    gamma_scale: list = field(default_factory=lambda: [1.0, 1.0, 1.0, 1.0])
+    pitch_offset: list = field(default_factory=lambda: [0.0, 0.0, 0.0, 0.0])
+    turbulence: float = 0.0
+    turbulence_corr: float = 2.0
+    cubic_stiffness: float = 0.0
+    n_blades: int = 4
+
+    @property
+    def t_end(self):
+        """Last nondimensional time of the record."""
+        return self.t_step + self.t0 + self.t_stir
+
+    def with_(self, **changes):
+        """A copy with some knobs changed."""
+        return replace(self, **changes)
+
+    def as_dict(self):
+        """JSON-ready knobs."""
+        return asdict(self)
+
+
+def wake_case(**changes):
+    """The report's μ = 0 dynamic-wake case (Ch.2), as the dx_* wake recordings."""
+    return TruthConfig(**changes)
+
+
+def mu04_case(**changes):
+    """The report's μ = 0.4 multiblade case, no wake (Ch.2/Ch.3), as dx_periodic_coefficients."""
+    base = dict(mu=0.4, gamma=5.0, t0=12.0, wake=False, flap_noise=math.radians(0.1))
+    base.update(changes)
+    return TruthConfig(**base)
+
+
+def _pitch_schedule(cfg, t):
+    """Commanded multiblade pitch (θI, θII) at times t: step, then stirring."""
+    t = np.asarray(t, dtype=float)
+    on = np.where(t >= cfg.t_step, cfg.cyclic, 0.0)
+    tau = np.maximum(t - cfg.t_step - cfg.t0, 0.0)
+    phi = cfg.omegadot * tau * tau
+    return on * np.sin(phi), on * np.cos(phi)
+
+
+class _GaussMarkov:
+    """Three independent first-order Gauss-Markov inflow components on a fine grid."""
+
+    def __init__(self, sigma, corr, t_start, t_end, rng, step=0.02):
+        self.t = np.arange(t_start, t_end + 2 * step, step)
+        a = math.exp(-step / corr)
+        w = np.zeros((self.t.size, 3))
+        w[0] = sigma * rng.standard_normal(3)
+        kick = sigma * math.sqrt(1.0 - a * a) * rng.standard_normal((self.t.size, 3))
+        for j in range(1, self.t.size):
+            w[j] = a * w[j - 1] + kick[j]
+        self.w = w
+        self.step = step
+
+    def __call__(self, t):
+        x = (t - self.t[0]) / self.step
+        j = min(max(int(x), 0), self.t.size - 2)
+        f = x - j
+        return (1.0 - f) * self.w[j] + f * self.w[j + 1]
+
+
+def _rhs_factory(cfg, turbulence):
+    n = cfg.n_blades
+    B, mu, P = cfg.tip_loss, cfg.mu, cfg.flap_freq
+    offsets = 2.0 * math.pi * np.arange(n) / n
+    gam = cfg.gamma * np.asarray(cfg.gamma_scale, dtype=float)
+    dtheta = np.asarray(cfg.pitch_offset, dtype=float)
+    kappa = cfg.cubic_stiffness
+    lag = cfg.sensor_lag
+    wake = cfg.wake
+    L, tau = cfg.wake_L, cfg.wake_tau
+
+    def rhs(t, s):
+        beta, rate = s[:n], s[n:2 * n]
+        lam_c, lam_s = s[2 * n], s[2 * n + 1]
+        psi = t + offsets
+        s1, c1, s2, c2 = np.sin(psi), np.cos(psi), np.sin(2 * psi), np.cos(2 * psi)
+        damping = B**4 / 4 + (B**3 * mu / 3) * s1
+        stiffness = (B**3 * mu / 3) * c1 + (B**2 * mu**2 / 4) * s2
+        m_theta = (B**4 + B**2 * mu**2) / 4 + (2.0 / 3.0) * B**3 * mu * s1 - (B**2 * mu**2 / 4) * c2
+        th_i, th_ii = _pitch_schedule(cfg, t)
+        theta = cfg.theta0 + dtheta - th_i * np.sin(psi) + th_ii * np.cos(psi)
+        lam = lam_c * c1 + lam_s * s1 if wake else 0.0 * c1
+        if turbulence is not None:
+            w = turbulence(t)
+            lam = lam + w[0] + w[1] * c1 + w[2] * s1
+        aero = 0.5 * gam * (m_theta * (theta + lam) - damping * rate - stiffness * beta)
+        accel = aero - P**2 * beta - kappa * beta**3
+        out = np.empty_like(s)
+        out[:n] = rate
+        out[n:2 * n] = accel
+        if wake:
+            moment_c = (2.0 / n) * np.sum(aero * c1)
+            moment_s = (2.0 / n) * np.sum(aero * s1)
+            out[2 * n] = (-lam_c - L * moment_c) / tau
+            out[2 * n + 1] = (-lam_s - L * moment_s) / tau
+        else:
+            out[2 * n:2 * n + 2] = 0.0
+        if lag > 0:
+            out[2 * n + 2:] = (beta - s[2 * n + 2:]) / lag
+        else:
+            out[2 * n + 2:] = 0.0
+        return out
+
+    return rhs
+
+
+def generate(cfg):
+    """Simulate one recording; return a :class:`rotor_id.io.record.Record` (rad, s)."""
+    rng = np.random.default_rng(cfg.seed)
+    n = cfg.n_blades
+    omega = cfg.omega_rad_s
+    dt_s = 1.0 / cfg.rate_hz
+    n_samples = int(math.floor(cfg.t_end / omega / dt_s + 1e-9)) + 1
+    time_s = np.arange(n_samples) * dt_s
+    t = omega * time_s
+    delay = omega * cfg.time_delay_s
+    t_start = -cfg.t_settle - max(delay, 0.0)
+    turbulence = None
+    if cfg.turbulence > 0:
+        turbulence = _GaussMarkov(cfg.turbulence, cfg.turbulence_corr, t_start - 1.0,
+                                  cfg.t_end + 1.0, rng)
+    rhs = _rhs_factory(cfg, turbulence)
+    s0 = np.zeros(3 * n + 2)
+    t_read = t - delay                       # flap read late: it shows the rotor at t − delay
+    sol = solve_ivp(rhs, (t_start, float(max(t[-1], t_read[-1]))), s0, method='DOP853',
+                    t_eval=t_read, rtol=1e-9, atol=1e-12,
+                    max_step=0.05 if turbulence is not None else 0.5)
+    if not sol.success:
+        raise RuntimeError(f'truth simulation failed: {sol.message}')
+    states = sol.y.T
+    flap_true = states[:, 2 * n + 2:] if cfg.sensor_lag > 0 else states[:, :n]
+    flap = (flap_true + np.asarray(cfg.sensor_bias, dtype=float)[None, :]
+            + cfg.flap_noise * rng.standard_normal((n_samples, n)))
+    psi = t[:, None] + 2.0 * math.pi * np.arange(n)[None, :] / n
+    th_i, th_ii = _pitch_schedule(cfg, t)
+    pitch = (cfg.theta0 - th_i[:, None] * np.sin(psi) + th_ii[:, None] * np.cos(psi)
+             + cfg.pitch_noise * rng.standard_normal((n_samples, n)))
+    return Record(time_s=time_s, t=t, rotor_speed_rad_s=np.full(n_samples, omega),
+                  blade_flap=flap, blade_pitch=pitch,
+                  blade_names=[f'blade_{k + 1}' for k in range(n)],
+                  source=f'truth_generator seed {cfg.seed}')
+
+
+def run_description_text(cfg, model, unknowns, window_s=None):
+    """A run description (README schema) for a generated record."""
+    window_s = window_s or (0.0, cfg.t_end / cfg.omega_rad_s)
+    names = ', '.join(unknowns)
+    return (f'rotor:\n  blades: {cfg.n_blades}\n  advance_ratio: {cfg.mu}\n'
+            f'  flap_frequency: 1.2\n  tip_loss: {cfg.tip_loss}\n'
+            'topics: {blade_pitch: /rotor/blade_pitch, blade_flap: /rotor/blade_flap, '
+            'azimuth: /rotor/azimuth}\n'
+            f'model: {model}\nunknowns: [{names}]\n'
+            f'window_s: [{window_s[0]:.6f}, {window_s[1]:.6f}]\n')
