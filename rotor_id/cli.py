@@ -1,4 +1,5 @@
-"""The ``rotor-id`` command line.
+"""
+The ``rotor-id`` command line.
 
 Run it from a clone with ``./rotor-id <command>`` (no sourcing needed) or, in a sourced
 workspace, as ``ros2 run rotor_id rotor-id <command>``. Each command lives in its own module

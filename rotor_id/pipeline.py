@@ -1,4 +1,5 @@
-"""From a recorded run to an estimate: the one path shared by the CLI, the nodes, diagnosis and plan.
+"""
+From a recorded run to an estimate: the one path shared by CLI, nodes, diagnosis and plan.
 
 record (rad, s)  →  window  →  model of the run description  →  Experiment(s) in the report's
 nondimensional time  →  estimator  →  :class:`Identification` (estimate + what it was fitted to).
@@ -38,7 +39,7 @@ class Identification:
     unknowns: list
 
     def as_json(self):
-        """The JSON of ``rotor-id identify`` (keys fixed by issue 3; more keys allowed)."""
+        """Return the JSON of ``rotor-id identify`` (keys fixed by issue 3; more allowed)."""
         est = self.estimate
         idx = [est.names.index(n) for n in self.unknowns]
         cov = est.covariance[np.ix_(idx, idx)]
@@ -68,7 +69,7 @@ class Identification:
 
 
 def rotor_constants(description):
-    """RotorConstants from a run description's ``rotor`` block."""
+    """Return the RotorConstants of a run description's ``rotor`` block."""
     rotor = description.rotor
     return RotorConstants(n_blades=int(rotor.blades), advance_ratio=float(rotor.advance_ratio),
                           flap_frequency=float(rotor.flap_frequency),
@@ -76,15 +77,15 @@ def rotor_constants(description):
 
 
 def model_for(description, **options):
-    """The identification model a run description names, in radians."""
+    """Return the identification model a run description names, in radians."""
     rotor = rotor_constants(description)
     measurement = description.measurement or DEFAULT_MEASUREMENT[description.model]
     if description.model == 'multiblade':
         options.setdefault('outputs', 'blades' if measurement == 'blades' else 'multiblade')
     if description.model == 'multiblade_wake' and measurement not in ('eq30', 'multiblade'):
         raise IdentificationError(
-            "the wake model measures (β1−β3)/2 and (β2−β4)/2 (report eq. 30); set "
-            "measurement: eq30 (or leave it out) in the run description")
+            'the wake model measures (β1−β3)/2 and (β2−β4)/2 (report eq. 30); set '
+            'measurement: eq30 (or leave it out) in the run description')
     collective = 'delta' if 'delta' in description.unknowns else 'theta0'
     return build_model(description.model, rotor, collective=collective, angle_unit='rad',
                        **({} if description.model in ('multiblade_constant', 'multiblade_wake')
@@ -133,7 +134,7 @@ def experiments_from_record(record, description, model=None, window_s=None):
 
 
 def _start_candidates(model, unknowns, guess):
-    """Starting points: the guess, and each unknown scaled by 1/2 and 2 (a coarse grid)."""
+    """Yield starting points: the guess, and each unknown scaled by 1/2 and 2 (a grid)."""
     base = {n: guess[n] for n in unknowns}
     scales = (0.5, 1.0, 2.0)
     for combo in itertools.product(scales, repeat=len(unknowns)):
@@ -141,7 +142,8 @@ def _start_candidates(model, unknowns, guess):
 
 
 def starting_values(record, description, model, experiments, known, multi_start=True):
-    """Starting values: the run description's guess, or the best of a coarse grid of starts.
+    """
+    Return starting values: the description's guess, or the best of a grid of starts.
 
     The report starts from guesses 20-50 % off. A test stand's rotor may be further off the
     nominal values, so unless the description gives ``initial_guess`` for every unknown the
@@ -168,16 +170,25 @@ def starting_values(record, description, model, experiments, known, multi_start=
 
 def identify(record, description, method=None, progress=None, window_s=None,
              multi_start=True, max_iter=50):
-    """Identify the run description's unknowns from a record.
+    """
+    Identify the run description's unknowns from a record.
 
     Parameters
     ----------
     record : rotor_id.io.record.Record
+        The recorded run (radians, seconds).
     description : rotor_id.io.run_description.RunDescription
+        What to identify: model, unknowns, window.
     method : str, optional
         'output-error' (default) | 'filter-error' | 'equation-error'.
     progress : callable, optional
         Called with a dict per iteration (see fit_output_error).
+    window_s : tuple, optional
+        Window (s after the first sample) overriding the description's.
+    multi_start : bool
+        Search a coarse grid of starting values unless the description gives them all.
+    max_iter : int
+        Most iterations of the estimator.
 
     Returns
     -------

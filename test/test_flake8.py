@@ -16,10 +16,6 @@ LINTED_DIRS = ('rotor_id', 'test', 'tools')
 # Files that failed flake8 when this test was introduced. Owners: fix the file, then
 # delete its entry (an XPASS in the summary means it is clean now). Don't add entries.
 LINT_DEBT = {
-    'rotor_id/estimation/output_error.py',
-    'rotor_id/estimation/simulate.py',
-    'rotor_id/physics/models.py',
-    'rotor_id/pipeline.py',
 }
 
 

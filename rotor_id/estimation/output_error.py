@@ -1,4 +1,5 @@
-"""Output-error maximum likelihood (report Ch.2 steps 1-8, Ch.1 eq. 25; MODELS.md §0.1).
+"""
+Output-error maximum likelihood (report Ch.2 steps 1-8, Ch.1 eq. 25; MODELS.md §0.1).
 
 For measurement noise only, the negative log-likelihood of samples y_j is
 
@@ -34,7 +35,8 @@ class IdentificationError(ValueError):
 
 @dataclass
 class Experiment:
-    """One run: a model, its input, the sample times and the measured outputs.
+    """
+    One run: a model, its input, the sample times and the measured outputs.
 
     Attributes
     ----------
@@ -65,7 +67,7 @@ class Experiment:
     name: str = 'run'
 
     def free_states(self):
-        """Indices of states whose initial value is estimated."""
+        """Return the indices of the states whose initial value is estimated."""
         mode = self.initial_state
         if isinstance(mode, str):
             if mode == 'estimate':
@@ -249,7 +251,8 @@ def _fit_initial_states(problem, theta, max_step):
 
 
 def evaluate(problem, theta, max_step=DEFAULT_MAX_STEP, sensitivities=True):
-    """Residuals and output sensitivities of every run at θ.
+    """
+    Residuals and output sensitivities of every run at θ.
 
     Returns a list of (residual (T, m), dy/dθ (T, m, len(θ)) or None, simulation) per run.
     """
@@ -306,11 +309,13 @@ def dependence_warnings(names, M, threshold=1e-7):
 def fit_output_error(experiments, unknowns, guess=None, known=None, noise_std=None,
                      prior=None, max_iter=50, step_tol=1e-6, max_step=DEFAULT_MAX_STEP,
                      progress=None, label='output-error ML'):
-    """Output-error maximum likelihood over one or more runs.
+    """
+    Output-error maximum likelihood over one or more runs.
 
     Parameters
     ----------
     experiments : list of Experiment
+        The runs; they share the model parameters, each has its own initial state.
     unknowns : list of str
         Model parameters to identify (the initial states follow from each run's
         ``initial_state``).
@@ -324,12 +329,17 @@ def fit_output_error(experiments, unknowns, guess=None, known=None, noise_std=No
         ``{'mean': {name: value}, 'std': {name: σ}}``: independent Gaussian a-priori information
         on model parameters (Ch.1 eq. 25); it adds ½Σ((θ−θp)/σp)² to J and 1/σp² to M.
     max_iter : int
+        Most Gauss-Newton iterations.
     step_tol : float
         Converged when every step component is below ``step_tol`` times its Cramér-Rao σ
         (after taking that step) or below 1e-12 relative to the parameter.
     progress : callable, optional
         Called as ``progress(info)`` with a dict (iteration, cost, values, names, elapsed,
         message) after every iteration.
+    max_step : float
+        Longest RK4 step of the simulation.
+    label : str
+        What is being fitted, passed on to ``progress``.
 
     Returns
     -------
@@ -438,7 +448,9 @@ def fit_output_error(experiments, unknowns, guess=None, known=None, noise_std=No
         cost = cost_of(results, noise_var)
         sigma = np.sqrt(np.clip(np.diag(np.linalg.pinv(M)), 0.0, None))
         small = np.abs(applied) <= np.maximum(step_tol * sigma, 1e-12 * np.abs(theta))
-        info = {'iteration': iteration, 'cost': float(cost), 'names': names,
+        n_res = sum(res.size for res, _, _ in results)
+        rms = math.sqrt(sum(float(np.sum(res**2)) for res, _, _ in results) / n_res)
+        info = {'iteration': iteration, 'cost': float(cost), 'rms': rms, 'names': names,
                 'values': theta.copy(), 'elapsed': time.perf_counter() - t_start,
                 'label': label, 'noise_std': np.sqrt(noise_var).copy()}
         history.append(info)

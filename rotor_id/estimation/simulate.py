@@ -1,4 +1,5 @@
-"""The one simulator: linear time-varying models, with exact discrete sensitivities.
+"""
+The one simulator: linear time-varying models, with exact discrete sensitivities.
 
 Integration is classical fourth-order Runge-Kutta with ``substeps`` equal steps between samples.
 For a linear system one RK4 step is an affine map ``x⁺ = Φ x + c`` whose Φ and c are polynomials
@@ -27,7 +28,8 @@ _CHUNK = 4096          # RK4 steps whose transition matrices are held in memory 
 
 @dataclass
 class Simulation:
-    """Result of :func:`simulate` at the sample times.
+    """
+    Result of :func:`simulate` at the sample times.
 
     Attributes
     ----------
@@ -51,7 +53,7 @@ class Simulation:
 
 
 def substeps_for(t, max_step=DEFAULT_MAX_STEP):
-    """Number of equal RK4 steps per sample interval so that no step exceeds ``max_step``."""
+    """Return the number of equal RK4 steps per sample interval so no step exceeds ``max_step``."""
     dt = np.diff(np.asarray(t, dtype=float))
     if dt.size == 0:
         return 1
@@ -67,7 +69,8 @@ def _fine_grid(t, substeps):
 
 
 def _rk4_maps(F, g, h, dF=None, dg=None):
-    """Affine RK4 step maps from stage values (see the module docstring).
+    """
+    Affine RK4 step maps from stage values (see the module docstring).
 
     ``F`` (2M+1, n, n) and ``g`` (2M+1, n) hold start/middle/end values of M steps of length
     ``h`` (M,); ``dF`` (2M+1, k, n, n) and ``dg`` (2M+1, k, n) their parameter derivatives.
@@ -113,11 +116,13 @@ def _rk4_maps(F, g, h, dF=None, dg=None):
 
 def simulate(model, p, inputs, t, x0, param_index=(), x0_jacobian=None,
              max_step=DEFAULT_MAX_STEP, forcing=None):
-    """Simulate ``model`` at sample times ``t`` from ``x0`` = x(t[0]), optionally with sensitivities.
+    """
+    Simulate ``model`` at sample times ``t`` from ``x0`` = x(t[0]), optionally with sensitivities.
 
     Parameters
     ----------
     model : LinearModel
+        The model to simulate.
     p : array_like, shape (P,)
         Full parameter vector of the model.
     inputs : callable

@@ -1,4 +1,5 @@
-"""The report's flapping models behind one interface (MODELS.md §1-3).
+"""
+The report's flapping models behind one interface (MODELS.md §1-3).
 
 Every model is a linear state-space system in the report's nondimensional time t:
 
@@ -45,7 +46,8 @@ class RotorConstants:
 
 
 class LinearModel:
-    """Interface of a linear flapping model (see the module docstring).
+    """
+    Interface of a linear flapping model (see the module docstring).
 
     Subclasses set ``name``, ``state_names``, ``output_names``, ``parameters`` and implement
     :meth:`system`, :meth:`system_jacobian` and :meth:`output_matrix`.
@@ -65,7 +67,7 @@ class LinearModel:
         return tuple(par.name for par in self.parameters)
 
     def parameter(self, name):
-        """The :class:`Parameter` called ``name``."""
+        """Return the :class:`Parameter` called ``name``."""
         for par in self.parameters:
             if par.name == name:
                 return par
@@ -156,7 +158,8 @@ GAMMA = Parameter('gamma', 'γ', '-', 5.0, 0.05, 50.0, 'blade Lock number')
 
 
 class _SecondOrderGammaModel(LinearModel):
-    """Flapping q″ + D q′ + K q = f with D, K, f affine in γ and δ (models 1 and 2).
+    """
+    Flapping q″ + D q′ + K q = f with D, K, f affine in γ and δ (models 1 and 2).
 
     Subclasses return, at times t, the pieces ``D = D0 + γ D1``, ``K = K0 + γ K1`` and
     ``f = δ f_δ + γ f_u`` from :meth:`_pieces`. With the θ0 parametrisation δ = γθ0 and the
@@ -218,7 +221,8 @@ class _SecondOrderGammaModel(LinearModel):
 
 
 class SingleBlade(_SecondOrderGammaModel):
-    """Model 1: one rigid centrally hinged blade with periodic coefficients (MODELS.md §1.1).
+    """
+    Model 1: one rigid centrally hinged blade with periodic coefficients (MODELS.md §1.1).
 
     Corrected Ch.3 eq. 24:  β″ + (γ/2) C β′ + [P² + (γ/2) K] β = (γ/2) m_θ θ
 
@@ -266,7 +270,8 @@ class SingleBlade(_SecondOrderGammaModel):
 
 
 class Multiblade(_SecondOrderGammaModel):
-    """Model 2: four blades in multiblade coordinates, μ > 0, periodic coefficients (§2.1).
+    """
+    Model 2: four blades in multiblade coordinates, μ > 0, periodic coefficients (§2.1).
 
     q = [β0, βI, βII, βd], x = [q, q′]; q″ + D(t) q′ + K(t) q = f(t) with D, K, f as printed in
     MODELS.md §2.1 (a = γB⁴/8, b3 = γB³μ, b2 = γB²μ²). ``outputs='multiblade'`` measures
@@ -357,7 +362,8 @@ class Multiblade(_SecondOrderGammaModel):
 
 
 class MultibladeConstant(_SecondOrderGammaModel):
-    """Model 2 with all periodic terms omitted; βd decouples and is dropped (MODELS.md §2.2).
+    """
+    Model 2 with all periodic terms omitted; βd decouples and is dropped (MODELS.md §2.2).
 
     x = [β0, βI, βII, β0′, βI′, βII′]; y = [β0, βI, βII]. Time-invariant.
     """
@@ -406,7 +412,8 @@ class MultibladeConstant(_SecondOrderGammaModel):
 
 
 class MultibladeWake(LinearModel):
-    """Model 3: μ = 0 tilt modes with the two-parameter dynamic wake (MODELS.md §3, Ch.2 eq. 29).
+    """
+    Model 3: μ = 0 tilt modes with the two-parameter dynamic wake (MODELS.md §3, Ch.2 eq. 29).
 
     x = [βI, βI′, βII, βII′, λI, λII], p = [A, AL/τ, 1/τ] with A = γB⁴/8 (Ch.2 eq. 27); λ is the
     report's inflow sign (up positive). Output (Ch.2 eq. 30): β_m1 = (β1 − β3)/2 =

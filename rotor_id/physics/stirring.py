@@ -1,4 +1,5 @@
-"""Pitch-stirring inputs of CR-137965 (Ch.2 eqs 1-6, Ch.3 eq. 29, as corrected in MODELS.md §0).
+"""
+Pitch-stirring inputs of CR-137965 (Ch.2 eqs 1-6, Ch.3 eq. 29, as corrected in MODELS.md §0).
 
 Time ``t`` is the report's nondimensional time: the azimuth of blade 1 (2π per revolution).
 Angles are in whatever unit the caller uses consistently (the report uses degrees; the ROS
@@ -23,7 +24,8 @@ PROGRESSING_OMEGADOT = -0.1 / math.pi   # MODELS.md §1.3: Ch.2 eq. 6 corrected 
 
 @dataclass(frozen=True)
 class StirringSchedule:
-    """Lateral-cyclic step, then constant-acceleration pitch stirring (Ch.2 eqs 1-5).
+    """
+    Lateral-cyclic step, then constant-acceleration pitch stirring (Ch.2 eqs 1-5).
 
     Attributes
     ----------
@@ -111,7 +113,8 @@ def multiblade_from_blade_pitch(t, blade_pitch):
 
 
 class SampledInput:
-    """Model input interpolated linearly from samples (e.g. measured blade pitch).
+    """
+    Model input interpolated linearly from samples (e.g. measured blade pitch).
 
     Parameters
     ----------

@@ -1,0 +1,137 @@
+"""
+``rotor-id identify BAG --config RUN.yaml [--json OUT] [--figure OUT.png] [--method M]``.
+
+Reads a bag in the test-stand convention (MCAP or sqlite3), converts to the report's
+nondimensional time from the measured rotor speed, forms the model's channels (multiblade
+coordinates or eq. 30 differences), runs the configured estimator over the configured window,
+prints a table (value, Cramér-Rao σ, correlation) and writes the stable JSON of issue 3.
+"""
+
+import json
+from pathlib import Path
+import sys
+import time
+
+import numpy as np
+
+from rotor_id import pipeline
+from rotor_id.io.bag import read_record
+from rotor_id.io.run_description import load_run_description, validate_window
+
+METHODS = ('output-error', 'filter-error', 'equation-error')
+
+
+def add_arguments(parser):
+    """Arguments of ``rotor-id identify``."""
+    parser.add_argument('bag', help='rosbag2 directory (or its .mcap/.db3 file)')
+    parser.add_argument('--config', required=True,
+                        help='run description YAML (see shared/recordings/README.md)')
+    parser.add_argument('--json', dest='json_out', help='write the result as JSON here')
+    parser.add_argument('--figure', help='write measured vs fitted flapping (PNG) here')
+    parser.add_argument('--method', choices=METHODS, default=None,
+                        help="estimator (default: the run description's, else output-error)")
+    parser.add_argument('--quiet', action='store_true', help='no progress lines')
+
+
+def progress_printer(label, stream=sys.stderr):
+    """Return a progress callback printing one line per iteration."""
+    def show(info):
+        values = ' '.join(f'{n}={v:.5g}' for n, v in zip(info['names'], info['values'])
+                          if '(t0)' not in n)
+        print(f'  {label}: iteration {info["iteration"]:2d}  residual RMS {info["rms"]:.4g} rad  '
+              f'{values}  ({info["elapsed"]:.2f} s)', file=stream, flush=True)
+    return show
+
+
+def load_inputs(bag, config):
+    """Run description and record, with the window checked against the record."""
+    description = load_run_description(config)
+    record = read_record(bag, description.topics, joint_names=description.joint_names)
+    validate_window(description, record)
+    return description, record
+
+
+def format_table(result):
+    """Plain-text table of the identified parameters, σ and correlations."""
+    data = result.as_json()
+    names = list(data['parameters'])
+    width = max(12, *(len(n) for n in names))
+    lines = [f'{"parameter":<{width}} {"value":>13} {"σ (CRB)":>11} {"σ/|value|":>10}  '
+             + ' '.join(f'{n[:8]:>8}' for n in names)]
+    corr = data['correlation']
+    for i, name in enumerate(names):
+        value = data['parameters'][name]['value']
+        std = data['parameters'][name]['std']
+        rel = std / abs(value) if value else float('inf')
+        lines.append(f'{name:<{width}} {value:13.6g} {std:11.3g} {rel:10.2%}  '
+                     + ' '.join(f'{corr[i][j]:8.3f}' for j in range(len(names))))
+    lines.append(f'model {data["model"]}, method {data["method"]}, '
+                 f'window {data["window_s"][0]:.4f}-{data["window_s"][1]:.4f} s '
+                 f'({data["n_samples"]} samples, Ω = {data["omega_rad_s"]:.2f} rad/s), '
+                 f'{data["iterations"]} iterations, '
+                 f'{"converged" if data["converged"] else "NOT converged: " + data["message"]}')
+    noise = ', '.join(f'{c} {s:.3g}' for c, s in zip(data['channels'], data['noise_std']))
+    lines.append(f'noise σ (rad): {noise}')
+    return '\n'.join(lines)
+
+
+def plot_fit(result, record, path, title=''):
+    """Measured vs fitted channels and residuals, against time in seconds."""
+    import matplotlib
+    matplotlib.use('Agg')
+    import matplotlib.pyplot as plt
+    est = result.estimate
+    exps = result.experiments
+    n_ch = exps[0].y.shape[1]
+    fig, axes = plt.subplots(n_ch + 1, 1, figsize=(9, 1.9 * (n_ch + 1)), sharex=True)
+    omega = result.omega_rad_s
+    t_of = (lambda t: (t - record.t[0]) / omega + record.time_s[0])
+    for r, exp in enumerate(exps):
+        ts = t_of(exp.t)
+        for c in range(n_ch):
+            ax = axes[c]
+            ax.plot(ts, np.degrees(exp.y[:, c]), '.', ms=2, color='0.5',
+                    label='measured' if r == 0 else None)
+            ax.plot(ts, np.degrees(est.fitted[r][:, c]), '-', lw=1.2, color='C0',
+                    label='fitted' if r == 0 else None)
+            ax.set_ylabel(f'{exp.model.output_names[c]}\n[deg]')
+        axes[-1].plot(ts, np.degrees(est.residuals[r]), lw=0.6)
+    axes[0].legend(loc='upper right', fontsize=8)
+    axes[-1].set_ylabel('residuals\n[deg]')
+    axes[-1].set_xlabel('time since first sample [s]')
+    params = ', '.join(f'{n} = {v["value"]:.4g} ± {v["std"]:.2g}'
+                       for n, v in result.as_json()['parameters'].items())
+    fig.suptitle(f'{title}\n{params}', fontsize=9)
+    fig.tight_layout()
+    Path(path).parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def run(args):
+    """Identify and report; exit 0 when converged, 1 when not."""
+    started = time.perf_counter()
+    description, record = load_inputs(args.bag, args.config)
+    for warning in record.warnings + list(description.warnings):
+        print(f'warning: {warning}', file=sys.stderr)
+    method = args.method or description.method
+    label = f'{method} {description.model} ({", ".join(description.unknowns)})'
+    if not args.quiet:
+        print(f'fitting {label} to {args.bag}, window {description.window_s[0]:.4f}-'
+              f'{description.window_s[1]:.4f} s', file=sys.stderr, flush=True)
+    result = pipeline.identify(record, description, method=method,
+                               progress=None if args.quiet else progress_printer(method))
+    print(format_table(result))
+    for warning in result.estimate.warnings:
+        print(f'warning: {warning}', file=sys.stderr)
+    data = result.as_json()
+    data['bag'] = str(args.bag)
+    data['elapsed_s'] = time.perf_counter() - started
+    if args.json_out:
+        Path(args.json_out).parent.mkdir(parents=True, exist_ok=True)
+        Path(args.json_out).write_text(json.dumps(data, indent=1))
+        print(f'JSON: {args.json_out}')
+    if args.figure:
+        plot_fit(result, record, args.figure, title=f'{Path(args.bag).name}: {label}')
+        print(f'figure: {args.figure}')
+    return 0 if result.estimate.converged else 1
