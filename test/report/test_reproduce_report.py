@@ -1,0 +1,116 @@
+"""
+``rotor-id reproduce-report``: the JSON it writes holds every printed M⁻¹ beside ours.
+
+The JSON is checked independently of the command's own verdict: the right cases, the right
+shapes, and |ours − report| within the documented rule for each (MODELS.md tables). The
+report's initial states agree to the printed digits (the one known report discrepancy
+excepted), and the figure is a real PNG.
+"""
+
+import json
+
+import numpy as np
+import pytest
+
+from rotor_id.cli import main
+from rotor_id.report import cases as C
+from rotor_id.report.reproduce import agrees_to_printed_digits, initial_state_results
+
+
+@pytest.fixture(scope='module')
+def report_json(tmp_path_factory):
+    out = tmp_path_factory.mktemp('reproduce')
+    json_path, png_path = out / 'report.json', out / 'minv.png'
+    rc = main(['reproduce-report', '--json', str(json_path), '--figure', str(png_path),
+               '--quiet'])
+    return rc, json.loads(json_path.read_text()), png_path
+
+
+def test_exit_code_and_figure(report_json):
+    rc, data, png = report_json
+    assert rc == 0
+    assert data['passed'] is True
+    assert png.read_bytes()[:8] == b'\x89PNG\r\n\x1a\n' and png.stat().st_size > 20000
+
+
+def test_json_has_every_printed_matrix(report_json):
+    _, data, _ = report_json
+    names = [c['name'] for c in data['cases']]
+    assert names == [c.name for c in C.MATRIX_CASES]
+    assert len([n for n in names if n.startswith('table1')]) == 9
+    for entry in data['cases']:
+        report = np.array(entry['report_minv'])
+        ours = np.array(entry['ours_minv'])
+        k = len(entry['names'])
+        assert report.shape == ours.shape == (k, k), entry['name']
+        if entry['kind'] == 'full':
+            assert np.max(np.abs(ours - report)) <= 0.02 * np.max(np.diag(report)), entry
+        elif entry['kind'] == 'diagonal':
+            assert np.allclose(ours, np.diag(np.diag(ours)))
+            np.testing.assert_allclose(np.diag(ours), np.diag(report), rtol=0.02)
+        else:                                    # Table 1: [[γ, 0], [0, δ]], R = 0.04
+            assert entry['noise_variance'] == pytest.approx(0.04)
+            assert ours[0, 1] == ours[1, 0] == 0.0
+            # printed with 1-2 significant digits: within one unit of the last printed digit
+            decimals = C.TABLE1_DECIMALS[float(entry['name'].split('_')[2])]
+            for value, printed, d in zip(np.diag(ours), np.diag(report), decimals):
+                assert abs(value - printed) < 10.0 ** -d, entry['name']
+
+
+def test_json_single_blade_values(report_json):
+    """Spot values against MODELS.md §1.4 (ours): [[.2116, −.0360], [−.0360, .3649]]."""
+    _, data, _ = report_json
+    entry = next(c for c in data['cases'] if c['name'] == 'single_blade_2par')
+    np.testing.assert_allclose(entry['ours_minv'], [[0.2116, -0.0360], [-0.0360, 0.3649]],
+                               atol=6e-5)
+
+
+def test_json_iterations_and_summary(report_json):
+    _, data, _ = report_json
+    runs = {(r['name'], r['data']) for r in data['iterations']}
+    assert ('single_blade_2par', 'noise-free') in runs
+    assert any(d.startswith('noisy (seed') for _, d in runs)
+    noise_free = {r['name']: r for r in data['iterations'] if r['data'] == 'noise-free'}
+    np.testing.assert_allclose(noise_free['wake_progressing']['final'], [0.5, 0.25, 0.125],
+                               rtol=1e-6)
+    np.testing.assert_allclose(noise_free['multiblade_b']['final'], [4.855, 10.374],
+                               atol=6e-4)
+    summary = data['summary']
+    assert len(summary) == len(C.SUMMARY_ROWS)
+    for row in summary[1:]:
+        ours = row['ours']
+        # variances are the Cramér-Rao bound with R = 0.04; same order as the report's
+        assert 0.8 < ours['var_gamma'] / row['report']['var_gamma'] < 1.25, row
+        assert ours['cpu_s'] > 0
+    typo = summary[-1]
+    assert typo['ours']['var_delta'] == pytest.approx(0.0122, abs=0.0005)
+
+
+def test_initial_states_to_printed_digits():
+    for res in initial_state_results():
+        for state, ok in zip(res.case.states, res.passed):
+            assert ok or state in res.case.exceptions, (res.case.name, state)
+    start = next(r for r in initial_state_results() if r.case.name == 'wake_start_t70')
+    assert start.ours[0] == pytest.approx(0.6036, abs=5e-5)     # MODELS.md §5.9
+
+
+@pytest.mark.parametrize('ours, printed, ok', [
+    (1.6987, 1.698, True),      # truncated
+    (0.4969, 0.497, True),      # rounded
+    (-0.8745, -0.874, True),
+    (0.6036, 0.601, False),
+    (0.0298, 0.03, True),       # printed with 2 decimals
+    (0.0377, 0.038, True),
+    (0.0386, 0.038, True),
+    (0.0392, 0.038, False),
+    (0.497, -0.497, False),
+])
+def test_printed_digit_rule(ours, printed, ok):
+    assert agrees_to_printed_digits(ours, printed) is ok
+
+
+def test_unwritable_output_is_a_user_error(tmp_path, capsys):
+    rc = main(['reproduce-report', '--quiet', '--json', str(tmp_path / 'no' / 'x.json')])
+    assert rc == 2
+    err = capsys.readouterr().err
+    assert 'does not exist' in err and 'Traceback' not in err
