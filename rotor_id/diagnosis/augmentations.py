@@ -1,0 +1,694 @@
+"""The catalogue of candidate physics: each an augmented model built from the baseline (issue 4).
+
+Every augmentation is a :class:`~rotor_id.physics.models.LinearModel` that wraps the baseline
+model, adds states, parameters, inputs or output offsets, and gives analytic derivatives of all
+of them, so that :func:`rotor_id.estimation.output_error.fit_output_error` fits it and gives its
+Cramér-Rao bounds unchanged. Augmented models measure the baseline's channels, so likelihoods
+compare on the same data.
+
+The link between a model's states and the blades is :class:`BladeView`: per blade k the flap
+β_k = Hb x, the flap rate β_k′ = Hbr x, the inflow angle λ_k = Hl x (wake model), and the map C
+from blade values to the model's output channels (y = C·[β_1..β_N], e.g. report eq. 30 or the
+multiblade transform, MODELS.md §0). Extra inputs (measured pitch rates, measured flap for the
+cubic spring) ride in extra columns of u after the report's [θ0, θI, θII].
+"""
+
+import copy
+from dataclasses import replace
+import math
+
+import numpy as np
+
+from rotor_id.physics.models import LinearModel, Multiblade, Parameter
+
+
+# ------------------------------------------------------------------------------------------------
+# Blades as seen from a model's states
+# ------------------------------------------------------------------------------------------------
+
+def _azimuths(t, n_blades):
+    t = np.atleast_1d(np.asarray(t, dtype=float))
+    return t[:, None] + 2.0 * np.pi * np.arange(n_blades)[None, :] / n_blades
+
+
+class BladeView:
+    """Per-blade flap, flap rate and inflow of a baseline model's state (see module docstring)."""
+
+    def __init__(self, model):
+        self.model = model
+        self.kind = model.name
+        if self.kind == 'single_blade':
+            self.n_blades = 1
+            self.blades = (model.blade,)
+        else:
+            self.n_blades = model.rotor.n_blades
+            self.blades = tuple(range(1, self.n_blades + 1))
+
+    def _psi(self, t):
+        if self.kind == 'single_blade':
+            return np.atleast_1d(np.asarray(t, dtype=float))[:, None] + self.model.blade_offset
+        return _azimuths(t, self.n_blades)
+
+    def flap(self, t):
+        """Hb (T, N, n): β_k = Hb x."""
+        psi = self._psi(t)
+        T, N, n = psi.shape[0], psi.shape[1], self.model.n_states
+        Hb = np.zeros((T, N, n))
+        if self.kind == 'single_blade':
+            Hb[:, 0, 0] = 1.0
+        elif self.kind == 'multiblade_wake':
+            Hb[:, :, 0], Hb[:, :, 2] = np.cos(psi), np.sin(psi)
+        else:
+            Hb[:, :, 0] = 1.0
+            Hb[:, :, 1], Hb[:, :, 2] = np.cos(psi), np.sin(psi)
+            if self.kind == 'multiblade':
+                Hb[:, :, 3] = (-1.0) ** np.arange(1, N + 1)
+        return Hb
+
+    def flap_rate(self, t):
+        """Hbr (T, N, n): β_k′ = Hbr x (rates are states, so no input enters)."""
+        psi = self._psi(t)
+        T, N, n = psi.shape[0], psi.shape[1], self.model.n_states
+        c, s = np.cos(psi), np.sin(psi)
+        H = np.zeros((T, N, n))
+        if self.kind == 'single_blade':
+            H[:, 0, 1] = 1.0
+        elif self.kind == 'multiblade_wake':       # x = [βI, βI′, βII, βII′, λI, λII]
+            H[:, :, 0], H[:, :, 1], H[:, :, 2], H[:, :, 3] = -s, c, c, s
+        else:
+            nq = n // 2
+            H[:, :, 1], H[:, :, 2] = -s, c
+            H[:, :, nq] = 1.0
+            H[:, :, nq + 1], H[:, :, nq + 2] = c, s
+            if self.kind == 'multiblade':
+                H[:, :, nq + 3] = (-1.0) ** np.arange(1, N + 1)
+        return H
+
+    def inflow(self, t):
+        """Hl (T, N, n): the wake model's inflow angle at blade k, λ_k = λI cos ψ_k + λII sin ψ_k."""
+        psi = self._psi(t)
+        H = np.zeros((psi.shape[0], psi.shape[1], self.model.n_states))
+        if self.kind == 'multiblade_wake':
+            H[:, :, 4], H[:, :, 5] = np.cos(psi), np.sin(psi)
+        return H
+
+    def channels(self, t):
+        """C (T, m, N): the model's output channels from blade values."""
+        psi = self._psi(t)
+        T, N = psi.shape
+        model = self.model
+        if self.kind == 'single_blade' or getattr(model, 'outputs', None) == 'blades':
+            return np.broadcast_to(np.eye(N), (T, N, N)).copy()
+        if self.kind == 'multiblade_wake':
+            C = np.zeros((T, 2, N))
+            C[:, 0, 0], C[:, 0, 2] = 0.5, -0.5
+            C[:, 1, 1], C[:, 1, 3] = 0.5, -0.5
+            return C
+        rows = [np.full((T, N), 1.0 / N), (2.0 / N) * np.cos(psi), (2.0 / N) * np.sin(psi),
+                np.broadcast_to((-1.0) ** np.arange(1, N + 1) / N, (T, N))]
+        C = np.stack(rows, axis=1)
+        return C[:, :model.n_outputs]
+
+    def force(self, t):
+        """G (T, n, N): change of x′ for a unit flapping acceleration of blade k alone."""
+        psi = self._psi(t)
+        T, N, n = psi.shape[0], psi.shape[1], self.model.n_states
+        G = np.zeros((T, n, N))
+        if self.kind == 'single_blade':
+            G[:, 1, 0] = 1.0
+        elif self.kind == 'multiblade_wake':
+            G[:, 1, :] = (2.0 / N) * np.cos(psi)
+            G[:, 3, :] = (2.0 / N) * np.sin(psi)
+        else:
+            nq = n // 2
+            G[:, nq, :] = 1.0 / N
+            G[:, nq + 1, :] = (2.0 / N) * np.cos(psi)
+            G[:, nq + 2, :] = (2.0 / N) * np.sin(psi)
+            if self.kind == 'multiblade':
+                G[:, nq + 3, :] = (-1.0) ** np.arange(1, N + 1) / N
+        return G
+
+
+# ------------------------------------------------------------------------------------------------
+# Base class
+# ------------------------------------------------------------------------------------------------
+
+class Augmented(LinearModel):
+    """Baseline model plus extra states (appended to x) and extra parameters (appended to p).
+
+    Subclasses fill the extra blocks in :meth:`_extra` and :meth:`_extra_jacobian`. The
+    baseline's equations are kept: rows of the baseline states get the baseline F and g plus
+    whatever the augmentation adds.
+    """
+
+    effect = 'augmented'
+    extra_parameters = ()
+    extra_states = ()
+    #: extra states whose initial value is estimated when the baseline's are
+    free_extra_states = ()
+    #: columns of u beyond [θ0, θI, θII] the augmentation needs (see ExtendedInput)
+    extra_inputs = ()
+
+    def __init__(self, base):
+        self.base = base
+        self.view = BladeView(base)
+        self.rotor = base.rotor
+        self.name = f'{base.name}+{self.effect}'
+        self.parameters = tuple(base.parameters) + tuple(self.extra_parameters)
+        self.state_names = tuple(base.state_names) + tuple(self.extra_states)
+        self.output_names = base.output_names
+        self.time_invariant = base.time_invariant and not self.extra_inputs
+
+    @property
+    def n_base_states(self):
+        """Number of the baseline's states."""
+        return self.base.n_states
+
+    @property
+    def n_base_parameters(self):
+        """Number of the baseline's parameters."""
+        return len(self.base.parameters)
+
+    def _split(self, p):
+        p = np.asarray(p, dtype=float)
+        return p[:self.n_base_parameters], p[self.n_base_parameters:]
+
+    def system(self, t, p, u):
+        """F and g: the baseline's, with the augmentation's blocks added."""
+        t = np.atleast_1d(np.asarray(t, dtype=float))
+        u = np.asarray(u, dtype=float)
+        pb, pe = self._split(p)
+        Fb, gb = self.base.system(t, pb, u[:, :3])
+        n, nb = self.n_states, self.n_base_states
+        F = np.zeros((t.size, n, n))
+        F[:, :nb, :nb] = Fb
+        g = np.zeros((t.size, n))
+        g[:, :nb] = gb
+        self._extra(t, pb, pe, u, F, g)
+        return F, g
+
+    def system_jacobian(self, t, p, u):
+        """∂F/∂p and ∂g/∂p: the baseline's, with the augmentation's blocks added."""
+        t = np.atleast_1d(np.asarray(t, dtype=float))
+        u = np.asarray(u, dtype=float)
+        pb, pe = self._split(p)
+        dFb, dgb = self.base.system_jacobian(t, pb, u[:, :3])
+        n, nb, P, Pb = self.n_states, self.n_base_states, len(self.parameters), len(pb)
+        dF = np.zeros((t.size, P, n, n))
+        dF[:, :Pb, :nb, :nb] = dFb
+        dg = np.zeros((t.size, P, n))
+        dg[:, :Pb, :nb] = dgb
+        self._extra_jacobian(t, pb, pe, u, dF, dg)
+        return dF, dg
+
+    def _extra(self, t, pb, pe, u, F, g):
+        """Add the augmentation's terms to F (T, n, n) and g (T, n) in place."""
+
+    def _extra_jacobian(self, t, pb, pe, u, dF, dg):
+        """Add the augmentation's derivative terms in place."""
+
+    def output_matrix(self, t):
+        """H: the baseline's, zero on extra states unless a subclass says otherwise."""
+        Hb = self.base.output_matrix(t)
+        H = np.zeros((Hb.shape[0], Hb.shape[1], self.n_states))
+        H[:, :, :self.n_base_states] = Hb
+        return H
+
+    def output_offset(self, t, p):
+        """The baseline's output offset (no baseline has one)."""
+        pb, _ = self._split(p)
+        return self.base.output_offset(t, pb)
+
+    def output_offset_jacobian(self, t, p):
+        """∂d/∂p, zero for the extra parameters unless a subclass says otherwise."""
+        pb, _ = self._split(p)
+        d = self.base.output_offset_jacobian(t, pb)
+        out = np.zeros((d.shape[0], d.shape[1], len(self.parameters)))
+        out[:, :, :d.shape[2]] = d
+        return out
+
+    def observe_blades(self, t, blade_flap):
+        """The baseline's channels."""
+        return self.base.observe_blades(t, blade_flap)
+
+    def equilibrium(self, t, p, u):
+        """Steady state for a held input (extra inputs held at their first value)."""
+        return super().equilibrium(t, p, u)
+
+    def report_parameters(self, values, cov):
+        """Physical extra parameters {name: (value, std)} from the fitted extra parameters.
+
+        ``values``/``cov``: the extra parameters' estimates and covariance, plus the baseline
+        parameters ahead of them (full model parameter vector order).
+        """
+        names = [par.name for par in self.extra_parameters]
+        k = self.n_base_parameters
+        return {n: (float(values[k + i]), float(math.sqrt(max(cov[k + i, k + i], 0.0))))
+                for i, n in enumerate(names)}
+
+
+def _gamma_index(base):
+    names = base.parameter_names
+    return names.index('gamma') if 'gamma' in names else None
+
+
+# ------------------------------------------------------------------------------------------------
+# The catalogue
+# ------------------------------------------------------------------------------------------------
+
+class SensorLag(Augmented):
+    """First-order lag of every flap sensor, time constant τ_s (``lag_rad``, rad of azimuth).
+
+    The sensor reads z_k with τ_s z_k′ = β_k − z_k. With the lag error e_k = z_k − β_k
+    (zero when the sensor has settled, as in trim at the start of a record):
+
+        e_k′ = −e_k/τ_s − β_k′ = −e_k/τ_s − Hbr_k x,      y = H x + C e
+    """
+
+    effect = 'sensor_lag'
+    extra_parameters = (Parameter('lag_rad', 'τ_s', 'rad', 0.1, 0.02, 3.0,
+                                  'flap-sensor first-order time constant, rad of azimuth'),)
+    #: RK4 step that keeps the fastest admissible lag (τ_s = 0.02) stable
+    max_step = 0.025
+
+    def __init__(self, base):
+        n = BladeView(base).n_blades
+        self.extra_states = tuple(f'lag_error_{k}' for k in BladeView(base).blades)
+        super().__init__(base)
+        self._n = n
+
+    def _extra(self, t, pb, pe, u, F, g):
+        nb, N = self.n_base_states, self._n
+        F[:, nb:, :nb] = -self.view.flap_rate(t)
+        F[:, nb:, nb:] = -np.eye(N) / pe[0]
+
+    def _extra_jacobian(self, t, pb, pe, u, dF, dg):
+        nb, N = self.n_base_states, self._n
+        dF[:, -1, nb:, nb:] = np.eye(N) / pe[0]**2
+
+    def output_matrix(self, t):
+        """y = H x + C e."""
+        H = super().output_matrix(t)
+        H[:, :, self.n_base_states:] = self.view.channels(t)
+        return H
+
+
+class TimeDelay(Augmented):
+    """Flap read later than the pitch by d (``delay_rad``, rad of azimuth; d/Ω seconds).
+
+    A flap sample at t shows the rotor at t − d, the response to the blade pitch θ_k(· − d)
+    (rotational symmetry). In multiblade pitch that is a shift and a rotation by d:
+
+        θI_d = θI(t−d) cos d − θII(t−d) sin d,   θII_d = θII(t−d) cos d + θI(t−d) sin d,
+        θ(t−d) ≈ θ(t) − d θ′(t)   (θ′: measured pitch rate, extra inputs)
+
+    and g is the baseline's g at that pitch. No extra states.
+    """
+
+    effect = 'time_delay'
+    extra_parameters = (Parameter('delay_rad', 'd', 'rad', 0.0, -0.6, 0.6,
+                                  'flap read later than pitch, rad of azimuth'),)
+    extra_inputs = ('theta_0_rate', 'theta_I_rate', 'theta_II_rate')
+
+    @staticmethod
+    def _shifted(u, d):
+        th_i = u[:, 1] - d * u[:, 4]
+        th_ii = u[:, 2] - d * u[:, 5]
+        c, s = math.cos(d), math.sin(d)
+        out = u[:, :3].copy()
+        out[:, 1] = th_i * c - th_ii * s
+        out[:, 2] = th_ii * c + th_i * s
+        dout = np.zeros_like(out)
+        dout[:, 1] = -u[:, 4] * c - th_i * s + u[:, 5] * s - th_ii * c
+        dout[:, 2] = -u[:, 5] * c - th_ii * s - u[:, 4] * s + th_i * c
+        return out, dout
+
+    def system(self, t, p, u):
+        """Baseline F, g at the delayed, rotated pitch."""
+        t = np.atleast_1d(np.asarray(t, dtype=float))
+        u = np.asarray(u, dtype=float)
+        pb, pe = self._split(p)
+        us, _ = self._shifted(u, pe[0])
+        return self.base.system(t, pb, us)
+
+    def system_jacobian(self, t, p, u):
+        """Baseline derivatives at the delayed pitch, and ∂g/∂d = G ∂u/∂d (g affine in u)."""
+        t = np.atleast_1d(np.asarray(t, dtype=float))
+        u = np.asarray(u, dtype=float)
+        pb, pe = self._split(p)
+        us, dus = self._shifted(u, pe[0])
+        dFb, dgb = self.base.system_jacobian(t, pb, us)
+        T, Pb, n = dgb.shape
+        dF = np.zeros((T, Pb + 1, n, n))
+        dF[:, :Pb] = dFb
+        dg = np.zeros((T, Pb + 1, n))
+        dg[:, :Pb] = dgb
+        _, g_du = self.base.system(t, pb, dus)
+        _, g_0 = self.base.system(t, pb, np.zeros_like(us))
+        dg[:, Pb] = g_du - g_0
+        return dF, dg
+
+
+class SensorBias(Augmented):
+    """Constant flap-sensor offsets b_k per blade: y = H x + C(t) b.
+
+    Only the bias patterns the channels can see and the collective pitch does not absorb are
+    parameters: b = V c with V an orthonormal basis of the observable, non-collective patterns
+    (e.g. (β1−β3)/2 and (β2−β4)/2 channels see b1−b3 and b2−b4 only). The report gives b.
+    """
+
+    effect = 'sensor_bias'
+
+    def __init__(self, base, t_window):
+        view = BladeView(base)
+        C = view.channels(t_window)
+        N = view.n_blades
+        gram = np.einsum('tmi,tmj->ij', C, C)
+        if N > 1:
+            ones = np.ones((N, 1)) / math.sqrt(N)
+            proj = np.eye(N) - ones @ ones.T
+            gram = proj @ gram @ proj
+        vals, vecs = np.linalg.eigh(gram)
+        keep = vals > 1e-8 * max(vals.max(), 1e-300)
+        self.basis = vecs[:, keep]
+        self.extra_parameters = tuple(
+            Parameter(f'bias_pattern_{i + 1}', f'c{i + 1}', 'rad', 0.0, -0.5, 0.5,
+                      'flap-sensor bias along an observable pattern')
+            for i in range(self.basis.shape[1]))
+        super().__init__(base)
+        self.blade_numbers = view.blades
+
+    def output_offset(self, t, p):
+        """d = C(t) V c."""
+        _, pe = self._split(p)
+        return np.einsum('tmn,n->tm', self.view.channels(t), self.basis @ pe)
+
+    def output_offset_jacobian(self, t, p):
+        """∂d/∂c = C(t) V."""
+        out = super().output_offset_jacobian(t, p)
+        out[:, :, self.n_base_parameters:] = np.einsum('tmn,nk->tmk', self.view.channels(t),
+                                                       self.basis)
+        return out
+
+    def report_parameters(self, values, cov):
+        """Per-blade biases b = V c with their σ (unobservable parts set to zero)."""
+        k = self.n_base_parameters
+        c = np.asarray(values[k:], dtype=float)
+        cc = np.asarray(cov)[k:, k:]
+        b = self.basis @ c
+        bcov = self.basis @ cc @ self.basis.T
+        return {f'bias_{j}': (float(b[i]), float(math.sqrt(max(bcov[i, i], 0.0))))
+                for i, j in enumerate(self.blade_numbers)}
+
+
+class FlapFrequency(Augmented):
+    """The rotating flap frequency P (per rev) identified instead of taken from the rotor data.
+
+    F is quadratic in P in every baseline, so the central difference of F over ±h is exact.
+    """
+
+    effect = 'flap_frequency'
+
+    def __init__(self, base):
+        P = base.rotor.flap_frequency
+        self.extra_parameters = (Parameter('P', 'P = ω₁', 'per rev', P, 0.3, 4.0,
+                                           'rotating flap natural frequency'),)
+        super().__init__(base)
+        self._cache = {}
+
+    def _with_P(self, P):
+        P = float(P)
+        if P not in self._cache:
+            if len(self._cache) > 8:
+                self._cache.clear()
+            model = copy.copy(self.base)
+            model.rotor = replace(self.base.rotor, flap_frequency=P)
+            self._cache[P] = model
+        return self._cache[P]
+
+    def system(self, t, p, u):
+        """The baseline's F, g with P replaced."""
+        pb, pe = self._split(p)
+        return self._with_P(pe[0]).system(t, pb, np.asarray(u)[:, :3])
+
+    def system_jacobian(self, t, p, u):
+        """Baseline derivatives at P, and ∂F/∂P by an exact central difference."""
+        t = np.atleast_1d(np.asarray(t, dtype=float))
+        u = np.asarray(u, dtype=float)[:, :3]
+        pb, pe = self._split(p)
+        P = pe[0]
+        dFb, dgb = self._with_P(P).system_jacobian(t, pb, u)
+        T, Pb, n = dgb.shape
+        dF = np.zeros((T, Pb + 1, n, n))
+        dF[:, :Pb] = dFb
+        h = 1e-3
+        Fp, _ = self._with_P(P + h).system(t, pb, u)
+        Fm, _ = self._with_P(P - h).system(t, pb, u)
+        dF[:, Pb] = (Fp - Fm) / (2 * h)
+        dg = np.zeros((T, Pb + 1, n))
+        dg[:, :Pb] = dgb
+        return dF, dg
+
+
+class ChannelSubset(LinearModel):
+    """A model observed on a subset of its output channels (same parameters)."""
+
+    def __init__(self, model, rows, effect):
+        self.inner = model
+        self.rows = list(rows)
+        self.effect = effect
+        self.rotor = model.rotor
+        self.name = f'{model.name}[{effect}]'
+        self.parameters = model.parameters
+        self.state_names = model.state_names
+        self.output_names = tuple(model.output_names[i] for i in self.rows)
+        self.time_invariant = model.time_invariant
+
+    def system(self, t, p, u):
+        """The inner model's F and g."""
+        return self.inner.system(t, p, np.asarray(u)[:, :3])
+
+    def system_jacobian(self, t, p, u):
+        """The inner model's derivatives."""
+        return self.inner.system_jacobian(t, p, np.asarray(u)[:, :3])
+
+    def output_matrix(self, t):
+        """Selected rows of the inner H."""
+        return self.inner.output_matrix(t)[:, self.rows]
+
+    def observe_blades(self, t, blade_flap):
+        """Selected channels."""
+        return self.inner.observe_blades(t, blade_flap)[:, self.rows]
+
+    def report_parameters(self, values, cov):
+        """No extra parameters."""
+        return {}
+
+
+def periodic_coefficients(base):
+    """The periodic multiblade model (MODELS.md §2.1) on the constant model's channels (§2.2)."""
+    inner = Multiblade(base.rotor, collective=base.collective, outputs='multiblade')
+    inner.parameters = base.parameters
+    return ChannelSubset(inner, [0, 1, 2], 'periodic_coefficients')
+
+
+class DynamicInflow(Augmented):
+    """Two-parameter dynamic wake on the tilt modes (Ch.2 eq. 29, MODELS.md §3.1-3.2).
+
+    Adds λI, λII (report sign, up positive) to a multiblade γ-model:
+
+        βI″ += A λI,   βII″ += A λII,          A = γB⁴/8 (Ch.2 eq. 27)
+        λI′  = −(AL/τ + 1/τ) λI  + (AL/τ)(βI′ + βII − θII)
+        λII′ = −(AL/τ + 1/τ) λII + (AL/τ)(βII′ − βI + θI)
+
+    Parameters ``AL_over_tau`` and ``inv_tau``; A is reported from γ.
+    """
+
+    effect = 'dynamic_inflow'
+    extra_parameters = (
+        Parameter('AL_over_tau', 'AL/τ', '-', 0.25, 0.0, 50.0, 'wake gain over time constant'),
+        Parameter('inv_tau', '1/τ', '-', 0.125, 1e-4, 50.0, 'inverse wake time constant'))
+    extra_states = ('lambda_I', 'lambda_II')
+    free_extra_states = ('lambda_I', 'lambda_II')
+
+    def __init__(self, base):
+        super().__init__(base)
+        names = base.state_names
+        self._i = [names.index(s) for s in ('beta_I', 'beta_II', 'beta_I_dot', 'beta_II_dot')]
+        self._gamma = _gamma_index(base)
+        self._a1 = base.rotor.tip_loss**4 / 8.0
+
+    def _extra(self, t, pb, pe, u, F, g):
+        bI, bII, rI, rII = self._i
+        nb = self.n_base_states
+        A = self._a1 * pb[self._gamma]
+        c, r = pe
+        F[:, rI, nb], F[:, rII, nb + 1] = A, A
+        F[:, nb, [rI, bII]] = c
+        F[:, nb + 1, [rII]] = c
+        F[:, nb + 1, bI] = -c
+        F[:, nb, nb] = F[:, nb + 1, nb + 1] = -(c + r)
+        g[:, nb] = -c * u[:, 2]
+        g[:, nb + 1] = c * u[:, 1]
+
+    def _extra_jacobian(self, t, pb, pe, u, dF, dg):
+        bI, bII, rI, rII = self._i
+        nb, k = self.n_base_states, self.n_base_parameters
+        dF[:, self._gamma, rI, nb] = dF[:, self._gamma, rII, nb + 1] = self._a1
+        dF[:, k, nb, [rI, bII]] = 1.0
+        dF[:, k, nb + 1, rII] = 1.0
+        dF[:, k, nb + 1, bI] = -1.0
+        dF[:, k, nb, nb] = dF[:, k, nb + 1, nb + 1] = -1.0
+        dF[:, k + 1, nb, nb] = dF[:, k + 1, nb + 1, nb + 1] = -1.0
+        dg[:, k, nb] = -u[:, 2]
+        dg[:, k, nb + 1] = u[:, 1]
+
+    def report_parameters(self, values, cov):
+        """A = γB⁴/8 with its σ, AL/τ and 1/τ (the answers' names)."""
+        out = super().report_parameters(values, cov)
+        i = self._gamma
+        out = {'A': (float(self._a1 * values[i]),
+                     float(self._a1 * math.sqrt(max(cov[i, i], 0.0)))), **out}
+        return out
+
+
+class BladeDissimilarity(Augmented):
+    """Blade j's Lock number is γ(1+ε) and its aerodynamic pitch θ_j + Δθ (unseen by the sensor).
+
+    To first order the deviation η = β_j − (what the symmetric model predicts for blade j)
+    obeys blade j's own flapping equation, forced by ε times blade j's aerodynamic moment and
+    by the pitch offset (single blade, MODELS.md §1.1; at μ = 0 with the wake: A(θ+λ−β′)):
+
+        η″ + (γ/2) C η′ + [P² + (γ/2) K] η = ε M_j(x, t) + (γ/2) m_θ Δθ,    y += C_{:,j} η
+
+    Parameters ``dgamma_rel`` (ε = γ_j/γ − 1) and ``dtheta`` (rad). Wake feedback of η (a
+    second-order effect in ε) is left out.
+    """
+
+    effect = 'blade_dissimilarity'
+    extra_parameters = (
+        Parameter('dgamma_rel', 'ε = γ_j/γ − 1', '-', 0.0, -0.9, 3.0,
+                  "relative Lock-number difference of the odd blade"),
+        Parameter('dtheta', 'Δθ_j', 'rad', 0.0, -0.2, 0.2, "the odd blade's pitch offset"))
+    extra_states = ('eta', 'eta_dot')
+    free_extra_states = ('eta', 'eta_dot')
+
+    def __init__(self, base, blade):
+        super().__init__(base)
+        self.blade = int(blade)
+        self.name = f'{base.name}+{self.effect}[blade {self.blade}]'
+        self._j = self.view.blades.index(self.blade)
+
+    def _coefficients(self, t, pb, u):
+        """Blade j: damping c, stiffness k, pitch gain m, moment row a (T,n), constant a0 (T,),
+        and their derivatives with respect to the baseline parameters."""
+        base = self.base
+        rotor = base.rotor
+        B, mu, P = rotor.tip_loss, rotor.advance_ratio, rotor.flap_frequency
+        j = self._j
+        psi = self.view._psi(t)[:, j]
+        Hb = self.view.flap(t)[:, j]
+        Hbr = self.view.flap_rate(t)[:, j]
+        T, Pb = t.size, len(pb)
+        theta_cyc = -u[:, 1] * np.sin(psi) + u[:, 2] * np.cos(psi)
+        if base.name == 'multiblade_wake':
+            A = pb[0]
+            Hl = self.view.inflow(t)[:, j]
+            row = Hl - Hbr
+            theta = u[:, 0] + theta_cyc
+            da = np.zeros((T, Pb, base.n_states))
+            da[:, 0] = row
+            da0 = np.zeros((T, Pb))
+            da0[:, 0] = theta
+            one = np.ones(T)
+            dcoef = np.zeros((T, Pb))
+            dcoef[:, 0] = 1.0
+            return (A * one, P**2 * one, A * one, A * row, A * theta,
+                    dcoef, 0.0 * dcoef, dcoef, da, da0)
+        s1, c1 = np.sin(psi), np.cos(psi)
+        s2, c2 = np.sin(2 * psi), np.cos(2 * psi)
+        damping = B**4 / 4 + (B**3 * mu / 3) * s1
+        stiff = (B**3 * mu / 3) * c1 + (B**2 * mu**2 / 4) * s2
+        m_theta = (B**4 + B**2 * mu**2) / 4 + (2.0 / 3.0) * B**3 * mu * s1 - (B**2 * mu**2 / 4) * c2
+        gi = _gamma_index(base)
+        gamma = pb[gi]
+        coll = base.parameter_names[1]
+        if coll == 'delta':
+            delta, d_delta = pb[1], np.array([0.0, 1.0])
+        else:
+            delta, d_delta = gamma * pb[1], np.array([pb[1], gamma])
+        row = -0.5 * (damping[:, None] * Hbr + stiff[:, None] * Hb)
+        a = gamma * row
+        a0 = 0.5 * m_theta * delta + 0.5 * gamma * m_theta * theta_cyc
+        da = np.zeros((T, Pb, base.n_states))
+        da[:, gi] = row
+        da0 = np.zeros((T, Pb))
+        da0[:, gi] = 0.5 * m_theta * theta_cyc
+        da0 += 0.5 * m_theta[:, None] * d_delta[None, :]
+        dcoef = np.zeros((T, Pb))
+        dcoef[:, gi] = 1.0
+        return (0.5 * gamma * damping, P**2 + 0.5 * gamma * stiff, 0.5 * gamma * m_theta,
+                a, a0, dcoef * 0.5 * damping[:, None], dcoef * 0.5 * stiff[:, None],
+                dcoef * 0.5 * m_theta[:, None], da, da0)
+
+    def _extra(self, t, pb, pe, u, F, g):
+        nb = self.n_base_states
+        eps, dth = pe
+        c, k, m, a, a0 = self._coefficients(t, pb, u)[:5]
+        F[:, nb, nb + 1] = 1.0
+        F[:, nb + 1, nb] = -k
+        F[:, nb + 1, nb + 1] = -c
+        F[:, nb + 1, :nb] = eps * a
+        g[:, nb + 1] = eps * a0 + m * dth
+
+    def _extra_jacobian(self, t, pb, pe, u, dF, dg):
+        nb, kb = self.n_base_states, self.n_base_parameters
+        eps, dth = pe
+        _, _, _, a, a0, dc, dk, dm, da, da0 = self._coefficients(t, pb, u)
+        m = self._coefficients(t, pb, u)[2]
+        dF[:, :kb, nb + 1, nb] = -dk
+        dF[:, :kb, nb + 1, nb + 1] = -dc
+        dF[:, :kb, nb + 1, :nb] = eps * da
+        dg[:, :kb, nb + 1] = eps * da0 + dm * dth
+        dF[:, kb, nb + 1, :nb] = a
+        dg[:, kb, nb + 1] = a0
+        dg[:, kb + 1, nb + 1] = m
+
+    def output_matrix(self, t):
+        """y = H x + C_{:,j} η."""
+        H = super().output_matrix(t)
+        H[:, :, self.n_base_states] = self.view.channels(t)[:, :, self._j]
+        return H
+
+    def report_parameters(self, values, cov):
+        """ε, Δθ and which blade."""
+        out = super().report_parameters(values, cov)
+        out['blade'] = (float(self.blade), 0.0)
+        return out
+
+
+class CubicStiffness(Augmented):
+    """A hardening flap spring κβ³ on every blade (hub spring or elastic-stop nonlinearity).
+
+    β_k″ += −κ β_k³; the cube is taken of the measured flap (extra inputs), which is the
+    flap to within the sensor noise, so the model stays linear in its states and κ:
+    x′ += −κ G(t) β_meas³ with G the blade-to-state projection.
+    """
+
+    effect = 'cubic_stiffness'
+    extra_parameters = (Parameter('kappa', 'κ', 'rad⁻²', 0.0, -1e5, 1e5,
+                                  'cubic flap stiffness, per rev² per rad²'),)
+
+    def __init__(self, base):
+        self.extra_inputs = tuple(f'beta_{k}_measured' for k in BladeView(base).blades)
+        super().__init__(base)
+
+    def _forcing(self, t, u):
+        cube = u[:, 3:3 + self.view.n_blades] ** 3
+        return -np.einsum('tnk,tk->tn', self.view.force(t), cube)
+
+    def _extra(self, t, pb, pe, u, F, g):
+        g[:, :self.n_base_states] += pe[0] * self._forcing(t, u)
+
+    def _extra_jacobian(self, t, pb, pe, u, dF, dg):
+        dg[:, self.n_base_parameters, :self.n_base_states] = self._forcing(t, u)

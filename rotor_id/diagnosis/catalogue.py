@@ -1,0 +1,365 @@
+"""Build and fit the catalogue's candidates on the baseline's data (issue 4, step 3).
+
+A candidate is an id of the issue (``sensor_lag``, ``dynamic_inflow`` …), the augmented model
+of :mod:`rotor_id.diagnosis.augmentations` for every run of the baseline, the unknowns (the
+baseline's plus the augmentation's) and its starting values (the baseline estimate plus the
+augmentation's neutral values). Fitting is the same output-error ML as the baseline
+(:func:`rotor_id.estimation.output_error.fit_output_error`), so likelihoods, Cramér-Rao bounds
+and residuals compare directly. ``process_noise`` uses the filter-error likelihood of
+:mod:`rotor_id.estimation.filter_error` when that module is present.
+"""
+
+from dataclasses import dataclass, field
+import math
+import time
+
+import numpy as np
+
+from rotor_id.diagnosis import augmentations as aug
+from rotor_id.estimation.output_error import Experiment, fit_output_error, IdentificationError
+
+#: Every effect of the catalogue, in the order they are tried (issue 4 ids first).
+EFFECTS = ('dynamic_inflow', 'periodic_coefficients', 'sensor_lag', 'time_delay',
+           'sensor_bias', 'blade_dissimilarity', 'process_noise', 'flap_frequency',
+           'cubic_stiffness')
+
+#: Effects that a recording cannot tell apart at small size (the same physics to first
+#: order): a first-order sensor lag τ and a pure delay d = τ give the same flap to O(τ²).
+EQUIVALENT = {'sensor_lag': ('time_delay',), 'time_delay': ('sensor_lag',)}
+
+
+@dataclass
+class AugmentedExperiment(Experiment):
+    """An Experiment whose estimated initial states are given explicitly (``free``)."""
+
+    free: list = None
+
+    def free_states(self):
+        """The baseline's free states plus the augmentation's free ones."""
+        if self.free is not None:
+            return list(self.free)
+        return super().free_states()
+
+
+class ExtendedInput:
+    """u = [θ0, θI, θII, extra…]: the baseline input with extra sampled columns."""
+
+    def __init__(self, base_input, t, extra):
+        self.base = base_input
+        self.t = np.asarray(t, dtype=float)
+        self.extra = np.asarray(extra, dtype=float)
+
+    def __call__(self, t):
+        """u at times t, shape (len(t), 3 + k)."""
+        t = np.atleast_1d(np.asarray(t, dtype=float))
+        cols = [np.interp(t, self.t, self.extra[:, j]) for j in range(self.extra.shape[1])]
+        return np.column_stack([self.base(t)] + cols)
+
+
+@dataclass
+class Job:
+    """One candidate fit: what a worker process needs (all picklable)."""
+
+    effect: str
+    variant: str
+    record: object
+    description: object
+    baseline_values: dict
+    unknowns: list
+    known: dict
+    window_s: tuple
+    validate: bool = True
+    verbose: bool = False
+
+
+@dataclass
+class CandidateFit:
+    """The outcome of fitting one candidate."""
+
+    effect: str
+    variant: str = ''
+    available: bool = True
+    reason: str = ''
+    estimate: object = None
+    model: object = None
+    experiments: list = field(default_factory=list)
+    unknowns: list = field(default_factory=list)
+    extra_names: list = field(default_factory=list)
+    n_extra: int = 0
+    parameters: dict = field(default_factory=dict)
+    validation_rms: float = None
+    validation_ms: list = None
+    elapsed_s: float = 0.0
+
+
+def _free_of(exp, model, extra_free):
+    free = list(exp.free_states())
+    mode = exp.initial_state
+    if isinstance(mode, str) and mode == 'estimate':
+        free += [model.state_names.index(s) for s in extra_free]
+    return free
+
+
+def _augment_runs(experiments, make, record, extra_inputs=None):
+    """One augmented experiment per baseline run; returns (experiments, model of run 1)."""
+    runs = []
+    for exp in experiments:
+        model = make(exp.model)
+        inputs = exp.inputs
+        names = getattr(model, 'extra_inputs', ())
+        if names:
+            t_s, columns = extra_inputs(exp, model)
+            inputs = ExtendedInput(exp.inputs, t_s, columns)
+        free = _free_of(exp, model, getattr(model, 'free_extra_states', ()))
+        runs.append(AugmentedExperiment(model, inputs, exp.t, exp.y,
+                                        initial_state=exp.initial_state, name=exp.name,
+                                        free=free))
+    return runs, runs[0].model
+
+
+def _pitch_rates(exp, model):
+    base = exp.inputs
+    rate = np.gradient(base.u, base.t, axis=0)
+    return base.t, rate
+
+
+def _measured_flap(record):
+    def columns(exp, model):
+        blades = list(model.view.blades)
+        return record.t, record.blade_flap[:, [b - 1 for b in blades]]
+    return columns
+
+
+def applicable(effect, model_name, rotor, unknowns):
+    """'' when the effect can be tried on this baseline, else the reason why not."""
+    has_gamma = 'gamma' in unknowns
+    if effect == 'dynamic_inflow':
+        if model_name == 'multiblade_wake':
+            return 'the baseline already has the dynamic wake'
+        if model_name == 'single_blade':
+            return 'the wake couples the blades: use a multiblade model to test it'
+        if not has_gamma:
+            return 'needs gamma among the unknowns (A = γB⁴/8 sets the wake forcing)'
+    if effect == 'periodic_coefficients':
+        if model_name != 'multiblade_constant':
+            return 'the baseline already has the periodic terms (or has none at this μ)'
+        if rotor.advance_ratio == 0.0:
+            return 'at μ = 0 the periodic terms vanish'
+    if effect in ('sensor_bias', 'blade_dissimilarity') and model_name == 'single_blade':
+        return 'needs the blades in one model (multiblade with measurement: blades)'
+    if effect == 'blade_dissimilarity' and model_name != 'multiblade_wake' and not has_gamma:
+        return 'needs gamma among the unknowns'
+    return ''
+
+
+def variants(effect, model_name, n_blades):
+    """Sub-candidates of one effect (the blade a dissimilarity sits on)."""
+    if effect == 'blade_dissimilarity':
+        return [f'blade_{k}' for k in range(1, n_blades + 1)]
+    return ['']
+
+
+def _build(job, baseline_model, experiments):
+    """Experiments, unknowns, guesses and RK4 step of a candidate."""
+    effect = job.effect
+    record = job.record
+    guess = dict(job.baseline_values)
+    max_step = None
+    if effect == 'sensor_lag':
+        runs, model = _augment_runs(experiments, aug.SensorLag, record)
+        max_step = aug.SensorLag.max_step
+    elif effect == 'time_delay':
+        runs, model = _augment_runs(experiments, aug.TimeDelay, record, _pitch_rates)
+    elif effect == 'sensor_bias':
+        t_all = np.concatenate([e.t for e in experiments])
+        runs, model = _augment_runs(experiments, lambda m: aug.SensorBias(m, t_all), record)
+    elif effect == 'flap_frequency':
+        runs, model = _augment_runs(experiments, aug.FlapFrequency, record)
+    elif effect == 'cubic_stiffness':
+        runs, model = _augment_runs(experiments, aug.CubicStiffness, record,
+                                    _measured_flap(record))
+    elif effect == 'dynamic_inflow':
+        runs, model = _augment_runs(experiments, aug.DynamicInflow, record)
+    elif effect == 'blade_dissimilarity':
+        blade = int(job.variant.split('_')[1])
+        runs, model = _augment_runs(experiments, lambda m: aug.BladeDissimilarity(m, blade),
+                                    record)
+    elif effect == 'periodic_coefficients':
+        runs = []
+        for exp in experiments:
+            sub = aug.periodic_coefficients(exp.model)
+            runs.append(Experiment(sub, exp.inputs, exp.t, exp.y,
+                                   initial_state=exp.initial_state, name=exp.name))
+        model = runs[0].model
+    else:
+        raise IdentificationError(f'unknown effect {effect!r}')
+    extra = [p.name for p in getattr(model, 'extra_parameters', ())]
+    unknowns = list(job.unknowns) + extra
+    for par in getattr(model, 'extra_parameters', ()):
+        guess[par.name] = par.nominal
+    return runs, model, unknowns, extra, guess, max_step
+
+
+def _wake_starts(model, guess, unknowns):
+    """Starting points for the wake: gains L and time constants τ, γ raised so that the
+    quasi-steady damping γ/(1+AL) stays at the baseline's."""
+    a1 = model.rotor.tip_loss**4 / 8.0
+    gamma_b = guess['gamma']
+    for L in (0.5, 1.5, 3.0):
+        denominator = 1.0 - gamma_b * a1 * L
+        if denominator <= 0.05:
+            continue
+        gamma = gamma_b / denominator
+        for tau in (0.5, 2.0, 8.0):
+            start = dict(guess)
+            start.update(gamma=gamma, AL_over_tau=gamma * a1 * L / tau, inv_tau=1.0 / tau)
+            yield start
+
+
+def _best_start(runs, unknowns, starts, known, max_step):
+    best, best_cost = None, math.inf
+    for start in starts:
+        try:
+            est = fit_output_error(runs, unknowns, guess=start, known=known, max_iter=0,
+                                   **({'max_step': max_step} if max_step else {}))
+        except (IdentificationError, np.linalg.LinAlgError, FloatingPointError):
+            continue
+        if est.neg_log_likelihood < best_cost:
+            best, best_cost = start, est.neg_log_likelihood
+    return best
+
+
+def _printer(label, verbose):
+    if not verbose:
+        return None
+    import sys
+
+    def show(info):
+        print(f'  [{label}] iteration {info["iteration"]}: cost {info["cost"]:.6g}, '
+              f'{info["elapsed"]:.1f} s', file=sys.stderr, flush=True)
+    return show
+
+
+def _split_runs(runs, half):
+    """The runs cut to the first (half=0) or second (half=1) half of their samples."""
+    out = []
+    for exp in runs:
+        n = exp.t.size // 2
+        sl = slice(0, n) if half == 0 else slice(n, None)
+        kwargs = dict(initial_state=exp.initial_state, name=exp.name)
+        if isinstance(exp, AugmentedExperiment):
+            out.append(AugmentedExperiment(exp.model, exp.inputs, exp.t[sl], exp.y[sl],
+                                           free=exp.free, **kwargs))
+        else:
+            out.append(Experiment(exp.model, exp.inputs, exp.t[sl], exp.y[sl], **kwargs))
+    return out
+
+
+def cross_validate(runs, unknowns, guess, known, max_step=None):
+    """Fit on one half of the window, predict the other (initial states refitted), both ways.
+
+    Returns the mean-square prediction error per channel, averaged over the two directions.
+    """
+    kw = {'max_step': max_step} if max_step else {}
+    ms = []
+    for fit_half in (0, 1):
+        fit_runs = _split_runs(runs, fit_half)
+        est = fit_output_error(fit_runs, unknowns, guess=guess, known=known, max_iter=15, **kw)
+        params = {n: v for n, v in est.model_parameters.items()}
+        pred_runs = _split_runs(runs, 1 - fit_half)
+        pred = fit_output_error(pred_runs, [], known=params, max_iter=3, **kw)
+        res = np.concatenate(pred.residuals, axis=0)
+        ms.append(np.mean(res**2, axis=0))
+    return np.mean(ms, axis=0)
+
+
+def baseline_job(job):
+    """Refit the baseline (for validation only): cross-validated mean square per channel."""
+    from rotor_id.pipeline import experiments_from_record, model_for
+    model = model_for(job.description)
+    runs = experiments_from_record(job.record, job.description, model, job.window_s)
+    return cross_validate(runs, job.unknowns, job.baseline_values, job.known)
+
+
+def fit_candidate(job):
+    """Fit one candidate (runs in a worker process); never raises for a failed fit."""
+    from rotor_id.pipeline import experiments_from_record, model_for
+    t_start = time.perf_counter()
+    label = job.effect + (f' {job.variant}' if job.variant else '')
+    out = CandidateFit(effect=job.effect, variant=job.variant)
+    base_model = model_for(job.description)
+    reason = applicable(job.effect, base_model.name, base_model.rotor, job.unknowns)
+    if reason:
+        out.available, out.reason = False, reason
+        return out
+    try:
+        if job.effect == 'process_noise':
+            return _fit_process_noise(job, out, t_start)
+        experiments = experiments_from_record(job.record, job.description, base_model,
+                                              job.window_s)
+        runs, model, unknowns, extra, guess, max_step = _build(job, base_model, experiments)
+        kw = {'max_step': max_step} if max_step else {}
+        if job.effect == 'dynamic_inflow':
+            guess = _best_start(runs, unknowns, _wake_starts(model, guess, unknowns),
+                                job.known, max_step) or guess
+        est = fit_output_error(runs, unknowns, guess=guess, known=job.known, max_iter=40,
+                               progress=_printer(label, job.verbose), label=label, **kw)
+    except (IdentificationError, np.linalg.LinAlgError, FloatingPointError) as exc:
+        out.available, out.reason = False, f'fit failed: {exc}'
+        out.elapsed_s = time.perf_counter() - t_start
+        return out
+    out.estimate, out.model, out.unknowns, out.extra_names = est, model, unknowns, extra
+    out.experiments = runs
+    out.n_extra = len(est.names) - len(job.unknowns) - _n_initial(experiments)
+    p_full = np.array([est.model_parameters[n] for n in model.parameter_names])
+    cov_full = _full_covariance(est, model)
+    out.parameters = model.report_parameters(p_full, cov_full)
+    if job.validate:
+        try:
+            start = {n: est.model_parameters[n] for n in unknowns}
+            out.validation_ms = cross_validate(runs, unknowns, start, job.known, max_step)
+            out.validation_rms = float(math.sqrt(np.mean(out.validation_ms)))
+        except (IdentificationError, np.linalg.LinAlgError, FloatingPointError):
+            out.validation_rms = None
+    out.elapsed_s = time.perf_counter() - t_start
+    if job.verbose:
+        import sys
+        print(f'  [{label}] done in {out.elapsed_s:.1f} s', file=sys.stderr, flush=True)
+    out.experiments = []            # keep the result small for the trip back to the parent
+    return out
+
+
+def _n_initial(experiments):
+    return sum(len(e.free_states()) for e in experiments)
+
+
+def _full_covariance(est, model):
+    """Covariance over the model's full parameter vector (zero rows for known ones)."""
+    names = model.parameter_names
+    cov = np.zeros((len(names), len(names)))
+    idx = [(i, est.names.index(n)) for i, n in enumerate(names) if n in est.names]
+    for i, a in idx:
+        for j, b in idx:
+            cov[i, j] = est.covariance[a, b]
+    return cov
+
+
+def _fit_process_noise(job, out, t_start):
+    try:
+        import rotor_id.estimation.filter_error  # noqa: F401
+    except ImportError:
+        out.available = False
+        out.reason = ('unavailable: the filter-error likelihood '
+                      '(rotor_id.estimation.filter_error) is not installed in this build')
+        return out
+    from rotor_id.pipeline import identify
+    ident = identify(job.record, job.description, method='filter-error', window_s=job.window_s,
+                     multi_start=False)
+    est = ident.estimate
+    out.estimate, out.model, out.unknowns = est, ident.model, list(ident.unknowns)
+    extra = [n for n in est.names if n not in job.unknowns and '(t0)' not in n]
+    out.extra_names = extra
+    out.n_extra = len(extra)
+    out.parameters = {n: (est.value(n), est.std_of(n)) for n in extra}
+    out.elapsed_s = time.perf_counter() - t_start
+    return out
