@@ -353,8 +353,14 @@ def _fit_process_noise(job, out, t_start):
                       '(rotor_id.estimation.filter_error) is not installed in this build')
         return out
     from rotor_id.pipeline import identify
-    ident = identify(job.record, job.description, method='filter-error', window_s=job.window_s,
-                     multi_start=False)
+    try:
+        ident = identify(job.record, job.description, method='filter-error',
+                         window_s=job.window_s, multi_start=False)
+    except Exception as exc:  # noqa: B902 - another module's failure must not end diagnosis
+        out.available = False
+        out.reason = f'filter-error fit failed: {type(exc).__name__}: {exc}'
+        out.elapsed_s = time.perf_counter() - t_start
+        return out
     est = ident.estimate
     out.estimate, out.model, out.unknowns = est, ident.model, list(ident.unknowns)
     extra = [n for n in est.names if n not in job.unknowns and '(t0)' not in n]
