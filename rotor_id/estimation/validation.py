@@ -1,0 +1,388 @@
+"""
+Validation of an identified model: prediction error, residual whiteness, input correlation.
+
+For each run and output channel (:class:`ChannelValidation`):
+
+* **prediction RMS** of the residual ε = y − ŷ, on the identification data (ŷ = the fit) and on
+  held-out runs (ŷ simulated at the estimated parameters from the new run's initial state,
+  fitted by linear least squares with the parameters held: y is linear in x(t0));
+* **Theil inequality coefficient** U = rms(ε) / (rms(y) + rms(ŷ)), 0 for a perfect prediction,
+  1 for no skill (ŷ = 0 or ŷ = −y);
+* **whiteness**: the normalised autocorrelation r_k of ε for lags 1…L with the ±1.96/√N band
+  of a white sequence, and the Ljung-Box portmanteau statistic
+  Q = N(N+2) Σ_{k=1..L} r_k²/(N−k), χ²(L) under whiteness (p-value from scipy.stats.chi2);
+* **cross-correlation with the input**: normalised correlation of ε with each varying input
+  channel (θI, θII) at lags −L…L, with the same ±1.96/√N band. A model that explains the
+  input-driven response leaves none.
+
+Output error assumes white measurement noise (report Ch.2 eq. 14 ff.): coloured residuals or
+residuals correlated with the input mean the model misses something (wrong structure,
+periodic terms, wake, sensor lag) even when the fit looks good.
+"""
+
+from dataclasses import dataclass, field, replace
+import math
+
+import numpy as np
+from rotor_id.estimation.output_error import _fit_initial_states, _Problem, evaluate
+from rotor_id.estimation.simulate import DEFAULT_MAX_STEP
+from rotor_id.physics.stirring import INPUT_NAMES
+from scipy.stats import chi2, norm
+
+#: Two-sided 95 % quantile of the standard normal: the band ±1.96/√N of a white sequence.
+Z95 = 1.959963984540054
+
+
+@dataclass
+class ChannelValidation:
+    """
+    Residual statistics of one output channel of one run.
+
+    Attributes
+    ----------
+    channel : str
+    n_samples : int
+    rms : float
+        Root mean square of the residual (prediction error), in the output's unit.
+    mean : float
+        Mean residual.
+    theil : float
+        Theil inequality coefficient U (0 perfect, 1 no skill).
+    lags : ndarray, shape (L,)
+        1 … L.
+    autocorrelation : ndarray, shape (L,)
+        r_k of the residual.
+    band : float
+        1.96/√N.
+    outside_band : float
+        Fraction of lags with |r_k| > band (≈ 5 % for white residuals).
+    ljung_box_q : float
+    ljung_box_dof : int
+    ljung_box_p : float
+        Probability of a Q this large for white residuals.
+    input_names : list of str
+        Input channels correlated with the residual (those that vary in the run).
+    cross_lags : ndarray, shape (2L+1,)
+        −L … L (positive: residual lags the input).
+    cross_correlation : ndarray, shape (len(input_names), 2L+1)
+    max_cross_correlation : float
+        Largest |cross-correlation| over inputs and lags.
+
+    """
+
+    channel: str
+    n_samples: int
+    rms: float
+    mean: float
+    theil: float
+    lags: np.ndarray
+    autocorrelation: np.ndarray
+    band: float
+    outside_band: float
+    ljung_box_q: float
+    ljung_box_dof: int
+    ljung_box_p: float
+    input_names: list = field(default_factory=list)
+    cross_lags: np.ndarray = None
+    cross_correlation: np.ndarray = None
+    max_cross_correlation: float = float('nan')
+
+    def white(self, alpha=0.05):
+        """Whether the Ljung-Box test accepts whiteness at level ``alpha``."""
+        return bool(self.ljung_box_p >= alpha)
+
+    def uncorrelated_with_input(self, alpha=0.05):
+        """
+        Whether every input cross-correlation stays inside its band (Bonferroni over lags).
+
+        With 2L+1 lags per input the band is widened to the two-sided ``alpha/(2L+1)/n_inputs``
+        quantile, so a white residual independent of the input passes with probability ≈ 1−α.
+        """
+        if self.cross_correlation is None or self.cross_correlation.size == 0:
+            return True
+        count = self.cross_correlation.size
+        z = norm.isf(alpha / (2.0 * count))
+        return bool(self.max_cross_correlation <= z / math.sqrt(self.n_samples))
+
+    def as_dict(self):
+        """JSON-ready summary (without the full correlation functions)."""
+        return {'channel': self.channel, 'n_samples': self.n_samples, 'rms': self.rms,
+                'mean': self.mean, 'theil': self.theil, 'band': self.band,
+                'outside_band': self.outside_band, 'ljung_box_q': self.ljung_box_q,
+                'ljung_box_dof': self.ljung_box_dof, 'ljung_box_p': self.ljung_box_p,
+                'max_cross_correlation': self.max_cross_correlation,
+                'white': self.white(), 'uncorrelated_with_input': self.uncorrelated_with_input()}
+
+
+@dataclass
+class RunValidation:
+    """
+    Validation of one run: the prediction and per-channel statistics.
+
+    Attributes
+    ----------
+    name : str
+    held_out : bool
+        True when the run was not used for the estimate.
+    t : ndarray, shape (T,)
+    measured, predicted, residuals : ndarray, shape (T, m)
+    initial_state : ndarray, shape (n,)
+        x(t0) used for the prediction (fitted for held-out runs).
+    channels : list of ChannelValidation
+
+    """
+
+    name: str
+    held_out: bool
+    t: np.ndarray
+    measured: np.ndarray
+    predicted: np.ndarray
+    residuals: np.ndarray
+    initial_state: np.ndarray
+    channels: list
+
+    def as_dict(self):
+        """JSON-ready summary."""
+        return {'name': self.name, 'held_out': self.held_out,
+                'initial_state': [float(v) for v in self.initial_state],
+                'channels': [c.as_dict() for c in self.channels]}
+
+
+def autocorrelation(x, max_lag):
+    """
+    Normalised autocorrelation r_k = c_k / c_0 of a sequence for lags 1 … max_lag.
+
+    c_k = (1/N) Σ_{t=k}^{N−1} (x_t − x̄)(x_{t−k} − x̄), the biased estimate Ljung-Box uses.
+    """
+    x = np.asarray(x, dtype=float) - np.mean(x)
+    n = x.size
+    c0 = float(np.dot(x, x)) / n
+    if c0 == 0.0:
+        return np.zeros(max_lag)
+    return np.array([np.dot(x[k:], x[:n - k]) / n / c0 for k in range(1, max_lag + 1)])
+
+
+def ljung_box(r, n):
+    """Ljung-Box Q = N(N+2) Σ r_k²/(N−k) for autocorrelations r_1…r_L, its dof L and p-value."""
+    r = np.asarray(r, dtype=float)
+    k = np.arange(1, r.size + 1)
+    q = float(n * (n + 2) * np.sum(r**2 / (n - k)))
+    return q, int(r.size), float(chi2.sf(q, r.size))
+
+
+def cross_correlation(residual, signal, max_lag):
+    """
+    Normalised cross-correlation ρ_k of residual ε and input u for lags k = −L … L.
+
+    ρ_k = Σ_t (ε_t − ε̄)(u_{t−k} − ū) / (N s_ε s_u): k > 0 means ε lags u.
+    """
+    e = np.asarray(residual, dtype=float) - np.mean(residual)
+    u = np.asarray(signal, dtype=float) - np.mean(signal)
+    n = e.size
+    scale = n * np.std(e) * np.std(u)
+    out = np.zeros(2 * max_lag + 1)
+    if scale == 0.0:
+        return out
+    for i, k in enumerate(range(-max_lag, max_lag + 1)):
+        if k >= 0:
+            out[i] = np.dot(e[k:], u[:n - k]) / scale
+        else:
+            out[i] = np.dot(e[:n + k], u[-k:]) / scale
+    return out
+
+
+def theil_inequality(measured, predicted):
+    """Theil's U = rms(y − ŷ) / (rms(y) + rms(ŷ)); 0 for ŷ = y, 1 for ŷ = 0 or ŷ = −y."""
+    y = np.asarray(measured, dtype=float)
+    yh = np.asarray(predicted, dtype=float)
+    den = math.sqrt(np.mean(y**2)) + math.sqrt(np.mean(yh**2))
+    return float(math.sqrt(np.mean((y - yh)**2)) / den) if den > 0 else 0.0
+
+
+def default_max_lag(n_samples):
+    """Lags tested: min(20, N/4), at least 1 (Ljung-Box needs L well below N)."""
+    return max(1, min(20, n_samples // 4))
+
+
+def channel_statistics(measured, predicted, channel='y', inputs=None, input_names=None,
+                       max_lag=None):
+    """
+    Residual statistics of one channel (see the module docstring).
+
+    Parameters
+    ----------
+    measured : array_like, shape (N,)
+        Measured output y.
+    predicted : array_like, shape (N,)
+        Model output ŷ.
+    channel : str
+        Channel name for reports.
+    inputs : array_like, shape (N, q), optional
+        Input channels to correlate with the residual; constant ones are skipped.
+    input_names : sequence of str, optional
+        Names of the input channels.
+    max_lag : int, optional
+        Largest lag L (default :func:`default_max_lag`).
+
+    Returns
+    -------
+    ChannelValidation
+
+    """
+    y = np.asarray(measured, dtype=float)
+    yh = np.asarray(predicted, dtype=float)
+    if y.shape != yh.shape or y.ndim != 1:
+        raise ValueError(f'measured and predicted must be 1-D of equal length, got {y.shape} '
+                         f'and {yh.shape}')
+    n = y.size
+    if n < 8:
+        raise ValueError(f'residual statistics need at least 8 samples, got {n}; '
+                         'validate on a longer record')
+    lag = default_max_lag(n) if max_lag is None else int(max_lag)
+    if not 1 <= lag < n // 2:
+        raise ValueError(f'max_lag must be between 1 and N/2 = {n // 2}, got {lag}')
+    res = y - yh
+    r = autocorrelation(res, lag)
+    band = Z95 / math.sqrt(n)
+    q, dof, p = ljung_box(r, n)
+    names, cross = [], np.zeros((0, 2 * lag + 1))
+    if inputs is not None:
+        inputs = np.asarray(inputs, dtype=float)
+        input_names = list(input_names or [f'u{i}' for i in range(inputs.shape[1])])
+        keep = [i for i in range(inputs.shape[1]) if np.std(inputs[:, i]) > 1e-12]
+        names = [input_names[i] for i in keep]
+        cross = np.array([cross_correlation(res, inputs[:, i], lag) for i in keep]) \
+            if keep else cross
+    return ChannelValidation(
+        channel=channel, n_samples=n, rms=float(np.sqrt(np.mean(res**2))),
+        mean=float(np.mean(res)), theil=theil_inequality(y, yh),
+        lags=np.arange(1, lag + 1), autocorrelation=r, band=band,
+        outside_band=float(np.mean(np.abs(r) > band)), ljung_box_q=q, ljung_box_dof=dof,
+        ljung_box_p=p, input_names=names, cross_lags=np.arange(-lag, lag + 1),
+        cross_correlation=cross,
+        max_cross_correlation=float(np.max(np.abs(cross))) if cross.size else float('nan'))
+
+
+def predict(experiment, p_full, x0=None, max_step=DEFAULT_MAX_STEP):
+    """
+    Simulate a run at fixed parameters; its free initial states fitted by least squares.
+
+    Parameters
+    ----------
+    experiment : Experiment
+        A run with measurements. Its ``initial_state`` says which states at t0 are free
+        ('estimate': all, 'positions': deflections) and are fitted to its data with the model
+        parameters held (y is linear in x(t0), so the fit is exact linear least squares).
+    p_full : array_like, shape (P,)
+        Every model parameter (e.g. ``Estimate.model_parameters`` as a vector).
+    x0 : array_like, shape (n,), optional
+        Use this initial state instead of fitting one.
+    max_step : float
+        Longest RK4 step.
+
+    Returns
+    -------
+    (x0, predicted outputs of shape (T, m))
+
+    """
+    if experiment.y is None and x0 is None:
+        raise ValueError(f'run {experiment.name!r} has no measurements: give x0 to predict')
+    # x0_guess is a starting value for identification, not a fit: always solve for x(t0)
+    exp = replace(experiment, x0_guess=None)
+    if x0 is not None:
+        exp = replace(exp, initial_state=np.asarray(x0, dtype=float))
+    problem = _Problem([exp], [], None, None)
+    problem.p_base = np.asarray(p_full, dtype=float).copy()
+    theta = np.zeros(len(problem.names))
+    if theta.size:
+        theta = _fit_initial_states(problem, theta, max_step)
+    _, _, sim = evaluate(problem, theta, max_step, sensitivities=False)[0]
+    x_start = problem.initial_state(0, theta, problem.p_base)[0]
+    return x_start, sim.y
+
+
+def validate_run(experiment, p_full, held_out=True, x0=None, predicted=None, max_lag=None,
+                 max_step=DEFAULT_MAX_STEP):
+    """
+    Validate one run: predict it (unless ``predicted`` is given) and compute the statistics.
+
+    Parameters
+    ----------
+    experiment : Experiment
+        Run with measurements ``y``.
+    p_full : array_like, shape (P,)
+        Parameters to predict with.
+    held_out : bool
+        Label only: whether the run was left out of the estimate.
+    x0 : array_like, optional
+        Initial state (default: fitted by least squares, see :func:`predict`).
+    predicted : array_like, shape (T, m), optional
+        Model output already computed (e.g. ``Estimate.fitted``).
+    max_lag : int, optional
+        Largest lag of the correlation tests.
+    max_step : float
+        Longest RK4 step.
+
+    Returns
+    -------
+    RunValidation
+
+    """
+    if experiment.y is None:
+        raise ValueError(f'run {experiment.name!r} has no measurements to validate against')
+    if predicted is None:
+        x_start, predicted = predict(experiment, p_full, x0, max_step)
+    else:
+        x_start = np.asarray(x0 if x0 is not None else [], dtype=float)
+        predicted = np.asarray(predicted, dtype=float)
+    y = np.asarray(experiment.y, dtype=float)
+    if predicted.shape != y.shape:
+        raise ValueError(f'run {experiment.name!r}: prediction has shape {predicted.shape}, '
+                         f'measurements {y.shape}')
+    u = experiment.inputs(experiment.t)
+    channels = [channel_statistics(y[:, j], predicted[:, j], name, u, INPUT_NAMES, max_lag)
+                for j, name in enumerate(experiment.model.output_names)]
+    return RunValidation(name=experiment.name, held_out=held_out, t=np.asarray(experiment.t),
+                         measured=y, predicted=predicted, residuals=y - predicted,
+                         initial_state=x_start, channels=channels)
+
+
+def validate(estimate, experiments, held_out=(), max_lag=None, max_step=DEFAULT_MAX_STEP):
+    """
+    Validate an estimate on its identification runs and on held-out runs.
+
+    Parameters
+    ----------
+    estimate : Estimate
+        From :func:`~rotor_id.estimation.output_error.fit_output_error` (its fitted outputs
+        and initial states are used for the identification runs).
+    experiments : list of Experiment
+        The runs the estimate was fitted to, in the same order.
+    held_out : list of Experiment
+        New runs of the same model: predicted at the estimated parameters from their own
+        least-squares initial state.
+    max_lag : int, optional
+        Largest lag of the correlation tests.
+    max_step : float
+        Longest RK4 step.
+
+    Returns
+    -------
+    list of RunValidation
+        Identification runs first, then the held-out runs.
+
+    """
+    model = experiments[0].model
+    p = model.parameter_vector(estimate.model_parameters)
+    out = []
+    for r, exp in enumerate(experiments):
+        fitted = estimate.fitted[r] if r < len(estimate.fitted) else None
+        x0 = estimate.initial_states[r] if r < len(estimate.initial_states) else None
+        out.append(validate_run(exp, p, held_out=False, x0=x0, predicted=fitted,
+                                max_lag=max_lag, max_step=max_step))
+    for exp in held_out:
+        if exp.model.parameter_names != model.parameter_names:
+            raise ValueError(f'held-out run {exp.name!r} uses model {exp.model.name!r}, whose '
+                             f'parameters differ from those of the estimate ({model.name!r})')
+        out.append(validate_run(exp, p, held_out=True, max_lag=max_lag, max_step=max_step))
+    return out
