@@ -206,7 +206,7 @@ def identify(record, description, method=None, progress=None, window_s=None,
                                   'list A instead of gamma among the unknowns')
     guess = starting_values(record, description, model, experiments, known, multi_start)
     noise = description.noise_std_rad
-    noise_std = None if noise is None else _channel_noise(model, float(noise))
+    noise_std = None if noise is None else channel_noise(model, float(noise))
     if method == 'output-error':
         estimate = fit_output_error(experiments, unknowns, guess=guess, known=known,
                                     noise_std=noise_std, progress=progress, max_iter=max_iter)
@@ -226,7 +226,7 @@ def identify(record, description, method=None, progress=None, window_s=None,
                           omega_rad_s=record.window(*window_s).omega_mean, unknowns=unknowns)
 
 
-def _channel_noise(model, blade_noise):
+def channel_noise(model, blade_noise):
     """Noise σ of the model's channels for independent per-blade flap noise σ (N = 4)."""
     names = model.output_names
     if model.name == 'multiblade_wake':
@@ -236,3 +236,6 @@ def _channel_noise(model, blade_noise):
         return np.array([blade_noise / 2.0 if n in ('beta_0', 'beta_d')
                          else blade_noise / math.sqrt(2.0) for n in names])
     return blade_noise
+
+
+_channel_noise = channel_noise     # the earlier private name (nodes use it)
