@@ -170,9 +170,10 @@ def decode_one(raw):
 def decode_batch(raws):
     """Decode many JointState messages of one topic.
 
-    The joint names of the batch are those of the first decodable message. A message with the
-    same names in another order is reordered; one with other names, a position array that does
-    not match its names, or bytes that do not parse, is dropped and counted in ``dropped``.
+    The joint names of the batch are those of the most common message length (its first
+    message). A message with the same names in another order is reordered; one with other
+    names, a position array that does not match its names, or bytes that do not parse, is
+    dropped and counted in ``dropped``.
 
     Args:
         raws: Sequence of CDR byte strings.
@@ -219,7 +220,8 @@ def decode_batch(raws):
         stamps[index] = _stamps(rows, layout.little)
         ok[index] = True
 
-    for size in np.unique(lengths):
+    sizes, counts = np.unique(lengths, return_counts=True)
+    for size in sizes[np.argsort(-counts, kind='stable')]:
         index = np.flatnonzero(lengths == size)
         rows = np.frombuffer(b''.join([bytes(raws[i]) for i in index]), dtype=np.uint8)
         rows = rows.reshape(len(index), int(size))
@@ -295,7 +297,10 @@ def encode_batch(stamps_ns, names, position, velocity=None, effort=None, frame_i
     arrays = []
     for values in (position, velocity, effort):
         values = np.empty((n, 0)) if values is None else np.asarray(values, dtype='<f8')
-        arrays.append(values.reshape(n, -1))
+        if values.shape != (n, len(names)) and values.shape != (n, 0):
+            raise ValueError(f'arrays must be (n, len(names)) = ({n}, {len(names)}) or (n, 0), '
+                             f'got {values.shape}')
+        arrays.append(values)
     template = _encode_template(frame_id, list(names), [a.shape[1] for a in arrays])
     layout = parse_layout(template)
     rows = np.tile(np.frombuffer(template, dtype=np.uint8), (n, 1))
