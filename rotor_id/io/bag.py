@@ -107,21 +107,21 @@ class _Raw:
         self.notes = []
 
 
-def _read_raw(open_path, storage, storage_file, wanted):
+def _read_raw(open_path, storage, storage_file, wanted, omega_rad_s):
     raw = _Raw()
     try:
         reader = Reader(open_path)
         reader.open()
     except Exception as err:  # noqa: B902 - rosbags/apsw raise many types for bad files
         if storage == 'mcap':
-            return _recover_mcap(storage_file, wanted, err)
+            return _recover_mcap(storage_file, wanted, err, omega_rad_s)
         raise BagError(f'{storage_file} cannot be opened as a {storage} bag '
                        f'({type(err).__name__}: {err}); the file is not a rosbag2 recording '
                        'or is damaged (a damaged .db3 may be salvaged into a new file with the '
                        '.recover command of the sqlite3 shell)') from None
     try:
         raw.available = {c.topic: c.msgtype for c in reader.connections}
-        _check_topics(raw.available, wanted, storage_file)
+        _check_topics(raw, wanted, storage_file, omega_rad_s)
         connections = [c for c in reader.connections if c.topic in wanted.values()]
         buckets = {c.id: raw.data.setdefault(c.topic, []) for c in connections}
         times = {c.id: raw.log_ns.setdefault(c.topic, []) for c in connections}
@@ -133,7 +133,7 @@ def _read_raw(open_path, storage, storage_file, wanted):
                 count += 1
         except Exception as err:  # noqa: B902 - damaged storage; keep what was read
             if storage == 'mcap':
-                recovered = _recover_mcap(storage_file, wanted, err)
+                recovered = _recover_mcap(storage_file, wanted, err, omega_rad_s)
                 if sum(map(len, recovered.data.values())) > count:
                     return recovered
             raw.notes.append(
@@ -145,7 +145,7 @@ def _read_raw(open_path, storage, storage_file, wanted):
     return raw
 
 
-def _recover_mcap(storage_file, wanted, error):
+def _recover_mcap(storage_file, wanted, error, omega_rad_s):
     """Read what a damaged MCAP still holds (see :mod:`rotor_id.io.mcap_recover`)."""
     try:
         scan = scan_mcap(storage_file)
@@ -154,7 +154,7 @@ def _recover_mcap(storage_file, wanted, error):
                        f'recoverable ({err}); the file is not a rosbag2 recording') from None
     raw = _Raw()
     raw.available = scan.topics()
-    _check_topics(raw.available, wanted, storage_file)
+    _check_topics(raw, wanted, storage_file, omega_rad_s)
     for topic in wanted.values():
         messages = scan.topic_messages(topic)
         raw.log_ns[topic] = [m[0] for m in messages]
@@ -170,12 +170,17 @@ def _recover_mcap(storage_file, wanted, error):
     return raw
 
 
-def _check_topics(available, wanted, storage_file):
+def _check_topics(raw, wanted, storage_file, omega_rad_s):
+    """Check that the wanted topics are JointState; without azimuth, fall back on Ω."""
+    available = raw.available
+    if 'azimuth' in wanted and wanted['azimuth'] not in available and omega_rad_s is not None:
+        raw.notes.append(f'azimuth topic {wanted.pop("azimuth", None)} not in the bag')
     for role, topic in wanted.items():
         if topic not in available:
+            hint = ' (or pass omega_rad_s if no azimuth was recorded)' if role == 'azimuth' else ''
             raise BagError(
                 f'topic {topic} ({role}) is not in {storage_file}; topics there: '
-                f'{sorted(available) or "none"}. Set topics.{role} in the run description')
+                f'{sorted(available) or "none"}. Set topics.{role} in the run description{hint}')
         if available[topic] != JOINT_STATE:
             raise BagError(
                 f'topic {topic} ({role}) has message type {available[topic]}, expected '
@@ -294,7 +299,8 @@ def read_record(bag_path, topics=None, joint_names=None, *, n_blades=None, omega
             :func:`~rotor_id.io.run_description.normalize_joint_names`; default: the message's
             names blade_1..blade_N.
         n_blades: Expected number of blades (e.g. the run description's rotor.blades).
-        omega_rad_s: Rotor speed to use when there is no azimuth topic.
+        omega_rad_s: Rotor speed, rad/s, used when no azimuth topic is given or the bag has
+            none (then t = Ω·time from 0, with a warning).
 
     Returns:
         Record. Its ``warnings`` list every repair (also announced once as a BagWarning).
@@ -313,7 +319,7 @@ def read_record(bag_path, topics=None, joint_names=None, *, n_blades=None, omega
     if 'azimuth' not in wanted and omega_rad_s is None:
         raise BagError('no azimuth topic given: pass omega_rad_s (the rotor speed) so that the '
                        'nondimensional time can be formed')
-    raw = _read_raw(open_path, storage, storage_file, wanted)
+    raw = _read_raw(open_path, storage, storage_file, wanted, omega_rad_s)
     issues = list(raw.notes)
     for topic, expected in counts.items():
         got = len(raw.data.get(topic, []))
@@ -547,7 +553,8 @@ def open_writer(path, storage='mcap', typestore=None):
     return BagWriter(writer, typestore or get_typestore(Stores.ROS2_JAZZY))
 
 
-def write_record_bag(path, record, storage='mcap', topics=None, frame_id='rotor'):
+def write_record_bag(path, record, storage='mcap', topics=None, frame_id='rotor', extra=(),
+                     typestore=None):
     """Write a Record into a bag following the test-stand convention.
 
     The pitch, flap and azimuth messages of each sample share the stamp
@@ -560,6 +567,10 @@ def write_record_bag(path, record, storage='mcap', topics=None, frame_id='rotor'
         storage: 'mcap' or 'sqlite3'.
         topics: Role -> topic; default :data:`DEFAULT_TOPICS`.
         frame_id: header.frame_id of all messages.
+        extra: Further messages, (topic, receive time ns, rosbags message) each, of any type in
+            ``typestore`` (e.g. rotor_id_msgs registered with :func:`register_msg_dir`); their
+            definitions are embedded in the bag.
+        typestore: Typestore of the extra messages; default Jazzy's.
 
     Returns:
         Path of the bag directory.
@@ -578,10 +589,12 @@ def write_record_bag(path, record, storage='mcap', topics=None, frame_id='rotor'
         streams.append((topics['azimuth'], encode_batch(
             stamps, ['rotor'], psi[:, None], record.rotor_speed_rad_s[:, None],
             frame_id=frame_id)))
-    with open_writer(path, storage) as writer:
+    with open_writer(path, storage, typestore) as writer:
         for topic, _ in streams:
             writer.add_topic(topic, JOINT_STATE)
         for i, stamp in enumerate(stamps.tolist()):
             for topic, messages in streams:
                 writer.write_raw(topic, stamp, messages[i])
+        for topic, stamp, message in extra:
+            writer.write(topic, stamp, message)
     return Path(path)

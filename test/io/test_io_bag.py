@@ -16,6 +16,7 @@ from rotor_id.io.jointstate_cdr import encode_batch, JOINT_STATE
 
 PITCH, FLAP, AZIMUTH = '/rotor/blade_pitch', '/rotor/blade_flap', '/rotor/azimuth'
 MSG_DIR = Path(__file__).resolve().parents[2] / 'msg_defs' / 'msg'
+FIXTURE_MSGS = Path(__file__).resolve().parent / 'fixtures' / 'probe_msgs' / 'msg'
 
 
 def read_quietly(path, **kwargs):
@@ -71,22 +72,47 @@ def test_mcap_written_bag_decodes_with_independent_mcap_ros2_reader(tmp_path):
     np.testing.assert_array_equal([p for _, p in flap], record.blade_flap)
 
 
-def test_custom_messages_embed_their_definitions(tmp_path):
-    if not MSG_DIR.is_dir() or not list(MSG_DIR.glob('*.msg')):
+def test_custom_messages_are_written_with_embedded_definitions(tmp_path):
+    """A custom type registered from a .msg directory decodes from the MCAP schema alone."""
+    from mcap.reader import make_reader
+    from mcap_ros2.decoder import DecoderFactory
+    typestore = get_typestore(Stores.ROS2_JAZZY)
+    assert register_msg_dir(typestore, FIXTURE_MSGS) == ['probe_msgs/msg/Probe',
+                                                         'probe_msgs/msg/Sample']
+    probe, sample = typestore.types['probe_msgs/msg/Probe'], typestore.types[
+        'probe_msgs/msg/Sample']
+    header = typestore.types['std_msgs/msg/Header'](
+        stamp=typestore.types['builtin_interfaces/msg/Time'](sec=5, nanosec=7), frame_id='hub')
+    msg = probe(header=header, samples=[sample(index=3, value=0.25)],
+                gains=np.array([1.0, 2.0, 3.0, 4.0]), note='stirring')
+    record = make_record(n=20)
+    bag = write_record_bag(tmp_path / 'bag', record, extra=[('/probe', STAMP0 + 5, msg)],
+                           typestore=typestore)
+    with open(bag / 'bag.mcap', 'rb') as stream:
+        decoded = [(schema, m) for schema, channel, _, m in make_reader(
+            stream, decoder_factories=[DecoderFactory()]).iter_decoded_messages(
+                topics=['/probe'])]
+    assert len(decoded) == 1
+    schema, got = decoded[0]
+    assert schema.encoding == 'ros2msg'
+    assert 'MSG: probe_msgs/Sample' in schema.data.decode()
+    assert 'MSG: std_msgs/Header' in schema.data.decode()
+    assert got.note == 'stirring' and list(got.gains) == [1.0, 2.0, 3.0, 4.0]
+    assert (got.samples[0].index, got.samples[0].value) == (3, 0.25)
+    assert got.header.frame_id == 'hub'
+    assert_same_record(read_record(bag), record)   # the extra topic does not disturb reading
+
+
+def test_project_messages_register(tmp_path):
+    if not list(MSG_DIR.glob('*.msg')):
         pytest.skip(f'no custom messages at {MSG_DIR}')
     typestore = get_typestore(Stores.ROS2_JAZZY)
     names = register_msg_dir(typestore, MSG_DIR)
-    assert names and all(n.startswith('rotor_id_msgs/msg/') for n in names)
-    msgtype = names[0]
-    msg_class = typestore.types[msgtype]
-    with open_writer(tmp_path / 'custom', 'mcap', typestore) as writer:
-        writer.add_topic('/custom', msgtype)
-    from mcap.reader import make_reader
-    with open(tmp_path / 'custom' / 'custom.mcap', 'rb') as stream:
-        schemas = make_reader(stream).get_summary().schemas
-    definition = next(s for s in schemas.values() if s.name == msgtype).data.decode()
-    field_names = [f for f in msg_class.__dataclass_fields__ if not f.startswith('__')]
-    assert all(name in definition for name in field_names)
+    assert names == sorted(f'rotor_id_msgs/msg/{p.stem}' for p in MSG_DIR.glob('*.msg'))
+    with open_writer(tmp_path / 'bag', 'sqlite3', typestore) as writer:
+        for i, name in enumerate(names):
+            writer.add_topic(f'/custom_{i}', name)
+    assert all(name in (tmp_path / 'bag' / 'metadata.yaml').read_text() for name in names)
 
 
 def test_open_writer_refuses_existing_path_and_unknown_storage(tmp_path):
@@ -225,6 +251,12 @@ def test_no_azimuth_topic_uses_the_given_speed(tmp_path):
     got = read_quietly(bag, topics={'azimuth': None}, omega_rad_s=OMEGA)
     np.testing.assert_allclose(got.t, OMEGA * got.time_s)
     assert any('no azimuth topic' in w for w in got.warnings)
+    # the convention's azimuth topic absent from the bag: same fallback, said so
+    with pytest.raises(BagError, match='or pass omega_rad_s'):
+        read_record(bag)
+    got = read_quietly(bag, omega_rad_s=OMEGA)
+    np.testing.assert_allclose(got.t, OMEGA * got.time_s)
+    assert f'azimuth topic {AZIMUTH} not in the bag' in got.warnings
 
 
 # --------------------------------------------------------------------------- joints
