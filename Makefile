@@ -19,23 +19,28 @@ MAKEFLAGS += --no-print-directory
 
 PYTHON ?= python3.11
 VENV := .venv
-VENV_ABS := $(CURDIR)/$(VENV)
 VPY := $(VENV)/bin/python
 REQS := requirements-jazzy.in
 CONS := constraints-jazzy.txt
 PATCH := tools/patch_cmake_exports.py
+MAKE_VENV := tools/make_venv.sh
 # uv (fast) or pip; uv falls back to pip by itself if uv cannot be installed.
 INSTALLER ?= uv
 
-# The venv is keyed on the content of the pins and of the patch script, and on where the
+# The venv is keyed on the content of the pins and of the install scripts, and on where the
 # clone lives (the venv is not relocatable): a stamp with that key makes `make venv` a no-op.
-VENV_KEY := $(shell cat $(REQS) $(CONS) $(PATCH) | { cat; echo '$(CURDIR) $(PYTHON)'; } \
-                | sha256sum | cut -c1-16)
+VENV_KEY := $(shell { cat $(REQS) $(CONS) $(PATCH) $(MAKE_VENV); echo '$(CURDIR) $(PYTHON)'; } \
+              | sha256sum | cut -c1-16)
 VENV_STAMP := $(VENV)/.stamp-$(VENV_KEY)
 
 COLCON_PKG_ARGS := --base-paths . msg_defs
 # No live status line / desktop notification / terminal title: plain logs for CI.
 COLCON_BUILD_ARGS := --event-handlers status- desktop_notification- terminal_title-
+
+# Several people (and their make runs) share one work tree: serialise the venv install and
+# the colcon build with flock so two runs never write the same tree at once.
+FLOCK := $(shell command -v flock 2>/dev/null)
+locked = $(if $(FLOCK),$(FLOCK) $(1))
 
 # Sources the workspace environment (tools/env.sh) in a recipe.
 WS_ENV := source tools/env.sh
@@ -46,7 +51,7 @@ VENV_ENV := source tools/env.sh --venv-only
 all: test
 
 help:
-	@sed -n '2,8p' Makefile | sed 's/^# \{0,1\}//'
+	@sed -n '3,6p' Makefile | sed 's/^# \{0,1\}//'
 
 sysdeps:
 	@bash tools/ensure_system_deps.sh $(PYTHON)
@@ -54,28 +59,12 @@ sysdeps:
 venv: $(VENV_STAMP)
 
 $(VENV_STAMP): | sysdeps
-	@echo "== venv: installing the pinned wheels into $(VENV) (key $(VENV_KEY))"
-	@if [ -d $(VENV) ] && [ "$$(cat $(VENV)/.origin 2>/dev/null)" != "$(CURDIR)" ]; then \
-	  echo "   $(VENV) was made elsewhere (or is incomplete): recreating it"; rm -rf $(VENV); fi
-	@if [ ! -x $(VPY) ]; then $(PYTHON) -m venv $(VENV) && echo "$(CURDIR)" > $(VENV)/.origin; fi
-	@rm -f $(VENV)/.stamp-*
-	@if [ "$(INSTALLER)" = uv ] && \
-	    $(VPY) -m pip install -q --disable-pip-version-check -c $(CONS) uv 2>/dev/null; then \
-	  echo "   installer: uv $$($(VENV)/bin/uv --version | cut -d' ' -f2)"; \
-	  UV_PYTHON_DOWNLOADS=never UV_NO_PROGRESS=1 $(VENV)/bin/uv pip install -q \
-	    --python $(VPY) -r $(REQS) -c $(CONS); \
-	else \
-	  echo "   installer: pip"; \
-	  $(VPY) -m pip install -q --disable-pip-version-check -r $(REQS) -c $(CONS); \
-	fi
-	@$(VPY) $(PATCH) --quiet
-	@$(VPY) $(PATCH) --check --quiet
-	@touch $@
-	@echo "== venv: ready"
+	@$(call locked,.venv.lock) bash $(MAKE_VENV) $(PYTHON) $(VENV) $@ $(INSTALLER)
 
 build: venv | sysdeps
 	@echo "== build: colcon build (rotor_id_msgs, rotor_id)"
-	@$(VENV_ENV) && colcon build $(COLCON_PKG_ARGS) $(COLCON_BUILD_ARGS)
+	@$(VENV_ENV) && \
+	  $(call locked,.build.lock) colcon build $(COLCON_PKG_ARGS) $(COLCON_BUILD_ARGS)
 
 test: build
 	@echo "== test: pytest"

@@ -1,0 +1,42 @@
+#!/usr/bin/env bash
+# Create or update the venv from the pins; `make venv` calls it under a lock.
+#   usage: tools/make_venv.sh PYTHON VENV STAMP INSTALLER
+# PYTHON     python3.11 to create the venv with
+# VENV       the venv directory (.venv)
+# STAMP      file to create on success; its name carries the key of the pins' content
+# INSTALLER  uv (pip installs uv into the venv first; pip is used if that fails) or pip
+set -euo pipefail
+python="$1" venv="$2" stamp="$3" installer="$4"
+reqs=requirements-jazzy.in cons=constraints-jazzy.txt patch=tools/patch_cmake_exports.py
+
+# Another make may have finished the same venv while this one waited for the lock.
+[ -f "$stamp" ] && exit 0
+
+echo "== venv: installing the pinned wheels into $venv ($(basename "$stamp"))"
+here="$(pwd -P)"
+# The venv is not relocatable (shebangs, patched CMake paths): recreate it if it was made
+# for another directory, or if an earlier attempt died before writing .origin.
+if [ -d "$venv" ] && [ "$(cat "$venv/.origin" 2>/dev/null)" != "$here" ]; then
+  echo "   $venv was made elsewhere (or is incomplete): recreating it"
+  rm -rf "$venv"
+fi
+if [ ! -x "$venv/bin/python" ]; then
+  "$python" -m venv "$venv"
+  echo "$here" > "$venv/.origin"
+fi
+rm -f "$venv"/.stamp-*
+
+vpy="$venv/bin/python"
+if [ "$installer" = uv ] && \
+   "$vpy" -m pip install -q --disable-pip-version-check -c "$cons" uv 2>/dev/null; then
+  echo "   installer: uv $("$venv/bin/uv" --version | cut -d' ' -f2)"
+  UV_PYTHON_DOWNLOADS=never UV_NO_PROGRESS=1 \
+    "$venv/bin/uv" pip install -q --python "$vpy" -r "$reqs" -c "$cons"
+else
+  echo "   installer: pip"
+  "$vpy" -m pip install -q --disable-pip-version-check -r "$reqs" -c "$cons"
+fi
+"$vpy" "$patch" --quiet
+"$vpy" "$patch" --check --quiet
+touch "$stamp"
+echo "== venv: ready"
