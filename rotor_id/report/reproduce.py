@@ -155,7 +155,7 @@ class IterationResult:
                                      else list(self.case.noise_free_limit))}
 
 
-def _iteration_experiment(case, y=None):
+def iteration_experiment(case, y=None):
     scenario = C.SCENARIOS[case.scenario]
     x0_guess = None
     if case.x0_start == 'equilibrium':
@@ -192,7 +192,7 @@ def run_iteration_case(case, seed=None, max_iter=30, progress=None, step_tol=1e-
     (the rule of Ch.3 Table 1, MODELS.md §0.1).
     """
     scenario = C.SCENARIOS[case.scenario]
-    exp = _iteration_experiment(case, case_data(case, seed))
+    exp = iteration_experiment(case, case_data(case, seed))
     label = 'noise-free' if seed is None else f'noisy (seed {seed})'
 
     if progress:
@@ -277,7 +277,7 @@ def _equation_error_row(row, seed):
         return SummaryResult(row, None, None, None, None, None, None,
                              'n/a (module not available)')
     case = next(c for c in C.ITERATION_CASES if c.name == 'single_blade_2par')
-    exp = _iteration_experiment(case, case_data(case, seed))
+    exp = iteration_experiment(case, case_data(case, seed))
     cpu = time.process_time()
     est = fit_equation_error_experiments([exp], list(case.unknowns), guess=dict(case.start),
                                          known=None, progress=None)
