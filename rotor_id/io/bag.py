@@ -205,12 +205,16 @@ def _topic_samples(raw, topic, role, issues, with_velocity):
     if not len(batch.stamps_ns):
         raise BagError(f'topic {topic} ({role}): none of its {len(messages)} messages could be '
                        'decoded as JointState; the bag is corrupt')
-    stamps = batch.stamps_ns
-    if np.count_nonzero(stamps == 0) > len(stamps) // 2:
+    stamps, position, velocity = batch.stamps_ns, batch.position, batch.velocity
+    unfilled = stamps == 0
+    if np.count_nonzero(unfilled) > len(stamps) // 2:
         issues.append(f'{topic}: header.stamp is not filled (zero); the receive time is used '
                       'instead, which adds transport jitter: fill header.stamp at acquisition')
         stamps = np.asarray(raw.log_ns[topic], dtype=np.int64)[batch.kept]
-    position, velocity = batch.position, batch.velocity
+    elif unfilled.any():
+        issues.append(f'{topic}: dropped {np.count_nonzero(unfilled)} sample(s) whose '
+                      'header.stamp is not filled (zero)')
+        stamps, position, velocity = (a[~unfilled] for a in (stamps, position, velocity))
     if with_velocity and np.isnan(velocity).all():
         with_velocity = False
     values = np.hstack([position, velocity]) if with_velocity else position

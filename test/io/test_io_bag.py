@@ -414,6 +414,22 @@ def test_unfilled_header_stamps_fall_back_to_receive_time(tmp_path):
     assert any('header.stamp is not filled' in w for w in got.warnings)
 
 
+def test_a_few_unfilled_stamps_are_dropped(tmp_path):
+    record = make_record(n=100)
+    streams = record_streams(record)
+    stamps, names, position, _ = streams[FLAP]
+    header = stamps.copy()
+    header[[0, 40]] = 0
+    streams[FLAP] = list(zip(stamps.tolist(), encode_batch(header, names, position)))
+    got = read_quietly(write_streams(tmp_path / 'bag', streams))
+    keep = np.ones(100, dtype=bool)
+    keep[[0, 40]] = False
+    assert got.time_s[0] == 0.0 and got.stamp0_ns == stamps[1]
+    np.testing.assert_array_equal(got.blade_flap, record.blade_flap[keep])
+    np.testing.assert_allclose(got.t, record.t[keep], atol=1e-9)
+    assert f'{FLAP}: dropped 2 sample(s) whose header.stamp is not filled (zero)' in got.warnings
+
+
 def test_velocity_missing_takes_speed_from_azimuth_rate(tmp_path):
     record = make_record(n=400)
     streams = record_streams(record)
