@@ -1,0 +1,274 @@
+"""
+What every rotor_id node shares: QoS, parameters with descriptors, diagnostics, adapters.
+
+CONVENTIONS.md §2-§9: parameters declared with descriptors (units in the description, ranges),
+QoS by kind of data (§4), header stamps from the node clock (§5), /diagnostics at ~1 Hz by hand
+(diagnostic_updater is not a wheel here, §7), main() that shuts down cleanly on SIGINT/SIGTERM
+(§9).
+"""
+
+import math
+import os
+from pathlib import Path
+import sys
+
+from builtin_interfaces.msg import Time
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+import numpy as np
+from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor
+import rclpy
+from rclpy.exceptions import NameValidationException, ParameterException
+from rclpy.executors import ExternalShutdownException
+from rclpy.qos import (DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy)
+from rotor_id_msgs.msg import IdentificationProgress, ParameterEstimate
+from sensor_msgs.msg import JointState
+
+NS = 1_000_000_000
+
+#: Sensor streams (CONVENTIONS.md §4): best effort, volatile. Depth 1000 (1 s at 1 kHz), not 5: the
+#: plant publishes in bursts of a few ms of samples and a busy subscriber must not drop them.
+SENSOR_QOS = QoSProfile(reliability=ReliabilityPolicy.BEST_EFFORT,
+                        history=HistoryPolicy.KEEP_LAST, depth=1000,
+                        durability=DurabilityPolicy.VOLATILE)
+#: Commands, estimates, states, events: reliable, volatile (depth 100 so none is dropped).
+STATE_QOS = QoSProfile(reliability=ReliabilityPolicy.RELIABLE, history=HistoryPolicy.KEEP_LAST,
+                       depth=100, durability=DurabilityPolicy.VOLATILE)
+DIAGNOSTICS_QOS = QoSProfile(reliability=ReliabilityPolicy.RELIABLE,
+                             history=HistoryPolicy.KEEP_LAST, depth=10)
+
+
+# ------------------------------------------------------------------------------ parameters
+def declare(node, name, default, description, low=None, high=None, read_only=True,
+            constraints=''):
+    """
+    Declare a parameter with a descriptor (units in ``description``) and return its value.
+
+    ``low``/``high`` give a floating-point or integer range matching the default's type.
+    """
+    descriptor = ParameterDescriptor(description=description, read_only=read_only,
+                                     additional_constraints=constraints)
+    if low is not None and high is not None:
+        if isinstance(default, bool):
+            pass
+        elif isinstance(default, int):
+            descriptor.integer_range = [IntegerRange(from_value=int(low), to_value=int(high),
+                                                     step=0)]
+        elif isinstance(default, float):
+            descriptor.floating_point_range = [FloatingPointRange(
+                from_value=float(low), to_value=float(high), step=0.0)]
+    return node.declare_parameter(name, default, descriptor).value
+
+
+def resolve_config(path):
+    """
+    Find a config file given as a path, or by name in the installed share/rotor_id/config.
+
+    Raises FileNotFoundError naming both places when neither has it.
+    """
+    candidate = Path(os.path.expanduser(str(path)))
+    if candidate.is_file():
+        return candidate
+    tried = [str(candidate.resolve())]
+    if not candidate.is_absolute():
+        try:
+            from ament_index_python.packages import get_package_share_directory
+            share = Path(get_package_share_directory('rotor_id')) / 'config' / candidate
+            if share.is_file():
+                return share
+            tried.append(str(share))
+        except (ImportError, LookupError, ValueError):
+            pass
+        source = Path(__file__).resolve().parents[2] / 'config' / candidate
+        if source.is_file():
+            return source
+        tried.append(str(source))
+    raise FileNotFoundError(f'config file {path} not found (looked at {", ".join(tried)})')
+
+
+# ------------------------------------------------------------------------------ time
+def stamp_ns(stamp):
+    """builtin_interfaces/Time → integer ns."""
+    return int(stamp.sec) * NS + int(stamp.nanosec)
+
+
+def time_msg(ns):
+    """Integer ns → builtin_interfaces/Time."""
+    ns = int(ns)
+    return Time(sec=ns // NS, nanosec=ns % NS)
+
+
+# ------------------------------------------------------------------------------ JointState
+def joint_state(stamp, names, position, velocity=None, frame_id='rotor'):
+    """Build a sensor_msgs/JointState: ``header.stamp`` (ns or Time), names, values (rad)."""
+    msg = JointState()
+    msg.header.stamp = time_msg(stamp) if isinstance(stamp, (int, np.integer)) else stamp
+    msg.header.frame_id = frame_id
+    msg.name = list(names)
+    msg.position = [float(v) for v in position]
+    if velocity is not None:
+        msg.velocity = [float(v) for v in velocity]
+    return msg
+
+
+# ------------------------------------------------------------------------------ diagnostics
+class Diagnostics:
+    """
+    Counters of one node published as a DiagnosticArray on /diagnostics (~1 Hz).
+
+    ``count(kind)`` records a rejected message; the status is WARN while messages were rejected
+    in the last period (the message names the last reason), OK once good data flows again.
+    """
+
+    def __init__(self, node, task, period_s=1.0, hardware_id='rotor_id'):
+        self.node = node
+        self.name = f'{node.get_name()}: {task}'
+        self.hardware_id = hardware_id
+        self.counts = {}
+        self.values = {}
+        self.last_reason = ''
+        self._reported = 0
+        self.level_override = None
+        self.publisher = node.create_publisher(DiagnosticArray, '/diagnostics', DIAGNOSTICS_QOS)
+        self.timer = node.create_timer(period_s, self.publish)
+
+    def count(self, kind, reason=''):
+        """Count one rejected message of ``kind`` (reason: a short explanation)."""
+        self.counts[kind] = self.counts.get(kind, 0) + 1
+        if reason:
+            self.last_reason = f'{kind}: {reason}'
+        total = sum(self.counts.values())
+        if total in (1, 10, 100, 1000) or total % 10000 == 0:
+            self.node.get_logger().warning(
+                f'rejected message ({kind}): {reason} [{total} rejected so far; see /diagnostics]')
+
+    def set_value(self, key, value):
+        """Report a value (shown as a string)."""
+        self.values[key] = value
+
+    @property
+    def rejected(self):
+        """Total number of rejected messages."""
+        return sum(self.counts.values())
+
+    def publish(self):
+        """Publish the current status."""
+        total = self.rejected
+        status = DiagnosticStatus(name=self.name, hardware_id=self.hardware_id)
+        if self.level_override is not None:
+            status.level, status.message = self.level_override
+        elif total > self._reported:
+            status.level = DiagnosticStatus.WARN
+            status.message = (f'{total - self._reported} message(s) rejected in the last '
+                              f'period; last: {self.last_reason}')
+        else:
+            status.level = DiagnosticStatus.OK
+            status.message = 'ok' if not total else f'ok ({total} rejected earlier)'
+        self._reported = total
+        values = {'rejected_total': total, **{f'rejected_{k}': v for k, v in self.counts.items()},
+                  **self.values}
+        status.values = [KeyValue(key=k, value=str(v)) for k, v in values.items()]
+        msg = DiagnosticArray(status=[status])
+        msg.header.stamp = self.node.get_clock().now().to_msg()
+        self.publisher.publish(msg)
+
+
+# ------------------------------------------------------------------------------ estimates
+def estimate_message(identification, stamp, status=None, target=(True, 0.0), frame_id='rotor',
+                     message=None):
+    """rotor_id_msgs/ParameterEstimate of an Identification's unknowns (SI, rad)."""
+    est = identification.estimate
+    unknowns = list(identification.unknowns)
+    idx = [est.names.index(n) for n in unknowns]
+    cov = est.covariance[np.ix_(idx, idx)]
+    model = identification.model
+    msg = ParameterEstimate()
+    msg.header.stamp = stamp
+    msg.header.frame_id = frame_id
+    msg.model = model.name
+    msg.names = unknowns
+    msg.units = [_unit(model.parameter(n).unit) for n in unknowns]
+    msg.values = [float(est.values[i]) for i in idx]
+    msg.std = [float(math.sqrt(max(cov[j, j], 0.0))) for j in range(len(idx))]
+    msg.covariance = [float(c) for c in cov.ravel()]
+    msg.correlation = [float(c) for c in est.correlation[np.ix_(idx, idx)].ravel()]
+    msg.noise_std = [float(s) for s in est.noise_std]
+    msg.channel_names = list(est.channel_names)
+    msg.cost = float(est.cost)
+    msg.iteration = int(est.iterations)
+    if status is None:
+        status = (ParameterEstimate.STATUS_CONVERGED if est.converged
+                  else ParameterEstimate.STATUS_MAX_ITERATIONS)
+    msg.status = status
+    msg.message = message if message is not None else est.message
+    part = identification.experiments[0]
+    rec_ns = getattr(identification, 'stamp0_ns', 0)
+    omega = identification.omega_rad_s
+    msg.window_start = time_msg(rec_ns + int(round(identification.window_s[0] * NS)))
+    msg.window_end = time_msg(rec_ns + int(round(identification.window_s[1] * NS)))
+    msg.window_s = float((part.t[-1] - part.t[0]) / omega) if omega > 0 else 0.0
+    msg.target_met, msg.additional_data_s = bool(target[0]), float(target[1])
+    return msg
+
+
+def _unit(unit):
+    return {'-': '1', 'angle': 'rad'}.get(unit, unit)
+
+
+def progress_message(info, stamp):
+    """rotor_id_msgs/IdentificationProgress from fit_output_error's per-iteration dict."""
+    msg = IdentificationProgress()
+    msg.header.stamp = stamp
+    msg.iteration = int(info['iteration'])
+    msg.cost = float(info['cost'])
+    names = list(info['names'])
+    msg.names = names
+    msg.values = [float(v) for v in info['values']]
+    msg.elapsed = float(info['elapsed'])
+    msg.message = str(info.get('message', info.get('label', '')))
+    return msg
+
+
+def estimate_from_message(msg):
+    """(names, values, std, covariance (n, n)) of a ParameterEstimate, as numpy arrays."""
+    n = len(msg.names)
+    cov = np.asarray(msg.covariance, dtype=float)
+    cov = cov.reshape(n, n) if cov.size == n * n else np.full((n, n), np.nan)
+    return list(msg.names), np.asarray(msg.values, dtype=float), \
+        np.asarray(msg.std, dtype=float), cov
+
+
+# ------------------------------------------------------------------------------ main
+def spin_node(node_factory, args=None, executor_factory=None):
+    """
+    Run a node as main() does in demo_nodes_py (Jazzy, CONVENTIONS.md §2/§9); returns exit code.
+
+    A configuration error while constructing the node (ValueError) is one line on stderr and
+    exit code 2, never a traceback.
+    """
+    rclpy.init(args=args)
+    node = None
+    code = 0
+    try:
+        node = node_factory()
+        if executor_factory is None:
+            rclpy.spin(node)
+        else:
+            executor = executor_factory()
+            executor.add_node(node)
+            executor.spin()
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    except (ValueError, ParameterException, NameValidationException) as exc:
+        print(f'rotor_id: configuration error: {exc}', file=sys.stderr)
+        code = 2
+    except Exception:  # noqa: B902 - a callback cut short by the shutdown signal is no error
+        if rclpy.ok():
+            raise
+    finally:
+        if node is not None:
+            close = getattr(node, 'close', None)
+            if close is not None:
+                close()
+            node.destroy_node()
+        rclpy.try_shutdown()
+    return code

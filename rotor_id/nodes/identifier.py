@@ -1,0 +1,296 @@
+"""
+identifier: live output-error identification of the rotor (``ros2 run rotor_id identifier``).
+
+Buffers ``/rotor/blade_pitch``, ``/rotor/blade_flap`` and ``/rotor/azimuth`` by header stamp, forms
+a :class:`rotor_id.io.record.Record` exactly as the bag reader does (t = unwrapped azimuth, time
+origin = first flap stamp received) and runs :func:`rotor_id.pipeline.identify` with the run
+description (parameter ``run_description``, schema of ../shared/recordings/README.md):
+
+* while the window fills, on the growing window [window start, latest sample] every
+  ``update_every_rad`` of azimuth (published with STATUS_ITERATING: provisional);
+* when the window is complete (final: STATUS_CONVERGED / MAX_ITERATIONS / FAILED);
+* on the ``~/identify`` service (rotor_id_msgs/srv/Identify) over any buffered window.
+
+Each estimate carries the Cramér-Rao covariance and the data-length verdict of Ch.3
+(target_met, additional_data_s for the targets ``target_std``); every Gauss-Newton iteration is
+published on ``/rotor_id/progress``. Fits run in a worker thread so the subscriptions keep up.
+"""
+
+from dataclasses import replace
+import math
+import threading
+import time
+
+import numpy as np
+from rclpy.node import Node
+from rclpy.task import Future
+from rotor_id.io.run_description import load_run_description
+from rotor_id.nodes.common import (declare, Diagnostics, estimate_message, NS, progress_message,
+                                   resolve_config, SENSOR_QOS, spin_node, stamp_ns,
+                                   STATE_QOS)
+from rotor_id.nodes.live import (BadSample, bound_history, check_azimuth_sample,
+                                 check_joint_sample, data_length_verdict, record_from_series,
+                                 StampedSeries)
+from rotor_id.pipeline import identify
+from rotor_id_msgs.msg import IdentificationProgress, ParameterEstimate
+from rotor_id_msgs.srv import Identify
+from sensor_msgs.msg import JointState
+
+
+class Identifier(Node):
+    """Output-error ML on the live streams, with progress and the data-length verdict."""
+
+    def __init__(self):
+        super().__init__('identifier')
+        spec = [
+            ('run_description', '', 'path of the run-description YAML (rotor, model, unknowns, '
+             'window_s relative to the first flap stamp received)'),
+            ('target_std', [0.0], 'target Cramer-Rao sigma of each unknown, in the order of the '
+             "run description's unknowns (units of the parameter; 0 = no target)"),
+            ('update_every_rad', math.pi / 2, 'intermediate estimates every this much rotor '
+             'azimuth while the window fills (rad; 0 = none)', 0.0, 1e6),
+            ('min_window_rad', 2.0 * math.pi, 'first intermediate estimate after this much of '
+             'the window (rad of azimuth)', 0.1, 1e6),
+            ('max_iter', 30, 'Gauss-Newton iteration limit of the final fit', 1, 1000),
+            ('max_iter_provisional', 8, 'Gauss-Newton iteration limit of the growing-window '
+             'fits (each starts from the previous estimate)', 1, 1000),
+            ('max_abs_angle_rad', 0.7, 'larger |pitch| or |flap| is rejected as degrees (rad)',
+             0.01, 3.2),
+            ('estimate_topic', '/rotor_id/estimate', 'ParameterEstimate topic'),
+            ('progress_topic', '/rotor_id/progress', 'IdentificationProgress topic'),
+            ('frame_id', 'rotor', 'header.frame_id of the published messages'),
+        ]
+        self.d = {s[0]: declare(self, s[0], s[1], s[2], *s[3:]) for s in spec}
+        if not self.d['run_description']:
+            raise ValueError('parameter run_description is empty: give the path of a run '
+                             'description YAML (see config/nodes_*.yaml)')
+        self.description = load_run_description(resolve_config(self.d['run_description']))
+        desc = self.description
+        self.unknowns = list(desc.unknowns)
+        targets = list(self.d['target_std'])
+        if targets == [0.0]:
+            targets = [0.0] * len(self.unknowns)
+        if len(targets) != len(self.unknowns):
+            raise ValueError(f'target_std has {len(targets)} values for the unknowns '
+                             f'{self.unknowns}; give one per unknown (0 = no target)')
+        self.targets = np.array(targets, dtype=float)
+        n = desc.rotor.blades
+        joints = desc.joint_names or {}
+        self.flap_joints = list(joints.get('blade_flap') or
+                                [f'blade_{k}' for k in range(1, n + 1)])
+        self.pitch_joints = list(joints.get('blade_pitch') or self.flap_joints)
+        self.flap = StampedSeries(n)
+        self.pitch = StampedSeries(n)
+        self.azimuth = StampedSeries(2)
+        self.stamp0 = None
+        self.lock = threading.Lock()
+        self.wake = threading.Condition()
+        self.requests = []                # (window_s, final, time, future) for the worker
+        self.final_done = False
+        self.next_update = None
+        self.guess = {}
+        self.last_fit_s = float('nan')
+        self.pub_estimate = self.create_publisher(ParameterEstimate, self.d['estimate_topic'],
+                                                  STATE_QOS)
+        self.pub_progress = self.create_publisher(IdentificationProgress,
+                                                  self.d['progress_topic'], STATE_QOS)
+        for role, callback in (('blade_flap', self.on_flap), ('blade_pitch', self.on_pitch),
+                               ('azimuth', self.on_azimuth)):
+            self.create_subscription(JointState, desc.topics[role], callback, SENSOR_QOS)
+        self.create_service(Identify, '~/identify', self.on_identify)
+        self.diagnostics = Diagnostics(self, 'identification')
+        self.create_timer(0.005, self.schedule)
+        self.running = True
+        self.worker = threading.Thread(target=self.work, name='identifier-fit', daemon=True)
+        self.worker.start()
+        self.get_logger().info(f'{desc.model}: identifying {", ".join(self.unknowns)} over '
+                               f'window_s {desc.window_s} from {desc.topics["blade_flap"]}')
+
+    # -------------------------------------------------------------------------- buffering
+    def _accept(self, series, msg, joints, max_abs):
+        stamp = stamp_ns(msg.header.stamp)
+        try:
+            values = check_joint_sample(msg.name, msg.position, joints, stamp,
+                                        series.last_stamp, max_abs)
+        except BadSample as bad:
+            self.diagnostics.count(bad.kind, str(bad))
+            return None
+        with self.lock:
+            series.append(stamp, values)
+        return stamp
+
+    def on_flap(self, msg):
+        """Buffer one flap sample (its stamp starts the record's clock)."""
+        stamp = self._accept(self.flap, msg, self.flap_joints, self.d['max_abs_angle_rad'])
+        if stamp is not None and self.stamp0 is None:
+            self.stamp0 = stamp
+
+    def on_pitch(self, msg):
+        """Buffer one pitch sample."""
+        self._accept(self.pitch, msg, self.pitch_joints, self.d['max_abs_angle_rad'])
+
+    def on_azimuth(self, msg):
+        """Buffer one azimuth / rotor-speed sample."""
+        stamp = stamp_ns(msg.header.stamp)
+        try:
+            psi, omega = check_azimuth_sample(msg.name, msg.position, msg.velocity, 'rotor',
+                                              stamp, self.azimuth.last_stamp)
+        except BadSample as bad:
+            self.diagnostics.count(bad.kind, str(bad))
+            return
+        with self.lock:
+            self.azimuth.append(stamp, (psi, omega))
+
+    # -------------------------------------------------------------------------- scheduling
+    def _covered_s(self):
+        """Seconds since the first flap stamp up to which all three streams have data."""
+        if self.stamp0 is None or min(self.pitch.size, self.azimuth.size) == 0:
+            return None
+        last = min(self.flap.last_stamp, self.pitch.last_stamp, self.azimuth.last_stamp)
+        return (last - self.stamp0) / NS
+
+    def schedule(self):
+        """Ask the worker for an intermediate fit each update step, and the final one."""
+        covered = self._covered_s()
+        if covered is None or self.final_done:
+            return
+        t0, t1 = self.description.window_s
+        omega = self.azimuth.values[-1, 1]
+        period = (self.flap.stamps[-1] - self.flap.stamps[-2]) / NS if self.flap.size > 1 else 0
+        if covered >= t1 - period:
+            self.final_done = True
+            self._submit((t0, t1), True)
+            return
+        if self.d['update_every_rad'] <= 0:
+            return
+        if self.next_update is None:
+            self.next_update = t0 + self.d['min_window_rad'] / omega
+        if covered >= self.next_update:
+            self.next_update = covered + self.d['update_every_rad'] / omega
+            self._submit((t0, covered), False)
+
+    def _submit(self, window_s, final, future=None):
+        """Queue a fit for the worker: the newest provisional one replaces a waiting one."""
+        with self.wake:
+            if future is None and not final:
+                self.requests = [r for r in self.requests if r[1] or r[3] is not None]
+            self.requests.append((window_s, final, time.monotonic(), future))
+            self.wake.notify()
+
+    def work(self):
+        """Worker thread: run the queued fits in order, publish them (or answer the service)."""
+        while self.running:
+            with self.wake:
+                while not self.requests and self.running:
+                    self.wake.wait(0.2)
+                if not self.running:
+                    return
+                window_s, final, requested, future = self.requests.pop(0)
+            msg = self.fit(window_s, final)
+            if future is not None:
+                future.set_result(msg)
+                continue
+            self.pub_estimate.publish(msg)
+            self.diagnostics.set_value('last_fit_latency_ms',
+                                       f'{(time.monotonic() - requested) * 1e3:.1f}')
+
+    # -------------------------------------------------------------------------- fitting
+    def fit(self, window_s, final, max_iter=None):
+        """Identify over ``window_s``; return a ParameterEstimate (STATUS_FAILED on error)."""
+        with self.lock:
+            try:
+                record = record_from_series(self.flap, self.pitch, self.azimuth,
+                                            self.flap_joints, self.stamp0)
+            except ValueError as exc:
+                return self._failed(str(exc), window_s)
+        desc = self.description
+        if self.guess:
+            desc = replace(desc, initial_guess={**desc.initial_guess, **self.guess})
+
+        def progress(info):
+            self.pub_progress.publish(progress_message(
+                info, self.get_clock().now().to_msg()))
+
+        started = time.perf_counter()
+        try:
+            ident = identify(record, desc, progress=progress, window_s=window_s,
+                             max_iter=max_iter or self.d['max_iter' if final
+                                                         else 'max_iter_provisional'])
+        except (ValueError, np.linalg.LinAlgError, FloatingPointError) as exc:
+            return self._failed(str(exc), window_s)
+        ident.stamp0_ns = self.stamp0
+        est = ident.estimate
+        self.last_fit_s = time.perf_counter() - started
+        if est.converged and np.all(np.isfinite(est.values)):
+            self.guess = {n: est.value(n) for n in self.unknowns}
+        std = np.array([est.std_of(n) for n in self.unknowns])
+        if np.any(self.targets > 0):
+            t, hist = bound_history(ident)
+            verdict = data_length_verdict(std, self.targets, t, hist, ident.omega_rad_s)
+        else:
+            verdict = (True, 0.0)
+        status = None if final else ParameterEstimate.STATUS_ITERATING
+        note = (f'{"final" if final else "growing window (provisional)"}: '
+                f'{window_s[0]:.4f}-{window_s[1]:.4f} s, {est.message}, '
+                f'{self.last_fit_s * 1e3:.0f} ms')
+        msg = estimate_message(ident, self.get_clock().now().to_msg(), status, verdict,
+                               self.d['frame_id'], note)
+        self.diagnostics.set_value('last_estimate', ', '.join(
+            f'{n}={v:.4g}±{s:.2g}' for n, v, s in zip(msg.names, msg.values, msg.std)))
+        self.diagnostics.set_value('last_fit_ms', f'{self.last_fit_s * 1e3:.1f}')
+        if final:
+            self.get_logger().info(f'final estimate: {self.diagnostics.values["last_estimate"]}'
+                                   f' ({est.message}); target met: {verdict[0]}')
+        return msg
+
+    def _failed(self, reason, window_s):
+        self.get_logger().warning(f'identification over {window_s} s failed: {reason}')
+        msg = ParameterEstimate(status=ParameterEstimate.STATUS_FAILED, message=reason,
+                                names=self.unknowns, additional_data_s=-1.0)
+        msg.header.stamp = self.get_clock().now().to_msg()
+        msg.header.frame_id = self.d['frame_id']
+        msg.model = self.description.model
+        return msg
+
+    async def on_identify(self, request, response):
+        """
+        Identify.srv: fit the buffered data between the given bounds (0, 0 = all).
+
+        The fit runs on the worker thread; the executor keeps taking sensor data meanwhile.
+        """
+        covered = self._covered_s()
+        if covered is None:
+            response.success, response.message = False, 'no data buffered yet'
+            return response
+        start = request.window_start_s
+        end = request.window_end_s if request.window_end_s > 0 else covered
+        if not (0 <= start < end <= covered + 1e-3):
+            response.success = False
+            response.message = (f'window [{start}, {end}] s is not inside the buffered '
+                                f'[0, {covered:.4f}] s')
+            return response
+        future = Future()
+        self._submit((start, end), True, future)
+        msg = await future
+        response.estimate = msg
+        response.success = msg.status != ParameterEstimate.STATUS_FAILED
+        response.message = msg.message
+        if response.success:
+            self.pub_estimate.publish(msg)
+        return response
+
+    def close(self):
+        """Stop the worker thread."""
+        self.running = False
+        with self.wake:
+            self.wake.notify()
+        self.worker.join(timeout=5.0)
+
+
+def main(args=None):
+    """Run the node until SIGINT/SIGTERM (fits run on the node's worker thread)."""
+    return spin_node(Identifier, args)
+
+
+if __name__ == '__main__':
+    raise SystemExit(main())

@@ -1,0 +1,197 @@
+"""
+recorder: every topic of the run into a rosbag2 bag (``ros2 run rotor_id recorder``).
+
+A ``ros2 bag record`` for this workspace (rosbag2 itself is not a wheel): raw (serialized)
+subscriptions to every discovered topic (or the configured list), QoS adapted to the publishers
+as rosbag2 does (reliable / transient-local only if every publisher offers it, CONVENTIONS.md
+§4) but KEEP_ALL, the publishers' offered QoS stored in the bag, messages written with
+:func:`rotor_id.io.bag.open_writer` (rosbags; MCAP by default, sqlite3 on request) with every
+message definition embedded, rotor_id_msgs included, so mcap + mcap-ros2-support decode it.
+
+SIGINT and SIGTERM stop the recording: the node takes every message already delivered to it
+(until the topics are quiet for ``drain_s``), then finalises the bag.
+"""
+
+import importlib
+import os
+from pathlib import Path
+import signal
+import sys
+import time
+
+import rclpy
+from rclpy.executors import SingleThreadedExecutor
+from rclpy.node import Node
+from rclpy.qos import (DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy)
+from rclpy.signals import SignalHandlerOptions
+from rosbags.interfaces import (Qos, QosDurability, QosHistory, QosLiveliness, QosReliability,
+                                QosTime)
+from rosbags.typesys import get_typestore, Stores
+from rotor_id.io.bag import open_writer, register_msg_dir
+from rotor_id.nodes.common import declare, Diagnostics, resolve_config
+
+_INFINITE_NS = 2**63 - 1
+
+
+def message_class(type_name):
+    """Python class of a ROS type 'pkg/msg/Name' (ImportError if not installed)."""
+    package, kind, name = type_name.split('/')
+    return getattr(importlib.import_module(f'{package}.{kind}'), name)
+
+
+def adapted_qos(offers):
+    """Subscription QoS matching every publisher (rosbag2's adapt_request_to_offers), KEEP_ALL."""
+    reliable = bool(offers) and all(q.reliability == ReliabilityPolicy.RELIABLE for q in offers)
+    latched = bool(offers) and all(q.durability == DurabilityPolicy.TRANSIENT_LOCAL
+                                   for q in offers)
+    return QoSProfile(history=HistoryPolicy.KEEP_ALL, depth=1000,
+                      reliability=(ReliabilityPolicy.RELIABLE if reliable
+                                   else ReliabilityPolicy.BEST_EFFORT),
+                      durability=(DurabilityPolicy.TRANSIENT_LOCAL if latched
+                                  else DurabilityPolicy.VOLATILE))
+
+
+def _qos_time(duration):
+    ns = duration.nanoseconds
+    ns = _INFINITE_NS if ns <= 0 or ns >= _INFINITE_NS else ns
+    return QosTime(sec=ns // 1_000_000_000, nsec=ns % 1_000_000_000)
+
+
+def bag_qos(profile):
+    """Return the rosbags Qos of an offered rclpy QoSProfile (for metadata.yaml and MCAP)."""
+    return Qos(history=QosHistory(int(profile.history)), depth=int(profile.depth),
+               reliability=QosReliability(int(profile.reliability)),
+               durability=QosDurability(int(profile.durability)),
+               deadline=_qos_time(profile.deadline), lifespan=_qos_time(profile.lifespan),
+               liveliness=QosLiveliness(int(profile.liveliness)),
+               liveliness_lease_duration=_qos_time(profile.liveliness_lease_duration),
+               avoid_ros_namespace_conventions=bool(profile.avoid_ros_namespace_conventions))
+
+
+def typestore_with_custom_types(msg_dirs=()):
+    """Jazzy's typestore plus rotor_id_msgs (installed share, else msg_defs/) and ``msg_dirs``."""
+    store = get_typestore(Stores.ROS2_JAZZY)
+    dirs = list(msg_dirs)
+    try:
+        from ament_index_python.packages import get_package_share_directory
+        dirs.insert(0, Path(get_package_share_directory('rotor_id_msgs')) / 'msg')
+    except (ImportError, LookupError, ValueError):
+        dirs.insert(0, Path(__file__).resolve().parents[2] / 'msg_defs' / 'msg')
+    for directory in dirs:
+        register_msg_dir(store, directory)
+    return store
+
+
+class Recorder(Node):
+    """Raw subscriptions to the run's topics, written to a bag as they arrive."""
+
+    def __init__(self):
+        super().__init__('recorder')
+        spec = [
+            ('output', '', 'bag directory to create (empty: rotor_id_<date>-<time> here)'),
+            ('storage', 'mcap', 'storage plugin: mcap or sqlite3'),
+            ('topics', [''], 'topics to record (empty: every topic discovered)'),
+            ('exclude_topics', ['/rosout', '/parameter_events'], 'topics never recorded'),
+            ('msg_dirs', [''], 'extra directories of .msg files of custom types'),
+            ('discovery_period_s', 0.2, 'look for new topics this often (s)', 0.01, 10.0),
+            ('drain_s', 0.3, 'on stop, keep taking messages until quiet this long (s)',
+             0.0, 10.0),
+        ]
+        self.d = {s[0]: declare(self, s[0], s[1], s[2], *s[3:]) for s in spec}
+        output = self.d['output'] or time.strftime('rotor_id_%Y%m%d-%H%M%S')
+        self.wanted = [t for t in self.d['topics'] if t]
+        self.exclude = set(self.d['exclude_topics'])
+        store = typestore_with_custom_types(
+            [resolve_config(p) if not Path(p).is_dir() else p for p in self.d['msg_dirs'] if p])
+        self.writer = open_writer(output, self.d['storage'], store)
+        self.path = Path(output).resolve()
+        self.counts = {}
+        self.subscriptions_by_topic = {}
+        self.skipped = {}
+        self.last_message = time.monotonic()
+        self.diagnostics = Diagnostics(self, 'bag recording')
+        self.diagnostics.set_value('bag', str(self.path))
+        self.create_timer(self.d['discovery_period_s'], self.discover)
+        self.discover()
+        self.get_logger().info(f'recording to {self.path} ({self.d["storage"]}); '
+                               f'topics: {", ".join(self.wanted) or "all"}')
+
+    def discover(self):
+        """Subscribe to every new wanted topic once it has a publisher."""
+        for topic, types in self.get_topic_names_and_types():
+            if topic in self.subscriptions_by_topic or topic in self.exclude or \
+                    topic in self.skipped or (self.wanted and topic not in self.wanted):
+                continue
+            offers = [info.qos_profile for info in self.get_publishers_info_by_topic(topic)]
+            if not offers:
+                continue
+            type_name = types[0]
+            try:
+                cls = message_class(type_name)
+                if type_name not in self.writer.typestore.fielddefs:
+                    raise KeyError(type_name)
+            except (ImportError, AttributeError, KeyError, ValueError) as exc:
+                self.skipped[topic] = type_name
+                self.diagnostics.count('unknown_type', f'{topic} ({type_name}): {exc}')
+                continue
+            conn = self.writer.writer.add_connection(
+                topic, type_name, typestore=self.writer.typestore,
+                offered_qos_profiles=[bag_qos(q) for q in offers])
+            self.writer.connections[topic] = conn
+            self.counts[topic] = 0
+            self.subscriptions_by_topic[topic] = self.create_subscription(
+                cls, topic, self._writer_for(topic), adapted_qos(offers), raw=True)
+        self.diagnostics.set_value('messages', sum(self.counts.values()))
+        self.diagnostics.set_value('topics', len(self.counts))
+
+    def _writer_for(self, topic):
+        def write(data):
+            self.writer.write_raw(topic, self.get_clock().now().nanoseconds, data)
+            self.counts[topic] += 1
+            self.last_message = time.monotonic()
+        return write
+
+    def close(self):
+        """Finalise the bag (index, metadata.yaml) and print what it holds."""
+        if self.writer is None:
+            return
+        self.writer.close()
+        self.writer = None
+        lines = [f'recorder: bag {self.path} finalised:'] + [
+            f'  {topic}: {count} messages' for topic, count in sorted(self.counts.items())]
+        print('\n'.join(lines), file=sys.stderr, flush=True)
+
+
+def main(args=None):
+    """Record until SIGINT/SIGTERM, then drain what was delivered and finalise the bag."""
+    rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
+    stop = []
+    for signum in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(signum, lambda number, _frame: stop.append(number))
+    node = None
+    code = 0
+    try:
+        node = Recorder()
+        executor = SingleThreadedExecutor()
+        executor.add_node(node)
+        while not stop:
+            executor.spin_once(timeout_sec=0.1)
+        # the stop: take everything already delivered before finalising
+        deadline = time.monotonic() + max(1.0, 3 * node.d['drain_s'])
+        while time.monotonic() - node.last_message < node.d['drain_s'] and \
+                time.monotonic() < deadline:
+            executor.spin_once(timeout_sec=0.02)
+    except (ValueError, OSError) as exc:
+        print(f'recorder: error: {exc}', file=sys.stderr)
+        code = 2
+    finally:
+        if node is not None:
+            node.close()
+            node.destroy_node()
+        rclpy.try_shutdown()
+    return code
+
+
+if __name__ == '__main__':
+    os.environ.setdefault('PYTHONUNBUFFERED', '1')
+    raise SystemExit(main())

@@ -1,0 +1,181 @@
+"""
+rotor_plant: the simulated rotor of the test stand, in real time (``ros2 run rotor_id ...``).
+
+Subscribes ``/rotor/pitch_command`` (JointState blade_1..N, rad); publishes the test-stand
+convention (../shared/recordings/README.md): ``/rotor/blade_pitch`` and ``/rotor/blade_flap``
+(JointState, rad, header.stamp = acquisition time) and ``/rotor/azimuth`` (joint ``rotor``:
+position = azimuth of blade 1 wrapped to [0, 2π), velocity = Ω in rad/s). The physics is
+:class:`rotor_id.nodes.live.PlantStepper` (one library model, the library's simulator).
+"""
+
+import math
+
+import numpy as np
+from rclpy.node import Node
+from rotor_id.nodes.common import (declare, Diagnostics, joint_state, NS, SENSOR_QOS, spin_node,
+                                   stamp_ns)
+from rotor_id.nodes.live import BadSample, check_joint_sample, PlantStepper, rotor_constants
+from rotor_id.physics.models import MODEL_NAMES
+from rotor_id.physics.stirring import multiblade_from_blade_pitch
+from sensor_msgs.msg import JointState
+
+TWO_PI = 2.0 * math.pi
+
+
+class RotorPlant(Node):
+    """Simulated rotor: pitch commands in, measured pitch, flap and azimuth out."""
+
+    def __init__(self):
+        super().__init__('rotor_plant')
+        d = self._declare_all()
+        self.rotor = rotor_constants(d['n_blades'], d['advance_ratio'], d['flap_frequency'],
+                                     d['tip_loss'])
+        self.joints = list(d['joint_names'])
+        if self.joints == ['']:
+            self.joints = [f'blade_{k}' for k in range(1, self.rotor.n_blades + 1)]
+        if len(self.joints) != self.rotor.n_blades:
+            raise ValueError(f'joint_names has {len(self.joints)} names for n_blades = '
+                             f'{self.rotor.n_blades}')
+        self.omega = d['rotor_speed_rad_s']
+        self.rate = d['sample_rate_hz']
+        noisy = [s for s in d['process_noise_states'] if s]
+        self.stepper = PlantStepper(
+            d['model'], self.rotor,
+            {k: d[k] for k in ('A', 'AL_over_tau', 'inv_tau', 'gamma')},
+            self.omega, self.rate, d['initial_collective_rad'], d['flap_noise_std_rad'],
+            d['pitch_noise_std_rad'], d['process_noise_std'], noisy or None, d['seed'],
+            t_start=d['initial_azimuth_rad'])
+        self.d = d
+        self.start_ns = None
+        self.ready_ns = None
+        self.last_cmd_ns = None
+        self.commands = 0
+        self.pub_pitch = self.create_publisher(JointState, d['blade_pitch_topic'], SENSOR_QOS)
+        self.pub_flap = self.create_publisher(JointState, d['blade_flap_topic'], SENSOR_QOS)
+        self.pub_azimuth = self.create_publisher(JointState, d['azimuth_topic'], SENSOR_QOS)
+        self.create_subscription(JointState, d['pitch_command_topic'], self.on_command,
+                                 SENSOR_QOS)
+        self.diagnostics = Diagnostics(self, 'simulated rotor')
+        self.timer = self.create_timer(d['publish_period_s'], self.tick)
+        self.get_logger().info(
+            f'{d["model"]} rotor at {self.omega:.4g} rad/s, {self.rate:g} Hz, flap noise '
+            f'{d["flap_noise_std_rad"]:.3g} rad; waiting for {d["wait_for_subscribers"]} '
+            f'subscriber(s) of {d["azimuth_topic"]}')
+
+    def _declare_all(self):
+        two_deg = math.radians(2.0)
+        spec = [
+            ('model', 'multiblade_wake', f'truth model: {", ".join(MODEL_NAMES)}'),
+            ('n_blades', 4, 'number of blades N', 1, 12),
+            ('advance_ratio', 0.0, 'advance ratio mu (-)', 0.0, 1.0),
+            ('flap_frequency', 1.2, 'rotating flap natural frequency P (per rev)', 0.5, 3.0),
+            ('tip_loss', 0.97, 'tip-loss factor B (-)', 0.5, 1.0),
+            ('A', 0.5, 'wake model: flap damping A = gamma B^4/8 (-), Ch.2 eq. 27', 1e-3, 10.0),
+            ('AL_over_tau', 0.25, 'wake model: wake gain over time constant AL/tau (-)',
+             0.0, 50.0),
+            ('inv_tau', 0.125, 'wake model: inverse wake time constant 1/tau (-)', 1e-4, 50.0),
+            ('gamma', 5.0, 'blade Lock number gamma (-) of the other models', 0.05, 50.0),
+            ('rotor_speed_rad_s', 2.0 * math.pi * 15.0, 'rotor speed Omega (rad/s)',
+             1.0, 1000.0),
+            ('sample_rate_hz', 1000.0, 'sensor sample rate (Hz)', 10.0, 20000.0),
+            ('initial_collective_rad', two_deg, 'collective pitch of the trim before the '
+             'first command (rad)', -0.5, 0.5),
+            ('initial_azimuth_rad', 0.0, 'azimuth of blade 1 at the first sample (rad)',
+             0.0, TWO_PI),
+            ('flap_noise_std_rad', math.radians(0.05), 'flap sensor noise sigma (rad)',
+             0.0, 0.1),
+            ('pitch_noise_std_rad', math.radians(0.005), 'pitch sensor noise sigma (rad)',
+             0.0, 0.1),
+            ('process_noise_std', 0.0, 'system noise intensity q (rad per sqrt unit of '
+             'nondimensional time), report eq. 29a', 0.0, 1.0),
+            ('process_noise_states', [''], 'states driven by system noise (empty: lambda_I, '
+             'lambda_II for the wake model, the flap rates otherwise)'),
+            ('seed', 0, 'random seed of the noise', 0, 2**31 - 1),
+            ('joint_names', [''], 'joint name of each blade, blade 1 first (empty: '
+             'blade_1..blade_N)'),
+            ('azimuth_joint', 'rotor', 'joint name on the azimuth topic'),
+            ('pitch_command_topic', '/rotor/pitch_command', 'per-blade pitch command topic'),
+            ('blade_pitch_topic', '/rotor/blade_pitch', 'measured blade pitch topic'),
+            ('blade_flap_topic', '/rotor/blade_flap', 'measured blade flap topic'),
+            ('azimuth_topic', '/rotor/azimuth', 'azimuth and rotor speed topic'),
+            ('command_latency_s', 0.02, 'simulate this far behind the clock, so that the pitch '
+             'commands for a sample have arrived when it is computed (s; the samples keep '
+             'their acquisition stamps)', 0.0, 1.0),
+            ('publish_period_s', 0.005, 'period of the simulation/publishing timer (s)',
+             0.0005, 0.1),
+            ('wait_for_subscribers', 0, 'start the rotor once this many subscribers of the '
+             'azimuth topic are matched (0: at once)', 0, 100),
+            ('start_delay_s', 1.0, 'then wait this long, so they are all spinning (s)',
+             0.0, 60.0),
+            ('duration_s', 0.0, 'stop publishing after this long (s); 0: run until stopped',
+             0.0, 1e6),
+            ('max_abs_pitch_rad', 0.7, 'larger |pitch command| is rejected as degrees (rad)',
+             0.01, 3.2),
+            ('frame_id', 'rotor', 'header.frame_id of the published messages'),
+        ]
+        return {item[0]: declare(self, item[0], item[1], item[2], *item[3:]) for item in spec}
+
+    def t_at(self, ns):
+        """Nondimensional time (azimuth of blade 1, unwrapped) at ROS time ``ns``."""
+        return self.d['initial_azimuth_rad'] + self.omega * (ns - self.start_ns) / NS
+
+    def on_command(self, msg):
+        """Hold a per-blade pitch command, converted to the swashplate input (eq. 3)."""
+        stamp = stamp_ns(msg.header.stamp)
+        try:
+            pitch = check_joint_sample(msg.name, msg.position, self.joints, stamp,
+                                       self.last_cmd_ns, self.d['max_abs_pitch_rad'])
+        except BadSample as bad:
+            self.diagnostics.count(bad.kind, str(bad))
+            return
+        self.last_cmd_ns = stamp
+        if self.start_ns is None:
+            return
+        t_cmd = self.t_at(stamp)
+        self.stepper.command(t_cmd, multiblade_from_blade_pitch([t_cmd], pitch[None, :])[0])
+        self.commands += 1
+
+    def tick(self):
+        """Advance the simulation to now and publish the samples that became due."""
+        now = self.get_clock().now().nanoseconds
+        if self.start_ns is None:
+            if self.ready_ns is None:
+                if self.count_subscribers(self.d['azimuth_topic']) < \
+                        self.d['wait_for_subscribers']:
+                    return
+                self.ready_ns = now
+            if now - self.ready_ns < self.d['start_delay_s'] * NS:
+                return
+            self.start_ns = now
+            self.get_logger().info('rotor started (trim at collective only)')
+            return
+        elapsed = (now - self.start_ns) / NS - self.d['command_latency_s']
+        if self.d['duration_s'] > 0 and elapsed > self.d['duration_s']:
+            if self.timer is not None:
+                self.timer.cancel()
+                self.get_logger().info(f'run complete: {self.stepper.samples} samples')
+            return
+        due = int(elapsed * self.rate) - self.stepper.samples
+        if due <= 0:
+            return
+        first = self.stepper.samples + 1
+        t, flap, pitch = self.stepper.advance(min(due, int(self.rate)))
+        psi = np.mod(t, TWO_PI)
+        frame = self.d['frame_id']
+        for i in range(t.size):
+            stamp = self.start_ns + int(round((first + i) * NS / self.rate))
+            self.pub_pitch.publish(joint_state(stamp, self.joints, pitch[i], frame_id=frame))
+            self.pub_flap.publish(joint_state(stamp, self.joints, flap[i], frame_id=frame))
+            self.pub_azimuth.publish(joint_state(stamp, [self.d['azimuth_joint']], [psi[i]],
+                                                 [self.omega], frame_id=frame))
+        self.diagnostics.set_value('samples_published', self.stepper.samples)
+        self.diagnostics.set_value('commands_received', self.commands)
+
+
+def main(args=None):
+    """Run the node until SIGINT/SIGTERM."""
+    return spin_node(RotorPlant, args)
+
+
+if __name__ == '__main__':
+    raise SystemExit(main())

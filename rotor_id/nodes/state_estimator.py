@@ -1,0 +1,175 @@
+"""
+state_estimator: Kalman reconstruction of the unmeasured states (``ros2 run rotor_id ...``).
+
+Filters the flap stream with the run description's model (flap rates, and the inflow λI, λII of
+the wake model, which no sensor measures) using the library's Kalman filter through
+:class:`rotor_id.nodes.live.StreamingKalman`, and publishes rotor_id_msgs/StateEstimate with its
+covariance on ``/rotor_id/state`` (angles in rad, rates in rad/s: the model's d/dt of azimuth
+times Ω). It takes the identifier's ParameterEstimate on ``/rotor_id/estimate`` as its new
+model parameters: the report's iterated filter / identification loop (Ch.2).
+"""
+
+import math
+
+import numpy as np
+from rclpy.node import Node
+from rotor_id.io.run_description import load_run_description
+from rotor_id.nodes.common import (declare, Diagnostics, estimate_from_message, resolve_config,
+                                   SENSOR_QOS, spin_node, stamp_ns, STATE_QOS)
+from rotor_id.nodes.live import (AzimuthTracker, BadSample, check_azimuth_sample,
+                                 check_joint_sample, StampedSeries, StreamingKalman)
+from rotor_id.physics.stirring import SampledInput
+from rotor_id.pipeline import _channel_noise, model_for
+from rotor_id_msgs.msg import ParameterEstimate, StateEstimate
+from sensor_msgs.msg import JointState
+
+
+class StateEstimator(Node):
+    """Kalman filter on the live flap stream, re-parameterised by the identifier."""
+
+    def __init__(self):
+        super().__init__('state_estimator')
+        spec = [
+            ('run_description', '', 'run-description YAML: rotor, model and topics'),
+            ('flap_noise_std_rad', math.radians(0.05), 'flap sensor noise sigma (rad)',
+             1e-7, 0.1),
+            ('process_noise_std', 0.01, 'system-noise intensity sqrt(q) on the inflow rows '
+             '(wake) or flap-rate rows (rad per sqrt unit of azimuth)', 0.0, 10.0),
+            ('initial_std_rad', 0.02, 'prior sigma of every state at the first sample (rad)',
+             1e-6, 1.0),
+            ('update_period_s', 0.02, 'filter the new samples and publish the state this often '
+             '(s)', 0.001, 1.0),
+            ('use_provisional', False, 'also adopt provisional (growing-window) estimates'),
+            ('estimate_topic', '/rotor_id/estimate', 'ParameterEstimate topic (subscribed)'),
+            ('state_topic', '/rotor_id/state', 'StateEstimate topic'),
+            ('frame_id', 'rotor', 'header.frame_id of the published messages'),
+        ]
+        self.d = {s[0]: declare(self, s[0], s[1], s[2], *s[3:]) for s in spec}
+        if not self.d['run_description']:
+            raise ValueError('parameter run_description is empty: give the path of a run '
+                             'description YAML (see config/nodes_*.yaml)')
+        desc = load_run_description(resolve_config(self.d['run_description']))
+        self.model = model_for(desc)
+        self.p = self.model.nominal()
+        self.noise = _channel_noise(self.model, self.d['flap_noise_std_rad'])
+        n = desc.rotor.blades
+        joints = desc.joint_names or {}
+        self.flap_joints = list(joints.get('blade_flap') or
+                                [f'blade_{k}' for k in range(1, n + 1)])
+        self.pitch_joints = list(joints.get('blade_pitch') or self.flap_joints)
+        self.flap = StampedSeries(n)
+        self.pitch = StampedSeries(n)
+        self.azimuth = AzimuthTracker()
+        self.done = 0                      # flap samples filtered so far
+        self.kalman = None
+        self.updates = 0
+        self.pub_state = self.create_publisher(StateEstimate, self.d['state_topic'], STATE_QOS)
+        for role, series, joints in (('blade_flap', self.flap, self.flap_joints),
+                                     ('blade_pitch', self.pitch, self.pitch_joints)):
+            self.create_subscription(JointState, desc.topics[role],
+                                     self._joint_callback(series, joints), SENSOR_QOS)
+        self.create_subscription(JointState, desc.topics['azimuth'], self.on_azimuth,
+                                 SENSOR_QOS)
+        self.create_subscription(ParameterEstimate, self.d['estimate_topic'], self.on_estimate,
+                                 STATE_QOS)
+        self.diagnostics = Diagnostics(self, 'state reconstruction')
+        self.create_timer(self.d['update_period_s'], self.tick)
+
+    def _joint_callback(self, series, joints):
+        def callback(msg):
+            stamp = stamp_ns(msg.header.stamp)
+            try:
+                values = check_joint_sample(msg.name, msg.position, joints, stamp,
+                                            series.last_stamp, 0.7)
+            except BadSample as bad:
+                self.diagnostics.count(bad.kind, str(bad))
+                return
+            series.append(stamp, values)
+        return callback
+
+    def on_azimuth(self, msg):
+        """Track the unwrapped azimuth (the model's time)."""
+        stamp = stamp_ns(msg.header.stamp)
+        try:
+            psi, omega = check_azimuth_sample(msg.name, msg.position, msg.velocity, 'rotor',
+                                              stamp, self.azimuth.series.last_stamp)
+        except BadSample as bad:
+            self.diagnostics.count(bad.kind, str(bad))
+            return
+        self.azimuth.add(stamp, psi, omega)
+
+    def on_estimate(self, msg):
+        """Adopt the identifier's parameters (converged, or provisional if asked to)."""
+        if msg.status == ParameterEstimate.STATUS_FAILED or (
+                msg.status == ParameterEstimate.STATUS_ITERATING and
+                not self.d['use_provisional']):
+            return
+        names, values, _, _ = estimate_from_message(msg)
+        if not np.all(np.isfinite(values)):
+            self.diagnostics.count('non_finite', 'estimate with non-finite values')
+            return
+        for name, value in zip(names, values):
+            if name in self.model.parameter_names:
+                self.p[self.model.parameter_names.index(name)] = value
+        if self.kalman is not None:
+            self.kalman.p = self.p.copy()
+        self.updates += 1
+        self.diagnostics.set_value('parameters', ', '.join(
+            f'{n}={v:.4g}' for n, v in zip(self.model.parameter_names, self.p)))
+        self.diagnostics.set_value('parameter_updates', self.updates)
+
+    def tick(self):
+        """Filter the flap samples that pitch and azimuth now cover; publish the last state."""
+        if not self.azimuth.ready or self.pitch.size < 2:
+            return
+        limit = min(self.pitch.last_stamp, self.azimuth.series.last_stamp)
+        end = int(np.searchsorted(self.flap.stamps, limit, side='right'))
+        if end <= self.done:
+            return
+        stamps = self.flap.stamps[self.done:end]
+        t = self.azimuth.t_at(stamps)
+        first = max(0, int(np.searchsorted(self.pitch.stamps, stamps[0])) - 20)
+        t_pitch = self.azimuth.t_at(self.pitch.stamps[first:])
+        keep = np.concatenate([[True], np.diff(t_pitch) > 0])
+        inputs = SampledInput.from_blade_pitch(t_pitch[keep], self.pitch.values[first:][keep])
+        y = self.model.observe_blades(t, self.flap.values[self.done:end])
+        if self.kalman is None:
+            self._start(t[0], inputs)
+        x, P = self.kalman.update(t, inputs, y)
+        self.done = end
+        self._publish(int(stamps[-1]), t[-1], x[-1], P[-1])
+
+    def _start(self, t0, inputs):
+        names = self.model.parameter_names
+        if 'theta0' in names:
+            self.p[names.index('theta0')] = float(inputs([t0])[0, 0])
+        n = self.model.n_states
+        x0 = (self.model.equilibrium([t0], self.p, inputs([t0])) if self.model.time_invariant
+              else np.zeros(n))
+        P0 = np.eye(n) * self.d['initial_std_rad']**2
+        self.kalman = StreamingKalman(self.model, self.p.copy(), self.noise, x0, P0,
+                                      self.d['process_noise_std'])
+
+    def _publish(self, stamp, t, x, P):
+        omega = self.azimuth.omega
+        rate = np.array([omega if s.endswith('_dot') else 1.0 for s in self.model.state_names])
+        msg = StateEstimate()
+        msg.header.stamp.sec, msg.header.stamp.nanosec = divmod(stamp, 1_000_000_000)
+        msg.header.frame_id = self.d['frame_id']
+        msg.names = list(self.model.state_names)
+        msg.units = ['rad/s' if s.endswith('_dot') else 'rad' for s in self.model.state_names]
+        msg.values = [float(v) for v in x * rate]
+        msg.covariance = [float(c) for c in (P * np.outer(rate, rate)).ravel()]
+        msg.azimuth = float(math.fmod(t, 2.0 * math.pi))
+        msg.rotor_speed = float(omega)
+        self.pub_state.publish(msg)
+        self.diagnostics.set_value('samples_filtered', self.done)
+
+
+def main(args=None):
+    """Run the node until SIGINT/SIGTERM."""
+    return spin_node(StateEstimator, args)
+
+
+if __name__ == '__main__':
+    raise SystemExit(main())
