@@ -279,8 +279,12 @@ def _equation_error_row(row, seed):
     case = next(c for c in C.ITERATION_CASES if c.name == 'single_blade_2par')
     exp = iteration_experiment(case, case_data(case, seed))
     cpu = time.process_time()
-    est = fit_equation_error_experiments([exp], list(case.unknowns), guess=dict(case.start),
-                                         known=None, progress=None)
+    try:
+        est = fit_equation_error_experiments([exp], list(case.unknowns),
+                                             guess=dict(case.start), known=None, progress=None)
+    except Exception as exc:  # noqa: B902 - another module's failure must not hide our rows
+        return SummaryResult(row, None, None, None, None, None, None,
+                             f'n/a (equation_error failed: {type(exc).__name__}: {exc})')
     cpu = time.process_time() - cpu
     var = np.diag(est.covariance)
     return SummaryResult(row, int(est.iterations), est.value('gamma'), est.value('delta'),

@@ -114,3 +114,23 @@ def test_unwritable_output_is_a_user_error(tmp_path, capsys):
     assert rc == 2
     err = capsys.readouterr().err
     assert 'does not exist' in err and 'Traceback' not in err
+
+
+def test_equation_error_row_without_the_module(monkeypatch):
+    """The equation-error row says n/a when the module is missing or fails."""
+    import sys
+
+    from rotor_id.report import reproduce as R
+    row = C.SUMMARY_ROWS[0]
+    monkeypatch.setitem(sys.modules, 'rotor_id.estimation.equation_error', None)
+    missing = R._equation_error_row(row, 1)
+    assert missing.iterations is None and missing.note == 'n/a (module not available)'
+
+    class Broken:
+        @staticmethod
+        def fit_equation_error_experiments(*args, **kwargs):
+            raise ValueError('boom')
+
+    monkeypatch.setitem(sys.modules, 'rotor_id.estimation.equation_error', Broken)
+    failed = R._equation_error_row(row, 1)
+    assert failed.iterations is None and 'boom' in failed.note
