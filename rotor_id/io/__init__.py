@@ -1,5 +1,6 @@
 # noqa: A005 (the package layout names this subpackage io; it is imported as rotor_id.io)
-"""Input layer: rosbag2 recordings, run descriptions and the time base (no rclpy).
+"""
+Input layer: rosbag2 recordings, run descriptions and the time base (no rclpy).
 
 ``from rotor_id.io import read_run, load_run_description`` reads a run and its recording::
 

@@ -1,4 +1,5 @@
-"""Read and write rosbag2 recordings of the test stand (MCAP or sqlite3) with ``rosbags``.
+"""
+Read and write rosbag2 recordings of the test stand (MCAP or sqlite3) with ``rosbags``.
 
 The convention (recordings/README.md): three ``sensor_msgs/msg/JointState`` topics,
 ``header.stamp`` = acquisition time,
@@ -190,10 +191,13 @@ def _check_topics(raw, wanted, storage_file, omega_rad_s):
 # --------------------------------------------------------------------------- cleaning
 
 def _topic_samples(raw, topic, role, issues, with_velocity):
-    """Decode, then drop bad samples, sort and de-duplicate one topic.
+    """
+    Decode, then drop bad samples, sort and de-duplicate one topic.
 
-    Returns:
-        (stamps_ns (n,), names, position (n, k), velocity (n, k)).
+    Returns
+    -------
+    (stamps_ns (n,), names, position (n, k), velocity (n, k)).
+
     """
     messages = raw.data.get(topic, [])
     if not messages:
@@ -291,26 +295,37 @@ def _gaps(stamps_ns, omega, topic, issues, what):
 # --------------------------------------------------------------------------- reading
 
 def read_record(bag_path, topics=None, joint_names=None, *, n_blades=None, omega_rad_s=None):
-    """Read a test-stand recording into a Record on the flap stamps.
+    """
+    Read a test-stand recording into a Record on the flap stamps.
 
-    Args:
-        bag_path: Bag directory (with metadata.yaml), its metadata.yaml, or the .mcap / .db3
-            file itself.
-        topics: Role -> topic, roles 'blade_pitch', 'blade_flap', 'azimuth'; missing roles use
-            the convention (:data:`DEFAULT_TOPICS`). ``azimuth: None`` means no azimuth was
-            recorded; then ``omega_rad_s`` is needed and t = Ω·time.
-        joint_names: Joint of each blade, blade 1 first, in any form accepted by
-            :func:`~rotor_id.io.run_description.normalize_joint_names`; default: the message's
-            names blade_1..blade_N.
-        n_blades: Expected number of blades (e.g. the run description's rotor.blades).
-        omega_rad_s: Rotor speed, rad/s, used when no azimuth topic is given or the bag has
-            none (then t = Ω·time from 0, with a warning).
+    Parameters
+    ----------
+    bag_path
+        Bag directory (with metadata.yaml), its metadata.yaml, or the .mcap / .db3
+        file itself.
+    topics
+        Role -> topic, roles 'blade_pitch', 'blade_flap', 'azimuth'; missing roles use
+        the convention (:data:`DEFAULT_TOPICS`). ``azimuth: None`` means no azimuth was
+        recorded; then ``omega_rad_s`` is needed and t = Ω·time.
+    joint_names
+        Joint of each blade, blade 1 first, in any form accepted by
+        :func:`~rotor_id.io.run_description.normalize_joint_names`; default: the message's
+        names blade_1..blade_N.
+    n_blades
+        Expected number of blades (e.g. the run description's rotor.blades).
+    omega_rad_s
+        Rotor speed, rad/s, used when no azimuth topic is given or the bag has
+        none (then t = Ω·time from 0, with a warning).
 
-    Returns:
-        Record. Its ``warnings`` list every repair (also announced once as a BagWarning).
+    Returns
+    -------
+    Record. Its ``warnings`` list every repair (also announced once as a BagWarning).
 
-    Raises:
-        BagError: The bag cannot be read or does not follow the convention.
+    Raises
+    ------
+    BagError
+        The bag cannot be read or does not follow the convention.
+
     """
     topics = {**DEFAULT_TOPICS, **(topics or {})}
     if joint_names is not None:
@@ -432,18 +447,27 @@ def _azimuth(raw, topic, issues):
 
 
 def read_run(description, bag_path=None):
-    """Read the bag of a run description, and check its window against the record.
+    """
+    Read the bag of a run description, and check its window against the record.
 
-    Args:
-        description: RunDescription.
-        bag_path: The bag; default NAME/ beside the description's NAME.yaml.
+    Parameters
+    ----------
+    description
+        RunDescription.
+    bag_path
+        The bag; default NAME/ beside the description's NAME.yaml.
 
-    Returns:
-        Record.
+    Returns
+    -------
+    Record.
 
-    Raises:
-        BagError: Bag unreadable.
-        RunDescriptionError: The window is outside the record.
+    Raises
+    ------
+    BagError
+        Bag unreadable.
+    RunDescriptionError
+        The window is outside the record.
+
     """
     from rotor_id.io.run_description import validate_window
     bag_path = description.bag_path() if bag_path is None else bag_path
@@ -456,19 +480,28 @@ def read_run(description, bag_path=None):
 # --------------------------------------------------------------------------- writing
 
 def register_msg_dir(typestore, msg_dir, package=None):
-    """Register every .msg file of a directory in a typestore.
+    """
+    Register every .msg file of a directory in a typestore.
 
-    Args:
-        typestore: rosbags Typestore to extend.
-        msg_dir: Directory of .msg files (e.g. msg_defs/msg of package rotor_id_msgs).
-        package: Package name; default the <name> in ``msg_dir/../package.xml``, else the name
-            of msg_dir's parent.
+    Parameters
+    ----------
+    typestore
+        rosbags Typestore to extend.
+    msg_dir
+        Directory of .msg files (e.g. msg_defs/msg of package rotor_id_msgs).
+    package
+        Package name; default the <name> in ``msg_dir/../package.xml``, else the name
+        of msg_dir's parent.
 
-    Returns:
-        Sorted list of the registered type names ('pkg/msg/Name').
+    Returns
+    -------
+    Sorted list of the registered type names ('pkg/msg/Name').
 
-    Raises:
-        FileNotFoundError: ``msg_dir`` has no .msg file.
+    Raises
+    ------
+    FileNotFoundError
+        ``msg_dir`` has no .msg file.
+
     """
     msg_dir = Path(msg_dir)
     files = sorted(msg_dir.glob('*.msg'))
@@ -488,7 +521,8 @@ def register_msg_dir(typestore, msg_dir, package=None):
 
 
 class BagWriter:
-    """An open rosbag2 writer that knows its typestore.
+    """
+    An open rosbag2 writer that knows its typestore.
 
     Use as a context manager; on an exception inside the block the bag is aborted.
     """
@@ -534,18 +568,27 @@ class BagWriter:
 
 
 def open_writer(path, storage='mcap', typestore=None):
-    """Create a rosbag2 bag as Jazzy writes it (metadata version 9).
+    """
+    Create a rosbag2 bag as Jazzy writes it (metadata version 9).
 
-    Args:
-        path: New bag directory (must not exist).
-        storage: 'mcap' or 'sqlite3'.
-        typestore: rosbags Typestore with every type to be written; default Jazzy's.
+    Parameters
+    ----------
+    path
+        New bag directory (must not exist).
+    storage
+        'mcap' or 'sqlite3'.
+    typestore
+        rosbags Typestore with every type to be written; default Jazzy's.
 
-    Returns:
-        BagWriter, open.
+    Returns
+    -------
+    BagWriter, open.
 
-    Raises:
-        BagError: Unknown storage or the path exists.
+    Raises
+    ------
+    BagError
+        Unknown storage or the path exists.
+
     """
     if storage not in STORAGES:
         raise BagError(f'unknown storage {storage!r}; use one of {sorted(STORAGES)}')
@@ -559,25 +602,36 @@ def open_writer(path, storage='mcap', typestore=None):
 
 def write_record_bag(path, record, storage='mcap', topics=None, frame_id='rotor', extra=(),
                      typestore=None):
-    """Write a Record into a bag following the test-stand convention.
+    """
+    Write a Record into a bag following the test-stand convention.
 
     The pitch, flap and azimuth messages of each sample share the stamp
     ``record.stamp0_ns + time_s``, used as header.stamp and receive time. Azimuth is t wrapped
     to [0, 2π); velocity is the rotor speed.
 
-    Args:
-        path: New bag directory.
-        record: Record to write.
-        storage: 'mcap' or 'sqlite3'.
-        topics: Role -> topic; default :data:`DEFAULT_TOPICS`.
-        frame_id: header.frame_id of all messages.
-        extra: Further messages, (topic, receive time ns, rosbags message) each, of any type in
-            ``typestore`` (e.g. rotor_id_msgs registered with :func:`register_msg_dir`); their
-            definitions are embedded in the bag.
-        typestore: Typestore of the extra messages; default Jazzy's.
+    Parameters
+    ----------
+    path
+        New bag directory.
+    record
+        Record to write.
+    storage
+        'mcap' or 'sqlite3'.
+    topics
+        Role -> topic; default :data:`DEFAULT_TOPICS`.
+    frame_id
+        header.frame_id of all messages.
+    extra
+        Further messages, (topic, receive time ns, rosbags message) each, of any type in
+        ``typestore`` (e.g. rotor_id_msgs registered with :func:`register_msg_dir`); their
+        definitions are embedded in the bag.
+    typestore
+        Typestore of the extra messages; default Jazzy's.
 
-    Returns:
-        Path of the bag directory.
+    Returns
+    -------
+    Path of the bag directory.
+
     """
     topics = {**DEFAULT_TOPICS, **(topics or {})}
     stamps = record.stamp0_ns + np.round(record.time_s * _NS).astype(np.int64)

@@ -1,4 +1,5 @@
-"""Exceptions and warnings of the input layer.
+"""
+Exceptions and warnings of the input layer.
 
 Every error message names the file or topic, what is wrong and what to do about it, so that a
 user who only sees the message can act on it.
@@ -10,11 +11,16 @@ class BagError(ValueError):
 
 
 class RunDescriptionError(ValueError):
-    """A run-description YAML file is malformed or inconsistent.
+    """
+    A run-description YAML file is malformed or inconsistent.
 
-    Attributes:
-        path: The file (or ``'<string>'``) the description came from.
-        line: 1-based line number of the offending key, or ``None`` if unknown.
+    Attributes
+    ----------
+    path
+        The file (or ``'<string>'``) the description came from.
+    line
+        1-based line number of the offending key, or ``None`` if unknown.
+
     """
 
     def __init__(self, message, path=None, line=None):

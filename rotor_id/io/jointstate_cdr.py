@@ -1,4 +1,5 @@
-"""Fast CDR codec for ``sensor_msgs/msg/JointState``, vectorized over many messages.
+"""
+Fast CDR codec for ``sensor_msgs/msg/JointState``, vectorized over many messages.
 
 A rosbag2 recording at 1 kHz holds hundreds of thousands of JointState messages per topic, and
 deserializing them one by one costs a few microseconds each in Python. The messages of one topic
@@ -29,14 +30,22 @@ _MAX_TRAILING = 7  # serializers may pad the end of the message
 
 @dataclass(frozen=True)
 class JointStateLayout:
-    """Byte layout of one serialized JointState message.
+    """
+    Byte layout of one serialized JointState message.
 
-    Attributes:
-        size: Message length in bytes, encapsulation header included.
-        little: True for little-endian CDR.
-        frame_id: ``header.frame_id``.
-        names: Joint names, in message order.
-        offsets: Byte offset and element count of each float64 array, keyed by field name.
+    Attributes
+    ----------
+    size
+        Message length in bytes, encapsulation header included.
+    little
+        True for little-endian CDR.
+    frame_id
+        ``header.frame_id``.
+    names
+        Joint names, in message order.
+    offsets
+        Byte offset and element count of each float64 array, keyed by field name.
+
     """
 
     size: int
@@ -60,16 +69,25 @@ class JointStateLayout:
 
 @dataclass
 class JointStateBatch:
-    """Decoded messages of one topic, in the order they were given.
+    """
+    Decoded messages of one topic, in the order they were given.
 
-    Attributes:
-        stamps_ns: (n,) int64 ``header.stamp`` in nanoseconds.
-        names: Joint names shared by all messages (message order).
-        position: (n, k) float64.
-        velocity: (n, k) float64, NaN where a message had no velocity.
-        dropped: Reason -> number of messages that could not be decoded or did not match
-            ``names``.
-        kept: (n,) int64 indices of the decoded messages in the input list.
+    Attributes
+    ----------
+    stamps_ns
+        (n,) int64 ``header.stamp`` in nanoseconds.
+    names
+        Joint names shared by all messages (message order).
+    position
+        (n, k) float64.
+    velocity
+        (n, k) float64, NaN where a message had no velocity.
+    dropped
+        Reason -> number of messages that could not be decoded or did not match
+        ``names``.
+    kept
+        (n,) int64 indices of the decoded messages in the input list.
+
     """
 
     stamps_ns: np.ndarray
@@ -85,16 +103,23 @@ def _align(pos, alignment):
 
 
 def parse_layout(raw):
-    """Parse the layout of one serialized JointState.
+    """
+    Parse the layout of one serialized JointState.
 
-    Args:
-        raw: The CDR bytes of the message, encapsulation header included.
+    Parameters
+    ----------
+    raw
+        The CDR bytes of the message, encapsulation header included.
 
-    Returns:
-        JointStateLayout.
+    Returns
+    -------
+    JointStateLayout.
 
-    Raises:
-        ValueError: The bytes are not a well-formed JointState.
+    Raises
+    ------
+    ValueError
+        The bytes are not a well-formed JointState.
+
     """
     raw = bytes(raw)
     size = len(raw)
@@ -153,13 +178,18 @@ def _stamps(rows, little):
 
 
 def decode_one(raw):
-    """Decode one JointState.
+    """
+    Decode one JointState.
 
-    Returns:
-        Tuple ``(stamp_ns, names, position, velocity)``; ``velocity`` is empty if not sent.
+    Returns
+    -------
+    Tuple ``(stamp_ns, names, position, velocity)``; ``velocity`` is empty if not sent.
 
-    Raises:
-        ValueError: The bytes are not a well-formed JointState.
+    Raises
+    ------
+    ValueError
+        The bytes are not a well-formed JointState.
+
     """
     layout = parse_layout(raw)
     rows = np.frombuffer(bytes(raw), dtype=np.uint8).reshape(1, -1)
@@ -168,18 +198,23 @@ def decode_one(raw):
 
 
 def decode_batch(raws):
-    """Decode many JointState messages of one topic.
+    """
+    Decode many JointState messages of one topic.
 
     The joint names of the batch are those of the most common message length (its first
     message). A message with the same names in another order is reordered; one with other
     names, a position array that does not match its names, or bytes that do not parse, is
     dropped and counted in ``dropped``.
 
-    Args:
-        raws: Sequence of CDR byte strings.
+    Parameters
+    ----------
+    raws
+        Sequence of CDR byte strings.
 
-    Returns:
-        JointStateBatch (empty arrays if nothing decodes).
+    Returns
+    -------
+    JointStateBatch (empty arrays if nothing decodes).
+
     """
     n = len(raws)
     lengths = np.fromiter((len(r) for r in raws), dtype=np.int64, count=n)
@@ -278,19 +313,29 @@ def _encode_template(frame_id, names, counts, little=True):
 
 
 def encode_batch(stamps_ns, names, position, velocity=None, effort=None, frame_id=''):
-    """Serialize many JointState messages that share names and array lengths.
+    """
+    Serialize many JointState messages that share names and array lengths.
 
-    Args:
-        stamps_ns: (n,) int ``header.stamp`` in nanoseconds (>= 0).
-        names: Joint names (length k).
-        position: (n, k) float64, or (n, 0) for none.
-        velocity: (n, k) float64 or None.
-        effort: (n, k) float64 or None.
-        frame_id: ``header.frame_id``.
+    Parameters
+    ----------
+    stamps_ns
+        (n,) int ``header.stamp`` in nanoseconds (>= 0).
+    names
+        Joint names (length k).
+    position
+        (n, k) float64, or (n, 0) for none.
+    velocity
+        (n, k) float64 or None.
+    effort
+        (n, k) float64 or None.
+    frame_id
+        ``header.frame_id``.
 
-    Returns:
-        List of n little-endian CDR byte strings, identical to what
-        ``typestore.serialize_cdr`` produces.
+    Returns
+    -------
+    List of n little-endian CDR byte strings, identical to what
+    ``typestore.serialize_cdr`` produces.
+
     """
     stamps_ns = np.asarray(stamps_ns, dtype=np.int64)
     n = len(stamps_ns)

@@ -1,4 +1,5 @@
-"""Recover the readable messages of a damaged MCAP file.
+"""
+Recover the readable messages of a damaged MCAP file.
 
 A recording cut short (power loss, full disk, copy interrupted) has no summary section and no
 footer, so an indexed reader refuses it. The records before the damage are intact: this module
@@ -24,15 +25,24 @@ _OP_DATA_END = 0x0F
 
 @dataclass
 class McapScan:
-    """What a linear scan of an MCAP file found.
+    """
+    What a linear scan of an MCAP file found.
 
-    Attributes:
-        schemas: Schema id -> schema name (the message type).
-        channels: Channel id -> (topic, schema id).
-        messages: Channel id -> list of (log_time_ns, CDR bytes).
-        complete: True if the scan reached the end of the data section cleanly.
-        problem: Why the scan stopped early, if it did.
-        skipped_chunks: Number of chunks whose checksum failed (their messages are not used).
+    Attributes
+    ----------
+    schemas
+        Schema id -> schema name (the message type).
+    channels
+        Channel id -> (topic, schema id).
+    messages
+        Channel id -> list of (log_time_ns, CDR bytes).
+    complete
+        True if the scan reached the end of the data section cleanly.
+    problem
+        Why the scan stopped early, if it did.
+    skipped_chunks
+        Number of chunks whose checksum failed (their messages are not used).
+
     """
 
     schemas: dict = field(default_factory=dict)
@@ -127,20 +137,28 @@ class _Scanner:
 
 
 def scan_mcap(path):
-    """Scan an MCAP file linearly and return every message that can be read.
+    """
+    Scan an MCAP file linearly and return every message that can be read.
 
     Never raises for damaged content: the scan stops at the first record it cannot read and
     says why in ``problem``.
 
-    Args:
-        path: The .mcap file.
+    Parameters
+    ----------
+    path
+        The .mcap file.
 
-    Returns:
-        McapScan.
+    Returns
+    -------
+    McapScan.
 
-    Raises:
-        OSError: The file cannot be read.
-        ValueError: The file is not an MCAP file (bad magic).
+    Raises
+    ------
+    OSError
+        The file cannot be read.
+    ValueError
+        The file is not an MCAP file (bad magic).
+
     """
     with open(path, 'rb') as handle:
         buf = handle.read()

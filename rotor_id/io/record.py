@@ -12,19 +12,31 @@ _WINDOW_TOL_S = 1e-9
 
 @dataclass
 class Record:
-    """Blade pitch and flap of a rotor on the test stand, on the flap sensors' time base.
+    """
+    Blade pitch and flap of a rotor on the test stand, on the flap sensors' time base.
 
-    Attributes:
-        time_s: (n,) seconds since the first flap stamp of the recording (a window keeps the
-            recording's origin).
-        t: (n,) nondimensional time: unwrapped azimuth of blade 1, rad (MODELS.md §0).
-        rotor_speed_rad_s: (n,) measured rotor speed Ω.
-        blade_flap: (n, N) flap angle of each blade, up positive, rad.
-        blade_pitch: (n, N) pitch of each blade, rad, interpolated onto the flap stamps.
-        blade_names: Joint name of each column (blade_1..blade_N).
-        source: Where the data came from (bag path, topics).
-        warnings: Non-fatal problems met while reading (dropped samples, gaps, ...).
-        stamp0_ns: Absolute ``header.stamp`` of the first flap sample, ns.
+    Attributes
+    ----------
+    time_s
+        (n,) seconds since the first flap stamp of the recording (a window keeps the
+        recording's origin).
+    t
+        (n,) nondimensional time: unwrapped azimuth of blade 1, rad (MODELS.md §0).
+    rotor_speed_rad_s
+        (n,) measured rotor speed Ω.
+    blade_flap
+        (n, N) flap angle of each blade, up positive, rad.
+    blade_pitch
+        (n, N) pitch of each blade, rad, interpolated onto the flap stamps.
+    blade_names
+        Joint name of each column (blade_1..blade_N).
+    source
+        Where the data came from (bag path, topics).
+    warnings
+        Non-fatal problems met while reading (dropped samples, gaps, ...).
+    stamp0_ns
+        Absolute ``header.stamp`` of the first flap sample, ns.
+
     """
 
     time_s: np.ndarray
@@ -64,22 +76,22 @@ class Record:
 
     @property
     def n_blades(self):
-        """Number of blades N."""
+        """Return the number of blades N."""
         return self.blade_flap.shape[1]
 
     @property
     def omega_mean(self):
-        """Mean rotor speed, rad/s."""
+        """Return the mean rotor speed, rad/s."""
         return float(np.mean(self.rotor_speed_rad_s))
 
     @property
     def duration_s(self):
-        """Time from the first to the last sample, s."""
+        """Return the time from the first to the last sample, s."""
         return float(self.time_s[-1] - self.time_s[0]) if len(self) else 0.0
 
     @property
     def sample_period_s(self):
-        """Median sampling interval, s."""
+        """Return the median sampling interval, s."""
         return float(np.median(np.diff(self.time_s))) if len(self) > 1 else float('nan')
 
     def azimuths(self):
@@ -96,13 +108,17 @@ class Record:
         return multiblade_coordinates(values, self.t)
 
     def window(self, t0_s, t1_s):
-        """Return the samples with t0_s ≤ time_s ≤ t1_s (seconds since the first stamp).
+        """
+        Return the samples with t0_s ≤ time_s ≤ t1_s (seconds since the first stamp).
 
         The sub-record keeps the recording's time origin, so a run description's window_s
         means the same in both.
 
-        Raises:
-            ValueError: The window is reversed or holds no sample.
+        Raises
+        ------
+        ValueError
+            The window is reversed or holds no sample.
+
         """
         if not t1_s >= t0_s:
             raise ValueError(f'window end {t1_s} s is before its start {t0_s} s')

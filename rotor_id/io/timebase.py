@@ -1,4 +1,5 @@
-"""Time base of a recording: rotor azimuth, nondimensional time, multiblade coordinates.
+"""
+Time base of a recording: rotor azimuth, nondimensional time, multiblade coordinates.
 
 The report's nondimensional time is the rotor azimuth of blade 1, t = ψ (MODELS.md §0), so a
 revolution is 2π. At constant rotor speed Ω this is t = Ω·(stamp − first stamp) + ψ(first
@@ -25,34 +26,47 @@ TWO_PI = 2.0 * np.pi
 
 
 def blade_azimuths(psi, n_blades):
-    """Return the azimuth of every blade.
+    """
+    Return the azimuth of every blade.
 
-    Args:
-        psi: (n,) azimuth of blade 1, rad.
-        n_blades: Number of blades N.
+    Parameters
+    ----------
+    psi
+        (n,) azimuth of blade 1, rad.
+    n_blades
+        Number of blades N.
 
-    Returns:
-        (n, N) array, column k−1 is ψ_k = ψ + (k − 1)·2π/N.
+    Returns
+    -------
+    (n, N) array, column k−1 is ψ_k = ψ + (k − 1)·2π/N.
+
     """
     psi = np.asarray(psi, dtype=float)
     return psi[:, None] + TWO_PI * np.arange(n_blades) / n_blades
 
 
 def unwrap_azimuth(psi_wrapped, time_s, omega_rad_s=None):
-    """Unwrap a measured azimuth into a continuous angle.
+    """
+    Unwrap a measured azimuth into a continuous angle.
 
     Each step is taken as the wrapped increment plus the multiple of 2π that brings it closest
     to what the rotor speed predicts (Ω·Δt). With the speed known this stays right across gaps
     of any length; without it (``omega_rad_s`` None) the plain nearest-branch rule is used,
     which needs steps below half a revolution.
 
-    Args:
-        psi_wrapped: (n,) azimuth in [0, 2π), rad.
-        time_s: (n,) increasing sample times, s.
-        omega_rad_s: (n,) rotor speed, rad/s, or None.
+    Parameters
+    ----------
+    psi_wrapped
+        (n,) azimuth in [0, 2π), rad.
+    time_s
+        (n,) increasing sample times, s.
+    omega_rad_s
+        (n,) rotor speed, rad/s, or None.
 
-    Returns:
-        (n,) unwrapped azimuth, starting at ``psi_wrapped[0]``.
+    Returns
+    -------
+    (n,) unwrapped azimuth, starting at ``psi_wrapped[0]``.
+
     """
     psi_wrapped = np.asarray(psi_wrapped, dtype=float)
     if omega_rad_s is None:
@@ -65,18 +79,27 @@ def unwrap_azimuth(psi_wrapped, time_s, omega_rad_s=None):
 
 
 def nondimensional_time(time_s, psi_wrapped=None, omega_rad_s=None):
-    """Return the report's nondimensional time t = unwrapped azimuth of blade 1.
+    """
+    Return the report's nondimensional time t = unwrapped azimuth of blade 1.
 
-    Args:
-        time_s: (n,) seconds since the first stamp.
-        psi_wrapped: (n,) measured azimuth of blade 1 in [0, 2π), or None if not recorded.
-        omega_rad_s: (n,) rotor speed, or a scalar, or None.
+    Parameters
+    ----------
+    time_s
+        (n,) seconds since the first stamp.
+    psi_wrapped
+        (n,) measured azimuth of blade 1 in [0, 2π), or None if not recorded.
+    omega_rad_s
+        (n,) rotor speed, or a scalar, or None.
 
-    Returns:
-        (n,) t. Without azimuth, t = ∫Ω dt from 0 (trapezoidal), i.e. Ω·time at constant Ω.
+    Returns
+    -------
+    (n,) t. Without azimuth, t = ∫Ω dt from 0 (trapezoidal), i.e. Ω·time at constant Ω.
 
-    Raises:
-        ValueError: Neither azimuth nor rotor speed given.
+    Raises
+    ------
+    ValueError
+        Neither azimuth nor rotor speed given.
+
     """
     time_s = np.asarray(time_s, dtype=float)
     if psi_wrapped is not None:
@@ -109,15 +132,21 @@ def _check_blades(values, psi):
 
 
 def multiblade_coordinates(values, psi):
-    """Transform blade quantities to multiblade coordinates (MODELS.md §0).
+    """
+    Transform blade quantities to multiblade coordinates (MODELS.md §0).
 
-    Args:
-        values: (n, N) per-blade flap (or pitch), N ≥ 3.
-        psi: (n,) azimuth of blade 1 (the nondimensional time t).
+    Parameters
+    ----------
+    values
+        (n, N) per-blade flap (or pitch), N ≥ 3.
+    psi
+        (n,) azimuth of blade 1 (the nondimensional time t).
 
-    Returns:
-        Dict with (n,) arrays 'collective' (β0), 'cos' (βI), 'sin' (βII) and, for even N,
-        'differential' (βd).
+    Returns
+    -------
+    Dict with (n,) arrays 'collective' (β0), 'cos' (βI), 'sin' (βII) and, for even N,
+    'differential' (βd).
+
     """
     values, psi = _check_blades(values, psi)
     n_blades = values.shape[1]
@@ -134,17 +163,24 @@ def multiblade_coordinates(values, psi):
 
 
 def blade_values(coords, psi, n_blades=4):
-    """Inverse of :func:`multiblade_coordinates`: β_k = β0 + βI cos ψ_k + βII sin ψ_k + (−1)^k βd.
+    """
+    Inverse of :func:`multiblade_coordinates`: β_k = β0 + βI cos ψ_k + βII sin ψ_k + (−1)^k βd.
 
     Exact for N = 3 and N = 4 (where the coordinates span all blade motions).
 
-    Args:
-        coords: Dict as returned by :func:`multiblade_coordinates`; 'differential' optional.
-        psi: (n,) azimuth of blade 1.
-        n_blades: Number of blades N.
+    Parameters
+    ----------
+    coords
+        Dict as returned by :func:`multiblade_coordinates`; 'differential' optional.
+    psi
+        (n,) azimuth of blade 1.
+    n_blades
+        Number of blades N.
 
-    Returns:
-        (n, N) per-blade values.
+    Returns
+    -------
+    (n, N) per-blade values.
+
     """
     psi = np.asarray(psi, dtype=float)
     azimuths = blade_azimuths(psi, n_blades)

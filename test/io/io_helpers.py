@@ -45,17 +45,25 @@ def record_streams(record):
 
 
 def write_streams(path, streams, storage='mcap', extra=None):
-    """Write JointState topics into a new bag.
+    """
+    Write JointState topics into a new bag.
 
-    Args:
-        path: New bag directory.
-        streams: topic -> (stamps_ns, names, position, velocity or None), or topic -> list of
-            (stamp_ns, CDR bytes) for hand-made messages.
-        storage: 'mcap' or 'sqlite3'.
-        extra: topic -> list of (stamp_ns, rosbags message) of other types.
+    Parameters
+    ----------
+    path
+        New bag directory.
+    streams
+        topic -> (stamps_ns, names, position, velocity or None), or topic -> list of
+        (stamp_ns, CDR bytes) for hand-made messages.
+    storage
+        'mcap' or 'sqlite3'.
+    extra
+        topic -> list of (stamp_ns, rosbags message) of other types.
 
-    Returns:
-        The bag directory.
+    Returns
+    -------
+    The bag directory.
+
     """
     with open_writer(path, storage) as writer:
         messages = []

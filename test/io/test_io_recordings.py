@@ -1,4 +1,5 @@
-"""The six shared test-stand recordings read into Records that agree with what is known of them.
+"""
+The six shared test-stand recordings read into Records that agree with what is known of them.
 
 Known facts (recordings/README.md, MODELS.md §0): 4 blades, 1 kHz, rotor at 900 rpm; the record
 starts in trim at collective pitch, the 1.5° lateral cyclic (θII) is stepped on at t = 2π, and
