@@ -1,4 +1,5 @@
-"""Run descriptions: what the experimenter knows about a recording (YAML).
+"""
+Run descriptions: what the experimenter knows about a recording (YAML).
 
 The schema of /work/shared/recordings/README.md::
 
@@ -63,13 +64,20 @@ BLADE_JOINT_ROLES = ('blade_pitch', 'blade_flap')
 
 @dataclass(frozen=True)
 class RotorSpec:
-    """The rotor of the test stand.
+    """
+    The rotor of the test stand.
 
-    Attributes:
-        blades: Number of blades N.
-        advance_ratio: μ.
-        flap_frequency: P, rotating flap natural frequency, per rev.
-        tip_loss: B.
+    Attributes
+    ----------
+    blades
+        Number of blades N.
+    advance_ratio
+        μ.
+    flap_frequency
+        P, rotating flap natural frequency, per rev.
+    tip_loss
+        B.
+
     """
 
     blades: int
@@ -80,26 +88,45 @@ class RotorSpec:
 
 @dataclass(frozen=True)
 class RunDescription:
-    """A validated run description. Treat the dict fields as read-only.
+    """
+    A validated run description. Treat the dict fields as read-only.
 
-    Attributes:
-        rotor: RotorSpec.
-        topics: Role ('blade_pitch', 'blade_flap', 'azimuth') -> topic name.
-        model: One of :data:`MODELS`.
-        unknowns: Parameters to identify, in the file's order.
-        window_s: (t0, t1), seconds after the first flap stamp.
-        joint_names: None, or role ('blade_pitch', 'blade_flap') -> tuple of joint names in
-            blade order.
-        known: Parameter -> value held fixed (``lock_number`` is merged in as 'gamma').
-        initial_guess: Parameter -> starting value.
-        initial_state: 'estimate' | 'equilibrium' | 'zero'.
-        noise_std_rad: Known flap-measurement noise, or None.
-        method: Estimation method, 'output-error' by default.
-        measurement: 'blades' | 'multiblade' | 'eq30', or None for the model's default.
-        lock_number: γ for the wake model, or None.
-        path: File the description was read from ('<string>' if parsed from text).
-        warnings: Non-fatal remarks (unknown keys).
-        extra: Unknown top-level keys and their values, kept for newer tools.
+    Attributes
+    ----------
+    rotor
+        RotorSpec.
+    topics
+        Role ('blade_pitch', 'blade_flap', 'azimuth') -> topic name.
+    model
+        One of :data:`MODELS`.
+    unknowns
+        Parameters to identify, in the file's order.
+    window_s
+        (t0, t1), seconds after the first flap stamp.
+    joint_names
+        None, or role ('blade_pitch', 'blade_flap') -> tuple of joint names in
+        blade order.
+    known
+        Parameter -> value held fixed (``lock_number`` is merged in as 'gamma').
+    initial_guess
+        Parameter -> starting value.
+    initial_state
+        'estimate' | 'equilibrium' | 'zero'.
+    noise_std_rad
+        Known flap-measurement noise, or None.
+    method
+        Estimation method, 'output-error' by default.
+    measurement
+        'blades' | 'multiblade' | 'eq30', or None for the model's default.
+    lock_number
+        γ for the wake model, or None.
+    path
+        File the description was read from ('<string>' if parsed from text).
+    warnings
+        Non-fatal remarks (unknown keys).
+    extra
+        Unknown top-level keys and their values, kept for newer tools.
+
     """
 
     rotor: RotorSpec
@@ -121,7 +148,7 @@ class RunDescription:
 
     @property
     def parameters(self):
-        """Parameter names of the model."""
+        """Return the parameter names of the model."""
         return MODEL_PARAMETERS[self.model]
 
     def bag_path(self):
@@ -132,21 +159,29 @@ class RunDescription:
 
 
 def normalize_joint_names(value, n_blades=None):
-    """Bring the accepted forms of ``joint_names`` to {role: tuple of names in blade order}.
+    """
+    Bring the accepted forms of ``joint_names`` to {role: tuple of names in blade order}.
 
     Accepted forms: a list (blade 1 first), a mapping blade -> name with keys 'blade_<k>' or
     integers k, or a mapping with keys 'blade_pitch' / 'blade_flap' whose values are either of
     the former (a role not given uses the other role's names).
 
-    Args:
-        value: The ``joint_names`` value.
-        n_blades: Expected number of blades, or None.
+    Parameters
+    ----------
+    value
+        The ``joint_names`` value.
+    n_blades
+        Expected number of blades, or None.
 
-    Returns:
-        Dict with keys 'blade_pitch' and 'blade_flap'.
+    Returns
+    -------
+    Dict with keys 'blade_pitch' and 'blade_flap'.
 
-    Raises:
-        ValueError: Malformed value (the message says which form is expected).
+    Raises
+    ------
+    ValueError
+        Malformed value (the message says which form is expected).
+
     """
     if isinstance(value, dict) and value and set(value) <= set(BLADE_JOINT_ROLES):
         roles = {role: _joint_list(names, n_blades, role) for role, names in value.items()}
@@ -307,17 +342,25 @@ def _kind(value):
 
 
 def parse_run_description(text, path='<string>'):
-    """Parse and validate a run description.
+    """
+    Parse and validate a run description.
 
-    Args:
-        text: The YAML text.
-        path: Name of its file, used in messages.
+    Parameters
+    ----------
+    text
+        The YAML text.
+    path
+        Name of its file, used in messages.
 
-    Returns:
-        RunDescription.
+    Returns
+    -------
+    RunDescription.
 
-    Raises:
-        RunDescriptionError: Malformed YAML or invalid content.
+    Raises
+    ------
+    RunDescriptionError
+        Malformed YAML or invalid content.
+
     """
     path = str(path)
     try:
@@ -340,10 +383,14 @@ def parse_run_description(text, path='<string>'):
 
 
 def load_run_description(path):
-    """Read and validate the run description in file ``path`` (see module docstring).
+    """
+    Read and validate the run description in file ``path`` (see module docstring).
 
-    Raises:
-        RunDescriptionError: File unreadable, malformed YAML or invalid content.
+    Raises
+    ------
+    RunDescriptionError
+        File unreadable, malformed YAML or invalid content.
+
     """
     try:
         text = Path(path).read_text(encoding='utf-8')
@@ -440,6 +487,8 @@ def _validate(parser):
     if both:
         parser.fail(f'parameters {both} are both unknown and known; remove them from one '
                     'list', 'known' if 'known' in data else 'lock_number')
+    if model == 'multiblade_wake':
+        _check_wake_gain(parser, spec, unknowns, known, data)
     if 'initial_state' in data:
         options['initial_state'] = parser.choice(data['initial_state'], INITIAL_STATES,
                                                  'initial_state')
@@ -461,18 +510,44 @@ def _validate(parser):
         extra={k: v for k, v in data.items() if k not in TOP_LEVEL_KEYS}, **options)
 
 
+def _check_wake_gain(parser, rotor, unknowns, known, data):
+    # The wake model's A is γB⁴/8 (Ch.2 eq. 27): γ and A are one parameter, given once.
+    where = ('lock_number',) if 'lock_number' in data else ('known',)
+    if 'gamma' in unknowns and 'A' in unknowns:
+        parser.fail('unknowns has both A and gamma, but A = γB⁴/8 in the wake model; identify '
+                    'one of them', 'unknowns')
+    if 'gamma' in known and 'A' in unknowns:
+        parser.fail('A is unknown but fixed by the known γ (A = γB⁴/8 in the wake model); '
+                    'remove A from unknowns or drop the known γ', *where)
+    if 'A' in known and 'gamma' in unknowns:
+        parser.fail('gamma is unknown but fixed by the known A (A = γB⁴/8 in the wake model); '
+                    'remove gamma from unknowns or drop the known A', 'known')
+    if 'gamma' in known and 'A' in known:
+        implied = known['gamma'] * rotor.tip_loss ** 4 / 8.0
+        if not math.isclose(known['A'], implied, rel_tol=1e-6):
+            parser.fail(f'known A = {known["A"]} contradicts γ = {known["gamma"]} '
+                        f'(A = γB⁴/8 = {implied:.6g}); give one of them', *where)
+
+
 def validate_window(description, record):
-    """Check that the description's window lies inside the record.
+    """
+    Check that the description's window lies inside the record.
 
     The ends may overshoot the record by up to one sample period (a window written as a time
     rounded up, as in the recordings, whose window ends 0.6 ms after the last 1 kHz sample).
 
-    Args:
-        description: RunDescription.
-        record: Record read from the bag.
+    Parameters
+    ----------
+    description
+        RunDescription.
+    record
+        Record read from the bag.
 
-    Raises:
-        RunDescriptionError: The window is not inside the record's span.
+    Raises
+    ------
+    RunDescriptionError
+        The window is not inside the record's span.
+
     """
     t0, t1 = description.window_s
     first, last = float(record.time_s[0]), float(record.time_s[-1])

@@ -61,7 +61,7 @@ def test_optional_keys():
     description = parse(BASE.replace('unknowns: [A, AL_over_tau, inv_tau]',
                                      'unknowns: [AL_over_tau, inv_tau]') + """\
 joint_names: {blade_1: b1, blade_2: b2, blade_3: b3, blade_4: b4}
-known: {A: 0.5}
+known: {A: 0.49797745125}
 initial_guess: {AL_over_tau: 0.2, inv_tau: 0.1}
 initial_state: equilibrium
 noise_std_rad: 0.0009
@@ -71,7 +71,7 @@ lock_number: 4.5
 """)
     assert description.joint_names == {'blade_pitch': ('b1', 'b2', 'b3', 'b4'),
                                        'blade_flap': ('b1', 'b2', 'b3', 'b4')}
-    assert description.known == {'A': 0.5, 'gamma': 4.5}
+    assert description.known == {'A': 0.49797745125, 'gamma': 4.5}   # A = γB⁴/8
     assert description.lock_number == 4.5
     assert description.initial_guess == {'AL_over_tau': 0.2, 'inv_tau': 0.1}
     assert description.initial_state == 'equilibrium'
@@ -142,6 +142,7 @@ def test_errors_name_file_line_and_fix(edit, words, line):
     ('noise_std_rad: 5', ['radians']),
     ('lock_number: 5\nknown: {gamma: 4}', ['contradicts known.gamma']),
     ('joint_names: [a, b]', ['2 joint names for 4 blades']),
+    ('lock_number: 4.5', ['A is unknown but fixed by the known γ', 'run.yaml:10:']),
     ('model: multiblade', ["key 'model' is given twice (lines 7 and 10)"]),
 ])
 def test_errors_of_optional_keys(extra, words):
@@ -149,6 +150,15 @@ def test_errors_of_optional_keys(extra, words):
     assert message.startswith('run.yaml:')
     for word in words:
         assert word in message
+
+
+def test_wake_gain_and_lock_number_are_one_parameter():
+    fixed = BASE.replace('[A, AL_over_tau, inv_tau]', '[AL_over_tau, inv_tau]')
+    message = str(error_of(fixed + 'known: {gamma: 4.5, A: 0.3}\n'))
+    assert 'contradicts γ = 4.5' in message and 'A = γB⁴/8 = 0.49' in message
+    message = str(error_of(BASE.replace('[A, AL_over_tau, inv_tau]', '[A, gamma]')))
+    assert 'both A and gamma' in message
+    assert parse(fixed + 'lock_number: 4.5\n').known == {'gamma': 4.5}
 
 
 def test_theta0_in_degrees_is_caught():
