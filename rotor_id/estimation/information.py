@@ -23,6 +23,7 @@ Public functions
 :func:`continuous_bound`      Δt·[∫SᵀR⁻¹S dt]⁻¹, the continuous approximation (eq. 21)
 :func:`shortest_record`       first t_f with M⁻¹(i, i) ≤ σ_i² for all i (eq. 23)
 :func:`information_density`   which samples carry the information (per parameter, log det M)
+:func:`inverse_or_nan`        M⁻¹ of an information matrix, NaN while it is singular
 """
 
 from dataclasses import dataclass
@@ -258,8 +259,13 @@ def _information(dy, noise_var):
     return np.einsum('tmi,m,tmj->tij', dy, 1.0 / noise_var, dy)
 
 
-def _safe_inverse(M):
-    """Inverse of a symmetric positive (semi-)definite matrix; NaN when singular."""
+def inverse_or_nan(M):
+    """
+    Return M⁻¹ of an information matrix, or all-NaN when M is (numerically) singular.
+
+    Inverted after scaling to unit diagonal; singular means a zero diagonal element or a
+    scaled condition number above 1e12 (too few samples, or a non-identifiable combination).
+    """
     d = np.sqrt(np.clip(np.diag(M), 0.0, None))
     if np.any(d <= 0):
         return np.full_like(M, np.nan)
@@ -267,6 +273,9 @@ def _safe_inverse(M):
     if np.linalg.cond(Ms) > 1e12:
         return np.full_like(M, np.nan)
     return np.linalg.inv(Ms) / np.outer(d, d)
+
+
+_safe_inverse = inverse_or_nan       # the name rotor_id.planning imports
 
 
 def cramer_rao_bound(experiments, p_full, unknown_names, noise_std=1.0, x0=None,
@@ -300,7 +309,7 @@ def cramer_rao_bound(experiments, p_full, unknown_names, noise_std=1.0, x0=None,
     var = _noise_var(noise_std, experiments[0].model.n_outputs)
     M = sum(_information(dy, var).sum(axis=0) for _, dy, _ in evaluate(problem, theta, max_step))
     return Bound(names=list(problem.names), values=theta, information=M,
-                 covariance=_safe_inverse(M))
+                 covariance=inverse_or_nan(M))
 
 
 def information_history(experiment, p_full, unknown_names, noise_std=1.0, x0=None,
@@ -336,7 +345,7 @@ def information_history(experiment, p_full, unknown_names, noise_std=1.0, x0=Non
     sens = sensitivities(experiment, p_full, unknown_names, x0, max_step)
     var = _noise_var(noise_std, experiment.model.n_outputs)
     M = np.cumsum(_information(sens.dy, var), axis=0)
-    cov = np.array([_safe_inverse(Mj) for Mj in M])
+    cov = np.array([inverse_or_nan(Mj) for Mj in M])
     return InformationHistory(t=sens.t, names=sens.names, information=M, covariance=cov)
 
 
@@ -354,7 +363,7 @@ def continuous_bound(experiment, p_full, unknown_names, noise_std=1.0, x0=None,
     dt = float(np.mean(np.diff(sens.t)))
     integral = np.trapezoid(_information(sens.dy, var), sens.t, axis=0)
     return Bound(names=sens.names, values=sens.values, information=integral / dt,
-                 covariance=_safe_inverse(integral / dt))
+                 covariance=inverse_or_nan(integral / dt))
 
 
 def shortest_record(history, target_std):
