@@ -99,3 +99,54 @@ def test_bad_unknown_is_a_clear_error():
     exp = C.make_experiment(scenario, y=C.truth_outputs(scenario, C.sample_times(12, 24)))
     with pytest.raises(IdentificationError, match='unknown parameter .theta_zero.'):
         fit_output_error([exp], ['gamma', 'theta_zero'])
+
+
+def test_equilibrium_start_and_two_runs_have_exact_sensitivities():
+    """
+    θ of two wake runs (one starting in equilibrium, one with free deflections) by FD.
+
+    The equilibrium start x0 = −F⁻¹g depends on the parameters (equilibrium_jacobian); the
+    second run's initial states are named with the run index.
+    """
+    from rotor_id.estimation.output_error import _Problem, evaluate
+    prog, regr = C.SCENARIOS['wake_progressing'], C.SCENARIOS['wake_regressing']
+    t = C.sample_times(70.0, 82.0)
+    runs = [C.make_experiment(prog, y=C.noisy_outputs(prog, t, 1), initial_state='equilibrium'),
+            C.make_experiment(regr, y=C.noisy_outputs(regr, t, 2), initial_state='positions')]
+    problem = _Problem(runs, list(C.WAKE), None, None)
+    assert problem.names[3:] == ['beta_I(t0)[2]', 'beta_II(t0)[2]', 'lambda_I(t0)[2]',
+                                 'lambda_II(t0)[2]']
+    theta = np.array([0.45, 0.22, 0.14, 0.5, 0.2, -0.8, -0.3])
+    dy = np.concatenate([dy for _, dy, _ in evaluate(problem, theta)])
+
+    def outputs(th):
+        return np.concatenate([sim.y for _, _, sim in evaluate(problem, th,
+                                                               sensitivities=False)])
+
+    for i, name in enumerate(problem.names):
+        h = 1e-6
+        step = np.zeros_like(theta)
+        step[i] = h
+        fd = (outputs(theta + step) - outputs(theta - step)) / (2 * h)
+        err = np.max(np.abs(fd - dy[:, :, i])) / np.max(np.abs(dy[:, :, i]))
+        assert err < 1e-6, (name, err)
+    est = fit_output_error(runs, list(C.WAKE), noise_std=0.1)
+    assert est.converged
+    # two runs: tighter than either alone (progressing alone: σ_A = .0228 at the truth)
+    assert est.std_of('A') < 0.0228
+
+
+def test_estimated_noise_is_the_residual_rms():
+    """R estimated from the residuals: σ̂² = Σε²/N, and the bound uses it (Maine & Iliff)."""
+    case = ITER['single_blade_2par']
+    scenario = C.SCENARIOS[case.scenario]
+    t = C.sample_times(12.0, 24.0)
+    exp = C.make_experiment(scenario, y=C.noisy_outputs(scenario, t, 3))
+    est = fit_output_error([exp], list(C.SB), guess={'gamma': 4.0, 'delta': 8.0})
+    res = est.residuals[0]
+    assert est.noise_std[0] == pytest.approx(np.sqrt(np.mean(res ** 2)), rel=1e-9)
+    assert abs(est.noise_std[0] - 0.2) < 3 * 0.2 / np.sqrt(2 * t.size)
+    known = fit_output_error([exp], list(C.SB), guess={'gamma': 4.0, 'delta': 8.0},
+                             noise_std=est.noise_std[0])
+    np.testing.assert_allclose(known.values, est.values, rtol=1e-6)
+    np.testing.assert_allclose(known.covariance, est.covariance, rtol=1e-6)
