@@ -27,7 +27,7 @@ from rotor_id.io.errors import BagError, BagWarning
 from rotor_id.io.jointstate_cdr import decode_batch, encode_batch, JOINT_STATE
 from rotor_id.io.mcap_recover import scan_mcap
 from rotor_id.io.record import Record
-from rotor_id.io.run_description import DEFAULT_TOPICS, normalize_joint_names
+from rotor_id.io.run_description import DEFAULT_TOPICS, normalize_joint_names, validate_window
 from rotor_id.io.timebase import interpolate_columns, nondimensional_time, TWO_PI
 import yaml
 
@@ -427,8 +427,7 @@ def _azimuth(raw, topic, issues):
         issues.append(f'{topic}: no velocity (rotor speed); Ω is taken from the azimuth rate')
         if len(stamps) < 2:
             raise BagError(f'{topic}: one sample and no velocity: the rotor speed is unknown')
-        psi_u = np.unwrap(position)
-        velocity = np.gradient(psi_u, time_s)
+        velocity = np.gradient(np.unwrap(position), time_s)
     if not (velocity > 0).all():
         bad = velocity[~(velocity > 0)]
         raise BagError(f'{topic}: the rotor speed (velocity) is zero or negative in {len(bad)} '
@@ -469,7 +468,6 @@ def read_run(description, bag_path=None):
         The window is outside the record.
 
     """
-    from rotor_id.io.run_description import validate_window
     bag_path = description.bag_path() if bag_path is None else bag_path
     record = read_record(bag_path, description.topics, description.joint_names,
                          n_blades=description.rotor.blades)
