@@ -1,0 +1,421 @@
+"""Model-mismatch diagnosis of one recording (issue 4): fit, locate, explain, choose, show.
+
+1. Fit the run description's model (:func:`rotor_id.pipeline.identify`, output-error ML).
+2. Locate (:mod:`rotor_id.diagnosis.residuals`): per channel RMS against a model-free noise
+   floor, whiteness, correlation with the pitch input, spectrum per rev, energy over time.
+3. Explain (:mod:`rotor_id.diagnosis.catalogue`): fit every applicable candidate of the
+   catalogue, each an augmented model fitted by the same ML (worker processes in parallel).
+4. Choose with statistics that do not reward extra parameters:
+
+       criterion = 2 Δlog L · ρ − k log(n ρ)   (BIC difference, n = samples × channels)
+
+   where k counts the candidate's extra parameters and estimated initial states and
+   ρ = N_eff/N corrects the sample size for the autocorrelation left in the candidate's
+   residuals (a candidate that leaves coloured residuals gets less credit for its Δlog L).
+   An effect is named when its criterion exceeds :data:`CRITERION_THRESHOLD` ("very strong"
+   evidence on the Kass-Raftery scale) and its prediction of the half of the window it was not
+   fitted to beats the baseline's (cross-validation both ways). Otherwise the answer is
+   ``unexplained`` if the residual tests find a mismatch, ``none`` if they do not.
+5. Show: :meth:`Diagnosis.as_json` (stable keys of issue 4) and :mod:`rotor_id.diagnosis.figures`.
+"""
+
+from dataclasses import dataclass, field
+import math
+import multiprocessing
+import time
+
+import numpy as np
+
+from rotor_id.diagnosis import residuals as rs
+from rotor_id.diagnosis.augmentations import BladeView
+from rotor_id.diagnosis.catalogue import (
+    EFFECTS, EQUIVALENT, fit_candidate, Job, validate_candidate, variants)
+from rotor_id.estimation.simulate import simulate
+from rotor_id.physics.models import multiblade_from_blade_flap
+from rotor_id.pipeline import identify
+
+#: ΔBIC above which a candidate counts as an explanation ("very strong": > 10).
+CRITERION_THRESHOLD = 10.0
+#: Criterion gap to the best non-equivalent rival for a "high" confidence.
+CONFIDENCE_GAP = 10.0
+_MBC = ('beta_0', 'beta_I', 'beta_II', 'beta_d')
+
+
+@dataclass
+class Channel:
+    """A residual series of the baseline fit, with its noise floor."""
+
+    name: str
+    residual: np.ndarray
+    measured: np.ndarray
+    fitted: np.ndarray
+    floor: float
+    n_blades: int
+    model_channel: bool
+
+
+@dataclass
+class Diagnosis:
+    """Everything the diagnosis found (``as_json`` gives the issue's stable keys)."""
+
+    mismatch: bool
+    effect: str
+    confidence: str
+    location: dict
+    explanation_parameters: dict
+    fit: dict
+    candidates: list
+    parameters: dict
+    baseline: object
+    chosen: object
+    channels: list
+    stats_baseline: list
+    stats_augmented: list
+    blade_floor: np.ndarray
+    record_window: object
+    elapsed_s: float
+    notes: list = field(default_factory=list)
+    fits: list = field(default_factory=list)
+
+    def as_json(self):
+        """JSON of ``rotor-id diagnose`` (issue 4 keys; more allowed)."""
+        return {
+            'mismatch': bool(self.mismatch),
+            'location': self.location,
+            'explanation': {'effect': self.effect, 'confidence': self.confidence,
+                            'parameters': self.explanation_parameters},
+            'fit': self.fit,
+            'candidates': self.candidates,
+            'parameters': self.parameters,
+            'baseline': {'model': self.baseline.model.name,
+                         'unknowns': list(self.baseline.unknowns),
+                         'window_s': [float(v) for v in self.baseline.window_s],
+                         'neg_log_likelihood': float(self.baseline.estimate.neg_log_likelihood)},
+            'channels_baseline': [s.as_dict() for s in self.stats_baseline],
+            'channels_augmented': [s.as_dict() for s in self.stats_augmented],
+            'noise_floor_blades_rad': [float(s) for s in self.blade_floor],
+            'criterion': {'name': 'BIC difference with autocorrelation-corrected sample size',
+                          'threshold': CRITERION_THRESHOLD},
+            'notes': list(self.notes),
+            'elapsed_s': float(self.elapsed_s),
+        }
+
+
+def _say(progress, text):
+    if progress is not None:
+        progress(text)
+
+
+# ------------------------------------------------------------------------------------------------
+# Baseline channels
+# ------------------------------------------------------------------------------------------------
+
+def baseline_channels(ident, part, blade_sigma):
+    """Residual channels of the baseline: the model's own, plus the multiblade coordinates it
+    predicts and, when it predicts all four, each blade."""
+    est = ident.estimate
+    channels = []
+    runs = ident.experiments
+    for r, exp in enumerate(runs):
+        view = BladeView(exp.model)
+        floors = rs.channel_floor(view.channels(exp.t),
+                                  blade_sigma[[b - 1 for b in view.blades]])
+        for j, name in enumerate(exp.model.output_names):
+            label = name if len(runs) == 1 or name.startswith('beta_') and len(runs) > 1 \
+                else f'{name}[{exp.name}]'
+            channels.append(Channel(label, est.residuals[r][:, j], exp.y[:, j],
+                                    est.fitted[r][:, j], float(floors[j]),
+                                    len(view.blades), True))
+    model = ident.model
+    if model.name == 'single_blade':
+        return channels
+    exp = runs[0]
+    p = np.array([est.model_parameters[n] for n in model.parameter_names])
+    sim = simulate(model, p, exp.inputs, exp.t, est.initial_states[0])
+    view = BladeView(model)
+    pred_blades = np.einsum('tkn,tn->tk', view.flap(exp.t), sim.x)
+    meas_blades = part.blade_flap
+    pred_mbc = multiblade_from_blade_flap(exp.t, pred_blades)
+    meas_mbc = multiblade_from_blade_flap(exp.t, meas_blades)
+    psi = exp.t[:, None] + 2 * math.pi * np.arange(4)[None, :] / 4
+    rows = [np.full((exp.t.size, 4), 0.25), 0.5 * np.cos(psi), 0.5 * np.sin(psi),
+            np.broadcast_to((-1.0) ** np.arange(1, 5) / 4, (exp.t.size, 4))]
+    predicted = [s for s in _MBC if s in model.state_names]
+    have = {c.name for c in channels}
+    for i, name in enumerate(_MBC):
+        if name in predicted and name not in have:
+            floor = rs.channel_floor(rows[i][:, None, :], blade_sigma)[0]
+            channels.append(Channel(name, meas_mbc[:, i] - pred_mbc[:, i], meas_mbc[:, i],
+                                    pred_mbc[:, i], float(floor), 4, False))
+    if len(predicted) == 4:
+        for k in range(4):
+            name = f'beta_{k + 1}'
+            if name not in have:
+                channels.append(Channel(name, meas_blades[:, k] - pred_blades[:, k],
+                                        meas_blades[:, k], pred_blades[:, k],
+                                        float(blade_sigma[k]), 1, False))
+    return channels
+
+
+def _stats(channels, t, u):
+    return [rs.channel_stats(c.name, c.residual, c.floor, u, c.n_blades, t) for c in channels]
+
+
+def _overall(values):
+    return float(math.sqrt(np.mean(np.square(values))))
+
+
+# ------------------------------------------------------------------------------------------------
+# Candidates
+# ------------------------------------------------------------------------------------------------
+
+def _run_jobs(function, jobs, workers, on_done):
+    results = []
+    if workers <= 1 or len(jobs) <= 1:
+        for job in jobs:
+            res = function(job)
+            on_done(res)
+            results.append(res)
+        return results
+    ctx = multiprocessing.get_context('fork')
+    with ctx.Pool(processes=workers) as pool:
+        for res in pool.imap_unordered(function, jobs):
+            on_done(res)
+            results.append(res)
+    return results
+
+
+def _score(fit, baseline_est, n_obs, n_variants):
+    est = fit.estimate
+    dll = float(baseline_est.neg_log_likelihood - est.neg_log_likelihood)
+    res = np.concatenate(est.residuals, axis=0)
+    rho = min(rs.effective_fraction(res[:, j]) for j in range(res.shape[1]))
+    k = max(fit.n_extra, 0)
+    criterion = 2.0 * dll * rho - k * math.log(n_obs * rho)
+    if n_variants > 1:
+        criterion -= 2.0 * math.log(n_variants)       # which blade: a choice among N
+    return dll, rho, criterion
+
+
+def diagnose(record, description, progress=None, workers=2, effects=EFFECTS, window_s=None,
+             verbose_fits=False):
+    """Diagnose the mismatch between a recording and the run description's model.
+
+    Parameters
+    ----------
+    record : rotor_id.io.record.Record
+    description : rotor_id.io.run_description.RunDescription
+    progress : callable, optional
+        Called with one line of text per step (what is being fitted, iteration, elapsed).
+    workers : int
+        Worker processes for the candidate fits (1: all in this process).
+    effects : sequence of str
+        Catalogue ids to try (default: all).
+    window_s : (float, float), optional
+        Overrides the description's window.
+    verbose_fits : bool
+        Worker processes print every Gauss-Newton iteration to stderr.
+
+    Returns
+    -------
+    Diagnosis
+
+    """
+    t_start = time.perf_counter()
+    window_s = tuple(window_s or description.window_s)
+    unknowns = list(description.unknowns)
+    _say(progress, f'baseline: fitting {description.model} ({", ".join(unknowns)}) by '
+                   f'output-error ML over {window_s[0]:.3f}-{window_s[1]:.3f} s')
+
+    def base_progress(info):
+        _say(progress, f'baseline: iteration {info["iteration"]}, cost {info["cost"]:.6g}, '
+                       f'{time.perf_counter() - t_start:.1f} s')
+
+    ident = identify(record, description, progress=base_progress, window_s=window_s)
+    est = ident.estimate
+    part = record.window(*window_s)
+    blade_sigma = rs.blade_noise_floor(part.blade_flap)
+    exp0 = ident.experiments[0]
+    u = exp0.inputs(exp0.t)
+    channels = baseline_channels(ident, part, blade_sigma)
+    stats_base = _stats(channels, exp0.t, u)
+    model_stats = [s for s, c in zip(stats_base, channels) if c.model_channel]
+    n_ch = len(stats_base)
+    residual_flag = any(s.flagged(n_ch) for s in stats_base)
+    white_p_base = rs.combined_whiteness_p(model_stats)
+    _say(progress, 'baseline: residual RMS {:.4g} rad against a noise floor of {:.4g} rad, '
+                   'whiteness p = {:.2g} ({:.1f} s)'.format(
+                       _overall([s.rms for s in model_stats]),
+                       _overall([s.floor for s in model_stats]), white_p_base,
+                       time.perf_counter() - t_start))
+
+    # ---- candidates (phase 1: fits) ----
+    values = {n: est.model_parameters[n] for n in unknowns}
+    known = {n: v for n, v in est.model_parameters.items() if n not in unknowns}
+    n_blades = record.n_blades
+    jobs = []
+    for effect in effects:
+        for variant in variants(effect, ident.model.name, n_blades):
+            jobs.append(Job(effect, variant, record, description, values, unknowns, known,
+                            window_s, verbose=verbose_fits))
+    _say(progress, f'candidates: fitting {len(jobs)} augmented models '
+                   f'({", ".join(effects)}) in {max(1, workers)} process(es)')
+
+    def done(fit):
+        label = fit.effect + (f' {fit.variant}' if fit.variant else '')
+        if not fit.available:
+            _say(progress, f'candidate {label}: not tried ({fit.reason})')
+            return
+        dll = est.neg_log_likelihood - fit.estimate.neg_log_likelihood
+        _say(progress, f'candidate {label}: Δlog L = {dll:.1f} with {fit.n_extra} extra, '
+                       f'{fit.estimate.iterations} iterations, {fit.elapsed_s:.1f} s '
+                       f'(total {time.perf_counter() - t_start:.1f} s)')
+
+    fits = _run_jobs(fit_candidate, jobs, workers, done)
+    fits.sort(key=lambda f: (EFFECTS.index(f.effect), f.variant))
+    n_obs = sum(e.t.size * e.model.n_outputs for e in ident.experiments)
+    scored = {}
+    for fit in fits:
+        if not fit.available:
+            continue
+        n_var = len(variants(fit.effect, ident.model.name, n_blades))
+        dll, rho, crit = _score(fit, est, n_obs, n_var)
+        prev = scored.get(fit.effect)
+        if prev is None or crit > prev['criterion']:
+            scored[fit.effect] = {'fit': fit, 'delta_loglik': dll, 'rho': rho,
+                                  'criterion': crit}
+
+    # ---- phase 2: cross-validation of the strong ones and of the baseline ----
+    strong = [e for e, s in scored.items() if s['criterion'] > CRITERION_THRESHOLD]
+    val_jobs = [Job('baseline', '', record, description, values, unknowns, known, window_s)]
+    for effect in strong:
+        fit = scored[effect]['fit']
+        start = {n: fit.estimate.model_parameters[n] for n in fit.unknowns} \
+            if effect != 'process_noise' else None
+        val_jobs.append(Job(effect, fit.variant, record, description, values, unknowns, known,
+                            window_s, start=start))
+    _say(progress, f'validation: fitting {len(val_jobs)} model(s) on one half of the window '
+                   'and predicting the other, both ways')
+    validation = {}
+
+    def vdone(res):
+        effect, variant, v = res
+        validation[effect] = v
+        shown = 'n/a' if v is None else f'{v:.4g} rad'
+        _say(progress, f'validation {effect}: prediction RMS {shown} '
+                       f'({time.perf_counter() - t_start:.1f} s)')
+
+    _run_jobs(validate_candidate, val_jobs, workers, vdone)
+    base_val = validation.get('baseline')
+
+    # ---- choose ----
+    table = []
+    for fit in fits:
+        if fit.effect in scored and scored[fit.effect]['fit'] is fit:
+            s = scored[fit.effect]
+            v = validation.get(fit.effect)
+            validated = v is None or base_val is None or v < base_val
+            eligible = s['criterion'] > CRITERION_THRESHOLD and validated
+            table.append({'effect': fit.effect, 'variant': fit.variant,
+                          'delta_loglik': s['delta_loglik'], 'criterion': s['criterion'],
+                          'validation_rms': v, 'n_extra': fit.n_extra,
+                          'n_eff_fraction': s['rho'], 'eligible': eligible,
+                          'available': True, 'fit': fit})
+        elif not fit.available and not any(t['effect'] == fit.effect for t in table):
+            table.append({'effect': fit.effect, 'variant': fit.variant,
+                          'delta_loglik': None, 'criterion': None, 'validation_rms': None,
+                          'n_extra': 0, 'eligible': False, 'available': False,
+                          'reason': fit.reason, 'fit': fit})
+    ranked = sorted([t for t in table if t['available']], key=lambda t: -t['criterion'])
+    eligible = [t for t in ranked if t['eligible']]
+    chosen = eligible[0] if eligible else None
+    notes = []
+    if chosen is not None:
+        effect = chosen['effect']
+        rivals = [t for t in ranked if t['effect'] != effect
+                  and t['effect'] not in EQUIVALENT.get(effect, ())]
+        gap = chosen['criterion'] - (rivals[0]['criterion'] if rivals else 0.0)
+        confidence = 'high' if gap > CONFIDENCE_GAP else 'low'
+        for eq in EQUIVALENT.get(effect, ()):
+            if any(t['effect'] == eq for t in eligible):
+                notes.append(f'{effect} and {eq} are the same physics to first order at this '
+                             'size; both explain the data')
+        mismatch = True
+    else:
+        mismatch = residual_flag
+        effect = 'unexplained' if mismatch else 'none'
+        confidence = 'high' if not ranked or ranked[0]['criterion'] < 0 else 'low'
+
+    # ---- show ----
+    chosen_fit = chosen['fit'] if chosen else None
+    if chosen_fit is not None:
+        aug_est = chosen_fit.estimate
+        aug_res = np.concatenate(aug_est.residuals, axis=0)
+        names = list(aug_est.channel_names)
+        if len(ident.experiments) > 1:
+            names = [c.name for c in channels if c.model_channel]
+            aug_res = np.column_stack([r[:, 0] for r in aug_est.residuals])
+        floors = [c.floor for c in channels if c.model_channel]
+        stats_aug = [rs.channel_stats(n, aug_res[:, j], floors[j], u,
+                                      channels[j].n_blades, exp0.t)
+                     for j, n in enumerate(names)]
+    else:
+        stats_aug = model_stats
+    location = _location(channels, stats_base, exp0.t, part, mismatch, n_ch)
+    fit_block = {
+        'noise_floor': _overall([s.floor for s in model_stats]),
+        'baseline_rms': _overall([s.rms for s in model_stats]),
+        'augmented_rms': _overall([s.rms for s in stats_aug]),
+        'whiteness_p_baseline': white_p_base,
+        'whiteness_p_augmented': rs.combined_whiteness_p(stats_aug),
+        'channels': [s.name for s in model_stats],
+        'noise_floor_per_channel': [s.floor for s in model_stats],
+        'baseline_rms_per_channel': [s.rms for s in model_stats],
+        'augmented_rms_per_channel': [s.rms for s in stats_aug],
+        'validation_rms_baseline': base_val,
+    }
+    explanation = {}
+    if chosen_fit is not None:
+        explanation = {n: {'value': v, 'std': s} for n, (v, s) in chosen_fit.parameters.items()}
+        if effect == 'time_delay' and 'delay_rad' in explanation:
+            omega = ident.omega_rad_s
+            explanation['delay_s'] = {'value': explanation['delay_rad']['value'] / omega,
+                                      'std': explanation['delay_rad']['std'] / omega}
+    parameters = {}
+    for n in unknowns:
+        entry = {'baseline_value': est.value(n), 'baseline_std': est.std_of(n)}
+        if chosen_fit is not None and n in chosen_fit.estimate.names:
+            entry.update(value=chosen_fit.estimate.value(n), std=chosen_fit.estimate.std_of(n))
+        else:
+            entry.update(value=entry['baseline_value'], std=entry['baseline_std'])
+        parameters[n] = entry
+    candidates = []
+    for t in table:
+        row = {k: v for k, v in t.items() if k != 'fit'}
+        if t['available'] and t['fit'].parameters:
+            row['parameters'] = {n: {'value': v, 'std': s}
+                                 for n, (v, s) in t['fit'].parameters.items()}
+        candidates.append(row)
+    elapsed = time.perf_counter() - t_start
+    _say(progress, f'diagnosis: {effect} ({confidence} confidence), {elapsed:.1f} s')
+    return Diagnosis(mismatch=mismatch, effect=effect, confidence=confidence, location=location,
+                     explanation_parameters=explanation, fit=fit_block, candidates=candidates,
+                     parameters=parameters, baseline=ident, chosen=chosen_fit,
+                     channels=channels, stats_baseline=stats_base, stats_augmented=stats_aug,
+                     blade_floor=blade_sigma, record_window=part, elapsed_s=elapsed,
+                     notes=notes, fits=fits)
+
+
+def _location(channels, stats_base, t, part, mismatch, n_ch):
+    flagged = [c for c, s in zip(channels, stats_base) if s.flagged(n_ch)]
+    if not flagged and mismatch:
+        order = sorted(zip(channels, stats_base), key=lambda cs: -cs[1].z_excess)
+        flagged = [c for c, s in order if s.z_excess > 2.0][:4] or [order[0][0]]
+    use = flagged or [c for c in channels if c.model_channel]
+    dt = float(np.median(np.diff(t)))
+    band = rs.band_of_excess([c.residual for c in use], [c.floor for c in use], dt)
+    t0, t1 = rs.span_of_excess([c.residual for c in use], [c.floor for c in use], t)
+    window_s = [float(np.interp(t0, part.t, part.time_s)),
+                float(np.interp(t1, part.t, part.time_s))]
+    return {'channels': [c.name for c in flagged], 'band_per_rev': [band[0], band[1]],
+            'window_s': window_s}
