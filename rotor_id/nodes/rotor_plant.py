@@ -101,13 +101,18 @@ class RotorPlant(Node):
             ('command_latency_s', 0.02, 'simulate this far behind the clock, so that the pitch '
              'commands for a sample have arrived when it is computed (s; the samples keep '
              'their acquisition stamps)', 0.0, 1.0),
+            ('wait_for_commands', True, 'never simulate past the newest pitch command (a '
+             'simulated rotor on a busy machine then stays on schedule; samples keep their '
+             'stamps); false: hold the last command'),
             ('publish_period_s', 0.005, 'period of the simulation/publishing timer (s)',
              0.0005, 0.1),
+            ('max_batch', 50, 'most samples simulated per timer tick', 1, 100000),
             ('wait_for_subscribers', 0, 'start the rotor once this many subscribers of the '
              'azimuth topic are matched (0: at once)', 0, 100),
             ('start_delay_s', 1.0, 'then wait this long, so they are all spinning (s)',
              0.0, 60.0),
-            ('duration_s', 0.0, 'stop publishing after this long (s); 0: run until stopped',
+            ('duration_s', 0.0, 'stop publishing after this much rotor time (s of samples); 0: '
+             'run until stopped',
              0.0, 1e6),
             ('max_abs_pitch_rad', 0.7, 'larger |pitch command| is rejected as degrees (rad)',
              0.01, 3.2),
@@ -150,16 +155,24 @@ class RotorPlant(Node):
             self.get_logger().info('rotor started (trim at collective only)')
             return
         elapsed = (now - self.start_ns) / NS - self.d['command_latency_s']
-        if self.d['duration_s'] > 0 and elapsed > self.d['duration_s']:
+        if self.d['duration_s'] > 0 and self.stepper.samples >= self.d['duration_s'] * self.rate:
             if self.timer is not None:
                 self.timer.cancel()
                 self.get_logger().info(f'run complete: {self.stepper.samples} samples')
             return
-        due = int(elapsed * self.rate) - self.stepper.samples
+        due = int(elapsed * self.rate)
+        if self.d['wait_for_commands']:
+            # the first sample is free (the stirring node locks onto it), then follow commands
+            newest = self.stepper.cmd_t[-1] if self.commands else self.stepper.t
+            due = min(due, max(1, int((newest - self.d['initial_azimuth_rad']) /
+                                      self.stepper.step + 1e-9)))
+            self.diagnostics.set_value('waiting_for_commands', due < int(elapsed * self.rate))
+        due -= self.stepper.samples
         if due <= 0:
             return
         first = self.stepper.samples + 1
-        t, flap, pitch = self.stepper.advance(min(due, int(self.rate)))
+        # a bounded batch per tick, so command callbacks run in between while catching up
+        t, flap, pitch = self.stepper.advance(min(due, self.d['max_batch']))
         psi = np.mod(t, TWO_PI)
         frame = self.d['frame_id']
         for i in range(t.size):

@@ -5,8 +5,9 @@ The schedule (:class:`rotor_id.physics.stirring.StirringSchedule`, Ch.2 eqs 1-5)
 (trim), then the lateral cyclic stepped on ``step_after_rad`` of azimuth after the first azimuth
 sample (one revolution, as in ../shared/recordings/README.md), then stirring ``t0`` later with
 phase φ = ω̇ (t − t0)². Time is the report's nondimensional time: the unwrapped azimuth of blade 1
-from ``/rotor/azimuth``, extrapolated with Ω to the command's stamp, which is ``lead_s`` ahead of
-the clock: the time the command applies from (the plant interpolates between commands).
+from ``/rotor/azimuth``, extrapolated with Ω to each command's stamp: the time the command applies
+from, on a regular grid that starts at the first azimuth stamp and runs ``lead_s`` ahead of the
+clock (the plant interpolates between commands).
 Publishes JointState blade_1..N (rad) on ``/rotor/pitch_command`` and
 rotor_id_msgs/StirringCommand on ``/rotor/stirring``.
 """
@@ -41,9 +42,8 @@ class StirringInput(Node):
              '(rad of azimuth)', 0.0, 1e6),
             ('rate_hz', 200.0, 'pitch command rate (Hz); the plant interpolates between '
              'commands', 1.0, 10000.0),
-            ('lead_s', 0.25, 'each command is computed for, and stamped with, this much '
-             'after now (s): the time it applies from, so that the rotor has it in time '
-             'even when this process is delayed', 0.0, 5.0),
+            ('lead_s', 0.1, 'commands are published up to this far ahead of the clock, each '
+             'stamped with the time it applies from (s)', 0.0, 5.0),
             ('stirring_every', 10, 'publish the StirringCommand every this many commands',
              1, 100000),
             ('n_blades', 4, 'number of blades N', 1, 12),
@@ -63,6 +63,7 @@ class StirringInput(Node):
             raise ValueError(f'joint_names has {len(self.joints)} names for n_blades = '
                              f'{d["n_blades"]}')
         self.schedule = None
+        self.next_ns = None              # stamp of the next command on the grid
         self.azimuth = AzimuthTracker()
         self.published = 0
         self.pub_command = self.create_publisher(JointState, d['pitch_command_topic'],
@@ -85,6 +86,7 @@ class StirringInput(Node):
             return
         self.azimuth.add(stamp, psi, omega)
         if self.schedule is None:
+            self.next_ns = stamp
             step = psi + self.d['step_after_rad']
             self.schedule = StirringSchedule(self.d['collective_rad'], self.d['amplitude_rad'],
                                              self.d['omegadot'], step + self.d['t0'], step)
@@ -92,11 +94,25 @@ class StirringInput(Node):
                                    f'({self.schedule.direction}) at t = {self.schedule.t0:.4g}')
 
     def tick(self):
-        """Publish the pitch of every blade at the azimuth extrapolated to now."""
+        """Publish the commands due up to ``lead_s`` ahead, on a regular grid of stamps.
+
+        The grid starts at the first azimuth stamp, so a late start or a stalled process still
+        gives the rotor every command of the schedule (in a burst).
+        """
         if self.schedule is None:
             self.diagnostics.set_value('state', 'waiting for the azimuth')
             return
-        applies = self.get_clock().now().nanoseconds + int(self.d['lead_s'] * 1e9)
+        horizon = self.get_clock().now().nanoseconds + int(self.d['lead_s'] * 1e9)
+        period = int(1e9 / self.d['rate_hz'])
+        for _ in range(1000):
+            if self.next_ns > horizon:
+                break
+            self.command(self.next_ns)
+            self.next_ns += period
+        self.diagnostics.set_value('commands_published', self.published)
+
+    def command(self, applies):
+        """Publish the pitch command (and every n-th StirringCommand) for time ``applies``."""
         t = float(self.azimuth.t_at([applies])[0])
         omega = self.azimuth.omega
         u = self.schedule.inputs([t])
@@ -104,7 +120,6 @@ class StirringInput(Node):
         self.pub_command.publish(joint_state(applies, self.joints, pitch,
                                              frame_id=self.d['frame_id']))
         self.published += 1
-        self.diagnostics.set_value('commands_published', self.published)
         if (self.published - 1) % self.d['stirring_every']:
             return
         cmd = StirringCommand()
