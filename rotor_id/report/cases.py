@@ -536,3 +536,48 @@ def wake_equilibrium(scenario, values):
     p = model.parameter_vector(values)
     t = np.array([scenario.t0])
     return model.equilibrium(t, p, scenario.stirring()(t))
+
+
+#: Rotor speed the report-case run descriptions (config/report_*.yaml) assume: 15 rev/s.
+REPORT_OMEGA_RAD_S = 2.0 * np.pi * 15.0
+
+
+def report_record(scenario_name, t_end=None, dt=SAMPLE_INTERVAL, omega_rad_s=REPORT_OMEGA_RAD_S,
+                  blade_noise_std_deg=0.0, seed=None):
+    """
+    Return a test-stand record (radians, seconds) of a report scenario, t = 0 … ``t_end``.
+
+    The per-blade flap of the truth: at μ = 0.4 the periodic multiblade model measured on each
+    blade (from rest at t = 0); at μ = 0 the wake model's tilt modes in equilibrium until t0,
+    β_k = βI cos ψ_k + βII sin ψ_k. Pitch is the stirring schedule on each blade. Samples are
+    ``dt`` apart in azimuth at constant rotor speed, the first at t = 0 (time_s = t/Ω), so the
+    windows of config/report_*.yaml select t0 … t0 + 12. Optional white per-blade flap noise
+    (deg, seeded) is added before the conversion to radians.
+    """
+    from rotor_id.io.record import Record
+    from rotor_id.physics.multiblade import blade_azimuths
+
+    scenario = SCENARIOS[scenario_name]
+    t_end = scenario.t0 + RECORD_LENGTH if t_end is None else t_end
+    t = sample_times(0.0, t_end, dt)
+    stirring = scenario.stirring()
+    if scenario.advance_ratio > 0:
+        model = build_model('multiblade', scenario.rotor(), collective='delta',
+                            angle_unit='deg', outputs='blades')
+        p = model.parameter_vector(scenario.truth)
+        flap = simulate(model, p, stirring, t, np.zeros(model.n_states)).y
+    else:
+        model = scenario.build('model')
+        p = scenario.truth_vector()
+        x0 = model.equilibrium(t[:1], p, stirring(t[:1]))
+        x = simulate(model, p, stirring, t, x0).x
+        psi = blade_azimuths(t, 4)
+        flap = x[:, [0]] * np.cos(psi) + x[:, [2]] * np.sin(psi)
+    if blade_noise_std_deg:
+        flap = flap + blade_noise_std_deg * np.random.default_rng(seed).standard_normal(
+            flap.shape)
+    deg = np.pi / 180.0
+    return Record(time_s=t / omega_rad_s, t=t, rotor_speed_rad_s=np.full(t.size, omega_rad_s),
+                  blade_flap=flap * deg, blade_pitch=stirring.blade_pitch(t) * deg,
+                  blade_names=[f'blade_{k}' for k in range(1, 5)],
+                  source=f'report scenario {scenario_name} (rotor_id.report.cases)')
