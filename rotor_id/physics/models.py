@@ -19,7 +19,7 @@ import math
 
 import numpy as np
 
-from rotor_id.physics.stirring import blade_azimuths
+from rotor_id.physics.multiblade import blade_azimuths, multiblade_coordinates
 
 
 @dataclass(frozen=True)
@@ -486,15 +486,10 @@ class MultibladeWake(LinearModel):
 
 
 def multiblade_from_blade_flap(t, blade_flap):
-    """[β0, βI, βII, βd] from four blade flap angles (MODELS.md §0)."""
-    blade_flap = np.asarray(blade_flap, dtype=float)
-    n_blades = blade_flap.shape[1]
-    psi = blade_azimuths(t, n_blades)
-    sign = (-1.0) ** np.arange(1, n_blades + 1)
-    return np.column_stack([blade_flap.mean(axis=1),
-                            (2.0 / n_blades) * np.sum(blade_flap * np.cos(psi), axis=1),
-                            (2.0 / n_blades) * np.sum(blade_flap * np.sin(psi), axis=1),
-                            np.mean(blade_flap * sign, axis=1)])
+    """Return [β0, βI, βII, βd] (T, 4) from four blade flap angles (MODELS.md §0)."""
+    coords = multiblade_coordinates(blade_flap, np.atleast_1d(np.asarray(t, dtype=float)))
+    return np.column_stack([coords['collective'], coords['cos'], coords['sin'],
+                            coords['differential']])
 
 
 MODEL_NAMES = ('single_blade', 'multiblade', 'multiblade_constant', 'multiblade_wake')

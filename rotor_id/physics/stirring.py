@@ -18,6 +18,8 @@ import math
 
 import numpy as np
 
+from rotor_id.physics.multiblade import blade_azimuths, multiblade_coordinates
+
 INPUT_NAMES = ('theta_0', 'theta_I', 'theta_II')
 PROGRESSING_OMEGADOT = -0.1 / math.pi   # MODELS.md §1.3: Ch.2 eq. 6 corrected to -0.1/π
 
@@ -88,12 +90,6 @@ class StirringSchedule:
         return self.inputs(t)
 
 
-def blade_azimuths(t, n_blades):
-    """ψ_k = t + (k − 1)·2π/N, shape ``(len(t), N)`` (MODELS.md §0)."""
-    t = np.atleast_1d(np.asarray(t, dtype=float))
-    return t[:, None] + 2.0 * np.pi * np.arange(n_blades)[None, :] / n_blades
-
-
 def blade_pitch_from_multiblade(t, u, n_blades):
     """θ_k = θ0 − θI sin ψ_k + θII cos ψ_k for the inputs ``u = [θ0, θI, θII]`` (eq. 3)."""
     psi = blade_azimuths(t, n_blades)
@@ -102,14 +98,9 @@ def blade_pitch_from_multiblade(t, u, n_blades):
 
 
 def multiblade_from_blade_pitch(t, blade_pitch):
-    """Invert eq. 3: ``u = [θ0, θI, θII]`` from per-blade pitch (least squares for N ≥ 3)."""
-    blade_pitch = np.asarray(blade_pitch, dtype=float)
-    n_blades = blade_pitch.shape[1]
-    psi = blade_azimuths(t, n_blades)
-    collective = blade_pitch.mean(axis=1)
-    theta_i = -(2.0 / n_blades) * np.sum(blade_pitch * np.sin(psi), axis=1)
-    theta_ii = (2.0 / n_blades) * np.sum(blade_pitch * np.cos(psi), axis=1)
-    return np.column_stack([collective, theta_i, theta_ii])
+    """Invert eq. 3: ``u = [θ0, θI, θII]`` from per-blade pitch (N ≥ 3)."""
+    coords = multiblade_coordinates(blade_pitch, np.atleast_1d(np.asarray(t, dtype=float)))
+    return np.column_stack([coords['collective'], -coords['sin'], coords['cos']])
 
 
 class SampledInput:
