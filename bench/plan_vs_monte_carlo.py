@@ -11,21 +11,29 @@ the predicted Cramér-Rao σ, per unknown (ratio and its 95 % interval) and pool
 unknowns (χ² statistic of the predicted covariance).
 
     source tools/env.sh && python bench/plan_vs_monte_carlo.py [--seeds 200]
-        [--json bench/out/plan_vs_monte_carlo.json] [--figure bench/out/plan_vs_monte_carlo.png]
+        [--json OUT.json] [--figure OUT.png] [--markdown OUT.md]
+
+Writes bench/results/plan_vs_monte_carlo.{md,json,png} by default (machine, date, numbers).
 """
 
 import argparse
+import contextlib
+import datetime
+import io
 import json
 import math
+import os
 from pathlib import Path
+import platform
 import sys
 import time
 
-import numpy as np
-from rotor_id import planning
-from scipy import stats
-
 REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO))
+
+import numpy as np  # noqa: E402
+from rotor_id import planning  # noqa: E402
+from scipy import stats  # noqa: E402
 
 CASES = {
     'wake': 'config/plan_wake.yaml',
@@ -139,18 +147,27 @@ def main(argv=None):
     parser = argparse.ArgumentParser(description=__doc__.split('\n\n')[0])
     parser.add_argument('--seeds', type=int, default=200, help='noisy runs per case (≥ 100)')
     parser.add_argument('--cases', nargs='+', choices=sorted(CASES), default=list(CASES))
-    parser.add_argument('--json', default=str(REPO / 'bench' / 'out' /
-                                              'plan_vs_monte_carlo.json'))
-    parser.add_argument('--figure', default=str(REPO / 'bench' / 'out' /
-                                                'plan_vs_monte_carlo.png'))
+    out = REPO / 'bench' / 'results'
+    parser.add_argument('--json', default=str(out / 'plan_vs_monte_carlo.json'))
+    parser.add_argument('--figure', default=str(out / 'plan_vs_monte_carlo.png'))
+    parser.add_argument('--markdown', default=str(out / 'plan_vs_monte_carlo.md'))
     args = parser.parse_args(argv)
     results = [run_case(name, args.seeds) for name in args.cases]
-    for res in results:
-        print_case(res)
+    text = io.StringIO()
+    with contextlib.redirect_stdout(text):
+        for res in results:
+            print_case(res)
+    print(text.getvalue())
     Path(args.json).parent.mkdir(parents=True, exist_ok=True)
     Path(args.json).write_text(json.dumps(results, indent=1))
+    Path(args.markdown).write_text(
+        f'# plan vs Monte Carlo of identify (bench/plan_vs_monte_carlo.py)\n\n'
+        f'{datetime.datetime.now(datetime.timezone.utc):%Y-%m-%d %H:%M} UTC, '
+        f'{platform.node()}, {platform.processor() or platform.machine()}, '
+        f'{os.cpu_count()} cores; `python bench/plan_vs_monte_carlo.py --seeds {args.seeds}`'
+        f'\n\n```{text.getvalue()}```\n')
     write_figure(results, args.figure)
-    print(f'\nJSON: {args.json}\nfigure: {args.figure}')
+    print(f'JSON: {args.json}\nfigure: {args.figure}\nsummary: {args.markdown}')
     return 0 if all(r['within_15_percent'] for r in results) else 1
 
 
