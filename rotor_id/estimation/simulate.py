@@ -10,9 +10,18 @@ the derivative of that same map,
 
 which is what the report's sensitivity equations (MODELS.md §0.1, S′ = F S + (∂F/∂p) x + ∂g/∂p)
 become under RK4; so the sensitivities are the exact derivatives of the simulated samples, and
-agree with finite differences of :func:`simulate` to rounding. All Φ, c and their derivatives are
-built vectorised over time; only the recursion itself is sequential, one matrix-vector product
-per step on the stacked state z = [x, S₁, …, S_k].
+agree with finite differences of :func:`simulate` to rounding.
+
+Everything is vectorised over time (bench/iteration_cost.py measured the gain):
+
+* the step maps Φ, c, and the sensitivity forcing (∂Φ/∂p) x + ∂c/∂p carried through the RK4
+  stages as vectors once the states are known (no (∂Φ/∂p) matrices are formed);
+* the RK4 steps of one sample interval are composed into one map per interval;
+* the two linear recursions, first x, then S with its now known forcing, run as doubling scans
+  (log₂ T vectorised passes with products of 1, 2, 4, … successive maps) instead of a Python
+  loop over steps;
+* a time-invariant system (F constant, equal steps: the wake and constant-coefficient models)
+  builds Φ once instead of once per step.
 """
 
 from dataclasses import dataclass
@@ -68,16 +77,33 @@ def _fine_grid(t, substeps):
     return np.concatenate([inner, t[-1:]])
 
 
-def _rk4_maps(F, g, h, dF=None, dg=None):
+def _stages(a):
+    """Start, middle and end values of every RK4 step; a constant (1, ...) array is all three."""
+    if a.shape[0] == 1:
+        return a, a, a
+    return a[0:-1:2], a[1::2], a[2::2]
+
+
+def _mv(A, x):
+    """Batched matrix-vector product A (..., n, n) · x (..., n) with broadcasting."""
+    if A.shape[0] == 1 and all(s == 1 for s in A.shape[1:-2]):
+        return x @ A.reshape(A.shape[-2:]).T            # one matrix for all: a single GEMM
+    if A.shape[0] == 1 and A.ndim == 4 and x.ndim == 3 and x.shape[1] == 1:
+        k, n = A.shape[1], A.shape[2]                   # constant (1, k, n, n) on (M, 1, n)
+        return (x[:, 0] @ A[0].reshape(k * n, -1).T).reshape(-1, k, n)
+    return (A @ x[..., None])[..., 0]
+
+
+def _rk4_maps(F, g, h):
     """
-    Affine RK4 step maps from stage values (see the module docstring).
+    Affine RK4 step maps x⁺ = Φ x + c from stage values (see the module docstring).
 
     ``F`` (2M+1, n, n) and ``g`` (2M+1, n) hold start/middle/end values of M steps of length
-    ``h`` (M,); ``dF`` (2M+1, k, n, n) and ``dg`` (2M+1, k, n) their parameter derivatives.
-    Returns Φ (M, n, n), c (M, n) and, when derivatives are given, ∂Φ (M, k, n, n), ∂c (M, k, n).
+    ``h`` (M,). Returns Φ (M, n, n) and c (M, n). A time-invariant system may pass F (1, n, n)
+    and one step length h (1,): then Φ (1, n, n) is computed once, c still per step.
     """
-    F0, Fm, F1 = F[0:-1:2], F[1::2], F[2::2]
-    g0, gm, g1 = g[0:-1:2], g[1::2], g[2::2]
+    F0, Fm, F1 = _stages(F)
+    g0, gm, g1 = _stages(g)
     hh = h[:, None, None]
     eye = np.eye(F.shape[-1])
     # stage matrices: k_i = A_i x + b_i
@@ -88,30 +114,41 @@ def _rk4_maps(F, g, h, dF=None, dg=None):
     Phi = eye + hh / 6.0 * (A1 + 2.0 * A2 + 2.0 * A3 + A4)
     hv = h[:, None]
     b1 = g0
-    b2 = gm + 0.5 * hv * np.einsum('tij,tj->ti', Fm, b1)
-    b3 = gm + 0.5 * hv * np.einsum('tij,tj->ti', Fm, b2)
-    b4 = g1 + hv * np.einsum('tij,tj->ti', F1, b3)
+    b2 = gm + 0.5 * hv * _mv(Fm, b1)
+    b3 = gm + 0.5 * hv * _mv(Fm, b2)
+    b4 = g1 + hv * _mv(F1, b3)
     c = hv / 6.0 * (b1 + 2.0 * b2 + 2.0 * b3 + b4)
-    if dF is None:
-        return Phi, c
-    dF0, dFm, dF1 = dF[0:-1:2], dF[1::2], dF[2::2]
-    dg0, dgm, dg1 = dg[0:-1:2], dg[1::2], dg[2::2]
-    h4 = h[:, None, None, None]
-    Fm_, F1_ = Fm[:, None], F1[:, None]
-    dA1 = dF0
-    dA2 = dFm + 0.5 * h4 * (dFm @ A1[:, None] + Fm_ @ dA1)
-    dA3 = dFm + 0.5 * h4 * (dFm @ A2[:, None] + Fm_ @ dA2)
-    dA4 = dF1 + h4 * (dF1 @ A3[:, None] + F1_ @ dA3)
-    dPhi = h4 / 6.0 * (dA1 + 2.0 * dA2 + 2.0 * dA3 + dA4)
+    return Phi, c
+
+
+def _rk4_step_derivative(F, g, h, dF, dg, x):
+    """
+    ∂Φ x + ∂c of every RK4 step at its start state x (M, n): the sensitivity forcing.
+
+    The derivative of one RK4 step x⁺ = x + h/6 (k₁ + 2k₂ + 2k₃ + k₄) with respect to the
+    parameters at fixed x, carried through the stages as vectors (shapes as in
+    :func:`_rk4_maps`; dF (2M+1 or 1, k, n, n), dg (2M+1, k, n)). Returns (M, k, n).
+    """
+    F0, Fm, F1 = _stages(F)
+    g0, gm, g1 = _stages(g)
+    dF0, dFm, dF1 = _stages(dF)
+    dg0, dgm, dg1 = _stages(dg)
+    hv = h[:, None]
     h3 = h[:, None, None]
-    db1 = dg0
-    db2 = dgm + 0.5 * h3 * (np.einsum('tkij,tj->tki', dFm, b1)
-                            + np.einsum('tij,tkj->tki', Fm, db1))
-    db3 = dgm + 0.5 * h3 * (np.einsum('tkij,tj->tki', dFm, b2)
-                            + np.einsum('tij,tkj->tki', Fm, db2))
-    db4 = dg1 + h3 * (np.einsum('tkij,tj->tki', dF1, b3) + np.einsum('tij,tkj->tki', F1, db3))
-    dc = h3 / 6.0 * (db1 + 2.0 * db2 + 2.0 * db3 + db4)
-    return Phi, c, dPhi, dc
+    Fm_, F1_ = Fm[:, None], F1[:, None]
+    # stages and the points they are evaluated at
+    k1 = _mv(F0, x) + g0
+    x2 = x + 0.5 * hv * k1
+    k2 = _mv(Fm, x2) + gm
+    x3 = x + 0.5 * hv * k2
+    k3 = _mv(Fm, x3) + gm
+    x4 = x + hv * k3
+    # their parameter derivatives (x fixed)
+    dk1 = _mv(dF0, x[:, None]) + dg0
+    dk2 = _mv(dFm, x2[:, None]) + 0.5 * h3 * _mv(Fm_, dk1) + dgm
+    dk3 = _mv(dFm, x3[:, None]) + 0.5 * h3 * _mv(Fm_, dk2) + dgm
+    dk4 = _mv(dF1, x4[:, None]) + h3 * _mv(F1_, dk3) + dg1
+    return h3 / 6.0 * (dk1 + 2.0 * dk2 + 2.0 * dk3 + dk4)
 
 
 def simulate(model, p, inputs, t, x0, param_index=(), x0_jacobian=None,
@@ -171,7 +208,9 @@ def simulate(model, p, inputs, t, x0, param_index=(), x0_jacobian=None,
     Ss = np.empty((T, n, k)) if want_sens else None
     if want_sens:
         Ss[0] = S0
-    z = np.concatenate([x0, S0.T.ravel()]) if want_sens else x0.copy()
+        if forcing is not None:
+            raise ValueError('forcing is for plain simulation only')
+    x, S = x0.copy(), (S0.copy() if want_sens else None)
     # process the record in chunks of whole sample intervals to bound memory
     per_chunk = max(1, _CHUNK // m)
     for start in range(0, T - 1, per_chunk):
@@ -181,20 +220,38 @@ def simulate(model, p, inputs, t, x0, param_index=(), x0_jacobian=None,
         u = inputs(tf)
         F, g = model.system(tf, p, u)
         h = np.repeat(np.diff(ts) / m, m)
-        if want_sens:
-            dF, dg = model.system_jacobian(tf, p, u)
-            dF = dF[:, param_index]
-            dg = dg[:, param_index]
-            if forcing is not None:
-                raise ValueError('forcing is for plain simulation only')
-            Phi, c, dPhi, dc = _rk4_maps(F, g, h, dF, dg)
-            z = _propagate_sensitivities(Phi, c, dPhi, dc, z, n, k, m, xs, Ss, start)
+        if _time_invariant(F, h):
+            # one Φ for every step; c still follows the input step by step
+            F_maps, h_maps = F[:1], h[:1]
         else:
-            Phi, c = _rk4_maps(F, g, h)
-            if forcing is not None:
-                w = np.repeat(np.asarray(forcing, dtype=float)[start:stop], m, axis=0)
-                c = c + _rk4_constant_forcing(F, w, h)
-            z = _propagate(Phi, c, z, m, xs, start)
+            F_maps, h_maps = F, h
+        Phi_s, c_s = _rk4_maps(F_maps, g, h_maps)
+        if forcing is not None:
+            w = np.repeat(np.asarray(forcing, dtype=float)[start:stop], m, axis=0)
+            c_s = c_s + _rk4_constant_forcing(F_maps, w, h_maps)
+        # maps from one sample to the next (the m RK4 steps of each interval composed)
+        Phi, c = _per_interval(m, Phi_s, c_s)
+        levels = _doubling_products(Phi, stop - start)
+        X = _recursion(levels, c[:, :, None], x[:, None])[:, :, 0]
+        xs[start:stop + 1] = X
+        x = X[-1]
+        if want_sens and not param_index:
+            Sc = _recursion(levels, np.zeros((stop - start, n, k)), S)
+            Ss[start:stop + 1] = Sc
+            S = Sc[-1]
+        elif want_sens:
+            dF, dg = model.system_jacobian(tf, p, u)
+            if F_maps.shape[0] == 1 and np.all(dF == dF[:1]):
+                dF = dF[:1]
+            dF, dg = dF[:, param_index], dg[:, param_index]
+            # S⁺ = Φ S + ∂Φ x + ∂c per step; the forcing is known once the states are
+            x_steps = _step_states(m, Phi_s, c_s, X[:-1])
+            W_steps = _rk4_step_derivative(F_maps, g, h_maps, dF, dg, x_steps)
+            W = np.zeros((stop - start, n, k))
+            W[:, :, :W_steps.shape[1]] = np.swapaxes(_interval_forcing(m, Phi_s, W_steps), 1, 2)
+            Sc = _recursion(levels, W, S)
+            Ss[start:stop + 1] = Sc
+            S = Sc[-1]
     H = model.output_matrix(t)
     y = np.einsum('tij,tj->ti', H, xs) + model.output_offset(t, p)
     if not want_sens:
@@ -205,40 +262,92 @@ def simulate(model, p, inputs, t, x0, param_index=(), x0_jacobian=None,
     return Simulation(t, xs, y, Ss, dy)
 
 
+def _time_invariant(F, h):
+    """
+    Return True when F is the same at every stage time and all steps are equally long.
+
+    Step lengths that differ by rounding only (sample times like ``round(t0 + 0.1 j, 10)``)
+    count as equal: the relative difference allowed, 1e-12, moves a sample by less than
+    1e-12 of a step, far below the RK4 truncation error.
+    """
+    if not np.all(F == F[:1]):
+        return False
+    return bool(np.ptp(h) <= 1e-12 * abs(h[0]))
+
+
 def _rk4_constant_forcing(F, w, h):
     """Contribution to c of an input w (M, n) held constant over each RK4 step."""
-    Fm, F1 = F[1::2], F[2::2]
+    _, Fm, F1 = _stages(F)
     hv = h[:, None]
-    b2 = w + 0.5 * hv * np.einsum('tij,tj->ti', Fm, w)
-    b3 = w + 0.5 * hv * np.einsum('tij,tj->ti', Fm, b2)
-    b4 = w + hv * np.einsum('tij,tj->ti', F1, b3)
+    b2 = w + 0.5 * hv * _mv(Fm, w)
+    b3 = w + 0.5 * hv * _mv(Fm, b2)
+    b4 = w + hv * _mv(F1, b3)
     return hv / 6.0 * (w + 2.0 * b2 + 2.0 * b3 + b4)
 
 
-def _propagate(Phi, c, x, m, xs, start):
-    for j in range(Phi.shape[0]):
-        x = Phi[j] @ x + c[j]
-        if (j + 1) % m == 0:
-            xs[start + (j + 1) // m] = x
-    return x
+def _substep(a, s, m):
+    """Select the s-th of the m RK4 steps of every sample interval (a constant (1, ...) stays)."""
+    return a if a.shape[0] == 1 else a.reshape((a.shape[0] // m, m) + a.shape[1:])[:, s]
 
 
-def _propagate_sensitivities(Phi, c, dPhi, dc, z, n, k, m, xs, Ss, start):
-    steps = Phi.shape[0]
-    nk = len(dc[0])            # parameters with model forcing
-    size = n * (1 + k)
-    big = np.zeros((steps, size, size))
-    for i in range(1 + k):
-        big[:, i * n:(i + 1) * n, i * n:(i + 1) * n] = Phi
-    for i in range(nk):
-        big[:, (1 + i) * n:(2 + i) * n, :n] = dPhi[:, i]
-    cz = np.zeros((steps, size))
-    cz[:, :n] = c
-    cz[:, n:n * (1 + nk)] = dc.reshape(steps, nk * n)
-    for j in range(steps):
-        z = big[j] @ z + cz[j]
-        if (j + 1) % m == 0:
-            s = start + (j + 1) // m
-            xs[s] = z[:n]
-            Ss[s] = z[n:].reshape(k, n).T
-    return z
+def _per_interval(m, Phi, c):
+    """Compose the m RK4 steps of each sample interval: (Φ₂, c₂)∘(Φ₁, c₁) = (Φ₂Φ₁, Φ₂c₁ + c₂)."""
+    P, cc = _substep(Phi, 0, m), _substep(c, 0, m)
+    for s in range(1, m):
+        A = _substep(Phi, s, m)
+        cc = _mv(A, cc) + _substep(c, s, m)
+        P = A @ P
+    return P, cc
+
+
+def _step_states(m, Phi, c, X):
+    """State at the start of every RK4 step (M, n) from the states at the samples X (L, n)."""
+    if m == 1:
+        return X
+    steps = [X]
+    for s in range(m - 1):
+        steps.append(_mv(_substep(Phi, s, m), steps[-1]) + _substep(c, s, m))
+    return np.stack(steps, axis=1).reshape(-1, X.shape[1])
+
+
+def _interval_forcing(m, Phi, W):
+    """Carry a per-step forcing W (M, k, n) to the end of each interval: (L, k, n)."""
+    w = _substep(W, 0, m)
+    for s in range(1, m):
+        w = _mv(_substep(Phi, s, m)[:, None], w) + _substep(W, s, m)
+    return w
+
+
+def _doubling_products(Phi, L):
+    """
+    Products of 1, 2, 4, … successive maps, for the doubling scan of :func:`_recursion`.
+
+    Returns [(d, A_d)] for d = 1, 2, 4, … ≤ L, where A_d[i] = Φ_{j−1} ⋯ Φ_{j−d} is the product
+    of the d maps that end at sample j = d + i (shape (L+1−d, n, n)); for a constant Φ
+    (``Phi`` of shape (1, n, n)) simply Φ^d (n, n).
+    """
+    levels = []
+    d = 1
+    A = Phi[0] if Phi.shape[0] == 1 else Phi
+    while d <= L:
+        levels.append((d, A))
+        if 2 * d <= L:
+            A = A @ A if A.ndim == 2 else A[d:] @ A[:-d]
+        d *= 2
+    return levels
+
+
+def _recursion(levels, c, y0):
+    """
+    All states of the linear recursion Y₀ = y0, Y_{j+1} = Φ_j Y_j + c_j, j = 0 … L−1.
+
+    ``levels`` from :func:`_doubling_products`; ``c`` (L, n, q); ``y0`` (n, q). Returns
+    (L+1, n, q). Doubling scan: after the pass with the d-products, Y_j holds the sum over the
+    last 2d inputs, so log₂ L vectorised products replace L sequential small ones.
+    """
+    Y = np.empty((c.shape[0] + 1,) + y0.shape)
+    Y[0] = y0
+    Y[1:] = c
+    for d, A in levels:
+        Y[d:] += A @ Y[:-d]
+    return Y
