@@ -19,6 +19,7 @@ from rotor_id.physics.models import build_model, RotorConstants
 from rotor_id.physics.stirring import blade_pitch_from_multiblade
 
 NS = 1_000_000_000
+_NOISE_BLOCK = 1024
 #: Revolutions simulated at collective pitch before the run to reach the periodic trim.
 TRIM_REVOLUTIONS = 20
 
@@ -73,7 +74,8 @@ class PlantStepper:
         self.p = model.parameter_vector({k: v for k, v in true_values.items()
                                          if k in model.parameter_names})
         self.step = omega_rad_s / rate_hz
-        self.rng = np.random.default_rng(seed)
+        self.seed = int(seed)
+        self._blocks = {}
         self.flap_noise_std = float(flap_noise_std)
         self.pitch_noise_std = float(pitch_noise_std)
         self.process_noise_std = float(process_noise_std)
@@ -90,6 +92,24 @@ class PlantStepper:
         self.cmd_u = np.array([[collective, 0.0, 0.0]])
         self.samples = 0
         self.x = [self._trim(m, collective) for m in self.models]
+
+    def _normal(self, stream, first, n, width):
+        """Standard normal draws of samples first..first+n-1 of a noise stream.
+
+        Drawn in blocks keyed by (seed, stream, block), so a run's noise depends on the seed
+        and the sample index only, not on how the samples were batched in real time.
+        """
+        rows = np.arange(first, first + n)
+        out = np.empty((n, width))
+        for block in np.unique(rows // _NOISE_BLOCK):
+            key = (stream, int(block))
+            if key not in self._blocks:
+                rng = np.random.default_rng([self.seed, stream, int(block)])
+                self._blocks = {k: v for k, v in self._blocks.items() if k[1] >= block - 1}
+                self._blocks[key] = rng.standard_normal((_NOISE_BLOCK, width))
+            inside = rows // _NOISE_BLOCK == block
+            out[inside] = self._blocks[key][rows[inside] % _NOISE_BLOCK]
+        return out
 
     def _parameters(self, collective):
         p = self.p.copy()
@@ -143,16 +163,16 @@ class PlantStepper:
             forcing = None
             if self.process_noise_std > 0 and self.noisy:
                 forcing = np.zeros((n, model.n_states))
-                forcing[:, self.noisy] = self.rng.normal(
-                    0.0, self.process_noise_std / math.sqrt(self.step), (n, len(self.noisy)))
+                forcing[:, self.noisy] = (self.process_noise_std / math.sqrt(self.step) *
+                                          self._normal(2 + i, self.samples, n, len(self.noisy)))
             sim = simulate(model, p, self.inputs, grid, self.x[i], forcing=forcing)
             self.x[i] = sim.x[-1]
             states.append(sim.x[1:])
         t = grid[1:]
         flap = blade_flap_from_states(self.models, t, states, self.coning)
         pitch = blade_pitch_from_multiblade(t, self.inputs(t), self.rotor.n_blades)
-        flap = flap + self.rng.normal(0.0, self.flap_noise_std, flap.shape)
-        pitch = pitch + self.rng.normal(0.0, self.pitch_noise_std, pitch.shape)
+        flap = flap + self.flap_noise_std * self._normal(0, self.samples, n, flap.shape[1])
+        pitch = pitch + self.pitch_noise_std * self._normal(1, self.samples, n, pitch.shape[1])
         self.t = float(grid[-1])
         self.samples += n
         keep = max(0, int(np.searchsorted(self.cmd_t, self.t, side='right')) - 1)

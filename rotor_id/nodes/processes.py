@@ -1,0 +1,127 @@
+"""
+Start the installed nodes as separate processes on an isolated DDS domain, and stop them cleanly.
+
+What ``rotor-id demo`` and the multi-process tests share (launch/launch_ros are not installable
+here, CONVENTIONS.md §10-11): the executables are found like ``ros2 run`` finds them (ament index
+prefix + lib/rotor_id/<name>), every child gets its own session (so a terminal's Ctrl-C reaches
+the caller, which stops the children in order: the recorder first, so its bag is finalised) and
+the same ROS_DOMAIN_ID with ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST.
+"""
+
+import os
+from pathlib import Path
+import signal
+import subprocess
+import time
+
+#: The five nodes, in the order they are started (the plant last: it waits for subscribers).
+NODES = ('identifier', 'state_estimator', 'recorder', 'stirring_input', 'rotor_plant')
+
+
+def executable(name, package='rotor_id'):
+    """Path of an installed executable, found like ``ros2 run`` (FileNotFoundError if absent)."""
+    try:
+        from ament_index_python.packages import get_package_prefix
+        prefix = Path(get_package_prefix(package))
+    except (ImportError, LookupError, ValueError) as exc:
+        raise FileNotFoundError(f'package {package} is not in the ament index ({exc}); build '
+                                'the workspace (make build) and run through ./rotor-id') from None
+    path = prefix / 'lib' / package / name
+    if not os.access(path, os.X_OK):
+        raise FileNotFoundError(f'no executable {path}: rebuild the workspace (make build)')
+    return path
+
+
+def isolated_env(domain_id, log_dir, base=None):
+    """Environment for ROS children: own domain, loopback discovery, logs in ``log_dir``."""
+    env = dict(os.environ if base is None else base)
+    env['ROS_DOMAIN_ID'] = str(int(domain_id))
+    env['ROS_AUTOMATIC_DISCOVERY_RANGE'] = 'LOCALHOST'
+    env['ROS_LOG_DIR'] = str(log_dir)
+    env['PYTHONUNBUFFERED'] = '1'
+    return env
+
+
+def ros_argument(value):
+    """Format a parameter value for ``-p name:=value`` (YAML: lists, floats, booleans)."""
+    if isinstance(value, bool):
+        return 'true' if value else 'false'
+    if isinstance(value, (list, tuple)):
+        return '[' + ', '.join(ros_argument(v) for v in value) + ']'
+    if isinstance(value, float):
+        return repr(value)
+    return str(value)
+
+
+class NodeProcesses:
+    """The node processes of one run; a context manager that never leaves one running."""
+
+    def __init__(self, env, log_dir, prefix=()):
+        self.env = env
+        self.log_dir = Path(log_dir)
+        self.log_dir.mkdir(parents=True, exist_ok=True)
+        self.prefix = list(prefix)
+        self.procs = {}
+        self.logs = {}
+
+    def start(self, name, params_file=None, params=None, node=None):
+        """Start executable ``name`` with a parameter file and ``-p`` overrides."""
+        cmd = self.prefix + [str(executable(node or name)), '--ros-args']
+        if params_file:
+            cmd += ['--params-file', str(params_file)]
+        for key, value in (params or {}).items():
+            cmd += ['-p', f'{key}:={ros_argument(value)}']
+        log = open(self.log_dir / f'{name}.log', 'w')
+        self.logs[name] = log
+        self.procs[name] = subprocess.Popen(cmd, env=self.env, stdout=log,
+                                            stderr=subprocess.STDOUT, start_new_session=True)
+        return self.procs[name]
+
+    def log(self, name):
+        """Text of a process's output so far."""
+        if not self.logs[name].closed:
+            self.logs[name].flush()
+        return (self.log_dir / f'{name}.log').read_text(errors='replace')
+
+    def dead(self):
+        """Names of processes that exited, with their return codes."""
+        return {n: p.returncode for n, p in self.procs.items() if p.poll() is not None}
+
+    def stop(self, name, sig=signal.SIGINT, timeout=15.0):
+        """Signal one process and wait for it (SIGKILL after ``timeout``); return its code."""
+        proc = self.procs[name]
+        if proc.poll() is None:
+            proc.send_signal(sig)
+            try:
+                proc.wait(timeout)
+            except subprocess.TimeoutExpired:
+                proc.kill()
+                proc.wait()
+        return proc.returncode
+
+    def stop_all(self, first=('recorder',), timeout=15.0):
+        """Stop ``first`` in order, then the rest together; return {name: return code}."""
+        codes = {}
+        for name in first:
+            if name in self.procs:
+                codes[name] = self.stop(name, timeout=timeout)
+        rest = [n for n in self.procs if n not in codes]
+        for name in rest:
+            if self.procs[name].poll() is None:
+                self.procs[name].send_signal(signal.SIGINT)
+        deadline = time.monotonic() + timeout
+        for name in rest:
+            codes[name] = self.stop(name, timeout=max(0.1, deadline - time.monotonic()))
+        for log in self.logs.values():
+            log.close()
+        return codes
+
+    def __enter__(self):
+        """Return self."""
+        return self
+
+    def __exit__(self, *exc):
+        """Stop whatever still runs."""
+        if any(p.poll() is None for p in self.procs.values()):
+            self.stop_all(timeout=10.0)
+        return False

@@ -1,0 +1,74 @@
+"""
+An in-process rclpy listener of a run: what ``rotor-id demo`` prints and the tests assert on.
+
+It subscribes to every output of the five nodes (estimate, progress, state, stirring command,
+/diagnostics and, optionally, the sensor topics) with the nodes' own QoS and keeps the messages.
+"""
+
+import time
+
+from diagnostic_msgs.msg import DiagnosticArray
+import rclpy
+from rotor_id.nodes.common import DIAGNOSTICS_QOS, SENSOR_QOS, STATE_QOS
+from rotor_id_msgs.msg import (IdentificationProgress, ParameterEstimate, StateEstimate,
+                               StirringCommand)
+from sensor_msgs.msg import JointState
+
+TOPICS = {
+    'estimate': ('/rotor_id/estimate', ParameterEstimate, STATE_QOS),
+    'progress': ('/rotor_id/progress', IdentificationProgress, STATE_QOS),
+    'state': ('/rotor_id/state', StateEstimate, STATE_QOS),
+    'stirring': ('/rotor/stirring', StirringCommand, STATE_QOS),
+    'diagnostics': ('/diagnostics', DiagnosticArray, DIAGNOSTICS_QOS),
+}
+SENSOR_TOPICS = {
+    'blade_flap': ('/rotor/blade_flap', JointState, SENSOR_QOS),
+    'blade_pitch': ('/rotor/blade_pitch', JointState, SENSOR_QOS),
+    'azimuth': ('/rotor/azimuth', JointState, SENSOR_QOS),
+    'pitch_command': ('/rotor/pitch_command', JointState, SENSOR_QOS),
+}
+
+
+class RunWatcher:
+    """Collects the messages of a run; ``on_message(kind, msg)`` is called for each."""
+
+    def __init__(self, node, sensors=False, on_message=None):
+        self.node = node
+        self.messages = {kind: [] for kind in TOPICS}
+        self.on_message = on_message
+        topics = dict(TOPICS)
+        if sensors:
+            topics.update(SENSOR_TOPICS)
+            self.messages.update({kind: [] for kind in SENSOR_TOPICS})
+        for kind, (topic, cls, qos) in topics.items():
+            node.create_subscription(cls, topic, self._callback(kind), qos)
+
+    def _callback(self, kind):
+        def callback(msg):
+            self.messages[kind].append(msg)
+            if self.on_message is not None:
+                self.on_message(kind, msg)
+        return callback
+
+    def final_estimate(self):
+        """The first estimate that is not provisional (None yet)."""
+        for msg in self.messages['estimate']:
+            if msg.status != ParameterEstimate.STATUS_ITERATING:
+                return msg
+        return None
+
+    def diagnostics(self, name_prefix):
+        """DiagnosticStatus messages whose name starts with ``name_prefix``, oldest first."""
+        return [status for array in self.messages['diagnostics'] for status in array.status
+                if status.name.startswith(name_prefix)]
+
+    def spin_until(self, condition, timeout, alive=None):
+        """Spin until ``condition()`` is true; False on timeout or when ``alive()`` is false."""
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline:
+            rclpy.spin_once(self.node, timeout_sec=0.05)
+            if condition():
+                return True
+            if alive is not None and not alive():
+                return False
+        return False
