@@ -1,0 +1,161 @@
+"""
+Shared helpers of the benchmarks: machine description, side-by-side timing, tables, results.
+
+The machine is shared (2 cores, several engineers running tests), so single timings are noisy.
+Every benchmark therefore times the things it compares *interleaved* (A, B, C, A, B, C, ...)
+in one run and reports medians; ratios of medians taken that way are what the targets of
+issue 6 are about.
+"""
+
+import datetime
+import os
+from pathlib import Path
+import platform
+import subprocess
+import sys
+import time
+
+import numpy as np
+import scipy
+
+BENCH_DIR = Path(__file__).resolve().parent
+REPO_ROOT = BENCH_DIR.parent
+RESULTS_DIR = BENCH_DIR / 'results'
+
+if str(REPO_ROOT) not in sys.path:          # `python bench/x.py` from anywhere
+    sys.path.insert(0, str(REPO_ROOT))
+
+_T_START = time.perf_counter()
+
+
+def say(message):
+    """Progress line on stderr with the elapsed time of this process."""
+    print(f'[{time.perf_counter() - _T_START:7.1f} s] {message}', file=sys.stderr, flush=True)
+
+
+def _cpu_model():
+    try:
+        for line in Path('/proc/cpuinfo').read_text().splitlines():
+            if line.startswith('model name'):
+                return line.split(':', 1)[1].strip()
+    except OSError:
+        pass
+    return platform.processor() or 'unknown CPU'
+
+
+def _memory_gb():
+    try:
+        for line in Path('/proc/meminfo').read_text().splitlines():
+            if line.startswith('MemTotal'):
+                return int(line.split()[1]) / 1024**2
+    except OSError:
+        pass
+    return float('nan')
+
+
+def _git_commit():
+    try:
+        out = subprocess.run(['git', '-C', str(REPO_ROOT), 'rev-parse', '--short', 'HEAD'],
+                             capture_output=True, text=True, timeout=10)
+        return out.stdout.strip() or 'unknown'
+    except (OSError, subprocess.SubprocessError):
+        return 'unknown'
+
+
+def machine_description():
+    """Describe the machine, software and load (a dict) for the results files."""
+    load = os.getloadavg() if hasattr(os, 'getloadavg') else (float('nan'),) * 3
+    return {
+        'date (UTC)': datetime.datetime.now(datetime.timezone.utc).strftime('%Y-%m-%d %H:%M'),
+        'cpu': _cpu_model(),
+        'logical cores': os.cpu_count(),
+        'memory': f'{_memory_gb():.1f} GB',
+        'load average (1/5/15 min) at start': ' / '.join(f'{v:.2f}' for v in load),
+        'os': platform.platform(),
+        'python': platform.python_version(),
+        'numpy': np.__version__,
+        'scipy': scipy.__version__,
+        'rotor_id commit': _git_commit(),
+    }
+
+
+def machine_markdown():
+    """Machine description as a markdown list."""
+    return '\n'.join(f'* {k}: {v}' for k, v in machine_description().items())
+
+
+def time_once(fn):
+    """Wall time of one call of ``fn`` and its result."""
+    start = time.perf_counter()
+    result = fn()
+    return time.perf_counter() - start, result
+
+
+def time_interleaved(functions, repeat, warmup=1):
+    """
+    Time several callables round-robin and return their median wall times.
+
+    Parameters
+    ----------
+    functions : dict
+        Name -> callable without arguments.
+    repeat : int
+        Timed rounds; in each round every callable runs once, in the given order.
+    warmup : int
+        Untimed rounds first (imports, caches).
+
+    Returns
+    -------
+    dict
+        Name -> dict(median, min, max, times (list), result (of the last call)).
+
+    """
+    times = {name: [] for name in functions}
+    results = {}
+    for _ in range(warmup):
+        for name, fn in functions.items():
+            results[name] = fn()
+    for _ in range(repeat):
+        for name, fn in functions.items():
+            elapsed, results[name] = time_once(fn)
+            times[name].append(elapsed)
+    return {name: {'median': float(np.median(ts)), 'min': float(np.min(ts)),
+                   'max': float(np.max(ts)), 'times': ts, 'result': results[name]}
+            for name, ts in times.items()}
+
+
+def fmt_time(seconds):
+    """Human-readable duration (µs/ms/s)."""
+    if seconds < 1e-3:
+        return f'{seconds * 1e6:.1f} µs'
+    if seconds < 1.0:
+        return f'{seconds * 1e3:.2f} ms'
+    return f'{seconds:.2f} s'
+
+
+def markdown_table(headers, rows):
+    """Markdown table from a header list and rows of already formatted cells."""
+    lines = ['| ' + ' | '.join(headers) + ' |',
+             '|' + '|'.join('---' for _ in headers) + '|']
+    lines += ['| ' + ' | '.join(str(c) for c in row) + ' |' for row in rows]
+    return '\n'.join(lines)
+
+
+def write_results(name, title, body, command):
+    """
+    Write ``bench/results/<name>.md``: title, how to reproduce, machine, then ``body``.
+
+    Returns the path written.
+    """
+    RESULTS_DIR.mkdir(parents=True, exist_ok=True)
+    path = RESULTS_DIR / f'{name}.md'
+    text = (f'# {title}\n\n'
+            f'Reproduce: `{command}` (from the repository root, after `make build`; '
+            '`make bench` runs every benchmark).\n\n'
+            f'## Machine\n\n{machine_markdown()}\n\n'
+            'The machine is shared with other engineers running tests, so absolute times are '
+            'noisy; every comparison below was timed interleaved in one run (medians).\n\n'
+            f'{body.rstrip()}\n')
+    path.write_text(text)
+    say(f'wrote {path.relative_to(REPO_ROOT)}')
+    return path

@@ -1,0 +1,106 @@
+"""
+Issue 6 item 2: one Gauss-Newton iteration against (p + 1) plain simulations.
+
+Any sensitivity method needs at least the information of p + 1 simulations per iteration (a
+one-sided finite-difference Jacobian is exactly that), so
+
+    ratio = t(one GN iteration) / ((p + 1) · t(one plain simulation))
+
+is the overhead of our analytic sensitivities and of the Gauss-Newton bookkeeping over that
+floor (target ≤ 1.5). t(iteration) is measured as the marginal cost of an iteration of
+:func:`fit_output_error`: [t(fit with max_iter = K) − t(fit with max_iter = 0)] / K, with K the
+iterations the converged fit takes, so it contains the sensitivity simulation, M, the gradient,
+the solve and the convergence test, and nothing of the set-up. t(simulation) is
+:func:`simulate` without sensitivities at the estimate. p counts every unknown, initial states
+included. All timed interleaved.
+
+Run: ``python bench/iteration_cost.py [--repeat N]``.
+"""
+
+import argparse
+import sys
+
+from common import fmt_time, markdown_table, say, time_interleaved, write_results
+from ml_vs_peers import CASES, experiment_of, iteration_case
+import numpy as np
+
+from rotor_id.estimation.output_error import fit_output_error
+from rotor_id.estimation.simulate import simulate
+from rotor_id.report import cases as C
+from rotor_id.report.reproduce import case_data
+
+EXTRA_CASES = (('multiblade, periodic model (γ, δ)', 'multiblade_periodic'),)
+TARGET = 1.5
+
+
+def bench_case(label, case_name, seed, repeat):
+    """Marginal iteration cost and plain-simulation cost of one case."""
+    case = iteration_case(case_name)
+    scenario = C.SCENARIOS[case.scenario]
+    y = case_data(case, seed)
+    exp, _, _, _ = experiment_of(case, y)
+    unknowns = list(case.unknowns)
+    sigma = scenario.noise_std
+    est = fit_output_error([exp], unknowns, guess=dict(case.start), noise_std=sigma)
+    k_iter = est.iterations
+    p_hat = exp.model.parameter_vector(est.model_parameters)
+    x0_hat = est.initial_states[0]
+    k = len(est.names)
+
+    def fit_k():
+        return fit_output_error([exp], unknowns, guess=dict(case.start), noise_std=sigma,
+                                max_iter=k_iter)
+
+    def fit_0():
+        return fit_output_error([exp], unknowns, guess=dict(case.start), noise_std=sigma,
+                                max_iter=0)
+
+    def plain():
+        return simulate(exp.model, p_hat, exp.inputs, exp.t, x0_hat)
+
+    say(f'{label}: p = {k}, {k_iter} iterations, {repeat} rounds')
+    timing = time_interleaved({'fit_k': fit_k, 'fit_0': fit_0, 'plain': plain}, repeat=repeat)
+    t_iter = (timing['fit_k']['median'] - timing['fit_0']['median']) / k_iter
+    t_sim = timing['plain']['median']
+    ratio = t_iter / ((k + 1) * t_sim)
+    say(f'  iteration {fmt_time(t_iter)}, simulation {fmt_time(t_sim)}, ratio {ratio:.2f}')
+    return {'label': label, 'case': case_name, 'k': k, 'samples': exp.t.size,
+            'iterations': k_iter, 't_iter': t_iter, 't_sim': t_sim, 'ratio': ratio,
+            't_fit': timing['fit_k']['median']}
+
+
+def report(results, repeat):
+    """Markdown body."""
+    rows = [[r['label'], r['k'], r['samples'], r['iterations'], fmt_time(r['t_fit']),
+             fmt_time(r['t_iter']), fmt_time(r['t_sim']), fmt_time((r['k'] + 1) * r['t_sim']),
+             f'**{r["ratio"]:.2f}**'] for r in results]
+    table = markdown_table(['case', 'p', 'samples', 'iterations', 'whole fit',
+                            'one GN iteration', 'one plain simulation', '(p+1) simulations',
+                            'ratio (target ≤ 1.5)'], rows)
+    worst = max(results, key=lambda r: r['ratio'])
+    verdict = (f'Largest ratio {worst["ratio"]:.2f} ({worst["case"]}): target ≤ {TARGET} '
+               f'{"met" if worst["ratio"] <= TARGET else "MISSED"} on '
+               f'{sum(r["ratio"] <= TARGET for r in results)} of {len(results)} cases.')
+    return (f'## Gauss-Newton iteration vs (p+1) plain simulations (median of {repeat} '
+            f'interleaved rounds)\n\n{table}\n\n{verdict}\n')
+
+
+def main(argv=None):
+    """Run, print, write bench/results/iteration_cost.md."""
+    parser = argparse.ArgumentParser(description=__doc__.split('\n')[1])
+    parser.add_argument('--repeat', type=int, default=9)
+    parser.add_argument('--seed', type=int, default=1)
+    parser.add_argument('--no-write', action='store_true')
+    args = parser.parse_args(argv)
+    results = [bench_case(label, name, args.seed, args.repeat)
+               for label, name in CASES + EXTRA_CASES]
+    body = report(results, args.repeat)
+    print(body)
+    if not args.no_write:
+        write_results('iteration_cost', 'Cost of one Gauss-Newton iteration (issue 6.2)', body,
+                      'python bench/iteration_cost.py')
+    return 0 if np.all([r['ratio'] <= TARGET for r in results]) else 1
+
+
+if __name__ == '__main__':
+    sys.exit(main())

@@ -1,0 +1,180 @@
+"""
+Issue 6 item 1: output-error ML per report case against the two peers of :mod:`peers`.
+
+For each report case (single blade, constant-coefficient multiblade with identified deflections,
+3- and 7-parameter dynamic wake) one seeded noisy data set (σ of the report) is fitted from the
+report's starting values by
+
+* ours: :func:`rotor_id.estimation.output_error.fit_output_error` (analytic sensitivities,
+  Gauss-Newton, default tolerances);
+* peer (b): ``least_squares`` + 2-point finite differences on our simulator;
+* peer (a): ``least_squares`` + 2-point finite differences on ``solve_ivp`` of a hand-written
+  right-hand side, at rtol 1e-6 / atol 1e-9 (the loosest setting that lands on our optimum to
+  1e-4 σ; with solve_ivp's default rtol 1e-3 the optimum moves by several 0.01 σ, timed too).
+
+The three are timed interleaved (median of ``--repeat`` rounds). The optima must agree: the
+largest difference, in units of our Cramér-Rao σ, is printed and checked (< 1e-3 σ).
+
+Run: ``python bench/ml_vs_peers.py [--repeat N] [--seed S]``.
+"""
+
+import argparse
+import sys
+
+from common import fmt_time, markdown_table, say, time_interleaved, write_results
+import numpy as np
+import peers
+
+from rotor_id.estimation.output_error import fit_output_error
+from rotor_id.report import cases as C
+from rotor_id.report.reproduce import case_data, iteration_experiment
+
+#: (label, report iteration case) benchmarked, in the order of issue 6.
+CASES = (
+    ('single blade (γ, δ)', 'single_blade_2par'),
+    ('multiblade, const. coeff. (γ, δ, β0, βI, βII at t0)', 'multiblade_c'),
+    ('wake, 3 parameters (A, AL/τ, 1/τ)', 'wake_progressing'),
+    ('wake, 7 parameters (+ βI, βII, λI, λII at t0)', 'wake_7par'),
+)
+AGREEMENT_SIGMA = 1e-3
+AFTERNOON_TOL = (1e-6, 1e-9)
+DEFAULT_TOL = (1e-3, 1e-6)
+
+
+def iteration_case(name):
+    """Return the :class:`rotor_id.report.cases.IterationCase` called ``name``."""
+    return next(c for c in C.ITERATION_CASES if c.name == name)
+
+
+def experiment_of(case, y):
+    """Experiment and starting θ of an iteration case (report start, report initial states)."""
+    exp = iteration_experiment(case, y)
+    free = exp.free_states()
+    theta0 = [case.start[n] for n in case.unknowns]
+    if free:
+        theta0 += list(np.asarray(exp.x0_guess)[free])
+    x0_fixed = (np.zeros(exp.model.n_states) if isinstance(exp.initial_state, str)
+                else np.asarray(exp.initial_state, dtype=float))
+    return exp, np.array(theta0, dtype=float), x0_fixed, free
+
+
+def bench_case(label, case_name, seed, repeat):
+    """Time ours and the peers on one case; return a dict of results."""
+    case = iteration_case(case_name)
+    scenario = C.SCENARIOS[case.scenario]
+    y = case_data(case, seed)
+    exp, theta0, x0_fixed, free = experiment_of(case, y)
+    model = exp.model
+    unknowns = list(case.unknowns)
+    param_index = [model.parameter_names.index(n) for n in unknowns]
+    sigma = scenario.noise_std
+    rhs = peers.afternoon_model(scenario)
+
+    def ours():
+        return fit_output_error([exp], unknowns, guess=dict(case.start), noise_std=sigma)
+
+    def fd_ours():
+        return peers.fit_fd_ours(model, model.nominal(), param_index, exp.inputs, exp.t, y,
+                                 sigma, theta0, x0_fixed, free)
+
+    def afternoon():
+        return peers.fit_afternoon(rhs, exp.t, y, sigma, theta0, x0_fixed, free,
+                                   rtol=AFTERNOON_TOL[0], atol=AFTERNOON_TOL[1])
+
+    def afternoon_default():
+        return peers.fit_afternoon(rhs, exp.t, y, sigma, theta0, x0_fixed, free,
+                                   rtol=DEFAULT_TOL[0], atol=DEFAULT_TOL[1])
+
+    say(f'{label}: {len(theta0)} unknowns, {exp.t.size} samples, {repeat} interleaved rounds')
+    timing = time_interleaved({'ours': ours, 'fd_ours': fd_ours, 'afternoon': afternoon,
+                               'afternoon_default': afternoon_default}, repeat=repeat)
+    est = timing['ours']['result']
+    sims = {}
+    dev = {}
+    for name in ('fd_ours', 'afternoon', 'afternoon_default'):
+        theta, res = timing[name]['result']
+        dev[name] = float(np.max(np.abs(theta - est.values) / est.std))
+        sims[name] = res.nfev + res.njev * len(theta0)
+    out = {'label': label, 'case': case_name, 'k': len(theta0), 'samples': exp.t.size,
+           'names': est.names, 'ours': est.values, 'ours_iterations': est.iterations,
+           'ours_converged': est.converged, 'std': est.std,
+           'fd_ours_theta': timing['fd_ours']['result'][0],
+           'afternoon_theta': timing['afternoon']['result'][0],
+           'afternoon_default_theta': timing['afternoon_default']['result'][0],
+           'dev': dev, 'sims': sims,
+           'time': {k: v['median'] for k, v in timing.items()},
+           'spread': {k: (v['min'], v['max']) for k, v in timing.items()}}
+    t = out['time']
+    say(f'  ours {fmt_time(t["ours"])} ({est.iterations} it), (b) {fmt_time(t["fd_ours"])}, '
+        f'(a) {fmt_time(t["afternoon"])}: (a)/ours {t["afternoon"] / t["ours"]:.1f}x, '
+        f'(b)/ours {t["fd_ours"] / t["ours"]:.1f}x; optima differ by '
+        f'{dev["afternoon"]:.1e} σ (a), {dev["fd_ours"]:.1e} σ (b)')
+    return out
+
+
+def report(results, seed, repeat):
+    """Markdown body of the results file."""
+    rows = []
+    for r in results:
+        t = r['time']
+        rows.append([
+            r['label'], r['k'], r['samples'],
+            f'{fmt_time(t["ours"])} ({r["ours_iterations"]} it)',
+            f'{fmt_time(t["fd_ours"])} ({r["sims"]["fd_ours"]} sims)',
+            f'{fmt_time(t["afternoon"])} ({r["sims"]["afternoon"]} solves)',
+            f'**{t["afternoon"] / t["ours"]:.1f}×**', f'**{t["fd_ours"] / t["ours"]:.2f}×**',
+            f'{fmt_time(t["afternoon_default"])} '
+            f'({t["afternoon_default"] / t["ours"]:.1f}×, off by '
+            f'{r["dev"]["afternoon_default"]:.2g} σ)'])
+    table = markdown_table(
+        ['case', 'unknowns', 'samples', 'ours: output-error ML', '(b) FD on our simulator',
+         '(a) solve_ivp + FD', '(a) / ours', '(b) / ours',
+         '(a) at solve_ivp default rtol 1e-3 (not the same optimum)'], rows)
+    optima = []
+    for r in results:
+        for i, name in enumerate(r['names']):
+            optima.append([r['case'] if i == 0 else '', name, f'{r["ours"][i]:.6f}',
+                           f'{r["fd_ours_theta"][i]:.6f}', f'{r["afternoon_theta"][i]:.6f}',
+                           f'{r["std"][i]:.4f}'])
+        optima.append(['', 'max |Δ| / σ', '', f'{r["dev"]["fd_ours"]:.1e}',
+                       f'{r["dev"]["afternoon"]:.1e}', ''])
+    opt_table = markdown_table(['case', 'parameter', 'ours', '(b)', '(a)', 'CRB σ'], optima)
+    wake7 = next(r for r in results if r['case'] == 'wake_7par')
+    ratio_a = wake7['time']['afternoon'] / wake7['time']['ours']
+    ratio_b = wake7['time']['fd_ours'] / wake7['time']['ours']
+    verdict = (f'7-parameter wake case: ours is {ratio_a:.1f}× faster than (a) (target ≥ 20×: '
+               f'{"met" if ratio_a >= 20 else "MISSED"}) and {ratio_b:.2f}× faster than (b) '
+               f'(target > 1: {"met" if ratio_b > 1 else "MISSED"}).')
+    return (f'## Timings (median of {repeat} interleaved rounds; data: report σ, seed {seed})\n\n'
+            f'{table}\n\n{verdict}\n\n'
+            '"sims" counts simulations of (b) = residual evaluations + Jacobian evaluations × '
+            'unknowns (2-point differences); ours does one simulation with sensitivities per '
+            'iteration plus one at the start. Peer (a) is least_squares over solve_ivp (RK45, '
+            f'rtol {AFTERNOON_TOL[0]:g}, atol {AFTERNOON_TOL[1]:g}) of the right-hand sides '
+            'typed in again from MODELS.md (bench/peers.py).\n\n'
+            f'## Optima (they must agree to {AGREEMENT_SIGMA:g} σ)\n\n{opt_table}\n')
+
+
+def main(argv=None):
+    """Run the benchmark, print the tables, write bench/results/ml_vs_peers.md."""
+    parser = argparse.ArgumentParser(description=__doc__.split('\n')[1])
+    parser.add_argument('--repeat', type=int, default=5, help='interleaved timing rounds')
+    parser.add_argument('--seed', type=int, default=1, help='noise seed of the data')
+    parser.add_argument('--no-write', action='store_true', help='do not write results/')
+    args = parser.parse_args(argv)
+    results = [bench_case(label, name, args.seed, args.repeat) for label, name in CASES]
+    body = report(results, args.seed, args.repeat)
+    print(body)
+    if not args.no_write:
+        write_results('ml_vs_peers', 'Output-error ML against least_squares peers (issue 6.1)',
+                      body, 'python bench/ml_vs_peers.py')
+    bad = [r['case'] for r in results
+           if max(r['dev']['fd_ours'], r['dev']['afternoon']) > AGREEMENT_SIGMA]
+    if bad:
+        print(f'ERROR: optima disagree in {", ".join(bad)}', file=sys.stderr)
+        return 1
+    return 0
+
+
+if __name__ == '__main__':
+    sys.exit(main())
