@@ -38,8 +38,8 @@ import warnings
 
 import numpy as np
 from rotor_id import pipeline
-from rotor_id.estimation.information import _safe_inverse, information_history, \
-    InformationHistory, shortest_record
+from rotor_id.estimation.information import information_history, InformationHistory, \
+    inverse_or_nan, shortest_record
 from rotor_id.estimation.simulate import simulate
 from rotor_id.io.errors import RunDescriptionError, RunDescriptionWarning
 from rotor_id.io.record import Record
@@ -564,7 +564,7 @@ def _combined_history(histories, k_par):
     M = np.zeros((T, len(names), len(names)))
     for h, idx in zip(histories, blocks):
         M[:, idx[:, None], idx[None, :]] += h.information
-    cov = np.array([_safe_inverse(Mj) for Mj in M])
+    cov = np.array([inverse_or_nan(Mj) for Mj in M])
     return InformationHistory(t=histories[0].t, names=names, information=M, covariance=cov)
 
 
