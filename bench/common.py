@@ -159,3 +159,34 @@ def write_results(name, title, body, command):
     path.write_text(text)
     say(f'wrote {path.relative_to(REPO_ROOT)}')
     return path
+
+
+class SustainedStirring:
+    """
+    The report's stirring (Ch.2 eqs 1-5) that stops accelerating at ``t_hold``.
+
+    Up to ``t_hold`` the phase is the report's φ = ω̇ (t − t0)²; after it the stirring rate is
+    held at 2 ω̇ (t_hold − t0), so long records keep a physical input instead of a stirring
+    rate that grows without bound. ``u = [θ0, θI, θII]`` like
+    :class:`rotor_id.physics.stirring.StirringSchedule`, which it wraps.
+    """
+
+    def __init__(self, schedule, t_hold):
+        self.schedule = schedule
+        self.t_hold = float(t_hold)
+
+    def phase(self, t):
+        """Stirring phase: the report's law, then constant rate after ``t_hold``."""
+        t = np.asarray(t, dtype=float)
+        late = t > self.t_hold
+        phi = self.schedule.phase(np.where(late, self.t_hold, t))
+        rate = self.schedule.stirring_rate(self.t_hold)
+        return phi + np.where(late, rate * (t - self.t_hold), 0.0)
+
+    def __call__(self, t):
+        """Return ``u = [θ0, θI, θII]`` at times t, shape (len(t), 3)."""
+        t = np.atleast_1d(np.asarray(t, dtype=float))
+        on = (t >= self.schedule.t_step) * self.schedule.amplitude
+        phi = self.phase(t)
+        return np.column_stack([np.full_like(t, self.schedule.collective), on * np.sin(phi),
+                                on * np.cos(phi)])
