@@ -100,6 +100,16 @@ def print_iterations(results, out):
                       + ', '.join(f'{v:g}' for v in case.noise_free_limit) + '\n')
 
 
+def print_gradient(res, out):
+    """Print the report's eq. 22 gradient at the initial estimate beside ours."""
+    case = res.case
+    out.write(f'\n== Gradient ∂J/∂Θ at the initial estimate (4, 8), R = I [{case.source}]\n')
+    for name, rep, ours, sd, z in zip(case.at, case.report, res.ours_noise_free,
+                                      res.noise_std, res.z):
+        out.write(f'   ∂J/∂{name:6s} report {rep:7.2f} (noisy)   ours {ours:7.3f} (noise-free)'
+                  f'   noise sd {sd:.3f}   z = {z:+.2f}\n')
+
+
 def print_summary(results, out):
     """Print the Ch.2 summary table, report | ours (σ = 0.2, variances = M⁻¹·0.04)."""
     out.write('\n== Ch.2 summary table (σ = 0.2; variances = Cramér-Rao bound with R = 0.04; '
@@ -154,6 +164,7 @@ def run(args):
     out.write(f'NASA CR-137965 reproduced ({C.report_units_note()})\n')
     print_matrices(result.matrices, out)
     print_iterations(result.iterations, out)
+    print_gradient(result.gradient, out)
     print_summary(result.summary, out)
     print_initial_states(result.initial_states, out)
     n_ok = sum(m.passed for m in result.matrices)

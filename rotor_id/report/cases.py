@@ -581,3 +581,25 @@ def report_record(scenario_name, t_end=None, dt=SAMPLE_INTERVAL, omega_rad_s=REP
                   blade_flap=flap * deg, blade_pitch=stirring.blade_pitch(t) * deg,
                   blade_names=[f'blade_{k}' for k in range(1, 5)],
                   source=f'report scenario {scenario_name} (rotor_id.report.cases)')
+
+
+@dataclass(frozen=True)
+class GradientCase:
+    """
+    The Ch.2 eq. 22 gradient column of the single-blade ML table at the initial estimate.
+
+    ∂J/∂Θ = Σ νᵀR⁻¹ ∂ν/∂Θ = −Σ νᵀR⁻¹ H S with R = I (MODELS.md §0.1 sign note), at (4, 8). The
+    report's value comes from its noisy data; ours noise-free differs by the noise term, whose
+    standard deviation σ·√diag(M) (M with R = I) is known, so the two can be compared.
+    """
+
+    name: str
+    source: str
+    scenario: str
+    at: dict
+    report: tuple
+
+
+GRADIENT = GradientCase(
+    name='single_blade_gradient_iter1', source='Ch.2 p.23 (∂J/∂γ, ∂J/∂δ); MODELS.md §1.4',
+    scenario='single_blade', at={'gamma': 4.0, 'delta': 8.0}, report=(-6.11, -5.84))

@@ -26,7 +26,8 @@ import time
 
 import numpy as np
 
-from rotor_id.estimation.information import cramer_rao_bound, information_history
+from rotor_id.estimation.information import (cramer_rao_bound, information_history,
+                                             sensitivities)
 from rotor_id.estimation.output_error import fit_output_error
 from rotor_id.report import cases as C
 
@@ -385,6 +386,44 @@ def initial_state_results():
     return out
 
 
+@dataclass
+class GradientResult:
+    """The report's eq. 22 gradient at (4, 8) beside ours (noise-free) and the noise spread."""
+
+    case: object
+    ours_noise_free: np.ndarray
+    noise_std: np.ndarray
+    z: np.ndarray
+
+    def as_dict(self):
+        """JSON entry."""
+        return {'name': self.case.name, 'source': self.case.source, 'at': dict(self.case.at),
+                'report': list(self.case.report),
+                'ours_noise_free': [float(v) for v in self.ours_noise_free],
+                'noise_std': [float(v) for v in self.noise_std],
+                'z': [float(v) for v in self.z]}
+
+
+def gradient_result(case=C.GRADIENT):
+    """
+    Evaluate ∂J/∂Θ = −Σ (HS)ᵀ R⁻¹ ν (R = I) on noise-free data at the report's start.
+
+    With measurement noise of σ the gradient gains −Σ (HS)ᵀ v, of covariance σ² M (M with R = I),
+    so z = (report − ours) / (σ √diag M) should be a standard normal draw.
+    """
+    scenario = C.SCENARIOS[case.scenario]
+    t = C.sample_times(scenario.t0, scenario.t0 + C.RECORD_LENGTH)
+    exp = C.make_experiment(scenario, y=C.truth_outputs(scenario, t), initial_state='truth')
+    p = exp.model.parameter_vector(case.at)
+    names = list(case.at)
+    sens = sensitivities(exp, p, names)
+    residual = exp.y - sens.y
+    grad = -np.einsum('tmi,tm->i', sens.dy, residual)
+    information = np.einsum('tmi,tmj->ij', sens.dy, sens.dy)
+    spread = scenario.noise_std * np.sqrt(np.diag(information))
+    return GradientResult(case, grad, spread, (np.asarray(case.report) - grad) / spread)
+
+
 # -------------------------------------------------------------------------------------------
 # Figure (Ch.3 figs 2-3)
 # -------------------------------------------------------------------------------------------
@@ -437,6 +476,7 @@ class Reproduction:
     summary: list
     initial_states: list
     seed: int
+    gradient: object = None
 
     @property
     def passed(self):
@@ -457,7 +497,8 @@ class Reproduction:
                 'cases': [m.as_dict() for m in self.matrices],
                 'iterations': [r.as_dict() for r in self.iterations],
                 'summary': [r.as_dict() for r in self.summary],
-                'initial_states': [r.as_dict() for r in self.initial_states]}
+                'initial_states': [r.as_dict() for r in self.initial_states],
+                'gradient': None if self.gradient is None else self.gradient.as_dict()}
 
 
 def reproduce(seed=DEFAULT_SEED, progress=None):
@@ -465,7 +506,8 @@ def reproduce(seed=DEFAULT_SEED, progress=None):
     matrices = matrix_results(progress)
     iterations = iteration_results(seed, progress)
     summary = summary_results(iterations, seed)
-    return Reproduction(matrices, iterations, summary, initial_state_results(), seed)
+    return Reproduction(matrices, iterations, summary, initial_state_results(), seed,
+                        gradient_result())
 
 
 def fmt(value, width=8, digits=4):

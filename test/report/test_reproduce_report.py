@@ -199,3 +199,27 @@ def test_report_run_descriptions_parse(repo_root):
                    multi_start=False).estimate
     # modelling error: converges, biased (MODELS.md §2.3), γ within 0.2 of the truth
     assert est.converged and abs(est.value('gamma') - 5.0) < 0.2
+
+
+def test_gradient_column_is_consistent_with_noise(report_json):
+    """
+    Ch.2 eq. 22 gradient at (4, 8): ours noise-free (−6.76, −6.37), noise sd (.46, .35).
+
+    The report's (−6.11, −5.84) comes from its noisy data: the difference, scaled by the known
+    noise covariance σ²M of the gradient, is an ordinary χ²(2) draw (p > 1 %).
+    """
+    from scipy.stats import chi2
+
+    from rotor_id.report.reproduce import gradient_result
+    _, data, _ = report_json
+    entry = data['gradient']
+    np.testing.assert_allclose(entry['ours_noise_free'], [-6.76, -6.37], atol=0.006)
+    np.testing.assert_allclose(entry['noise_std'], [0.46, 0.35], atol=0.006)
+    res = gradient_result()
+    scenario = C.SCENARIOS['single_blade']
+    exp = C.make_experiment(scenario, initial_state='truth')
+    from rotor_id.estimation.information import cramer_rao_bound
+    M = cramer_rao_bound(exp, exp.model.parameter_vector(res.case.at), C.SB).information
+    diff = np.asarray(res.case.report) - res.ours_noise_free
+    stat = diff @ np.linalg.solve(scenario.noise_std ** 2 * M, diff)
+    assert chi2.sf(stat, 2) > 0.01, stat
