@@ -380,7 +380,7 @@ def _parse_candidates(parser, spec, rotor):
                             *where, 'omegadot')
             if d is None:
                 d = 'progressing' if w < 0 else 'regressing'
-            elif (d == 'progressing') != (w < 0) and w < 0:
+            elif d == 'regressing' and w < 0:
                 parser.fail(f'omegadot {w} < 0 is progressing stirring but direction says '
                             f'{d}; give |ω̇| with the direction', *where, 'omegadot')
             signed = -abs(w) if d == 'progressing' else abs(w)
