@@ -1,0 +1,471 @@
+"""
+Filter-error maximum likelihood: measurement *and* system noise (Ch.1 eqs 26-32, issue 5).
+
+With system noise the predicted outputs come from a Kalman filter built from the model, and the
+negative log-likelihood of the samples is (Ch.1 eq. 26, halved, without the constant)
+
+    J(θ) = ½ Σ_j [ ν_jᵀ B_j⁻¹ ν_j + log |B_j| ],     ν_j = y_j − H x̂(j|j−1),   B_j = H P Hᵀ + R
+
+θ holds the model unknowns, the free initial states of each run (as in output error: x(t0) is a
+parameter, P(t0) = 0), the process-noise σ on the noise rows (``process_noise_std``; report
+eq. 29a: the λI′, λII′ rows of the wake model, else the flap-acceleration rows, see
+:func:`rotor_id.estimation.kalman.default_noise_rows`) and, unless given, the measurement-noise
+σ of each output channel (``noise_std_<channel>``).
+
+Minimisation is Fisher scoring (Gauss-Newton for a likelihood with parameter-dependent
+covariance) with the expected information
+
+    M_ik = Σ_j [ ∂_iν_jᵀ B_j⁻¹ ∂_kν_j + ½ tr(B_j⁻¹ ∂_iB_j B_j⁻¹ ∂_kB_j) ]
+
+whose inverse is the Cramér-Rao bound. The process noise is optimised as its variance q = σ²:
+∂J/∂σ vanishes at σ = 0 for any data (Q ∝ σ²), so σ = 0 would be a false stationary point,
+while ∂J/∂q is not; σ and its bound are reported (M_σ = (2σ)² M_q). The sensitivities:
+
+* free initial states: exact. ν is linear in x(t0) at fixed gains, ∂ν_j/∂x0 = −H_j Ψ_j with
+  Ψ_{j+1} = Φ_j (I − K_j H_j) Ψ_j, Ψ_0 = the selection of the free states.
+* model parameters and noise parameters: central finite differences of the whole filter
+  (ν_j and B_j), step 1e-5 relative. The filter is a smooth deterministic function of θ
+  (matrix products, solves and an inverse of a positive definite B), so the truncation error is
+  O(h²) ≈ 1e-10 relative and the rounding error ≈ 1e-16/h ≈ 1e-11: far below any statistical
+  spread. ``test_filter_error`` checks them against the analytic output-error sensitivities,
+  which they must equal when the process noise is zero.
+
+The time-varying gain is used for periodic models (and for the wake model's rotating eq.-30
+measurement); the steady-state gain of the algebraic Riccati equation when Φ, Q and H are
+constant (``gain='auto'``).
+"""
+
+import math
+import time
+
+import numpy as np
+
+from rotor_id.estimation import kalman
+from rotor_id.estimation.output_error import (_fit_initial_states, _Problem, dependence_warnings,
+                                              Estimate, IdentificationError)
+from rotor_id.estimation.simulate import DEFAULT_MAX_STEP
+
+PROCESS_NOISE = 'process_noise_std'
+_FD_STEP = 1e-5
+
+
+def measurement_noise_name(channel):
+    """Parameter name of the measurement-noise σ of an output channel."""
+    return f'noise_std_{channel}'
+
+
+def difference_noise_std(y):
+    """
+    Measurement-noise σ per channel from second differences: var(Δ²v) = 6σ² for white v.
+
+    A smooth signal sampled 30+ times per period contributes little to Δ²y, so this is a
+    model-free starting value for the noise (it over-estimates slightly when the signal is fast).
+    """
+    y = np.asarray(y, dtype=float)
+    d2 = np.diff(y, n=2, axis=0)
+    return np.sqrt(np.mean(d2**2, axis=0) / 6.0)
+
+
+class _FilterProblem:
+    """θ = [model unknowns, free initial states (per run), process σ?, measurement σ's?]."""
+
+    def __init__(self, experiments, unknowns, guess, known, noise_std, process_noise_std,
+                 estimate_process_noise, rows, noise_model, gain, max_step):
+        self.base = _Problem(experiments, unknowns, guess, known)
+        self.experiments = experiments
+        model = experiments[0].model
+        self.model = model
+        self.m = model.n_outputs
+        self.rows = kalman.default_noise_rows(model) if rows is None else \
+            kalman.noise_rows(model, rows)
+        if not self.rows:
+            raise IdentificationError(f'model {model.name!r} has no state row for process noise; '
+                                      'name the rows (e.g. rows=["beta_dot"])')
+        self.noise_model = noise_model
+        self.gain = gain
+        self.max_step = max_step
+        self.names = list(self.base.names)
+        self.n_base = len(self.names)
+        lo = list(self.base.lo)
+        hi = list(self.base.hi)
+        self.i_process = None
+        if estimate_process_noise:
+            self.i_process = len(self.names)
+            self.names.append(PROCESS_NOISE)
+            lo.append(0.0)
+            hi.append(np.inf)
+        self.fixed_process = None if estimate_process_noise else float(process_noise_std or 0.0)
+        self.i_meas = None
+        if noise_std is None:
+            self.i_meas = slice(len(self.names), len(self.names) + self.m)
+            self.names += [measurement_noise_name(c) for c in model.output_names]
+            lo += [0.0] * self.m
+            hi += [np.inf] * self.m
+            self.fixed_meas = None
+        else:
+            self.fixed_meas = np.broadcast_to(np.asarray(noise_std, dtype=float),
+                                              (self.m,)).copy()
+            if np.any(self.fixed_meas <= 0):
+                raise IdentificationError('measurement noise σ must be positive')
+        self.lo = np.array(lo)
+        self.hi = np.array(hi)
+        # state-parameter columns are handled exactly (linear), the rest by differences
+        k_par = len(self.base.param_index)
+        self.fd_index = list(range(k_par)) + list(range(self.n_base, len(self.names)))
+
+    def split(self, theta):
+        """Model-and-state part, process σ, measurement σ's."""
+        # the process noise is optimised as its variance q = σ² (see fit_filter_error)
+        sig_p = math.sqrt(max(theta[self.i_process], 0.0)) if self.i_process is not None \
+            else self.fixed_process
+        sig_m = theta[self.i_meas] if self.i_meas is not None else self.fixed_meas
+        return theta[:self.n_base], float(sig_p), np.asarray(sig_m, dtype=float)
+
+    def discretized(self, r, theta):
+        """Discrete model, initial state and R of run r at θ."""
+        base, sig_p, sig_m = self.split(theta)
+        exp = self.experiments[r]
+        p = self.base.full_parameters(base)
+        x0, _ = self.base.initial_state(r, base, p)
+        dm = kalman.discretize(exp.model, p, exp.inputs, exp.t, self.rows, sig_p,
+                               self.noise_model, self.max_step)
+        return dm, x0, np.diag(np.maximum(sig_m, 1e-300)**2)
+
+    def gain_mode(self, dm):
+        """'steady' or 'time-varying' for this discretised model."""
+        if self.gain == 'auto':
+            return 'steady' if dm.time_invariant else 'time-varying'
+        return self.gain
+
+    def run(self, r, theta):
+        """Kalman filter of run r at θ (the readable single filter of :mod:`kalman`)."""
+        dm, x0, R = self.discretized(r, theta)
+        n = dm.Phi.shape[1]
+        return kalman.kalman_filter(dm, self.experiments[r].y, x0, np.zeros((n, n)), R,
+                                    gain=self.gain_mode(dm)), dm
+
+    def evaluate(self, theta, sensitivities=True):
+        """Per run: (ν (T,m), B (T,m,m), ∂ν (T,m,k) or None, ∂B (T,m,m,k) or None, cost)."""
+        out = []
+        k = len(theta)
+        for r, exp in enumerate(self.experiments):
+            # θ and, for the sensitivities, θ ± h_i e_i: one batched filter pass for all
+            thetas = [theta]
+            spans = []
+            if sensitivities:
+                for i in self.fd_index:
+                    h = _FD_STEP * max(abs(theta[i]), self.scale[i])
+                    up, down = theta.copy(), theta.copy()
+                    up[i] += h
+                    down[i] = max(theta[i] - h, self.lo[i])
+                    thetas += [up, down]
+                    spans.append(up[i] - down[i])
+            parts = [self.discretized(r, th) for th in thetas]
+            dms = [dm for dm, _, _ in parts]
+            gain = self.gain_mode(dms[0])
+            nu, B, gains, cost = filter_batch(dms, exp.y, np.array([x0 for _, x0, _ in parts]),
+                                              np.array([R for _, _, R in parts]), gain)
+            if not sensitivities:
+                out.append((nu[0], B[0], None, None, cost[0]))
+                continue
+            T = exp.t.size
+            dnu = np.zeros((T, self.m, k))
+            dB = np.zeros((T, self.m, self.m, k))
+            for col, (i, span) in enumerate(zip(self.fd_index, spans)):
+                dnu[:, :, i] = (nu[1 + 2 * col] - nu[2 + 2 * col]) / span
+                dB[:, :, :, i] = (B[1 + 2 * col] - B[2 + 2 * col]) / span
+            # free initial states: ν is linear in x(t0) at fixed gains (exact sensitivity)
+            dm = dms[0]
+            n = exp.model.n_states
+            free = self.base.free_states[r]
+            Psi = np.zeros((n, len(free)))
+            Psi[free, np.arange(len(free))] = 1.0
+            cols = self.base.state_slices[r]
+            eye = np.eye(n)
+            for j in range(T):
+                dnu[j, :, cols] = -dm.H[j] @ Psi
+                if j < T - 1:
+                    Psi = dm.Phi[j] @ (eye - gains[0, j] @ dm.H[j]) @ Psi
+            out.append((nu[0], B[0], dnu, dB, cost[0]))
+        return out
+
+
+def filter_batch(dms, y, x0, R, gain='time-varying'):
+    """
+    Run the Kalman filter of :func:`~rotor_id.estimation.kalman.kalman_filter` on K models.
+
+    Same equations and order of operations (P(t0) = 0), vectorised over a stack of K
+    discretised models so the finite-difference sensitivities cost one pass. Only the
+    innovations, their covariances, the gains and the eq.-26 cost are kept.
+
+    Parameters
+    ----------
+    dms : list of DiscreteModel, length K
+        Discretised models (the nominal one first).
+    y : ndarray, shape (T, m)
+        Measurements in the model's output channels.
+    x0 : ndarray, shape (K, n)
+        Initial states, one per model.
+    R : ndarray, shape (K, m, m)
+        Measurement covariances, one per model.
+    gain : {'time-varying', 'steady'}
+        Time-varying or steady-state gain.
+
+    Returns
+    -------
+    nu : ndarray, shape (K, T, m)
+    B : ndarray, shape (K, T, m, m)
+    gains : ndarray, shape (K, T, n, m)
+    cost : ndarray, shape (K,)
+        Σ_j [ν_jᵀ B_j⁻¹ ν_j + log|B_j|] of each model.
+
+    """
+    Phi = np.stack([dm.Phi for dm in dms], axis=1)          # (T-1, K, n, n)
+    c = np.stack([dm.c for dm in dms], axis=1)              # (T-1, K, n)
+    Q = np.stack([dm.Q for dm in dms], axis=1)
+    H = np.stack([dm.H for dm in dms], axis=1)              # (T, K, m, n)
+    d = np.stack([dm.d for dm in dms], axis=1)
+    K_, T, m = len(dms), y.shape[0], y.shape[1]
+    n = Phi.shape[-1]
+    nu = np.empty((K_, T, m))
+    B = np.empty((K_, T, m, m))
+    gains = np.empty((K_, T, n, m))
+    cost = np.zeros(K_)
+    x = np.array(x0, dtype=float)
+    P = np.zeros((K_, n, n))
+    if gain == 'steady':
+        P_ss = np.stack([kalman.steady_state_covariance(dm, R[i]) for i, dm in enumerate(dms)])
+    for j in range(T):
+        Hj = H[j]
+        if gain == 'steady':
+            P = P_ss
+        HT = np.swapaxes(Hj, -1, -2)
+        # innovation, its covariance (eq. 32) and the gain (eq. 31)
+        nu[:, j] = y[j] - np.einsum('kmn,kn->km', Hj, x) - d[j]
+        PHT = P @ HT
+        Bj = Hj @ PHT + R
+        Bj = 0.5 * (Bj + np.swapaxes(Bj, -1, -2))
+        Binv = np.linalg.inv(Bj)
+        Kj = PHT @ Binv
+        B[:, j], gains[:, j] = Bj, Kj
+        cost += np.einsum('km,kmn,kn->k', nu[:, j], Binv, nu[:, j]) + np.linalg.slogdet(Bj)[1]
+        # update (eqs 29-30) and predict (eqs 27-28)
+        x = x + np.einsum('knm,km->kn', Kj, nu[:, j])
+        if gain != 'steady':
+            P = P - Kj @ Bj @ np.swapaxes(Kj, -1, -2)
+        if j < T - 1:
+            x = np.einsum('kab,kb->ka', Phi[j], x) + c[j]
+            if gain != 'steady':
+                P = Phi[j] @ P @ np.swapaxes(Phi[j], -1, -2) + Q[j]
+                P = 0.5 * (P + np.swapaxes(P, -1, -2))
+    return nu, B, gains, cost
+
+
+def _reported(prob, theta):
+    """θ with the process-noise variance replaced by its σ."""
+    out = theta.copy()
+    if prob.i_process is not None:
+        out[prob.i_process] = math.sqrt(max(theta[prob.i_process], 0.0))
+    return out
+
+
+def _cost(results):
+    """½ Σ (νᵀB⁻¹ν + log|B|) over all runs (eq. 26 halved)."""
+    return 0.5 * float(sum(r[4] for r in results))
+
+
+def _gradient_information(results, k):
+    """Gradient of J and the expected (Fisher) information over all runs."""
+    g = np.zeros(k)
+    M = np.zeros((k, k))
+    for nu, B, dnu, dB, _ in results:
+        Binv = np.linalg.inv(B)
+        a = np.einsum('tab,tb->ta', Binv, nu)                       # B⁻¹ν
+        g += np.einsum('ta,tak->k', a, dnu)
+        g -= 0.5 * np.einsum('ta,tabk,tb->k', a, dB, a)
+        BdB = np.einsum('tab,tbck->tack', Binv, dB)                  # B⁻¹∂B
+        g += 0.5 * np.einsum('taak->k', BdB)
+        M += np.einsum('tai,tab,tbk->ik', dnu, Binv, dnu)
+        M += 0.5 * np.einsum('tabi,tbak->ik', BdB, BdB)
+    return g, 0.5 * (M + M.T)
+
+
+def fit_filter_error(experiments, unknowns, guess=None, known=None, noise_std=None,
+                     progress=None, max_iter=50, process_noise_std=None,
+                     estimate_process_noise=True, rows=None, noise_model='white', gain='auto',
+                     step_tol=1e-4, max_step=DEFAULT_MAX_STEP, label='filter-error ML'):
+    """
+    Filter-error maximum likelihood over one or more runs.
+
+    Parameters
+    ----------
+    experiments : list of Experiment
+        Runs sharing the model parameters.
+    unknowns : list of str
+        Model parameters to identify (initial states follow each run's ``initial_state``).
+    guess, known : dict, optional
+        Starting values / fixed values of model parameters (default: nominal).
+    noise_std : float or array_like, optional
+        Measurement-noise σ per channel; estimated (``noise_std_<channel>``) when None.
+    progress : callable, optional
+        ``progress(info)`` after every iteration (iteration, cost, names, values, elapsed, label).
+    max_iter : int
+        Most iterations.
+    process_noise_std : float, optional
+        Start (or, with ``estimate_process_noise=False``, the fixed value) of the σ of the
+        held process-noise sequence on ``rows``. Default start: the best of a coarse grid.
+    estimate_process_noise : bool
+        Identify the process-noise σ (else hold ``process_noise_std``).
+    rows : sequence of str or int, optional
+        Process-noise rows (default :func:`~rotor_id.estimation.kalman.default_noise_rows`).
+    noise_model : {'white', 'held'}
+        See :mod:`rotor_id.estimation.kalman`; with 'white' σ² is the intensity per unit
+        nondimensional time.
+    gain : {'auto', 'time-varying', 'steady'}
+        Time-varying or steady-state gain.
+    step_tol : float
+        Converged when every step is below ``step_tol`` times its Cramér-Rao σ.
+    max_step : float
+        Longest RK4 step of the discretisation.
+    label : str
+        Name shown by progress reports.
+
+    Returns
+    -------
+    Estimate
+        ``method='filter-error'``; names include ``process_noise_std``.
+
+    """
+    if gain not in ('auto', 'time-varying', 'steady'):
+        raise IdentificationError(f"gain must be 'auto', 'time-varying' or 'steady', not {gain!r}")
+    for exp in experiments:
+        if exp.y is None or exp.y.shape != (exp.t.size, exp.model.n_outputs):
+            raise IdentificationError(
+                f'run {exp.name!r}: filter error needs measurements of shape '
+                f'({exp.t.size}, {exp.model.n_outputs}) = samples x '
+                f'({", ".join(exp.model.output_names)})')
+        if not np.all(np.isfinite(exp.y)):
+            raise IdentificationError(f'run {exp.name!r}: measurements contain NaN or inf; '
+                                      'drop those samples before identifying')
+    if process_noise_std is not None and process_noise_std < 0:
+        raise IdentificationError('process_noise_std must be ≥ 0')
+    prob = _FilterProblem(experiments, unknowns, guess, known, noise_std, process_noise_std,
+                          estimate_process_noise, rows, noise_model, gain, max_step)
+    names = prob.names
+    k = len(names)
+    base = prob.base
+    theta = np.zeros(k)
+    theta[:len(base.param_index)] = base.p_base[base.param_index]
+    theta[:prob.n_base] = _fit_initial_states(base, theta[:prob.n_base].copy(), max_step)
+    y_all = np.concatenate([exp.y for exp in experiments])
+    meas0 = np.maximum(difference_noise_std(y_all), 1e-6 * max(1e-300, np.abs(y_all).max()))
+    if prob.i_meas is not None:
+        theta[prob.i_meas] = meas0
+    meas_scale = prob.fixed_meas if prob.fixed_meas is not None else meas0
+    prob.scale = np.concatenate([np.maximum(np.abs(theta[:prob.n_base]), 1e-3 * float(
+        np.abs(y_all).max())), np.full(k - prob.n_base, float(np.mean(meas_scale)))])
+    if prob.i_process is not None:
+        prob.scale[prob.i_process] = float(np.mean(meas_scale))**2
+        if process_noise_std is not None:
+            theta[prob.i_process] = process_noise_std**2
+        else:
+            best = math.inf
+            for factor in (0.0, 0.01, 0.03, 0.1, 0.3, 1.0, 3.0):
+                trial = theta.copy()
+                trial[prob.i_process] = (factor * float(np.mean(meas_scale)))**2
+                c = _cost(prob.evaluate(trial, sensitivities=False))
+                if c < best:
+                    best, theta = c, trial
+    t_start = time.perf_counter()
+    history = []
+    results = prob.evaluate(theta)
+    cost = _cost(results)
+    if not math.isfinite(cost):
+        raise IdentificationError('the filter likelihood at the starting values is not finite; '
+                                  'check the starting values and the run description')
+    converged = False
+    message = 'maximum iterations reached'
+    lm = 0.0
+    iteration = 0
+    for iteration in range(1, max_iter + 1):
+        grad, M = _gradient_information(results, k)
+        # active set: a parameter on a bound that the gradient pushes outwards stays there
+        free = ~(((theta <= prob.lo) & (grad > 0)) | ((theta >= prob.hi) & (grad < 0)))
+        fi = np.flatnonzero(free)
+        scale = np.sqrt(np.clip(np.diag(M)[fi], 1e-300, None))
+        Ms = M[np.ix_(fi, fi)] / np.outer(scale, scale)
+        accepted = False
+        for _attempt in range(10):
+            step = np.zeros(k)
+            step[fi] = -np.linalg.lstsq(Ms + lm * np.eye(fi.size), grad[fi] / scale,
+                                        rcond=1e-12)[0] / scale
+            for _halving in range(8):
+                trial = np.clip(theta + step, prob.lo, prob.hi)
+                trial_results = prob.evaluate(trial, sensitivities=False)
+                trial_cost = _cost(trial_results)
+                if math.isfinite(trial_cost) and trial_cost <= cost + 1e-12 * abs(cost):
+                    accepted = True
+                    break
+                step = 0.5 * step
+            if accepted:
+                break
+            lm = max(1e-3, 10.0 * lm)
+        if not accepted:
+            message = 'no step lowers the likelihood any more (a minimum or a bound)'
+            converged = True
+            break
+        lm = lm / 10.0 if lm > 1e-6 else 0.0
+        applied = trial - theta
+        theta = trial
+        results = prob.evaluate(theta)
+        cost = _cost(results)
+        sigma = np.sqrt(np.clip(np.diag(np.linalg.pinv(M)), 0.0, None))
+        info = {'iteration': iteration, 'cost': float(cost), 'names': names,
+                'values': _reported(prob, theta), 'elapsed': time.perf_counter() - t_start,
+                'label': label}
+        history.append(info)
+        if progress is not None:
+            progress(info)
+        if np.all(np.abs(applied) <= np.maximum(step_tol * sigma, 1e-12 * np.abs(theta))):
+            converged = True
+            message = 'converged'
+            break
+    grad, M = _gradient_information(results, k)
+    # report σ, not the variance q = σ² it was optimised as: M_σ = Jᵀ M_q J, J = ∂q/∂σ = 2σ
+    jac = np.ones(k)
+    if prob.i_process is not None:
+        jac[prob.i_process] = 2.0 * math.sqrt(max(theta[prob.i_process], 0.0))
+    M = M * np.outer(jac, jac)
+    warnings = []
+    informative = np.diag(M) > 1e-12 * max(1e-300, float(np.max(np.diag(M))))
+    cov = np.full((k, k), np.nan)
+    idx = np.flatnonzero(informative)
+    cov[np.ix_(idx, idx)] = np.linalg.pinv(M[np.ix_(idx, idx)])
+    if not np.all(informative):
+        gone = [names[i] for i in np.flatnonzero(~informative)]
+        warnings.append('no information on ' + ', '.join(gone) + ' at the estimate (a noise '
+                        'σ at zero): its bound is undefined (NaN)')
+        cov = np.where(np.isnan(cov), 0.0, cov)
+        for i in np.flatnonzero(~informative):
+            cov[i, i] = np.inf
+    dep, _ = dependence_warnings([names[i] for i in idx], M[np.ix_(idx, idx)])
+    warnings += dep
+    if not converged:
+        warnings.append(message)
+    base_theta, sig_p, sig_m = prob.split(theta)
+    theta = _reported(prob, theta)
+    p_final = base.full_parameters(base_theta)
+    n_total = sum(exp.t.size for exp in experiments)
+    nll = cost + 0.5 * n_total * prob.m * math.log(2.0 * math.pi)
+    fits = [prob.run(r, theta)[0] for r in range(len(experiments))]
+    return Estimate(
+        names=names, values=theta, covariance=cov, information=M, noise_std=sig_m,
+        channel_names=list(prob.model.output_names), cost=float(cost),
+        neg_log_likelihood=float(nll), iterations=iteration, converged=converged,
+        message=message, n_samples=n_total, history=history,
+        residuals=[fr.innovations for fr in fits],
+        fitted=[exp.y - fr.innovations for exp, fr in zip(experiments, fits)],
+        initial_states=[base.initial_state(r, base_theta, p_final)[0]
+                        for r in range(len(experiments))],
+        warnings=warnings, model_parameters=dict(zip(prob.model.parameter_names, p_final)),
+        method='filter-error')
