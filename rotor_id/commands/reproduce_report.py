@@ -132,6 +132,22 @@ def print_summary(results, out):
               'times are 1975 mainframe seconds)\n')
 
 
+def print_validation(results, out):
+    """Print the residual checks of the seeded noisy fits."""
+    out.write('\n== Validation of the seeded noisy fits (residual RMS, Theil U, Ljung-Box p of '
+              'whiteness, largest |input cross-correlation| vs its 95 % limit over all lags)\n')
+    for res in results:
+        out.write(f'\n-- {res.label}\n')
+        for c in res.run.channels:
+            verdict = 'white' if c.white() else 'NOT white'
+            inputs = 'input-uncorrelated' if c.uncorrelated_with_input() else \
+                'CORRELATED with input'
+            out.write(f'   {c.channel:10s} rms {c.rms:7.4f}  U {c.theil:5.3f}  '
+                      f'Q {c.ljung_box_q:6.1f} (L = {c.ljung_box_dof}, p = {c.ljung_box_p:.3f}, '
+                      f'{verdict})  xcorr {c.max_cross_correlation:5.3f} '
+                      f'(limit {c.cross_correlation_limit():.3f}, {inputs})\n')
+
+
 def print_initial_states(results, out):
     """Print the report's initial states beside ours."""
     out.write('\n== Initial states (report | ours; checked to the printed digits)\n')
@@ -166,6 +182,7 @@ def run(args):
     print_iterations(result.iterations, out)
     print_gradient(result.gradient, out)
     print_summary(result.summary, out)
+    print_validation(result.validation, out)
     print_initial_states(result.initial_states, out)
     n_ok = sum(m.passed for m in result.matrices)
     init_ok = all(ok or state in r.case.exceptions for r in result.initial_states

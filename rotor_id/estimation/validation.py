@@ -91,18 +91,22 @@ class ChannelValidation:
         """Whether the Ljung-Box test accepts whiteness at level ``alpha``."""
         return bool(self.ljung_box_p >= alpha)
 
-    def uncorrelated_with_input(self, alpha=0.05):
+    def cross_correlation_limit(self, alpha=0.05):
         """
-        Whether every input cross-correlation stays inside its band (Bonferroni over lags).
+        Return the limit of |cross-correlation| for a residual independent of the input.
 
-        With 2L+1 lags per input the band is widened to the two-sided ``alpha/(2L+1)/n_inputs``
-        quantile, so a white residual independent of the input passes with probability ≈ 1−α.
+        With 2L+1 lags per input the ±1.96/√N band is widened to the two-sided
+        ``alpha/((2L+1)·n_inputs)`` normal quantile (Bonferroni), so a white residual
+        independent of the input stays inside with probability ≈ 1 − α.
         """
+        count = max(1, 0 if self.cross_correlation is None else self.cross_correlation.size)
+        return float(norm.isf(alpha / (2.0 * count)) / math.sqrt(self.n_samples))
+
+    def uncorrelated_with_input(self, alpha=0.05):
+        """Whether every input cross-correlation stays inside :meth:`cross_correlation_limit`."""
         if self.cross_correlation is None or self.cross_correlation.size == 0:
             return True
-        count = self.cross_correlation.size
-        z = norm.isf(alpha / (2.0 * count))
-        return bool(self.max_cross_correlation <= z / math.sqrt(self.n_samples))
+        return bool(self.max_cross_correlation <= self.cross_correlation_limit(alpha))
 
     def as_dict(self):
         """JSON-ready summary (without the full correlation functions)."""
@@ -111,6 +115,7 @@ class ChannelValidation:
                 'outside_band': self.outside_band, 'ljung_box_q': self.ljung_box_q,
                 'ljung_box_dof': self.ljung_box_dof, 'ljung_box_p': self.ljung_box_p,
                 'max_cross_correlation': self.max_cross_correlation,
+                'cross_correlation_limit': self.cross_correlation_limit(),
                 'white': self.white(), 'uncorrelated_with_input': self.uncorrelated_with_input()}
 
 

@@ -152,3 +152,24 @@ def test_predict_needs_data_or_a_state():
     x_start, y = predict(exp, p, x0=x0)
     np.testing.assert_allclose(x_start, x0)
     np.testing.assert_allclose(y, C.truth_outputs(scenario, exp.t), atol=1e-9)
+
+
+def test_input_correlation_limit_null_rate():
+    """White residuals independent of the stirring input fail at most ≈ 5 % of the time."""
+    scenario = C.SCENARIOS['single_blade']
+    t = C.sample_times(12.0, 24.0)
+    u = scenario.stirring()(t)
+    rng = np.random.default_rng(17)
+    draws = 300
+    failed = 0
+    for _ in range(draws):
+        e = rng.standard_normal(t.size)
+        stats = channel_statistics(e, np.zeros_like(e), inputs=u,
+                                   input_names=['theta_0', 'theta_I', 'theta_II'])
+        assert stats.input_names == ['theta_I', 'theta_II']      # θ0 is constant
+        failed += not stats.uncorrelated_with_input()
+    assert failed <= binom.ppf(0.999, draws, 0.05), failed
+    # and a residual that is the input (shifted) is caught
+    lagged = np.roll(u[:, 2], 4) + 0.1 * rng.standard_normal(t.size)
+    caught = channel_statistics(lagged, np.zeros_like(lagged), inputs=u)
+    assert not caught.uncorrelated_with_input()

@@ -223,3 +223,15 @@ def test_gradient_column_is_consistent_with_noise(report_json):
     diff = np.asarray(res.case.report) - res.ours_noise_free
     stat = diff @ np.linalg.solve(scenario.noise_std ** 2 * M, diff)
     assert chi2.sf(stat, 2) > 0.01, stat
+
+
+def test_validation_section(report_json):
+    """Truth-model fits leave white residuals of σ; zero initial states (case b) do not."""
+    _, data, _ = report_json
+    by_label = {v['label'].split(' [')[0]: v for v in data['validation']}
+    for name, sigma in (('single_blade_2par', 0.2), ('wake_progressing', 0.1)):
+        for chan in by_label[name]['channels']:
+            assert chan['white'] and abs(chan['rms'] - sigma) < 0.15 * sigma, chan
+    assert not any(c['white'] for c in by_label['multiblade_b']['channels'])
+    held = [v for v in data['validation'] if v['held_out']]
+    assert len(held) == 1 and all(abs(c['rms'] - 0.1) < 0.02 for c in held[0]['channels'])
