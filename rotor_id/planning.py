@@ -449,14 +449,23 @@ def _simulated_models(plan):
                                angle_unit='rad', blade=k) for k in range(1, rotor.n_blades + 1)]
 
 
+_TRIMS = {}      # (model, p, collective) -> trim state: candidates of a plan share the trim
+
+
 def _trim_state(model, p, collective):
     """State at the record start: trim at collective pitch only (recording convention)."""
     u = np.array([[collective, 0.0, 0.0]])
     if model.time_invariant:
         return model.equilibrium(np.zeros(1), p, u)
-    hold = StirringSchedule(collective=collective, amplitude=0.0, t0=0.0, t_step=0.0)
-    sim = simulate(model, p, hold, np.array([-TRIM_SETTLE, 0.0]), np.zeros(model.n_states))
-    return sim.x[-1]
+    key = (model.name, getattr(model, 'blade', 0), getattr(model, 'collective', ''),
+           model.rotor, tuple(np.asarray(p, dtype=float)), float(collective))
+    if key not in _TRIMS:
+        hold = StirringSchedule(collective=collective, amplitude=0.0, t0=0.0, t_step=0.0)
+        sim = simulate(model, p, hold, np.array([-TRIM_SETTLE, 0.0]), np.zeros(model.n_states))
+        if len(_TRIMS) > 64:
+            _TRIMS.clear()
+        _TRIMS[key] = sim.x[-1]
+    return _TRIMS[key].copy()
 
 
 def _coning(model, p, collective):
