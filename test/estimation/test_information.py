@@ -168,3 +168,30 @@ def test_noise_must_be_positive():
     exp = C.make_experiment(SB, initial_state='truth')
     with pytest.raises(ValueError, match='positive'):
         cramer_rao_bound(exp, exp.model.parameter_vector({}), C.SB, noise_std=0.0)
+
+
+@pytest.mark.parametrize('omegadot, half, corr, ratio, is_report', [
+    (-0.1 / np.pi, False, -0.130, 1.725, True),    # the law the report's numbers need
+    (-1.0 / np.pi, False, -0.081, 2.291, False),   # Ch.2 eq. 6 as OCR'd
+    (-0.1 / np.pi, True, -0.155, 1.131, False),    # φ = ω̇(t − t0)²/2
+])
+def test_stirring_law_decided_by_the_bound(omegadot, half, corr, ratio, is_report):
+    """MODELS.md §1.3: corr(γ, δ) and var δ/var γ at (4.91, 9.82) single out ω̇ = −0.1/π."""
+    from dataclasses import replace
+
+    from rotor_id.physics.stirring import StirringSchedule
+
+    class HalfPhase(StirringSchedule):
+        def phase(self, t):
+            return 0.5 * super().phase(t)
+
+    exp = C.make_experiment(SB, initial_state='truth')
+    law = (HalfPhase if half else StirringSchedule)(omegadot=omegadot, t0=12.0)
+    exp = replace(exp, inputs=law)
+    b = cramer_rao_bound(exp, exp.model.parameter_vector({'gamma': 4.91, 'delta': 9.82}), C.SB)
+    c = b.covariance
+    ours_corr = c[0, 1] / np.sqrt(c[0, 0] * c[1, 1])
+    assert ours_corr == pytest.approx(corr, abs=0.002)
+    assert c[1, 1] / c[0, 0] == pytest.approx(ratio, abs=0.003)
+    matches_report = bool(abs(ours_corr + 0.130) < 0.005 and abs(c[1, 1] / c[0, 0] - 1.730) < 0.01)
+    assert matches_report is is_report
