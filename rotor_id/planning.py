@@ -66,6 +66,9 @@ CYCLIC_STEP = 2.0 * math.pi
 #: trim before the record starts (the flap mode decays like exp(−γB⁴t/16): e⁻¹⁶ after 60).
 TRIM_SETTLE = 80.0
 MAX_CANDIDATES = 500
+#: The M⁻¹(t_f) curve of a transient is computed this many times beyond its longest candidate,
+#: to say how long a record would have to be when no planned length meets the targets.
+HORIZON = 2.0
 
 
 def default_t0(advance_ratio):
@@ -650,8 +653,10 @@ class CandidateResult:
     meets_target : bool
         Every stipulated σ reached (True when none is stipulated).
     shortest_duration_rev : float or None
-        Shortest record of this transient meeting every stipulated σ (Ch.3 eq. 23), within
-        the longest record planned for it; None when not met there or no targets.
+        Shortest record of this transient meeting every stipulated σ (Ch.3 eq. 23), looked
+        for up to :data:`HORIZON` times the longest record planned for the transient (so it
+        may be longer than every candidate: how long a record would have to be); None when
+        not met there or no targets.
     limiting : str
         The parameter met last (or furthest from its target, or worst relative σ).
     worst_ratio : float
@@ -764,7 +769,8 @@ def evaluate_plan(plan, progress=None):
     transients = []
     for i, members in enumerate(groups.values()):
         longest = max(members, key=lambda c: c.duration_rev)
-        transients.append(predict_transient(plan, longest))
+        horizon = replace(longest, duration_rev=HORIZON * longest.duration_rev)
+        transients.append(predict_transient(plan, horizon))
         if progress is not None:
             progress({'index': i + 1, 'of': len(groups), 'label': longest.label(),
                       'elapsed': time.perf_counter() - started})
@@ -811,9 +817,16 @@ def evaluate_plan(plan, progress=None):
     notes = list(plan.warnings)
     if plan.target_std and not meeting:
         best = results[recommended]
+        reach = [r for r in results if r.shortest_duration_rev is not None]
+        if reach:
+            quick = min(reach, key=lambda r: r.shortest_duration_rev)
+            hint = (f'{quick.candidate.label()} would meet them with a record of '
+                    f'{quick.shortest_duration_rev:.2f} rev')
+        else:
+            hint = ('none would within twice the planned records: plan a larger amplitude or '
+                    'a quieter sensor')
         notes.append(f'no candidate meets target_std; the best reaches {best.worst_ratio:.2f}× '
-                     f'the target of {best.limiting}: plan longer records, a larger amplitude '
-                     'or a quieter sensor')
+                     f'the target of {best.limiting}; {hint}')
     return PlanResult(plan=plan, candidates=results, transients=transients,
                       recommended=recommended, elapsed_s=time.perf_counter() - started,
                       warnings=notes)
@@ -1010,6 +1023,7 @@ def write_figure(result, path):
             else:
                 ax.semilogy(r.candidate.duration_rev, r.std[name], 'o', ms=4, color=color)
         marks = [r.std[name] for r in result.candidates]
+        marks += [float(np.nanmin(p.std()[:, p.unknowns.index(name)])) for p in result.transients]
         if name in plan.target_std:
             target = plan.target_std[name]
             marks.append(target)
