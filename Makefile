@@ -4,6 +4,7 @@
 #   make venv   .venv with the pinned wheels     make build  colcon build of both packages
 #   make bench  python bench/run_all.py          make clean  build/install/log and caches
 #   make lock   rewrite constraints-jazzy.txt    make distclean  clean + .venv
+#   make lint   only flake8 + pep257 (before committing)
 #
 # Nothing has to be installed or sourced by hand: missing system tools (cmake, g++, Python
 # 3.11 venv/headers) are installed with apt-get, the Python packages come from the pins in
@@ -46,12 +47,12 @@ locked = $(if $(FLOCK),$(FLOCK) $(1))
 WS_ENV := source tools/env.sh
 VENV_ENV := source tools/env.sh --venv-only
 
-.PHONY: all venv build test demo bench clean distclean lock sysdeps help
+.PHONY: all venv build test lint demo bench clean distclean lock sysdeps help
 
 all: test
 
 help:
-	@sed -n '3,6p' Makefile | sed 's/^# \{0,1\}//'
+	@sed -n '3,7p' Makefile | sed 's/^# \{0,1\}//'
 
 sysdeps:
 	@bash tools/ensure_system_deps.sh $(PYTHON)
@@ -69,6 +70,10 @@ build: venv | sysdeps
 test: build
 	@echo "== test: pytest"
 	@$(WS_ENV) && python -m pytest
+
+# Only the ament linters (flake8, pep257), ~30 s: run before committing.
+lint: venv
+	@$(VENV_ENV) && python -m pytest -q -m linter test/test_flake8.py test/test_pep257.py
 
 demo: build
 	./rotor-id demo
