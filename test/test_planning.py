@@ -229,6 +229,13 @@ def test_recommendation_rules():
     assert hard.recommended == int(np.argmin([r.std['A'] for r in hard.candidates]))
     assert any('no candidate meets target_std' in w for w in hard.warnings)
 
+    longer = planning.evaluate_plan(planning.parse_plan(_plan_text('target_std: {A: 0.005}')))
+    assert not any(r.meets_target for r in longer.candidates)
+    need = min(r.shortest_duration_rev for r in longer.candidates
+               if r.shortest_duration_rev is not None)
+    assert 3.0 < need <= 6.0               # beyond the planned 3 rev, within the 2× horizon
+    assert any(f'record of {need:.2f} rev' in w for w in longer.warnings)
+
     free = planning.evaluate_plan(planning.parse_plan(_plan_text('')))
     worst = [max(r.relative_std.values()) for r in free.candidates]
     assert free.recommended == int(np.argmin(worst))
