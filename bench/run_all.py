@@ -1,0 +1,66 @@
+"""
+Run every benchmark of issue 6 (items 1, 2, 3, 5, 6) and print a summary of the targets.
+
+``make bench`` calls this. Each benchmark runs in its own process (so timings and peak memory
+do not leak between them), prints its tables and writes ``bench/results/<name>.md`` with the
+machine description and the date. Item 4 (live latency) is bench/live_latency.py, run
+separately with the nodes.
+
+Run: ``python bench/run_all.py [--quick] [--only NAME ...]``; ``--quick`` uses fewer repeats
+and seeds (a smoke run; its numbers are not the committed results).
+"""
+
+import argparse
+from pathlib import Path
+import subprocess
+import sys
+import time
+
+BENCH_DIR = Path(__file__).resolve().parent
+
+#: name -> (script, full arguments, quick arguments, what it measures)
+BENCHMARKS = {
+    'ml_vs_peers': ('ml_vs_peers.py', ['--repeat', '5'], ['--repeat', '1', '--no-write'],
+                    'ML vs least_squares peers (target ≥ 20× vs (a), > 1× vs (b))'),
+    'iteration_cost': ('iteration_cost.py', ['--repeat', '9'], ['--repeat', '2', '--no-write'],
+                       'GN iteration / (p+1) simulations (target ≤ 1.5)'),
+    'scaling': ('scaling.py', ['--repeat', '5'], ['--repeat', '1', '--no-write'],
+                'record length and parameter count (no numeric target)'),
+    'offline_throughput': ('offline_throughput.py', ['--repeat', '3'],
+                           ['--repeat', '1', '--no-write'],
+                           '10-minute 1 kHz bag (target ≥ 200× real time)'),
+    'monte_carlo_speed': ('monte_carlo_speed.py', ['--seeds', '1000'],
+                          ['--seeds', '100', '--efficiency-seeds', '50', '--no-write'],
+                          '1000-seed wake Monte Carlo on 2 cores (target < 60 s)'),
+}
+
+
+def main(argv=None):
+    """Run the benchmarks in turn; exit 1 if any missed its target or failed."""
+    parser = argparse.ArgumentParser(description=__doc__.split('\n')[1])
+    parser.add_argument('--quick', action='store_true', help='smoke run, nothing written')
+    parser.add_argument('--only', nargs='*', choices=sorted(BENCHMARKS), default=None)
+    args = parser.parse_args(argv)
+    names = args.only or list(BENCHMARKS)
+    summary = []
+    for i, name in enumerate(names, 1):
+        script, full, quick, what = BENCHMARKS[name]
+        print(f'\n=== [{i}/{len(names)}] {name}: {what}', flush=True)
+        started = time.perf_counter()
+        code = subprocess.run([sys.executable, str(BENCH_DIR / script)]
+                              + (quick if args.quick else full)).returncode
+        elapsed = time.perf_counter() - started
+        verdict = {0: 'target met', 1: 'TARGET MISSED'}.get(code, f'FAILED (exit {code})')
+        if name == 'scaling' and code == 0:
+            verdict = 'done'
+        summary.append((name, what, verdict, elapsed))
+    print('\n=== summary')
+    for name, what, verdict, elapsed in summary:
+        print(f'  {name:20s} {verdict:16s} {elapsed:6.0f} s   {what}')
+    if not args.quick:
+        print(f'results: {BENCH_DIR / "results"}/*.md')
+    return 0 if all(v in ('target met', 'done') for _, _, v, _ in summary) else 1
+
+
+if __name__ == '__main__':
+    sys.exit(main())
