@@ -25,6 +25,7 @@ Public API
 :func:`simulate_run`                    the planned run as a :class:`~rotor_id.io.record.Record`
                                         (optionally with sensor noise: Monte Carlo checks)
 :func:`description_for`                 the run description ``identify`` needs for a candidate
+:func:`monte_carlo`                    identify on noisy simulated runs, beside the prediction
 :func:`steep_descents`                  where an M⁻¹(t_f) curve stops falling steeply (Ch.3)
 :func:`write_figure`                    σ(t_f) curves like Ch.3 figs 2-3
 """
@@ -124,6 +125,10 @@ class Candidate:
         return StirringSchedule(collective=collective_rad, amplitude=self.amplitude_rad,
                                 omegadot=self.omegadot, t0=self.stirring_start,
                                 t_step=CYCLIC_STEP)
+
+    def final_stirring_rate(self):
+        """Stirring rate dφ/dt at the record end, 2|ω̇|·duration (per rev of the rotor)."""
+        return 2.0 * abs(self.omegadot) * self.duration
 
     def window_s(self, omega_rad_s):
         """Identification window (s after the record's first sample) for the run description."""
@@ -694,6 +699,7 @@ class CandidateResult:
             'initial_state_std': {k: float(v) for k, v in self.initial_state_std.items()},
             'window_s': [float(self.window_s[0]), float(self.window_s[1])],
             'n_samples': int(self.n_samples),
+            'final_stirring_rate_per_rev': float(self.candidate.final_stirring_rate()),
         })
         return out
 
