@@ -27,6 +27,7 @@ import json
 import math
 from pathlib import Path
 import pstats
+import struct
 import subprocess
 import sys
 import tempfile
@@ -37,6 +38,7 @@ from common import (fmt_time, markdown_table, REPO_ROOT, say, SustainedStirring,
 import numpy as np
 
 from rotor_id.estimation.simulate import simulate
+from rotor_id.io.bag import DEFAULT_TOPICS
 from rotor_id.physics.blades import blade_flap_from_multiblade_state
 from rotor_id.physics.models import MultibladeWake, RotorConstants
 from rotor_id.physics.stirring import blade_pitch_from_multiblade, StirringSchedule
@@ -67,10 +69,11 @@ unknowns: [A, AL_over_tau, inv_tau]
 window_s: [{T0 / OMEGA:.6f}, {(T0 + 12.0) / OMEGA:.6f}]
 """
 
-#: Runs the command given as arguments and prints its ru_maxrss (kB) as the last line.
+#: Runs the command given as arguments; prints ru_maxrss (kB), user and system CPU s of it last.
 _MAXRSS_WRAPPER = ('import resource, subprocess, sys\n'
                    'code = subprocess.run(sys.argv[1:]).returncode\n'
-                   'print(resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss)\n'
+                   'r = resource.getrusage(resource.RUSAGE_CHILDREN)\n'
+                   'print(r.ru_maxrss, r.ru_utime, r.ru_stime)\n'
                    'sys.exit(code)\n')
 
 
@@ -123,21 +126,105 @@ def bag_size_mb(bag):
     return sum(f.stat().st_size for f in Path(bag).rglob('*') if f.is_file()) / 1e6
 
 
-def run_child(bag, config, json_out):
-    """Run ``rotor-id identify`` in a child; return (wall s, peak RSS MB, exit code)."""
-    command = [sys.executable, '-c', _MAXRSS_WRAPPER, str(REPO_ROOT / 'rotor-id'), 'identify',
-               str(bag), '--config', str(config), '--json', str(json_out), '--quiet']
+def run_measured(command):
+    """Run ``command`` in a child; return (wall s, peak RSS MB, CPU s, exit code, stdout)."""
     started = time.perf_counter()
-    proc = subprocess.run(command, capture_output=True, text=True)
+    proc = subprocess.run([sys.executable, '-c', _MAXRSS_WRAPPER] + command,
+                          capture_output=True, text=True)
     wall = time.perf_counter() - started
     lines = proc.stdout.strip().splitlines()
     if proc.returncode not in (0, 1) or not lines:
-        raise RuntimeError(f'rotor-id identify failed ({proc.returncode}):\n{proc.stderr}')
-    return wall, int(lines[-1]) / 1024.0, proc.returncode
+        raise RuntimeError(f'{" ".join(command)} failed ({proc.returncode}):\n{proc.stderr}')
+    rss_kb, utime, stime = lines[-1].split()
+    return wall, int(rss_kb) / 1024.0, float(utime) + float(stime), proc.returncode, lines
+
+
+def run_child(bag, config, json_out):
+    """Run ``rotor-id identify`` in a child; return (wall s, peak RSS MB, CPU s, exit code)."""
+    wall, rss, cpu, code, _ = run_measured(
+        [str(REPO_ROOT / 'rotor-id'), 'identify', str(bag), '--config', str(config),
+         '--json', str(json_out), '--quiet'])
+    return wall, rss, cpu, code
+
+
+def import_costs():
+    """Start-up of ``rotor-id identify --help`` and of importing the identify command alone."""
+    cli = run_measured([str(REPO_ROOT / 'rotor-id'), 'identify', '--help'])
+    alone = run_measured([sys.executable, '-c', 'import rotor_id.commands.identify'])
+    return {'cli': cli[:3], 'identify_module': alone[:3]}
+
+
+def vectorised_read_floor(mcap_file, topics):
+    """
+    Read the three topics of a healthy MCAP without a per-message Python step (a floor).
+
+    A measurement prototype, not the product's reader (that is :func:`rotor_id.io.bag.
+    read_record`): it walks the file's records (chunks and their MessageIndex records, MCAP
+    spec), decompresses each chunk, gathers the message bodies of each channel through the
+    index offsets as one (n, size) byte matrix, and decodes it with the project's CDR layout
+    functions. It assumes equal-size messages per channel (true here) and skips every check
+    the real reader makes. Returns {topic: (stamps_ns, position)} and the seconds it took.
+    """
+    from backports import zstd
+    import lz4.frame
+    from rotor_id.io.jointstate_cdr import _stamps, _values, parse_layout
+    started = time.perf_counter()
+    data = Path(mcap_file).read_bytes()
+    head = struct.Struct('<BQ')
+    pos, chunk, channels, rows = 8, None, {}, {}
+    while pos + 9 <= len(data):
+        op, length = head.unpack_from(data, pos)
+        body = pos + 9
+        if op == 0x04:                                   # Channel: id, schema, topic
+            cid, _ = struct.unpack_from('<HH', data, body)
+            n = struct.unpack_from('<I', data, body + 4)[0]
+            channels[cid] = data[body + 8:body + 8 + n].decode()
+        elif op == 0x06:                                 # Chunk: decompress its records
+            n = struct.unpack_from('<I', data, body + 28)[0]
+            compression = data[body + 32:body + 32 + n].decode()
+            size = struct.unpack_from('<Q', data, body + 32 + n)[0]
+            payload = data[body + 40 + n:body + 40 + n + size]
+            if compression == 'zstd':
+                payload = zstd.decompress(payload)
+            elif compression == 'lz4':
+                payload = lz4.frame.decompress(payload)
+            chunk = np.frombuffer(payload, dtype=np.uint8)
+        elif op == 0x07 and chunk is not None:           # MessageIndex of the last chunk
+            cid = struct.unpack_from('<H', data, body)[0]
+            n = struct.unpack_from('<I', data, body + 2)[0] // 16
+            offsets = np.frombuffer(data, dtype='<u8', count=2 * n,
+                                    offset=body + 6).reshape(n, 2)[:, 1].astype(np.int64)
+            record = chunk[(offsets[:1] + 1)[:, None] + np.arange(8)].view('<u8')[0, 0]
+            start = offsets + 9 + 22                     # opcode, length, message header
+            width = int(record) - 22
+            steps = np.diff(start)
+            if n > 1 and np.all(steps == steps[0]):     # evenly interleaved: a strided view
+                part = np.lib.stride_tricks.as_strided(
+                    chunk[start[0]:], shape=(n, width), strides=(int(steps[0]), 1))
+            else:
+                part = chunk[start[:, None] + np.arange(width)]
+            rows.setdefault(cid, []).append(part)
+        elif op == 0x0F:                                 # DataEnd: summary follows
+            pass
+        pos = body + length
+    out = {}
+    for cid, parts in rows.items():
+        topic = channels.get(cid)
+        if topic not in topics:
+            continue
+        matrix = np.concatenate(parts)
+        layout = parse_layout(matrix[0].tobytes())
+        out[topic] = (_stamps(matrix, layout.little), _values(matrix, layout, 'position'))
+    return out, time.perf_counter() - started
 
 
 def in_process_phases(bag, config):
-    """Time the command's two phases in this process, and profile the whole."""
+    """
+    Time the command's two phases in this process, and profile the whole.
+
+    Also times identify on the record cut to the window ± 0.5 s: the same fit without the
+    full-length pitch table behind the input interpolation.
+    """
     from rotor_id import pipeline
     from rotor_id.commands.identify import load_inputs
     started = time.perf_counter()
@@ -146,6 +233,11 @@ def in_process_phases(bag, config):
     started = time.perf_counter()
     result = pipeline.identify(record, description)
     t_fit = time.perf_counter() - started
+    w0, w1 = description.window_s
+    short = record.window(max(w0 - 0.5, 0.0), w1 + 0.5)
+    started = time.perf_counter()
+    pipeline.identify(short, description)
+    t_fit_short = time.perf_counter() - started
     profiler = cProfile.Profile()
     profiler.enable()
     description, record = load_inputs(bag, config)
@@ -153,7 +245,7 @@ def in_process_phases(bag, config):
     profiler.disable()
     stream = io.StringIO()
     pstats.Stats(profiler, stream=stream).sort_stats('cumulative').print_stats(18)
-    return t_read, t_fit, result, stream.getvalue()
+    return t_read, t_fit, t_fit_short, result, stream.getvalue()
 
 
 def main(argv=None):
@@ -169,19 +261,28 @@ def main(argv=None):
     json_out = Path(args.workdir) / 'identify.json'
     runs = []
     for i in range(args.repeat):
-        wall, rss, code = run_child(bag, config, json_out)
-        runs.append((wall, rss))
-        say(f'run {i + 1}/{args.repeat}: {wall:.2f} s wall = {DURATION_S / wall:.0f}x real '
-            f'time, peak RSS {rss:.0f} MB (exit {code})')
+        runs.append(run_child(bag, config, json_out))
+        wall, rss, cpu, code = runs[-1]
+        say(f'run {i + 1}/{args.repeat}: {wall:.2f} s wall ({cpu:.2f} s CPU) = '
+            f'{DURATION_S / wall:.0f}x real time, peak RSS {rss:.0f} MB (exit {code})')
     data = json.loads(json_out.read_text())
     wall = float(np.median([r[0] for r in runs]))
+    cpu = float(np.median([r[2] for r in runs]))
     rss = float(max(r[1] for r in runs))
+    say('start-up cost of the command line')
+    imports = import_costs()
     say('timing the phases in-process and profiling')
-    t_read, t_fit, result, profile = in_process_phases(bag, config)
+    t_read, t_fit, t_fit_short, _, profile = in_process_phases(bag, config)
+    say('vectorised read floor')
+    mcap = next(Path(bag).glob('*.mcap'))
+    floor = min(vectorised_read_floor(mcap, set(DEFAULT_TOPICS.values()))[1] for _ in range(2))
     factor = DURATION_S / wall
+    projected = imports['identify_module'][0] + floor + t_fit_short
     rows = [[name, f'{v["value"]:.5f}', f'{v["std"]:.5f}', f'{TRUTH[name]:.5f}',
              f'{(v["value"] - TRUTH[name]) / v["std"]:+.2f}']
             for name, v in data['parameters'].items()]
+    missed = factor < TARGET
+    verdict = f'MISSED by a factor {TARGET / factor:.1f}' if missed else 'met'
     body = (
         f'## Result (median of {args.repeat} runs)\n\n'
         + markdown_table(['quantity', 'value'], [
@@ -189,21 +290,37 @@ def main(argv=None):
                        f'{int(DURATION_S * RATE_HZ)} JointState messages, MCAP '
                        f'{bag_size_mb(bag):.0f} MB'],
             ['command', '`rotor-id identify BAG --config RUN.yaml --json OUT --quiet`'],
-            ['wall time (child process, everything)', f'{wall:.2f} s '
-             f'(runs: {", ".join(f"{r[0]:.2f}" for r in runs)})'],
-            ['throughput', f'**{factor:.0f}× real time** (target ≥ {TARGET:.0f}×: '
-                           f'{"met" if factor >= TARGET else "MISSED"})'],
+            ['wall time (child process, everything)', f'{wall:.2f} s, {cpu:.2f} s CPU '
+             f'(runs: {", ".join(f"{r[0]:.2f}" for r in runs)} s)'],
+            ['throughput', f'**{factor:.0f}× real time** (target ≥ {TARGET:.0f}×: {verdict})'],
+            ['throughput on CPU time (user + system of the child)',
+             f'{DURATION_S / cpu:.0f}× (the machine is shared: wall/CPU = {wall / cpu:.1f})'],
             ['peak memory (ru_maxrss of the child)', f'**{rss:.0f} MB**'],
-            ['in-process: reading the bag', f'{fmt_time(t_read)} '
-             f'({t_read / (t_read + t_fit):.0%})'],
-            ['in-process: identify (27-point start grid + fit)', f'{fmt_time(t_fit)} '
-             f'({t_fit / (t_read + t_fit):.0%})'],
-            ['interpreter start + imports + JSON (the rest)',
-             f'{fmt_time(max(wall - t_read - t_fit, 0.0))}'],
             ['fit', f'{data["n_samples"]} samples, {data["iterations"]} iterations, '
                     f'{"converged" if data["converged"] else data["message"]}'],
         ])
-        + '\n\n## Estimate (true values of the simulation)\n\n'
+        + '\n\n## Where the time goes\n\n'
+        + markdown_table(['part', 'measured', 'share of the in-process read + identify'], [
+            ['`rotor-id identify --help` (interpreter + imports of every command)',
+             f'{imports["cli"][0]:.2f} s wall, {imports["cli"][2]:.2f} s CPU', '–'],
+            ['`import rotor_id.commands.identify` alone',
+             f'{imports["identify_module"][0]:.2f} s wall, '
+             f'{imports["identify_module"][2]:.2f} s CPU', '–'],
+            ['reading the bag (`load_inputs`: rosbags reader + CDR decode + time base)',
+             fmt_time(t_read), f'{t_read / (t_read + t_fit):.0%}'],
+            ['identify (27-point start grid + Gauss-Newton)', fmt_time(t_fit),
+             f'{t_fit / (t_read + t_fit):.0%}'],
+            ['identify on the record cut to the window ± 0.5 s', fmt_time(t_fit_short), '–'],
+            ['vectorised MCAP read floor (prototype below, same 3 topics)', fmt_time(floor),
+             '–'],
+        ])
+        + '\n\n'
+        f'Projection (a sum of measured parts, not a measurement): importing only the '
+        f'identify command ({imports["identify_module"][0]:.2f} s) + a vectorised MCAP read '
+        f'({floor:.2f} s) + identify with the input table cut to the window '
+        f'({t_fit_short:.2f} s) = {projected:.2f} s, i.e. {DURATION_S / projected:.0f}× real '
+        'time.\n'
+        + '\n## Estimate (true values of the simulation)\n\n'
         + markdown_table(['parameter', 'estimate', 'σ (CRB)', 'truth', '(estimate − truth)/σ'],
                          rows)
         + '\n\n## Profile of the in-process run (cumulative, top entries)\n\n```\n'
@@ -213,7 +330,7 @@ def main(argv=None):
     if not args.no_write:
         write_results('offline_throughput', 'Offline identification of a 10-minute 1 kHz bag '
                       '(issue 6.5)', body, 'python bench/offline_throughput.py')
-    return 0 if factor >= TARGET else 1
+    return 0 if not missed else 1
 
 
 if __name__ == '__main__':
