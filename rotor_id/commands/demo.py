@@ -26,8 +26,8 @@ MARGIN_S = 0.05
 def add_arguments(parser):
     """Arguments of ``rotor-id demo``."""
     parser.add_argument('--case', choices=CASES, default='wake',
-                        help="report case: mu = 0 dynamic wake (default), mu = 0.4 multiblade "
-                             "or single blade")
+                        help='report case: mu = 0 dynamic wake (default), mu = 0.4 multiblade '
+                             'or single blade')
     parser.add_argument('--out', default='out/demo', help='directory for bag, logs, figures')
     parser.add_argument('--storage', choices=('mcap', 'sqlite3'), default='mcap')
     parser.add_argument('--domain-id', type=int, default=None,
@@ -52,8 +52,8 @@ def case_files(case):
 
 
 def _estimate_line(msg, t_start):
-    values = '  '.join(f'{n} = {v:.4f} ± {s:.4f}' for n, v, s in zip(msg.names, msg.values,
-                                                                   msg.std))
+    values = '  '.join(f'{n} = {v:.4f} ± {s:.4f}'
+                       for n, v, s in zip(msg.names, msg.values, msg.std))
     kind = {0: 'provisional', 1: 'final', 2: 'FAILED', 3: 'final (iteration limit)'}[msg.status]
     verdict = ('targets met' if msg.target_met else
                'more data needed: unknown' if msg.additional_data_s < 0 else

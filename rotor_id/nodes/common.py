@@ -10,6 +10,7 @@ QoS by kind of data (§4), header stamps from the node clock (§5), /diagnostics
 import math
 import os
 from pathlib import Path
+import signal
 import sys
 
 from builtin_interfaces.msg import Time
@@ -20,6 +21,7 @@ import rclpy
 from rclpy.exceptions import NameValidationException, ParameterException
 from rclpy.executors import ExternalShutdownException
 from rclpy.qos import (DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy)
+from rclpy.signals import SignalHandlerOptions
 from rotor_id_msgs.msg import IdentificationProgress, ParameterEstimate
 from sensor_msgs.msg import JointState
 
@@ -243,9 +245,20 @@ def spin_node(node_factory, args=None, executor_factory=None):
     Run a node as main() does in demo_nodes_py (Jazzy, CONVENTIONS.md §2/§9); returns exit code.
 
     A configuration error while constructing the node (ValueError) is one line on stderr and
-    exit code 2, never a traceback.
+    exit code 2, never a traceback. SIGINT and SIGTERM raise KeyboardInterrupt once (then are
+    ignored), so the clean-up in ``finally`` cannot be cut short by a second signal: rclpy's own
+    handler would raise ExternalShutdownException and then KeyboardInterrupt, the second one
+    inside the clean-up.
     """
-    rclpy.init(args=args)
+    rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
+
+    def interrupt(_signum, _frame):
+        for signum in (signal.SIGINT, signal.SIGTERM):
+            signal.signal(signum, signal.SIG_IGN)
+        raise KeyboardInterrupt
+
+    for signum in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(signum, interrupt)
     node = None
     code = 0
     try:

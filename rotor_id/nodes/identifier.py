@@ -22,6 +22,7 @@ import threading
 import time
 
 import numpy as np
+from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
 from rclpy.node import Node
 from rclpy.task import Future
 from rotor_id.io.run_description import load_run_description
@@ -97,7 +98,9 @@ class Identifier(Node):
         for role, callback in (('blade_flap', self.on_flap), ('blade_pitch', self.on_pitch),
                                ('azimuth', self.on_azimuth)):
             self.create_subscription(JointState, desc.topics[role], callback, SENSOR_QOS)
-        self.create_service(Identify, '~/identify', self.on_identify)
+        # own callback group: while a service call awaits its fit, data keep being taken
+        self.create_service(Identify, '~/identify', self.on_identify,
+                            callback_group=MutuallyExclusiveCallbackGroup())
         self.diagnostics = Diagnostics(self, 'identification')
         self.create_timer(0.005, self.schedule)
         self.running = True
@@ -269,7 +272,8 @@ class Identifier(Node):
             response.message = (f'window [{start}, {end}] s is not inside the buffered '
                                 f'[0, {covered:.4f}] s')
             return response
-        future = Future()
+        future = Future(executor=self.executor)
+        future.add_done_callback(lambda _: None)     # wakes the executor when the fit is done
         self._submit((start, end), True, future)
         msg = await future
         response.estimate = msg

@@ -94,7 +94,8 @@ class PlantStepper:
         self.x = [self._trim(m, collective) for m in self.models]
 
     def _normal(self, stream, first, n, width):
-        """Standard normal draws of samples first..first+n-1 of a noise stream.
+        """
+        Draw standard normal values for samples first..first+n-1 of a noise stream.
 
         Drawn in blocks keyed by (seed, stream, block), so a run's noise depends on the seed
         and the sample index only, not on how the samples were batched in real time.

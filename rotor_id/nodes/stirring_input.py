@@ -94,7 +94,8 @@ class StirringInput(Node):
                                    f'({self.schedule.direction}) at t = {self.schedule.t0:.4g}')
 
     def tick(self):
-        """Publish the commands due up to ``lead_s`` ahead, on a regular grid of stamps.
+        """
+        Publish the commands due up to ``lead_s`` ahead, on a regular grid of stamps.
 
         The grid starts at the first azimuth stamp, so a late start or a stalled process still
         gives the rotor every command of the schedule (in a burst).
@@ -112,7 +113,7 @@ class StirringInput(Node):
         self.diagnostics.set_value('commands_published', self.published)
 
     def command(self, applies):
-        """Publish the pitch command (and every n-th StirringCommand) for time ``applies``."""
+        """Publish the pitch command, and every n-th StirringCommand, for time ``applies``."""
         t = float(self.azimuth.t_at([applies])[0])
         omega = self.azimuth.omega
         u = self.schedule.inputs([t])

@@ -51,14 +51,14 @@ class RunWatcher:
         return callback
 
     def final_estimate(self):
-        """The first estimate that is not provisional (None yet)."""
+        """Return the first estimate that is not provisional (None yet)."""
         for msg in self.messages['estimate']:
             if msg.status != ParameterEstimate.STATUS_ITERATING:
                 return msg
         return None
 
     def diagnostics(self, name_prefix):
-        """DiagnosticStatus messages whose name starts with ``name_prefix``, oldest first."""
+        """Return the statuses on /diagnostics whose name starts with ``name_prefix``."""
         return [status for array in self.messages['diagnostics'] for status in array.status
                 if status.name.startswith(name_prefix)]
 

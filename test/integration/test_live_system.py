@@ -1,0 +1,194 @@
+"""
+The five nodes as separate processes on the report's mu = 0 dynamic-wake case (real DDS).
+
+One run (module fixture, ~20-60 s depending on the machine's load) of plant, stirring input,
+identifier, state estimator and recorder with config/nodes_wake.yaml; this process listens to
+every topic and calls the Identify service. What it proves: every message type crosses process
+boundaries; the live estimate is within 3σ of the plant's truth with a consistent covariance;
+the service identifies the buffered data; the state estimator tracks the flapping; the recorded
+bag holds every sample the plant published, is decoded by mcap + mcap-ros2-support (custom types
+included) and, identified offline, agrees with the live result; every node exits with 0.
+"""
+
+import math
+
+from live_helpers import (domain_id, mcap_messages, require_workspace, RosSession,
+                          within_sigma)
+import numpy as np
+import pytest
+
+TRUTH = {'A': 0.5, 'AL_over_tau': 0.25, 'inv_tau': 0.125}
+
+
+@pytest.fixture(scope='module')
+def live_run(tmp_path_factory):
+    """Run the wake case once; return what the tests look at."""
+    require_workspace()
+    from rotor_id.commands.demo import case_files
+    from rotor_id.io.run_description import load_run_description
+    from rotor_id.nodes.processes import isolated_env, NodeProcesses
+    from rotor_id.nodes.watch import RunWatcher
+    from rotor_id_msgs.srv import Identify
+
+    tmp = tmp_path_factory.mktemp('live')
+    params_file, description_path, _ = case_files('wake')
+    description = load_run_description(description_path)
+    domain = domain_id()
+    session = RosSession(domain)
+    watcher = RunWatcher(session.node, sensors=True)
+    env = isolated_env(domain, tmp / 'ros_log')
+    procs = NodeProcesses(env, tmp / 'logs')
+    bag = tmp / 'bag'
+    run = {'bag': bag, 'watcher': watcher, 'description': description, 'procs': procs}
+    import time
+    t0 = time.monotonic()
+
+    def mark(what):
+        print(f'{time.monotonic() - t0:6.1f} s {what}', flush=True)
+
+    try:
+        procs.start('identifier', params_file, {'target_std': [0.02, 0.02, 0.01]})
+        procs.start('state_estimator', params_file)
+        procs.start('recorder', params_file, {'output': str(bag)})
+        procs.start('stirring_input', params_file)
+        # 5 subscribers of the azimuth: the four nodes and this test
+        procs.start('rotor_plant', params_file, {'duration_s': description.window_s[1] + 0.05,
+                                                 'wait_for_subscribers': 5, 'seed': 7})
+        done = watcher.spin_until(lambda: watcher.final_estimate() is not None, 150.0,
+                                  alive=lambda: not procs.dead())
+        mark('final estimate')
+        assert done, f'no final estimate; exited: {procs.dead()}\n' + procs.log('identifier')
+        client = session.node.create_client(Identify, '/identifier/identify')
+        assert client.wait_for_service(timeout_sec=20.0), 'no Identify service'
+        answers = []
+        for start, end in ((description.window_s[0], description.window_s[1]), (0.5, 99.0)):
+            future = client.call_async(Identify.Request(window_start_s=start,
+                                                        window_end_s=end))
+            watcher.spin_until(future.done, 60.0)
+            answers.append(future.result())
+        run['service'] = answers
+        mark('service')
+        # the state estimator reports the adopted parameters on its next /diagnostics
+        watcher.spin_until(lambda: any(v.key == 'parameter_updates' for s in
+                                       watcher.diagnostics('state_estimator') for v in s.values),
+                           10.0)
+        mark('states')
+    finally:
+        run['codes'] = procs.stop_all()
+        mark('stopped')
+        run['logs'] = {name: procs.log(name) for name in procs.procs}
+        session.close()
+    return run
+
+
+def test_every_message_type_crosses_processes(live_run):
+    messages = live_run['watcher'].messages
+    for kind in ('estimate', 'progress', 'state', 'stirring', 'diagnostics', 'blade_flap',
+                 'blade_pitch', 'azimuth', 'pitch_command'):
+        assert messages[kind], f'no {kind} message received'
+    reporters = {s.name.split(':')[0] for a in messages['diagnostics'] for s in a.status}
+    assert {'rotor_plant', 'stirring_input', 'identifier', 'state_estimator',
+            'recorder'} <= reporters
+
+
+def test_live_estimate_within_3_sigma_with_a_consistent_covariance(live_run):
+    from rotor_id_msgs.msg import ParameterEstimate
+    final = live_run['watcher'].final_estimate()
+    assert final.status == ParameterEstimate.STATUS_CONVERGED, final.message
+    assert list(final.names) == ['A', 'AL_over_tau', 'inv_tau']
+    ok, text = within_sigma(final.values, final.std, TRUTH, final.names)
+    assert ok, text
+    cov = np.array(final.covariance).reshape(3, 3)
+    assert np.allclose(cov, cov.T)
+    assert np.all(np.linalg.eigvalsh(cov) > 0)
+    assert np.allclose(np.sqrt(np.diag(cov)), final.std)
+    # the report's progressing wake case, angles in degrees: M⁻¹(A, A) = .052 for R = I, Δt = .1
+    # and known initial states (MODELS.md §3.3). M⁻¹ scales with Δt (here Ω/1 kHz = .094), with
+    # the channel variance (σ²/2 per eq.-30 channel) and with (1 rad / 1°)²; estimating the six
+    # initial states as well can only raise it (the report's 7-parameter case: ×1.53 in σ)
+    sigma_channel = math.radians(0.05) / math.sqrt(2)
+    bound = math.sqrt(0.052 * 0.094 / 0.1) * math.degrees(sigma_channel)
+    assert 1.0 < final.std[0] / bound < 2.5, (final.std[0], bound)
+    assert final.window_s == pytest.approx(12.0 / (30 * math.pi), abs=0.002)
+
+
+def test_growing_window_estimates_and_progress(live_run):
+    watcher = live_run['watcher']
+    estimates = watcher.messages['estimate']
+    provisional = [m for m in estimates if m.status == 0]
+    assert provisional, 'no growing-window estimate before the final one'
+    assert all(p.window_s < watcher.final_estimate().window_s for p in provisional)
+    iterations = [m.iteration for m in watcher.messages['progress']]
+    assert 1 in iterations and max(iterations) >= 2
+    assert all(list(m.names)[:3] == ['A', 'AL_over_tau', 'inv_tau']
+               for m in watcher.messages['progress'])
+    final = watcher.final_estimate()
+    assert final.target_met == bool(np.all(np.array(final.std) <= [0.02, 0.02, 0.01]))
+
+
+def test_identify_service(live_run):
+    final = live_run['watcher'].final_estimate()
+    good, bad = live_run['service']
+    assert good.success, good.message
+    z = (np.array(good.estimate.values) - final.values) / final.std
+    assert np.max(np.abs(z)) < 0.01, z
+    assert not bad.success and 'not inside' in bad.message
+
+
+def test_state_estimator_tracks_the_flapping(live_run):
+    watcher = live_run['watcher']
+    states = watcher.messages['state']
+    last = states[-1]
+    assert list(last.names) == ['beta_I', 'beta_I_dot', 'beta_II', 'beta_II_dot', 'lambda_I',
+                                'lambda_II']
+    assert last.units[1] == 'rad/s' and last.rotor_speed == pytest.approx(30 * math.pi)
+    cov = np.array(last.covariance).reshape(6, 6)
+    assert np.all(np.linalg.eigvalsh(0.5 * (cov + cov.T)) > -1e-15)
+    # compare the filtered tilt with the measured flap of the same stamp
+    flaps = {(m.header.stamp.sec, m.header.stamp.nanosec): m
+             for m in watcher.messages['blade_flap']}
+    compared = 0
+    for msg in states[len(states) // 2:]:
+        flap = flaps.get((msg.header.stamp.sec, msg.header.stamp.nanosec))
+        if flap is None:
+            continue
+        psi = msg.azimuth
+        b1 = (flap.position[0] - flap.position[2]) / 2      # eq. 30: cos ψ βI + sin ψ βII
+        predicted = math.cos(psi) * msg.values[0] + math.sin(psi) * msg.values[2]
+        assert abs(predicted - b1) < 5 * math.radians(0.05), (predicted, b1)
+        compared += 1
+    assert compared >= 3
+    adopted = {v.key: v.value for s in watcher.diagnostics('state_estimator') for v in s.values}
+    assert 'parameter_updates' in adopted, 'the state estimator never adopted the estimate'
+    final = watcher.final_estimate()
+    assert f'A={final.values[0]:.4g}' in adopted['parameters']
+
+
+def test_recorded_bag_is_complete_and_decoded_by_mcap(live_run):
+    decoded = mcap_messages(live_run['bag'])
+    plant_log = live_run['logs']['rotor_plant']
+    published = int(plant_log.split('run complete: ')[1].split()[0])
+    for topic in ('/rotor/blade_flap', '/rotor/blade_pitch', '/rotor/azimuth'):
+        assert len(decoded[topic]) == published, topic
+    for topic in ('/rotor_id/estimate', '/rotor_id/progress', '/rotor_id/state',
+                  '/rotor/stirring'):
+        assert decoded.get(topic), f'{topic} missing from the bag'
+    estimate = decoded['/rotor_id/estimate'][-1]
+    assert list(estimate.names) == ['A', 'AL_over_tau', 'inv_tau']
+    assert len(estimate.covariance) == 9
+
+
+def test_offline_identification_of_the_bag_agrees(live_run):
+    from rotor_id.io.bag import read_record
+    from rotor_id.pipeline import identify
+    record = read_record(live_run['bag'])
+    offline = identify(record, live_run['description']).as_json()['parameters']
+    final = live_run['watcher'].final_estimate()
+    for name, value, std in zip(final.names, final.values, final.std):
+        assert abs(value - offline[name]['value']) < 0.2 * std, name
+
+
+def test_every_node_exits_cleanly(live_run):
+    assert live_run['codes'] == dict.fromkeys(live_run['codes'], 0), live_run['codes']
+    for name, log in live_run['logs'].items():
+        assert 'Traceback' not in log, f'{name}:\n{log}'

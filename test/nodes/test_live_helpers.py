@@ -1,0 +1,187 @@
+"""
+The ROS-free parts of the nodes (rotor_id/nodes/live.py, rotor_id/physics/blades.py).
+
+What they prove: the plant's stepping is the library simulator (sample by sample equals one
+simulate() call), its noise does not depend on real-time batching, trim is the analytic
+equilibrium; the identifier's Record equals the bag reader's; the sample checks reject each
+kind of bad message; the streaming Kalman adapter equals the library's batch filter; the data
+length verdict extrapolates an exact 1/T law exactly.
+"""
+
+import math
+
+import numpy as np
+import pytest
+from rotor_id.estimation.kalman import discretize, kalman_filter
+from rotor_id.estimation.simulate import simulate
+from rotor_id.io.bag import read_record, write_record_bag
+from rotor_id.nodes.live import (AzimuthTracker, BadSample, check_azimuth_sample,
+                                 check_joint_sample, data_length_verdict, PlantStepper,
+                                 record_from_series, rotor_constants, StampedSeries,
+                                 StreamingKalman)
+from rotor_id.physics.blades import blade_flap_from_multiblade_state
+from rotor_id.physics.models import build_model, multiblade_from_blade_flap, RotorConstants
+from rotor_id.physics.stirring import SampledInput, StirringSchedule
+
+OMEGA = 2 * math.pi * 15
+WAKE = {'A': 0.5, 'AL_over_tau': 0.25, 'inv_tau': 0.125}
+THETA0 = math.radians(2.0)
+
+
+def _wake_stepper(**kw):
+    rotor = rotor_constants(4, 0.0, 1.2, 0.97)
+    args = {'flap_noise_std': 0.0, 'pitch_noise_std': 0.0, 'seed': 3}
+    args.update(kw)
+    return PlantStepper('multiblade_wake', rotor, WAKE, OMEGA, 1000.0, THETA0, **args)
+
+
+def _drive(stepper, schedule, batches, every=5, knots=None):
+    """Advance in batches, commanding the schedule at every ``every``-th sample (one ahead)."""
+    out = []
+    for n in batches:
+        for j in range(n + every):
+            if (stepper.samples + j) % every == 0:
+                tc = stepper.t + stepper.step * (j + 1)
+                if stepper.command(tc, schedule([tc])[0]) and knots is not None:
+                    knots.append((tc, schedule([tc])[0]))
+        out.append(stepper.advance(n))
+    return [np.concatenate(parts) for parts in zip(*out)]
+
+
+def test_trim_is_the_equilibrium_at_collective_only():
+    stepper = _wake_stepper()
+    t, flap, pitch = stepper.advance(200)
+    # at mu = 0 the tilt modes see no collective: only the quasi-static coning A θ0 / P² remains
+    assert np.allclose(flap, WAKE['A'] * THETA0 / 1.2**2, atol=1e-13)
+    assert np.allclose(pitch, THETA0, atol=1e-15)
+
+
+def test_stepping_equals_one_simulation_and_noise_ignores_batching():
+    schedule = StirringSchedule(THETA0, math.radians(1.5), -0.1 / math.pi, 2 * math.pi + 3.0,
+                                2 * math.pi)
+    knots = [(0.0, np.array([THETA0, 0.0, 0.0]))]
+    t, flap, _ = _drive(_wake_stepper(), schedule, [7, 1, 50, 13, 29, 100], knots=knots)
+    # the same input (linear between the commands) through simulate() in one call
+    kt = np.array([k[0] for k in knots])
+    ku = np.array([k[1] for k in knots])
+
+    def inputs(tt):
+        return np.column_stack([np.interp(tt, kt, ku[:, j]) for j in range(3)])
+
+    model = build_model('multiblade_wake', RotorConstants(advance_ratio=0.0))
+    p = model.parameter_vector(WAKE)
+    grid = np.concatenate([[0.0], t])
+    sim = simulate(model, p, inputs, grid, model.equilibrium([0.0], p, [[THETA0, 0, 0]]))
+    expected = blade_flap_from_multiblade_state(model, t, sim.x[1:], WAKE['A'] * THETA0 / 1.44)
+    assert np.max(np.abs(flap - expected)) < 1e-12
+    noisy = [_drive(_wake_stepper(flap_noise_std=1e-3), schedule, batches)[1]
+             for batches in ([200], [3, 97, 1, 99])]
+    assert np.max(np.abs(noisy[0] - noisy[1])) < 1e-13     # same draws, whatever the batches
+    assert np.std(noisy[0] - flap[:200]) == pytest.approx(1e-3, rel=0.1)
+
+
+def test_blade_flap_inverts_to_the_multiblade_state():
+    model = build_model('multiblade', RotorConstants(advance_ratio=0.4))
+    rng = np.random.default_rng(0)
+    t = np.linspace(0, 7, 40)
+    x = rng.normal(size=(40, 8))
+    flap = blade_flap_from_multiblade_state(model, t, x)
+    assert np.allclose(multiblade_from_blade_flap(t, flap), x[:, :4], atol=1e-12)
+
+
+@pytest.mark.parametrize('names, position, stamp, last, kind', [
+    (['blade_1', 'blade_2', 'blade_3', 'blade_4'], [0.0, np.nan, 0.0, 0.0], 2, 1, 'non_finite'),
+    (['b1', 'b2', 'b3', 'b4'], [0.0] * 4, 2, 1, 'wrong_names'),
+    (['blade_1', 'blade_2', 'blade_3'], [0.0] * 3, 2, 1, 'wrong_count'),
+    (['blade_1', 'blade_2', 'blade_3', 'blade_4'], [0.0] * 3, 2, 1, 'wrong_count'),
+    (['blade_1', 'blade_2', 'blade_3', 'blade_4'], [2.0, 3.5, 2.0, 0.5], 2, 1, 'degrees'),
+    (['blade_1', 'blade_2', 'blade_3', 'blade_4'], [0.0] * 4, 1, 2, 'out_of_order'),
+    (['blade_1', 'blade_2', 'blade_3', 'blade_4'], [0.0] * 4, 2, 2, 'duplicate'),
+])
+def test_bad_joint_samples_are_named(names, position, stamp, last, kind):
+    expected = [f'blade_{k}' for k in range(1, 5)]
+    with pytest.raises(BadSample) as info:
+        check_joint_sample(names, position, expected, stamp, last, max_abs_rad=0.7)
+    assert info.value.kind == kind
+
+
+def test_joint_sample_is_reordered_by_name():
+    values = check_joint_sample(['blade_3', 'blade_1', 'blade_4', 'blade_2'], [3, 1, 4, 2],
+                                [f'blade_{k}' for k in range(1, 5)], 5, 4, max_abs_rad=10)
+    assert values.tolist() == [1, 2, 3, 4]
+
+
+@pytest.mark.parametrize('position, velocity, kind', [
+    ([400.0], [94.0], 'degrees'), ([1.0], [-94.0], 'bad_speed'), ([1.0], [], 'bad_speed'),
+    ([1.0], [np.inf], 'bad_speed'), ([np.nan], [94.0], 'non_finite')])
+def test_bad_azimuth_samples_are_named(position, velocity, kind):
+    with pytest.raises(BadSample) as info:
+        check_azimuth_sample(['rotor'], position, velocity, 'rotor', 2, 1)
+    assert info.value.kind == kind
+
+
+def test_live_record_equals_the_bag_reader(tmp_path):
+    stepper = _wake_stepper(flap_noise_std=1e-3, pitch_noise_std=1e-4)
+    schedule = StirringSchedule(THETA0, math.radians(1.5), -0.1 / math.pi, 9.0, 2 * math.pi)
+    t, flap, pitch = _drive(stepper, schedule, [300])
+    stamps = 10**9 + np.arange(1, 301) * 1_000_000
+    series = [StampedSeries(4), StampedSeries(4), StampedSeries(2)]
+    tracker = AzimuthTracker()
+    for i, stamp in enumerate(stamps):
+        psi = math.fmod(t[i], 2 * math.pi)
+        series[0].append(stamp, flap[i])
+        series[1].append(stamp, pitch[i])
+        series[2].append(stamp, (psi, OMEGA))
+        tracker.add(stamp, psi, OMEGA)
+    names = [f'blade_{k}' for k in range(1, 5)]
+    live = record_from_series(*series, names, stamps[0])
+    write_record_bag(tmp_path / 'bag', live)
+    from_bag = read_record(tmp_path / 'bag')
+    for field in ('time_s', 't', 'rotor_speed_rad_s', 'blade_flap', 'blade_pitch'):
+        assert np.allclose(getattr(live, field), getattr(from_bag, field), atol=1e-9), field
+    assert np.allclose(live.t, t, atol=1e-9)
+    assert np.allclose(tracker.t_at(stamps), t, atol=1e-9)
+    later = stamps[-1] + 5_000_000
+    assert tracker.t_at([later])[0] == pytest.approx(t[-1] + OMEGA * 0.005)
+
+
+def test_streaming_kalman_equals_the_batch_filter():
+    model = build_model('multiblade_wake', RotorConstants(advance_ratio=0.0))
+    p = model.parameter_vector(WAKE)
+    schedule = StirringSchedule(0.0, 0.03, -0.1 / math.pi, 2.0, 0.0)
+    t = np.arange(0.0, 20.0, 0.094)
+    sim = simulate(model, p, schedule, t, np.zeros(6))
+    y = sim.y + np.random.default_rng(1).normal(0, 1e-3, sim.y.shape)
+    x0, P0 = np.zeros(6), np.eye(6) * 1e-4
+    dm = discretize(model, p, schedule, t, [4, 5], 0.01)
+    batch = kalman_filter(dm, y, x0, P0, np.full(2, 1e-6))
+    stream = StreamingKalman(model, p, np.full(2, 1e-3), x0, P0, process_noise_std=0.01)
+    xs = []
+    for chunk in np.array_split(np.arange(t.size), [1, 8, 9, 60, 150]):
+        xs.append(stream.update(t[chunk], schedule, y[chunk])[0])
+    assert np.max(np.abs(np.concatenate(xs) - batch.x_filt)) < 1e-12
+    assert np.allclose(stream.P, batch.P_filt[-1], atol=1e-15)
+
+
+def test_verdict_extrapolates_a_one_over_t_law_exactly():
+    t = np.linspace(70.0, 82.0, 121)
+    span = t - t[0]
+    std = np.column_stack([np.sqrt(0.04 / np.maximum(span, 1e-9)),
+                           np.sqrt(0.01 / np.maximum(span, 1e-9))])
+    std[0] = np.nan
+    # targets: the first needs span = 0.04/0.02² = 100 rad, the second is already met
+    met, more_s = data_length_verdict(std[-1], [0.02, 0.1], t, std, OMEGA)
+    assert not met
+    assert more_s == pytest.approx((100.0 - 12.0) / OMEGA, rel=1e-9)
+    assert data_length_verdict(std[-1], [0.1, 0.1], t, std, OMEGA) == (True, 0.0)
+    assert data_length_verdict(std[-1], [0.0, 0.0]) == (True, 0.0)
+    assert data_length_verdict(std[-1], [0.02, 0.0]) == (False, -1.0)
+
+
+def test_sampled_input_of_the_plant_pitch_recovers_the_commands():
+    stepper = _wake_stepper()
+    schedule = StirringSchedule(THETA0, math.radians(1.5), -0.1 / math.pi, 8.0, 2 * math.pi)
+    knots = []
+    t, _, pitch = _drive(stepper, schedule, [400], every=1, knots=knots)
+    u = SampledInput.from_blade_pitch(t, pitch)(t)
+    assert np.allclose(u, np.array([k[1] for k in knots])[:400], atol=1e-12)
