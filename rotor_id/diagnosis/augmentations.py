@@ -266,10 +266,10 @@ class SensorLag(Augmented):
     """
 
     effect = 'sensor_lag'
-    extra_parameters = (Parameter('lag_rad', 'τ_s', 'rad', 0.1, 0.02, 3.0,
+    extra_parameters = (Parameter('lag_rad', 'τ_s', 'rad', 0.1, 0.03, 3.0,
                                   'flap-sensor first-order time constant, rad of azimuth'),)
-    #: RK4 step that keeps the fastest admissible lag (τ_s = 0.02) stable
-    max_step = 0.025
+    #: RK4 step that keeps the fastest admissible lag (τ_s = 0.03) stable (|hλ| < 2.78)
+    max_step = 0.05
 
     def __init__(self, base):
         n = BladeView(base).n_blades

@@ -68,8 +68,10 @@ class Job:
     unknowns: list
     known: dict
     window_s: tuple
-    validate: bool = True
+    validate: bool = False
     verbose: bool = False
+    #: starting values of the augmented model (validation of an already fitted candidate)
+    start: dict = None
 
 
 @dataclass
@@ -153,10 +155,14 @@ def applicable(effect, model_name, rotor, unknowns):
 
 
 def variants(effect, model_name, n_blades):
-    """Sub-candidates of one effect (the blade a dissimilarity sits on)."""
-    if effect == 'blade_dissimilarity':
-        return [f'blade_{k}' for k in range(1, n_blades + 1)]
+    """Sub-candidates of one effect; the odd blade of a dissimilarity is screened inside the
+    fit (:func:`_screen_blade`), so every effect is one job."""
     return ['']
+
+
+def n_choices(effect, n_blades):
+    """How many alternatives the fit chose among (the odd blade: N), for the criterion."""
+    return n_blades if effect == 'blade_dissimilarity' else 1
 
 
 def _build(job, baseline_model, experiments):
@@ -181,7 +187,7 @@ def _build(job, baseline_model, experiments):
     elif effect == 'dynamic_inflow':
         runs, model = _augment_runs(experiments, aug.DynamicInflow, record)
     elif effect == 'blade_dissimilarity':
-        blade = int(job.variant.split('_')[1])
+        blade = int((job.variant or 'blade_1').split('_')[1])
         runs, model = _augment_runs(experiments, lambda m: aug.BladeDissimilarity(m, blade),
                                     record)
     elif effect == 'periodic_coefficients':
@@ -197,6 +203,7 @@ def _build(job, baseline_model, experiments):
     unknowns = list(job.unknowns) + extra
     for par in getattr(model, 'extra_parameters', ()):
         guess[par.name] = par.nominal
+    guess.update(job.start or {})
     return runs, model, unknowns, extra, guess, max_step
 
 
@@ -273,12 +280,23 @@ def cross_validate(runs, unknowns, guess, known, max_step=None):
     return np.mean(ms, axis=0)
 
 
-def baseline_job(job):
-    """Refit the baseline (for validation only): cross-validated mean square per channel."""
+def validate_candidate(job):
+    """Cross-validated RMS of a fitted candidate (``job.start`` = its estimate), or None."""
     from rotor_id.pipeline import experiments_from_record, model_for
-    model = model_for(job.description)
-    runs = experiments_from_record(job.record, job.description, model, job.window_s)
-    return cross_validate(runs, job.unknowns, job.baseline_values, job.known)
+    base_model = model_for(job.description)
+    try:
+        if job.effect == 'baseline':
+            runs = experiments_from_record(job.record, job.description, base_model,
+                                           job.window_s)
+            ms = cross_validate(runs, job.unknowns, job.start or job.baseline_values, job.known)
+        else:
+            experiments = experiments_from_record(job.record, job.description, base_model,
+                                                  job.window_s)
+            runs, _, unknowns, _, guess, max_step = _build(job, base_model, experiments)
+            ms = cross_validate(runs, unknowns, guess, job.known, max_step)
+    except (IdentificationError, np.linalg.LinAlgError, FloatingPointError):
+        return job.effect, job.variant, None
+    return job.effect, job.variant, float(math.sqrt(np.mean(ms)))
 
 
 def fit_candidate(job):
@@ -297,6 +315,10 @@ def fit_candidate(job):
             return _fit_process_noise(job, out, t_start)
         experiments = experiments_from_record(job.record, job.description, base_model,
                                               job.window_s)
+        if job.effect == 'blade_dissimilarity' and not job.variant:
+            job = _screen_blade(job, base_model, experiments)
+            out.variant = job.variant
+            label = f'{job.effect} {job.variant}'
         runs, model, unknowns, extra, guess, max_step = _build(job, base_model, experiments)
         kw = {'max_step': max_step} if max_step else {}
         if job.effect == 'dynamic_inflow':
@@ -329,6 +351,29 @@ def fit_candidate(job):
     return out
 
 
+def _screen_blade(job, base_model, experiments):
+    """The blade whose dissimilarity lowers the cost most after two Gauss-Newton steps."""
+    from dataclasses import replace as _replace
+    best, best_cost = None, math.inf
+    for blade in _blades_of(base_model, job.record):
+        trial = _replace(job, variant=f'blade_{blade}')
+        runs, _, unknowns, _, guess, max_step = _build(trial, base_model, experiments)
+        try:
+            est = fit_output_error(runs, unknowns, guess=guess, known=job.known, max_iter=2)
+        except (IdentificationError, np.linalg.LinAlgError, FloatingPointError):
+            continue
+        if est.neg_log_likelihood < best_cost:
+            best, best_cost = trial, est.neg_log_likelihood
+    if best is None:
+        raise IdentificationError('no blade-dissimilarity fit could be evaluated')
+    return best
+
+
+def _blades_of(model, record):
+    """Blade numbers a model sees."""
+    return aug.BladeView(model).blades
+
+
 def _n_initial(experiments):
     return sum(len(e.free_states()) for e in experiments)
 
@@ -355,7 +400,7 @@ def _fit_process_noise(job, out, t_start):
     from rotor_id.pipeline import identify
     try:
         ident = identify(job.record, job.description, method='filter-error',
-                         window_s=job.window_s, multi_start=False)
+                         window_s=job.window_s, multi_start=False, max_iter=15)
     except Exception as exc:  # noqa: B902 - another module's failure must not end diagnosis
         out.available = False
         out.reason = f'filter-error fit failed: {type(exc).__name__}: {exc}'

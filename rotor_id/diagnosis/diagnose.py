@@ -29,7 +29,7 @@ import numpy as np
 from rotor_id.diagnosis import residuals as rs
 from rotor_id.diagnosis.augmentations import BladeView
 from rotor_id.diagnosis.catalogue import (
-    EFFECTS, EQUIVALENT, fit_candidate, Job, validate_candidate, variants)
+    EFFECTS, EQUIVALENT, fit_candidate, Job, n_choices, validate_candidate, variants)
 from rotor_id.estimation.simulate import simulate
 from rotor_id.physics.models import multiblade_from_blade_flap
 from rotor_id.pipeline import identify
@@ -38,6 +38,8 @@ from rotor_id.pipeline import identify
 CRITERION_THRESHOLD = 10.0
 #: Criterion gap to the best non-equivalent rival for a "high" confidence.
 CONFIDENCE_GAP = 10.0
+#: Strongest candidates cross-validated (the others cannot be chosen anyway).
+MAX_VALIDATED = 3
 _MBC = ('beta_0', 'beta_I', 'beta_II', 'beta_d')
 
 
@@ -278,7 +280,7 @@ def diagnose(record, description, progress=None, workers=2, effects=EFFECTS, win
     for fit in fits:
         if not fit.available:
             continue
-        n_var = len(variants(fit.effect, ident.model.name, n_blades))
+        n_var = n_choices(fit.effect, n_blades)
         dll, rho, crit = _score(fit, est, n_obs, n_var)
         prev = scored.get(fit.effect)
         if prev is None or crit > prev['criterion']:
@@ -286,7 +288,8 @@ def diagnose(record, description, progress=None, workers=2, effects=EFFECTS, win
                                   'criterion': crit}
 
     # ---- phase 2: cross-validation of the strong ones and of the baseline ----
-    strong = [e for e, s in scored.items() if s['criterion'] > CRITERION_THRESHOLD]
+    strong = sorted([e for e, s in scored.items() if s['criterion'] > CRITERION_THRESHOLD],
+                    key=lambda e: -scored[e]['criterion'])[:MAX_VALIDATED]
     val_jobs = [Job('baseline', '', record, description, values, unknowns, known, window_s)]
     for effect in strong:
         fit = scored[effect]['fit']

@@ -210,11 +210,23 @@ def generate(cfg):
                   source=f'truth_generator seed {cfg.seed}')
 
 
-def run_description_text(cfg, model, unknowns, window_s=None):
-    """A run description (README schema) for a generated record."""
+#: The experimenter's nominal values of the unknowns (the report's true values).
+NOMINAL_GUESS = {'A': 0.5, 'AL_over_tau': 0.25, 'inv_tau': 0.125, 'gamma': 5.0,
+                 'theta0': math.radians(2.0)}
+
+
+def run_description_text(cfg, model, unknowns, window_s=None, guess=True):
+    """A run description (README schema) for a generated record.
+
+    ``guess``: give the nominal values as ``initial_guess`` (saves the start-value grid).
+    """
     window_s = window_s or (0.0, cfg.t_end / cfg.omega_rad_s)
     names = ', '.join(unknowns)
-    return (f'rotor:\n  blades: {cfg.n_blades}\n  advance_ratio: {cfg.mu}\n'
+    extra = ''
+    if guess:
+        extra = 'initial_guess: {' + ', '.join(f'{n}: {NOMINAL_GUESS[n]!r}'
+                                               for n in unknowns) + '}\n'
+    return (extra + f'rotor:\n  blades: {cfg.n_blades}\n  advance_ratio: {cfg.mu}\n'
             f'  flap_frequency: 1.2\n  tip_loss: {cfg.tip_loss}\n'
             'topics: {blade_pitch: /rotor/blade_pitch, blade_flap: /rotor/blade_flap, '
             'azimuth: /rotor/azimuth}\n'

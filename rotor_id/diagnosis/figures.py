@@ -1,0 +1,153 @@
+"""Figures of a diagnosis (matplotlib, Agg): what a person would rather look at than read.
+
+* ``fits.png``: each model channel, measured vs baseline fit vs augmented fit, and the
+  residuals of both against ±σ of the noise floor.
+* ``residual_spectra.png``: residual periodograms (per rev) of baseline and augmented model
+  relative to the noise floor's flat level, smoothed; the located band shaded.
+* ``residual_energy.png``: residual mean square per revolution over time, relative to the
+  floor, baseline and augmented; the located time span shaded.
+"""
+
+import math
+from pathlib import Path
+
+import numpy as np
+
+from rotor_id.diagnosis import residuals as rs
+
+
+def _plt():
+    import matplotlib
+    matplotlib.use('Agg')
+    import matplotlib.pyplot as plt
+    return plt
+
+
+def _model_channels(diagnosis):
+    return [c for c in diagnosis.channels if c.model_channel]
+
+
+def _augmented_series(diagnosis):
+    """Augmented fitted values and residuals per model channel (None if no candidate)."""
+    fit = diagnosis.chosen
+    if fit is None:
+        return None, None
+    est = fit.estimate
+    if len(est.fitted) > 1:
+        return ([f[:, 0] for f in est.fitted], [r[:, 0] for r in est.residuals])
+    return ([est.fitted[0][:, j] for j in range(est.fitted[0].shape[1])],
+            [est.residuals[0][:, j] for j in range(est.residuals[0].shape[1])])
+
+
+def plot_fits(diagnosis, path):
+    """Measured vs both fits, and residuals, per model channel."""
+    plt = _plt()
+    chans = _model_channels(diagnosis)
+    aug_fit, aug_res = _augmented_series(diagnosis)
+    ts = diagnosis.record_window.time_s
+    fig, axes = plt.subplots(2 * len(chans), 1, figsize=(10, 2.0 * 2 * len(chans)),
+                             sharex=True)
+    for j, c in enumerate(chans):
+        ax, axr = axes[2 * j], axes[2 * j + 1]
+        ax.plot(ts, np.degrees(c.measured), '.', ms=2, color='0.6', label='measured')
+        ax.plot(ts, np.degrees(c.fitted), '-', lw=1.0, color='C0', label='baseline fit')
+        if aug_fit is not None:
+            ax.plot(ts, np.degrees(aug_fit[j]), '--', lw=1.0, color='C3',
+                    label=f'with {diagnosis.effect}')
+        ax.set_ylabel(f'{c.name}\n[deg]')
+        axr.plot(ts, np.degrees(c.residual), lw=0.5, color='C0', label='baseline residual')
+        if aug_res is not None:
+            axr.plot(ts, np.degrees(aug_res[j]), lw=0.5, color='C3', alpha=0.8,
+                     label='augmented residual')
+        for sign in (-1, 1):
+            axr.axhline(sign * math.degrees(c.floor), color='k', lw=0.6, ls=':')
+        axr.set_ylabel('residual\n[deg]')
+    axes[0].legend(loc='upper right', fontsize=7)
+    axes[1].legend(loc='upper right', fontsize=7)
+    axes[-1].set_xlabel('time since first sample [s]  (dotted: ±σ noise floor)')
+    fig.suptitle(_title(diagnosis), fontsize=9)
+    fig.tight_layout()
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+
+
+def _title(diagnosis):
+    fit = diagnosis.fit
+    return (f'{diagnosis.baseline.model.name}: {diagnosis.effect} '
+            f'({diagnosis.confidence} confidence) — RMS baseline {fit["baseline_rms"]:.3g}, '
+            f'augmented {fit["augmented_rms"]:.3g}, floor {fit["noise_floor"]:.3g} rad')
+
+
+def plot_spectra(diagnosis, path, smooth=15):
+    """Residual spectra of baseline and augmented model relative to the floor."""
+    plt = _plt()
+    chans = _model_channels(diagnosis)
+    _, aug_res = _augmented_series(diagnosis)
+    t = diagnosis.baseline.experiments[0].t
+    dt = float(np.median(np.diff(t)))
+    kernel = np.ones(smooth) / smooth
+    fig, ax = plt.subplots(figsize=(9, 4))
+    for label, series, color in (('baseline', [c.residual for c in chans], 'C0'),
+                                 ('augmented', aug_res, 'C3')):
+        if series is None:
+            continue
+        total = None
+        for res, c in zip(series, chans):
+            freq, spec = rs.periodogram(res, dt)
+            ratio = spec / c.floor**2
+            total = ratio if total is None else total + ratio
+        ax.semilogy(freq, np.convolve(total / len(chans), kernel, mode='same'), color=color,
+                    label=f'{label} residual')
+    ax.axhline(1.0, color='k', ls=':', lw=0.8, label='noise floor')
+    lo, hi = diagnosis.location['band_per_rev']
+    if diagnosis.mismatch:
+        ax.axvspan(lo, hi, color='0.85', label='located band')
+    ax.set_xlim(0, min(12.0, float(freq[-1])))
+    ax.set_xlabel('frequency [per rev]')
+    ax.set_ylabel('residual power / floor')
+    ax.legend(fontsize=8)
+    ax.set_title(_title(diagnosis), fontsize=9)
+    fig.tight_layout()
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+
+
+def plot_energy(diagnosis, path):
+    """Residual mean square per revolution over time, relative to the floor."""
+    plt = _plt()
+    chans = _model_channels(diagnosis)
+    _, aug_res = _augmented_series(diagnosis)
+    part = diagnosis.record_window
+    t = diagnosis.baseline.experiments[0].t
+    fig, ax = plt.subplots(figsize=(9, 3.5))
+    for label, series, color in (('baseline', [c.residual for c in chans], 'C0'),
+                                 ('augmented', aug_res, 'C3')):
+        if series is None:
+            continue
+        total = None
+        for res, c in zip(series, chans):
+            centres, ms = rs.windowed_energy(res, t)
+            total = ms / c.floor**2 if total is None else total + ms / c.floor**2
+        ax.plot(np.interp(centres, part.t, part.time_s), total / len(chans), 'o-', ms=3,
+                color=color, label=f'{label} residual')
+    ax.axhline(1.0, color='k', ls=':', lw=0.8, label='noise floor')
+    if diagnosis.mismatch:
+        ax.axvspan(*diagnosis.location['window_s'], color='0.85', label='located span')
+    ax.set_xlabel('time since first sample [s]')
+    ax.set_ylabel('mean square / floor²\n(per revolution)')
+    ax.legend(fontsize=8)
+    ax.set_title(_title(diagnosis), fontsize=9)
+    fig.tight_layout()
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+
+
+def write_report(diagnosis, directory):
+    """Write the three figures into ``directory``; return their paths."""
+    out = Path(directory)
+    out.mkdir(parents=True, exist_ok=True)
+    paths = [out / 'fits.png', out / 'residual_spectra.png', out / 'residual_energy.png']
+    plot_fits(diagnosis, paths[0])
+    plot_spectra(diagnosis, paths[1])
+    plot_energy(diagnosis, paths[2])
+    return paths

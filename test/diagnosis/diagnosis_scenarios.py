@@ -1,0 +1,149 @@
+"""Concealed-effect scenarios of the diagnosis study, shared by the tests and the benchmark.
+
+Each scenario is a truth (a :class:`truth_generator.TruthConfig` built from a seed), the run
+description's model and unknowns, the effect a correct diagnosis names (and the ids it may
+name instead because they are the same physics at this size), and the truth of the extra and
+of the original parameters. Effect sizes are set so that the baseline fit's residual RMS is at
+most 10 % above the noise floor (measured by the study itself, column ``excess``).
+"""
+
+from dataclasses import dataclass, field
+import math
+
+from truth_generator import generate, mu04_case, run_description_text, wake_case
+
+WAKE = ('multiblade_wake', ('A', 'AL_over_tau', 'inv_tau'))
+MULTIBLADE = ('multiblade', ('gamma', 'theta0'))
+CONSTANT = ('multiblade_constant', ('gamma', 'theta0'))
+OMEGA = 94.24777960769379
+A_TRUE = 0.5
+GAMMA_WAKE = 8.0 * A_TRUE / 0.97**4
+THETA0 = math.radians(2.0)
+WAKE_TRUTH = {'A': A_TRUE, 'AL_over_tau': 0.25, 'inv_tau': 0.125}
+
+
+def _eq30_bias(b):
+    """What the (β1−β3)/2, (β2−β4)/2 channels can see of per-blade biases b."""
+    d13, d24 = (b[0] - b[2]) / 2, (b[1] - b[3]) / 2
+    return {'bias_1': d13, 'bias_2': d24, 'bias_3': -d13, 'bias_4': -d24}
+
+
+@dataclass
+class Scenario:
+    """One concealed effect (or none) at a fixed size."""
+
+    name: str
+    effect: str
+    make: object                       # seed -> TruthConfig
+    model: tuple
+    accept: tuple = ()
+    extra_truth: dict = field(default_factory=dict)
+    original_truth: dict = field(default_factory=dict)
+
+    def config(self, seed):
+        """The truth of one seed."""
+        return self.make(seed)
+
+    def record_and_description(self, seed):
+        """(Record, RunDescription) of one seed."""
+        from rotor_id.io.run_description import parse_run_description
+        cfg = self.config(seed)
+        text = run_description_text(cfg, self.model[0], self.model[1])
+        return generate(cfg), parse_run_description(text)
+
+    def accepted(self):
+        """Effect ids counted as right."""
+        return (self.effect,) + tuple(self.accept)
+
+
+BIAS = [0.0004, -0.0002, 0.0, 0.0003]
+
+SCENARIOS = [
+    Scenario('none_wake', 'none', lambda s: wake_case(seed=s), WAKE,
+             original_truth=WAKE_TRUTH),
+    Scenario('none_multiblade', 'none', lambda s: wake_case(seed=s, wake=False), MULTIBLADE,
+             original_truth={'gamma': GAMMA_WAKE, 'theta0': THETA0}),
+    Scenario('none_mu04', 'none', lambda s: mu04_case(seed=s), ('multiblade', ('gamma', 'theta0')),
+             original_truth={'gamma': 5.0, 'theta0': THETA0}),
+    Scenario('dynamic_inflow', 'dynamic_inflow',
+             lambda s: wake_case(seed=s, wake_L=1.0, wake_tau=0.6), MULTIBLADE,
+             extra_truth={'A': A_TRUE, 'AL_over_tau': A_TRUE * 1.0 / 0.6,
+                          'inv_tau': 1.0 / 0.6},
+             original_truth={'gamma': GAMMA_WAKE, 'theta0': THETA0}),
+    Scenario('periodic_coefficients', 'periodic_coefficients', lambda s: mu04_case(seed=s),
+             CONSTANT, original_truth={'gamma': 5.0, 'theta0': THETA0}),
+    Scenario('sensor_lag', 'sensor_lag', lambda s: wake_case(seed=s, sensor_lag=0.05), WAKE,
+             accept=('time_delay',), extra_truth={'lag_rad': 0.05},
+             original_truth=WAKE_TRUTH),
+    Scenario('time_delay', 'time_delay',
+             lambda s: wake_case(seed=s, time_delay_s=0.05 / OMEGA), WAKE,
+             accept=('sensor_lag',), extra_truth={'delay_rad': 0.05},
+             original_truth=WAKE_TRUTH),
+    Scenario('sensor_bias', 'sensor_bias', lambda s: wake_case(seed=s, sensor_bias=BIAS), WAKE,
+             extra_truth=_eq30_bias(BIAS), original_truth=WAKE_TRUTH),
+    Scenario('blade_lock_number', 'blade_dissimilarity',
+             lambda s: wake_case(seed=s, gamma_scale=[1.0, 1.0, 1.06, 1.0]), WAKE,
+             extra_truth={'dgamma_rel': 0.06, 'dtheta': 0.0, 'blade': 3.0},
+             original_truth=WAKE_TRUTH),
+    Scenario('blade_pitch', 'blade_dissimilarity',
+             lambda s: wake_case(seed=s, pitch_offset=[0.0, 0.002, 0.0, 0.0]), WAKE,
+             extra_truth={'dgamma_rel': 0.0, 'dtheta': 0.002, 'blade': 2.0},
+             original_truth=WAKE_TRUTH),
+    Scenario('flap_frequency', 'flap_frequency', lambda s: wake_case(seed=s, flap_freq=1.22),
+             WAKE, extra_truth={'P': 1.22}, original_truth=WAKE_TRUTH),
+    Scenario('cubic_stiffness', 'cubic_stiffness',
+             lambda s: wake_case(seed=s, cubic_stiffness=120.0), WAKE,
+             extra_truth={'kappa': 120.0}, original_truth=WAKE_TRUTH),
+    Scenario('process_noise', 'process_noise',
+             lambda s: wake_case(seed=s, turbulence=0.0004, turbulence_corr=2.0), WAKE,
+             original_truth=WAKE_TRUTH),
+]
+
+BY_NAME = {s.name: s for s in SCENARIOS}
+
+
+def evaluate(scenario, result):
+    """Check one diagnosis JSON against its scenario; return a dict of outcomes."""
+    effect = result['explanation']['effect']
+    fit = result['fit']
+    out = {
+        'scenario': scenario.name,
+        'effect': effect,
+        'confidence': result['explanation'].get('confidence'),
+        'right': effect in scenario.accepted(),
+        'excess': fit['baseline_rms'] / fit['noise_floor'] - 1.0,
+        'augmented_excess': fit['augmented_rms'] / fit['noise_floor'] - 1.0,
+        'within_3sigma': None,
+        'original_within_3sigma': None,
+        'original_bias_before': None,
+        'original_bias_after': None,
+    }
+    if out['right'] and effect == scenario.effect and scenario.extra_truth:
+        params = result['explanation']['parameters']
+        z = []
+        for name, truth in scenario.extra_truth.items():
+            if name == 'blade':
+                continue
+            p = params.get(name)
+            if p is None or not p['std'] > 0:
+                z.append(math.inf)
+                continue
+            z.append(abs(p['value'] - truth) / p['std'])
+        out['within_3sigma'] = bool(max(z) <= 3.0) if z else None
+        out['extra_z'] = z
+        if 'blade' in scenario.extra_truth:
+            out['blade_right'] = params.get('blade', {}).get('value') == scenario.extra_truth[
+                'blade']
+    if scenario.original_truth:
+        before, after, inside = [], [], []
+        for name, truth in scenario.original_truth.items():
+            p = result['parameters'].get(name)
+            if p is None:
+                continue
+            before.append(abs(p['baseline_value'] - truth) / p['baseline_std'])
+            after.append(abs(p['value'] - truth) / p['std'])
+            inside.append(after[-1] <= 3.0)
+        out['original_bias_before'] = max(before) if before else None
+        out['original_bias_after'] = max(after) if after else None
+        out['original_within_3sigma'] = all(inside) if inside else None
+    return out

@@ -1,0 +1,142 @@
+"""Every candidate of the catalogue is a correct LinearModel built from the baseline.
+
+* analytic sensitivities of each augmented model equal finite differences of the simulator;
+* with its extra parameters at their neutral values an augmentation is the baseline itself;
+* the dynamic-inflow augmentation of the multiblade model at μ = 0 *is* the report's wake model
+  (Ch.2 eq. 29, MultibladeWake) on the tilt modes;
+* the periodic-coefficients candidate is the periodic model (MODELS.md §2.1) on the constant
+  model's channels;
+* sensor bias has exactly the patterns the channels can see.
+"""
+
+import math
+
+import numpy as np
+import pytest
+
+from rotor_id.diagnosis import augmentations as aug
+from rotor_id.diagnosis.catalogue import ExtendedInput
+from rotor_id.estimation.simulate import simulate
+from rotor_id.physics.models import build_model, RotorConstants
+from rotor_id.physics.stirring import StirringSchedule
+
+T = np.linspace(0.0, 24.0, 241)
+SCHEDULE = StirringSchedule(collective=0.035, amplitude=0.026, t0=8.0, t_step=1.0)
+BASES = [('multiblade', 0.0), ('multiblade_constant', 0.4), ('multiblade_wake', 0.0),
+         ('multiblade', 0.4)]
+
+
+def _base(name, mu):
+    return build_model(name, RotorConstants(advance_ratio=mu), collective='theta0',
+                       angle_unit='rad')
+
+
+def _augmented(base):
+    models = [aug.SensorLag(base), aug.TimeDelay(base), aug.SensorBias(base, T),
+              aug.FlapFrequency(base), aug.CubicStiffness(base),
+              aug.BladeDissimilarity(base, 2)]
+    if base.name != 'multiblade_wake':
+        models.append(aug.DynamicInflow(base))
+    return models
+
+
+def _inputs():
+    extra = 0.02 + 0.01 * np.column_stack([np.cos(T), np.sin(2 * T), np.cos(3 * T), np.sin(T)])
+    return ExtendedInput(SCHEDULE, T, extra)
+
+
+def _away_from_neutral(model):
+    p = model.nominal().copy()
+    for i, par in enumerate(model.parameters):
+        if p[i] == 0.0:
+            p[i] = 30.0 if par.name == 'kappa' else 0.05
+    return p
+
+
+@pytest.mark.parametrize('name,mu', BASES)
+def test_sensitivities_equal_finite_differences(name, mu):
+    rng = np.random.default_rng(3)
+    inputs = _inputs()
+    for model in _augmented(_base(name, mu)):
+        p = _away_from_neutral(model)
+        x0 = 0.01 * rng.standard_normal(model.n_states)
+        idx = list(range(len(p)))
+        sim = simulate(model, p, inputs, T, x0, param_index=idx)
+        for i in idx:
+            h = 1e-6 * max(1.0, abs(p[i]))
+            up, down = p.copy(), p.copy()
+            up[i] += h
+            down[i] -= h
+            fd = (simulate(model, up, inputs, T, x0).y
+                  - simulate(model, down, inputs, T, x0).y) / (2 * h)
+            scale = np.max(np.abs(fd)) + 1e-12
+            assert np.max(np.abs(fd - sim.dy[:, :, i])) / scale < 1e-5, \
+                (model.name, model.parameter_names[i])
+
+
+@pytest.mark.parametrize('name,mu', BASES)
+def test_neutral_augmentation_is_the_baseline(name, mu):
+    base = _base(name, mu)
+    inputs = _inputs()
+    x0b = 0.01 * np.arange(1, base.n_states + 1)
+    ref = simulate(base, base.nominal(), inputs, T, x0b).y
+    for model in [aug.TimeDelay(base), aug.SensorBias(base, T), aug.FlapFrequency(base),
+                  aug.CubicStiffness(base), aug.BladeDissimilarity(base, 3)]:
+        x0 = np.concatenate([x0b, np.zeros(model.n_states - base.n_states)])
+        y = simulate(model, model.nominal(), inputs, T, x0).y
+        np.testing.assert_allclose(y, ref, atol=1e-13, err_msg=model.name)
+    # a sensor lag tends to no lag: the error from the baseline shrinks like τ
+    lag = aug.SensorLag(base)
+    x0 = np.concatenate([x0b, np.zeros(lag.n_states - base.n_states)])
+    errs = []
+    for tau in (0.2, 0.1, 0.05):
+        p = np.concatenate([base.nominal(), [tau]])
+        errs.append(np.max(np.abs(simulate(lag, p, inputs, T, x0, max_step=0.01).y - ref)))
+    assert errs[1] < 0.6 * errs[0] and errs[2] < 0.6 * errs[1]
+
+
+def test_dynamic_inflow_on_multiblade_is_the_reports_wake_model():
+    rotor = RotorConstants(advance_ratio=0.0)
+    base = build_model('multiblade', rotor, collective='theta0', angle_unit='rad')
+    wake_aug = aug.DynamicInflow(base)
+    wake = build_model('multiblade_wake', rotor)
+    gamma = 8 * 0.5 / 0.97**4                       # A = γB⁴/8 = 0.5
+    p_aug = wake_aug.parameter_vector({'gamma': gamma, 'theta0': 0.035,
+                                       'AL_over_tau': 0.25, 'inv_tau': 0.125})
+    t = np.linspace(0.0, 40.0, 401)
+    sched = StirringSchedule(collective=0.035, amplitude=0.026, t0=10.0, t_step=1.0)
+    a = simulate(wake_aug, p_aug, sched, t, np.zeros(wake_aug.n_states))
+    b = simulate(wake, np.array([0.5, 0.25, 0.125]), sched, t, np.zeros(wake.n_states))
+    names = wake_aug.state_names
+    for s_wake, s_aug in (('beta_I', 'beta_I'), ('beta_II', 'beta_II'),
+                          ('lambda_I', 'lambda_I'), ('lambda_II', 'lambda_II')):
+        np.testing.assert_allclose(a.x[:, names.index(s_aug)],
+                                   b.x[:, wake.state_names.index(s_wake)], atol=1e-12)
+
+
+def test_periodic_candidate_is_the_periodic_model_on_three_channels():
+    rotor = RotorConstants(advance_ratio=0.4)
+    const = build_model('multiblade_constant', rotor, collective='theta0', angle_unit='rad')
+    cand = aug.periodic_coefficients(const)
+    full = build_model('multiblade', rotor, collective='theta0', angle_unit='rad')
+    assert cand.parameter_names == const.parameter_names
+    assert cand.output_names == const.output_names
+    p = full.nominal()
+    x0 = np.zeros(8)
+    np.testing.assert_allclose(simulate(cand, p, SCHEDULE, T, x0).y,
+                               simulate(full, p, SCHEDULE, T, x0).y[:, :3], atol=1e-14)
+
+
+def test_sensor_bias_patterns_are_what_the_channels_see():
+    wake = aug.SensorBias(build_model('multiblade_wake', RotorConstants(advance_ratio=0.0)), T)
+    assert wake.basis.shape == (4, 2)               # (β1−β3)/2 and (β2−β4)/2 see two patterns
+    proj = wake.basis @ wake.basis.T
+    np.testing.assert_allclose(proj @ np.ones(4), 0.0, atol=1e-12)
+    np.testing.assert_allclose(proj @ np.array([1.0, 0.0, -1.0, 0.0]),
+                               [1.0, 0.0, -1.0, 0.0], atol=1e-12)
+    mb = aug.SensorBias(_base('multiblade', 0.0), T)
+    assert mb.basis.shape == (4, 3)                 # all but the collective (θ0 absorbs it)
+    const = aug.SensorBias(_base('multiblade_constant', 0.4), T)
+    assert const.basis.shape == (4, 2)              # no βd channel: no reactionless pattern
+    assert math.isclose(float(np.sum(const.basis[:, 0] * (-1.0) ** np.arange(1, 5))), 0.0,
+                        abs_tol=1e-12)
