@@ -8,9 +8,11 @@ one-sided finite-difference Jacobian is exactly that), so
 
 is the overhead of our analytic sensitivities and of the Gauss-Newton bookkeeping over that
 floor (target ≤ 1.5). t(iteration) is measured as the marginal cost of an iteration of
-:func:`fit_output_error`: [t(fit with max_iter = K) − t(fit with max_iter = 0)] / K, with K the
-iterations the converged fit takes, so it contains the sensitivity simulation, M, the gradient,
-the solve and the convergence test, and nothing of the set-up. t(simulation) is
+:func:`fit_output_error`: the slope of the median fit time against max_iter = 0, 1, …, K (K the
+iterations the converged fit takes; least-squares line through the K + 1 medians, which is
+steadier on a shared machine than a difference of two timings), so it contains the sensitivity
+simulation, M, the gradient, the solve and the convergence test, and nothing of the set-up.
+t(simulation) is
 :func:`simulate` without sensitivities at the estimate. p counts every unknown, initial states
 included. All timed interleaved.
 
@@ -47,26 +49,25 @@ def bench_case(label, case_name, seed, repeat):
     x0_hat = est.initial_states[0]
     k = len(est.names)
 
-    def fit_k():
-        return fit_output_error([exp], unknowns, guess=dict(case.start), noise_std=sigma,
-                                max_iter=k_iter)
-
-    def fit_0():
-        return fit_output_error([exp], unknowns, guess=dict(case.start), noise_std=sigma,
-                                max_iter=0)
+    def fit_with(max_iter):
+        return lambda: fit_output_error([exp], unknowns, guess=dict(case.start),
+                                        noise_std=sigma, max_iter=max_iter)
 
     def plain():
         return simulate(exp.model, p_hat, exp.inputs, exp.t, x0_hat)
 
     say(f'{label}: p = {k}, {k_iter} iterations, {repeat} rounds')
-    timing = time_interleaved({'fit_k': fit_k, 'fit_0': fit_0, 'plain': plain}, repeat=repeat)
-    t_iter = (timing['fit_k']['median'] - timing['fit_0']['median']) / k_iter
+    functions = {f'fit_{i}': fit_with(i) for i in range(k_iter + 1)}
+    functions['plain'] = plain
+    timing = time_interleaved(functions, repeat=repeat)
+    fit_medians = [timing[f'fit_{i}']['median'] for i in range(k_iter + 1)]
+    t_iter = float(np.polyfit(np.arange(k_iter + 1), fit_medians, 1)[0])
     t_sim = timing['plain']['median']
     ratio = t_iter / ((k + 1) * t_sim)
     say(f'  iteration {fmt_time(t_iter)}, simulation {fmt_time(t_sim)}, ratio {ratio:.2f}')
     return {'label': label, 'case': case_name, 'k': k, 'samples': exp.t.size,
             'iterations': k_iter, 't_iter': t_iter, 't_sim': t_sim, 'ratio': ratio,
-            't_fit': timing['fit_k']['median']}
+            't_fit': fit_medians[-1]}
 
 
 def report(results, repeat):
@@ -78,9 +79,10 @@ def report(results, repeat):
                             'one GN iteration', 'one plain simulation', '(p+1) simulations',
                             'ratio (target ≤ 1.5)'], rows)
     worst = max(results, key=lambda r: r['ratio'])
-    verdict = (f'Largest ratio {worst["ratio"]:.2f} ({worst["case"]}): target ≤ {TARGET} '
-               f'{"met" if worst["ratio"] <= TARGET else "MISSED"} on '
-               f'{sum(r["ratio"] <= TARGET for r in results)} of {len(results)} cases.')
+    missed = [r['case'] for r in results if r['ratio'] > TARGET]
+    verdict = (f'Largest ratio {worst["ratio"]:.2f} ({worst["case"]}). Target ≤ {TARGET}: met '
+               f'on {len(results) - len(missed)} of {len(results)} cases'
+               + (f'; missed on {", ".join(missed)}.' if missed else '.'))
     return (f'## Gauss-Newton iteration vs (p+1) plain simulations (median of {repeat} '
             f'interleaved rounds)\n\n{table}\n\n{verdict}\n')
 
