@@ -286,7 +286,8 @@ def fit_ekf(experiments, unknowns, guess=None, known=None, noise_std=None, progr
         start = dict(zip(unknowns, theta))
         if smooth:
             x0 = res.z_smooth[0, :res.n_states]
-        info = {'iteration': iteration, 'cost': -res.log_likelihood, 'names': list(unknowns),
+        info = {'iteration': iteration, 'cost': -res.log_likelihood,
+                'rms': math.sqrt(float(np.mean(res.innovations**2))), 'names': list(unknowns),
                 'values': theta.copy(), 'elapsed': time.perf_counter() - t_start,
                 'label': 'augmented-state EKF'}
         history.append(info)

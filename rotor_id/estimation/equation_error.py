@@ -385,7 +385,10 @@ def fit_equation_error(experiments, unknowns, guess=None, known=None, progress=N
         change = theta - p[idx]
         p = p.copy()
         p[idx] = theta
-        info = {'iteration': iteration, 'cost': cost, 'names': list(unknowns),
+        out_res = [y - np.einsum('tij,tj->ti', exp.model.output_matrix(exp.t), rec.x_smoothed)
+                   for (exp, y, _), rec in zip(data, recs)]
+        rms = math.sqrt(float(np.mean(np.concatenate(out_res)**2)))
+        info = {'iteration': iteration, 'cost': cost, 'rms': rms, 'names': list(unknowns),
                 'values': theta.copy(), 'P_diag': np.diag(P).copy(),
                 'elapsed': time.perf_counter() - t_start, 'label': 'equation error'}
         history.append(info)

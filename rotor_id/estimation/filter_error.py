@@ -420,7 +420,8 @@ def fit_filter_error(experiments, unknowns, guess=None, known=None, noise_std=No
         results = prob.evaluate(theta)
         cost = _cost(results)
         sigma = np.sqrt(np.clip(np.diag(np.linalg.pinv(M)), 0.0, None))
-        info = {'iteration': iteration, 'cost': float(cost), 'names': names,
+        rms = math.sqrt(np.mean(np.concatenate([r[0] for r in results])**2))
+        info = {'iteration': iteration, 'cost': float(cost), 'rms': rms, 'names': names,
                 'values': _reported(prob, theta), 'elapsed': time.perf_counter() - t_start,
                 'label': label}
         history.append(info)
@@ -431,24 +432,36 @@ def fit_filter_error(experiments, unknowns, guess=None, known=None, noise_std=No
             message = 'converged'
             break
     grad, M = _gradient_information(results, k)
-    # report σ, not the variance q = σ² it was optimised as: M_σ = Jᵀ M_q J, J = ∂q/∂σ = 2σ
-    jac = np.ones(k)
-    if prob.i_process is not None:
-        jac[prob.i_process] = 2.0 * math.sqrt(max(theta[prob.i_process], 0.0))
-    M = M * np.outer(jac, jac)
     warnings = []
-    informative = np.diag(M) > 1e-12 * max(1e-300, float(np.max(np.diag(M))))
-    cov = np.full((k, k), np.nan)
-    idx = np.flatnonzero(informative)
-    cov[np.ix_(idx, idx)] = np.linalg.pinv(M[np.ix_(idx, idx)])
-    if not np.all(informative):
-        gone = [names[i] for i in np.flatnonzero(~informative)]
-        warnings.append('no information on ' + ', '.join(gone) + ' at the estimate (a noise '
-                        'σ at zero): its bound is undefined (NaN)')
-        cov = np.where(np.isnan(cov), 0.0, cov)
-        for i in np.flatnonzero(~informative):
-            cov[i, i] = np.inf
-    dep, _ = dependence_warnings([names[i] for i in idx], M[np.ix_(idx, idx)])
+    # Cramér-Rao bound in the optimised coordinates (q = σ² for the process noise)
+
+    def bound(M):
+        d = np.sqrt(np.clip(np.diag(M), 1e-300, None))
+        return np.linalg.pinv(M / np.outer(d, d), rcond=1e-13) / np.outer(d, d)
+    cov = bound(M)
+    # report σ and its bound: σ_σ = σ_q / (2σ). At σ = 0 (an active bound) the delta method
+    # fails: the other parameters get the bound with σ held at zero, as for any parameter on
+    # a bound, and σ's entry is √σ_q, the smallest resolvable σ (a detection limit)
+    if prob.i_process is not None:
+        i = prob.i_process
+        sigma_hat = math.sqrt(max(theta[i], 0.0))
+        if sigma_hat > 1e-6 * math.sqrt(cov[i, i]):
+            cov[i, :] /= 2.0 * sigma_hat
+            cov[:, i] /= 2.0 * sigma_hat
+        else:
+            detect = math.sqrt(math.sqrt(cov[i, i]))
+            rest = [j for j in range(k) if j != i]
+            cov = np.zeros((k, k))
+            cov[np.ix_(rest, rest)] = bound(M[np.ix_(rest, rest)])
+            cov[i, i] = detect**2
+            warnings.append(f'process noise estimated at zero: the data show no system noise; '
+                            f'its std {detect:.3g} is the detection limit √(CRB of σ²), not a '
+                            'Cramér-Rao σ; the other bounds hold it at zero')
+        jac = np.ones(k)
+        jac[i] = 2.0 * sigma_hat
+        M = M * np.outer(jac, jac)
+    kept = [i for i in range(k) if M[i, i] > 0]          # σ at zero carries no information
+    dep, _ = dependence_warnings([names[i] for i in kept], M[np.ix_(kept, kept)])
     warnings += dep
     if not converged:
         warnings.append(message)

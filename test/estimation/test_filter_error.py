@@ -232,3 +232,30 @@ def test_simultaneous_measurement_and_system_noise_output_error_converges():
         assert est.converged and est.iterations <= 15, est.message
         errors.append(np.abs(est.values[:3] / P_TRUE - 1.0))
     assert np.all(np.median(errors, axis=0) < 0.20), np.median(errors, axis=0)
+
+
+@pytest.mark.parametrize('method', ['filter-error', 'equation-error'])
+def test_identify_recording_with_each_method(method):
+    """`rotor-id identify --method ...` path on the id_wake_progressing recording (answers.json)."""
+    import json
+    from pathlib import Path
+    from rotor_id import pipeline
+    from rotor_id.io.bag import read_record
+    from rotor_id.io.run_description import load_run_description
+    recordings = Path(__file__).resolve().parents[3] / 'shared' / 'recordings'
+    if not (recordings / 'id_wake_progressing').is_dir():
+        pytest.skip(f'shared recordings not found at {recordings}')
+    description = load_run_description(recordings / 'id_wake_progressing.yaml')
+    record = read_record(recordings / 'id_wake_progressing', description.topics,
+                         joint_names=description.joint_names)
+    result = pipeline.identify(record, description, method=method)
+    out = result.as_json()
+    assert out['method'] == method and out['converged']
+    answer = json.loads((recordings / 'answers.json').read_text())['id_wake_progressing']
+    for name, truth in answer['answer']['parameters'].items():
+        got = out['parameters'][name]
+        if method == 'filter-error':       # a maximum-likelihood bound: within 3 σ
+            assert abs(got['value'] - truth) < 3 * got['std'], (name, got, truth)
+        else:                              # its covariance is no bound: within 10 %
+            assert abs(got['value'] / truth - 1.0) < 0.10, (name, got, truth)
+    json.dumps(out, allow_nan=False)       # strict JSON (no Infinity/NaN)
