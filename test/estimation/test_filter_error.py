@@ -236,7 +236,7 @@ def test_simultaneous_measurement_and_system_noise_output_error_converges():
 
 @pytest.mark.parametrize('method', ['filter-error', 'equation-error'])
 def test_identify_recording_with_each_method(method):
-    """`rotor-id identify --method ...` path on the id_wake_progressing recording (answers.json)."""
+    """Run the `rotor-id identify --method ...` path on id_wake_progressing (answers.json)."""
     import json
     from pathlib import Path
     from rotor_id import pipeline
