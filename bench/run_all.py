@@ -20,11 +20,11 @@ BENCH_DIR = Path(__file__).resolve().parent
 
 #: name -> (script, full arguments, quick arguments, what it measures)
 BENCHMARKS = {
-    'ml_vs_peers': ('ml_vs_peers.py', ['--repeat', '5'], ['--repeat', '1', '--no-write'],
+    'ml_vs_peers': ('ml_vs_peers.py', ['--repeat', '9'], ['--repeat', '1', '--no-write'],
                     'ML vs least_squares peers (target ≥ 20× vs (a), > 1× vs (b))'),
-    'iteration_cost': ('iteration_cost.py', ['--repeat', '9'], ['--repeat', '2', '--no-write'],
+    'iteration_cost': ('iteration_cost.py', ['--repeat', '15'], ['--repeat', '2', '--no-write'],
                        'GN iteration / (p+1) simulations (target ≤ 1.5)'),
-    'scaling': ('scaling.py', ['--repeat', '5'], ['--repeat', '1', '--no-write'],
+    'scaling': ('scaling.py', ['--repeat', '7'], ['--repeat', '1', '--no-write'],
                 'record length and parameter count (no numeric target)'),
     'offline_throughput': ('offline_throughput.py', ['--repeat', '3'],
                            ['--repeat', '1', '--no-write'],
