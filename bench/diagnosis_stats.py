@@ -104,7 +104,8 @@ def main(argv=None):
     unknown = [n for n in args.scenarios if n not in BY_NAME]
     if unknown:
         parser.error(f'unknown scenario(s) {unknown}; choose from {list(BY_NAME)}')
-    tasks = [(n, args.first_seed + k) for n in args.scenarios for k in range(args.seeds)]
+    # seed-major order: every scenario gets its first seed early
+    tasks = [(n, args.first_seed + k) for k in range(args.seeds) for n in args.scenarios]
     runs = []
     t0 = time.perf_counter()
     ctx = multiprocessing.get_context('fork')

@@ -555,21 +555,31 @@ class DynamicInflow(Augmented):
 class BladeDissimilarity(Augmented):
     """Blade j's Lock number is γ(1+ε) and its aerodynamic pitch θ_j + Δθ (unseen by the sensor).
 
-    To first order the deviation η = β_j − (what the symmetric model predicts for blade j)
-    obeys blade j's own flapping equation, forced by ε times blade j's aerodynamic moment and
-    by the pitch offset (single blade, MODELS.md §1.1; at μ = 0 with the wake: A(θ+λ−β′)):
+    The deviation η = β_j − (what the symmetric model predicts for blade j) obeys blade j's
+    own flapping equation (single blade, MODELS.md §1.1; at μ = 0 with the wake: A(θ+λ−β′)),
+    forced by ε times the symmetric blade's aerodynamic moment M_j and by the pitch offset:
 
-        η″ + (γ/2) C η′ + [P² + (γ/2) K] η = ε M_j(x, t) + (γ/2) m_θ Δθ,    y += C_{:,j} η
+        η″ + (1+ε)(γ/2) C η′ + [P² + (1+ε)(γ/2) K] η = ε M_j(x, t) + (γ/2) m_θ s,
+        s = (1+ε)Δθ + εθ0,                                    y += C_{:,j} η
 
-    Parameters ``dgamma_rel`` (ε = γ_j/γ − 1) and ``dtheta`` (rad). Wake feedback of η (a
-    second-order effect in ε) is left out.
+    exact for given inflow (the blades of a rotor couple only through the wake).
+
+    Fitted parameters ``dgamma_rel`` (ε = γ_j/γ − 1) and ``dtheta_static`` = Δθ + εθ0 (rad):
+    with a constant collective a Lock-number change and a pitch offset both shift the blade's
+    trim by the same kind of constant, so the static part is carried by one parameter and ε by
+    the dynamic part only (that keeps the two nearly uncorrelated and Gauss-Newton well
+    conditioned); ``dtheta`` = Δθ is reported. With the wake model the
+    odd blade's extra aerodynamic moment δM = A[ε(θ_j + λ_j − β_j′) + Δθ − η′] also drives the
+    first-harmonic wake (MODELS.md §3.1: τλ′ + λ = −L·M): λI′ += −(AL/τ)(2/N) cos ψ_j δM/A,
+    λII′ += −(AL/τ)(2/N) sin ψ_j δM/A, which feeds back on every blade.
     """
 
     effect = 'blade_dissimilarity'
     extra_parameters = (
         Parameter('dgamma_rel', 'ε = γ_j/γ − 1', '-', 0.0, -0.9, 3.0,
                   "relative Lock-number difference of the odd blade"),
-        Parameter('dtheta', 'Δθ_j', 'rad', 0.0, -0.2, 0.2, "the odd blade's pitch offset"))
+        Parameter('dtheta_static', 'Δθ_j + εθ0', 'rad', 0.0, -0.2, 0.2,
+                  "the odd blade's static pitch-equivalent offset"))
     extra_states = ('eta', 'eta_dot')
     free_extra_states = ('eta', 'eta_dot')
 
@@ -595,7 +605,8 @@ class BladeDissimilarity(Augmented):
             A = pb[0]
             Hl = self.view.inflow(t)[:, j]
             row = Hl - Hbr
-            theta = u[:, 0] + theta_cyc
+            self._collective = float(np.mean(u[:, 0]))
+            theta = theta_cyc
             da = np.zeros((T, Pb, base.n_states))
             da[:, 0] = row
             da0 = np.zeros((T, Pb))
@@ -613,46 +624,75 @@ class BladeDissimilarity(Augmented):
         gi = _gamma_index(base)
         gamma = pb[gi]
         coll = base.parameter_names[1]
-        if coll == 'delta':
-            delta, d_delta = pb[1], np.array([0.0, 1.0])
-        else:
-            delta, d_delta = gamma * pb[1], np.array([pb[1], gamma])
+        delta = pb[1] if coll == 'delta' else gamma * pb[1]
         row = -0.5 * (damping[:, None] * Hbr + stiff[:, None] * Hb)
         a = gamma * row
-        a0 = 0.5 * m_theta * delta + 0.5 * gamma * m_theta * theta_cyc
+        self._collective = delta / gamma
+        a0 = 0.5 * gamma * m_theta * theta_cyc
         da = np.zeros((T, Pb, base.n_states))
         da[:, gi] = row
         da0 = np.zeros((T, Pb))
         da0[:, gi] = 0.5 * m_theta * theta_cyc
-        da0 += 0.5 * m_theta[:, None] * d_delta[None, :]
         dcoef = np.zeros((T, Pb))
         dcoef[:, gi] = 1.0
         return (0.5 * gamma * damping, P**2 + 0.5 * gamma * stiff, 0.5 * gamma * m_theta,
                 a, a0, dcoef * 0.5 * damping[:, None], dcoef * 0.5 * stiff[:, None],
                 dcoef * 0.5 * m_theta[:, None], da, da0)
 
+    def _wake_feedback(self, t, pb, u):
+        """Pieces of the odd blade's moment δM/A seen by the wake: harmonic weights w (T, 2),
+        state row r (T, n_base) and input part q (T,), so that δM/A = ε (r x + q) + Δθ − η′."""
+        j = self._j
+        psi = self.view._psi(t)[:, j]
+        n_blades = self.view.n_blades
+        w = (2.0 / n_blades) * np.column_stack([np.cos(psi), np.sin(psi)])
+        row = self.view.inflow(t)[:, j] - self.view.flap_rate(t)[:, j]
+        q = -u[:, 1] * np.sin(psi) + u[:, 2] * np.cos(psi)
+        return w, row, q
+
     def _extra(self, t, pb, pe, u, F, g):
         nb = self.n_base_states
-        eps, dth = pe
+        eps, stat = pe
         c, k, m, a, a0 = self._coefficients(t, pb, u)[:5]
+        k_aero = k - self.base.rotor.flap_frequency**2
         F[:, nb, nb + 1] = 1.0
-        F[:, nb + 1, nb] = -k
-        F[:, nb + 1, nb + 1] = -c
+        F[:, nb + 1, nb] = -(k - k_aero) - (1.0 + eps) * k_aero     # blade j's own γ_j
+        F[:, nb + 1, nb + 1] = -(1.0 + eps) * c
         F[:, nb + 1, :nb] = eps * a
-        g[:, nb + 1] = eps * a0 + m * dth
+        g[:, nb + 1] = eps * a0 + m * stat
+        if self.base.name == 'multiblade_wake':
+            gain = pb[1]                                   # AL/τ
+            w, row, q = self._wake_feedback(t, pb, u)
+            for i, lam in enumerate((4, 5)):
+                F[:, lam, :nb] += -gain * w[:, i, None] * eps * row
+                F[:, lam, nb + 1] += gain * w[:, i] * (1.0 + eps)
+                g[:, lam] += -gain * w[:, i] * (eps * q + stat)
 
     def _extra_jacobian(self, t, pb, pe, u, dF, dg):
         nb, kb = self.n_base_states, self.n_base_parameters
-        eps, dth = pe
-        _, _, _, a, a0, dc, dk, dm, da, da0 = self._coefficients(t, pb, u)
-        m = self._coefficients(t, pb, u)[2]
-        dF[:, :kb, nb + 1, nb] = -dk
-        dF[:, :kb, nb + 1, nb + 1] = -dc
+        eps, stat = pe
+        c, k, m, a, a0, dc, dk, dm, da, da0 = self._coefficients(t, pb, u)
+        k_aero = k - self.base.rotor.flap_frequency**2
+        dF[:, :kb, nb + 1, nb] = -(1.0 + eps) * dk
+        dF[:, :kb, nb + 1, nb + 1] = -(1.0 + eps) * dc
         dF[:, :kb, nb + 1, :nb] = eps * da
-        dg[:, :kb, nb + 1] = eps * da0 + dm * dth
+        dg[:, :kb, nb + 1] = eps * da0 + dm * stat
+        dF[:, kb, nb + 1, nb] = -k_aero
+        dF[:, kb, nb + 1, nb + 1] = -c
         dF[:, kb, nb + 1, :nb] = a
         dg[:, kb, nb + 1] = a0
         dg[:, kb + 1, nb + 1] = m
+        if self.base.name == 'multiblade_wake':
+            gain = pb[1]
+            w, row, q = self._wake_feedback(t, pb, u)
+            for i, lam in enumerate((4, 5)):
+                dF[:, 1, lam, :nb] += -w[:, i, None] * eps * row      # ∂/∂(AL/τ)
+                dF[:, 1, lam, nb + 1] += w[:, i] * (1.0 + eps)
+                dg[:, 1, lam] += -w[:, i] * (eps * q + stat)
+                dF[:, kb, lam, :nb] += -gain * w[:, i, None] * row    # ∂/∂ε
+                dF[:, kb, lam, nb + 1] += gain * w[:, i]
+                dg[:, kb, lam] += -gain * w[:, i] * q
+                dg[:, kb + 1, lam] += -gain * w[:, i]                 # ∂/∂(Δθ + εθ0)
 
     def output_matrix(self, t):
         """y = H x + C_{:,j} η."""
@@ -661,8 +701,21 @@ class BladeDissimilarity(Augmented):
         return H
 
     def report_parameters(self, values, cov):
-        """ε, Δθ and which blade."""
+        """ε, Δθ = (Δθ + εθ0) − εθ0 (σ by the delta method) and which blade."""
         out = super().report_parameters(values, cov)
+        k = self.n_base_parameters
+        theta0 = getattr(self, '_collective', 0.0)
+        if self.base.name != 'multiblade_wake':
+            gi = _gamma_index(self.base)
+            coll = self.base.parameter_names[1]
+            theta0 = values[1] / values[gi] if coll == 'delta' else values[1]
+        eps, stat = values[k], values[k + 1]
+        # Δθ = (s − εθ0)/(1 + ε), s = (1 + ε)Δθ + εθ0 the fitted static offset
+        g_s = 1.0 / (1.0 + eps)
+        g_e = -(theta0 + stat) / (1.0 + eps)**2
+        var = g_s**2 * cov[k + 1, k + 1] + g_e**2 * cov[k, k] + 2 * g_s * g_e * cov[k, k + 1]
+        out['dtheta'] = (float((stat - eps * theta0) / (1.0 + eps)),
+                         float(math.sqrt(max(var, 0.0))))
         out['blade'] = (float(self.blade), 0.0)
         return out
 

@@ -343,6 +343,9 @@ def diagnose(record, description, progress=None, workers=2, effects=EFFECTS, win
             if any(t['effect'] == eq for t in eligible):
                 notes.append(f'{effect} and {eq} are the same physics to first order at this '
                              'size; both explain the data')
+        if rivals and gap <= CONFIDENCE_GAP:
+            notes.append(f'{rivals[0]["effect"]} explains the data almost as well (criterion '
+                         f'{rivals[0]["criterion"]:.1f} against {chosen["criterion"]:.1f})')
         mismatch = True
     else:
         mismatch = residual_flag

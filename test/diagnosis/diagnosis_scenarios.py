@@ -85,14 +85,21 @@ SCENARIOS = [
              lambda s: wake_case(seed=s, gamma_scale=[1.0, 1.0, 1.06, 1.0]), WAKE,
              extra_truth={'dgamma_rel': 0.06, 'dtheta': 0.0, 'blade': 3.0},
              original_truth=WAKE_TRUTH),
+    # At μ = 0 with a constant collective a pitch offset of one blade shifts that blade's trim
+    # exactly as a flap-sensor bias would; only the wake's response to the offset's 1/rev
+    # moment tells them apart, below the noise at this size: sensor_bias is accepted.
     Scenario('blade_pitch', 'blade_dissimilarity',
              lambda s: wake_case(seed=s, pitch_offset=[0.0, 0.002, 0.0, 0.0]), WAKE,
+             accept=('sensor_bias',),
              extra_truth={'dgamma_rel': 0.0, 'dtheta': 0.002, 'blade': 2.0},
              original_truth=WAKE_TRUTH),
+    # a cubic spring about the steady coning is a flap-frequency change to first order
+    # (catalogue.EQUIVALENT): each accepts the other
     Scenario('flap_frequency', 'flap_frequency', lambda s: wake_case(seed=s, flap_freq=1.22),
-             WAKE, extra_truth={'P': 1.22}, original_truth=WAKE_TRUTH),
+             WAKE, accept=('cubic_stiffness',), extra_truth={'P': 1.22},
+             original_truth=WAKE_TRUTH),
     Scenario('cubic_stiffness', 'cubic_stiffness',
-             lambda s: wake_case(seed=s, cubic_stiffness=120.0), WAKE,
+             lambda s: wake_case(seed=s, cubic_stiffness=120.0), WAKE, accept=('flap_frequency',),
              extra_truth={'kappa': 120.0}, original_truth=WAKE_TRUTH),
     Scenario('process_noise', 'process_noise',
              lambda s: wake_case(seed=s, turbulence=0.0004, turbulence_corr=2.0), WAKE,
