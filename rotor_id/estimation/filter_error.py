@@ -293,7 +293,7 @@ def _gradient_information(results, k):
 def fit_filter_error(experiments, unknowns, guess=None, known=None, noise_std=None,
                      progress=None, max_iter=50, process_noise_std=None,
                      estimate_process_noise=True, rows=None, noise_model='white', gain='auto',
-                     step_tol=1e-4, max_step=DEFAULT_MAX_STEP, label='filter-error ML'):
+                     step_tol=1e-3, max_step=DEFAULT_MAX_STEP, label='filter-error ML'):
     """
     Filter-error maximum likelihood over one or more runs.
 
@@ -324,7 +324,8 @@ def fit_filter_error(experiments, unknowns, guess=None, known=None, noise_std=No
     gain : {'auto', 'time-varying', 'steady'}
         Time-varying or steady-state gain.
     step_tol : float
-        Converged when every step is below ``step_tol`` times its Cramér-Rao σ.
+        Converged when every step is below ``step_tol`` times its Cramér-Rao σ (0.1 %: the
+        likelihood can be flat along σ_V, where scoring creeps; smaller steps are noise).
     max_step : float
         Longest RK4 step of the discretisation.
     label : str
