@@ -220,7 +220,7 @@ def simulate(model, p, inputs, t, x0, param_index=(), x0_jacobian=None,
         u = inputs(tf)
         F, g = model.system(tf, p, u)
         h = np.repeat(np.diff(ts) / m, m)
-        if _time_invariant(F, h):
+        if _time_invariant(F, h, ts):
             # one Φ for every step; c still follows the input step by step
             F_maps, h_maps = F[:1], h[:1]
         else:
@@ -262,17 +262,18 @@ def simulate(model, p, inputs, t, x0, param_index=(), x0_jacobian=None,
     return Simulation(t, xs, y, Ss, dy)
 
 
-def _time_invariant(F, h):
+def _time_invariant(F, h, ts):
     """
     Return True when F is the same at every stage time and all steps are equally long.
 
-    Step lengths that differ by rounding only (sample times like ``round(t0 + 0.1 j, 10)``)
-    count as equal: the relative difference allowed, 1e-12, moves a sample by less than
-    1e-12 of a step, far below the RK4 truncation error.
+    Step lengths that differ by the rounding of the sample times ``ts`` only (e.g.
+    ``round(t0 + 0.1 j, 10)``, whose differences carry errors of a few ulp of t, i.e. 1e-13
+    of a step at t ≈ 1000) count as equal; anything larger (time-stamp jitter) does not.
     """
     if not np.all(F == F[:1]):
         return False
-    return bool(np.ptp(h) <= 1e-12 * abs(h[0]))
+    rounding = 8.0 * np.finfo(float).eps * float(np.max(np.abs(ts)))
+    return bool(np.ptp(h) <= 1e-12 * abs(h[0]) + rounding)
 
 
 def _rk4_constant_forcing(F, w, h):
