@@ -154,6 +154,20 @@ def import_costs():
     return {'cli': cli[:3], 'identify_module': alone[:3]}
 
 
+def reading_memory(bag, config):
+    """Peak RSS (MB) of a child that only reads the bag: product reader, then the floor."""
+    product = run_measured([sys.executable, '-c',
+                            'from rotor_id.commands.identify import load_inputs; '
+                            f'load_inputs({str(bag)!r}, {str(config)!r})'])
+    mcap = next(Path(bag).glob('*.mcap'))
+    floor = run_measured([sys.executable, '-c',
+                          f'import sys; sys.path.insert(0, {str(Path(__file__).parent)!r}); '
+                          'from offline_throughput import vectorised_read_floor; '
+                          f'vectorised_read_floor({str(mcap)!r}, '
+                          f'{set(DEFAULT_TOPICS.values())!r})'])
+    return product[1], floor[1]
+
+
 def vectorised_read_floor(mcap_file, topics):
     """
     Read the three topics of a healthy MCAP without a per-message Python step (a floor).
@@ -276,6 +290,8 @@ def main(argv=None):
     say('vectorised read floor')
     mcap = next(Path(bag).glob('*.mcap'))
     floor = min(vectorised_read_floor(mcap, set(DEFAULT_TOPICS.values()))[1] for _ in range(2))
+    say('peak memory of reading alone')
+    rss_read, rss_floor = reading_memory(bag, config)
     factor = DURATION_S / wall
     projected = imports['identify_module'][0] + floor + t_fit_short
     rows = [[name, f'{v["value"]:.5f}', f'{v["std"]:.5f}', f'{TRUTH[name]:.5f}',
@@ -313,6 +329,8 @@ def main(argv=None):
             ['identify on the record cut to the window ± 0.5 s', fmt_time(t_fit_short), '–'],
             ['vectorised MCAP read floor (prototype below, same 3 topics)', fmt_time(floor),
              '–'],
+            ['peak memory of a child that only reads the bag: product reader / floor',
+             f'{rss_read:.0f} MB / {rss_floor:.0f} MB', '–'],
         ])
         + '\n\n'
         f'Projection (a sum of measured parts, not a measurement): importing only the '
