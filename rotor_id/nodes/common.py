@@ -12,14 +12,16 @@ import os
 from pathlib import Path
 import signal
 import sys
+import time
 
 from builtin_interfaces.msg import Time
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 import numpy as np
 from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor
 import rclpy
+from rclpy.duration import Duration
 from rclpy.exceptions import NameValidationException, ParameterException
-from rclpy.executors import ExternalShutdownException
+from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.qos import (DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy)
 from rclpy.signals import SignalHandlerOptions
 from rotor_id_msgs.msg import IdentificationProgress, ParameterEstimate
@@ -32,9 +34,21 @@ NS = 1_000_000_000
 SENSOR_QOS = QoSProfile(reliability=ReliabilityPolicy.BEST_EFFORT,
                         history=HistoryPolicy.KEEP_LAST, depth=1000,
                         durability=DurabilityPolicy.VOLATILE)
-#: Commands, estimates, states, events: reliable, volatile (depth 100 so none is dropped).
+#: Buffering readers of the sensor streams (identifier, state estimator): 10 s at 1 kHz, so a
+#: fit holding the interpreter on a busy machine does not cost samples.
+SENSOR_BUFFER_QOS = QoSProfile(reliability=ReliabilityPolicy.BEST_EFFORT,
+                               history=HistoryPolicy.KEEP_LAST, depth=10000,
+                               durability=DurabilityPolicy.VOLATILE)
+#: What the plant offers on the sensor topics: reliable, so that a recorder (which adapts to the
+#: offer) can take every sample, while best-effort readers (SENSOR_QOS) match it as well. The
+#: writer keeps 10 s at 1 kHz for re-sending to a reader that fell behind.
+SENSOR_OFFER_QOS = QoSProfile(reliability=ReliabilityPolicy.RELIABLE,
+                              history=HistoryPolicy.KEEP_LAST, depth=10000,
+                              durability=DurabilityPolicy.VOLATILE)
+#: Commands, estimates, states, events: reliable, volatile (depth 1000: a reader that fell
+#: behind, such as a recorder on a busy machine, still gets every message re-sent).
 STATE_QOS = QoSProfile(reliability=ReliabilityPolicy.RELIABLE, history=HistoryPolicy.KEEP_LAST,
-                       depth=100, durability=DurabilityPolicy.VOLATILE)
+                       depth=1000, durability=DurabilityPolicy.VOLATILE)
 DIAGNOSTICS_QOS = QoSProfile(reliability=ReliabilityPolicy.RELIABLE,
                              history=HistoryPolicy.KEEP_LAST, depth=10)
 
@@ -63,15 +77,21 @@ def declare(node, name, default, description, low=None, high=None, read_only=Tru
 
 def resolve_config(path):
     """
-    Find a config file given as a path, or by name in the installed share/rotor_id/config.
+    Find a config file given as a path, or by name in rotor_id's config directory.
 
-    Raises FileNotFoundError naming both places when neither has it.
+    By name: the config/ of the source tree this module was imported from (a clone, where
+    tools/env.sh puts the sources first so that edits apply without a rebuild), else the
+    installed share/rotor_id/config. Raises FileNotFoundError naming the places tried.
     """
     candidate = Path(os.path.expanduser(str(path)))
     if candidate.is_file():
         return candidate
     tried = [str(candidate.resolve())]
     if not candidate.is_absolute():
+        source = Path(__file__).resolve().parents[2] / 'config' / candidate
+        if source.is_file() and (source.parents[1] / 'setup.py').is_file():
+            return source
+        tried.append(str(source))
         try:
             from ament_index_python.packages import get_package_share_directory
             share = Path(get_package_share_directory('rotor_id')) / 'config' / candidate
@@ -80,10 +100,6 @@ def resolve_config(path):
             tried.append(str(share))
         except (ImportError, LookupError, ValueError):
             pass
-        source = Path(__file__).resolve().parents[2] / 'config' / candidate
-        if source.is_file():
-            return source
-        tried.append(str(source))
     raise FileNotFoundError(f'config file {path} not found (looked at {", ".join(tried)})')
 
 
@@ -239,45 +255,46 @@ def estimate_from_message(msg):
         np.asarray(msg.std, dtype=float), cov
 
 
+def wait_for_acks(publishers, timeout_s=10.0):
+    """Before exiting: give reliable readers (a lagging recorder) the messages still in flight."""
+    deadline = time.monotonic() + timeout_s
+    for publisher in publishers:
+        if publisher.qos_profile.reliability == ReliabilityPolicy.RELIABLE:
+            left = max(0.0, deadline - time.monotonic())
+            publisher.wait_for_all_acked(Duration(nanoseconds=int(left * 1e9)))
+
+
 # ------------------------------------------------------------------------------ main
 def spin_node(node_factory, args=None, executor_factory=None):
     """
     Run a node as main() does in demo_nodes_py (Jazzy, CONVENTIONS.md §2/§9); returns exit code.
 
     A configuration error while constructing the node (ValueError) is one line on stderr and
-    exit code 2, never a traceback. SIGINT and SIGTERM raise KeyboardInterrupt once (then are
-    ignored), so the clean-up in ``finally`` cannot be cut short by a second signal: rclpy's own
-    handler would raise ExternalShutdownException and then KeyboardInterrupt, the second one
-    inside the clean-up.
+    exit code 2, never a traceback. SIGINT and SIGTERM only set a flag that the spin loop checks
+    every 0.1 s: rclpy's own handler raises ExternalShutdownException and then
+    KeyboardInterrupt, which can land inside a message conversion or the clean-up.
     """
     rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
-
-    def interrupt(_signum, _frame):
-        for signum in (signal.SIGINT, signal.SIGTERM):
-            signal.signal(signum, signal.SIG_IGN)
-        raise KeyboardInterrupt
-
+    stop = []
     for signum in (signal.SIGINT, signal.SIGTERM):
-        signal.signal(signum, interrupt)
+        signal.signal(signum, lambda number, _frame: stop.append(number))
     node = None
     code = 0
     try:
-        node = node_factory()
-        if executor_factory is None:
-            rclpy.spin(node)
-        else:
-            executor = executor_factory()
-            executor.add_node(node)
-            executor.spin()
+        try:
+            node = node_factory()
+        except (ValueError, ParameterException, NameValidationException) as exc:
+            print(f'rotor_id: configuration error: {exc}', file=sys.stderr)
+            return 2
+        executor = (executor_factory or SingleThreadedExecutor)()
+        executor.add_node(node)
+        while not stop:
+            executor.spin_once(timeout_sec=0.1)
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
-    except (ValueError, ParameterException, NameValidationException) as exc:
-        print(f'rotor_id: configuration error: {exc}', file=sys.stderr)
-        code = 2
-    except Exception:  # noqa: B902 - a callback cut short by the shutdown signal is no error
-        if rclpy.ok():
-            raise
     finally:
+        for signum in (signal.SIGINT, signal.SIGTERM):   # stopping already: no second interrupt
+            signal.signal(signum, signal.SIG_IGN)
         if node is not None:
             close = getattr(node, 'close', None)
             if close is not None:

@@ -18,6 +18,7 @@ published on ``/rotor_id/progress``. Fits run in a worker thread so the subscrip
 
 from dataclasses import replace
 import math
+import sys
 import threading
 import time
 
@@ -27,11 +28,11 @@ from rclpy.node import Node
 from rclpy.task import Future
 from rotor_id.io.run_description import load_run_description
 from rotor_id.nodes.common import (declare, Diagnostics, estimate_message, NS, progress_message,
-                                   resolve_config, SENSOR_QOS, spin_node, stamp_ns,
-                                   STATE_QOS)
+                                   resolve_config, SENSOR_BUFFER_QOS, spin_node, stamp_ns,
+                                   STATE_QOS, wait_for_acks)
 from rotor_id.nodes.live import (BadSample, bound_history, check_azimuth_sample,
                                  check_joint_sample, data_length_verdict, record_from_series,
-                                 StampedSeries)
+                                 StampedSeries, window_gaps)
 from rotor_id.pipeline import identify
 from rotor_id_msgs.msg import IdentificationProgress, ParameterEstimate
 from rotor_id_msgs.srv import Identify
@@ -87,6 +88,8 @@ class Identifier(Node):
         self.lock = threading.Lock()
         self.wake = threading.Condition()
         self.requests = []                # (window_s, final, time, future) for the worker
+        self.arrival = None               # monotonic time the newest sample was taken
+        self.latencies_ms = []
         self.final_done = False
         self.next_update = None
         self.guess = {}
@@ -97,12 +100,12 @@ class Identifier(Node):
                                                   self.d['progress_topic'], STATE_QOS)
         for role, callback in (('blade_flap', self.on_flap), ('blade_pitch', self.on_pitch),
                                ('azimuth', self.on_azimuth)):
-            self.create_subscription(JointState, desc.topics[role], callback, SENSOR_QOS)
+            self.create_subscription(JointState, desc.topics[role], callback, SENSOR_BUFFER_QOS)
         # own callback group: while a service call awaits its fit, data keep being taken
         self.create_service(Identify, '~/identify', self.on_identify,
                             callback_group=MutuallyExclusiveCallbackGroup())
         self.diagnostics = Diagnostics(self, 'identification')
-        self.create_timer(0.005, self.schedule)
+        self.create_timer(0.05, self.schedule)        # also checked on every azimuth sample
         self.running = True
         self.worker = threading.Thread(target=self.work, name='identifier-fit', daemon=True)
         self.worker.start()
@@ -143,6 +146,8 @@ class Identifier(Node):
             return
         with self.lock:
             self.azimuth.append(stamp, (psi, omega))
+        self.arrival = time.monotonic()
+        self.schedule()
 
     # -------------------------------------------------------------------------- scheduling
     def _covered_s(self):
@@ -177,7 +182,7 @@ class Identifier(Node):
         with self.wake:
             if future is None and not final:
                 self.requests = [r for r in self.requests if r[1] or r[3] is not None]
-            self.requests.append((window_s, final, time.monotonic(), future))
+            self.requests.append((window_s, final, self.arrival or time.monotonic(), future))
             self.wake.notify()
 
     def work(self):
@@ -194,8 +199,13 @@ class Identifier(Node):
                 future.set_result(msg)
                 continue
             self.pub_estimate.publish(msg)
-            self.diagnostics.set_value('last_fit_latency_ms',
-                                       f'{(time.monotonic() - requested) * 1e3:.1f}')
+            # latency: newest sample of the window taken -> its estimate published
+            self.latencies_ms.append((time.monotonic() - requested) * 1e3)
+            lat = np.array(self.latencies_ms)
+            self.diagnostics.set_value('latency_ms_last', f'{lat[-1]:.1f}')
+            self.diagnostics.set_value('latency_ms_median', f'{np.median(lat):.1f}')
+            self.diagnostics.set_value('latency_ms_max', f'{lat.max():.1f}')
+            self.diagnostics.set_value('latency_count', lat.size)
 
     # -------------------------------------------------------------------------- fitting
     def fit(self, window_s, final, max_iter=None):
@@ -206,6 +216,12 @@ class Identifier(Node):
                                             self.flap_joints, self.stamp0)
             except ValueError as exc:
                 return self._failed(str(exc), window_s)
+            gaps = window_gaps({'flap': self.flap, 'pitch': self.pitch,
+                                'azimuth': self.azimuth},
+                               self.stamp0 + int(window_s[0] * NS),
+                               self.stamp0 + int(window_s[1] * NS))
+        if gaps:       # interpolated across: say so (the blade pitch turns once per revolution)
+            self.diagnostics.count('window_gaps', '; '.join(gaps))
         desc = self.description
         if self.guess:
             desc = replace(desc, initial_guess={**desc.initial_guess, **self.guess})
@@ -227,15 +243,15 @@ class Identifier(Node):
         if est.converged and np.all(np.isfinite(est.values)):
             self.guess = {n: est.value(n) for n in self.unknowns}
         std = np.array([est.std_of(n) for n in self.unknowns])
-        if np.any(self.targets > 0):
+        verdict = data_length_verdict(std, self.targets)
+        if not verdict[0]:                # how much more data: from the M⁻¹(t_f) trend
             t, hist = bound_history(ident)
             verdict = data_length_verdict(std, self.targets, t, hist, ident.omega_rad_s)
-        else:
-            verdict = (True, 0.0)
         status = None if final else ParameterEstimate.STATUS_ITERATING
         note = (f'{"final" if final else "growing window (provisional)"}: '
                 f'{window_s[0]:.4f}-{window_s[1]:.4f} s, {est.message}, '
-                f'{self.last_fit_s * 1e3:.0f} ms')
+                f'{self.last_fit_s * 1e3:.0f} ms'
+                + ('' if not gaps else '; WARNING samples lost: ' + '; '.join(gaps)))
         msg = estimate_message(ident, self.get_clock().now().to_msg(), status, verdict,
                                self.d['frame_id'], note)
         self.diagnostics.set_value('last_estimate', ', '.join(
@@ -284,11 +300,14 @@ class Identifier(Node):
         return response
 
     def close(self):
-        """Stop the worker thread."""
+        """Stop the worker thread; print the estimate latencies."""
         self.running = False
         with self.wake:
             self.wake.notify()
         self.worker.join(timeout=5.0)
+        wait_for_acks([self.pub_estimate, self.pub_progress])
+        print(f'identifier: estimate latencies (ms): '
+              f'{" ".join(f"{v:.1f}" for v in self.latencies_ms)}', file=sys.stderr, flush=True)
 
 
 def main(args=None):

@@ -455,6 +455,29 @@ def record_from_series(flap, pitch, azimuth, blade_names, stamp0_ns, source='liv
                   blade_names=list(blade_names), source=source, stamp0_ns=int(stamp0_ns))
 
 
+def window_gaps(named_series, lo_ns, hi_ns, factor=2.5):
+    """
+    Describe the gaps (missing samples) of each series inside [lo_ns, hi_ns].
+
+    A gap is a step between consecutive stamps longer than ``factor`` times the series' median
+    step. Returns a list of short texts (empty when complete).
+    """
+    notes = []
+    for name, series in named_series.items():
+        stamps = series.stamps
+        if stamps.size < 3:
+            continue
+        period = float(np.median(np.diff(stamps[-min(stamps.size, 200):])))
+        inside = stamps[(stamps >= lo_ns - period) & (stamps <= hi_ns + period)]
+        steps = np.diff(inside)
+        big = steps > factor * period
+        if np.any(big):
+            missing = int(np.sum(steps[big] / period - 1).round())
+            notes.append(f'{name}: {missing} sample(s) missing in {int(np.sum(big))} gap(s), '
+                         f'longest {steps.max() / 1e6:.1f} ms')
+    return notes
+
+
 # ------------------------------------------------------------------------------ Ch.3 verdict
 def bound_history(identification):
     """

@@ -88,10 +88,15 @@ class NodeProcesses:
         return {n: p.returncode for n, p in self.procs.items() if p.poll() is not None}
 
     def stop(self, name, sig=signal.SIGINT, timeout=15.0):
-        """Signal one process and wait for it (SIGKILL after ``timeout``); return its code."""
+        """
+        Signal one process and wait for it (SIGKILL after ``timeout``); return its code.
+
+        ``sig`` None: only wait (it was signalled already).
+        """
         proc = self.procs[name]
         if proc.poll() is None:
-            proc.send_signal(sig)
+            if sig is not None:
+                proc.send_signal(sig)
             try:
                 proc.wait(timeout)
             except subprocess.TimeoutExpired:
@@ -111,7 +116,7 @@ class NodeProcesses:
                 self.procs[name].send_signal(signal.SIGINT)
         deadline = time.monotonic() + timeout
         for name in rest:
-            codes[name] = self.stop(name, timeout=max(0.1, deadline - time.monotonic()))
+            codes[name] = self.stop(name, None, timeout=max(0.1, deadline - time.monotonic()))
         for log in self.logs.values():
             log.close()
         return codes

@@ -94,8 +94,10 @@ class Recorder(Node):
             ('exclude_topics', ['/rosout', '/parameter_events'], 'topics never recorded'),
             ('msg_dirs', [''], 'extra directories of .msg files of custom types'),
             ('discovery_period_s', 0.2, 'look for new topics this often (s)', 0.01, 10.0),
-            ('drain_s', 0.3, 'on stop, keep taking messages until quiet this long (s)',
+            ('drain_s', 1.0, 'on stop, keep taking messages until quiet this long (s)',
              0.0, 10.0),
+            ('drain_max_s', 10.0, 'but stop draining after this long (s): publishers that go '
+             'on forever', 0.0, 600.0),
         ]
         self.d = {s[0]: declare(self, s[0], s[1], s[2], *s[3:]) for s in spec}
         output = self.d['output'] or time.strftime('rotor_id_%Y%m%d-%H%M%S')
@@ -176,8 +178,10 @@ def main(args=None):
         executor.add_node(node)
         while not stop:
             executor.spin_once(timeout_sec=0.1)
-        # the stop: take everything already delivered before finalising
-        deadline = time.monotonic() + max(1.0, 3 * node.d['drain_s'])
+        # the stop: take everything already delivered before finalising (quiet = no message for
+        # drain_s since draining began, not since the last message before the signal)
+        node.last_message = time.monotonic()
+        deadline = node.last_message + node.d['drain_max_s']
         while time.monotonic() - node.last_message < node.d['drain_s'] and \
                 time.monotonic() < deadline:
             executor.spin_once(timeout_sec=0.02)
@@ -185,6 +189,8 @@ def main(args=None):
         print(f'recorder: error: {exc}', file=sys.stderr)
         code = 2
     finally:
+        for signum in (signal.SIGINT, signal.SIGTERM):   # finalising: no second interrupt
+            signal.signal(signum, signal.SIG_IGN)
         if node is not None:
             node.close()
             node.destroy_node()

@@ -12,8 +12,8 @@ import math
 
 import numpy as np
 from rclpy.node import Node
-from rotor_id.nodes.common import (declare, Diagnostics, joint_state, NS, SENSOR_QOS, spin_node,
-                                   stamp_ns)
+from rotor_id.nodes.common import (declare, Diagnostics, joint_state, NS, SENSOR_OFFER_QOS,
+                                   SENSOR_QOS, spin_node, stamp_ns, wait_for_acks)
 from rotor_id.nodes.live import BadSample, check_joint_sample, PlantStepper, rotor_constants
 from rotor_id.physics.models import MODEL_NAMES
 from rotor_id.physics.stirring import multiblade_from_blade_pitch
@@ -50,9 +50,10 @@ class RotorPlant(Node):
         self.ready_ns = None
         self.last_cmd_ns = None
         self.commands = 0
-        self.pub_pitch = self.create_publisher(JointState, d['blade_pitch_topic'], SENSOR_QOS)
-        self.pub_flap = self.create_publisher(JointState, d['blade_flap_topic'], SENSOR_QOS)
-        self.pub_azimuth = self.create_publisher(JointState, d['azimuth_topic'], SENSOR_QOS)
+        offer = SENSOR_OFFER_QOS if d['reliable_sensors'] else SENSOR_QOS
+        self.pub_pitch = self.create_publisher(JointState, d['blade_pitch_topic'], offer)
+        self.pub_flap = self.create_publisher(JointState, d['blade_flap_topic'], offer)
+        self.pub_azimuth = self.create_publisher(JointState, d['azimuth_topic'], offer)
         self.create_subscription(JointState, d['pitch_command_topic'], self.on_command,
                                  SENSOR_QOS)
         self.diagnostics = Diagnostics(self, 'simulated rotor')
@@ -117,6 +118,9 @@ class RotorPlant(Node):
             ('max_abs_pitch_rad', 0.7, 'larger |pitch command| is rejected as degrees (rad)',
              0.01, 3.2),
             ('frame_id', 'rotor', 'header.frame_id of the published messages'),
+            ('reliable_sensors', True, 'offer the sensor topics RELIABLE (KEEP_LAST 10000) so a '
+             'recorder can take every sample (best-effort readers match either way); false: '
+             'best effort, like most sensor drivers'),
         ]
         return {item[0]: declare(self, item[0], item[1], item[2], *item[3:]) for item in spec}
 
@@ -183,6 +187,10 @@ class RotorPlant(Node):
                                                  [self.omega], frame_id=frame))
         self.diagnostics.set_value('samples_published', self.stepper.samples)
         self.diagnostics.set_value('commands_received', self.commands)
+
+    def close(self):
+        """Let reliable readers (a recorder) take the samples still in flight."""
+        wait_for_acks([self.pub_pitch, self.pub_flap, self.pub_azimuth])
 
 
 def main(args=None):

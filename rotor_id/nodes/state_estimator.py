@@ -10,12 +10,14 @@ model parameters: the report's iterated filter / identification loop (Ch.2).
 """
 
 import math
+import sys
 
 import numpy as np
 from rclpy.node import Node
 from rotor_id.io.run_description import load_run_description
 from rotor_id.nodes.common import (declare, Diagnostics, estimate_from_message, resolve_config,
-                                   SENSOR_QOS, spin_node, stamp_ns, STATE_QOS)
+                                   SENSOR_BUFFER_QOS, spin_node, stamp_ns, STATE_QOS,
+                                   wait_for_acks)
 from rotor_id.nodes.live import (AzimuthTracker, BadSample, check_azimuth_sample,
                                  check_joint_sample, StampedSeries, StreamingKalman)
 from rotor_id.physics.stirring import SampledInput
@@ -63,13 +65,14 @@ class StateEstimator(Node):
         self.done = 0                      # flap samples filtered so far
         self.kalman = None
         self.updates = 0
+        self.published = 0
         self.pub_state = self.create_publisher(StateEstimate, self.d['state_topic'], STATE_QOS)
         for role, series, joints in (('blade_flap', self.flap, self.flap_joints),
                                      ('blade_pitch', self.pitch, self.pitch_joints)):
             self.create_subscription(JointState, desc.topics[role],
-                                     self._joint_callback(series, joints), SENSOR_QOS)
+                                     self._joint_callback(series, joints), SENSOR_BUFFER_QOS)
         self.create_subscription(JointState, desc.topics['azimuth'], self.on_azimuth,
-                                 SENSOR_QOS)
+                                 SENSOR_BUFFER_QOS)
         self.create_subscription(ParameterEstimate, self.d['estimate_topic'], self.on_estimate,
                                  STATE_QOS)
         self.diagnostics = Diagnostics(self, 'state reconstruction')
@@ -133,10 +136,18 @@ class StateEstimator(Node):
         keep = np.concatenate([[True], np.diff(t_pitch) > 0])
         inputs = SampledInput.from_blade_pitch(t_pitch[keep], self.pitch.values[first:][keep])
         y = self.model.observe_blades(t, self.flap.values[self.done:end])
-        if self.kalman is None:
-            self._start(t[0], inputs)
-        x, P = self.kalman.update(t, inputs, y)
         self.done = end
+        try:
+            if self.kalman is None:
+                self._start(t[0], inputs)
+            x, P = self.kalman.update(t, inputs, y)
+            if not (np.all(np.isfinite(x)) and np.all(np.isfinite(P))):
+                raise FloatingPointError('non-finite state or covariance')
+        except (ValueError, FloatingPointError, np.linalg.LinAlgError) as exc:
+            # count, report, and start the filter afresh from the next samples
+            self.diagnostics.count('filter_restarts', f'{type(exc).__name__}: {exc}')
+            self.kalman = None
+            return
         self._publish(int(stamps[-1]), t[-1], x[-1], P[-1])
 
     def _start(self, t0, inputs):
@@ -163,7 +174,14 @@ class StateEstimator(Node):
         msg.azimuth = float(math.fmod(t, 2.0 * math.pi))
         msg.rotor_speed = float(omega)
         self.pub_state.publish(msg)
+        self.published += 1
         self.diagnostics.set_value('samples_filtered', self.done)
+
+    def close(self):
+        """Let reliable readers take what is in flight; print how many states were sent."""
+        wait_for_acks([self.pub_state])
+        print(f'state_estimator: published {self.published} state estimates',
+              file=sys.stderr, flush=True)
 
 
 def main(args=None):

@@ -13,10 +13,12 @@ rotor_id_msgs/StirringCommand on ``/rotor/stirring``.
 """
 
 import math
+import sys
 
 from rclpy.node import Node
-from rotor_id.nodes.common import (declare, Diagnostics, joint_state, SENSOR_QOS, spin_node,
-                                   stamp_ns, STATE_QOS, time_msg)
+from rotor_id.nodes.common import (declare, Diagnostics, joint_state, SENSOR_OFFER_QOS,
+                                   SENSOR_QOS, spin_node, stamp_ns, STATE_QOS, time_msg,
+                                   wait_for_acks)
 from rotor_id.nodes.live import AzimuthTracker, BadSample, check_azimuth_sample
 from rotor_id.physics.stirring import blade_pitch_from_multiblade, StirringSchedule
 from rotor_id_msgs.msg import StirringCommand
@@ -66,8 +68,9 @@ class StirringInput(Node):
         self.next_ns = None              # stamp of the next command on the grid
         self.azimuth = AzimuthTracker()
         self.published = 0
+        # commands are offered reliable (CONVENTIONS §4); the plant reads them best effort
         self.pub_command = self.create_publisher(JointState, d['pitch_command_topic'],
-                                                 SENSOR_QOS)
+                                                 SENSOR_OFFER_QOS)
         self.pub_stirring = self.create_publisher(StirringCommand, d['stirring_topic'],
                                                   STATE_QOS)
         self.create_subscription(JointState, d['azimuth_topic'], self.on_azimuth, SENSOR_QOS)
@@ -135,6 +138,12 @@ class StirringInput(Node):
         self.pub_stirring.publish(cmd)
         self.diagnostics.set_value('state', ('trim', 'cyclic step', 'stirring')[cmd.phase])
         self.diagnostics.set_value('t', f'{t:.4f}')
+
+    def close(self):
+        """Let reliable readers take what is in flight; print how many commands were sent."""
+        wait_for_acks([self.pub_command, self.pub_stirring])
+        print(f'stirring_input: published {self.published} pitch commands',
+              file=sys.stderr, flush=True)
 
 
 def main(args=None):

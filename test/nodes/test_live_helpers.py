@@ -185,3 +185,13 @@ def test_sampled_input_of_the_plant_pitch_recovers_the_commands():
     t, _, pitch = _drive(stepper, schedule, [400], every=1, knots=knots)
     u = SampledInput.from_blade_pitch(t, pitch)(t)
     assert np.allclose(u, np.array([k[1] for k in knots])[:400], atol=1e-12)
+
+
+def test_window_gaps_count_the_missing_samples():
+    from rotor_id.nodes.live import window_gaps
+    series = StampedSeries(1)
+    for k in list(range(0, 100)) + list(range(110, 200)):      # k = 100..109 lost
+        series.append(k * 1_000_000, [0.0])
+    assert window_gaps({'flap': series}, 0, 50_000_000) == []
+    notes = window_gaps({'flap': series}, 50_000_000, 150_000_000)
+    assert notes == ['flap: 10 sample(s) missing in 1 gap(s), longest 11.0 ms']
