@@ -55,7 +55,8 @@ def format_summary(diagnosis):
                  f'(baseline {fit["baseline_rms"] / fit["noise_floor"] - 1:+.1%}, augmented '
                  f'{fit["augmented_rms"] / fit["noise_floor"] - 1:+.1%} of the floor)')
     lines.append(f'whiteness p (Ljung-Box, Bonferroni): baseline '
-                 f'{fit["whiteness_p_baseline"]:.2g}, augmented {fit["whiteness_p_augmented"]:.2g}')
+                 f'{fit["whiteness_p_baseline"]:.2g}, augmented '
+                 f'{fit["whiteness_p_augmented"]:.2g}')
     if d['explanation']['parameters']:
         lines.append('extra parameters (Cramér-Rao σ):')
         for name, p in d['explanation']['parameters'].items():

@@ -85,7 +85,7 @@ class BladeView:
         return H
 
     def inflow(self, t):
-        """Hl (T, N, n): the wake model's inflow angle at blade k, λ_k = λI cos ψ_k + λII sin ψ_k."""
+        """Return Hl (T, N, n): the wake's inflow angle λ_k = λI cos ψ_k + λII sin ψ_k."""
         psi = self._psi(t)
         H = np.zeros((psi.shape[0], psi.shape[1], self.model.n_states))
         if self.kind == 'multiblade_wake':
@@ -215,7 +215,7 @@ class Augmented(LinearModel):
         return H
 
     def output_offset(self, t, p):
-        """The baseline's output offset (no baseline has one)."""
+        """Return the baseline's output offset (no baseline has one)."""
         pb, _ = self._split(p)
         return self.base.output_offset(t, pb)
 
@@ -228,7 +228,7 @@ class Augmented(LinearModel):
         return out
 
     def observe_blades(self, t, blade_flap):
-        """The baseline's channels."""
+        """Return the baseline's channels."""
         return self.base.observe_blades(t, blade_flap)
 
     def equilibrium(self, t, p, u):
@@ -287,7 +287,7 @@ class SensorLag(Augmented):
         dF[:, -1, nb:, nb:] = np.eye(N) / pe[0]**2
 
     def output_matrix(self, t):
-        """y = H x + C e."""
+        """Return H of y = H x + C e."""
         H = super().output_matrix(t)
         H[:, :, self.n_base_states:] = self.view.channels(t)
         return H
@@ -379,7 +379,7 @@ class SensorBias(Augmented):
         self.blade_numbers = view.blades
 
     def output_offset(self, t, p):
-        """d = C(t) V c."""
+        """Return the offset d = C(t) V c."""
         _, pe = self._split(p)
         return np.einsum('tmn,n->tm', self.view.channels(t), self.basis @ pe)
 
@@ -427,7 +427,7 @@ class FlapFrequency(Augmented):
         return self._cache[P]
 
     def system(self, t, p, u):
-        """The baseline's F, g with P replaced."""
+        """Return the baseline's F, g with P replaced."""
         pb, pe = self._split(p)
         return self._with_P(pe[0]).system(t, pb, np.asarray(u)[:, :3])
 
@@ -465,19 +465,19 @@ class ChannelSubset(LinearModel):
         self.time_invariant = model.time_invariant
 
     def system(self, t, p, u):
-        """The inner model's F and g."""
+        """Return the inner model's F and g."""
         return self.inner.system(t, p, np.asarray(u)[:, :3])
 
     def system_jacobian(self, t, p, u):
-        """The inner model's derivatives."""
+        """Return the inner model's derivatives."""
         return self.inner.system_jacobian(t, p, np.asarray(u)[:, :3])
 
     def output_matrix(self, t):
-        """Selected rows of the inner H."""
+        """Return the selected rows of the inner H."""
         return self.inner.output_matrix(t)[:, self.rows]
 
     def observe_blades(self, t, blade_flap):
-        """Selected channels."""
+        """Return the selected channels."""
         return self.inner.observe_blades(t, blade_flap)[:, self.rows]
 
     def report_parameters(self, values, cov):
@@ -486,7 +486,7 @@ class ChannelSubset(LinearModel):
 
 
 def periodic_coefficients(base):
-    """The periodic multiblade model (MODELS.md §2.1) on the constant model's channels (§2.2)."""
+    """Return the periodic multiblade model (MODELS.md §2.1) on the constant model's channels."""
     inner = Multiblade(base.rotor, collective=base.collective, outputs='multiblade')
     inner.parameters = base.parameters
     return ChannelSubset(inner, [0, 1, 2], 'periodic_coefficients')
@@ -544,7 +544,7 @@ class DynamicInflow(Augmented):
         dg[:, k, nb + 1] = u[:, 1]
 
     def report_parameters(self, values, cov):
-        """A = γB⁴/8 with its σ, AL/τ and 1/τ (the answers' names)."""
+        """Return A = γB⁴/8 with its σ, AL/τ and 1/τ (the answers' names)."""
         out = super().report_parameters(values, cov)
         i = self._gamma
         out = {'A': (float(self._a1 * values[i]),
@@ -577,7 +577,7 @@ class BladeDissimilarity(Augmented):
     effect = 'blade_dissimilarity'
     extra_parameters = (
         Parameter('dgamma_rel', 'ε = γ_j/γ − 1', '-', 0.0, -0.9, 3.0,
-                  "relative Lock-number difference of the odd blade"),
+                  'relative Lock-number difference of the odd blade'),
         Parameter('dtheta_static', 'Δθ_j + εθ0', 'rad', 0.0, -0.2, 0.2,
                   "the odd blade's static pitch-equivalent offset"))
     extra_states = ('eta', 'eta_dot')
@@ -590,8 +590,11 @@ class BladeDissimilarity(Augmented):
         self._j = self.view.blades.index(self.blade)
 
     def _coefficients(self, t, pb, u):
-        """Blade j: damping c, stiffness k, pitch gain m, moment row a (T,n), constant a0 (T,),
-        and their derivatives with respect to the baseline parameters."""
+        """Return blade j's flapping coefficients and moment, with their derivatives.
+
+        Damping c, stiffness k, pitch gain m, moment row a (T, n), constant a0 (T,), and their
+        derivatives with respect to the baseline parameters.
+        """
         base = self.base
         rotor = base.rotor
         B, mu, P = rotor.tip_loss, rotor.advance_ratio, rotor.flap_frequency
@@ -620,7 +623,8 @@ class BladeDissimilarity(Augmented):
         s2, c2 = np.sin(2 * psi), np.cos(2 * psi)
         damping = B**4 / 4 + (B**3 * mu / 3) * s1
         stiff = (B**3 * mu / 3) * c1 + (B**2 * mu**2 / 4) * s2
-        m_theta = (B**4 + B**2 * mu**2) / 4 + (2.0 / 3.0) * B**3 * mu * s1 - (B**2 * mu**2 / 4) * c2
+        m_theta = ((B**4 + B**2 * mu**2) / 4 + (2.0 / 3.0) * B**3 * mu * s1
+                   - (B**2 * mu**2 / 4) * c2)
         gi = _gamma_index(base)
         gamma = pb[gi]
         coll = base.parameter_names[1]
@@ -640,8 +644,11 @@ class BladeDissimilarity(Augmented):
                 dcoef * 0.5 * m_theta[:, None], da, da0)
 
     def _wake_feedback(self, t, pb, u):
-        """Pieces of the odd blade's moment δM/A seen by the wake: harmonic weights w (T, 2),
-        state row r (T, n_base) and input part q (T,), so that δM/A = ε (r x + q) + Δθ − η′."""
+        """Return the pieces of the odd blade's moment δM/A seen by the wake.
+
+        Harmonic weights w (T, 2), state row r (T, n_base) and input part q (T,), so that
+        δM/A = ε (r x + q) + s − (1 + ε) η′.
+        """
         j = self._j
         psi = self.view._psi(t)[:, j]
         n_blades = self.view.n_blades
@@ -695,7 +702,7 @@ class BladeDissimilarity(Augmented):
                 dg[:, kb + 1, lam] += -gain * w[:, i]                 # ∂/∂(Δθ + εθ0)
 
     def output_matrix(self, t):
-        """y = H x + C_{:,j} η."""
+        """Return H of y = H x + C_{:,j} η."""
         H = super().output_matrix(t)
         H[:, :, self.n_base_states] = self.view.channels(t)[:, :, self._j]
         return H

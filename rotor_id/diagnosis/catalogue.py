@@ -38,7 +38,7 @@ class AugmentedExperiment(Experiment):
     free: list = None
 
     def free_states(self):
-        """The baseline's free states plus the augmentation's free ones."""
+        """Return the baseline's free states plus the augmentation's free ones."""
         if self.free is not None:
             return list(self.free)
         return super().free_states()
@@ -53,7 +53,7 @@ class ExtendedInput:
         self.extra = np.asarray(extra, dtype=float)
 
     def __call__(self, t):
-        """u at times t, shape (len(t), 3 + k)."""
+        """Return u at times t, shape (len(t), 3 + k)."""
         t = np.atleast_1d(np.asarray(t, dtype=float))
         cols = [np.interp(t, self.t, self.extra[:, j]) for j in range(self.extra.shape[1])]
         return np.column_stack([self.base(t)] + cols)
@@ -158,8 +158,10 @@ def applicable(effect, model_name, rotor, unknowns):
 
 
 def variants(effect, model_name, n_blades):
-    """Sub-candidates of one effect; the odd blade of a dissimilarity is screened inside the
-    fit (:func:`_screen_blade`), so every effect is one job."""
+    """Return the sub-candidates of one effect (one each).
+
+    The odd blade of a dissimilarity is screened inside the fit (:func:`_screen_blade`).
+    """
     return ['']
 
 
@@ -211,8 +213,11 @@ def _build(job, baseline_model, experiments):
 
 
 def _wake_starts(model, guess, unknowns):
-    """Starting points for the wake: gains L and time constants τ, γ raised so that the
-    quasi-steady damping γ/(1+AL) stays at the baseline's."""
+    """Yield starting points for the wake.
+
+    Gains L and time constants τ; γ raised so that the quasi-steady damping γ/(1+AL) stays at
+    the baseline's.
+    """
     a1 = model.rotor.tip_loss**4 / 8.0
     gamma_b = guess['gamma']
     for L in (0.5, 1.5, 3.0):
@@ -251,12 +256,12 @@ def _printer(label, verbose):
 
 
 def _split_runs(runs, half):
-    """The runs cut to the first (half=0) or second (half=1) half of their samples."""
+    """Return the runs cut to the first (half=0) or second (half=1) half of their samples."""
     out = []
     for exp in runs:
         n = exp.t.size // 2
         sl = slice(0, n) if half == 0 else slice(n, None)
-        kwargs = dict(initial_state=exp.initial_state, name=exp.name)
+        kwargs = {'initial_state': exp.initial_state, 'name': exp.name}
         if isinstance(exp, AugmentedExperiment):
             out.append(AugmentedExperiment(exp.model, exp.inputs, exp.t[sl], exp.y[sl],
                                            free=exp.free, **kwargs))
@@ -275,7 +280,7 @@ def cross_validate(runs, unknowns, guess, known, max_step=None):
     for fit_half in (0, 1):
         fit_runs = _split_runs(runs, fit_half)
         est = fit_output_error(fit_runs, unknowns, guess=guess, known=known, max_iter=15, **kw)
-        params = {n: v for n, v in est.model_parameters.items()}
+        params = dict(est.model_parameters)
         pred_runs = _split_runs(runs, 1 - fit_half)
         pred = fit_output_error(pred_runs, [], known=params, max_iter=3, **kw)
         res = np.concatenate(pred.residuals, axis=0)
@@ -360,8 +365,10 @@ DISSIMILARITY_STARTS = (-0.1, 0.0, 0.1)
 
 
 def _screen_blade(job, base_model, experiments):
-    """The blade (and start) whose dissimilarity lowers the cost most in two Gauss-Newton
-    steps; the full fit starts there."""
+    """Return the job of the blade (and start) that lowers the cost most in two GN steps.
+
+    The full fit starts there.
+    """
     from dataclasses import replace as _replace
     best, best_cost = None, math.inf
     for blade in _blades_of(base_model, job.record):

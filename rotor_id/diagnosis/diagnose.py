@@ -113,8 +113,11 @@ def _say(progress, text):
 # ------------------------------------------------------------------------------------------------
 
 def baseline_channels(ident, part, blade_sigma):
-    """Residual channels of the baseline: the model's own, plus the multiblade coordinates it
-    predicts and, when it predicts all four, each blade."""
+    """Return the residual channels of the baseline.
+
+    The model's own, plus the multiblade coordinates it predicts and, when it predicts all
+    four, each blade.
+    """
     est = ident.estimate
     channels = []
     runs = ident.experiments

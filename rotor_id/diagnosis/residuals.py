@@ -1,4 +1,4 @@
-"""Residual analysis: where do the recording and the model disagree? (issue 4, step 2)
+"""Residual analysis: where do the recording and the model disagree (issue 4, step 2).
 
 All tests compare the residuals with a **noise floor estimated without the model**: at 1 kHz
 the flap signal is smooth from sample to sample, so the k-th differences of a measured flap
@@ -71,8 +71,11 @@ def ljung_box(x, lags=LAGS):
 
 
 def effective_fraction(x, max_lag=200):
-    """N_eff/N for the mean square of a correlated series: 1/(1 + 2 Σ ρ_k), the sum taken
-    over the initial positive run of ρ (Geyer); 1 for white residuals."""
+    """Return N_eff/N for the mean square of a correlated series.
+
+    1/(1 + 2 Σ ρ_k), the sum taken over the initial positive run of ρ (Geyer); 1 for white
+    residuals.
+    """
     n = len(x)
     rho = autocorrelation(x, min(max_lag, n // 4))
     total = 0.0
@@ -176,7 +179,7 @@ def combined_whiteness_p(stats_list):
 
 
 def _span(x, w, lo=0.05, hi=0.95):
-    """The range of x holding the central part of the positive weights w."""
+    """Return the range of x holding the central part of the positive weights w."""
     w = np.clip(np.asarray(w, dtype=float), 0.0, None)
     if w.sum() <= 0:
         return None
@@ -205,8 +208,10 @@ def band_of_excess(residuals, floors, dt, smooth=31):
 
 
 def span_of_excess(residuals, floors, t):
-    """Time span (nondimensional) holding 5-95 % of the significant residual energy above the
-    floor, in one-revolution windows (a window counts when 3 standard errors above)."""
+    """Return the time span holding 5-95 % of the significant residual energy above the floor.
+
+    Nondimensional; one-revolution windows, a window counts when 3 standard errors above.
+    """
     total, count, centres, n_win = None, 0, None, 1
     dt = float(np.median(np.diff(t)))
     for res, floor in zip(residuals, floors):

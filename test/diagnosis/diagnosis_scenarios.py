@@ -23,7 +23,7 @@ WAKE_TRUTH = {'A': A_TRUE, 'AL_over_tau': 0.25, 'inv_tau': 0.125}
 
 
 def _eq30_bias(b):
-    """What the (β1−β3)/2, (β2−β4)/2 channels can see of per-blade biases b."""
+    """Return what the (β1−β3)/2, (β2−β4)/2 channels can see of per-blade biases b."""
     d13, d24 = (b[0] - b[2]) / 2, (b[1] - b[3]) / 2
     return {'bias_1': d13, 'bias_2': d24, 'bias_3': -d13, 'bias_4': -d24}
 
@@ -41,7 +41,7 @@ class Scenario:
     original_truth: dict = field(default_factory=dict)
 
     def config(self, seed):
-        """The truth of one seed."""
+        """Return the truth of one seed."""
         return self.make(seed)
 
     def record_and_description(self, seed):

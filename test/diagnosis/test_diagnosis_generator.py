@@ -1,4 +1,4 @@
-"""The truth generator is a faithful stand-in for the test stand, and the noise floor is model-free.
+"""The truth generator is a faithful stand-in for the test stand; the noise floor is model-free.
 
 The generator (an independent blade-by-blade simulation) must reproduce the four given dx_*
 recordings, noise-free, to within their flap noise: then the concealed-effect recordings of the
@@ -12,9 +12,8 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from truth_generator import generate, TruthConfig, wake_case
-
 from rotor_id.diagnosis.residuals import blade_noise_floor, ljung_box
+from truth_generator import generate, TruthConfig, wake_case
 
 RECORDINGS = Path('/work/shared/recordings')
 

@@ -33,9 +33,8 @@ from dataclasses import asdict, dataclass, field, replace
 import math
 
 import numpy as np
-from scipy.integrate import solve_ivp
-
 from rotor_id.io.record import Record
+from scipy.integrate import solve_ivp
 
 
 @dataclass
@@ -77,7 +76,7 @@ class TruthConfig:
         return self.t_step + self.t0 + self.t_stir
 
     def with_(self, **changes):
-        """A copy with some knobs changed."""
+        """Return a copy with some knobs changed."""
         return replace(self, **changes)
 
     def as_dict(self):
@@ -86,13 +85,14 @@ class TruthConfig:
 
 
 def wake_case(**changes):
-    """The report's μ = 0 dynamic-wake case (Ch.2), as the dx_* wake recordings."""
+    """Return the report's μ = 0 dynamic-wake case (Ch.2), as the dx_* wake recordings."""
     return TruthConfig(**changes)
 
 
 def mu04_case(**changes):
-    """The report's μ = 0.4 multiblade case, no wake (Ch.2/Ch.3), as dx_periodic_coefficients."""
-    base = dict(mu=0.4, gamma=5.0, t0=12.0, wake=False, flap_noise=math.radians(0.1))
+    """Return the report's μ = 0.4 multiblade case, no wake, as dx_periodic_coefficients."""
+    base = {'mu': 0.4, 'gamma': 5.0, 't0': 12.0, 'wake': False,
+            'flap_noise': math.radians(0.1)}
     base.update(changes)
     return TruthConfig(**base)
 
@@ -145,7 +145,8 @@ def _rhs_factory(cfg, turbulence):
         s1, c1, s2, c2 = np.sin(psi), np.cos(psi), np.sin(2 * psi), np.cos(2 * psi)
         damping = B**4 / 4 + (B**3 * mu / 3) * s1
         stiffness = (B**3 * mu / 3) * c1 + (B**2 * mu**2 / 4) * s2
-        m_theta = (B**4 + B**2 * mu**2) / 4 + (2.0 / 3.0) * B**3 * mu * s1 - (B**2 * mu**2 / 4) * c2
+        m_theta = ((B**4 + B**2 * mu**2) / 4 + (2.0 / 3.0) * B**3 * mu * s1
+                   - (B**2 * mu**2 / 4) * c2)
         th_i, th_ii = _pitch_schedule(cfg, t)
         theta = cfg.theta0 + dtheta - th_i * np.sin(psi) + th_ii * np.cos(psi)
         lam = lam_c * c1 + lam_s * s1 if wake else 0.0 * c1
@@ -216,7 +217,7 @@ NOMINAL_GUESS = {'A': 0.5, 'AL_over_tau': 0.25, 'inv_tau': 0.125, 'gamma': 5.0,
 
 
 def run_description_text(cfg, model, unknowns, window_s=None, guess=True):
-    """A run description (README schema) for a generated record.
+    """Return a run description (README schema) for a generated record.
 
     ``guess``: give the nominal values as ``initial_guess`` (saves the start-value grid).
     """

@@ -1,0 +1,111 @@
+"""The given dx_* recordings are diagnosed as their answers say (issue 4), through the CLI.
+
+Each recording is diagnosed once (module fixture, two worker processes); the tests then check
+the named effect, the extra parameters against answers.json within 3σ, that the augmented
+fit's residual RMS comes to within 5 % of the model-free noise floor, that whiteness improves,
+the JSON keys fixed by the issue, and the figures of ``--report``.
+"""
+
+import json
+from pathlib import Path
+
+import pytest
+
+from rotor_id import cli
+
+RECORDINGS = Path('/work/shared/recordings')
+NAMES = ('dx_none_wake', 'dx_dynamic_inflow', 'dx_sensor_lag', 'dx_periodic_coefficients')
+
+
+def _answers():
+    path = RECORDINGS / 'answers.json'
+    if not path.is_file():
+        pytest.skip(f'{path} not available')
+    return json.loads(path.read_text())
+
+
+@pytest.fixture(scope='module')
+def diagnoses(tmp_path_factory):
+    """Run ``rotor-id diagnose`` on every dx_* recording; {name: (exit code, JSON, dir)}."""
+    _answers()
+    out = {}
+    for name in NAMES:
+        work = tmp_path_factory.mktemp(name)
+        code = cli.main(['diagnose', str(RECORDINGS / name), '--config',
+                         str(RECORDINGS / f'{name}.yaml'), '--json', str(work / 'out.json'),
+                         '--report', str(work / 'report'), '--quiet'])
+        out[name] = (code, json.loads((work / 'out.json').read_text()), work)
+    return out
+
+
+@pytest.mark.parametrize('name', NAMES)
+def test_named_as_the_answer_says(diagnoses, name):
+    answer = _answers()[name]['answer']
+    code, result, _ = diagnoses[name]
+    assert code == 0
+    accept = answer.get('accept', [answer['effect']])
+    assert result['explanation']['effect'] in accept
+    assert result['mismatch'] is (answer['effect'] != 'none')
+    if answer['effect'] != 'none':
+        assert result['explanation']['confidence'] == 'high'
+
+
+@pytest.mark.parametrize('name', NAMES)
+def test_extra_parameters_within_three_sigma_of_the_answer(diagnoses, name):
+    answer = _answers()[name]['answer']
+    _, result, _ = diagnoses[name]
+    params = result['explanation']['parameters']
+    for key, truth in answer.get('parameters', {}).items():
+        if result['explanation']['effect'] != answer['effect']:
+            pytest.skip("an equivalent effect was named; its parameters are not the answer's")
+        assert abs(params[key]['value'] - truth) <= 3 * params[key]['std'], (key, params[key])
+
+
+@pytest.mark.parametrize('name', NAMES)
+def test_augmented_fit_reaches_the_noise_floor(diagnoses, name):
+    _, result, _ = diagnoses[name]
+    fit = result['fit']
+    assert fit['augmented_rms'] <= 1.05 * fit['noise_floor']
+    if result['mismatch']:
+        assert fit['baseline_rms'] > fit['augmented_rms']
+        assert fit['whiteness_p_baseline'] < 1e-3 < fit['whiteness_p_augmented']
+    else:
+        assert fit['whiteness_p_baseline'] > 1e-3
+
+
+def test_located_where_the_effect_acts(diagnoses):
+    # the fast wake acts on the tilt modes (βI, βII), not on coning or the reactionless mode
+    loc = diagnoses['dx_dynamic_inflow'][1]['location']
+    assert {'beta_I', 'beta_II'} <= set(loc['channels'])
+    assert 'beta_0' not in loc['channels'] and 'beta_d' not in loc['channels']
+    # ... and in the band of the regressing/progressing flap modes, below 3/rev
+    assert 0.0 <= loc['band_per_rev'][0] < loc['band_per_rev'][1] <= 3.0
+    # no mismatch: nothing located
+    assert diagnoses['dx_none_wake'][1]['location']['channels'] == []
+
+
+def test_json_keys_and_figures(diagnoses):
+    _, result, work = diagnoses['dx_sensor_lag']
+    for key in ('mismatch', 'location', 'explanation', 'fit', 'candidates', 'parameters'):
+        assert key in result
+    assert set(result['location']) >= {'channels', 'band_per_rev', 'window_s'}
+    assert set(result['explanation']) >= {'effect', 'parameters'}
+    assert set(result['fit']) >= {'noise_floor', 'baseline_rms', 'augmented_rms',
+                                  'whiteness_p_baseline', 'whiteness_p_augmented'}
+    for cand in result['candidates']:
+        assert set(cand) >= {'effect', 'delta_loglik', 'criterion', 'validation_rms'}
+    ids = {c['effect'] for c in result['candidates']}
+    assert {'dynamic_inflow', 'periodic_coefficients', 'sensor_lag', 'time_delay',
+            'sensor_bias', 'blade_dissimilarity', 'process_noise', 'flap_frequency'} <= ids
+    for name in ('fits.png', 'residual_spectra.png', 'residual_energy.png'):
+        path = work / 'report' / name
+        assert path.is_file() and path.stat().st_size > 10_000
+
+
+def test_bad_input_is_one_line_and_exit_2(tmp_path, capsys):
+    bad = tmp_path / 'run.yaml'
+    bad.write_text('model: no_such_model\n')
+    code = cli.main(['diagnose', str(RECORDINGS / 'dx_none_wake'), '--config', str(bad)])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code == 2
+    assert len(err) == 1 and 'rotor-id diagnose: error' in err[0]
