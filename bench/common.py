@@ -85,15 +85,19 @@ def machine_markdown():
 
 
 def time_once(fn):
-    """Wall time of one call of ``fn`` and its result."""
-    start = time.perf_counter()
+    """Wall and CPU time (this process, all threads) of one call of ``fn``, and its result."""
+    wall, cpu = time.perf_counter(), time.process_time()
     result = fn()
-    return time.perf_counter() - start, result
+    return time.perf_counter() - wall, time.process_time() - cpu, result
 
 
 def time_interleaved(functions, repeat, warmup=1):
     """
-    Time several callables round-robin and return their median wall times.
+    Time several callables round-robin and return their median wall and CPU times.
+
+    CPU time (``time.process_time``) leaves out the time the process waits while other
+    processes run, so on a shared machine it is the steadier measure of a computation's cost;
+    wall time is what a user waits.
 
     Parameters
     ----------
@@ -107,20 +111,25 @@ def time_interleaved(functions, repeat, warmup=1):
     Returns
     -------
     dict
-        Name -> dict(median, min, max, times (list), result (of the last call)).
+        Name -> dict(median, min, max, times (wall), cpu (median CPU time), cpu_times,
+        result (of the last call)).
 
     """
     times = {name: [] for name in functions}
+    cpu_times = {name: [] for name in functions}
     results = {}
     for _ in range(warmup):
         for name, fn in functions.items():
             results[name] = fn()
     for _ in range(repeat):
         for name, fn in functions.items():
-            elapsed, results[name] = time_once(fn)
-            times[name].append(elapsed)
+            wall, cpu, results[name] = time_once(fn)
+            times[name].append(wall)
+            cpu_times[name].append(cpu)
     return {name: {'median': float(np.median(ts)), 'min': float(np.min(ts)),
-                   'max': float(np.max(ts)), 'times': ts, 'result': results[name]}
+                   'max': float(np.max(ts)), 'times': ts,
+                   'cpu': float(np.median(cpu_times[name])), 'cpu_times': cpu_times[name],
+                   'result': results[name]}
             for name, ts in times.items()}
 
 
