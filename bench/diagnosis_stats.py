@@ -108,6 +108,8 @@ def main(argv=None):
     tasks = [(n, args.first_seed + k) for k in range(args.seeds) for n in args.scenarios]
     runs = []
     t0 = time.perf_counter()
+    out = Path(args.out)
+    out.parent.mkdir(parents=True, exist_ok=True)
     ctx = multiprocessing.get_context('fork')
     with ctx.Pool(args.workers) as pool:
         for i, res in enumerate(pool.imap_unordered(run_one, tasks), 1):
@@ -116,10 +118,9 @@ def main(argv=None):
                   f'({"right" if res["right"] else "WRONG"}), excess '
                   f'{_fmt(res.get("excess"))}, {res["elapsed_s"]:.0f} s '
                   f'(total {time.perf_counter() - t0:.0f} s)', flush=True)
-    out = Path(args.out)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    out.with_suffix('.json').write_text(json.dumps(runs, indent=1, default=float))
-    out.with_suffix('.md').write_text(summarize(runs, args.seeds))
+            # written after every run, so an interrupted study still leaves its results
+            out.with_suffix('.json').write_text(json.dumps(runs, indent=1, default=float))
+            out.with_suffix('.md').write_text(summarize(runs, args.seeds))
     print(out.with_suffix('.md').read_text())
     return 0
 

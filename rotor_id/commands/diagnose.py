@@ -65,14 +65,14 @@ def format_summary(diagnosis):
     for name, p in d['parameters'].items():
         lines.append(f'  {name:<14} {p["baseline_value"]:12.5g} ± {p["baseline_std"]:.2g}  ->  '
                      f'{p["value"]:12.5g} ± {p["std"]:.2g}')
-    lines.append(f'{"candidate":<24} {"Δlog L":>9} {"criterion":>10} {"valid. RMS":>11}  '
+    lines.append(f'{"candidate":<30} {"Δlog L":>9} {"criterion":>10} {"valid. RMS":>11}  '
                  'eligible')
     for c in d['candidates']:
         name = c['effect'] + (f' ({c["variant"]})' if c.get('variant') else '')
         if not c['available']:
-            lines.append(f'{name:<24} {"":>9} {"":>10} {"":>11}  {c.get("reason", "")}')
+            lines.append(f'{name:<30} {"":>9} {"":>10} {"":>11}  {c.get("reason", "")}')
             continue
-        lines.append(f'{name:<24} {_fmt(c["delta_loglik"], ".1f"):>9} '
+        lines.append(f'{name:<30} {_fmt(c["delta_loglik"], ".1f"):>9} '
                      f'{_fmt(c["criterion"], ".1f"):>10} {_fmt(c["validation_rms"]):>11}  '
                      f'{"yes" if c["eligible"] else "no"}')
     lines.append(f'baseline validation RMS {_fmt(fit["validation_rms_baseline"])} rad; '

@@ -66,7 +66,7 @@ def plot_fits(diagnosis, path):
     axes[1].legend(loc='upper right', fontsize=7)
     axes[-1].set_xlabel('time since first sample [s]  (dotted: ±σ noise floor)')
     fig.suptitle(_title(diagnosis), fontsize=9)
-    fig.tight_layout()
+    fig.tight_layout(rect=(0, 0, 1, 0.98))
     fig.savefig(path, dpi=100)
     plt.close(fig)
 
