@@ -175,7 +175,8 @@ class Identifier(Node):
             self.next_update = t0 + self.d['min_window_rad'] / omega
         if covered >= self.next_update:
             self.next_update = covered + self.d['update_every_rad'] / omega
-            self._submit((t0, covered), False)
+            if self.next_update < t1:     # none just before the final: it would delay it
+                self._submit((t0, covered), False)
 
     def _submit(self, window_s, final, future=None):
         """Queue a fit for the worker: the newest provisional one replaces a waiting one."""

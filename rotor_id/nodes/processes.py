@@ -4,7 +4,8 @@ Start the installed nodes as separate processes on an isolated DDS domain, and s
 What ``rotor-id demo`` and the multi-process tests share (launch/launch_ros are not installable
 here, CONVENTIONS.md §10-11): the executables are found like ``ros2 run`` finds them (ament index
 prefix + lib/rotor_id/<name>), every child gets its own session (so a terminal's Ctrl-C reaches
-the caller, which stops the children in order: the recorder first, so its bag is finalised) and
+the caller, which stops the children in order: the recorder last, after every publisher has had
+its messages acknowledged, so the bag holds everything and is finalised) and
 the same ROS_DOMAIN_ID with ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST.
 """
 
@@ -104,19 +105,24 @@ class NodeProcesses:
                 proc.wait()
         return proc.returncode
 
-    def stop_all(self, first=('recorder',), timeout=15.0):
-        """Stop ``first`` in order, then the rest together; return {name: return code}."""
+    def stop_all(self, last=('recorder',), timeout=15.0):
+        """
+        Stop every process but ``last`` together, then ``last`` in order; return exit codes.
+
+        The publishers go first: each waits until reliable readers (the recorder) acknowledged
+        what it sent, so the recorder, stopped last, finds its topics quiet and drains quickly.
+        """
         codes = {}
-        for name in first:
-            if name in self.procs:
-                codes[name] = self.stop(name, timeout=timeout)
-        rest = [n for n in self.procs if n not in codes]
+        rest = [n for n in self.procs if n not in last]
         for name in rest:
             if self.procs[name].poll() is None:
                 self.procs[name].send_signal(signal.SIGINT)
         deadline = time.monotonic() + timeout
         for name in rest:
             codes[name] = self.stop(name, None, timeout=max(0.1, deadline - time.monotonic()))
+        for name in last:
+            if name in self.procs:
+                codes[name] = self.stop(name, timeout=timeout)
         for log in self.logs.values():
             log.close()
         return codes

@@ -21,6 +21,10 @@ import time
 
 import rclpy
 from rclpy.executors import SingleThreadedExecutor
+try:
+    from rclpy.experimental import EventsExecutor
+except ImportError:          # rclpy without the events executor
+    EventsExecutor = None
 from rclpy.node import Node
 from rclpy.qos import (DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy)
 from rclpy.signals import SignalHandlerOptions
@@ -174,7 +178,9 @@ def main(args=None):
     code = 0
     try:
         node = Recorder()
-        executor = SingleThreadedExecutor()
+        # the C++ events executor takes a message for ~40 µs of CPU where the Python executor
+        # needs ~100 µs: what lets one Python process record 4 blades x 1 kHz on a busy machine
+        executor = EventsExecutor() if EventsExecutor is not None else SingleThreadedExecutor()
         executor.add_node(node)
         while not stop:
             executor.spin_once(timeout_sec=0.1)

@@ -101,7 +101,7 @@ def bad_run(tmp_path_factory):
         run['after'] = {name: list(watcher.diagnostics(name)) for name in procs.procs}
         run['alive_at_end'] = not procs.dead()
     finally:
-        run['codes'] = procs.stop_all(first=())
+        run['codes'] = procs.stop_all(last=())
         run['logs'] = {name: procs.log(name) for name in procs.procs}
         session.close()
     return run

@@ -103,7 +103,7 @@ def test_plant_and_identifier_on_two_hosts(two_hosts, tmp_path):
     finally:
         if listener is not None and listener.poll() is None:
             listener.kill()
-        codes = {**rig_procs.stop_all(first=()), **lab_procs.stop_all(first=())}
+        codes = {**rig_procs.stop_all(last=()), **lab_procs.stop_all(last=())}
     final = json.loads(out.strip().splitlines()[-1]) if out.strip() else None
     assert final is not None, (f'no estimate crossed the veth link\nlistener: {err[-2000:]}\n'
                                f'identifier: {lab_procs.log("identifier")[-2000:]}\n'

@@ -118,7 +118,7 @@ def test_recorder_loses_nothing(tmp_path, storage):
         time.sleep(0.5)
         code = procs.stop('recorder', signal.SIGINT)
     finally:
-        procs.stop_all(first=())
+        procs.stop_all(last=())
         session.close()
     assert code == 0, procs.log('recorder')
     meta, counts = _bag_counts(tmp_path / 'bag')
@@ -156,7 +156,7 @@ def test_signal_mid_run_keeps_every_message_up_to_the_stop(tmp_path, signum):
         _publish(stand, 300)                       # the stream goes on after the signal
         code = procs.stop('recorder', signum)
     finally:
-        procs.stop_all(first=())
+        procs.stop_all(last=())
         session.close()
     assert code == 0, procs.log('recorder')
     decoded = mcap_messages(tmp_path / 'bag')
