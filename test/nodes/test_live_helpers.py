@@ -195,3 +195,18 @@ def test_window_gaps_count_the_missing_samples():
     assert window_gaps({'flap': series}, 0, 50_000_000) == []
     notes = window_gaps({'flap': series}, 50_000_000, 150_000_000)
     assert notes == ['flap: 10 sample(s) missing in 1 gap(s), longest 11.0 ms']
+
+
+@pytest.mark.parametrize('model, mu', [('multiblade_wake', 0.0), ('multiblade', 0.4),
+                                       ('multiblade_constant', 0.4), ('single_blade', 0.4)])
+def test_every_library_model_drives_the_plant_from_trim(model, mu):
+    rotor = rotor_constants(4, mu, 1.2, 0.97)
+    stepper = PlantStepper(model, rotor, {'gamma': 5.0, **WAKE}, OMEGA, 1000.0, THETA0)
+    _, flap_trim, _ = stepper.advance(400)     # trim: 200 samples are exactly 3 revolutions
+    assert np.max(np.abs(flap_trim[200:] - flap_trim[:200])) < 1e-7    # rad: settled
+    schedule = StirringSchedule(THETA0, math.radians(1.5), -0.1 / math.pi, 60.0, 40.0)
+    t, flap, pitch = _drive(stepper, schedule, [300])
+    assert np.all(np.isfinite(flap)) and flap.shape == (300, 4)
+    # the lateral cyclic step (t = 40) tilts the tip-path plane: blades 1 and 3 separate
+    before = np.ptp(flap_trim[:, 0] - flap_trim[:, 2])
+    assert np.ptp(flap[-100:, 0] - flap[-100:, 2]) > before + math.radians(0.3)
