@@ -18,7 +18,7 @@ from live_helpers import domain_id, require_workspace
 
 
 def _processes_on_domain(domain):
-    """PIDs of processes whose environment has ROS_DOMAIN_ID=<domain> (this user's)."""
+    """Return the processes whose environment has ROS_DOMAIN_ID=<domain>."""
     found = []
     for entry in Path('/proc').iterdir():
         if not entry.name.isdigit() or int(entry.name) == os.getpid():
