@@ -14,7 +14,7 @@ MODELS.md §0:  β_k = β0 + βI cos ψ_k + βII sin ψ_k + (−1)^k βd,   ψ_k
 
 import numpy as np
 
-from rotor_id.physics.stirring import blade_azimuths
+from rotor_id.physics.multiblade import blade_values
 
 #: Index of β0, βI, βII, βd in each multiblade model's state (None: not a state of the model).
 _COORDINATES = {
@@ -30,14 +30,12 @@ def blade_flap_from_multiblade_state(model, t, x, coning=0.0):
         raise ValueError(f'model {model.name!r} has no multiblade state; '
                          f'use one of {", ".join(_COORDINATES)}')
     x = np.atleast_2d(np.asarray(x, dtype=float))
-    n_blades = model.rotor.n_blades
-    psi = blade_azimuths(t, n_blades)
     i0, i_cos, i_sin, i_d = _COORDINATES[model.name]
-    flap = (x[:, i_cos, None] * np.cos(psi) + x[:, i_sin, None] * np.sin(psi))
-    flap = flap + (coning if i0 is None else x[:, i0, None])
+    coords = {'collective': np.full(len(x), coning) if i0 is None else x[:, i0],
+              'cos': x[:, i_cos], 'sin': x[:, i_sin]}
     if i_d is not None:
-        flap = flap + x[:, i_d, None] * (-1.0) ** np.arange(1, n_blades + 1)
-    return flap
+        coords['differential'] = x[:, i_d]
+    return blade_values(coords, t, model.rotor.n_blades)
 
 
 def blade_flap_from_states(models, t, states, coning=0.0):
