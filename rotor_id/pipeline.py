@@ -62,9 +62,15 @@ class Identification:
             'neg_log_likelihood': float(est.neg_log_likelihood),
             'initial_states': {n: {'value': float(v), 'std': float(s)}
                                for n, v, s in zip(est.names, est.values, est.std)
-                               if n not in self.unknowns},
+                               if n not in self.unknowns and '(t0)' in n},
             'warnings': list(est.warnings),
         }
+        # filter error also estimates noise σ's (process_noise_std, noise_std_<channel>)
+        noise = {n: {'value': float(v), 'std': float(s)}
+                 for n, v, s in zip(est.names, est.values, est.std)
+                 if n not in self.unknowns and '(t0)' not in n}
+        if noise:
+            out['noise_parameters'] = noise
         return out
 
 
