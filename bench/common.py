@@ -199,3 +199,17 @@ class SustainedStirring:
         phi = self.phase(t)
         return np.column_stack([np.full_like(t, self.schedule.collective), on * np.sin(phi),
                                 on * np.cos(phi)])
+
+
+def figure_path(name):
+    """Path of ``bench/results/<name>.png`` (directory created)."""
+    RESULTS_DIR.mkdir(parents=True, exist_ok=True)
+    return RESULTS_DIR / f'{name}.png'
+
+
+def pyplot():
+    """matplotlib.pyplot on the Agg backend (no display needed)."""
+    import matplotlib
+    matplotlib.use('Agg')
+    import matplotlib.pyplot as plt
+    return plt

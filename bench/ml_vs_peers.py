@@ -21,7 +21,8 @@ Run: ``python bench/ml_vs_peers.py [--repeat N] [--seed S]``.
 import argparse
 import sys
 
-from common import fmt_time, markdown_table, say, time_interleaved, write_results
+from common import (figure_path, fmt_time, markdown_table, pyplot, say, time_interleaved,
+                    write_results)
 import numpy as np
 import peers
 
@@ -161,6 +162,29 @@ def report(results, seed, repeat):
             f'## Optima (they must agree to {AGREEMENT_SIGMA:g} σ)\n\n{opt_table}\n')
 
 
+def plot(results, path):
+    """Bar chart of the three methods' median times per case (log scale)."""
+    plt = pyplot()
+    fig, ax = plt.subplots(figsize=(8, 4))
+    labels = [r['case'] for r in results]
+    x = np.arange(len(results))
+    for i, (key, name) in enumerate((('ours', 'ours: output-error ML'),
+                                     ('fd_ours', '(b) least_squares + FD, our simulator'),
+                                     ('afternoon', '(a) least_squares + FD, solve_ivp'))):
+        ax.bar(x + (i - 1) * 0.27, [r['time'][key] * 1e3 for r in results], 0.27, label=name)
+    for xi, r in zip(x, results):
+        ax.text(xi + 0.27, r['time']['afternoon'] * 1e3 * 1.1,
+                f'{r["time"]["afternoon"] / r["time"]["ours"]:.0f}×', ha='center', fontsize=8)
+    ax.set_yscale('log')
+    ax.set_xticks(x, labels, fontsize=8)
+    ax.set_ylabel('time to the optimum [ms] (median)')
+    ax.set_title('Identification time per report case (121 samples, same optimum)', fontsize=10)
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
 def main(argv=None):
     """Run the benchmark, print the tables, write bench/results/ml_vs_peers.md."""
     parser = argparse.ArgumentParser(description=__doc__.split('\n')[1])
@@ -172,6 +196,8 @@ def main(argv=None):
     body = report(results, args.seed, args.repeat)
     print(body)
     if not args.no_write:
+        plot(results, figure_path('ml_vs_peers'))
+        body += '\n![time per case](ml_vs_peers.png)\n'
         write_results('ml_vs_peers', 'Output-error ML against least_squares peers (issue 6.1)',
                       body, 'python bench/ml_vs_peers.py')
     bad = [r['case'] for r in results

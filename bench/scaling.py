@@ -19,8 +19,8 @@ Run: ``python bench/scaling.py [--repeat N]``.
 import argparse
 import sys
 
-from common import (fmt_time, markdown_table, say, SustainedStirring, time_interleaved,
-                    write_results)
+from common import (figure_path, fmt_time, markdown_table, pyplot, say, SustainedStirring,
+                    time_interleaved, write_results)
 import numpy as np
 
 from rotor_id.estimation.output_error import Experiment, fit_output_error
@@ -105,7 +105,7 @@ def bench_parameters(unknowns, mode, repeat):
         'plain': lambda: simulate(model, p, inputs, t, x0)}, repeat=repeat)
     extra = '' if mode == 'fixed' else f' + initial states ({mode})'
     out = {'k': k, 'label': ', '.join(unknowns) + extra,
-           'sens': timing['sens']['median'], 'plain': timing['plain']['median']}
+           'sens': timing['sens']['cpu'], 'plain': timing['plain']['cpu']}
     out['ratio'] = out['sens'] / ((k + 1) * out['plain'])
     say(f'k = {k}: sensitivities {fmt_time(out["sens"])}, (k+1) plain '
         f'{fmt_time((k + 1) * out["plain"])}, ratio {out["ratio"]:.2f}')
@@ -150,10 +150,37 @@ def report(lengths, params, repeat):
             'per-call costs (model '
             'matrices, numpy call overheads) dominate, so the per-sample cost falls with '
             'length.\n\n'
-            f'## Parameter count (wake model, 121 samples; median of {repeat} rounds)\n\n'
+            f'## Parameter count (wake model, 121 samples; median CPU time of {repeat} '
+            'rounds)\n\n'
             f'{t2}\n\nSimulation with k sensitivities ≈ {fmt_time(icpt)} + k × '
             f'{fmt_time(slope)} (least-squares line); a finite-difference Jacobian costs '
             'k + 1 simulations, so the advantage grows with k.\n')
+
+
+def plot(lengths, params, path):
+    """CPU time per call against samples (log-log, with a linear reference) and against k."""
+    plt = pyplot()
+    fig, (ax1, ax2) = plt.subplots(1, 2, figsize=(10, 4))
+    n = np.array([r['samples'] for r in lengths], dtype=float)
+    for key, name in (('sens', 'simulation + 3 sensitivities'), ('plain', 'plain simulation')):
+        ax1.loglog(n, [r['cpu'][key] * 1e3 for r in lengths], 'o-', label=name)
+    ref = lengths[-1]['cpu']['sens'] * 1e3 * n / n[-1]
+    ax1.loglog(n, ref, 'k:', lw=1, label='linear')
+    ax1.set_xlabel('samples')
+    ax1.set_ylabel('CPU time per call [ms] (median)')
+    ax1.set_title('Record length (wake model)', fontsize=10)
+    ax1.legend(fontsize=8)
+    ks = [r['k'] for r in params]
+    ax2.plot(ks, [r['sens'] * 1e3 for r in params], 'o-', label='simulation + k sensitivities')
+    ax2.plot(ks, [(r['k'] + 1) * r['plain'] * 1e3 for r in params], 's--',
+             label='(k+1) plain simulations (FD Jacobian)')
+    ax2.set_xlabel('unknowns k')
+    ax2.set_ylabel('CPU time [ms] (median)')
+    ax2.set_title('Parameter count (121 samples)', fontsize=10)
+    ax2.legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
 
 
 def main(argv=None):
@@ -167,6 +194,8 @@ def main(argv=None):
     body = report(lengths, params, args.repeat)
     print(body)
     if not args.no_write:
+        plot(lengths, params, figure_path('scaling'))
+        body += '\n![scaling](scaling.png)\n'
         write_results('scaling', 'Scaling with record length and parameter count (issue 6.3)',
                       body, 'python bench/scaling.py')
     return 0
