@@ -17,6 +17,7 @@ counted in ``record.warnings`` and announced once as a :class:`BagWarning`.
 from contextlib import suppress
 from pathlib import Path
 import re
+import struct
 import warnings
 import xml.etree.ElementTree as ElementTree
 
@@ -25,7 +26,7 @@ from rosbags.rosbag2 import Reader, StoragePlugin, Writer
 from rosbags.typesys import get_types_from_msg, get_typestore, Stores
 from rotor_id.io.errors import BagError, BagWarning
 from rotor_id.io.jointstate_cdr import decode_batch, encode_batch, JOINT_STATE
-from rotor_id.io.mcap_recover import scan_mcap
+from rotor_id.io.mcap_recover import read_indexed_mcap, scan_mcap
 from rotor_id.io.record import Record
 from rotor_id.io.run_description import DEFAULT_TOPICS, normalize_joint_names, validate_window
 from rotor_id.io.timebase import interpolate_columns, nondimensional_time, TWO_PI
@@ -109,6 +110,21 @@ class _Raw:
 
 
 def _read_raw(open_path, storage, storage_file, wanted, omega_rad_s):
+    if storage == 'mcap':
+        # A healthy chunked MCAP is read vectorised from its message index (no Python step per
+        # message); anything unusual (unindexed, no footer, bad checksum) goes through rosbags
+        # and, if that fails, the recovery scan.
+        try:
+            indexed = read_indexed_mcap(storage_file, set(wanted.values()))
+        except (OSError, ValueError, IndexError, struct.error):
+            indexed = None          # not readable this way: the general readers decide
+        if indexed is not None:
+            raw = _Raw()
+            raw.available, found = indexed
+            _check_topics(raw, wanted, storage_file, omega_rad_s)
+            for topic in wanted.values():
+                raw.log_ns[topic], raw.data[topic] = found.get(topic, ([], []))
+            return raw
     raw = _Raw()
     try:
         reader = Reader(open_path)
@@ -153,13 +169,7 @@ def _recover_mcap(storage_file, wanted, error, omega_rad_s):
     except (OSError, ValueError) as err:
         raise BagError(f'{storage_file} cannot be opened as an MCAP bag ({error}) and is not '
                        f'recoverable ({err}); the file is not a rosbag2 recording') from None
-    raw = _Raw()
-    raw.available = scan.topics()
-    _check_topics(raw, wanted, storage_file, omega_rad_s)
-    for topic in wanted.values():
-        messages = scan.topic_messages(topic)
-        raw.log_ns[topic] = [m[0] for m in messages]
-        raw.data[topic] = [m[1] for m in messages]
+    raw = _raw_from_scan(scan, wanted, storage_file, omega_rad_s)
     if not any(raw.data.values()):
         raise BagError(f'{storage_file} is damaged ({error}; {scan.problem}) and no message of '
                        f'{sorted(wanted.values())} could be recovered') from None
@@ -168,6 +178,18 @@ def _recover_mcap(storage_file, wanted, error, omega_rad_s):
         f'{sum(map(len, raw.data.values()))} messages by scanning the file'
         + (f', skipped {scan.skipped_chunks} chunk(s) with bad checksums'
            if scan.skipped_chunks else ''))
+    return raw
+
+
+def _raw_from_scan(scan, wanted, storage_file, omega_rad_s):
+    """Return the wanted topics' raw messages from a linear MCAP scan."""
+    raw = _Raw()
+    raw.available = scan.topics()
+    _check_topics(raw, wanted, storage_file, omega_rad_s)
+    for topic in wanted.values():
+        messages = scan.topic_messages(topic)
+        raw.log_ns[topic] = [m[0] for m in messages]
+        raw.data[topic] = [m[1] for m in messages]
     return raw
 
 

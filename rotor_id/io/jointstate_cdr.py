@@ -209,7 +209,7 @@ def decode_batch(raws):
     Parameters
     ----------
     raws
-        Sequence of CDR byte strings.
+        Sequence of CDR byte strings, or a PackedMessages (read without a per-message copy).
 
     Returns
     -------
@@ -217,7 +217,11 @@ def decode_batch(raws):
 
     """
     n = len(raws)
-    lengths = np.fromiter((len(r) for r in raws), dtype=np.int64, count=n)
+    packed = hasattr(raws, 'rows')       # rotor_id.io.mcap_recover.PackedMessages
+    if packed:
+        lengths = raws.lengths
+    else:
+        lengths = np.fromiter((len(r) for r in raws), dtype=np.int64, count=n)
     stamps = np.zeros(n, dtype=np.int64)
     ok = np.zeros(n, dtype=bool)
     dropped = {}
@@ -258,8 +262,11 @@ def decode_batch(raws):
     sizes, counts = np.unique(lengths, return_counts=True)
     for size in sizes[np.argsort(-counts, kind='stable')]:
         index = np.flatnonzero(lengths == size)
-        rows = np.frombuffer(b''.join([bytes(raws[i]) for i in index]), dtype=np.uint8)
-        rows = rows.reshape(len(index), int(size))
+        if packed:
+            rows = raws.rows(index, int(size))
+        else:
+            rows = np.frombuffer(b''.join([bytes(raws[i]) for i in index]), dtype=np.uint8)
+            rows = rows.reshape(len(index), int(size))
         try:
             layout = parse_layout(rows[0].tobytes())
         except ValueError:

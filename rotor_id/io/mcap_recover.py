@@ -17,9 +17,11 @@ if sys.version_info >= (3, 14):  # pragma: no cover
 else:
     from backports import zstd
 import lz4.frame
+import numpy as np
 
 MAGIC = b'\x89MCAP0\r\n'
 _OP_HEADER, _OP_FOOTER, _OP_SCHEMA, _OP_CHANNEL, _OP_MESSAGE, _OP_CHUNK = 1, 2, 3, 4, 5, 6
+_OP_MESSAGE_INDEX = 0x07
 _OP_DATA_END = 0x0F
 
 
@@ -174,3 +176,135 @@ def scan_mcap(path):
     scanner.scan.problem = problem
     scanner.scan.complete = not problem
     return scanner.scan
+
+
+class PackedMessages:
+    """
+    Message bodies of one topic held in one byte buffer (a list-like of ``bytes``).
+
+    ``buffer[starts[i]:starts[i] + lengths[i]]`` is message i. Readers that decode many
+    messages at once (:func:`rotor_id.io.jointstate_cdr.decode_batch`) gather rows straight
+    from the buffer instead of building a Python object per message.
+    """
+
+    def __init__(self, buffer, starts, lengths):
+        self.buffer = buffer
+        self.starts = np.asarray(starts, dtype=np.int64)
+        self.lengths = np.asarray(lengths, dtype=np.int64)
+
+    def __len__(self):
+        return int(self.starts.size)
+
+    def __getitem__(self, i):
+        start = int(self.starts[i])
+        return self.buffer[start:start + int(self.lengths[i])].tobytes()
+
+    def __iter__(self):
+        return (self[i] for i in range(len(self)))
+
+    def rows(self, index, width):
+        """Return the messages ``index`` (all ``width`` bytes long) as an (n, width) array."""
+        # A sliding-window view gathers whole rows (one copy per row), not single bytes.
+        windows = np.lib.stride_tricks.sliding_window_view(self.buffer, width)
+        return windows[self.starts[index]]
+
+
+def read_indexed_mcap(path, topics):
+    """
+    Read the messages of ``topics`` from a healthy, chunked and indexed MCAP, vectorised.
+
+    Walks the file's top-level records (a few per chunk), decompresses every chunk once and
+    takes each channel's message offsets from the MessageIndex records that follow the chunk
+    (MCAP spec), so no Python step runs per message. Returns None when the file is not of
+    that shape (messages outside chunks, no message index, no footer, a bad checksum): the
+    caller then uses a general reader.
+
+    Returns
+    -------
+    (topic -> message type, topic -> (log_time_ns (n,), PackedMessages)) or None.
+
+    """
+    with open(path, 'rb') as handle:
+        buf = handle.read()
+    if buf[:len(MAGIC)] != MAGIC:
+        return None
+    schemas, channels = {}, {}
+    chunks, pieces = [], {}            # pieces: cid -> list of (chunk no, offsets, log times)
+    pos, end = len(MAGIC), len(buf)
+    current = None
+    current_summary = False
+    while pos + 9 <= end:
+        op = buf[pos]
+        (length,) = struct.unpack_from('<Q', buf, pos + 1)
+        body_start = pos + 9
+        if body_start + length > end:
+            return None
+        if op == _OP_FOOTER:
+            break
+        body = memoryview(buf)[body_start:body_start + length]
+        # Schemas and channels live inside the chunks; the summary section after DataEnd
+        # repeats them, which is where this reader takes them from.
+        if op == _OP_SCHEMA:
+            (sid,) = struct.unpack_from('<H', body, 0)
+            schemas[sid] = _string(body, 2)[0]
+        elif op == _OP_CHANNEL:
+            cid, sid = struct.unpack_from('<HH', body, 0)
+            channels[cid] = (_string(body, 4)[0], sid)
+        elif op == _OP_MESSAGE:
+            return None
+        elif op == _OP_CHUNK and current_summary:
+            return None
+        elif op == _OP_DATA_END:
+            current_summary = True
+        elif op == _OP_CHUNK:
+            _, _, size, crc = struct.unpack_from('<QQQI', body, 0)
+            compression, at = _string(body, 28)
+            (compressed_size,) = struct.unpack_from('<Q', body, at)
+            raw = _decompress_partial(bytes(body[at + 8:at + 8 + compressed_size]), compression)
+            if len(raw) != size or (crc and crc32(raw) != crc):
+                return None
+            current = len(chunks)
+            chunks.append(np.frombuffer(raw, dtype=np.uint8))
+        elif op == _OP_MESSAGE_INDEX and current is not None:
+            cid, nbytes = struct.unpack_from('<HI', body, 0)
+            pairs = np.frombuffer(body, dtype='<u8', count=nbytes // 8, offset=6).reshape(-1, 2)
+            pieces.setdefault(cid, []).append((current, pairs[:, 1].astype(np.int64),
+                                               pairs[:, 0].astype(np.int64)))
+        pos = body_start + length
+    else:
+        return None
+    if not chunks or not pieces:
+        return None
+    del body, buf                     # the file's bytes are no longer needed: free them first
+    sizes = [c.size for c in chunks]
+    bases = np.concatenate([[0], np.cumsum(sizes)])
+    buffer = np.concatenate(chunks)
+    chunks.clear()
+    available, messages = {}, {}
+    for cid, (topic, sid) in channels.items():
+        available[topic] = schemas.get(sid, '')
+        if topic not in topics or cid not in pieces:
+            continue
+        # The index is not checksummed: every offset and length must stay inside its chunk.
+        for c, off, _ in pieces[cid]:
+            if off.size and (off.min() < 0 or off.max() + 9 + 22 > bases[c + 1] - bases[c]):
+                return None
+        offsets = np.concatenate([bases[c] + off for c, off, _ in pieces[cid]])
+        limits = np.concatenate([np.full(off.size, bases[c + 1]) for c, off, _ in pieces[cid]])
+        log_ns = np.concatenate([lt for _, _, lt in pieces[cid]])
+        if np.any(buffer[offsets] != _OP_MESSAGE):
+            return None
+        record_len = np.lib.stride_tricks.sliding_window_view(buffer, 8)[offsets + 1]
+        record_len = np.ascontiguousarray(record_len).view('<u8')[:, 0]
+        if np.any(record_len < 22) or np.any(offsets + 9 + record_len > limits):
+            return None
+        starts = offsets + 9 + 22
+        messages.setdefault(topic, []).append((log_ns, starts, record_len.astype(np.int64) - 22))
+    out = {}
+    for topic, parts in messages.items():
+        log_ns = np.concatenate([p[0] for p in parts])
+        starts = np.concatenate([p[1] for p in parts])
+        lengths = np.concatenate([p[2] for p in parts])
+        order = np.argsort(starts, kind='stable')          # file order
+        out[topic] = (log_ns[order], PackedMessages(buffer, starts[order], lengths[order]))
+    return available, out
