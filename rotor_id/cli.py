@@ -12,6 +12,7 @@ re-run with ``--debug`` for the traceback (exit code 3).
 
 import argparse
 import importlib
+import importlib.util
 import sys
 
 #: command name -> (module, one-line help)
@@ -36,29 +37,38 @@ def _user_errors():
     return tuple(errors)
 
 
-def build_parser():
-    """Return the argument parser with one subcommand per available command module."""
+def _available(module_name):
+    return importlib.util.find_spec(module_name) is not None
+
+
+def build_parser(selected=None):
+    """
+    Return the argument parser with one subcommand per available command module.
+
+    Only the ``selected`` command's module is imported (all when None), so ``rotor-id
+    identify`` does not pay for the imports of ``reproduce-report`` or ``demo``.
+    """
     parser = argparse.ArgumentParser(
         prog='rotor-id', description='Identify rotor flapping dynamics from transient tests.')
     parser.add_argument('--debug', action='store_true',
                         help='show the full traceback of an unexpected error')
     sub = parser.add_subparsers(dest='command', metavar='COMMAND')
     for name, (module_name, help_text) in COMMANDS.items():
-        try:
-            module = importlib.import_module(module_name)
-        except ModuleNotFoundError as exc:
-            if exc.name != module_name:
-                raise
+        if not _available(module_name):
             continue
         command = sub.add_parser(name, help=help_text, description=help_text)
-        module.add_arguments(command)
-        command.set_defaults(_run=module.run)
+        if selected is None or name == selected:
+            module = importlib.import_module(module_name)
+            module.add_arguments(command)
+            command.set_defaults(_run=module.run)
     return parser
 
 
 def main(argv=None):
     """Parse ``argv`` and run the chosen command; return the exit code."""
-    parser = build_parser()
+    argv = sys.argv[1:] if argv is None else list(argv)
+    chosen = next((a for a in argv if not a.startswith('-')), None)
+    parser = build_parser(chosen if chosen in COMMANDS else None)
     args = parser.parse_args(argv)
     if args.command is None:
         parser.print_help()

@@ -113,6 +113,13 @@ def _pitch_input(record):
     return SampledInput.from_blade_pitch(record.t, record.blade_pitch)
 
 
+def _near_window(record, window_s):
+    """The record cut to the window plus one revolution either side (inputs need no more)."""
+    margin = 2.0 * math.pi / max(record.omega_mean, 1e-9)
+    return record.window(max(window_s[0] - margin, float(record.time_s[0])),
+                         min(window_s[1] + margin, float(record.time_s[-1])))
+
+
 def experiments_from_record(record, description, model=None, window_s=None):
     """Experiments (one per modelled blade for single_blade, else one) over the window."""
     model = model or model_for(description)
@@ -122,7 +129,7 @@ def experiments_from_record(record, description, model=None, window_s=None):
         raise IdentificationError(
             f'the window {window_s[0]:.4g}-{window_s[1]:.4g} s holds {len(part)} samples; '
             'identification needs a window of at least a few samples (widen window_s)')
-    inputs = _pitch_input(record)
+    inputs = _pitch_input(_near_window(record, window_s))
     initial_state = description.initial_state
     if model.name == 'single_blade':
         rotor = model.rotor
@@ -204,6 +211,7 @@ def identify(record, description, method=None, progress=None, window_s=None,
     method = method or description.method or 'output-error'
     model = model_for(description)
     window_s = tuple(window_s or description.window_s)
+    record = _near_window(record, window_s)
     experiments = experiments_from_record(record, description, model, window_s)
     known = _known_values(description, model, record)
     unknowns = list(description.unknowns)
