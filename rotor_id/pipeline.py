@@ -114,7 +114,7 @@ def _pitch_input(record):
 
 
 def _near_window(record, window_s):
-    """The record cut to the window plus one revolution either side (inputs need no more)."""
+    """Return the record cut to the window plus one revolution either side."""
     margin = 2.0 * math.pi / max(record.omega_mean, 1e-9)
     return record.window(max(window_s[0] - margin, float(record.time_s[0])),
                          min(window_s[1] + margin, float(record.time_s[-1])))
