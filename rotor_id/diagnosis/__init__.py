@@ -13,6 +13,6 @@ live window: pass ``window_s`` and ``workers=1``); ``rotor-id diagnose`` is its 
 """
 
 from rotor_id.diagnosis.catalogue import EFFECTS, EQUIVALENT
-from rotor_id.diagnosis.diagnose import Diagnosis, diagnose
+from rotor_id.diagnosis.diagnose import diagnose, Diagnosis
 
 __all__ = ['Diagnosis', 'EFFECTS', 'EQUIVALENT', 'diagnose']

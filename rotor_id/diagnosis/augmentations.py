@@ -564,7 +564,7 @@ class BladeDissimilarity(Augmented):
 
     exact for given inflow (the blades of a rotor couple only through the wake).
 
-    Fitted parameters ``dgamma_rel`` (ε = γ_j/γ − 1) and ``dtheta_static`` = Δθ + εθ0 (rad):
+    Fitted parameters ``dgamma_rel`` (ε = γ_j/γ − 1) and ``dtheta_static`` = (1+ε)Δθ + εθ0 (rad):
     with a constant collective a Lock-number change and a pitch offset both shift the blade's
     trim by the same kind of constant, so the static part is carried by one parameter and ε by
     the dynamic part only (that keeps the two nearly uncorrelated and Gauss-Newton well
@@ -578,7 +578,7 @@ class BladeDissimilarity(Augmented):
     extra_parameters = (
         Parameter('dgamma_rel', 'ε = γ_j/γ − 1', '-', 0.0, -0.9, 3.0,
                   'relative Lock-number difference of the odd blade'),
-        Parameter('dtheta_static', 'Δθ_j + εθ0', 'rad', 0.0, -0.2, 0.2,
+        Parameter('dtheta_static', '(1+ε)Δθ_j + εθ0', 'rad', 0.0, -0.2, 0.2,
                   "the odd blade's static pitch-equivalent offset"))
     extra_states = ('eta', 'eta_dot')
     free_extra_states = ('eta', 'eta_dot')

@@ -346,6 +346,10 @@ def diagnose(record, description, progress=None, workers=2, effects=EFFECTS, win
             if any(t['effect'] == eq for t in eligible):
                 notes.append(f'{effect} and {eq} are the same physics to first order at this '
                              'size; both explain the data')
+        if effect == 'blade_dissimilarity' and ident.model.name == 'multiblade_wake':
+            notes.append('the (β1−β3)/2, (β2−β4)/2 channels see blade j and blade j+2 alike '
+                         '(the mirror blade with the opposite static offset dtheta_static); '
+                         'measure every blade to tell them apart')
         if rivals and gap <= CONFIDENCE_GAP:
             notes.append(f'{rivals[0]["effect"]} explains the data almost as well (criterion '
                          f'{rivals[0]["criterion"]:.1f} against {chosen["criterion"]:.1f})')

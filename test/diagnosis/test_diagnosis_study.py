@@ -15,10 +15,9 @@ parameters within 3σ in ≥ 90 % of right diagnoses, original parameters' bias 
 import importlib.util
 from pathlib import Path
 
+from diagnosis_scenarios import BY_NAME, evaluate, SCENARIOS
 import numpy as np
 import pytest
-from diagnosis_scenarios import BY_NAME, evaluate, SCENARIOS
-
 from rotor_id.diagnosis.diagnose import diagnose
 
 ROOT = Path(__file__).resolve().parents[2]
