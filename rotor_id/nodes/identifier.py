@@ -39,6 +39,10 @@ from rotor_id_msgs.srv import Identify
 from sensor_msgs.msg import JointState
 
 
+class _Superseded(Exception):
+    """A provisional fit gave way to a final fit or a service call."""
+
+
 class Identifier(Node):
     """Output-error ML on the live streams, with progress and the data-length verdict."""
 
@@ -90,6 +94,7 @@ class Identifier(Node):
         self.requests = []                # (window_s, final, time, future) for the worker
         self.arrival = None               # monotonic time the newest sample was taken
         self.latencies_ms = []
+        self.provisional_published = 0
         self.final_done = False
         self.next_update = None
         self.guess = {}
@@ -179,10 +184,15 @@ class Identifier(Node):
                 self._submit((t0, covered), False)
 
     def _submit(self, window_s, final, future=None):
-        """Queue a fit for the worker: the newest provisional one replaces a waiting one."""
+        """
+        Queue a fit for the worker.
+
+        A newer request replaces the provisional ones still waiting, and a final one (or a
+        service call) also stops a provisional fit in progress after its current iteration
+        (once one growing-window estimate was published).
+        """
         with self.wake:
-            if future is None and not final:
-                self.requests = [r for r in self.requests if r[1] or r[3] is not None]
+            self.requests = [r for r in self.requests if r[1] or r[3] is not None]
             self.requests.append((window_s, final, self.arrival or time.monotonic(), future))
             self.wake.notify()
 
@@ -196,10 +206,13 @@ class Identifier(Node):
                     return
                 window_s, final, requested, future = self.requests.pop(0)
             msg = self.fit(window_s, final)
+            if msg is None:               # superseded by a final fit or a service call
+                continue
             if future is not None:
                 future.set_result(msg)
                 continue
             self.pub_estimate.publish(msg)
+            self.provisional_published += not final
             # latency: newest sample of the window taken -> its estimate published
             self.latencies_ms.append((time.monotonic() - requested) * 1e3)
             lat = np.array(self.latencies_ms)
@@ -230,12 +243,20 @@ class Identifier(Node):
         def progress(info):
             self.pub_progress.publish(progress_message(
                 info, self.get_clock().now().to_msg()))
+            if not final and self.provisional_published and \
+                    any(r[1] or r[3] is not None for r in self.requests):
+                raise _Superseded         # (once the user has seen a growing-window estimate)
 
         started = time.perf_counter()
         try:
+            # growing windows start from the last estimate (or the nominal values) without the
+            # multi-start grid; the final fit uses the grid only if no estimate converged yet
             ident = identify(record, desc, progress=progress, window_s=window_s,
                              max_iter=max_iter or self.d['max_iter' if final
-                                                         else 'max_iter_provisional'])
+                                                         else 'max_iter_provisional'],
+                             multi_start=final)
+        except _Superseded:
+            return None
         except (ValueError, np.linalg.LinAlgError, FloatingPointError) as exc:
             return self._failed(str(exc), window_s)
         ident.stamp0_ns = self.stamp0
