@@ -109,3 +109,20 @@ def test_bad_input_is_one_line_and_exit_2(tmp_path, capsys):
     err = capsys.readouterr().err.strip().splitlines()
     assert code == 2
     assert len(err) == 1 and 'rotor-id diagnose: error' in err[0]
+
+
+def test_unexplained_when_the_catalogue_lacks_the_physics():
+    # the lagging flap sensors of dx_sensor_lag, with only candidates that cannot explain a
+    # lag: the mismatch is still found and located, and no wrong effect is named
+    from rotor_id.diagnosis.diagnose import diagnose
+    from rotor_id.io.bag import read_run
+    from rotor_id.io.run_description import load_run_description
+    _answers()
+    description = load_run_description(RECORDINGS / 'dx_sensor_lag.yaml')
+    record = read_run(description)
+    result = diagnose(record, description, workers=1,
+                      effects=('sensor_bias', 'flap_frequency')).as_json()
+    assert result['explanation']['effect'] == 'unexplained'
+    assert result['mismatch'] is True
+    assert set(result['location']['channels']) >= {'beta_m1', 'beta_m2'}
+    assert result['fit']['whiteness_p_baseline'] < 1e-3
