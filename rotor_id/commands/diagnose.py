@@ -33,6 +33,8 @@ def add_arguments(parser):
                         metavar='EFFECT', help='catalogue ids to try (default: all): '
                         + ', '.join(EFFECTS))
     parser.add_argument('--quiet', action='store_true', help='no progress lines')
+    parser.add_argument('--verbose', action='store_true',
+                        help='also print every Gauss-Newton iteration of every candidate')
 
 
 def _fmt(value, spec='.4g'):
@@ -95,7 +97,8 @@ def run(args):
         print(f'  {text}', file=sys.stderr, flush=True)
 
     result = diagnose(record, description, progress=None if args.quiet else progress,
-                      workers=args.workers, effects=tuple(args.effects))
+                      workers=args.workers, effects=tuple(args.effects),
+                      verbose_fits=args.verbose and not args.quiet)
     print(format_summary(result))
     data = result.as_json()
     data['bag'] = str(args.bag)

@@ -250,8 +250,11 @@ def _printer(label, verbose):
     import sys
 
     def show(info):
-        print(f'  [{label}] iteration {info["iteration"]}: cost {info["cost"]:.6g}, '
-              f'{info["elapsed"]:.1f} s', file=sys.stderr, flush=True)
+        rms = math.sqrt(float(np.mean(np.square(info['noise_std']))))
+        # one write per line, so that lines of parallel workers do not interleave
+        sys.stderr.write(f'  [{label}] iteration {info["iteration"]}: residual RMS '
+                         f'{rms:.5g} rad, {info["elapsed"]:.1f} s\n')
+        sys.stderr.flush()
     return show
 
 
@@ -354,7 +357,8 @@ def fit_candidate(job):
     out.elapsed_s = time.perf_counter() - t_start
     if job.verbose:
         import sys
-        print(f'  [{label}] done in {out.elapsed_s:.1f} s', file=sys.stderr, flush=True)
+        sys.stderr.write(f'  [{label}] done in {out.elapsed_s:.1f} s\n')
+        sys.stderr.flush()
     out.experiments = []            # keep the result small for the trip back to the parent
     return out
 

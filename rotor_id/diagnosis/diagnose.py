@@ -233,7 +233,8 @@ def diagnose(record, description, progress=None, workers=2, effects=EFFECTS, win
                    f'output-error ML over {window_s[0]:.3f}-{window_s[1]:.3f} s')
 
     def base_progress(info):
-        _say(progress, f'baseline: iteration {info["iteration"]}, cost {info["cost"]:.6g}, '
+        rms = math.sqrt(float(np.mean(np.square(info['noise_std']))))
+        _say(progress, f'baseline: iteration {info["iteration"]}, residual RMS {rms:.5g} rad, '
                        f'{time.perf_counter() - t_start:.1f} s')
 
     ident = identify(record, description, progress=base_progress, window_s=window_s)
