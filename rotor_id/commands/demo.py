@@ -6,12 +6,13 @@ config/nodes_<case>.yaml: the simulated rotor (plant), the stirring input, the i
 Kalman state estimator and the recorder. Prints the estimates as they arrive (window length, each
 parameter ± its Cramér-Rao σ), then a table of identified vs true values, the bag, and figures;
 then identifies the recorded bag offline with the same pipeline and shows that both agree.
-Ctrl-C stops the children (the recorder first, so the bag is complete) and nothing is left running.
+Ctrl-C stops the children (the recorder last, so the bag is complete) and nothing is left running.
 """
 
 import math
 import os
 from pathlib import Path
+import signal
 import sys
 import time
 
@@ -89,7 +90,11 @@ def run_live(case, out, storage, domain_id, timeout, seed=None, stream=sys.stdou
                      'stirring started', 'stirring done')[msg.phase]
             print(f'  [{time.monotonic() - t_start:6.1f} s] {label}', file=stream, flush=True)
 
-    rclpy.init(signal_handler_options=SignalHandlerOptions.NO)   # Ctrl-C: KeyboardInterrupt
+    # Ctrl-C sets a flag that the spin loop checks: a KeyboardInterrupt raised at an arbitrary
+    # point can land inside rclpy's message conversion and come out as a RuntimeError
+    interrupted = []
+    previous = signal.signal(signal.SIGINT, lambda *_: interrupted.append(True))
+    rclpy.init(signal_handler_options=SignalHandlerOptions.NO)
     node = rclpy.create_node('rotor_id_demo')
     watcher = RunWatcher(node, on_message=show)
     plant_params = {'duration_s': description.window_s[1] + MARGIN_S}
@@ -108,7 +113,9 @@ def run_live(case, out, storage, domain_id, timeout, seed=None, stream=sys.stdou
               f'window {description.window_s[0]:.4f}-{description.window_s[1]:.4f} s after the '
               'first flap sample:', file=stream, flush=True)
         ok = watcher.spin_until(lambda: watcher.final_estimate() is not None, timeout,
-                                alive=lambda: not procs.dead())
+                                alive=lambda: not procs.dead() and not interrupted)
+        if interrupted:
+            raise KeyboardInterrupt
         if not ok:
             dead = procs.dead()
             reason = (f'{", ".join(dead)} exited ({dead}); see {out / "logs"}' if dead
@@ -116,11 +123,16 @@ def run_live(case, out, storage, domain_id, timeout, seed=None, stream=sys.stdou
             raise RuntimeError(f'the live run failed: {reason}')
         # a few more state estimates after the final parameters (the iterated loop)
         n_states = len(watcher.messages['state'])
-        watcher.spin_until(lambda: len(watcher.messages['state']) > n_states, 3.0)
+        watcher.spin_until(lambda: len(watcher.messages['state']) > n_states, 3.0,
+                           alive=lambda: not interrupted)
+        if interrupted:
+            raise KeyboardInterrupt
     finally:
+        print('stopping the nodes (the recorder last)...', file=stream, flush=True)
         codes = procs.stop_all()
         node.destroy_node()
         rclpy.try_shutdown()
+        signal.signal(signal.SIGINT, previous)
     return watcher.final_estimate(), watcher, bag, codes
 
 
