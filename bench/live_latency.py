@@ -108,6 +108,8 @@ def main():
     parser.add_argument('--duration', type=float, default=600.0,
                         help='rotor time to simulate (s); the issue asks for 600')
     parser.add_argument('--out', default=str(REPO_ROOT / 'out' / 'bench_live'))
+    parser.add_argument('--results-name', default='live',
+                        help='write bench/results/<name>.md (default: live)')
     args = parser.parse_args()
     out = Path(args.out) / time.strftime('%Y%m%d-%H%M%S')
     out.mkdir(parents=True)
@@ -146,8 +148,11 @@ def main():
         f'* messages lost by the recorder: {lost}\n'
         f'* exit codes: {result["codes"]}\n\n'
         + markdown_table(['topic', 'published', 'in the bag'], rows) + '\n')
-    path = write_results('live', 'Live nodes: estimate latency and recorder completeness', body,
-                         f'python bench/live_latency.py --duration {args.duration:g}')
+    command = f'python bench/live_latency.py --duration {args.duration:g}'
+    if args.results_name != 'live':
+        command += f' --results-name {args.results_name}'
+    path = write_results(args.results_name,
+                         'Live nodes: estimate latency and recorder completeness', body, command)
     print(body)
     say(f'wrote {path}')
     return 0 if lost == 0 and all(c == 0 for c in result['codes'].values()) else 1
