@@ -53,10 +53,11 @@ class Identifier(Node):
              'window_s relative to the first flap stamp received)'),
             ('target_std', [0.0], 'target Cramer-Rao sigma of each unknown, in the order of the '
              "run description's unknowns (units of the parameter; 0 = no target)"),
-            ('update_every_rad', math.pi / 2, 'intermediate estimates every this much rotor '
+            ('update_every_rad', math.pi / 4, 'intermediate estimates every this much rotor '
              'azimuth while the window fills (rad; 0 = none)', 0.0, 1e6),
-            ('min_window_rad', 2.0 * math.pi, 'first intermediate estimate after this much of '
-             'the window (rad of azimuth)', 0.1, 1e6),
+            ('min_window_rad', 3.0 * math.pi, 'first intermediate estimate after this much of '
+             'the window (rad of azimuth; the wake case is informative from ~1.5 rev)',
+             0.1, 1e6),
             ('max_iter', 30, 'Gauss-Newton iteration limit of the final fit', 1, 1000),
             ('max_iter_provisional', 8, 'Gauss-Newton iteration limit of the growing-window '
              'fits (each starts from the previous estimate)', 1, 1000),
