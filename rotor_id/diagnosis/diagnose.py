@@ -335,12 +335,20 @@ def diagnose(record, description, progress=None, workers=2, effects=EFFECTS, win
                           'reason': fit.reason, 'fit': fit})
     ranked = sorted([t for t in table if t['available']], key=lambda t: -t['criterion'])
     eligible = [t for t in ranked if t['eligible']]
-    chosen = eligible[0] if eligible else None
+    floors = [c.floor for c in channels if c.model_channel]
+    for t in eligible:
+        t['adequate'] = _adequate(t['fit'], floors, u, exp0.t)
+    chosen, passed_over = _choose(eligible)
     notes = []
+    if passed_over:
+        notes.append('process_noise also raises the likelihood (a Kalman filter tracks any '
+                     f'unmodelled dynamics), but {chosen["effect"]} leaves white residuals at '
+                     'the noise floor: random inflow is the explanation of last resort')
     if chosen is not None:
         effect = chosen['effect']
         rivals = [t for t in ranked if t['effect'] != effect
-                  and t['effect'] not in EQUIVALENT.get(effect, ())]
+                  and t['effect'] not in EQUIVALENT.get(effect, ())
+                  and not (passed_over and t['effect'] == 'process_noise')]
         gap = chosen['criterion'] - (rivals[0]['criterion'] if rivals else 0.0)
         confidence = 'high' if gap > CONFIDENCE_GAP else 'low'
         for eq in EQUIVALENT.get(effect, ()):
@@ -352,8 +360,9 @@ def diagnose(record, description, progress=None, workers=2, effects=EFFECTS, win
                          '(the mirror blade with the opposite static offset dtheta_static); '
                          'measure every blade to tell them apart')
         if rivals and gap <= CONFIDENCE_GAP:
-            notes.append(f'{rivals[0]["effect"]} explains the data almost as well (criterion '
-                         f'{rivals[0]["criterion"]:.1f} against {chosen["criterion"]:.1f})')
+            notes.append(f'{rivals[0]["effect"]} is about as strong by the criterion '
+                         f'({rivals[0]["criterion"]:.1f} against {chosen["criterion"]:.1f}); '
+                         'the prediction of the unfitted half-window decided')
         mismatch = True
     else:
         mismatch = residual_flag
@@ -418,6 +427,42 @@ def diagnose(record, description, progress=None, workers=2, effects=EFFECTS, win
                      channels=channels, stats_baseline=stats_base, stats_augmented=stats_aug,
                      blade_floor=blade_sigma, record_window=part, elapsed_s=elapsed,
                      notes=notes, fits=fits)
+
+
+def _adequate(fit, floors, u, t):
+    """Return whether a deterministic candidate leaves white residuals at the noise floor."""
+    if fit.effect == 'process_noise':
+        return False
+    est = fit.estimate
+    if len(est.residuals) > 1:
+        res = np.column_stack([r[:, 0] for r in est.residuals])
+    else:
+        res = est.residuals[0]
+    stats = [rs.channel_stats(str(j), res[:, j], floors[j], u, 1, t)
+             for j in range(res.shape[1])]
+    return bool(rs.combined_whiteness_p(stats) > 1e-3 and max(s.z_excess for s in stats) < 4.0)
+
+
+def _choose(eligible):
+    """Return the explanation among the eligible candidates, and whether noise was passed over.
+
+    ``eligible`` is ranked by criterion; the flag says whether process_noise ranked higher
+    than the chosen, adequate deterministic candidate. Random inflow (filter-error
+    likelihood) can absorb any unmodelled dynamics, so it is chosen only when no deterministic candidate leaves white residuals at the floor. Among
+    candidates within :data:`CONFIDENCE_GAP` of the best criterion, the one that predicts the
+    unfitted half of the window best wins (cross-validation decides what BIC cannot).
+    """
+    if not eligible:
+        return None, False
+    deterministic = [t for t in eligible if t['effect'] != 'process_noise' and t['adequate']]
+    pool = deterministic or eligible
+    best = pool[0]
+    near = [t for t in pool if best['criterion'] - t['criterion'] <= CONFIDENCE_GAP]
+    if len(near) > 1 and all(t['validation_rms'] is not None for t in near):
+        best = min(near, key=lambda t: t['validation_rms'])
+    passed_over = bool(deterministic) and any(
+        t['effect'] == 'process_noise' and t['criterion'] > best['criterion'] for t in eligible)
+    return best, passed_over
 
 
 def _location(channels, stats_base, t, part, mismatch, n_ch):
