@@ -449,8 +449,9 @@ def _choose(eligible):
     ``eligible`` is ranked by criterion; the flag says whether process_noise ranked higher
     than the chosen, adequate deterministic candidate. Random inflow (filter-error
     likelihood) can absorb any unmodelled dynamics, so it is chosen only when no
-    deterministic candidate leaves white residuals at the floor. Among candidates within :data:`CONFIDENCE_GAP` of the best criterion, the one that predicts the
-    unfitted half of the window best wins (cross-validation decides what BIC cannot).
+    deterministic candidate leaves white residuals at the floor. Among candidates within
+    :data:`CONFIDENCE_GAP` of the best criterion, the one that predicts the unfitted half of
+    the window best wins (cross-validation decides what BIC cannot).
     """
     if not eligible:
         return None, False
