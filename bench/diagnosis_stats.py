@@ -63,9 +63,10 @@ def summarize(runs, seeds):
              '`excess` = baseline residual RMS / noise floor − 1, `aug excess` the same for the '
              'chosen model; `3σ` = extra parameters within 3σ of the truth; `orig z` = worst '
              '|estimate − truth|/σ of the original parameters, baseline → corrected.', '',
-             '| scenario | truth effect | named right | wrong names (high conf.) | excess mean '
-             '(max) | aug excess mean (max) | extra within 3σ | orig z before → after | s/run |',
-             '|---|---|---|---|---|---|---|---|---|']
+             '| scenario | truth effect | named right | names given | wrong names (high conf.) | '
+             'excess mean (max) | aug excess mean (max) | extra within 3σ | orig z before → '
+             'after | s/run |',
+             '|---|---|---|---|---|---|---|---|---|---|']
     for sc in SCENARIOS:
         rs = [r for r in runs if r['scenario'] == sc.name]
         if not rs:
@@ -77,19 +78,31 @@ def summarize(runs, seeds):
             key = r['effect'] + (' (high)' if r.get('confidence') == 'high' else '')
             names[key] = names.get(key, 0) + 1
         wrong_txt = ', '.join(f'{k}×{v}' for k, v in sorted(names.items())) or '–'
+        given = {}
+        for r in rs:
+            given[r['effect']] = given.get(r['effect'], 0) + 1
+        given_txt = ', '.join(f'{k}×{v}' for k, v in sorted(given.items()))
         exc = [r['excess'] for r in rs if 'excess' in r]
         aug = [r['augmented_excess'] for r in rs if 'augmented_excess' in r]
         w3 = [r['within_3sigma'] for r in rs if r.get('within_3sigma') is not None]
         ob = [r['original_bias_before'] for r in rs if r.get('original_bias_before') is not None]
         oa = [r['original_bias_after'] for r in rs if r.get('original_bias_after') is not None]
         lines.append(
-            f'| {sc.name} | {sc.effect} | {right}/{len(rs)} | {wrong_txt} | '
+            f'| {sc.name} | {sc.effect} | {right}/{len(rs)} | {given_txt} | {wrong_txt} | '
             f'{_fmt(np.mean(exc) if exc else None)} ({_fmt(max(exc) if exc else None)}) | '
             f'{_fmt(np.mean(aug) if aug else None)} ({_fmt(max(aug) if aug else None)}) | '
             f'{sum(w3)}/{len(w3)} | {_fmt(np.mean(ob) if ob else None, ".1f")} → '
             f'{_fmt(np.mean(oa) if oa else None, ".1f")} | '
             f'{np.mean([r["elapsed_s"] for r in rs]):.0f} |')
     return '\n'.join(lines) + '\n'
+
+
+def rewrite_summary(path, seeds):
+    """Regenerate the Markdown table from a study's JSON (e.g. after an interrupted run)."""
+    path = Path(path)
+    runs = json.loads(path.with_suffix('.json').read_text())
+    path.with_suffix('.md').write_text(summarize(runs, seeds))
+    return path.with_suffix('.md')
 
 
 def main(argv=None):
