@@ -42,11 +42,11 @@ def test_ctrl_c_stops_every_node(tmp_path):
                             stderr=subprocess.STDOUT, text=True)
     lines = []
     try:
-        for line in demo.stdout:            # until the rotor runs (the cyclic step is shown)
+        for line in demo.stdout:            # until the rotor runs (stirring is shown)
             lines.append(line)
-            if 'lateral cyclic step' in line:
+            if 'stirring started' in line:
                 break
-        assert 'lateral cyclic step' in ''.join(lines), ''.join(lines)
+        assert 'stirring started' in ''.join(lines), ''.join(lines)
         interrupted = time.monotonic()
         demo.send_signal(signal.SIGINT)
         output, _ = demo.communicate(timeout=60)
@@ -55,11 +55,14 @@ def test_ctrl_c_stops_every_node(tmp_path):
         if demo.poll() is None:
             demo.kill()
     output = ''.join(lines) + output
-    assert demo.returncode == 130, output
-    assert 'interrupted' in output and 'Traceback' not in output, output
-    assert took < 30, f'Ctrl-C took {took:.0f} s'
+    logs = '\n'.join(f'--- {p.name}\n{p.read_text()[-1500:]}'
+                     for p in sorted((out / 'logs').glob('*.log')))
+    report = f'exit {demo.returncode} after {took:.1f} s\n{output}\n{logs}'
+    assert demo.returncode == 130, report
+    assert 'interrupted' in output and 'Traceback' not in output, report
+    assert took < 45, report
     left = _processes_on_domain(domain)
-    assert not left, f'node processes left running: {left}'
+    assert not left, f'node processes left running: {left}\n{report}'
     from rotor_id.io.bag import read_record
     record = read_record(next(out.glob('bag_*')))
-    assert len(record) > 10
+    assert len(record) > 100          # stirring starts 0.81 s (810 samples) after the first

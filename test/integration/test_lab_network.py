@@ -31,12 +31,18 @@ from sensor_msgs.msg import JointState
 rclpy.init()
 node = rclpy.create_node('lab_listener')
 watcher = RunWatcher(node)
+# only then subscribe to the azimuth (the plant starts at 3 subscribers): the estimates must
+# not be published before this listener has matched the identifier
+watcher.spin_until(lambda: node.count_publishers('/rotor_id/estimate') > 0, 60.0)
+watcher.spin_until(lambda: False, 1.0)
 node.create_subscription(JointState, '/rotor/azimuth', lambda _: None, SENSOR_QOS)
 ok = watcher.spin_until(lambda: watcher.final_estimate() is not None, float(sys.argv[1]))
 final = watcher.final_estimate()
 print(json.dumps(None if final is None else {
     'names': list(final.names), 'values': list(final.values), 'std': list(final.std),
     'status': int(final.status), 'message': final.message}), flush=True)
+print(f'listener saw {len(watcher.messages["estimate"])} estimates, '
+      f'{len(watcher.messages["diagnostics"])} diagnostics', file=sys.stderr, flush=True)
 """
 
 
@@ -105,7 +111,8 @@ def test_plant_and_identifier_on_two_hosts(two_hosts, tmp_path):
             listener.kill()
         codes = {**rig_procs.stop_all(last=()), **lab_procs.stop_all(last=())}
     final = json.loads(out.strip().splitlines()[-1]) if out.strip() else None
-    assert final is not None, (f'no estimate crossed the veth link\nlistener: {err[-2000:]}\n'
+    assert final is not None, (f'no estimate crossed the veth link\nlistener (exit '
+                               f'{listener.returncode}): {out[-500:]} {err[-2000:]}\n'
                                f'identifier: {lab_procs.log("identifier")[-2000:]}\n'
                                f'plant: {rig_procs.log("rotor_plant")[-2000:]}')
     assert final['status'] == 1, final['message']
