@@ -1,6 +1,7 @@
 """The toolchain pieces: the CMake export patch, the pins, and the ./rotor-id launcher."""
 
 import importlib.util
+import os
 from pathlib import Path
 import re
 import shutil
@@ -45,6 +46,27 @@ def test_patch_rewrites_builder_paths_to_this_interpreter(tmp_path, capsys):
     assert patch_cmake_exports.main(prefix) == 0
     assert export.read_text() == text
     assert '0 of 2 CMake files patched' in capsys.readouterr().out
+
+
+def test_patch_fixes_another_venvs_paths_without_touching_hard_links(tmp_path):
+    """A file hard-linked into a package cache (uv) keeps the cache's content intact."""
+    np = pytest.importorskip('numpy')
+    export = _fake_prefix(tmp_path / 'venv')
+    export.write_text('set_target_properties(x PROPERTIES\n  INTERFACE_INCLUDE_DIRECTORIES '
+                      '"${_IMPORT_PREFIX}/include/std_msgs;/tmp/trial/v/include/python3.11;'
+                      '/tmp/trial/v/lib/python3.11/site-packages/numpy/_core/include")\n')
+    cache_copy = tmp_path / 'cache-file.cmake'
+    os.link(export, cache_copy)
+    before = cache_copy.read_text()
+    prefix = ['--prefix', str(tmp_path / 'venv')]
+    assert patch_cmake_exports.main(prefix + ['--check']) == 1
+    assert patch_cmake_exports.main(prefix) == 0
+    text = export.read_text()
+    assert '/tmp/trial' not in text
+    assert '${_IMPORT_PREFIX}/include/std_msgs' in text
+    assert f'{sysconfig.get_paths()["include"]};{np.get_include()}' in text
+    assert cache_copy.read_text() == before
+    assert patch_cmake_exports.main(prefix + ['--check']) == 0
 
 
 def test_patch_fails_on_a_prefix_without_cmake_files(tmp_path):

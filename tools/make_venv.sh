@@ -30,7 +30,8 @@ vpy="$venv/bin/python"
 if [ "$installer" = uv ] && \
    "$vpy" -m pip install -q --disable-pip-version-check -c "$cons" uv 2>/dev/null; then
   echo "   installer: uv $("$venv/bin/uv" --version | cut -d' ' -f2)"
-  UV_PYTHON_DOWNLOADS=never UV_NO_PROGRESS=1 \
+  # copy, never hard-link: the CMake-export patch must not reach into uv's shared cache
+  UV_PYTHON_DOWNLOADS=never UV_NO_PROGRESS=1 UV_LINK_MODE=copy \
     "$venv/bin/uv" pip install -q --python "$vpy" -r "$reqs" -c "$cons"
 else
   echo "   installer: pip"

@@ -24,17 +24,19 @@ Usage::
 """
 
 import argparse
+import os
 from pathlib import Path
 import re
 import sys
 import sysconfig
 
-# The wheel builder's interpreter prefix, e.g. /opt/python/cp311-cp311.
-_BUILDER_PREFIX = r'/opt/python/cp3\d+-cp3\d+'
-# Its numpy headers; checked first because the Python pattern is not a prefix of it.
+# Any absolute Python or numpy include directory named in an export: the wheel builder's
+# (/opt/python/cp3XX-cp3XX/...), or another venv's when a package cache handed us files that
+# were patched for it (uv hard-links installed files to its cache). Absolute paths only: the
+# ${_IMPORT_PREFIX}-relative entries of the exports are left alone.
 NUMPY_INCLUDE_RE = re.compile(
-    _BUILDER_PREFIX + r'/lib/python3\.\d+/site-packages/numpy/(?:_core|core)/include')
-PYTHON_INCLUDE_RE = re.compile(_BUILDER_PREFIX + r'/include/python3\.\d+')
+    r'/[^;"\s$]*/lib/python3\.\d+/site-packages/numpy/(?:_core|core)/include')
+PYTHON_INCLUDE_RE = re.compile(r'/[^;"\s$]*/include/python3\.\d+')
 
 
 def target_paths():
@@ -49,15 +51,42 @@ def export_files(prefix):
 
 
 def patch_text(text, python_include, numpy_include):
-    """Return ``text`` with the builder's include paths replaced, and the count replaced."""
-    text, n_numpy = NUMPY_INCLUDE_RE.subn(numpy_include.replace('\\', '/'), text)
-    text, n_python = PYTHON_INCLUDE_RE.subn(python_include.replace('\\', '/'), text)
-    return text, n_numpy + n_python
+    """Return ``text`` with foreign include paths replaced, and the count replaced."""
+    numpy_include = numpy_include.replace('\\', '/')
+    python_include = python_include.replace('\\', '/')
+    count = 0
+
+    def swap(target):
+        def replace(match):
+            nonlocal count
+            if match.group(0) != target:
+                count += 1
+            return target
+        return replace
+
+    text = NUMPY_INCLUDE_RE.sub(swap(numpy_include), text)
+    text = PYTHON_INCLUDE_RE.sub(swap(python_include), text)
+    return text, count
 
 
-def leftovers(text):
-    """Return the builder paths still present in ``text``."""
-    return NUMPY_INCLUDE_RE.findall(text) + PYTHON_INCLUDE_RE.findall(text)
+def leftovers(text, python_include=None, numpy_include=None):
+    """Return the include paths in ``text`` that are not this interpreter's."""
+    if python_include is None:
+        python_include, numpy_include = target_paths()
+    return ([m for m in NUMPY_INCLUDE_RE.findall(text) if m != numpy_include]
+            + [m for m in PYTHON_INCLUDE_RE.findall(text) if m != python_include])
+
+
+def write_replacing(path, text):
+    """
+    Write ``text`` to a new file renamed over ``path``.
+
+    Never in place: the installed file may be a hard link into a package cache (uv), and
+    writing through it would change every other environment made from that cache.
+    """
+    tmp = path.with_name(path.name + '.patch-tmp')
+    tmp.write_text(text, encoding='utf-8')
+    os.replace(tmp, path)
 
 
 def main(argv=None):
@@ -69,7 +98,7 @@ def main(argv=None):
              'sys.prefix, i.e. the venv)')
     parser.add_argument(
         '--check', action='store_true',
-        help="change nothing; exit 1 if any file still names the builder's paths")
+        help='change nothing; exit 1 if any file names a foreign include path')
     parser.add_argument('-q', '--quiet', action='store_true', help='print only problems')
     args = parser.parse_args(argv)
 
@@ -80,7 +109,9 @@ def main(argv=None):
         return 1
 
     if args.check:
-        bad = [(f, leftovers(f.read_text(encoding='utf-8'))) for f in files]
+        python_include, numpy_include = target_paths()
+        bad = [(f, leftovers(f.read_text(encoding='utf-8'), python_include, numpy_include))
+               for f in files]
         bad = [(f, hits) for f, hits in bad if hits]
         for f, hits in bad:
             print(f'{f}: still names {sorted(set(hits))}', file=sys.stderr)
@@ -89,8 +120,8 @@ def main(argv=None):
                   file=sys.stderr)
             return 1
         if not args.quiet:
-            print(f'patch_cmake_exports: {len(files)} CMake files checked, none names '
-                  '/opt/python')
+            print(f'patch_cmake_exports: {len(files)} CMake files checked, all include paths '
+                  "are this interpreter's")
         return 0
 
     python_include, numpy_include = target_paths()
@@ -103,7 +134,7 @@ def main(argv=None):
         text = f.read_text(encoding='utf-8')
         new_text, count = patch_text(text, python_include, numpy_include)
         if count:
-            f.write_text(new_text, encoding='utf-8')
+            write_replacing(f, new_text)
             patched += 1
     if not args.quiet or patched:
         print(f'patch_cmake_exports: {patched} of {len(files)} CMake files patched '
