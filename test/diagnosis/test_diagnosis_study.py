@@ -8,7 +8,8 @@ original parameters back within 3σ of the truth.
 
 Slow part (``-m slow``): the full study of bench/diagnosis_stats.py, ≥ 10 seeds per scenario:
 right effect in ≥ 90 % per effect, ``none`` in ≥ 95 % of effect-free recordings and never a
-wrong effect with high confidence, augmented RMS within 5 % of the floor on average, extra
+wrong effect with high confidence, augmented RMS within 5 % of the floor on average (not for
+process noise, whose filter-error residuals are one-step innovations), extra
 parameters within 3σ in ≥ 90 % of right diagnoses, original parameters' bias removed.
 """
 
@@ -60,7 +61,8 @@ def test_full_study_statistics():
         if not rs or sc.effect == 'none':
             continue
         assert sum(r['right'] for r in rs) >= 0.9 * len(rs), sc.name
-        assert np.mean([r['augmented_excess'] for r in rs]) <= 0.05, sc.name
+        if sc.effect != 'process_noise':    # filter error: innovations, above the floor
+            assert np.mean([r['augmented_excess'] for r in rs]) <= 0.05, sc.name
         w3 = [r['within_3sigma'] for r in rs if r.get('within_3sigma') is not None]
         assert not w3 or sum(w3) >= 0.9 * len(w3), sc.name
         before = [r['original_bias_before'] for r in rs if r['right']]
