@@ -1,5 +1,6 @@
 #!/usr/bin/env python3
-"""Full-statistics study of ``rotor-id diagnose`` on concealed-effect recordings (issue 4).
+"""
+Full-statistics study of ``rotor-id diagnose`` on concealed-effect recordings (issue 4).
 
 For every scenario of test/diagnosis/diagnosis_scenarios.py and every seed, the independent
 truth generator makes a recording, :func:`rotor_id.diagnosis.diagnose` diagnoses it, and the
@@ -19,13 +20,12 @@ from pathlib import Path
 import sys
 import time
 
-import numpy as np
-
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / 'test' / 'diagnosis'))
 
 from diagnosis_scenarios import BY_NAME, evaluate, SCENARIOS  # noqa: E402
+import numpy as np  # noqa: E402
 from rotor_id.diagnosis.diagnose import diagnose  # noqa: E402
 
 RESULTS = ROOT / 'bench' / 'results'

@@ -1,4 +1,5 @@
-"""Model-mismatch diagnosis (issue 4): locate, explain and prove what a model leaves out.
+"""
+Model-mismatch diagnosis (issue 4): locate, explain and prove what a model leaves out.
 
 ``diagnose(record, description)`` is the library entry (also for the identifier node on a
 live window: pass ``window_s`` and ``workers=1``); ``rotor-id diagnose`` is its command.

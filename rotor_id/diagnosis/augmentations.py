@@ -1,4 +1,5 @@
-"""The catalogue of candidate physics: each an augmented model built from the baseline (issue 4).
+"""
+The catalogue of candidate physics: each an augmented model built from the baseline (issue 4).
 
 Every augmentation is a :class:`~rotor_id.physics.models.LinearModel` that wraps the baseline
 model, adds states, parameters, inputs or output offsets, and gives analytic derivatives of all
@@ -134,7 +135,8 @@ class BladeView:
 # ------------------------------------------------------------------------------------------------
 
 class Augmented(LinearModel):
-    """Baseline model plus extra states (appended to x) and extra parameters (appended to p).
+    """
+    Baseline model plus extra states (appended to x) and extra parameters (appended to p).
 
     Subclasses fill the extra blocks in :meth:`_extra` and :meth:`_extra_jacobian`. The
     baseline's equations are kept: rows of the baseline states get the baseline F and g plus
@@ -161,12 +163,12 @@ class Augmented(LinearModel):
 
     @property
     def n_base_states(self):
-        """Number of the baseline's states."""
+        """Return the number of the baseline's states."""
         return self.base.n_states
 
     @property
     def n_base_parameters(self):
-        """Number of the baseline's parameters."""
+        """Return the number of the baseline's parameters."""
         return len(self.base.parameters)
 
     def _split(self, p):
@@ -236,7 +238,8 @@ class Augmented(LinearModel):
         return super().equilibrium(t, p, u)
 
     def report_parameters(self, values, cov):
-        """Physical extra parameters {name: (value, std)} from the fitted extra parameters.
+        """
+        Physical extra parameters {name: (value, std)} from the fitted extra parameters.
 
         ``values``/``cov``: the extra parameters' estimates and covariance, plus the baseline
         parameters ahead of them (full model parameter vector order).
@@ -257,7 +260,8 @@ def _gamma_index(base):
 # ------------------------------------------------------------------------------------------------
 
 class SensorLag(Augmented):
-    """First-order lag of every flap sensor, time constant τ_s (``lag_rad``, rad of azimuth).
+    """
+    First-order lag of every flap sensor, time constant τ_s (``lag_rad``, rad of azimuth).
 
     The sensor reads z_k with τ_s z_k′ = β_k − z_k. With the lag error e_k = z_k − β_k
     (zero when the sensor has settled, as in trim at the start of a record):
@@ -294,7 +298,8 @@ class SensorLag(Augmented):
 
 
 class TimeDelay(Augmented):
-    """Flap read later than the pitch by d (``delay_rad``, rad of azimuth; d/Ω seconds).
+    """
+    Flap read later than the pitch by d (``delay_rad``, rad of azimuth; d/Ω seconds).
 
     A flap sample at t shows the rotor at t − d, the response to the blade pitch θ_k(· − d)
     (rotational symmetry). In multiblade pitch that is a shift and a rotation by d:
@@ -350,7 +355,8 @@ class TimeDelay(Augmented):
 
 
 class SensorBias(Augmented):
-    """Constant flap-sensor offsets b_k per blade: y = H x + C(t) b.
+    """
+    Constant flap-sensor offsets b_k per blade: y = H x + C(t) b.
 
     Only the bias patterns the channels can see and the collective pitch does not absorb are
     parameters: b = V c with V an orthonormal basis of the observable, non-collective patterns
@@ -402,7 +408,8 @@ class SensorBias(Augmented):
 
 
 class FlapFrequency(Augmented):
-    """The rotating flap frequency P (per rev) identified instead of taken from the rotor data.
+    """
+    The rotating flap frequency P (per rev) identified instead of taken from the rotor data.
 
     F is quadratic in P in every baseline, so the central difference of F over ±h is exact.
     """
@@ -493,7 +500,8 @@ def periodic_coefficients(base):
 
 
 class DynamicInflow(Augmented):
-    """Two-parameter dynamic wake on the tilt modes (Ch.2 eq. 29, MODELS.md §3.1-3.2).
+    """
+    Two-parameter dynamic wake on the tilt modes (Ch.2 eq. 29, MODELS.md §3.1-3.2).
 
     Adds λI, λII (report sign, up positive) to a multiblade γ-model:
 
@@ -553,7 +561,8 @@ class DynamicInflow(Augmented):
 
 
 class BladeDissimilarity(Augmented):
-    """Blade j's Lock number is γ(1+ε) and its aerodynamic pitch θ_j + Δθ (unseen by the sensor).
+    """
+    Blade j's Lock number is γ(1+ε) and its aerodynamic pitch θ_j + Δθ (unseen by the sensor).
 
     The deviation η = β_j − (what the symmetric model predicts for blade j) obeys blade j's
     own flapping equation (single blade, MODELS.md §1.1; at μ = 0 with the wake: A(θ+λ−β′)),
@@ -590,7 +599,8 @@ class BladeDissimilarity(Augmented):
         self._j = self.view.blades.index(self.blade)
 
     def _coefficients(self, t, pb, u):
-        """Return blade j's flapping coefficients and moment, with their derivatives.
+        """
+        Return blade j's flapping coefficients and moment, with their derivatives.
 
         Damping c, stiffness k, pitch gain m, moment row a (T, n), constant a0 (T,), and their
         derivatives with respect to the baseline parameters.
@@ -644,7 +654,8 @@ class BladeDissimilarity(Augmented):
                 dcoef * 0.5 * m_theta[:, None], da, da0)
 
     def _wake_feedback(self, t, pb, u):
-        """Return the pieces of the odd blade's moment δM/A seen by the wake.
+        """
+        Return the pieces of the odd blade's moment δM/A seen by the wake.
 
         Harmonic weights w (T, 2), state row r (T, n_base) and input part q (T,), so that
         δM/A = ε (r x + q) + s − (1 + ε) η′.
@@ -728,7 +739,8 @@ class BladeDissimilarity(Augmented):
 
 
 class CubicStiffness(Augmented):
-    """A hardening flap spring κβ³ on every blade (hub spring or elastic-stop nonlinearity).
+    """
+    A hardening flap spring κβ³ on every blade (hub spring or elastic-stop nonlinearity).
 
     β_k″ += −κ β_k³; the cube is taken of the measured flap (extra inputs), which is the
     flap to within the sensor noise, so the model stays linear in its states and κ:

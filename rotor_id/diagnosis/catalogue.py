@@ -1,4 +1,5 @@
-"""Build and fit the catalogue's candidates on the baseline's data (issue 4, step 3).
+"""
+Build and fit the catalogue's candidates on the baseline's data (issue 4, step 3).
 
 A candidate is an id of the issue (``sensor_lag``, ``dynamic_inflow`` …), the augmented model
 of :mod:`rotor_id.diagnosis.augmentations` for every run of the baseline, the unknowns (the
@@ -158,7 +159,8 @@ def applicable(effect, model_name, rotor, unknowns):
 
 
 def variants(effect, model_name, n_blades):
-    """Return the sub-candidates of one effect (one each).
+    """
+    Return the sub-candidates of one effect (one each).
 
     The odd blade of a dissimilarity is screened inside the fit (:func:`_screen_blade`).
     """
@@ -213,7 +215,8 @@ def _build(job, baseline_model, experiments):
 
 
 def _wake_starts(model, guess, unknowns):
-    """Yield starting points for the wake.
+    """
+    Yield starting points for the wake.
 
     Gains L and time constants τ; γ raised so that the quasi-steady damping γ/(1+AL) stays at
     the baseline's.
@@ -274,7 +277,8 @@ def _split_runs(runs, half):
 
 
 def cross_validate(runs, unknowns, guess, known, max_step=None):
-    """Fit on one half of the window, predict the other (initial states refitted), both ways.
+    """
+    Fit on one half of the window, predict the other (initial states refitted), both ways.
 
     Returns the mean-square prediction error per channel, averaged over the two directions.
     """
@@ -369,7 +373,8 @@ DISSIMILARITY_STARTS = (-0.1, 0.0, 0.1)
 
 
 def _screen_blade(job, base_model, experiments):
-    """Return the job of the blade (and start) that lowers the cost most in two GN steps.
+    """
+    Return the job of the blade (and start) that lowers the cost most in two GN steps.
 
     The full fit starts there.
     """

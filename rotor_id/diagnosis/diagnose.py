@@ -1,4 +1,5 @@
-"""Model-mismatch diagnosis of one recording (issue 4): fit, locate, explain, choose, show.
+"""
+Model-mismatch diagnosis of one recording (issue 4): fit, locate, explain, choose, show.
 
 1. Fit the run description's model (:func:`rotor_id.pipeline.identify`, output-error ML).
 2. Locate (:mod:`rotor_id.diagnosis.residuals`): per channel RMS against a model-free noise
@@ -113,7 +114,8 @@ def _say(progress, text):
 # ------------------------------------------------------------------------------------------------
 
 def baseline_channels(ident, part, blade_sigma):
-    """Return the residual channels of the baseline.
+    """
+    Return the residual channels of the baseline.
 
     The model's own, plus the multiblade coordinates it predicts and, when it predicts all
     four, each blade.
@@ -204,12 +206,15 @@ def _score(fit, baseline_est, n_obs, n_variants):
 
 def diagnose(record, description, progress=None, workers=2, effects=EFFECTS, window_s=None,
              verbose_fits=False):
-    """Diagnose the mismatch between a recording and the run description's model.
+    """
+    Diagnose the mismatch between a recording and the run description's model.
 
     Parameters
     ----------
     record : rotor_id.io.record.Record
+        The recording (rad, s), e.g. from :func:`rotor_id.io.bag.read_run` or a live buffer.
     description : rotor_id.io.run_description.RunDescription
+        The run description: model, unknowns, window, rotor data.
     progress : callable, optional
         Called with one line of text per step (what is being fitted, iteration, elapsed).
     workers : int
@@ -444,7 +449,8 @@ def _adequate(fit, floors, u, t):
 
 
 def _choose(eligible):
-    """Return the explanation among the eligible candidates, and whether noise was passed over.
+    """
+    Return the explanation among the eligible candidates, and whether noise was passed over.
 
     ``eligible`` is ranked by criterion; the flag says whether process_noise ranked higher
     than the chosen, adequate deterministic candidate. Random inflow (filter-error

@@ -1,4 +1,5 @@
-"""Figures of a diagnosis (matplotlib, Agg): what a person would rather look at than read.
+"""
+Figures of a diagnosis (matplotlib, Agg): what a person would rather look at than read.
 
 * ``fits.png``: each model channel, measured vs baseline fit vs augmented fit, and the
   residuals of both against ±σ of the noise floor.

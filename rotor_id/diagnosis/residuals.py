@@ -1,4 +1,5 @@
-"""Residual analysis: where do the recording and the model disagree (issue 4, step 2).
+"""
+Residual analysis: where do the recording and the model disagree (issue 4, step 2).
 
 All tests compare the residuals with a **noise floor estimated without the model**: at 1 kHz
 the flap signal is smooth from sample to sample, so the k-th differences of a measured flap
@@ -28,7 +29,8 @@ _DIFF_RHO2 = 1.0 + 2.0 * (0.75**2 + 0.3**2 + 0.05**2)
 
 
 def blade_noise_floor(blade_flap, order=DIFF_ORDER):
-    """White-noise σ of each flap sensor from its k-th differences (T, N) → (N,).
+    """
+    White-noise σ of each flap sensor from its k-th differences (T, N) → (N,).
 
     Outliers (a pitch step puts a kink into the flap) are trimmed at 5 robust σ first.
     """
@@ -71,7 +73,8 @@ def ljung_box(x, lags=LAGS):
 
 
 def effective_fraction(x, max_lag=200):
-    """Return N_eff/N for the mean square of a correlated series.
+    """
+    Return N_eff/N for the mean square of a correlated series.
 
     1/(1 + 2 Σ ρ_k), the sum taken over the initial positive run of ρ (Geyer); 1 for white
     residuals.
@@ -188,7 +191,8 @@ def _span(x, w, lo=0.05, hi=0.95):
 
 
 def band_of_excess(residuals, floors, dt, smooth=31):
-    """Band (per rev) holding 5-95 % of the significant residual power above the floor.
+    """
+    Band (per rev) holding 5-95 % of the significant residual power above the floor.
 
     The periodogram over all channels, relative to each floor, is averaged over ``smooth``
     bins; only bins more than 3 standard errors above the floor's level count.
@@ -208,7 +212,8 @@ def band_of_excess(residuals, floors, dt, smooth=31):
 
 
 def span_of_excess(residuals, floors, t):
-    """Return the time span holding 5-95 % of the significant residual energy above the floor.
+    """
+    Return the time span holding 5-95 % of the significant residual energy above the floor.
 
     Nondimensional; one-revolution windows, a window counts when 3 standard errors above.
     """

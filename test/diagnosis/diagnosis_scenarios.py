@@ -1,4 +1,5 @@
-"""Concealed-effect scenarios of the diagnosis study, shared by the tests and the benchmark.
+"""
+Concealed-effect scenarios of the diagnosis study, shared by the tests and the benchmark.
 
 Each scenario is a truth (a :class:`truth_generator.TruthConfig` built from a seed), the run
 description's model and unknowns, the effect a correct diagnosis names (and the ids it may

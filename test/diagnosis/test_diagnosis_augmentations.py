@@ -1,4 +1,5 @@
-"""Every candidate of the catalogue is a correct LinearModel built from the baseline.
+"""
+Every candidate of the catalogue is a correct LinearModel built from the baseline.
 
 * analytic sensitivities of each augmented model equal finite differences of the simulator;
 * with its extra parameters at their neutral values an augmentation is the baseline itself;

@@ -1,4 +1,5 @@
-"""The truth generator is a faithful stand-in for the test stand; the noise floor is model-free.
+"""
+The truth generator is a faithful stand-in for the test stand; the noise floor is model-free.
 
 The generator (an independent blade-by-blade simulation) must reproduce the four given dx_*
 recordings, noise-free, to within their flap noise: then the concealed-effect recordings of the

@@ -1,4 +1,5 @@
-"""Concealed effects from the independent generator are named right, with bounds that hold.
+"""
+Concealed effects from the independent generator are named right, with bounds that hold.
 
 CI part: two effects whose physics is not in any given recording (one blade's Lock number,
 a pitch/flap time skew), one seed each, at a size where the baseline's residual RMS is at most

@@ -1,4 +1,5 @@
-"""Independent generator of "real" test-stand recordings with concealed effects (issue 4).
+"""
+Independent generator of "real" test-stand recordings with concealed effects (issue 4).
 
 This is the test suite's stand-in for the rotor. It is written from the blade equations, blade
 by blade, with scipy's adaptive integrator, and shares no code with the identification models
@@ -217,7 +218,8 @@ NOMINAL_GUESS = {'A': 0.5, 'AL_over_tau': 0.25, 'inv_tau': 0.125, 'gamma': 5.0,
 
 
 def run_description_text(cfg, model, unknowns, window_s=None, guess=True):
-    """Return a run description (README schema) for a generated record.
+    """
+    Return a run description (README schema) for a generated record.
 
     ``guess``: give the nominal values as ``initial_guess`` (saves the start-value grid).
     """
