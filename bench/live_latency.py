@@ -82,8 +82,8 @@ def run(duration, out):
                       if v.key == 'messages']
             if counts and (not recorded or counts[-1] != recorded[-1]):
                 recorded.append(counts[-1])
-            return len(recorded) > 3 and all(b - a <= 10 for a, b in zip(recorded[-3:-1],
-                                                                          recorded[-2:]))
+            steps = zip(recorded[-3:-1], recorded[-2:])
+            return len(recorded) > 3 and all(b - a <= 10 for a, b in steps)
         watcher.spin_until(settled, 120.0)
     finally:
         wall = time.monotonic() - started
