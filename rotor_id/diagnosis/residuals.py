@@ -17,7 +17,9 @@ from dataclasses import dataclass
 import math
 
 import numpy as np
-from scipy import stats
+
+from rotor_id.estimation import validation
+from rotor_id.estimation.validation import autocorrelation
 
 #: Lags of the Ljung-Box whiteness test.
 LAGS = 20
@@ -54,22 +56,12 @@ def channel_floor(C, blade_sigma):
                                      np.asarray(blade_sigma)**2), axis=0))
 
 
-def autocorrelation(x, max_lag):
-    """Sample autocorrelation ρ_1..ρ_max_lag of a series (mean removed)."""
-    x = np.asarray(x, dtype=float) - np.mean(x)
-    denom = float(np.dot(x, x))
-    if denom <= 0:
-        return np.zeros(max_lag)
-    return np.array([np.dot(x[:-k], x[k:]) / denom for k in range(1, max_lag + 1)])
-
-
 def ljung_box(x, lags=LAGS):
-    """Ljung-Box portmanteau test of whiteness: (Q, p-value)."""
+    """Ljung-Box portmanteau test of whiteness of a residual series: (Q, p-value)."""
     n = len(x)
     lags = min(lags, n // 4)
-    rho = autocorrelation(x, lags)
-    q = n * (n + 2) * np.sum(rho**2 / (n - np.arange(1, lags + 1)))
-    return float(q), float(stats.chi2.sf(q, lags))
+    q, _, p = validation.ljung_box(autocorrelation(x, lags), n)
+    return q, p
 
 
 def effective_fraction(x, max_lag=200):
