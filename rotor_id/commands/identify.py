@@ -69,10 +69,16 @@ def format_table(result):
                  f'window {data["window_s"][0]:.4f}-{data["window_s"][1]:.4f} s '
                  f'({data["n_samples"]} samples, Ω = {data["omega_rad_s"]:.2f} rad/s), '
                  f'{data["iterations"]} iterations, '
-                 f'{"converged" if data["converged"] else "NOT converged: " + data["message"]}')
+                 f'{_status(data)}')
     noise = ', '.join(f'{c} {s:.3g}' for c, s in zip(data['channels'], data['noise_std']))
     lines.append(f'noise σ (rad): {noise}')
     return '\n'.join(lines)
+
+
+def _status(data):
+    if not data['converged']:
+        return 'NOT converged: ' + data['message']
+    return 'converged' if data['message'] == 'converged' else 'converged, ' + data['message']
 
 
 def plot_fit(result, record, path, title=''):

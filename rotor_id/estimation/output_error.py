@@ -479,6 +479,9 @@ def fit_output_error(experiments, unknowns, guess=None, known=None, noise_std=No
                         'pseudo-inverse and meaningless for the dependent combination')
     if not converged and 'bound' not in message:
         warnings.append(message)
+    if 'bound' in message:
+        warnings.append(message + ': the estimate is limited by the bound, not by the data '
+                        '(missing physics in the model, or a poor start); do not use it as is')
     data_cost = sum(0.5 * np.sum(res**2 / noise_var) for res, _, _ in results)
     nll = data_cost + 0.5 * n_total * (np.sum(np.log(noise_var)) + m * math.log(2 * math.pi))
     p_final = problem.full_parameters(theta)
