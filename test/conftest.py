@@ -60,3 +60,14 @@ def ros_env(ros_domain_id, tmp_path):
     env['ROS_LOG_DIR'] = str(tmp_path / 'ros_log')
     env['PYTHONUNBUFFERED'] = '1'
     return env
+
+
+def pytest_collection_modifyitems(config, items):
+    """Skip the long statistical studies (marker ``study``) unless ROTOR_ID_SLOW=1."""
+    if os.environ.get('ROTOR_ID_SLOW'):
+        return
+    skip = pytest.mark.skip(reason='long statistical study: set ROTOR_ID_SLOW=1 to run it '
+                                   '(CI runs a smaller variant)')
+    for item in items:
+        if 'study' in item.keywords:
+            item.add_marker(skip)

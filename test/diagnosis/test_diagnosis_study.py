@@ -7,7 +7,8 @@ a pitch/flap time skew), one seed each, at a size where the baseline's residual 
 augmented fit's RMS within 5 % of the floor, the extra parameters within 3σ of the truth, the
 original parameters back within 3σ of the truth.
 
-Slow part (``-m slow``): the full study of bench/diagnosis_stats.py, ≥ 10 seeds per scenario:
+Study part (marker ``study``, ROTOR_ID_SLOW=1, ~30 min): the full study of
+bench/diagnosis_stats.py, ≥ 10 seeds per scenario:
 right effect in ≥ 90 % per effect, ``none`` in ≥ 95 % of effect-free recordings and never a
 wrong effect with high confidence, augmented RMS within 5 % of the floor on average (not for
 process noise, whose filter-error residuals are one-step innovations), extra
@@ -45,6 +46,7 @@ def _filter_error_available():
 
 
 @pytest.mark.slow
+@pytest.mark.study
 def test_full_study_statistics():
     spec = importlib.util.spec_from_file_location('diagnosis_stats',
                                                   ROOT / 'bench' / 'diagnosis_stats.py')

@@ -15,7 +15,6 @@ What is proved here:
 """
 
 import math
-import os
 
 import numpy as np
 import pytest
@@ -198,8 +197,7 @@ def test_system_noise_filter_error_beats_output_error_ci():
 
 
 @pytest.mark.slow
-@pytest.mark.skipif(not os.environ.get('ROTOR_ID_SLOW'),
-                    reason='200-seed Monte Carlo (about 4-7 min): set ROTOR_ID_SLOW=1 to run it')
+@pytest.mark.study
 def test_system_noise_filter_error_beats_output_error_full():
     """
     Same with 200 seeds: the bound's coverage of the truth pooled over the parameters in 90-98 %.
