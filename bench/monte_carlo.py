@@ -21,33 +21,20 @@ not bad luck. Prints progress and a table; writes bench/results/monte_carlo.md (
 """
 
 import argparse
-import datetime
 import multiprocessing
-import os
 from pathlib import Path
-import platform
 import sys
 import time
 
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-import numpy as np  # noqa: E402
+from common import machine_markdown  # noqa: E402  (bench/common.py)
 from rotor_id.report import monte_carlo as M  # noqa: E402
 
 BIAS_LIMIT = 0.2          # σ_CRB
 STD_LIMIT = 0.15          # relative
 COVERAGE = (0.92, 0.98)
-
-
-def _cpu_model():
-    try:
-        for line in Path('/proc/cpuinfo').read_text().splitlines():
-            if line.startswith('model name'):
-                return line.split(':', 1)[1].strip()
-    except OSError:
-        pass
-    return platform.processor() or 'unknown CPU'
 
 
 def _progress(case, done, total, elapsed):
@@ -75,14 +62,10 @@ def main(argv=None):
     if args.seeds < 200:
         parser.error('use at least 200 seeds (the CI test runs the small sample)')
     started = time.perf_counter()
-    stamp = datetime.datetime.now(datetime.timezone.utc).strftime('%Y-%m-%d %H:%M UTC')
     lines = [
         '# Monte Carlo of the report cases: ML estimate scatter vs the Cramér-Rao bound',
         '',
-        f'- date: {stamp}',
-        f'- machine: {platform.node()}, {_cpu_model()}, {os.cpu_count()} CPUs, '
-        f'{platform.system()} {platform.release()}',
-        f'- python {platform.python_version()}, numpy {np.__version__}',
+        machine_markdown(),
         f'- command: `python bench/monte_carlo.py --seeds {args.seeds} --workers '
         f'{args.workers}`',
         f'- {args.seeds} noise seeds (0 … {args.seeds - 1}) per case; output-error ML with R '
