@@ -265,7 +265,8 @@ def wait_for_acks(publishers, timeout_s=10.0):
 
 
 # ------------------------------------------------------------------------------ main
-def spin_node(node_factory, args=None, executor_factory=None):
+def spin_node(node_factory, args=None, executor_factory=None, after_stop=None,
+              runtime_errors=()):
     """
     Run a node as main() does in demo_nodes_py (Jazzy, CONVENTIONS.md §2/§9); returns exit code.
 
@@ -273,6 +274,9 @@ def spin_node(node_factory, args=None, executor_factory=None):
     exit code 2, never a traceback. SIGINT and SIGTERM only set a flag that the spin loop checks
     every 0.1 s: rclpy's own handler raises ExternalShutdownException and then
     KeyboardInterrupt, which can land inside a message conversion or the clean-up.
+    ``after_stop(node, executor)`` runs once the stop is asked for, before the clean-up (the
+    recorder drains what was delivered); ``runtime_errors`` raised while spinning are one line
+    and exit code 2 as well.
     """
     rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
     stop = []
@@ -290,8 +294,14 @@ def spin_node(node_factory, args=None, executor_factory=None):
         executor.add_node(node)
         while not stop:
             executor.spin_once(timeout_sec=0.1)
+        if after_stop is not None:
+            after_stop(node, executor)
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
+    except runtime_errors as exc:
+        print(f'{getattr(node, "get_name", lambda: "rotor_id")()}: error: {exc}',
+              file=sys.stderr)
+        code = 2
     finally:
         for signum in (signal.SIGINT, signal.SIGTERM):   # stopping already: no second interrupt
             signal.signal(signum, signal.SIG_IGN)

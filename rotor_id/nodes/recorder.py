@@ -15,11 +15,9 @@ SIGINT and SIGTERM stop the recording: the node takes every message already deli
 import importlib
 import os
 from pathlib import Path
-import signal
 import sys
 import time
 
-import rclpy
 from rclpy.executors import SingleThreadedExecutor
 try:
     from rclpy.experimental import EventsExecutor
@@ -27,12 +25,11 @@ except ImportError:          # rclpy without the events executor
     EventsExecutor = None
 from rclpy.node import Node
 from rclpy.qos import (DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy)
-from rclpy.signals import SignalHandlerOptions
 from rosbags.interfaces import (Qos, QosDurability, QosHistory, QosLiveliness, QosReliability,
                                 QosTime)
 from rosbags.typesys import get_typestore, Stores
 from rotor_id.io.bag import open_writer, register_msg_dir
-from rotor_id.nodes.common import declare, Diagnostics, resolve_config
+from rotor_id.nodes.common import declare, Diagnostics, resolve_config, spin_node
 
 _INFINITE_NS = 2**63 - 1
 
@@ -168,40 +165,27 @@ class Recorder(Node):
         print('\n'.join(lines), file=sys.stderr, flush=True)
 
 
+def _events_executor():
+    # the C++ events executor takes a message for ~40 µs of CPU where the Python executor
+    # needs ~100 µs: what lets one Python process record 4 blades x 1 kHz on a busy machine
+    return EventsExecutor() if EventsExecutor is not None else SingleThreadedExecutor()
+
+
+def _drain(node, executor):
+    """Take everything already delivered before finalising the bag."""
+    # quiet = no message for drain_s since draining began, not since the last one before the
+    # signal
+    node.last_message = time.monotonic()
+    deadline = node.last_message + node.d['drain_max_s']
+    while time.monotonic() - node.last_message < node.d['drain_s'] and \
+            time.monotonic() < deadline:
+        executor.spin_once(timeout_sec=0.02)
+
+
 def main(args=None):
     """Record until SIGINT/SIGTERM, then drain what was delivered and finalise the bag."""
-    rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
-    stop = []
-    for signum in (signal.SIGINT, signal.SIGTERM):
-        signal.signal(signum, lambda number, _frame: stop.append(number))
-    node = None
-    code = 0
-    try:
-        node = Recorder()
-        # the C++ events executor takes a message for ~40 µs of CPU where the Python executor
-        # needs ~100 µs: what lets one Python process record 4 blades x 1 kHz on a busy machine
-        executor = EventsExecutor() if EventsExecutor is not None else SingleThreadedExecutor()
-        executor.add_node(node)
-        while not stop:
-            executor.spin_once(timeout_sec=0.1)
-        # the stop: take everything already delivered before finalising (quiet = no message for
-        # drain_s since draining began, not since the last message before the signal)
-        node.last_message = time.monotonic()
-        deadline = node.last_message + node.d['drain_max_s']
-        while time.monotonic() - node.last_message < node.d['drain_s'] and \
-                time.monotonic() < deadline:
-            executor.spin_once(timeout_sec=0.02)
-    except (ValueError, OSError) as exc:
-        print(f'recorder: error: {exc}', file=sys.stderr)
-        code = 2
-    finally:
-        for signum in (signal.SIGINT, signal.SIGTERM):   # finalising: no second interrupt
-            signal.signal(signum, signal.SIG_IGN)
-        if node is not None:
-            node.close()
-            node.destroy_node()
-        rclpy.try_shutdown()
-    return code
+    return spin_node(Recorder, args, executor_factory=_events_executor, after_stop=_drain,
+                     runtime_errors=(ValueError, OSError))
 
 
 if __name__ == '__main__':
