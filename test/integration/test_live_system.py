@@ -30,23 +30,26 @@ def live_run(tmp_path_factory):
     from rotor_id.nodes.watch import RunWatcher
     from rotor_id_msgs.srv import Identify
 
-    tmp = tmp_path_factory.mktemp('live')
     params_file, description_path, _ = case_files('wake')
     description = load_run_description(description_path)
-    domain = domain_id()
-    session = RosSession(domain)
-    watcher = RunWatcher(session.node, sensors=True)
-    env = isolated_env(domain, tmp / 'ros_log')
-    procs = NodeProcesses(env, tmp / 'logs')
-    bag = tmp / 'bag'
-    run = {'bag': bag, 'watcher': watcher, 'description': description, 'procs': procs}
     import time
     t0 = time.monotonic()
 
     def mark(what):
         print(f'{time.monotonic() - t0:6.1f} s {what}', flush=True)
 
-    try:
+    # DDS discovery under CI load: in about one full-suite run in three the test's own
+    # watcher never received the estimates that the identifier published (the recorder has
+    # them; cause not found yet). One retry in a fresh domain; every assertion is unchanged.
+    for attempt in (1, 2):
+        tmp = tmp_path_factory.mktemp('live')
+        domain = domain_id()
+        session = RosSession(domain)
+        watcher = RunWatcher(session.node, sensors=True)
+        env = isolated_env(domain, tmp / 'ros_log')
+        procs = NodeProcesses(env, tmp / 'logs')
+        bag = tmp / 'bag'
+        run = {'bag': bag, 'watcher': watcher, 'description': description, 'procs': procs}
         procs.start('identifier', params_file, {'target_std': [0.02, 0.02, 0.01]})
         procs.start('state_estimator', params_file)
         procs.start('recorder', params_file, {'output': str(bag)})
@@ -56,7 +59,14 @@ def live_run(tmp_path_factory):
                                                  'wait_for_subscribers': 5, 'seed': 7})
         done = watcher.spin_until(lambda: watcher.final_estimate() is not None, 150.0,
                                   alive=lambda: not procs.dead())
-        mark('final estimate')
+        mark(f'final estimate (attempt {attempt}): {done}')
+        if done or attempt == 2:
+            break
+        print('no final estimate reached the test process; identifier log:\n'
+              + procs.log('identifier'), flush=True)
+        procs.stop_all()
+        session.close()
+    try:
         assert done, f'no final estimate; exited: {procs.dead()}\n' + procs.log('identifier')
         client = session.node.create_client(Identify, '/identifier/identify')
         assert client.wait_for_service(timeout_sec=20.0), 'no Identify service'
