@@ -250,6 +250,3 @@ def channel_noise(model, blade_noise):
         return np.array([blade_noise / 2.0 if n in ('beta_0', 'beta_d')
                          else blade_noise / math.sqrt(2.0) for n in names])
     return blade_noise
-
-
-_channel_noise = channel_noise     # the earlier private name (nodes use it)

@@ -24,6 +24,7 @@ from rclpy.exceptions import NameValidationException, ParameterException
 from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.qos import (DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy)
 from rclpy.signals import SignalHandlerOptions
+from rotor_id.io.run_description import load_run_description
 from rotor_id_msgs.msg import IdentificationProgress, ParameterEstimate
 from sensor_msgs.msg import JointState
 
@@ -107,6 +108,14 @@ def resolve_config(path):
 def stamp_ns(stamp):
     """builtin_interfaces/Time → integer ns."""
     return int(stamp.sec) * NS + int(stamp.nanosec)
+
+
+def node_run_description(path):
+    """Load the run description a node's ``run_description`` parameter names (one clear error)."""
+    if not path:
+        raise ValueError('parameter run_description is empty: give the path of a run '
+                         'description YAML (see config/nodes_*.yaml)')
+    return load_run_description(resolve_config(path))
 
 
 def time_msg(ns):

@@ -26,9 +26,8 @@ import numpy as np
 from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
 from rclpy.node import Node
 from rclpy.task import Future
-from rotor_id.io.run_description import load_run_description
-from rotor_id.nodes.common import (declare, Diagnostics, estimate_message, NS, progress_message,
-                                   resolve_config, SENSOR_BUFFER_QOS, spin_node, stamp_ns,
+from rotor_id.nodes.common import (declare, Diagnostics, estimate_message, node_run_description,
+                                   NS, progress_message, SENSOR_BUFFER_QOS, spin_node, stamp_ns,
                                    STATE_QOS, wait_for_acks)
 from rotor_id.nodes.live import (BadSample, bound_history, check_azimuth_sample,
                                  check_joint_sample, data_length_verdict, record_from_series,
@@ -68,10 +67,7 @@ class Identifier(Node):
             ('frame_id', 'rotor', 'header.frame_id of the published messages'),
         ]
         self.d = {s[0]: declare(self, s[0], s[1], s[2], *s[3:]) for s in spec}
-        if not self.d['run_description']:
-            raise ValueError('parameter run_description is empty: give the path of a run '
-                             'description YAML (see config/nodes_*.yaml)')
-        self.description = load_run_description(resolve_config(self.d['run_description']))
+        self.description = node_run_description(self.d['run_description'])
         desc = self.description
         self.unknowns = list(desc.unknowns)
         targets = list(self.d['target_std'])

@@ -14,14 +14,13 @@ import sys
 
 import numpy as np
 from rclpy.node import Node
-from rotor_id.io.run_description import load_run_description
-from rotor_id.nodes.common import (declare, Diagnostics, estimate_from_message, resolve_config,
-                                   SENSOR_BUFFER_QOS, spin_node, stamp_ns, STATE_QOS,
-                                   wait_for_acks)
+from rotor_id.nodes.common import (declare, Diagnostics, estimate_from_message,
+                                   node_run_description, SENSOR_BUFFER_QOS, spin_node, stamp_ns,
+                                   STATE_QOS, wait_for_acks)
 from rotor_id.nodes.live import (AzimuthTracker, BadSample, check_azimuth_sample,
                                  check_joint_sample, StampedSeries, StreamingKalman)
 from rotor_id.physics.stirring import SampledInput
-from rotor_id.pipeline import _channel_noise, model_for
+from rotor_id.pipeline import channel_noise, model_for
 from rotor_id_msgs.msg import ParameterEstimate, StateEstimate
 from sensor_msgs.msg import JointState
 
@@ -47,13 +46,10 @@ class StateEstimator(Node):
             ('frame_id', 'rotor', 'header.frame_id of the published messages'),
         ]
         self.d = {s[0]: declare(self, s[0], s[1], s[2], *s[3:]) for s in spec}
-        if not self.d['run_description']:
-            raise ValueError('parameter run_description is empty: give the path of a run '
-                             'description YAML (see config/nodes_*.yaml)')
-        desc = load_run_description(resolve_config(self.d['run_description']))
+        desc = node_run_description(self.d['run_description'])
         self.model = model_for(desc)
         self.p = self.model.nominal()
-        self.noise = _channel_noise(self.model, self.d['flap_noise_std_rad'])
+        self.noise = channel_noise(self.model, self.d['flap_noise_std_rad'])
         n = desc.rotor.blades
         joints = desc.joint_names or {}
         self.flap_joints = list(joints.get('blade_flap') or
