@@ -17,6 +17,7 @@ commands), so a long run takes correspondingly longer.
 """
 
 import argparse
+import json
 import os
 from pathlib import Path
 import time
@@ -95,9 +96,13 @@ def run(duration, out):
     states = int(procs.log('state_estimator').split('published ')[1].split()[0])
     inside = procs.log('identifier').split('estimate latencies (ms): ')[1].splitlines()[0]
     latencies = [float(v) for v in inside.split()]
+    log = procs.log('identifier')
+    breakdown = json.loads(log.split('latency breakdown (ms): ')[1].splitlines()[0])
+    threads = json.loads(log.split('thread times: ')[1].splitlines()[0])
     fits = [m.message for _, m in estimates]
     return {'samples': samples, 'bag': _counts(bag), 'codes': codes, 'wall_s': wall,
-            'latency_ms': latencies, 'fits': fits, 'estimates': len(estimates),
+            'latency_ms': latencies, 'breakdown': breakdown, 'threads': threads,
+            'load_after': os.getloadavg(), 'fits': fits, 'estimates': len(estimates),
             'commands_published': commands, 'states_published': states,
             'received': {k: len(v) for k, v in watcher.messages.items()}}
 
@@ -135,6 +140,13 @@ def main():
                 f'{"met" if lat.max() <= 6.7 else "NOT met"})')
 
     rate = result['samples'] / 1000.0 / result['wall_s']
+    columns = ('total', 'queued', 'record', 'identify', 'gauss_newton', 'verdict', 'message',
+               'publish', 'cpu', 'cpu_wait', 'gil_or_lock_wait')
+    breakdown = [[b['kind'], f'{b["window_end_s"]:.4f}', b.get('iterations', '')]
+                 + [f'{b.get(c, float("nan")):.1f}' for c in columns] + [b['samples_taken']]
+                 for b in result['breakdown']]
+    threads = result['threads']
+    per_sample = threads['executor_cpu_s'] / max(threads['samples_taken'], 1) * 1e6
     body = (
         f'## Result\n\n'
         f'* rotor time simulated: {result["samples"] / 1000:.1f} s at 1 kHz x 4 blades '
@@ -146,8 +158,31 @@ def main():
 
         f'* estimates (window, convergence, fit time): {"; ".join(result["fits"])}\n'
         f'* messages lost by the recorder: {lost}\n'
-        f'* exit codes: {result["codes"]}\n\n'
-        + markdown_table(['topic', 'published', 'in the bag'], rows) + '\n')
+        f'* exit codes: {result["codes"]}\n'
+        f'* load average (1/5/15 min) at the end: '
+        f'{" / ".join(f"{v:.2f}" for v in result["load_after"])}\n\n'
+        + markdown_table(['topic', 'published', 'in the bag'], rows) + '\n'
+        '\n## Where the latency goes\n\n'
+        "Per published estimate, in ms (the identifier's own clocks). *total* runs from taking "
+        'the newest sample of the window to publishing; *queued* is the wait for the worker '
+        'thread (a running fit to finish or give way); *record* forms the Record under the '
+        'buffer lock; *identify* is rotor_id.pipeline.identify, of which *Gauss-Newton* the '
+        'iterations; *verdict* the data-length verdict (Cramér-Rao bound history when a target '
+        "is not met); then the message and its publication. The worker's wall time from "
+        'picking the request up to publishing splits into *on CPU*, *waiting for a CPU* (run '
+        'queue: other processes) and *waiting for the GIL or the buffer lock* (the subscription '
+        'callbacks of the same process); *samples* counts the sensor samples the node took '
+        'meanwhile.\n\n'
+        + markdown_table(['estimate', 'window end (s)', 'iterations', 'total', 'queued',
+                          'record', 'identify', 'Gauss-Newton', 'verdict', 'message',
+                          'publish', 'on CPU', 'waiting for a CPU', 'waiting for the GIL/lock',
+                          'samples'], breakdown) + '\n\n'
+        f'Identifier threads over the whole run ({threads["wall_s"]:.1f} s wall, '
+        f'{threads["samples_taken"]} sensor samples taken): executor (subscriptions) '
+        f'{threads["executor_cpu_s"]:.1f} s on CPU ({per_sample:.0f} µs per sample), '
+        f'{threads["executor_cpu_wait_s"]:.1f} s waiting for a CPU; worker (fits) '
+        f'{threads["worker_cpu_s"]:.2f} s on CPU, {threads["worker_cpu_wait_s"]:.2f} s waiting '
+        f'for a CPU.\n')
     command = f'python bench/live_latency.py --duration {args.duration:g}'
     if args.results_name != 'live':
         command += f' --results-name {args.results_name}'

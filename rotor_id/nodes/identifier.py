@@ -17,6 +17,7 @@ published on ``/rotor_id/progress``. Fits run in a worker thread so the subscrip
 """
 
 from dataclasses import replace
+import json
 import math
 import sys
 import threading
@@ -40,6 +41,24 @@ from sensor_msgs.msg import JointState
 
 class _Superseded(Exception):
     """A provisional fit gave way to a final fit or a service call."""
+
+
+def _thread_times(tid=None):
+    """
+    Return (CPU s, run-queue wait s) of a thread of this process (default: the caller).
+
+    From /proc/<pid>/task/<tid>/schedstat (on CPU, waiting for a CPU): the run-queue wait is the
+    time the thread was ready but the machine had no free core. Where that file is missing
+    (not Linux) the CPU time is the caller's ``time.thread_time()`` and the wait is 0.
+    """
+    path = ('/proc/thread-self/schedstat' if tid is None
+            else f'/proc/self/task/{tid}/schedstat')
+    try:
+        with open(path) as stat:
+            on_cpu, waiting = stat.read().split()[:2]
+        return int(on_cpu) / NS, int(waiting) / NS
+    except (OSError, ValueError):
+        return (time.thread_time() if tid is None else float('nan')), 0.0
 
 
 class Identifier(Node):
@@ -91,6 +110,10 @@ class Identifier(Node):
         self.requests = []                # (window_s, final, time, future) for the worker
         self.arrival = None               # monotonic time the newest sample was taken
         self.latencies_ms = []
+        self.breakdowns = []              # where each published estimate's latency went (ms)
+        self.taken = 0                    # sensor samples accepted (all three topics)
+        self.busy = False                 # the worker is fitting
+        self.worker_times = (float('nan'), float('nan'))   # its CPU and CPU-wait s, at exit
         self.provisional_published = 0
         self.final_done = False
         self.next_update = None
@@ -107,6 +130,7 @@ class Identifier(Node):
         self.create_service(Identify, '~/identify', self.on_identify,
                             callback_group=MutuallyExclusiveCallbackGroup())
         self.diagnostics = Diagnostics(self, 'identification')
+        self.created = time.monotonic()
         self.create_timer(0.05, self.schedule)        # also checked on every azimuth sample
         self.running = True
         self.worker = threading.Thread(target=self.work, name='identifier-fit', daemon=True)
@@ -125,6 +149,7 @@ class Identifier(Node):
             return None
         with self.lock:
             series.append(stamp, values)
+        self.taken += 1
         return stamp
 
     def on_flap(self, msg):
@@ -148,6 +173,7 @@ class Identifier(Node):
             return
         with self.lock:
             self.azimuth.append(stamp, (psi, omega))
+        self.taken += 1
         self.arrival = time.monotonic()
         self.schedule()
 
@@ -200,27 +226,57 @@ class Identifier(Node):
                 while not self.requests and self.running:
                     self.wake.wait(0.2)
                 if not self.running:
-                    return
+                    break
                 window_s, final, requested, future = self.requests.pop(0)
-            msg = self.fit(window_s, final)
-            if msg is None:               # superseded by a final fit or a service call
-                continue
-            if future is not None:
-                future.set_result(msg)
-                continue
-            self.pub_estimate.publish(msg)
-            self.provisional_published += not final
-            # latency: newest sample of the window taken -> its estimate published
-            self.latencies_ms.append((time.monotonic() - requested) * 1e3)
-            lat = np.array(self.latencies_ms)
-            self.diagnostics.set_value('latency_ms_last', f'{lat[-1]:.1f}')
-            self.diagnostics.set_value('latency_ms_median', f'{np.median(lat):.1f}')
-            self.diagnostics.set_value('latency_ms_max', f'{lat.max():.1f}')
-            self.diagnostics.set_value('latency_count', lat.size)
+                self.busy = True
+            try:
+                self._run(window_s, final, requested, future)
+            finally:
+                self.busy = False
+        self.worker_times = _thread_times()
+
+    def _run(self, window_s, final, requested, future):
+        """Fit one request; publish it with its latency and where that time went."""
+        started = time.monotonic()
+        cpu0, waiting0 = _thread_times()
+        taken0 = self.taken
+        timing = {}
+        msg = self.fit(window_s, final, timing=timing)
+        if msg is None:                   # superseded by a final fit or a service call
+            return
+        if future is not None:
+            future.set_result(msg)
+            return
+        published = time.monotonic()
+        self.pub_estimate.publish(msg)
+        done = time.monotonic()
+        cpu1, waiting1 = _thread_times()
+        self.provisional_published += not final
+        # latency: newest sample of the window taken -> its estimate published
+        self.latencies_ms.append((done - requested) * 1e3)
+        cpu, waiting = (cpu1 - cpu0) * 1e3, (waiting1 - waiting0) * 1e3
+        self.breakdowns.append({
+            'kind': 'final' if final else 'provisional', 'window_end_s': round(window_s[1], 5),
+            'total': self.latencies_ms[-1], 'queued': (started - requested) * 1e3, **timing,
+            'publish': (done - published) * 1e3, 'cpu': cpu, 'cpu_wait': waiting,
+            'gil_or_lock_wait': max(0.0, (done - started) * 1e3 - cpu - waiting),
+            'samples_taken': self.taken - taken0})
+        lat = np.array(self.latencies_ms)
+        self.diagnostics.set_value('latency_ms_last', f'{lat[-1]:.1f}')
+        self.diagnostics.set_value('latency_ms_median', f'{np.median(lat):.1f}')
+        self.diagnostics.set_value('latency_ms_max', f'{lat.max():.1f}')
+        self.diagnostics.set_value('latency_count', lat.size)
+        self.diagnostics.set_value('latency_breakdown_last', _breakdown_text(self.breakdowns[-1]))
 
     # -------------------------------------------------------------------------- fitting
-    def fit(self, window_s, final, max_iter=None):
-        """Identify over ``window_s``; return a ParameterEstimate (STATUS_FAILED on error)."""
+    def fit(self, window_s, final, max_iter=None, timing=None):
+        """
+        Identify over ``window_s``; return a ParameterEstimate (STATUS_FAILED on error).
+
+        ``timing`` (a dict), when given, receives the milliseconds of each stage.
+        """
+        timing = {} if timing is None else timing
+        clock = time.perf_counter()
         with self.lock:
             try:
                 record = record_from_series(self.flap, self.pitch, self.azimuth,
@@ -231,6 +287,7 @@ class Identifier(Node):
                                 'azimuth': self.azimuth},
                                self.stamp0 + int(window_s[0] * NS),
                                self.stamp0 + int(window_s[1] * NS))
+        timing['record'] = (time.perf_counter() - clock) * 1e3
         if gaps:       # interpolated across: say so (the blade pitch turns once per revolution)
             self.diagnostics.count('window_gaps', '; '.join(gaps))
         desc = self.description
@@ -259,6 +316,10 @@ class Identifier(Node):
         ident.stamp0_ns = self.stamp0
         est = ident.estimate
         self.last_fit_s = time.perf_counter() - started
+        timing['identify'] = self.last_fit_s * 1e3
+        timing['gauss_newton'] = est.history[-1]['elapsed'] * 1e3 if est.history else 0.0
+        timing['iterations'] = int(est.iterations)
+        clock = time.perf_counter()
         if est.converged and np.all(np.isfinite(est.values)):
             self.guess = {n: est.value(n) for n in self.unknowns}
         std = np.array([est.std_of(n) for n in self.unknowns])
@@ -266,6 +327,8 @@ class Identifier(Node):
         if not verdict[0]:                # how much more data: from the M⁻¹(t_f) trend
             t, hist = bound_history(ident)
             verdict = data_length_verdict(std, self.targets, t, hist, ident.omega_rad_s)
+        timing['verdict'] = (time.perf_counter() - clock) * 1e3
+        clock = time.perf_counter()
         status = None if final else ParameterEstimate.STATUS_ITERATING
         note = (f'{"final" if final else "growing window (provisional)"}: '
                 f'{window_s[0]:.4f}-{window_s[1]:.4f} s, {est.message}, '
@@ -276,6 +339,7 @@ class Identifier(Node):
         self.diagnostics.set_value('last_estimate', ', '.join(
             f'{n}={v:.4g}±{s:.2g}' for n, v, s in zip(msg.names, msg.values, msg.std)))
         self.diagnostics.set_value('last_fit_ms', f'{self.last_fit_s * 1e3:.1f}')
+        timing['message'] = (time.perf_counter() - clock) * 1e3
         if final:
             self.get_logger().info(f'final estimate: {self.diagnostics.values["last_estimate"]}'
                                    f' ({est.message}); target met: {verdict[0]}')
@@ -327,6 +391,24 @@ class Identifier(Node):
         wait_for_acks([self.pub_estimate, self.pub_progress])
         print(f'identifier: estimate latencies (ms): '
               f'{" ".join(f"{v:.1f}" for v in self.latencies_ms)}', file=sys.stderr, flush=True)
+        # one JSON line each: where the latency went, and the CPU the two threads used
+        print(f'identifier: latency breakdown (ms): {json.dumps(self.breakdowns)}',
+              file=sys.stderr, flush=True)
+        threads = {'wall_s': time.monotonic() - self.created, 'samples_taken': self.taken}
+        for name, (cpu, waiting) in (('executor', _thread_times()),     # (this is the executor)
+                                     ('worker', self.worker_times)):
+            threads[f'{name}_cpu_s'], threads[f'{name}_cpu_wait_s'] = cpu, waiting
+        print(f'identifier: thread times: {json.dumps(threads)}', file=sys.stderr, flush=True)
+
+
+def _breakdown_text(b):
+    """One line of a latency breakdown (ms) for /diagnostics."""
+    return (f'{b["total"]:.1f} = queued {b["queued"]:.1f} + record {b.get("record", 0):.1f} + '
+            f'identify {b.get("identify", 0):.1f} (Gauss-Newton {b.get("gauss_newton", 0):.1f}, '
+            f'{b.get("iterations", 0)} it) + verdict {b.get("verdict", 0):.1f} + message '
+            f'{b.get("message", 0):.1f} + publish {b["publish"]:.1f}; worker on CPU '
+            f'{b["cpu"]:.1f}, waiting for a CPU {b["cpu_wait"]:.1f}, for the GIL or the buffer '
+            f'lock {b["gil_or_lock_wait"]:.1f}; {b["samples_taken"]} samples taken meanwhile')
 
 
 def main(args=None):
