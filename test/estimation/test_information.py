@@ -17,7 +17,8 @@ import pytest
 
 from rotor_id.estimation.information import (continuous_bound, cramer_rao_bound,
                                              information_density, information_history,
-                                             sensitivities, shortest_record)
+                                             inverse_or_nan, inverses_or_nan, sensitivities,
+                                             shortest_record)
 from rotor_id.estimation.output_error import IdentificationError
 from rotor_id.report import cases as C
 from rotor_id.report.reproduce import evaluate_matrix_case
@@ -95,6 +96,19 @@ def test_history_is_the_bound_of_each_truncated_record():
     assert np.all(np.diff(var, axis=0) <= 1e-12 * var[:-1])
     # Table 1 row 1 at t_f = 14: 48 / 6.5
     np.testing.assert_allclose(np.diag(hist.at(14.0)), [48.26, 6.534], rtol=2e-3)
+
+
+def test_batched_inverses_equal_the_loop_exactly():
+    """inverses_or_nan (used by the history) is inverse_or_nan on every matrix, bit for bit."""
+    rng = np.random.default_rng(1)
+    S = rng.standard_normal((150, 9))
+    S[:, 4] *= 1e-9                               # ill-conditioned, NaN until enough samples
+    M = np.cumsum(np.einsum('ti,tj->tij', S, S), axis=0)
+    M[20, 2, 2] = 0.0                             # a zero diagonal element
+    loop = np.array([inverse_or_nan(m) for m in M])
+    assert np.isnan(loop[:8]).all() and np.isnan(loop[20]).all() and np.isfinite(loop[-1]).all()
+    np.testing.assert_array_equal(inverses_or_nan(M), loop)
+    assert inverses_or_nan(np.zeros((0, 3, 3))).shape == (0, 3, 3)
 
 
 def test_shortest_record_meets_the_stipulated_sigmas():
