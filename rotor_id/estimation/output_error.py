@@ -306,6 +306,61 @@ def dependence_warnings(names, M, threshold=1e-7):
     return warnings, vals
 
 
+def damped_gauss_newton_step(theta, grad, M, lo, hi, cost, trial_cost, lm, free=None,
+                             attempts=12, halvings=6):
+    """
+    One accepted step of scaled Gauss-Newton (Fisher scoring) with damping and step halving.
+
+    The step solves (M̃ + λI) s̃ = −g̃ in the coordinates scaled by √diag(M), is clipped to the
+    bounds [lo, hi] and halved until the cost does not rise; when ``halvings`` halvings fail,
+    the Levenberg-Marquardt λ grows tenfold (from 1e-3) and the step is recomputed. Output
+    error and filter error share this (one copy of the step logic).
+
+    Parameters
+    ----------
+    theta, grad : ndarray, shape (k,)
+        Current point and the gradient of the cost there.
+    M : ndarray, shape (k, k)
+        Gauss-Newton / expected information matrix.
+    lo, hi : ndarray, shape (k,)
+        Bounds.
+    cost : float
+        Cost at ``theta``.
+    trial_cost : callable
+        ``trial_cost(trial) -> (cost, payload)``; the payload of the accepted trial is returned.
+    lm : float
+        Current damping λ (0 = pure Gauss-Newton).
+    free : ndarray of int, optional
+        Indices allowed to move (an active set); default all.
+    attempts, halvings : int
+        Most damping increases, and most halvings per damping.
+
+    Returns
+    -------
+    (accepted, trial, trial's cost, payload, λ for the next iteration)
+
+    """
+    k = theta.size
+    fi = np.arange(k) if free is None else np.asarray(free)
+    scale = np.sqrt(np.clip(np.diag(M)[fi], 1e-300, None))
+    Ms = M[np.ix_(fi, fi)] / np.outer(scale, scale)
+    for _attempt in range(attempts):
+        A = Ms + lm * np.eye(fi.size)
+        step = np.zeros(k)
+        try:
+            step[fi] = -np.linalg.solve(A, grad[fi] / scale) / scale
+        except np.linalg.LinAlgError:
+            step[fi] = -np.linalg.lstsq(A, grad[fi] / scale, rcond=None)[0] / scale
+        for _halving in range(halvings):
+            trial = np.clip(theta + step, lo, hi)
+            new_cost, payload = trial_cost(trial)
+            if math.isfinite(new_cost) and new_cost <= cost + 1e-12 * abs(cost):
+                return True, trial, new_cost, payload, (lm / 10.0 if lm > 1e-6 else 0.0)
+            step = 0.5 * step
+        lm = max(1e-3, 10.0 * lm)
+    return False, theta, cost, None, lm
+
+
 def fit_output_error(experiments, unknowns, guess=None, known=None, noise_std=None,
                      prior=None, max_iter=50, step_tol=1e-6, max_step=DEFAULT_MAX_STEP,
                      progress=None, label='output-error ML'):
@@ -404,33 +459,21 @@ def fit_output_error(experiments, unknowns, guess=None, known=None, noise_std=No
     message = 'maximum iterations reached'
     lm = 0.0
     iteration = 0
+
+    def trial_cost(trial):
+        nonlocal theta_eval
+        theta_eval = trial              # the prior term of cost_of is taken at the trial
+        trial_results = evaluate(problem, trial, max_step)
+        return cost_of(trial_results, noise_var), trial_results
+
     for iteration in range(1, max_iter + 1):
         dys = [dy for _, dy, _ in results]
         M = information_matrix(dys, noise_var) + np.diag(prior_info)
         grad = -sum(np.einsum('tmi,m,tm->i', dy, 1.0 / noise_var, res)
                     for res, dy, _ in results) + prior_info * (theta - prior_mean)
-        scale = np.sqrt(np.clip(np.diag(M), 1e-300, None))
-        Ms = M / np.outer(scale, scale)
-        accepted = False
-        step = None
-        for _attempt in range(12):
-            A = Ms + lm * np.eye(k)
-            try:
-                step = -np.linalg.solve(A, grad / scale) / scale
-            except np.linalg.LinAlgError:
-                step = -np.linalg.lstsq(A, grad / scale, rcond=None)[0] / scale
-            for _halving in range(6):
-                trial = np.clip(theta + step, problem.lo, problem.hi)
-                theta_eval = trial
-                trial_results = evaluate(problem, trial, max_step)
-                trial_cost = cost_of(trial_results, noise_var)
-                if math.isfinite(trial_cost) and trial_cost <= cost * (1 + 1e-12):
-                    accepted = True
-                    break
-                step = 0.5 * step
-            if accepted:
-                break
-            lm = max(1e-3, 10.0 * lm)
+
+        accepted, trial, _, trial_results, lm = damped_gauss_newton_step(
+            theta, grad, M, problem.lo, problem.hi, cost, trial_cost, lm)
         if not accepted:
             theta_eval = theta
             message = ('no step lowers the cost any more (stopped at a minimum or a bound; '
@@ -438,7 +481,6 @@ def fit_output_error(experiments, unknowns, guess=None, known=None, noise_std=No
             converged = bool(np.all(np.abs(grad) * np.sqrt(np.clip(
                 np.diag(np.linalg.pinv(M)), 0, None)) < 1e-3 * max(1.0, cost)))
             break
-        lm = lm / 10.0 if lm > 1e-6 else 0.0
         applied = trial - theta
         theta = trial
         results = trial_results
