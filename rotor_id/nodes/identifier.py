@@ -7,8 +7,11 @@ origin = first flap stamp received) and runs :func:`rotor_id.pipeline.identify` 
 description (parameter ``run_description``, schema of ../shared/recordings/README.md):
 
 * while the window fills, on the growing window [window start, latest sample] every
-  ``update_every_rad`` of azimuth (published with STATUS_ITERATING: provisional);
-* when the window is complete (final: STATUS_CONVERGED / MAX_ITERATIONS / FAILED);
+  ``update_every_rad`` of azimuth, and back to back in its last ``refit_tail_rad`` (published
+  with STATUS_ITERATING: provisional);
+* when the window is complete (final: STATUS_CONVERGED / MAX_ITERATIONS / FAILED), starting
+  from the latest growing-window iterate, so that it needs few Gauss-Newton iterations; it
+  stops a growing-window fit in progress after the current iteration;
 * on the ``~/identify`` service (rotor_id_msgs/srv/Identify) over any buffered window.
 
 Each estimate carries the Cramér-Rao covariance and the data-length verdict of Ch.3
@@ -33,7 +36,7 @@ from rotor_id.nodes.common import (declare, Diagnostics, estimate_message, node_
 from rotor_id.nodes.live import (BadSample, bound_history, check_azimuth_sample,
                                  check_joint_sample, data_length_verdict, record_from_series,
                                  StampedSeries, window_gaps)
-from rotor_id.pipeline import identify
+from rotor_id.pipeline import identify, model_for
 from rotor_id_msgs.msg import IdentificationProgress, ParameterEstimate
 from rotor_id_msgs.srv import Identify
 from sensor_msgs.msg import JointState
@@ -76,9 +79,13 @@ class Identifier(Node):
             ('min_window_rad', 3.0 * math.pi, 'first intermediate estimate after this much of '
              'the window (rad of azimuth; the wake case is informative from ~1.5 rev)',
              0.1, 1e6),
+            ('refit_tail_rad', math.pi, 'in the last this much azimuth of the window the '
+             'growing window is refitted back to back, whenever the worker is free, so the '
+             'final fit starts next to its optimum (rad; 0 = only every update_every_rad)',
+             0.0, 1e6),
             ('max_iter', 30, 'Gauss-Newton iteration limit of the final fit', 1, 1000),
             ('max_iter_provisional', 8, 'Gauss-Newton iteration limit of the growing-window '
-             'fits (each starts from the previous estimate)', 1, 1000),
+             'fits (each starts from the latest iterate of the previous one)', 1, 1000),
             ('max_abs_angle_rad', 0.7, 'larger |pitch| or |flap| is rejected as degrees (rad)',
              0.01, 3.2),
             ('estimate_topic', '/rotor_id/estimate', 'ParameterEstimate topic'),
@@ -117,7 +124,10 @@ class Identifier(Node):
         self.provisional_published = 0
         self.final_done = False
         self.next_update = None
-        self.guess = {}
+        self.first_update = None
+        self.requested_until = -math.inf  # end of the newest growing window asked for
+        self.guess = {}                   # warm start: the latest sane iterate of a window fit
+        self.bounds = None                # (lower, upper) of each unknown, for that check
         self.last_fit_s = float('nan')
         self.pub_estimate = self.create_publisher(ParameterEstimate, self.d['estimate_topic'],
                                                   STATE_QOS)
@@ -186,7 +196,13 @@ class Identifier(Node):
         return (last - self.stamp0) / NS
 
     def schedule(self):
-        """Ask the worker for an intermediate fit each update step, and the final one."""
+        """
+        Ask the worker for growing-window fits while the window fills, then the final one.
+
+        The first after ``min_window_rad``, then one every ``update_every_rad``; in the last
+        ``refit_tail_rad`` of the window a new one as soon as the worker is free, so the last
+        growing-window iterate (the final fit's start) is as close to the end as possible.
+        """
         covered = self._covered_s()
         if covered is None or self.final_done:
             return
@@ -200,11 +216,15 @@ class Identifier(Node):
         if self.d['update_every_rad'] <= 0:
             return
         if self.next_update is None:
-            self.next_update = t0 + self.d['min_window_rad'] / omega
+            self.first_update = self.next_update = t0 + self.d['min_window_rad'] / omega
+        if covered < self.first_update or covered <= self.requested_until:
+            return
         if covered >= self.next_update:
             self.next_update = covered + self.d['update_every_rad'] / omega
-            if self.next_update < t1:     # none just before the final: it would delay it
-                self._submit((t0, covered), False)
+        elif covered < t1 - self.d['refit_tail_rad'] / omega or self.busy or self.requests:
+            return
+        self.requested_until = covered
+        self._submit((t0, covered), False)
 
     def _submit(self, window_s, final, future=None):
         """
@@ -241,7 +261,7 @@ class Identifier(Node):
         cpu0, waiting0 = _thread_times()
         taken0 = self.taken
         timing = {}
-        msg = self.fit(window_s, final, timing=timing)
+        msg = self.fit(window_s, final, timing=timing, remember=future is None)
         if msg is None:                   # superseded by a final fit or a service call
             return
         if future is not None:
@@ -269,11 +289,34 @@ class Identifier(Node):
         self.diagnostics.set_value('latency_breakdown_last', _breakdown_text(self.breakdowns[-1]))
 
     # -------------------------------------------------------------------------- fitting
-    def fit(self, window_s, final, max_iter=None, timing=None):
+    def _final_waiting(self):
+        """Say whether a final fit or a service call waits for the worker."""
+        return any(r[1] or r[3] is not None for r in self.requests)
+
+    def _remember(self, names, values):
+        """
+        Keep the unknowns of an iterate as the next fit's starting values.
+
+        Every accepted Gauss-Newton iterate has a lower cost than the fit's start, so the latest
+        one is kept whether or not its fit converged, if finite and strictly inside the
+        physical bounds (an iterate stuck at a bound is no better start than the guess).
+        """
+        if self.bounds is None:
+            model = model_for(self.description)
+            self.bounds = {n: (model.parameter(n).lower, model.parameter(n).upper)
+                           for n in self.unknowns}
+        guess = {n: float(values[list(names).index(n)]) for n in self.unknowns}
+        if all(math.isfinite(v) and self.bounds[n][0] < v < self.bounds[n][1]
+               for n, v in guess.items()):
+            self.guess = guess
+
+    def fit(self, window_s, final, max_iter=None, timing=None, remember=True):
         """
         Identify over ``window_s``; return a ParameterEstimate (STATUS_FAILED on error).
 
-        ``timing`` (a dict), when given, receives the milliseconds of each stage.
+        ``timing`` (a dict), when given, receives the milliseconds of each stage. With
+        ``remember`` (growing windows and the final one, not service calls) the iterates are
+        the next fit's starting values. Returns None when a provisional fit gave way.
         """
         timing = {} if timing is None else timing
         clock = time.perf_counter()
@@ -297,14 +340,16 @@ class Identifier(Node):
         def progress(info):
             self.pub_progress.publish(progress_message(
                 info, self.get_clock().now().to_msg()))
-            if not final and self.provisional_published and \
-                    any(r[1] or r[3] is not None for r in self.requests):
+            if remember:
+                self._remember(info['names'], info['values'])
+            if not final and self.provisional_published and self._final_waiting():
                 raise _Superseded         # (once the user has seen a growing-window estimate)
 
         started = time.perf_counter()
         try:
-            # growing windows start from the last estimate (or the nominal values) without the
-            # multi-start grid; the final fit uses the grid only if no estimate converged yet
+            # growing windows start from the latest iterate (or the description's guess) without
+            # the multi-start grid; the final fit uses the grid only if there is no iterate yet
+            # and the description does not give every starting value
             ident = identify(record, desc, progress=progress, window_s=window_s,
                              max_iter=max_iter or self.d['max_iter' if final
                                                          else 'max_iter_provisional'],
@@ -320,11 +365,14 @@ class Identifier(Node):
         timing['gauss_newton'] = est.history[-1]['elapsed'] * 1e3 if est.history else 0.0
         timing['iterations'] = int(est.iterations)
         clock = time.perf_counter()
-        if est.converged and np.all(np.isfinite(est.values)):
-            self.guess = {n: est.value(n) for n in self.unknowns}
+        if remember:
+            self._remember(est.names, est.values)
+        hurry = not final and self._final_waiting()
+        if hurry and self.provisional_published:
+            return None                   # the final fit is waiting: give way to it now
         std = np.array([est.std_of(n) for n in self.unknowns])
         verdict = data_length_verdict(std, self.targets)
-        if not verdict[0]:                # how much more data: from the M⁻¹(t_f) trend
+        if not verdict[0] and not hurry:  # how much more data: from the M⁻¹(t_f) trend
             t, hist = bound_history(ident)
             verdict = data_length_verdict(std, self.targets, t, hist, ident.omega_rad_s)
         timing['verdict'] = (time.perf_counter() - clock) * 1e3
