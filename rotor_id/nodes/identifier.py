@@ -35,7 +35,7 @@ from rotor_id.nodes.common import (declare, Diagnostics, estimate_message, node_
                                    STATE_QOS, wait_for_acks)
 from rotor_id.nodes.live import (BadSample, bound_history, check_azimuth_sample,
                                  check_joint_sample, data_length_verdict, record_from_series,
-                                 StampedSeries, window_gaps)
+                                 StampedSeries, UnwrappedAzimuth, window_gaps)
 from rotor_id.pipeline import identify, model_for
 from rotor_id_msgs.msg import IdentificationProgress, ParameterEstimate
 from rotor_id_msgs.srv import Identify
@@ -111,6 +111,7 @@ class Identifier(Node):
         self.flap = StampedSeries(n)
         self.pitch = StampedSeries(n)
         self.azimuth = StampedSeries(2)
+        self.unwrapped = UnwrappedAzimuth()    # the record's t at the azimuth stamps
         self.stamp0 = None
         self.lock = threading.Lock()
         self.wake = threading.Condition()
@@ -183,6 +184,7 @@ class Identifier(Node):
             return
         with self.lock:
             self.azimuth.append(stamp, (psi, omega))
+            self.unwrapped.add(stamp, psi, omega)
         self.taken += 1
         self.arrival = time.monotonic()
         self.schedule()
@@ -322,8 +324,13 @@ class Identifier(Node):
         clock = time.perf_counter()
         with self.lock:
             try:
+                # only the window and 1.5 revolutions either side (identify uses one)
+                margin = int(3.0 * math.pi / self.azimuth.values[-1, 1] * NS)
+                span = (self.stamp0 + int(window_s[0] * NS) - margin,
+                        self.stamp0 + int(window_s[1] * NS) + margin)
                 record = record_from_series(self.flap, self.pitch, self.azimuth,
-                                            self.flap_joints, self.stamp0)
+                                            self.flap_joints, self.stamp0, span_ns=span,
+                                            unwrapped=self.unwrapped)
             except ValueError as exc:
                 return self._failed(str(exc), window_s)
             gaps = window_gaps({'flap': self.flap, 'pitch': self.pitch,

@@ -412,7 +412,49 @@ class AzimuthTracker:
         return float(self.series.values[-1, 1])
 
 
-def record_from_series(flap, pitch, azimuth, blade_names, stamp0_ns, source='live topics'):
+class UnwrappedAzimuth:
+    """
+    The azimuth of blade 1 unwrapped as its samples arrive (the record's t at those stamps).
+
+    Each step is unwrapped by the rule of :func:`rotor_id.io.timebase.unwrap_azimuth` and the
+    steps are summed in the same order, so the values equal ``nondimensional_time`` of the whole
+    series from its first sample, bit for bit; a fit can then cut a window out of a long buffer
+    without unwrapping everything before it.
+    """
+
+    def __init__(self):
+        self.series = StampedSeries(1)
+        self._first = None
+        self._sum = 0.0
+        self._last = None
+
+    def add(self, stamp_ns, psi, omega):
+        """Add one accepted sample (ψ wrapped to [0, 2π), Ω in rad/s)."""
+        if self._last is None:
+            self._first = value = float(psi)
+        else:
+            stamp_prev, psi_prev, omega_prev = self._last
+            step = psi - psi_prev
+            expected = 0.5 * (omega + omega_prev) * (stamp_ns - stamp_prev) / NS
+            step += TWO_PI * round((expected - step) / TWO_PI)
+            self._sum += step
+            value = self._first + self._sum
+        self._last = (stamp_ns, psi, omega)
+        self.series.append(stamp_ns, (value,))
+
+    def clear(self):
+        """Forget every sample."""
+        self.__init__()
+
+
+def _bracket(stamps, lo, hi):
+    """Index range of the stamps in [lo, hi] plus one neighbour each side (for interpolation)."""
+    return (max(0, int(np.searchsorted(stamps, lo, side='left')) - 1),
+            int(np.searchsorted(stamps, hi, side='right')) + 1)
+
+
+def record_from_series(flap, pitch, azimuth, blade_names, stamp0_ns, source='live topics',
+                       span_ns=None, unwrapped=None):
     """
     Form a Record on the flap stamps, as :func:`rotor_id.io.bag.read_record` forms it from a bag.
 
@@ -428,6 +470,12 @@ def record_from_series(flap, pitch, azimuth, blade_names, stamp0_ns, source='liv
         Origin of ``time_s`` (the first flap stamp received), so that window_s keeps its meaning.
     source : str
         Where the data came from (for messages).
+    span_ns : (int, int), optional
+        Keep only the flap samples stamped in this range (and the pitch and azimuth samples
+        around them): the record of a window without copying the whole buffer. Needs
+        ``unwrapped``; the samples kept are exactly those of the whole record.
+    unwrapped : UnwrappedAzimuth, optional
+        The azimuth series unwrapped as it arrived (same stamps as ``azimuth``).
 
     Raises
     ------
@@ -440,18 +488,33 @@ def record_from_series(flap, pitch, azimuth, blade_names, stamp0_ns, source='liv
                          f'{azimuth.size} azimuth samples')
     lo = max(pitch.stamps[0], azimuth.stamps[0])
     hi = min(pitch.stamps[-1], azimuth.stamps[-1])
-    inside = (flap.stamps >= lo) & (flap.stamps <= hi)
+    flap_part, pitch_part, az_part = slice(None), slice(None), slice(None)
+    if span_ns is not None:
+        if unwrapped is None or unwrapped.series.size != azimuth.size:
+            raise ValueError('a span of the buffer needs the azimuth unwrapped as it arrived')
+        lo, hi = max(lo, span_ns[0]), min(hi, span_ns[1])
+        flap_part = slice(int(np.searchsorted(flap.stamps, lo, side='left')),
+                          int(np.searchsorted(flap.stamps, hi, side='right')))
+        pitch_part = slice(*_bracket(pitch.stamps, lo, hi))
+        az_part = slice(*_bracket(azimuth.stamps, lo, hi))
+    flap_stamps = flap.stamps[flap_part]
+    inside = (flap_stamps >= lo) & (flap_stamps <= hi)
     if np.count_nonzero(inside) < 2:
         raise ValueError('flap, pitch and azimuth samples do not overlap in time yet')
-    stamps = flap.stamps[inside]
+    stamps = flap_stamps[inside]
     time_s = (stamps - stamp0_ns) / NS
-    az_time = (azimuth.stamps - stamp0_ns) / NS
-    psi_unwrapped = nondimensional_time(az_time, azimuth.values[:, 0], azimuth.values[:, 1])
+    az_time = (azimuth.stamps[az_part] - stamp0_ns) / NS
+    az_values = azimuth.values[az_part]
+    if unwrapped is not None:
+        psi_unwrapped = unwrapped.series.values[az_part, 0]
+    else:
+        psi_unwrapped = nondimensional_time(az_time, az_values[:, 0], az_values[:, 1])
     return Record(time_s=time_s, t=np.interp(time_s, az_time, psi_unwrapped),
-                  rotor_speed_rad_s=np.interp(time_s, az_time, azimuth.values[:, 1]),
-                  blade_flap=flap.values[inside].copy(),
-                  blade_pitch=interpolate_columns(time_s, (pitch.stamps - stamp0_ns) / NS,
-                                                  pitch.values),
+                  rotor_speed_rad_s=np.interp(time_s, az_time, az_values[:, 1]),
+                  blade_flap=flap.values[flap_part][inside].copy(),
+                  blade_pitch=interpolate_columns(
+                      time_s, (pitch.stamps[pitch_part] - stamp0_ns) / NS,
+                      pitch.values[pitch_part]),
                   blade_names=list(blade_names), source=source, stamp0_ns=int(stamp0_ns))
 
 
@@ -468,7 +531,8 @@ def window_gaps(named_series, lo_ns, hi_ns, factor=2.5):
         if stamps.size < 3:
             continue
         period = float(np.median(np.diff(stamps[-min(stamps.size, 200):])))
-        inside = stamps[(stamps >= lo_ns - period) & (stamps <= hi_ns + period)]
+        inside = stamps[np.searchsorted(stamps, lo_ns - period, side='left'):
+                        np.searchsorted(stamps, hi_ns + period, side='right')]
         steps = np.diff(inside)
         big = steps > factor * period
         if np.any(big):

@@ -15,10 +15,11 @@ import pytest
 from rotor_id.estimation.kalman import discretize, kalman_filter
 from rotor_id.estimation.simulate import simulate
 from rotor_id.io.bag import read_record, write_record_bag
+from rotor_id.io.timebase import nondimensional_time
 from rotor_id.nodes.live import (AzimuthTracker, BadSample, check_azimuth_sample,
                                  check_joint_sample, data_length_verdict, PlantStepper,
                                  record_from_series, rotor_constants, StampedSeries,
-                                 StreamingKalman)
+                                 StreamingKalman, UnwrappedAzimuth, window_gaps)
 from rotor_id.physics.blades import blade_flap_from_multiblade_state
 from rotor_id.physics.models import build_model, multiblade_from_blade_flap, RotorConstants
 from rotor_id.physics.stirring import SampledInput, StirringSchedule
@@ -143,6 +144,41 @@ def test_live_record_equals_the_bag_reader(tmp_path):
     assert np.allclose(tracker.t_at(stamps), t, atol=1e-9)
     later = stamps[-1] + 5_000_000
     assert tracker.t_at([later])[0] == pytest.approx(t[-1] + OMEGA * 0.005)
+
+
+def test_record_of_a_span_equals_the_whole_record_cut():
+    """The identifier's window records equal the whole buffer's Record cut to the window."""
+    rng = np.random.default_rng(5)
+    n = 3000
+    stamps = 10**18 + np.cumsum(rng.integers(900_000, 1_100_000, n))     # jittered 1 kHz
+    omega = OMEGA * (1 + 0.05 * np.sin(np.arange(n) / 300))
+    psi = np.concatenate([[0.3], 0.3 + np.cumsum(omega[1:] * np.diff(stamps) / 1e9)])
+    series = [StampedSeries(4), StampedSeries(4), StampedSeries(2)]
+    unwrapped = UnwrappedAzimuth()
+    for i, stamp in enumerate(stamps):
+        if i % 7:                                 # pitch and azimuth on every sample but some
+            series[1].append(stamp + 300_000, rng.normal(size=4))
+        series[0].append(stamp, rng.normal(size=4))
+        series[2].append(stamp - 200_000, (math.fmod(psi[i], 2 * math.pi), omega[i]))
+        unwrapped.add(stamp - 200_000, math.fmod(psi[i], 2 * math.pi), omega[i])
+    az = series[2]
+    np.testing.assert_array_equal(unwrapped.series.values[:, 0], nondimensional_time(
+        (az.stamps - stamps[0]) / 1e9, az.values[:, 0], az.values[:, 1]))
+    names = [f'blade_{k}' for k in range(1, 5)]
+    whole = record_from_series(*series, names, stamps[0])
+    for lo, hi in ((stamps[1200], stamps[1500] + 1), (0, stamps[40]), (stamps[2990], 2 * 10**18)):
+        part = record_from_series(*series, names, stamps[0], span_ns=(lo, hi),
+                                  unwrapped=unwrapped)
+        keep = (whole.time_s >= (lo - stamps[0]) / 1e9) & (whole.time_s <= (hi - stamps[0]) / 1e9)
+        for field in ('time_s', 't', 'rotor_speed_rad_s', 'blade_flap', 'blade_pitch'):
+            np.testing.assert_array_equal(getattr(part, field), getattr(whole, field)[keep])
+    with pytest.raises(ValueError, match='unwrapped'):
+        record_from_series(*series, names, stamps[0], span_ns=(0, stamps[5]))
+    gappy = StampedSeries(1)
+    for stamp in np.delete(stamps, [100, 101, 2000]):
+        gappy.append(stamp, (0.0,))
+    assert len(window_gaps({'x': gappy}, stamps[50], stamps[150])) == 1
+    assert window_gaps({'x': gappy}, stamps[150], stamps[1900]) == []
 
 
 def test_streaming_kalman_equals_the_batch_filter():
