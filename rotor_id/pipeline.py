@@ -182,7 +182,7 @@ def starting_values(record, description, model, experiments, known, multi_start=
 
 
 def identify(record, description, method=None, progress=None, window_s=None,
-             multi_start=True, max_iter=50):
+             multi_start=True, max_iter=50, filter_bounds='marginal'):
     """
     Identify the run description's unknowns from a record.
 
@@ -202,6 +202,10 @@ def identify(record, description, method=None, progress=None, window_s=None,
         Search a coarse grid of starting values unless the description gives them all.
     max_iter : int
         Most iterations of the estimator.
+    filter_bounds : {'marginal', 'conditional'}
+        Filter error only: bounds integrated over the process-noise σ (default) or the
+        Cramér-Rao bound at the joint ML optimum (see
+        :func:`rotor_id.estimation.filter_error.fit_filter_error`).
 
     Returns
     -------
@@ -227,7 +231,8 @@ def identify(record, description, method=None, progress=None, window_s=None,
     elif method == 'filter-error':
         from rotor_id.estimation.filter_error import fit_filter_error
         estimate = fit_filter_error(experiments, unknowns, guess=guess, known=known,
-                                    noise_std=noise_std, progress=progress, max_iter=max_iter)
+                                    noise_std=noise_std, progress=progress, max_iter=max_iter,
+                                    bounds=filter_bounds)
     elif method == 'equation-error':
         from rotor_id.estimation.equation_error import fit_equation_error_experiments
         estimate = fit_equation_error_experiments(experiments, unknowns, guess=guess,

@@ -30,6 +30,11 @@ def add_arguments(parser):
     parser.add_argument('--figure', help='write measured vs fitted flapping (PNG) here')
     parser.add_argument('--method', choices=METHODS, default=None,
                         help="estimator (default: the run description's, else output-error)")
+    parser.add_argument('--filter-bounds', choices=('marginal', 'conditional'),
+                        default='marginal',
+                        help='filter-error only: bounds integrated over the likely '
+                        'process-noise sigmas (default) or the Cramer-Rao bound at the joint '
+                        'maximum-likelihood optimum')
     parser.add_argument('--quiet', action='store_true', help='no progress lines')
 
 
@@ -38,7 +43,8 @@ def progress_printer(label, stream=sys.stderr):
     def show(info):
         values = ' '.join(f'{n}={v:.5g}' for n, v in zip(info['names'], info['values'])
                           if '(t0)' not in n)
-        print(f'  {label}: iteration {info["iteration"]:2d}  residual RMS {info["rms"]:.4g} rad  '
+        print(f'  {info.get("label") or label}: iteration {info["iteration"]:2d}  '
+              f'residual RMS {info["rms"]:.4g} rad  '
               f'{values}  ({info["elapsed"]:.2f} s)', file=stream, flush=True)
     return show
 
@@ -56,7 +62,9 @@ def format_table(result):
     data = result.as_json()
     names = list(data['parameters'])
     width = max(12, *(len(n) for n in names))
-    lines = [f'{"parameter":<{width}} {"value":>13} {"σ (CRB)":>11} {"σ/|value|":>10}  '
+    # output error's σ is the Cramér-Rao bound; the other methods say what theirs is
+    sigma = 'σ (CRB)' if data['method'] == 'output-error' else 'σ'
+    lines = [f'{"parameter":<{width}} {"value":>13} {sigma:>11} {"σ/|value|":>10}  '
              + ' '.join(f'{n[:8]:>8}' for n in names)]
     corr = data['correlation']
     for i, name in enumerate(names):
@@ -126,7 +134,8 @@ def run(args):
         print(f'fitting {label} to {args.bag}, window {description.window_s[0]:.4f}-'
               f'{description.window_s[1]:.4f} s', file=sys.stderr, flush=True)
     result = pipeline.identify(record, description, method=method,
-                               progress=None if args.quiet else progress_printer(method))
+                               progress=None if args.quiet else progress_printer(method),
+                               filter_bounds=args.filter_bounds)
     print(format_table(result))
     for warning in result.estimate.warnings:
         print(f'warning: {warning}', file=sys.stderr)

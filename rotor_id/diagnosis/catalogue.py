@@ -427,8 +427,10 @@ def _fit_process_noise(job, out, t_start):
         return out
     from rotor_id.pipeline import identify
     try:
+        # the joint ML optimum: its likelihood is what the Δlog L test compares
         ident = identify(job.record, job.description, method='filter-error',
-                         window_s=job.window_s, multi_start=False, max_iter=15)
+                         window_s=job.window_s, multi_start=False, max_iter=15,
+                         filter_bounds='conditional')
     except Exception as exc:  # noqa: B902 - another module's failure must not end diagnosis
         out.available = False
         out.reason = f'filter-error fit failed: {type(exc).__name__}: {exc}'

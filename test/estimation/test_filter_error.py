@@ -8,9 +8,12 @@ What is proved here:
 * the finite-difference sensitivities equal the analytic output-error ones when the process
   noise is zero, and filter error then *is* output error;
 * on data without process noise, filter error (with σ_V estimated) agrees with output error
-  within 0.2 σ and its bounds within 10 %;
-* with system noise, filter error's errors are smaller than output error's for every parameter
-  and its bound covers the truth at the nominal rate (Monte Carlo; CI variant with fewer seeds);
+  within 0.2 σ and its Cramér-Rao bound (conditional on σ̂_V) within 10 %; the default bounds,
+  integrated over σ_V, are never narrower than output error's;
+* where the data fix σ_V the integrated bounds are close to the Cramér-Rao bound;
+* with system noise at the report's measurement noise, filter error's errors are smaller than
+  output error's for every parameter and its (integrated) bound covers the truth at the
+  nominal rate (Monte Carlo; CI variant with fewer seeds);
 * the report's simultaneous measurement and system noise case: output error still converges.
 """
 
@@ -132,17 +135,48 @@ def test_without_process_noise_filter_error_is_output_error():
 
 @pytest.mark.parametrize('seed', [0, 1, 2])
 def test_no_process_noise_estimated_agrees_with_output_error(seed):
-    """σ_V estimated on data without system noise: within 0.2 σ and bounds within 10 %."""
+    """
+    σ_V estimated on data without system noise: within 0.2 σ and bounds within 10 %.
+
+    That holds for the plain estimator (conditional bound). The default, marginal bounds keep
+    the same estimate and never claim more than output error: this record cannot rule out some
+    process noise, under which the parameters scatter more.
+    """
     y = wake_data(seed, 0.0, 0.1)
     exp = Experiment(WAKE, PROGRESSING, T_WAKE, y, initial_state='positions')
     oe = fit_output_error([exp], UNKNOWNS, guess=GUESS, noise_std=0.1)
-    est = fe.fit_filter_error([exp], UNKNOWNS, guess=GUESS, noise_std=0.1)
+    est = fe.fit_filter_error_ml([exp], UNKNOWNS, guess=GUESS, noise_std=0.1)
     assert fe.PROCESS_NOISE in est.names and est.converged
     k = len(oe.names)
     assert est.names[:k] == oe.names
     assert np.all(np.abs(est.values[:3] - oe.values[:3]) <= 0.2 * oe.std[:3]), \
         (est.values[:3], oe.values[:3], oe.std[:3])
     assert np.all(np.abs(est.std[:3] / oe.std[:3] - 1.0) <= 0.10), (est.std[:3], oe.std[:3])
+    marginal = fe.fit_filter_error([exp], UNKNOWNS, guess=GUESS, noise_std=0.1)
+    assert marginal.names == est.names
+    assert np.allclose(marginal.values, est.values, rtol=1e-12, atol=0)
+    assert np.all(marginal.std[:3] >= 0.99 * oe.std[:3]), (marginal.std[:3], oe.std[:3])
+    assert 'restricted likelihood' in marginal.message
+
+
+def test_marginal_bounds_approach_the_bound_where_the_data_fix_sigma_v():
+    """
+    Measurement σ .002 and σ_V .1: σ_V is well determined, so integrating over it changes little.
+
+    Measured (seeds 0-2): marginal σ / conditional σ = 1.11-1.16 for the parameters (the
+    restricted-likelihood σ_V sits 5-8 % above the joint ML one, and the parameters move with
+    σ_V); the test allows 1.0-1.3. Same estimate as the plain estimator.
+    """
+    y = wake_data(0, 0.1, 0.002)
+    exp = Experiment(WAKE, PROGRESSING, T_WAKE, y, initial_state='equilibrium')
+    kw = {'guess': GUESS, 'noise_std': 0.002, 'noise_model': 'held'}
+    plain = fe.fit_filter_error_ml([exp], UNKNOWNS, **kw)
+    marginal = fe.fit_filter_error([exp], UNKNOWNS, **kw)
+    assert np.allclose(marginal.values, plain.values, rtol=1e-12, atol=0)
+    ratio = marginal.std[:3] / plain.std[:3]
+    assert np.all((ratio >= 1.0) & (ratio <= 1.3)), ratio
+    with pytest.raises(IdentificationError, match='bounds'):
+        fe.fit_filter_error([exp], UNKNOWNS, bounds='bayes', **kw)
 
 
 def test_bad_input_is_a_clear_error():
@@ -157,7 +191,7 @@ def test_bad_input_is_a_clear_error():
         fe.fit_filter_error([exp], ['gamma'])
 
 
-def _monte_carlo(seeds, sigma_v=0.1, sigma_m=0.01):
+def _monte_carlo(seeds, sigma_v=0.1, sigma_m=0.05):
     """Errors and bounds of output error and filter error over seeds (equilibrium start)."""
     rows = []
     for seed in seeds:
@@ -184,14 +218,15 @@ def _check_system_noise_statistics(rows, coverage_limits, pooled_limits):
 
 def test_system_noise_filter_error_beats_output_error_ci():
     """
-    Report eq. 29a noise, σ_V = 0.1 on λI′, λII′; σ_m = 0.01 so σ_V is identifiable.
+    The report's system-noise case: σ_V = 0.1 on λI′, λII′ (eq. 29a), measurement σ = .05.
 
     The rotor is in trim before stirring, so the initial state is the equilibrium at the
     current parameters (report Ch.2, method step 2). 30 seeds: per-parameter coverage limits
     are the 0.15 % and 99.85 % points of Binomial(30, 0.95)/30 = [0.80, 1.0]; pooled over the
-    three parameters (90 trials) [0.86, 1.0]. Measured with 40 seeds: RMS output error
-    (.023, .031, .011), filter error (.012, .018, .0066); coverage .93/.98/.95,
-    σ̂_V = 0.089 ± 0.023.
+    three parameters (90 trials) [0.86, 1.0]. Measured (these 30 seeds): RMS output error
+    (.028, .036, .012), filter error (.015, .020, .008); coverage 1.0/.97/.97. The plain
+    joint-ML bound covers only .87/.78/.75 in this case (bench/results/process_noise.md,
+    100 seeds): a third of such records put σ̂_V at zero.
     """
     _check_system_noise_statistics(_monte_carlo(range(30)), (0.80, 1.0), (0.86, 1.0))
 
@@ -200,15 +235,13 @@ def test_system_noise_filter_error_beats_output_error_ci():
 @pytest.mark.study
 def test_system_noise_filter_error_beats_output_error_full():
     """
-    Same with 200 seeds: the bound's coverage of the truth pooled over the parameters in 90-98 %.
+    Same with 200 seeds: the bound's coverage of the truth in 90-98 %.
 
-    Measured (200 seeds, 7 min here): filter error better than output error for every
-    parameter; coverage .895/.91/.915, pooled .907. The bound is about 10 % optimistic
-    because σ̂_V is biased low in a 121-sample record (mean .089 for .1): the familiar
-    downward bias of a maximum-likelihood variance estimated together with other parameters.
-    Per parameter the lower limit 0.87 is two binomial σ (0.02 at N = 200) below 0.91.
+    Per parameter the limits 0.90-0.99 are the 0.15 % and 99.85 % points of
+    Binomial(200, 0.95)/200; pooled over the three parameters (600 trials) the issue's
+    90-98 %. Measured (200 seeds, MEASURED_TIME here): MEASURED_FULL.
     """
-    _check_system_noise_statistics(_monte_carlo(range(200)), (0.87, 0.98), (0.90, 0.98))
+    _check_system_noise_statistics(_monte_carlo(range(200)), (0.90, 0.99), (0.90, 0.98))
 
 
 def test_simultaneous_measurement_and_system_noise_output_error_converges():
