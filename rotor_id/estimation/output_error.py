@@ -28,6 +28,9 @@ from rotor_id.estimation.simulate import DEFAULT_MAX_STEP, simulate
 
 INITIAL_STATE_MODES = ('estimate', 'positions', 'equilibrium', 'zero')
 
+#: Returned by a ``progress`` callback: stop after this iteration and return the estimate so far.
+STOP = 'stop after this iteration'
+
 
 class IdentificationError(ValueError):
     """The identification problem is malformed (message says what to change)."""
@@ -390,7 +393,9 @@ def fit_output_error(experiments, unknowns, guess=None, known=None, noise_std=No
         (after taking that step) or below 1e-12 relative to the parameter.
     progress : callable, optional
         Called as ``progress(info)`` with a dict (iteration, cost, values, names, elapsed,
-        message) after every iteration.
+        message) after every iteration. If it returns :data:`STOP`, the fit ends after this
+        iteration (unless it converged with it) and returns that iterate, not converged (a live
+        caller that must publish something now).
     max_step : float
         Longest RK4 step of the simulation.
     label : str
@@ -496,8 +501,7 @@ def fit_output_error(experiments, unknowns, guess=None, known=None, noise_std=No
                 'values': theta.copy(), 'elapsed': time.perf_counter() - t_start,
                 'label': label, 'noise_std': np.sqrt(noise_var).copy()}
         history.append(info)
-        if progress is not None:
-            progress(info)
+        stop = progress is not None and progress(info) is STOP
         at_bound = (theta <= problem.lo) | (theta >= problem.hi)
         if np.any(at_bound):
             bound_names = [n for n, b in zip(names, at_bound) if b]
@@ -505,6 +509,10 @@ def fit_output_error(experiments, unknowns, guess=None, known=None, noise_std=No
         if np.all(small):
             converged = True
             message = 'converged' if not np.any(at_bound) else message
+            break
+        if stop:
+            if 'bound' not in message:
+                message = 'stopped by the caller before convergence'
             break
     theta_eval = theta
     dys = [dy for _, dy, _ in results]

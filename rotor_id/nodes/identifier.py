@@ -11,7 +11,8 @@ description (parameter ``run_description``, schema of ../shared/recordings/READM
   with STATUS_ITERATING: provisional);
 * when the window is complete (final: STATUS_CONVERGED / MAX_ITERATIONS / FAILED), starting
   from the latest growing-window iterate, so that it needs few Gauss-Newton iterations; it
-  stops a growing-window fit in progress after the current iteration;
+  stops a growing-window fit in progress after the current iteration (the first one is then
+  published as it stands, so that a growing-window estimate always precedes the final one);
 * on the ``~/identify`` service (rotor_id_msgs/srv/Identify) over any buffered window.
 
 Each estimate carries the Cramér-Rao covariance and the data-length verdict of Ch.3
@@ -30,6 +31,7 @@ import numpy as np
 from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
 from rclpy.node import Node
 from rclpy.task import Future
+from rotor_id.estimation.output_error import STOP
 from rotor_id.nodes.common import (declare, Diagnostics, estimate_message, node_run_description,
                                    NS, progress_message, SENSOR_BUFFER_QOS, spin_node, stamp_ns,
                                    STATE_QOS, wait_for_acks)
@@ -349,8 +351,11 @@ class Identifier(Node):
                 info, self.get_clock().now().to_msg()))
             if remember:
                 self._remember(info['names'], info['values'])
-            if not final and self.provisional_published and self._final_waiting():
-                raise _Superseded         # (once the user has seen a growing-window estimate)
+            if not final and self._final_waiting():
+                if self.provisional_published:
+                    raise _Superseded
+                return STOP               # the first growing-window estimate: publish it now
+            return None
 
         started = time.perf_counter()
         try:

@@ -10,7 +10,7 @@ fitted to the periodic truth converges instead to the modelling-error bias of MO
 import numpy as np
 import pytest
 
-from rotor_id.estimation.output_error import fit_output_error, IdentificationError
+from rotor_id.estimation.output_error import fit_output_error, IdentificationError, STOP
 from rotor_id.report import cases as C
 from rotor_id.report.reproduce import run_iteration_case
 
@@ -134,6 +134,28 @@ def test_equilibrium_start_and_two_runs_have_exact_sensitivities():
     assert est.converged
     # two runs: tighter than either alone (progressing alone: σ_A = .0228 at the truth)
     assert est.std_of('A') < 0.0228
+
+
+def test_progress_can_stop_the_fit_after_an_iteration():
+    """A caller that must publish now stops Gauss-Newton and gets that iterate's estimate."""
+    case = ITER['single_blade_2par']
+    scenario = C.SCENARIOS[case.scenario]
+    exp = C.make_experiment(scenario, y=C.noisy_outputs(scenario, C.sample_times(12, 24), 3))
+    seen = []
+
+    def stop_at_two(info):
+        seen.append(info['values'].copy())
+        return STOP if info['iteration'] == 2 else None
+
+    start = {'gamma': 4.0, 'delta': 8.0}
+    stopped = fit_output_error([exp], list(C.SB), guess=start, progress=stop_at_two)
+    assert stopped.iterations == 2 and not stopped.converged
+    assert stopped.message == 'stopped by the caller before convergence'
+    assert stopped.message in stopped.warnings
+    np.testing.assert_array_equal(stopped.values, seen[-1])
+    full = fit_output_error([exp], list(C.SB), guess=start, progress=lambda info: None)
+    assert full.converged and full.iterations > 2
+    np.testing.assert_array_equal(full.history[1]['values'], seen[-1])
 
 
 def test_estimated_noise_is_the_residual_rms():
