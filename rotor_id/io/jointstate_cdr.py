@@ -170,6 +170,22 @@ def _values(rows, layout, field):
     return values.reshape(len(rows), count)
 
 
+def _same_fixed_bytes(rows, fixed):
+    """
+    Return, per row, whether its bytes where ``fixed`` is True equal those of row 0.
+
+    Compared in the widest machine words that divide the row (XOR, then the mask), which
+    is several times faster than gathering the fixed bytes one by one.
+    """
+    rows = np.ascontiguousarray(rows)
+    width = rows.shape[1]
+    word = next(w for w in (8, 4, 2, 1) if width % w == 0)
+    dtype = np.dtype(f'u{word}')
+    words = rows.view(dtype)
+    mask = np.where(fixed, 0xFF, 0).astype(np.uint8).view(dtype)
+    return ~((words ^ words[0]) & mask).any(axis=1)
+
+
 def _stamps(rows, little):
     order = '<' if little else '>'
     sec = np.ascontiguousarray(rows[:, 4:8]).view(order + 'i4').astype(np.int64).ravel()
@@ -272,9 +288,8 @@ def decode_batch(raws):
         except ValueError:
             fits = np.zeros(len(index), dtype=bool)
         else:
-            fixed = ~layout.value_mask()
-            fits = (rows[:, fixed] == rows[0, fixed]).all(axis=1)
-            store(index[fits], layout, rows[fits])
+            fits = _same_fixed_bytes(rows, ~layout.value_mask())
+            store(index[fits], layout, rows if fits.all() else rows[fits])
         # Messages that do not share the group's fixed bytes: one at a time.
         for i in index[~fits]:
             try:

@@ -233,6 +233,7 @@ def read_indexed_mcap(path, topics):
     pos, end = len(MAGIC), len(buf)
     current = None
     current_summary = False
+    in_place, file_at = True, []       # uncompressed chunks are read where they lie
     while pos + 9 <= end:
         op = buf[pos]
         (length,) = struct.unpack_from('<Q', buf, pos + 1)
@@ -260,11 +261,17 @@ def read_indexed_mcap(path, topics):
             _, _, size, crc = struct.unpack_from('<QQQI', body, 0)
             compression, at = _string(body, 28)
             (compressed_size,) = struct.unpack_from('<Q', body, at)
-            raw = _decompress_partial(bytes(body[at + 8:at + 8 + compressed_size]), compression)
-            if len(raw) != size or (crc and crc32(raw) != crc):
+            records = body[at + 8:at + 8 + compressed_size]
+            if compression:
+                raw = np.frombuffer(_decompress_partial(bytes(records), compression), np.uint8)
+                in_place = False
+            else:                      # a view of the file's bytes: no copy
+                raw = np.frombuffer(records, dtype=np.uint8)
+            file_at.append(body_start + at + 8)
+            if raw.size != size or (crc and crc32(raw) != crc):
                 return None
             current = len(chunks)
-            chunks.append(np.frombuffer(raw, dtype=np.uint8))
+            chunks.append(raw)
         elif op == _OP_MESSAGE_INDEX and current is not None:
             cid, nbytes = struct.unpack_from('<HI', body, 0)
             pairs = np.frombuffer(body, dtype='<u8', count=nbytes // 8, offset=6).reshape(-1, 2)
@@ -275,11 +282,16 @@ def read_indexed_mcap(path, topics):
         return None
     if not chunks or not pieces:
         return None
-    del body, buf                     # the file's bytes are no longer needed: free them first
-    sizes = [c.size for c in chunks]
-    bases = np.concatenate([[0], np.cumsum(sizes)])
-    buffer = np.concatenate(chunks)
+    del body
+    sizes = np.array([c.size for c in chunks], dtype=np.int64)
+    if in_place:                      # chunk c starts at byte file_at[c] of the file
+        buffer = np.frombuffer(buf, dtype=np.uint8)
+        starts_of = np.array(file_at, dtype=np.int64)
+    else:
+        buffer = np.concatenate(chunks)
+        starts_of = np.concatenate([[0], np.cumsum(sizes)[:-1]])
     chunks.clear()
+    del buf                           # (still referenced by buffer when read in place)
     available, messages = {}, {}
     for cid, (topic, sid) in channels.items():
         available[topic] = schemas.get(sid, '')
@@ -287,10 +299,11 @@ def read_indexed_mcap(path, topics):
             continue
         # The index is not checksummed: every offset and length must stay inside its chunk.
         for c, off, _ in pieces[cid]:
-            if off.size and (off.min() < 0 or off.max() + 9 + 22 > bases[c + 1] - bases[c]):
+            if off.size and (off.min() < 0 or off.max() + 9 + 22 > sizes[c]):
                 return None
-        offsets = np.concatenate([bases[c] + off for c, off, _ in pieces[cid]])
-        limits = np.concatenate([np.full(off.size, bases[c + 1]) for c, off, _ in pieces[cid]])
+        offsets = np.concatenate([starts_of[c] + off for c, off, _ in pieces[cid]])
+        limits = np.concatenate([np.full(off.size, starts_of[c] + sizes[c])
+                                 for c, off, _ in pieces[cid]])
         log_ns = np.concatenate([lt for _, _, lt in pieces[cid]])
         if np.any(buffer[offsets] != _OP_MESSAGE):
             return None
