@@ -587,30 +587,52 @@ def fit_filter_error(experiments, unknowns, guess=None, known=None, noise_std=No
         fits[sigma_v] = est
         return est
 
-    def restricted(sigma):
-        return np.array([_restricted_cost(fit_at(s)) if fit_at(s) is not None else math.inf
-                         for s in sigma])
-
     s_hat = joint.value(PROCESS_NOISE)
     s_std = joint.std_of(PROCESS_NOISE)
+    at = joint.names.index(PROCESS_NOISE)       # the structural unknowns come first
+
+    def on_branch(sigma):
+        """
+        Restricted cost on the grid; inf off the branch of optima through the joint estimate.
+
+        Walking out from σ̂_V, a fit whose structural unknowns jump by more than 3σ (the σ of
+        its neighbour already on the branch) has left that branch: at a large σ_V a model
+        with a fast enough wake absorbs the process noise, and its undetermined parameters
+        lower ½log|M_θθ| without bound. That point and those beyond it carry no weight.
+        """
+        for s in sorted(sigma, key=lambda s: abs(s - s_hat)):
+            fit_at(float(s))           # outward from σ̂_V, so warm starts follow the branch
+        ests = [fits[float(s)] for s in sigma]
+        keep = np.zeros(sigma.size, dtype=bool)
+        anchor = int(np.argmin(np.abs(sigma - s_hat)))
+        keep[anchor] = ests[anchor] is not None
+        for direction in (1, -1):
+            j = anchor
+            while keep[j] and 0 <= j + direction < sigma.size:
+                a, b = ests[j], ests[j + direction]
+                if b is None or np.any(np.abs(a.values[:at] - b.values[:at]) >
+                                       3.0 * a.std[:at]):
+                    break
+                keep[j + direction] = True
+                j += direction
+        f = np.array([_restricted_cost(e) if k else math.inf for e, k in zip(ests, keep)])
+        return f, keep
+
     reach = max(s_hat + 4.0 * s_std, 2.0 * s_hat, 1e-12)
-    sigma = np.linspace(0.0, reach, 9)
-    f = restricted(sigma)
+    sigma = np.unique(np.append(np.linspace(0.0, reach, 9), s_hat))
+    f, keep = on_branch(sigma)
     step = reach / 8.0
-    while f[-1] - np.min(f) < _PROFILE_SPAN and sigma.size < 40:
+    while keep[-1] and f[-1] - np.min(f) < _PROFILE_SPAN and sigma.size < 40:
         step *= 1.5                    # geometric: a far tail costs few points
         sigma = np.append(sigma, sigma[-1] + step)
-        f = np.append(f, restricted(sigma[-1:]))
+        f, keep = on_branch(sigma)
     for _refine in range(3):           # at least 8 grid points where the weight is
         low = np.flatnonzero(f - np.min(f) < _PROFILE_SPAN)
         if low.size >= 8:
             break
         lo, hi = max(low[0] - 1, 0), min(low[-1] + 1, sigma.size - 1)
-        mids = 0.5 * (sigma[lo:hi] + sigma[lo + 1:hi + 1])
-        sigma = np.concatenate([sigma, mids])
-        f = np.concatenate([f, restricted(mids)])
-        order = np.argsort(sigma)
-        sigma, f = sigma[order], f[order]
+        sigma = np.unique(np.concatenate([sigma, 0.5 * (sigma[lo:hi] + sigma[lo + 1:hi + 1])]))
+        f, keep = on_branch(sigma)
     if not np.any(np.isfinite(f)):
         return replace(joint, warnings=joint.warnings + [
             'the process-noise profile failed at every grid point: the bounds are the '
@@ -618,14 +640,12 @@ def fit_filter_error(experiments, unknowns, guess=None, known=None, noise_std=No
     # σ_V at the minimum of f (vertex of the parabola through the lowest point's neighbours)
     i = int(np.argmin(f))
     s_restricted = float(sigma[i])
-    if 0 < i < sigma.size - 1:
+    if 0 < i < sigma.size - 1 and np.all(np.isfinite(f[i - 1:i + 2])):
         a, b, _ = np.polyfit(sigma[i - 1:i + 2], f[i - 1:i + 2], 2)
         if a > 0:
             s_restricted = float(np.clip(-b / (2 * a), sigma[i - 1], sigma[i + 1]))
     # the mixture covariance about the joint estimate, over σ_V weighted by exp(−f)
     w = _trapezoid_weights(sigma, f)
-    names = joint.names
-    at = names.index(PROCESS_NOISE)
     cov = np.zeros_like(joint.covariance)
     cov[at + 1:, at + 1:] = joint.covariance[at + 1:, at + 1:]    # measurement σ's
     struct = slice(0, at)
@@ -643,10 +663,16 @@ def fit_filter_error(experiments, unknowns, guess=None, known=None, noise_std=No
         warnings.append('process noise estimated at zero; the bounds include every '
                         'process-noise σ the record allows (restricted-likelihood σ_V '
                         f'{s_restricted:.3g})')
-    history = joint.history + [h for s in sorted(fits) for h in fits[s].history]
-    message = (f'bounds integrated over σ_V (restricted likelihood over {sigma.size} grid '
-               f'points, its σ_V {s_restricted:.4g}; {time.perf_counter() - t_start:.1f} s)')
+    done = [fits[s] for s in sorted(fits) if fits[s] is not None]
+    message = (f'bounds integrated over σ_V (restricted likelihood on {int(keep.sum())} grid '
+               f'points, its minimum at σ_V {s_restricted:.4g}; '
+               f'{time.perf_counter() - t_start:.1f} s)')
+    if not keep[-1] or not keep[0]:
+        cut = sigma[~keep]
+        span = f'{cut.min():.3g}' + (f'-{cut.max():.3g}' if cut.size > 1 else '')
+        message += (f'; σ_V {span} left out: no fit there, or it jumped off the branch of '
+                    'optima through the estimate')
     message = message if joint.converged else f'{joint.message}; {message}'
     return replace(joint, covariance=cov, information=information, warnings=warnings,
-                   history=history, message=message,
-                   iterations=joint.iterations + sum(e.iterations for e in fits.values()))
+                   history=joint.history + [h for e in done for h in e.history],
+                   message=message, iterations=joint.iterations + sum(e.iterations for e in done))
