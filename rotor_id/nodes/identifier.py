@@ -235,11 +235,14 @@ class Identifier(Node):
         Queue a fit for the worker.
 
         A newer request replaces the provisional ones still waiting, and a final one (or a
-        service call) also stops a provisional fit in progress after its current iteration
-        (once one growing-window estimate was published).
+        service call) also stops a provisional fit in progress after its current iteration.
+        Until a growing-window estimate was published, a final request leaves the waiting one
+        in place (it stops after its first iteration and is published), so that one always
+        precedes the final estimate, however late the worker thread gets a CPU.
         """
         with self.wake:
-            self.requests = [r for r in self.requests if r[1] or r[3] is not None]
+            keep = final and not self.provisional_published
+            self.requests = [r for r in self.requests if r[1] or r[3] is not None or keep]
             self.requests.append((window_s, final, self.arrival or time.monotonic(), future))
             self.wake.notify()
 
