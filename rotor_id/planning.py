@@ -51,7 +51,8 @@ from rotor_id.physics.stirring import PROGRESSING_OMEGADOT, StirringSchedule
 import yaml
 
 #: Keys a plan adds to a run description (``noise_std_rad`` is a run-description key already).
-PLAN_KEYS = ('guess', 'rate_hz', 'omega_rad_s', 'target_std', 'candidates', 'collective_rad')
+PLAN_KEYS = ('guess', 'rate_hz', 'omega_rad_s', 'target_std', 'candidates', 'collective_rad',
+             'known_initial_state')
 #: Keys of one candidate, as in the JSON.
 CANDIDATE_KEYS = ('direction', 'omegadot', 'amplitude_rad', 't0', 'duration_rev')
 DIRECTIONS = ('progressing', 'regressing')
@@ -172,6 +173,8 @@ class Plan:
         Collective pitch of the run (θ0 of the guess or the known values, else 2°).
     warnings : tuple of str
     path : str
+    known_initial_state : bool
+        Plan as if the state at the window start were known (report Ch.3 Table 1).
 
     """
 
@@ -185,6 +188,7 @@ class Plan:
     collective_rad: float
     warnings: tuple = ()
     path: str = '<string>'
+    known_initial_state: bool = False
 
     @property
     def unknowns(self):
@@ -241,7 +245,9 @@ def parse_plan(text, path='<string>'):
     ``rate_hz``, ``omega_rad_s``, ``target_std`` (optional σ per unknown), ``candidates``
     (optional: one mapping or a list of mappings with the keys of :data:`CANDIDATE_KEYS`, each
     value a number or a list; each mapping is expanded to all combinations, keys left out take
-    the defaults) and ``collective_rad`` (optional).
+    the defaults), ``collective_rad`` (optional) and ``known_initial_state`` (optional, false by
+    default: true plans as if the state at the window start were known, the report's "correct
+    initial conditions" of Ch.3 Table 1, instead of estimated with the parameters).
 
     Raises
     ------
@@ -295,10 +301,15 @@ def parse_plan(text, path='<string>'):
             target[name] = parser.number(value, 'target_std', name)
     collective = _collective(parser, data, guess, description.known)
     candidates = _parse_candidates(parser, data.get('candidates'), description.rotor)
+    known_state = data.get('known_initial_state', False)
+    if not isinstance(known_state, bool):
+        parser.fail(f'known_initial_state must be true or false, not {known_state!r}',
+                    'known_initial_state')
     return Plan(description=description, guess=guess, noise_std_rad=description.noise_std_rad,
                 rate_hz=rate_hz, omega_rad_s=omega, target_std=target,
                 candidates=candidates, collective_rad=collective,
-                warnings=tuple(description.warnings), path=path)
+                warnings=tuple(description.warnings), path=path,
+                known_initial_state=known_state)
 
 
 def load_plan(path):
@@ -730,7 +741,8 @@ class PlanResult:
                 self.transients[0].noise_std)] if self.transients else [],
             'rate_hz': float(plan.rate_hz),
             'omega_rad_s': float(plan.omega_rad_s),
-            'initial_state': plan.description.initial_state,
+            'initial_state': ('known' if plan.known_initial_state
+                              else plan.description.initial_state),
             'elapsed_s': float(self.elapsed_s),
             'warnings': list(self.warnings),
         }
@@ -776,7 +788,8 @@ def evaluate_plan(plan, progress=None):
     for i, members in enumerate(groups.values()):
         longest = max(members, key=lambda c: c.duration_rev)
         horizon = replace(longest, duration_rev=HORIZON * longest.duration_rev)
-        transients.append(predict_transient(plan, horizon))
+        transients.append(predict_transient(
+            plan, horizon, initial_state='known' if plan.known_initial_state else None))
         if progress is not None:
             progress({'index': i + 1, 'of': len(groups), 'label': longest.label(),
                       'elapsed': time.perf_counter() - started})
@@ -904,6 +917,10 @@ def monte_carlo(plan, candidate, seeds, progress=None):
     (no multi-start grid: the spread, not the search, is under test). The prediction is
     :func:`predict_transient` for the same candidate and record length.
     """
+    if plan.known_initial_state:
+        raise ValueError(f'{plan.path}: known_initial_state is true, but identify estimates the '
+                         'initial state from the window; set it false to compare the plan '
+                         'with identify')
     started = time.perf_counter()
     pred = predict_transient(plan, candidate)
     window = candidate.window_s(plan.omega_rad_s)
