@@ -227,6 +227,9 @@ def _check_system_noise_statistics(rows, coverage_limits, pooled_limits):
     rms_fe = np.sqrt(np.mean(rows[:, 3:6]**2, axis=0))
     inside = np.abs(rows[:, 3:6]) <= 1.96 * rows[:, 6:9]
     coverage = np.mean(inside, axis=0)
+    print(f'{len(rows)} seeds: RMS output error {np.round(rms_oe, 4)}, filter error '
+          f'{np.round(rms_fe, 4)}; coverage {coverage}, pooled {np.mean(inside):.3f}; '
+          f'mean σ̂_V {np.mean(rows[:, 9]):.3f}')
     assert np.all(rms_fe < rms_oe), (rms_fe, rms_oe)
     assert np.all((coverage >= coverage_limits[0]) & (coverage <= coverage_limits[1])), coverage
     assert pooled_limits[0] <= np.mean(inside) <= pooled_limits[1], np.mean(inside)
@@ -256,7 +259,8 @@ def test_system_noise_filter_error_beats_output_error_full():
 
     Per parameter the limits 0.90-0.99 are the 0.15 % and 99.85 % points of
     Binomial(200, 0.95)/200; pooled over the three parameters (600 trials) the issue's
-    90-98 %. Measured (200 seeds, MEASURED_TIME here): MEASURED_FULL.
+    90-98 %. Measured (200 seeds, 4-8 min here): RMS output error (.029, .044, .015), filter
+    error (.021, .033, .012); coverage .96/.965/.955, pooled .960; mean σ̂_V .054 (joint ML).
     """
     _check_system_noise_statistics(_monte_carlo(range(200)), (0.90, 0.99), (0.90, 0.98))
 
