@@ -141,7 +141,7 @@ def main():
 
     rate = result['samples'] / 1000.0 / result['wall_s']
     columns = ('total', 'queued', 'record', 'identify', 'gauss_newton', 'verdict', 'message',
-               'publish', 'cpu', 'cpu_wait', 'gil_or_lock_wait')
+               'publish', 'other', 'cpu', 'cpu_wait', 'gil_or_lock_wait')
     breakdown = [[b['kind'], f'{b["window_end_s"]:.4f}', b.get('iterations', '')]
                  + [f'{b.get(c, float("nan")):.1f}' for c in columns] + [b['samples_taken']]
                  for b in result['breakdown']]
@@ -168,15 +168,16 @@ def main():
         'thread (a running fit to finish or give way); *record* forms the Record under the '
         'buffer lock; *identify* is rotor_id.pipeline.identify, of which *Gauss-Newton* the '
         'iterations; *verdict* the data-length verdict (Cramér-Rao bound history when a target '
-        "is not met); then the message and its publication. The worker's wall time from "
+        'is not met); then the message and its publication; *other* is the rest (mostly '
+        "taking the GIL back between stages). The worker's wall time from "
         'picking the request up to publishing splits into *on CPU*, *waiting for a CPU* (run '
         'queue: other processes) and *waiting for the GIL or the buffer lock* (the subscription '
         'callbacks of the same process); *samples* counts the sensor samples the node took '
         'meanwhile.\n\n'
         + markdown_table(['estimate', 'window end (s)', 'iterations', 'total', 'queued',
                           'record', 'identify', 'Gauss-Newton', 'verdict', 'message',
-                          'publish', 'on CPU', 'waiting for a CPU', 'waiting for the GIL/lock',
-                          'samples'], breakdown) + '\n\n'
+                          'publish', 'other', 'on CPU', 'waiting for a CPU',
+                          'waiting for the GIL/lock', 'samples'], breakdown) + '\n\n'
         f'Identifier threads over the whole run ({threads["wall_s"]:.1f} s wall, '
         f'{threads["samples_taken"]} sensor samples taken): executor (subscriptions) '
         f'{threads["executor_cpu_s"]:.1f} s on CPU ({per_sample:.0f} µs per sample), '

@@ -282,10 +282,14 @@ class Identifier(Node):
         # latency: newest sample of the window taken -> its estimate published
         self.latencies_ms.append((done - requested) * 1e3)
         cpu, waiting = (cpu1 - cpu0) * 1e3, (waiting1 - waiting0) * 1e3
+        stages = sum(timing.get(k, 0.0) for k in ('record', 'identify', 'verdict', 'message'))
         self.breakdowns.append({
             'kind': 'final' if final else 'provisional', 'window_end_s': round(window_s[1], 5),
             'total': self.latencies_ms[-1], 'queued': (started - requested) * 1e3, **timing,
-            'publish': (done - published) * 1e3, 'cpu': cpu, 'cpu_wait': waiting,
+            'publish': (done - published) * 1e3,
+            # between the stages: mostly taking the GIL back after a blocking call
+            'other': (published - started) * 1e3 - stages,
+            'cpu': cpu, 'cpu_wait': waiting,
             'gil_or_lock_wait': max(0.0, (done - started) * 1e3 - cpu - waiting),
             'samples_taken': self.taken - taken0})
         lat = np.array(self.latencies_ms)
@@ -469,9 +473,10 @@ def _breakdown_text(b):
     return (f'{b["total"]:.1f} = queued {b["queued"]:.1f} + record {b.get("record", 0):.1f} + '
             f'identify {b.get("identify", 0):.1f} (Gauss-Newton {b.get("gauss_newton", 0):.1f}, '
             f'{b.get("iterations", 0)} it) + verdict {b.get("verdict", 0):.1f} + message '
-            f'{b.get("message", 0):.1f} + publish {b["publish"]:.1f}; worker on CPU '
-            f'{b["cpu"]:.1f}, waiting for a CPU {b["cpu_wait"]:.1f}, for the GIL or the buffer '
-            f'lock {b["gil_or_lock_wait"]:.1f}; {b["samples_taken"]} samples taken meanwhile')
+            f'{b.get("message", 0):.1f} + publish {b["publish"]:.1f} + other {b["other"]:.1f}; '
+            f'worker on CPU {b["cpu"]:.1f}, waiting for a CPU {b["cpu_wait"]:.1f}, for the GIL '
+            f'or the buffer lock {b["gil_or_lock_wait"]:.1f}; {b["samples_taken"]} samples '
+            'taken meanwhile')
 
 
 def main(args=None):
