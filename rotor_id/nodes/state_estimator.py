@@ -14,7 +14,7 @@ import sys
 
 import numpy as np
 from rclpy.node import Node
-from rotor_id.nodes.common import (declare, Diagnostics, estimate_from_message,
+from rotor_id.nodes.common import (declare, Diagnostics, estimate_from_message, ESTIMATE_QOS,
                                    node_run_description, SENSOR_BUFFER_QOS, spin_node, stamp_ns,
                                    STATE_QOS, wait_for_acks)
 from rotor_id.nodes.live import (AzimuthTracker, BadSample, check_azimuth_sample,
@@ -70,7 +70,7 @@ class StateEstimator(Node):
         self.create_subscription(JointState, desc.topics['azimuth'], self.on_azimuth,
                                  SENSOR_BUFFER_QOS)
         self.create_subscription(ParameterEstimate, self.d['estimate_topic'], self.on_estimate,
-                                 STATE_QOS)
+                                 ESTIMATE_QOS)
         self.diagnostics = Diagnostics(self, 'state reconstruction')
         self.create_timer(self.d['update_period_s'], self.tick)
 
