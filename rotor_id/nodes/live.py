@@ -518,25 +518,30 @@ def record_from_series(flap, pitch, azimuth, blade_names, stamp0_ns, source='liv
                   blade_names=list(blade_names), source=source, stamp0_ns=int(stamp0_ns))
 
 
-def window_gaps(named_series, lo_ns, hi_ns, factor=2.5):
+def window_gaps(named_series, lo_ns, hi_ns, factor=1.5):
     """
     Describe the gaps (missing samples) of each series inside [lo_ns, hi_ns].
 
-    A gap is a step between consecutive stamps longer than ``factor`` times the series' median
-    step. Returns a list of short texts (empty when complete).
+    A gap is a step between consecutive stamps longer than ``factor`` times the series'
+    sampling period (the median of the last 2000 steps), so one lost sample, a step of two
+    periods, counts, while stamp jitter below ±50 % does not. Scattered losses are found as
+    long as fewer than half the samples are lost (the median step is then still one period).
+    Returns a list of short texts (empty when complete).
     """
     notes = []
     for name, series in named_series.items():
         stamps = series.stamps
         if stamps.size < 3:
             continue
-        period = float(np.median(np.diff(stamps[-min(stamps.size, 200):])))
+        period = float(np.median(np.diff(stamps[-min(stamps.size, 2001):])))
+        if period <= 0:
+            continue
         inside = stamps[np.searchsorted(stamps, lo_ns - period, side='left'):
                         np.searchsorted(stamps, hi_ns + period, side='right')]
         steps = np.diff(inside)
         big = steps > factor * period
         if np.any(big):
-            missing = int(np.sum(steps[big] / period - 1).round())
+            missing = int(np.sum(np.round(steps[big] / period) - 1))
             notes.append(f'{name}: {missing} sample(s) missing in {int(np.sum(big))} gap(s), '
                          f'longest {steps.max() / 1e6:.1f} ms')
     return notes
