@@ -182,7 +182,7 @@ def starting_values(record, description, model, experiments, known, multi_start=
 
 
 def identify(record, description, method=None, progress=None, window_s=None,
-             multi_start=True, max_iter=50, filter_bounds='marginal'):
+             multi_start=True, max_iter=50, filter_bounds='marginal', step_tol=None):
     """
     Identify the run description's unknowns from a record.
 
@@ -206,6 +206,9 @@ def identify(record, description, method=None, progress=None, window_s=None,
         Filter error only: bounds integrated over the process-noise σ (default) or the
         Cramér-Rao bound at the joint ML optimum (see
         :func:`rotor_id.estimation.filter_error.fit_filter_error`).
+    step_tol : float, optional
+        Output error only: converged when every step is below this many Cramér-Rao σ
+        (default: :func:`~rotor_id.estimation.output_error.fit_output_error`'s 1e-6).
 
     Returns
     -------
@@ -226,8 +229,10 @@ def identify(record, description, method=None, progress=None, window_s=None,
     noise = description.noise_std_rad
     noise_std = None if noise is None else channel_noise(model, float(noise))
     if method == 'output-error':
+        tolerance = {} if step_tol is None else {'step_tol': step_tol}
         estimate = fit_output_error(experiments, unknowns, guess=guess, known=known,
-                                    noise_std=noise_std, progress=progress, max_iter=max_iter)
+                                    noise_std=noise_std, progress=progress, max_iter=max_iter,
+                                    **tolerance)
     elif method == 'filter-error':
         from rotor_id.estimation.filter_error import fit_filter_error
         estimate = fit_filter_error(experiments, unknowns, guess=guess, known=known,
