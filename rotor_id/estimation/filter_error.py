@@ -543,8 +543,8 @@ def fit_filter_error(experiments, unknowns, guess=None, known=None, noise_std=No
     noise, where they are wider than output error's: the record cannot tell them from records
     with some (``bounds='conditional'`` gives the plain estimator's bound at the joint
     optimum). Measured in bench/compare_process_noise.py: at the report's measurement σ .05
-    and σ_V .1, coverage .94/.94/.92 (conditional: .87/.78/.75); at σ_V = 0 the bounds are
-    1.4-1.8 times output error's.
+    and σ_V .1, coverage .94/.94/.94 (conditional: .87/.78/.75); at σ_V = 0 the bounds are
+    1.5-1.9 times output error's.
 
     Parameters are those of :func:`fit_filter_error_ml`, plus
 
