@@ -50,13 +50,14 @@ SENSOR_OFFER_QOS = QoSProfile(reliability=ReliabilityPolicy.RELIABLE,
 #: behind, such as a recorder on a busy machine, still gets every message re-sent).
 STATE_QOS = QoSProfile(reliability=ReliabilityPolicy.RELIABLE, history=HistoryPolicy.KEEP_LAST,
                        depth=1000, durability=DurabilityPolicy.VOLATILE)
-#: Parameter estimates: as STATE_QOS but latched (transient local, the last 100 kept), like a
-#: map server's map: a reader that joins late (a dashboard started mid-run, a state estimator
-#: restarted, a subscriber whose discovery lagged on a loaded machine) still receives them.
-#: Volatile readers match it too, without the history.
-ESTIMATE_QOS = QoSProfile(reliability=ReliabilityPolicy.RELIABLE,
-                          history=HistoryPolicy.KEEP_LAST, depth=100,
-                          durability=DurabilityPolicy.TRANSIENT_LOCAL)
+#: Results (parameter estimates, reconstructed states): as STATE_QOS but latched (transient
+#: local, the last 100 kept), like a map server's map: a reader that joins late (a dashboard
+#: started mid-run, a restarted state estimator, a recorder or test process whose discovery
+#: lagged on a loaded machine) still receives them. Volatile readers match it too, without the
+#: history. Commands stay volatile: a late plant must not act on old ones.
+RESULT_QOS = QoSProfile(reliability=ReliabilityPolicy.RELIABLE,
+                        history=HistoryPolicy.KEEP_LAST, depth=100,
+                        durability=DurabilityPolicy.TRANSIENT_LOCAL)
 DIAGNOSTICS_QOS = QoSProfile(reliability=ReliabilityPolicy.RELIABLE,
                              history=HistoryPolicy.KEEP_LAST, depth=10)
 

@@ -32,10 +32,9 @@ from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
 from rclpy.node import Node
 from rclpy.task import Future
 from rotor_id.estimation.output_error import STOP
-from rotor_id.nodes.common import (declare, Diagnostics, estimate_message, ESTIMATE_QOS,
-                                   node_run_description, NS, progress_message,
-                                   SENSOR_BUFFER_QOS, spin_node, stamp_ns, STATE_QOS,
-                                   wait_for_acks)
+from rotor_id.nodes.common import (declare, Diagnostics, estimate_message, node_run_description,
+                                   NS, progress_message, RESULT_QOS, SENSOR_BUFFER_QOS,
+                                   spin_node, stamp_ns, STATE_QOS, wait_for_acks)
 from rotor_id.nodes.live import (BadSample, bound_history, check_azimuth_sample,
                                  check_joint_sample, data_length_verdict, record_from_series,
                                  StampedSeries, UnwrappedAzimuth, window_gaps)
@@ -137,7 +136,7 @@ class Identifier(Node):
         self.bounds = None                # (lower, upper) of each unknown, for that check
         self.last_fit_s = float('nan')
         self.pub_estimate = self.create_publisher(ParameterEstimate, self.d['estimate_topic'],
-                                                  ESTIMATE_QOS)
+                                                  RESULT_QOS)
         self.pub_progress = self.create_publisher(IdentificationProgress,
                                                   self.d['progress_topic'], STATE_QOS)
         for role, callback in (('blade_flap', self.on_flap), ('blade_pitch', self.on_pitch),

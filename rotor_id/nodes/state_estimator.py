@@ -14,9 +14,9 @@ import sys
 
 import numpy as np
 from rclpy.node import Node
-from rotor_id.nodes.common import (declare, Diagnostics, estimate_from_message, ESTIMATE_QOS,
-                                   node_run_description, SENSOR_BUFFER_QOS, spin_node, stamp_ns,
-                                   STATE_QOS, wait_for_acks)
+from rotor_id.nodes.common import (declare, Diagnostics, estimate_from_message,
+                                   node_run_description, RESULT_QOS, SENSOR_BUFFER_QOS,
+                                   spin_node, stamp_ns, wait_for_acks)
 from rotor_id.nodes.live import (AzimuthTracker, BadSample, check_azimuth_sample,
                                  check_joint_sample, StampedSeries, StreamingKalman)
 from rotor_id.physics.stirring import SampledInput
@@ -62,7 +62,7 @@ class StateEstimator(Node):
         self.kalman = None
         self.updates = 0
         self.published = 0
-        self.pub_state = self.create_publisher(StateEstimate, self.d['state_topic'], STATE_QOS)
+        self.pub_state = self.create_publisher(StateEstimate, self.d['state_topic'], RESULT_QOS)
         for role, series, joints in (('blade_flap', self.flap, self.flap_joints),
                                      ('blade_pitch', self.pitch, self.pitch_joints)):
             self.create_subscription(JointState, desc.topics[role],
@@ -70,7 +70,7 @@ class StateEstimator(Node):
         self.create_subscription(JointState, desc.topics['azimuth'], self.on_azimuth,
                                  SENSOR_BUFFER_QOS)
         self.create_subscription(ParameterEstimate, self.d['estimate_topic'], self.on_estimate,
-                                 ESTIMATE_QOS)
+                                 RESULT_QOS)
         self.diagnostics = Diagnostics(self, 'state reconstruction')
         self.create_timer(self.d['update_period_s'], self.tick)
 

@@ -16,9 +16,8 @@ import math
 import sys
 
 from rclpy.node import Node
-from rotor_id.nodes.common import (declare, Diagnostics, joint_state, SENSOR_OFFER_QOS,
-                                   SENSOR_QOS, spin_node, stamp_ns, STATE_QOS, time_msg,
-                                   wait_for_acks)
+from rotor_id.nodes.common import (declare, Diagnostics, joint_state, RESULT_QOS, SENSOR_OFFER_QOS,
+                                   SENSOR_QOS, spin_node, stamp_ns, time_msg, wait_for_acks)
 from rotor_id.nodes.live import AzimuthTracker, BadSample, check_azimuth_sample
 from rotor_id.physics.stirring import blade_pitch_from_multiblade, StirringSchedule
 from rotor_id_msgs.msg import StirringCommand
@@ -71,8 +70,9 @@ class StirringInput(Node):
         # commands are offered reliable (CONVENTIONS §4); the plant reads them best effort
         self.pub_command = self.create_publisher(JointState, d['pitch_command_topic'],
                                                  SENSOR_OFFER_QOS)
+        # what was commanded, for monitors and the bag (no node acts on it): latched
         self.pub_stirring = self.create_publisher(StirringCommand, d['stirring_topic'],
-                                                  STATE_QOS)
+                                                  RESULT_QOS)
         self.create_subscription(JointState, d['azimuth_topic'], self.on_azimuth, SENSOR_QOS)
         self.diagnostics = Diagnostics(self, 'stirring schedule')
         self.create_timer(1.0 / d['rate_hz'], self.tick)

@@ -9,16 +9,16 @@ import time
 
 from diagnostic_msgs.msg import DiagnosticArray
 import rclpy
-from rotor_id.nodes.common import DIAGNOSTICS_QOS, ESTIMATE_QOS, SENSOR_QOS, STATE_QOS
+from rotor_id.nodes.common import DIAGNOSTICS_QOS, RESULT_QOS, SENSOR_QOS, STATE_QOS
 from rotor_id_msgs.msg import (IdentificationProgress, ParameterEstimate, StateEstimate,
                                StirringCommand)
 from sensor_msgs.msg import JointState
 
 TOPICS = {
-    'estimate': ('/rotor_id/estimate', ParameterEstimate, ESTIMATE_QOS),
+    'estimate': ('/rotor_id/estimate', ParameterEstimate, RESULT_QOS),
     'progress': ('/rotor_id/progress', IdentificationProgress, STATE_QOS),
-    'state': ('/rotor_id/state', StateEstimate, STATE_QOS),
-    'stirring': ('/rotor/stirring', StirringCommand, STATE_QOS),
+    'state': ('/rotor_id/state', StateEstimate, RESULT_QOS),
+    'stirring': ('/rotor/stirring', StirringCommand, RESULT_QOS),
     'diagnostics': ('/diagnostics', DiagnosticArray, DIAGNOSTICS_QOS),
 }
 SENSOR_TOPICS = {
