@@ -77,7 +77,8 @@ def run_live(case, out, storage, domain_id, timeout, seed=None, stream=sys.stdou
     description = load_run_description(description_path)
     bag = out / f'bag_{case}_{time.strftime("%Y%m%d-%H%M%S")}'
     env = isolated_env(domain_id, out / 'logs' / 'ros')
-    os.environ.update({k: env[k] for k in ('ROS_DOMAIN_ID', 'ROS_AUTOMATIC_DISCOVERY_RANGE')})
+    os.environ.update({k: env[k] for k in ('ROS_DOMAIN_ID', 'ROS_AUTOMATIC_DISCOVERY_RANGE',
+                                           'FASTRTPS_DEFAULT_PROFILES_FILE') if k in env})
     t_start = time.monotonic()
     phases = {}
 
