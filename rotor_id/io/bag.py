@@ -429,7 +429,7 @@ def _assemble(raw, wanted, joint_names, n_blades, omega_rad_s, issues):
         _gaps(az_ns, omega_mean, wanted['azimuth'], issues, 'azimuth is interpolated across')
     return Record(time_s=time_s, t=t, rotor_speed_rad_s=speed, blade_flap=flap,
                   blade_pitch=pitch, blade_names=blade_names, warnings=list(issues),
-                  stamp0_ns=stamp0)
+                  stamp0_ns=stamp0, flap_joints=flap_names, pitch_joints=pitch_names)
 
 
 def _azimuth(raw, topic, issues):

@@ -36,6 +36,12 @@ class Record:
         Non-fatal problems met while reading (dropped samples, gaps, ...).
     stamp0_ns
         Absolute ``header.stamp`` of the first flap sample, ns.
+    flap_joints
+        Joint names the bag's flap messages carry, in message order (empty when the record
+        did not come from a bag). With :attr:`pitch_joints` this is what the bag says about
+        the blades, whatever joint_names selected.
+    pitch_joints
+        Joint names the bag's pitch messages carry, in message order.
 
     """
 
@@ -48,6 +54,8 @@ class Record:
     source: str = ''
     warnings: list = field(default_factory=list)
     stamp0_ns: int = 0
+    flap_joints: tuple = ()
+    pitch_joints: tuple = ()
 
     def __post_init__(self):
         """Convert to float arrays and check that the shapes agree."""
@@ -67,6 +75,8 @@ class Record:
             if shape != expected:
                 raise ValueError(f'Record.{name} has shape {shape}, expected {expected}')
         self.blade_names = list(self.blade_names)
+        self.flap_joints = tuple(self.flap_joints)
+        self.pitch_joints = tuple(self.pitch_joints)
         if len(self.blade_names) != self.n_blades:
             raise ValueError(f'{len(self.blade_names)} blade names for {self.n_blades} blades')
 
@@ -78,6 +88,19 @@ class Record:
     def n_blades(self):
         """Return the number of blades N."""
         return self.blade_flap.shape[1]
+
+    @property
+    def bag_blade_count(self):
+        """
+        Return the number of blade joints the bag carries, or None if unknown.
+
+        That is the number of joints on the flap topic when the flap and pitch topics carry
+        the same number (a bag's JointState messages hold one joint per blade); None when
+        the record did not come from a bag or the two topics disagree.
+        """
+        if not self.flap_joints or len(self.flap_joints) != len(self.pitch_joints):
+            return None
+        return len(self.flap_joints)
 
     @property
     def omega_mean(self):

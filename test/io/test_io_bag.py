@@ -301,6 +301,25 @@ def test_blade_count_differs_between_pitch_and_flap(tmp_path):
         read_record(write_record_bag(tmp_path / 'ok', record), n_blades=3)
 
 
+def test_record_tells_the_joints_the_bag_carries(tmp_path):
+    """The joints seen on the flap and pitch topics stay on the Record, whatever was selected."""
+    record = make_record(n=30)
+    got = read_quietly(write_record_bag(tmp_path / 'four', record))
+    assert got.flap_joints == got.pitch_joints == tuple(BLADES)
+    assert got.bag_blade_count == 4
+    assert got.window(0.0, 0.01).bag_blade_count == 4
+    streams = record_streams(record)
+    stamps = streams[FLAP][0]
+    five = BLADES + ['blade_5']
+    extra = np.hstack([record.blade_flap, record.blade_flap[:, :1]])
+    streams[FLAP] = (stamps, five, extra, None)
+    streams[PITCH] = (stamps, five, np.hstack([record.blade_pitch, record.blade_pitch[:, :1]]),
+                      None)
+    got = read_quietly(write_streams(tmp_path / 'five', streams), joint_names=BLADES)
+    assert got.n_blades == 4 and got.flap_joints == tuple(five) and got.bag_blade_count == 5
+    assert make_record(n=5).bag_blade_count is None
+
+
 # --------------------------------------------------------------------------- samples
 
 def test_nan_and_inf_samples_are_dropped_and_counted(tmp_path):
