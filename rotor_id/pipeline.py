@@ -7,7 +7,7 @@ nondimensional time  →  estimator  →  :class:`Identification` (estimate + wh
 No ROS here: records come from :mod:`rotor_id.io.bag` or from the identifier node's buffers.
 """
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field, replace
 import itertools
 import math
 
@@ -37,9 +37,17 @@ class Identification:
     window_s: tuple
     omega_rad_s: float
     unknowns: list
+    #: Several recordings fitted together (:func:`identify_runs`): one :class:`Run` each.
+    runs: list = field(default_factory=list)
 
     def as_json(self):
-        """Return the JSON of ``rotor-id identify`` (keys fixed by issue 3; more allowed)."""
+        """
+        Return the JSON of ``rotor-id identify`` (keys fixed by issue 3; more allowed).
+
+        With several recordings, ``window_s`` and ``omega_rad_s`` are the first run's,
+        ``noise_std`` is pooled over the runs (sample-weighted variances), and ``runs`` holds
+        every run's own window, noise, residual RMS and initial states.
+        """
         est = self.estimate
         idx = [est.names.index(n) for n in self.unknowns]
         cov = est.covariance[np.ix_(idx, idx)]
@@ -71,7 +79,43 @@ class Identification:
                  if n not in self.unknowns and '(t0)' not in n}
         if noise:
             out['noise_parameters'] = noise
+        if self.runs:
+            out['runs'] = [run.as_json(est) for run in self.runs]
         return out
+
+
+@dataclass
+class Run:
+    """One recording of a multi-run estimate and the experiments it contributed."""
+
+    name: str
+    source: str
+    description: object
+    window_s: tuple
+    omega_rad_s: float
+    experiments: list      # indices into Identification.experiments
+
+    def as_json(self, estimate):
+        """Return this run's section of the JSON: window, noise, residuals, initial states."""
+        idx = self.experiments
+        residuals = np.concatenate([estimate.residuals[i] for i in idx], axis=0)
+        suffixes = [f'[{i + 1}]' for i in idx] if len(estimate.residuals) > 1 else ['']
+        states = {n: {'value': float(v), 'std': float(s)}
+                  for n, v, s in zip(estimate.names, estimate.values, estimate.std)
+                  if '(t0)' in n and any(n.endswith(x) for x in suffixes)}
+        noise = (estimate.run_noise_std[idx[0]] if estimate.run_noise_std
+                 else estimate.noise_std)
+        return {
+            'name': self.name,
+            'bag': self.source,
+            'config': self.description.path,
+            'window_s': [float(self.window_s[0]), float(self.window_s[1])],
+            'omega_rad_s': float(self.omega_rad_s),
+            'n_samples': int(residuals.shape[0]),
+            'noise_std': [float(v) for v in noise],
+            'residual_rms': [float(v) for v in np.sqrt(np.mean(residuals**2, axis=0))],
+            'initial_states': states,
+        }
 
 
 def rotor_constants(description):
@@ -248,6 +292,99 @@ def identify(record, description, method=None, progress=None, window_s=None,
     return Identification(estimate=estimate, model=experiments[0].model, experiments=experiments,
                           description=description, window_s=window_s,
                           omega_rad_s=record.window(*window_s).omega_mean, unknowns=unknowns)
+
+
+#: What the runs of one multi-run estimate must agree on (they share the parameters).
+SHARED_KEYS = ('model', 'rotor', 'unknowns', 'known', 'measurement')
+
+
+def check_runs_agree(descriptions, names):
+    """Raise IdentificationError unless the run descriptions agree on :data:`SHARED_KEYS`."""
+    first = descriptions[0]
+    for description, name in zip(descriptions[1:], names[1:]):
+        for key in SHARED_KEYS:
+            a, b = getattr(first, key), getattr(description, key)
+            if a != b:
+                raise IdentificationError(
+                    f'runs {names[0]} and {name} disagree on {key} ({a} vs {b}): runs '
+                    'identified together share the model and its parameters; give them the '
+                    'same ' + key + ' or identify them separately')
+
+
+def identify_runs(runs, method=None, progress=None, multi_start=True, max_iter=50,
+                  step_tol=None):
+    """
+    Identify shared parameters from several recordings at once (output error).
+
+    Every recording keeps its own window, its own initial states and its own measurement-noise
+    covariance (estimated from its residuals unless its description gives
+    ``noise_std_rad``); the model parameters are one vector for all (report Ch.2, several
+    transients in one estimate; the information of the runs adds, Ch.3).
+
+    Parameters
+    ----------
+    runs : list of (record, description, name)
+        The recordings with their run descriptions and a name for messages and the JSON.
+    method, progress, multi_start, max_iter, step_tol
+        As :func:`identify` (only 'output-error' estimates per-run noise).
+
+    Returns
+    -------
+    Identification
+        With ``runs`` describing each recording's part.
+
+    """
+    if not runs:
+        raise IdentificationError('no recording to identify from')
+    records, descriptions, names = (list(x) for x in zip(*runs))
+    if len(set(names)) != len(names):
+        names = [f'{n}#{i + 1}' for i, n in enumerate(names)]
+    check_runs_agree(descriptions, names)
+    methods = {method or d.method or 'output-error' for d in descriptions}
+    if methods != {'output-error'}:
+        raise IdentificationError(
+            f'several recordings are identified together by output error only (asked: '
+            f'{", ".join(sorted(methods))}); drop method from the run descriptions or use '
+            '--method output-error')
+    description = descriptions[0]
+    model = model_for(description)
+    unknowns = list(description.unknowns)
+    if model.name == 'multiblade_wake' and 'gamma' in unknowns:
+        raise IdentificationError('the wake model is identified in A = γB⁴/8 (Ch.2 eq. 27); '
+                                  'list A instead of gamma among the unknowns')
+    experiments, parts, noise_std, known = [], [], [], None
+    for index, (record, desc, name) in enumerate(zip(records, descriptions, names)):
+        window_s = tuple(desc.window_s)
+        near = _near_window(record, window_s)
+        run_known = _known_values(desc, model, near)
+        if known is None:
+            known = run_known
+        elif set(run_known) != set(known) or any(
+                not math.isclose(run_known[k], known[k], rel_tol=1e-3, abs_tol=1e-5)
+                for k in known):
+            raise IdentificationError(
+                f'runs {names[0]} and {name} hold different fixed values '
+                f'({known} vs {run_known}; theta0 comes from the mean pitch when not given): '
+                'runs identified together share every parameter; make it an unknown or '
+                'identify them separately')
+        first = len(experiments)
+        for exp in experiments_from_record(near, desc, model, window_s):
+            label = name if exp.name == 'run' else f'{name}/{exp.name}'
+            experiments.append(replace(exp, name=label, noise_group=index))
+            noise = desc.noise_std_rad
+            noise_std.append(None if noise is None else channel_noise(model, float(noise)))
+        parts.append(Run(name=name, source=record.source, description=desc, window_s=window_s,
+                         omega_rad_s=near.window(*window_s).omega_mean,
+                         experiments=list(range(first, len(experiments)))))
+    guess = starting_values(records[0], description, model, experiments, known, multi_start)
+    tolerance = {} if step_tol is None else {'step_tol': step_tol}
+    estimate = fit_output_error(experiments, unknowns, guess=guess, known=known,
+                                noise_std=noise_std, progress=progress, max_iter=max_iter,
+                                **tolerance)
+    return Identification(estimate=estimate, model=experiments[0].model,
+                          experiments=experiments, description=description,
+                          window_s=parts[0].window_s, omega_rad_s=parts[0].omega_rad_s,
+                          unknowns=unknowns, runs=parts)
 
 
 def channel_noise(model, blade_noise):

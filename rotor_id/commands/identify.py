@@ -1,10 +1,14 @@
 """
-``rotor-id identify BAG --config RUN.yaml [--json OUT] [--figure OUT.png] [--method M]``.
+``rotor-id identify BAG [BAG ...] --config RUN.yaml [--config ...] [--json OUT] [--figure OUT.png]``.
 
 Reads a bag in the test-stand convention (MCAP or sqlite3), converts to the report's
 nondimensional time from the measured rotor speed, forms the model's channels (multiblade
 coordinates or eq. 30 differences), runs the configured estimator over the configured window,
 prints a table (value, Cramér-Rao σ, correlation) and writes the stable JSON of issue 3.
+
+Several bags are identified together (issue 17): one estimate of the shared parameters, each
+run with its own window (one ``--config`` per bag, or one for all), initial states and noise;
+the JSON adds a ``runs`` section and the figure a column per run.
 """
 
 import json
@@ -23,9 +27,13 @@ METHODS = ('output-error', 'filter-error', 'equation-error')
 
 def add_arguments(parser):
     """Arguments of ``rotor-id identify``."""
-    parser.add_argument('bag', help='rosbag2 directory (or its .mcap/.db3 file)')
-    parser.add_argument('--config', required=True,
-                        help='run description YAML (see shared/recordings/README.md)')
+    parser.add_argument('bag', nargs='+',
+                        help='rosbag2 directory (or its .mcap/.db3 file); several bags are '
+                        'identified together (shared parameters, per-run initial states '
+                        'and noise)')
+    parser.add_argument('--config', required=True, action='append',
+                        help='run description YAML (see shared/recordings/README.md): one for '
+                        'all bags, or one per bag in the same order')
     parser.add_argument('--json', dest='json_out', help='write the result as JSON here')
     parser.add_argument('--figure', help='write measured vs fitted flapping (PNG) here')
     parser.add_argument('--method', choices=METHODS, default=None,
@@ -122,8 +130,22 @@ def plot_fit(result, record, path, title=''):
     plt.close(fig)
 
 
+def configs_for(bags, configs):
+    """Return one run description path per bag (one for all, or one each)."""
+    if len(configs) == 1:
+        return list(configs) * len(bags)
+    if len(configs) != len(bags):
+        raise ValueError(f'{len(bags)} bags but {len(configs)} --config files; give one '
+                         '--config for all bags or one per bag, in the same order')
+    return list(configs)
+
+
 def run(args):
     """Identify and report; exit 0 when converged, 1 when not."""
+    configs = configs_for(args.bag, args.config)
+    if len(args.bag) > 1:
+        return run_several(args, configs)
+    args.bag, args.config = args.bag[0], configs[0]
     started = time.perf_counter()
     description, record = load_inputs(args.bag, args.config)
     for warning in record.warnings + list(description.warnings):
@@ -150,3 +172,95 @@ def run(args):
         plot_fit(result, record, args.figure, title=f'{Path(args.bag).name}: {label}')
         print(f'figure: {args.figure}')
     return 0 if result.estimate.converged else 1
+
+
+def run_names(bags):
+    """Short, distinct names of the bags for tables and the JSON."""
+    names = [Path(b).name or str(b) for b in bags]
+    return names if len(set(names)) == len(names) else [str(b) for b in bags]
+
+
+def format_runs(result):
+    """Plain-text table of the runs of a multi-run estimate: window, noise, residual RMS."""
+    data = result.as_json()
+    width = max(8, *(len(r['name']) for r in data['runs']))
+    lines = [f'{"run":<{width}} {"window [s]":>17} {"samples":>8}  noise σ / residual RMS '
+             f'[rad] ({", ".join(data["channels"])})']
+    for r in data['runs']:
+        pairs = ', '.join(f'{s:.3g}/{e:.3g}' for s, e in zip(r['noise_std'], r['residual_rms']))
+        lines.append(f'{r["name"]:<{width}} {r["window_s"][0]:8.4f}-{r["window_s"][1]:<8.4f} '
+                     f'{r["n_samples"]:8d}  {pairs}')
+    return '\n'.join(lines)
+
+
+def run_several(args, configs):
+    """Identify several bags together; exit 0 when converged, 1 when not."""
+    started = time.perf_counter()
+    names = run_names(args.bag)
+    loaded = [load_inputs(bag, config) for bag, config in zip(args.bag, configs)]
+    for (description, record), name in zip(loaded, names):
+        for warning in record.warnings + list(description.warnings):
+            print(f'warning: {name}: {warning}', file=sys.stderr)
+    pipeline.check_runs_agree([desc for desc, _ in loaded], names)
+    description = loaded[0][0]
+    method = args.method or 'output-error'
+    label = f'{method} {description.model} ({", ".join(description.unknowns)})'
+    if not args.quiet:
+        print(f'fitting {label} to {len(names)} runs together: {", ".join(names)}',
+              file=sys.stderr, flush=True)
+    result = pipeline.identify_runs(
+        [(record, desc, name) for (desc, record), name in zip(loaded, names)],
+        method=args.method, progress=None if args.quiet else progress_printer(method))
+    print(format_table(result))
+    print(format_runs(result))
+    for warning in result.estimate.warnings:
+        print(f'warning: {warning}', file=sys.stderr)
+    data = result.as_json()
+    data['bag'] = [str(b) for b in args.bag]
+    data['elapsed_s'] = time.perf_counter() - started
+    if args.json_out:
+        Path(args.json_out).parent.mkdir(parents=True, exist_ok=True)
+        Path(args.json_out).write_text(json.dumps(data, indent=1))
+        print(f'JSON: {args.json_out}')
+    if args.figure:
+        plot_runs(result, [record for _, record in loaded], args.figure, title=label)
+        print(f'figure: {args.figure}')
+    return 0 if result.estimate.converged else 1
+
+
+def plot_runs(result, records, path, title=''):
+    """Measured vs fitted channels and residuals of every run, one column per run."""
+    import matplotlib
+    matplotlib.use('Agg')
+    import matplotlib.pyplot as plt
+    est = result.estimate
+    runs = result.runs
+    n_ch = result.experiments[0].y.shape[1]
+    fig, axes = plt.subplots(n_ch + 1, len(runs), figsize=(4.2 * len(runs), 1.9 * (n_ch + 1)),
+                             sharex='col', squeeze=False)
+    data = result.as_json()['runs']
+    for col, (run, record, summary) in enumerate(zip(runs, records, data)):
+        for r in run.experiments:
+            exp = result.experiments[r]
+            ts = (exp.t - record.t[0]) / run.omega_rad_s + record.time_s[0]
+            for c in range(n_ch):
+                ax = axes[c, col]
+                ax.plot(ts, np.degrees(exp.y[:, c]), '.', ms=2, color='0.5',
+                        label='measured' if r == run.experiments[0] else None)
+                ax.plot(ts, np.degrees(est.fitted[r][:, c]), '-', lw=1.2, color='C0',
+                        label='fitted' if r == run.experiments[0] else None)
+                if col == 0:
+                    ax.set_ylabel(f'{exp.model.output_names[c]}\n[deg]')
+            axes[-1, col].plot(ts, np.degrees(est.residuals[r]), lw=0.6)
+        rms = ', '.join(f'{np.degrees(v):.3g}' for v in summary['residual_rms'])
+        axes[0, col].set_title(f'{run.name}\nresidual RMS {rms} deg', fontsize=8)
+        axes[-1, col].set_xlabel('time since first sample [s]')
+    axes[0, 0].legend(loc='upper right', fontsize=8)
+    axes[-1, 0].set_ylabel('residuals\n[deg]')
+    params = ', '.join(f'{n} = {v["value"]:.4g} ± {v["std"]:.2g}'
+                       for n, v in result.as_json()['parameters'].items())
+    fig.suptitle(f'{title}\n{params}', fontsize=9)
+    fig.tight_layout()
+    Path(path).parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=110)
+    plt.close(fig)

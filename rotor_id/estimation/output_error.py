@@ -11,7 +11,9 @@ and a Levenberg-Marquardt damping when a step does not lower the cost, and the p
 physical bounds. R is diagonal (one variance per channel); when not given it is re-estimated
 from the residuals after every accepted step (the usual relaxation of the maximum-likelihood
 equations, Maine & Iliff). Initial states are unknowns when asked for; several experiments
-(runs) can share one parameter vector; a Gaussian prior adds Ch.1 eq. 25's a-priori term.
+(runs) can share one parameter vector, each with its own initial state and, when their
+``noise_group`` differ, its own R (separate recordings); a Gaussian prior adds Ch.1 eq. 25's
+a-priori term.
 
 The Cramér-Rao bound M⁻¹ is evaluated at the estimate with the estimated R. Where the report is
 silent (starting initial states, convergence test, noise estimation) the choices are documented
@@ -58,6 +60,9 @@ class Experiment:
         Start for estimated initial states. Default: the exact linear least-squares fit of the
         initial state to the data at the starting parameters.
     name : str
+    noise_group : hashable
+        Runs with the same group share one measurement-noise covariance R (the blades of one
+        recording); different groups (different recordings) each get their own R.
 
     """
 
@@ -68,6 +73,7 @@ class Experiment:
     initial_state: object = 'estimate'
     x0_guess: object = None
     name: str = 'run'
+    noise_group: object = 0
 
     def free_states(self):
         """Return the indices of the states whose initial value is estimated."""
@@ -108,6 +114,9 @@ class Estimate:
     warnings: list = field(default_factory=list)
     model_parameters: dict = field(default_factory=dict)
     method: str = 'output-error'
+    #: Noise σ per channel of every run (equal within a noise group); ``noise_std`` is their
+    #: sample-weighted pooled value when the runs have separate noise groups.
+    run_noise_std: list = field(default_factory=list)
 
     @property
     def std(self):
@@ -279,13 +288,26 @@ def evaluate(problem, theta, max_step=DEFAULT_MAX_STEP, sensitivities=True):
 
 
 def information_matrix(dys, noise_var):
-    """M = Σ_j (∂ŷ_j/∂θ)ᵀ R⁻¹ (∂ŷ_j/∂θ) over all runs (R = diag(noise_var))."""
+    """
+    M = Σ_j (∂ŷ_j/∂θ)ᵀ R⁻¹ (∂ŷ_j/∂θ) over all runs (R = diag(noise_var)).
+
+    ``noise_var`` is one variance per channel for all runs, or a list with one such per run.
+    """
     k = dys[0].shape[-1]
     M = np.zeros((k, k))
-    w = 1.0 / np.asarray(noise_var, dtype=float)
-    for dy in dys:
-        M += np.einsum('tmi,m,tmj->ij', dy, w, dy)
+    per_run = _per_run(noise_var, len(dys))
+    for dy, var in zip(dys, per_run):
+        M += np.einsum('tmi,m,tmj->ij', dy, 1.0 / np.asarray(var, dtype=float), dy)
     return M
+
+
+def _per_run(noise_var, n_runs):
+    """One variance vector per run from either one shared vector or a list per run."""
+    if isinstance(noise_var, list):
+        if len(noise_var) != n_runs:
+            raise ValueError(f'{len(noise_var)} noise variances for {n_runs} runs')
+        return noise_var
+    return [noise_var] * n_runs
 
 
 def dependence_warnings(names, M, threshold=1e-7):
@@ -381,8 +403,11 @@ def fit_output_error(experiments, unknowns, guess=None, known=None, noise_std=No
         Starting values (default: the model's nominal values).
     known : dict, optional
         Values of the parameters held fixed (default: nominal).
-    noise_std : float or array_like, optional
-        Measurement noise σ per output channel. When None, R is estimated from the residuals.
+    noise_std : float or array_like or list, optional
+        Measurement noise σ per output channel. When None, R is estimated from the residuals
+        (one R per ``noise_group`` of the experiments). A list gives one entry per experiment
+        (each None, a scalar or one σ per channel): runs with an entry are held at it, the
+        others' R is estimated per noise group.
     prior : dict, optional
         ``{'mean': {name: value}, 'std': {name: σ}}``: independent Gaussian a-priori information
         on model parameters (Ch.1 eq. 25); it adds ½Σ((θ−θp)/σp)² to J and 1/σp² to M.
@@ -434,23 +459,28 @@ def fit_output_error(experiments, unknowns, guess=None, known=None, noise_std=No
             i = names.index(name)
             prior_info[i] = 1.0 / float(sigma)**2
             prior_mean[i] = float(prior['mean'][name])
-    fixed_noise = noise_std is not None
-    if fixed_noise:
-        noise_var = np.broadcast_to(np.asarray(noise_std, dtype=float)**2, (m,)).copy()
+    noise_var, estimated_runs = _fixed_noise(noise_std, experiments, m)
+    fixed_noise = not estimated_runs
     t_start = time.perf_counter()
     history = []
     warnings = []
 
     def cost_of(results, var):
-        data = sum(0.5 * np.sum(res**2 / var) for res, _, _ in results)
+        data = sum(0.5 * np.sum(res**2 / v) for (res, _, _), v in zip(results, var))
         return data + 0.5 * np.sum(prior_info * (theta_eval - prior_mean)**2)
 
+    floor = 1e-24 * max(1.0, float(np.max(np.abs(np.concatenate(
+        [exp.y for exp in experiments])))))**2
+
     def estimate_var(results):
-        sq = sum(np.sum(res**2, axis=0) for res, _, _ in results)
-        var = sq / n_total
-        floor = 1e-24 * max(1.0, float(np.max(np.abs(np.concatenate(
-            [exp.y for exp in experiments])))))**2
-        return np.maximum(var, floor)
+        # one R per noise group, from the residuals of its runs whose noise is not given
+        var = list(noise_var)
+        for members in estimated_runs:
+            sq = sum(np.sum(results[r][0]**2, axis=0) for r in members)
+            group_var = np.maximum(sq / sum(experiments[r].t.size for r in members), floor)
+            for r in members:
+                var[r] = group_var
+        return var
 
     theta_eval = theta
     results = evaluate(problem, theta, max_step)
@@ -474,8 +504,8 @@ def fit_output_error(experiments, unknowns, guess=None, known=None, noise_std=No
     for iteration in range(1, max_iter + 1):
         dys = [dy for _, dy, _ in results]
         M = information_matrix(dys, noise_var) + np.diag(prior_info)
-        grad = -sum(np.einsum('tmi,m,tm->i', dy, 1.0 / noise_var, res)
-                    for res, dy, _ in results) + prior_info * (theta - prior_mean)
+        grad = -sum(np.einsum('tmi,m,tm->i', dy, 1.0 / var, res)
+                    for (res, dy, _), var in zip(results, noise_var)) + prior_info * (theta - prior_mean)
 
         accepted, trial, _, trial_results, lm = damped_gauss_newton_step(
             theta, grad, M, problem.lo, problem.hi, cost, trial_cost, lm)
@@ -499,7 +529,7 @@ def fit_output_error(experiments, unknowns, guess=None, known=None, noise_std=No
         rms = math.sqrt(sum(float(np.sum(res**2)) for res, _, _ in results) / n_res)
         info = {'iteration': iteration, 'cost': float(cost), 'rms': rms, 'names': names,
                 'values': theta.copy(), 'elapsed': time.perf_counter() - t_start,
-                'label': label, 'noise_std': np.sqrt(noise_var).copy()}
+                'label': label, 'noise_std': _pooled_std(noise_var, experiments)}
         history.append(info)
         stop = progress is not None and progress(info) is STOP
         at_bound = (theta <= problem.lo) | (theta >= problem.hi)
@@ -532,15 +562,49 @@ def fit_output_error(experiments, unknowns, guess=None, known=None, noise_std=No
     if 'bound' in message:
         warnings.append(message + ': the estimate is limited by the bound, not by the data '
                         '(missing physics in the model, or a poor start); do not use it as is')
-    data_cost = sum(0.5 * np.sum(res**2 / noise_var) for res, _, _ in results)
-    nll = data_cost + 0.5 * n_total * (np.sum(np.log(noise_var)) + m * math.log(2 * math.pi))
+    data_cost = sum(0.5 * np.sum(res**2 / var) for (res, _, _), var in zip(results, noise_var))
+    nll = data_cost + 0.5 * sum(exp.t.size * (np.sum(np.log(var)) + m * math.log(2 * math.pi))
+                                for exp, var in zip(experiments, noise_var))
     p_final = problem.full_parameters(theta)
     init_states = [problem.initial_state(r, theta, p_final)[0] for r in range(len(experiments))]
     return Estimate(
         names=names, values=theta, covariance=cov, information=M,
-        noise_std=np.sqrt(noise_var), channel_names=list(experiments[0].model.output_names),
+        noise_std=_pooled_std(noise_var, experiments), channel_names=list(experiments[0].model.output_names),
         cost=float(cost), neg_log_likelihood=float(nll), iterations=iteration,
         converged=converged, message=message, n_samples=n_total, history=history,
         residuals=[res for res, _, _ in results], fitted=[sim.y for _, _, sim in results],
         initial_states=init_states, warnings=warnings,
-        model_parameters=dict(zip(problem.model.parameter_names, p_final)))
+        model_parameters=dict(zip(problem.model.parameter_names, p_final)),
+        run_noise_std=[np.sqrt(var) for var in noise_var])
+
+
+def _fixed_noise(noise_std, experiments, m):
+    """
+    Per-run variances of the given noise, and the noise groups to estimate.
+
+    Returns ``(variances, groups)``: a list with one variance vector (or None, to be estimated)
+    per run, and a list of run-index lists, one per noise group whose R is estimated.
+    """
+    n_runs = len(experiments)
+    if isinstance(noise_std, list):
+        if len(noise_std) != n_runs:
+            raise IdentificationError(f'{len(noise_std)} noise σ entries for {n_runs} runs; '
+                                      'give one per run (None where it is to be estimated)')
+        given = noise_std
+    else:
+        given = [noise_std] * n_runs
+    variances = [None if s is None else
+                 np.broadcast_to(np.asarray(s, dtype=float)**2, (m,)).copy() for s in given]
+    groups = {}
+    for r, exp in enumerate(experiments):
+        if variances[r] is None:
+            groups.setdefault(exp.noise_group, []).append(r)
+    return variances, list(groups.values())
+
+
+def _pooled_std(noise_var, experiments):
+    """Noise σ per channel over all runs: the runs' own when equal, else sample-weighted."""
+    if all(np.array_equal(v, noise_var[0]) for v in noise_var[1:]):
+        return np.sqrt(noise_var[0]).copy()
+    n = np.array([exp.t.size for exp in experiments], dtype=float)
+    return np.sqrt(np.einsum('r,rm->m', n, np.array(noise_var)) / n.sum())
