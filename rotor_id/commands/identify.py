@@ -1,5 +1,5 @@
 """
-``rotor-id identify BAG [BAG ...] --config RUN.yaml [--config ...] [--json OUT] [--figure OUT.png]``.
+``rotor-id identify BAG [BAG ...] --config RUN.yaml [--config ...] [--json OUT] [--figure F]``.
 
 Reads a bag in the test-stand convention (MCAP or sqlite3), converts to the report's
 nondimensional time from the measured rotor speed, forms the model's channels (multiblade

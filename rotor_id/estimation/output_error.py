@@ -505,7 +505,8 @@ def fit_output_error(experiments, unknowns, guess=None, known=None, noise_std=No
         dys = [dy for _, dy, _ in results]
         M = information_matrix(dys, noise_var) + np.diag(prior_info)
         grad = -sum(np.einsum('tmi,m,tm->i', dy, 1.0 / var, res)
-                    for (res, dy, _), var in zip(results, noise_var)) + prior_info * (theta - prior_mean)
+                    for (res, dy, _), var in zip(results, noise_var))
+        grad = grad + prior_info * (theta - prior_mean)
 
         accepted, trial, _, trial_results, lm = damped_gauss_newton_step(
             theta, grad, M, problem.lo, problem.hi, cost, trial_cost, lm)
@@ -562,14 +563,16 @@ def fit_output_error(experiments, unknowns, guess=None, known=None, noise_std=No
     if 'bound' in message:
         warnings.append(message + ': the estimate is limited by the bound, not by the data '
                         '(missing physics in the model, or a poor start); do not use it as is')
-    data_cost = sum(0.5 * np.sum(res**2 / var) for (res, _, _), var in zip(results, noise_var))
+    data_cost = sum(0.5 * np.sum(res**2 / var)
+                    for (res, _, _), var in zip(results, noise_var))
     nll = data_cost + 0.5 * sum(exp.t.size * (np.sum(np.log(var)) + m * math.log(2 * math.pi))
                                 for exp, var in zip(experiments, noise_var))
     p_final = problem.full_parameters(theta)
     init_states = [problem.initial_state(r, theta, p_final)[0] for r in range(len(experiments))]
     return Estimate(
         names=names, values=theta, covariance=cov, information=M,
-        noise_std=_pooled_std(noise_var, experiments), channel_names=list(experiments[0].model.output_names),
+        noise_std=_pooled_std(noise_var, experiments),
+        channel_names=list(experiments[0].model.output_names),
         cost=float(cost), neg_log_likelihood=float(nll), iterations=iteration,
         converged=converged, message=message, n_samples=n_total, history=history,
         residuals=[res for res, _, _ in results], fitted=[sim.y for _, _, sim in results],

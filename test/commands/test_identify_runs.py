@@ -27,7 +27,7 @@ NOISE_RAD = {'progressing': np.radians(0.1), 'regressing': np.radians(0.2)}
 
 
 def _run_description(plan, candidate):
-    """The run description of a candidate's bag: the plan without its planning keys."""
+    """Return the run description of a candidate's bag: the plan without planning keys."""
     data = yaml.safe_load(PLAN.read_text())
     for key in planning.PLAN_KEYS + ('noise_std_rad',):
         data.pop(key, None)
