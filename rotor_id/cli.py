@@ -23,6 +23,8 @@ COMMANDS = {
                  'identify model parameters from a bag (output-error ML by default)'),
     'diagnose': ('rotor_id.commands.diagnose',
                  'locate and explain where a recording and the model disagree'),
+    'campaign': ('rotor_id.commands.campaign',
+                 'identify (and diagnose) every bag of a test campaign: table, report, trends'),
     'plan': ('rotor_id.commands.plan',
              'predict the accuracy of candidate stirring transients before a run'),
     'reproduce-report': ('rotor_id.commands.reproduce_report',

@@ -21,6 +21,9 @@ extended, without breaking it, by optional keys::
     method: output-error
     measurement: blades                  # blades | multiblade | eq30 (default: model's)
     lock_number: 4.52                    # γ of the wake model (same as known: {gamma: ...})
+    conditions: {collective_deg: 4, tunnel_speed_m_s: 20, run: 17}
+                                         # the test point's conditions (numbers or text),
+                                         # reported by ``rotor-id campaign``
 
 Errors raise :class:`RunDescriptionError` naming the file, the line and what to do; unknown
 keys only warn (:class:`RunDescriptionWarning`), so that newer files still load.
@@ -58,6 +61,7 @@ ROTOR_KEYS = ('blades', 'advance_ratio', 'flap_frequency', 'tip_loss')
 TOP_LEVEL_KEYS = (
     'rotor', 'topics', 'model', 'unknowns', 'window_s', 'joint_names', 'known',
     'initial_guess', 'initial_state', 'noise_std_rad', 'method', 'measurement', 'lock_number',
+    'conditions',
 )
 BLADE_JOINT_ROLES = ('blade_pitch', 'blade_flap')
 
@@ -120,6 +124,8 @@ class RunDescription:
         'blades' | 'multiblade' | 'eq30', or None for the model's default.
     lock_number
         γ for the wake model, or None.
+    conditions
+        Name -> number or text: the test point's conditions (tunnel speed, run number ...).
     path
         File the description was read from ('<string>' if parsed from text).
     warnings
@@ -142,6 +148,7 @@ class RunDescription:
     method: str = 'output-error'
     measurement: object = None
     lock_number: object = None
+    conditions: dict = field(default_factory=dict)
     path: str = '<string>'
     warnings: tuple = ()
     extra: dict = field(default_factory=dict)
@@ -503,6 +510,13 @@ def _validate(parser):
     if 'measurement' in data:
         options['measurement'] = parser.choice(data['measurement'], MEASUREMENTS,
                                                'measurement')
+    if 'conditions' in data:
+        conditions = parser.mapping(data['conditions'], 'conditions')
+        for name, value in conditions.items():
+            if isinstance(value, bool) or not isinstance(value, (int, float, str)):
+                parser.fail(f'conditions.{name} must be a number or a text, got {value!r}',
+                            'conditions', name)
+        options['conditions'] = dict(conditions)
 
     return RunDescription(
         rotor=spec, topics=topics, model=model, unknowns=tuple(unknowns), window_s=(t0, t1),

@@ -137,3 +137,41 @@ class SampledInput:
         t = np.atleast_1d(np.asarray(t, dtype=float))
         return np.column_stack([np.interp(t, self.t, self.u[:, j])
                                 for j in range(self.u.shape[1])])
+
+
+def measured_stirring(t, u, min_turn=math.pi / 2):
+    """
+    Direction and mean rate of the stirring in a measured input (eqs 4-5 inverted).
+
+    The stirring phase is φ = atan2(θI, θII) (θI = a sin φ, θII = a cos φ); it falls for
+    progressing stirring (ω̇ < 0) and rises for regressing (ω̇ > 0). Only samples with at
+    least half the largest cyclic amplitude count.
+
+    Parameters
+    ----------
+    t : array_like, shape (n,)
+        Nondimensional times.
+    u : array_like, shape (n, 3)
+        ``[θ0, θI, θII]`` at those times (e.g. :func:`multiblade_from_blade_pitch`).
+    min_turn : float
+        Smallest phase change (rad) that counts as stirring.
+
+    Returns
+    -------
+    (direction, rate)
+        'progressing', 'regressing' or 'none' (the phase turns less than ``min_turn``), and the
+        mean |dφ/dt| over the samples, per unit nondimensional time (= per rev of the rotor).
+
+    """
+    t = np.asarray(t, dtype=float)
+    u = np.asarray(u, dtype=float)
+    amplitude = np.hypot(u[:, 1], u[:, 2])
+    keep = amplitude >= 0.5 * np.max(amplitude, initial=0.0)
+    if np.count_nonzero(keep) < 2 or not np.any(amplitude > 0):
+        return 'none', 0.0
+    phase = np.unwrap(np.arctan2(u[keep, 1], u[keep, 2]))
+    turn = float(phase[-1] - phase[0])
+    rate = abs(turn) / max(float(t[keep][-1] - t[keep][0]), 1e-12)
+    if abs(turn) < min_turn:
+        return 'none', rate
+    return ('progressing' if turn < 0 else 'regressing'), rate
