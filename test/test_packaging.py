@@ -27,7 +27,9 @@ EXPECTED_FIELDS = {
     'ParameterEstimate': [
         'header', 'model', 'names', 'units', 'values', 'std', 'covariance', 'correlation',
         'noise_std', 'channel_names', 'cost', 'iteration', 'status', 'message',
-        'window_start', 'window_end', 'window_s', 'target_met', 'additional_data_s'],
+        'window_start', 'window_end', 'window_s', 'test_point', 'kind', 'test_point_start',
+        'window_requested_start_s', 'window_requested_end_s', 'time_base_consistent',
+        'missing_channels', 'missing_samples', 'target_met', 'additional_data_s'],
     'StateEstimate': [
         'header', 'names', 'units', 'values', 'covariance', 'azimuth', 'rotor_speed'],
     'StirringCommand': [
@@ -38,7 +40,9 @@ EXPECTED_FIELDS = {
 }
 EXPECTED_CONSTANTS = {
     'ParameterEstimate': {'STATUS_ITERATING': 0, 'STATUS_CONVERGED': 1, 'STATUS_FAILED': 2,
-                          'STATUS_MAX_ITERATIONS': 3},
+                          'STATUS_MAX_ITERATIONS': 3, 'STATUS_INCOMPLETE': 4,
+                          'STATUS_ABORTED': 5, 'KIND_PROVISIONAL': 0, 'KIND_FINAL': 1,
+                          'KIND_ON_DEMAND': 2},
     'StirringCommand': {'PHASE_TRIM': 0, 'PHASE_CYCLIC_STEP': 1, 'PHASE_STIRRING': 2,
                         'PHASE_DONE': 3},
 }

@@ -55,12 +55,13 @@ def case_files(case):
 def _estimate_line(msg, t_start):
     values = '  '.join(f'{n} = {v:.4f} ± {s:.4f}'
                        for n, v, s in zip(msg.names, msg.values, msg.std))
-    kind = {0: 'provisional', 1: 'final', 2: 'FAILED', 3: 'final (iteration limit)'}[msg.status]
+    kind = {0: 'provisional', 1: 'final', 2: 'FAILED', 3: 'final (iteration limit)',
+            4: 'INCOMPLETE window', 5: 'ABORTED'}[msg.status]
     verdict = ('targets met' if msg.target_met else
                'more data needed: unknown' if msg.additional_data_s < 0 else
                f'≈{msg.additional_data_s * 1e3:.0f} ms more data needed')
-    if msg.status == 2:
-        return f'  [{time.monotonic() - t_start:6.1f} s] estimate FAILED: {msg.message}'
+    if msg.status in (2, 5):
+        return f'  [{time.monotonic() - t_start:6.1f} s] estimate {kind}: {msg.message}'
     return (f'  [{time.monotonic() - t_start:6.1f} s] window {msg.window_s * 1e3:5.1f} ms  '
             f'{values}  ({kind}; {verdict})')
 
@@ -142,7 +143,7 @@ def convergence_figure(watcher, truth, path, title):
     import matplotlib
     matplotlib.use('Agg')
     import matplotlib.pyplot as plt
-    msgs = [m for m in watcher.messages['estimate'] if m.status != 2]
+    msgs = [m for m in watcher.messages['estimate'] if m.status not in (2, 5)]
     names = list(msgs[-1].names)
     fig, axes = plt.subplots(len(names), 1, figsize=(7, 1.9 * len(names)), sharex=True)
     for i, (ax, name) in enumerate(zip(np.atleast_1d(axes), names)):
@@ -177,7 +178,7 @@ def run(args):
         print(f'rotor-id demo: {exc}', file=sys.stderr)
         return 1
     print(f'nodes stopped (exit codes {codes}); bag: {bag}')
-    if final.status == 2:
+    if final.status in (2, 5):   # failed, aborted: no values
         raise RuntimeError(f'the live identification failed: {final.message}')
 
     description, record = load_inputs(bag, description_path)

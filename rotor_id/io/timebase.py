@@ -56,10 +56,53 @@ def unwrap_azimuth(psi_wrapped, time_s, omega_rad_s=None):
     if omega_rad_s is None:
         return np.unwrap(psi_wrapped)
     omega = np.asarray(omega_rad_s, dtype=float)
-    step = np.diff(psi_wrapped)
-    expected = 0.5 * (omega[1:] + omega[:-1]) * np.diff(np.asarray(time_s, dtype=float))
-    step += TWO_PI * np.round((expected - step) / TWO_PI)
+    step = azimuth_step(np.diff(psi_wrapped), omega[:-1], omega[1:],
+                        np.diff(np.asarray(time_s, dtype=float)))
     return np.concatenate([psi_wrapped[:1], psi_wrapped[0] + np.cumsum(step)])
+
+
+def azimuth_step(wrapped_step, omega_before, omega_after, dt_s):
+    """
+    Unwrap one step: the wrapped increment plus the 2π multiple nearest to Ω·Δt.
+
+    Ω·Δt is the trapezoidal prediction 0.5 (Ω_before + Ω_after) Δt, so the rule stays right
+    across gaps of any length as long as the speed is measured. Scalars or arrays.
+    """
+    expected = 0.5 * (omega_after + omega_before) * dt_s
+    return wrapped_step + TWO_PI * np.round((expected - wrapped_step) / TWO_PI)
+
+
+class AzimuthUnwrapper:
+    """
+    :func:`unwrap_azimuth` sample by sample, for streams (the live nodes).
+
+    The same rule (:func:`azimuth_step`) and the same sums in the same order, so the values
+    equal ``unwrap_azimuth`` of the whole series from its first sample, bit for bit (with the
+    stamps in integer ns converted per step). The first sample's wrapped ψ is the origin.
+    """
+
+    def __init__(self):
+        self._first = None
+        self._sum = 0.0
+        self._last = None
+
+    def add(self, stamp_ns, psi, omega):
+        """Add one sample (stamp in ns, ψ wrapped to [0, 2π), Ω in rad/s); return it unwrapped."""
+        if self._last is None:
+            self._first = float(psi)
+            value = self._first
+        else:
+            stamp_prev, psi_prev, omega_prev = self._last
+            self._sum += float(azimuth_step(psi - psi_prev, omega_prev, omega,
+                                            (stamp_ns - stamp_prev) / 1e9))
+            value = self._first + self._sum
+        self._last = (stamp_ns, psi, omega)
+        return value
+
+    @property
+    def started(self):
+        """Say whether a sample was added."""
+        return self._last is not None
 
 
 def nondimensional_time(time_s, psi_wrapped=None, omega_rad_s=None):

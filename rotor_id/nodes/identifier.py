@@ -1,19 +1,26 @@
 """
 identifier: live output-error identification of the rotor (``ros2 run rotor_id identifier``).
 
-Buffers ``/rotor/blade_pitch``, ``/rotor/blade_flap`` and ``/rotor/azimuth`` by header stamp, forms
-a :class:`rotor_id.io.record.Record` exactly as the bag reader does (t = unwrapped azimuth, time
-origin = first flap stamp received) and runs :func:`rotor_id.pipeline.identify` with the run
-description (parameter ``run_description``, schema of ../shared/recordings/README.md):
+Runs test points one after another without restart. The test points, their buffers and the
+window checks are :class:`rotor_id.nodes.test_points.TestPointSequence` (ROS-free); this node
+only feeds it the checked samples of ``/rotor/blade_pitch``, ``/rotor/blade_flap`` and
+``/rotor/azimuth`` and the phase of the stirring schedule, and publishes what it returns.
 
-* while the window fills, on the growing window [window start, latest sample] every
-  ``update_every_rad`` of azimuth, and back to back in its last ``refit_tail_rad`` (published
-  with STATUS_ITERATING: provisional);
-* when the window is complete (final: STATUS_CONVERGED / MAX_ITERATIONS / FAILED), starting
-  from the latest growing-window iterate, so that it needs few Gauss-Newton iterations; it
-  stops a growing-window fit in progress after the current iteration (the first one is then
-  published as it stands, so that a growing-window estimate always precedes the final one);
-* on the ``~/identify`` service (rotor_id_msgs/srv/Identify) over any buffered window.
+* A test point starts by the service ``~/start_test_point`` (std_srvs/Trigger: from the next
+  flap sample; the answer names the test point) or, with ``auto_start: excitation``, when a
+  stirring schedule starts (rotor_id_msgs/StirringCommand PHASE_TRIM after any other phase:
+  from that command's stamp). ``~/abort`` (Trigger) aborts the test point in progress.
+  ``window_s`` of the run description counts from the test point's first flap sample.
+* While its window fills, growing-window fits every ``update_every_rad`` of azimuth and back to
+  back in its last ``refit_tail_rad`` (KIND_PROVISIONAL, STATUS_ITERATING); once every stream
+  covers the window, the final fit (KIND_FINAL: CONVERGED / MAX_ITERATIONS / FAILED) starting
+  from the latest growing-window iterate; an aborted test point ends with STATUS_ABORTED.
+* A window that misses samples in any channel (its start and end included) or whose azimuth
+  slips against the rotor speed is published with STATUS_INCOMPLETE and the channels and
+  counts missing: never as converged. ``window_start``/``window_end`` are the first and last
+  flap samples used.
+* The ``~/identify`` service (rotor_id_msgs/srv/Identify) fits any buffered window (KIND_ON_DEMAND,
+  seconds after the latest test point's first flap sample).
 
 Each estimate carries the Cramér-Rao covariance and the data-length verdict of Ch.3
 (target_met, additional_data_s for the targets ``target_std``); every Gauss-Newton iteration is
@@ -30,18 +37,26 @@ import time
 import numpy as np
 from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
 from rclpy.node import Node
+from rclpy.qos import QoSProfile
 from rclpy.task import Future
 from rotor_id.estimation.output_error import STOP
 from rotor_id.nodes.common import (declare, Diagnostics, estimate_message, node_run_description,
                                    NS, progress_message, RESULT_QOS, SENSOR_BUFFER_QOS,
-                                   spin_node, stamp_ns, STATE_QOS, wait_for_acks)
+                                   spin_node, stamp_ns, STATE_QOS, time_msg, wait_for_acks)
 from rotor_id.nodes.live import (BadSample, bound_history, check_azimuth_sample,
-                                 check_joint_sample, data_length_verdict, record_from_series,
-                                 StampedSeries, UnwrappedAzimuth, window_gaps)
+                                 check_joint_sample, data_length_verdict)
+from rotor_id.nodes.test_points import FitSchedule, outcome, TestPointSequence
 from rotor_id.pipeline import identify, model_for
-from rotor_id_msgs.msg import IdentificationProgress, ParameterEstimate
+from rotor_id_msgs.msg import IdentificationProgress, ParameterEstimate, StirringCommand
 from rotor_id_msgs.srv import Identify
 from sensor_msgs.msg import JointState
+from std_srvs.srv import Trigger
+
+#: What a final fit's outcome (rotor_id.nodes.test_points.outcome) is published as.
+FINAL_STATUS = {'converged': ParameterEstimate.STATUS_CONVERGED,
+                'not_converged': ParameterEstimate.STATUS_MAX_ITERATIONS,
+                'incomplete': ParameterEstimate.STATUS_INCOMPLETE,
+                'failed': ParameterEstimate.STATUS_FAILED}
 
 
 class _Superseded(Exception):
@@ -67,15 +82,20 @@ def _thread_times(tid=None):
 
 
 class Identifier(Node):
-    """Output-error ML on the live streams, with progress and the data-length verdict."""
+    """Output-error ML on the live streams, test point after test point."""
 
-    def __init__(self):
-        super().__init__('identifier')
+    def __init__(self, **node_options):
+        super().__init__('identifier', **node_options)
         spec = [
             ('run_description', '', 'path of the run-description YAML (rotor, model, unknowns, '
-             'window_s relative to the first flap stamp received)'),
+             "window_s relative to a test point's first flap sample)"),
             ('target_std', [0.0], 'target Cramer-Rao sigma of each unknown, in the order of the '
              "run description's unknowns (units of the parameter; 0 = no target)"),
+            ('auto_start', 'excitation', 'how test points start besides ~/start_test_point: '
+             "'excitation' (a stirring schedule that starts arms one), 'data' (the first one at "
+             "the first flap sample), 'none'"),
+            ('stirring_topic', '/rotor/stirring', 'StirringCommand topic (subscribed: its phase '
+             'starts test points)'),
             ('update_every_rad', math.pi / 4, 'intermediate estimates every this much rotor '
              'azimuth while the window fills (rad; 0 = none)', 0.0, 1e6),
             ('min_window_rad', 3.0 * math.pi, 'first intermediate estimate after this much of '
@@ -93,6 +113,15 @@ class Identifier(Node):
              'fits (each starts from the latest iterate of the previous one)', 1, 1000),
             ('max_abs_angle_rad', 0.7, 'larger |pitch| or |flap| is rejected as degrees (rad)',
              0.01, 3.2),
+            ('pre_trigger_s', 1.0, 'samples kept before a test point is armed, beyond its '
+             'window: a start command may refer to samples this old (s)', 0.0, 60.0),
+            ('gap_tolerance_periods', 1.5, 'a step between samples longer than this many '
+             'sampling periods is a gap (the window is then incomplete)', 1.01, 100.0),
+            ('azimuth_slip_tolerance_rad', 0.1, 'an azimuth step that differs from rotor speed '
+             'x time step by more than this is a slip of the time base (rad)', 1e-4, 3.0),
+            ('sensor_queue_depth', 10000, 'samples each sensor subscription queues while the '
+             'node is busy (10 s at 1 kHz); older ones are lost, and the window says so',
+             1, 1000000),
             ('estimate_topic', '/rotor_id/estimate', 'ParameterEstimate topic'),
             ('progress_topic', '/rotor_id/progress', 'IdentificationProgress topic'),
             ('frame_id', 'rotor', 'header.frame_id of the published messages'),
@@ -113,14 +142,18 @@ class Identifier(Node):
         self.flap_joints = list(joints.get('blade_flap') or
                                 [f'blade_{k}' for k in range(1, n + 1)])
         self.pitch_joints = list(joints.get('blade_pitch') or self.flap_joints)
-        self.flap = StampedSeries(n)
-        self.pitch = StampedSeries(n)
-        self.azimuth = StampedSeries(2)
-        self.unwrapped = UnwrappedAzimuth()    # the record's t at the azimuth stamps
-        self.stamp0 = None
-        self.lock = threading.Lock()
+        self.azimuth_joint = getattr(desc, 'azimuth_joint', 'rotor')
+        self.points = TestPointSequence(
+            n, desc.window_s, self.flap_joints,
+            FitSchedule(self.d['update_every_rad'], self.d['min_window_rad'],
+                        self.d['refit_tail_rad']),
+            pre_trigger_s=self.d['pre_trigger_s'],
+            gap_factor=self.d['gap_tolerance_periods'],
+            slip_tolerance_rad=self.d['azimuth_slip_tolerance_rad'],
+            auto_start=self.d['auto_start'])
+        self.lock = threading.Lock()      # the test points: executor and worker threads
         self.wake = threading.Condition()
-        self.requests = []                # (window_s, final, time, future) for the worker
+        self.requests = []                # (FitRequest, kind, time, future) for the worker
         self.arrival = None               # monotonic time the newest sample was taken
         self.latencies_ms = []
         self.breakdowns = []              # where each published estimate's latency went (ms)
@@ -128,10 +161,6 @@ class Identifier(Node):
         self.busy = False                 # the worker is fitting
         self.worker_times = (float('nan'), float('nan'))   # its CPU and CPU-wait s, at exit
         self.provisional_published = 0
-        self.final_done = False
-        self.next_update = None
-        self.first_update = None
-        self.requested_until = -math.inf  # end of the newest growing window asked for
         self.guess = {}                   # warm start: the latest sane iterate of a window fit
         self.bounds = None                # (lower, upper) of each unknown, for that check
         self.last_fit_s = float('nan')
@@ -139,101 +168,153 @@ class Identifier(Node):
                                                   RESULT_QOS)
         self.pub_progress = self.create_publisher(IdentificationProgress,
                                                   self.d['progress_topic'], STATE_QOS)
+        sensor_qos = QoSProfile(reliability=SENSOR_BUFFER_QOS.reliability,
+                                history=SENSOR_BUFFER_QOS.history,
+                                depth=self.d['sensor_queue_depth'],
+                                durability=SENSOR_BUFFER_QOS.durability)
         for role, callback in (('blade_flap', self.on_flap), ('blade_pitch', self.on_pitch),
                                ('azimuth', self.on_azimuth)):
-            self.create_subscription(JointState, desc.topics[role], callback, SENSOR_BUFFER_QOS)
+            self.create_subscription(JointState, desc.topics[role], callback, sensor_qos)
+        # volatile: a latched schedule of the past must not start a test point
+        self.create_subscription(StirringCommand, self.d['stirring_topic'], self.on_stirring,
+                                 STATE_QOS)
         # own callback group: while a service call awaits its fit, data keep being taken
         self.create_service(Identify, '~/identify', self.on_identify,
                             callback_group=MutuallyExclusiveCallbackGroup())
+        self.create_service(Trigger, '~/start_test_point', self.on_start_test_point)
+        self.create_service(Trigger, '~/abort', self.on_abort)
         self.diagnostics = Diagnostics(self, 'identification')
         self.created = time.monotonic()
         self.create_timer(0.05, self.schedule)        # also checked on every azimuth sample
         self.running = True
         self.worker = threading.Thread(target=self.work, name='identifier-fit', daemon=True)
         self.worker.start()
+        self._report_state()
         self.get_logger().info(f'{desc.model}: identifying {", ".join(self.unknowns)} over '
-                               f'window_s {desc.window_s} from {desc.topics["blade_flap"]}')
+                               f'window_s {desc.window_s} of each test point from '
+                               f'{desc.topics["blade_flap"]} (auto_start: '
+                               f'{self.d["auto_start"]})')
 
     # -------------------------------------------------------------------------- buffering
-    def _accept(self, series, msg, joints, max_abs):
+    def _accept(self, msg, joints, last_stamp):
         stamp = stamp_ns(msg.header.stamp)
         try:
-            values = check_joint_sample(msg.name, msg.position, joints, stamp,
-                                        series.last_stamp, max_abs)
+            values = check_joint_sample(msg.name, msg.position, joints, stamp, last_stamp,
+                                        self.d['max_abs_angle_rad'])
         except BadSample as bad:
             self.diagnostics.count(bad.kind, str(bad))
-            return None
-        with self.lock:
-            series.append(stamp, values)
+            return None, None
         self.taken += 1
-        return stamp
+        return stamp, values
 
     def on_flap(self, msg):
-        """Buffer one flap sample (its stamp starts the record's clock)."""
-        stamp = self._accept(self.flap, msg, self.flap_joints, self.d['max_abs_angle_rad'])
-        if stamp is not None and self.stamp0 is None:
-            self.stamp0 = stamp
+        """Take one flap sample (an armed test point starts at its first one)."""
+        with self.lock:
+            stamp, values = self._accept(msg, self.flap_joints, self.points.flap.last_stamp)
+            if stamp is not None:
+                before = self.points.phase
+                self.points.add_flap(stamp, values)
+                if self.points.phase != before:
+                    self._report_state()
 
     def on_pitch(self, msg):
-        """Buffer one pitch sample."""
-        self._accept(self.pitch, msg, self.pitch_joints, self.d['max_abs_angle_rad'])
+        """Take one pitch sample."""
+        with self.lock:
+            stamp, values = self._accept(msg, self.pitch_joints, self.points.pitch.last_stamp)
+            if stamp is not None:
+                self.points.add_pitch(stamp, values)
 
     def on_azimuth(self, msg):
-        """Buffer one azimuth / rotor-speed sample."""
+        """Take one azimuth / rotor-speed sample; ask for the fits that are due."""
         stamp = stamp_ns(msg.header.stamp)
-        try:
-            psi, omega = check_azimuth_sample(msg.name, msg.position, msg.velocity, 'rotor',
-                                              stamp, self.azimuth.last_stamp)
-        except BadSample as bad:
-            self.diagnostics.count(bad.kind, str(bad))
-            return
         with self.lock:
-            self.azimuth.append(stamp, (psi, omega))
-            self.unwrapped.add(stamp, psi, omega)
+            try:
+                psi, omega = check_azimuth_sample(msg.name, msg.position, msg.velocity,
+                                                  self.azimuth_joint, stamp,
+                                                  self.points.azimuth.series.last_stamp)
+            except BadSample as bad:
+                self.diagnostics.count(bad.kind, str(bad))
+                return
+            self.points.add_azimuth(stamp, psi, omega)
         self.taken += 1
         self.arrival = time.monotonic()
         self.schedule()
 
+    def on_stirring(self, msg):
+        """Follow the stirring schedule's phase: a schedule that starts arms a test point."""
+        with self.lock:
+            before = self.points.count
+            ended = self.points.on_excitation(msg.phase, stamp_ns(msg.header.stamp))
+            started = self.points.count != before
+        for point in ended:
+            self._publish_aborted(point)
+        if started:
+            self.get_logger().info(f'{self.points.latest.describe()}: armed by the stirring '
+                                   'schedule')
+        if ended or started:
+            self._report_state()
+
+    # -------------------------------------------------------------------------- services
+    def on_start_test_point(self, request, response):
+        """Trigger: arm a test point from the next flap sample; the answer names it."""
+        with self.lock:
+            point, text = self.points.arm('service')
+        response.success, response.message = point is not None, text
+        self.get_logger().info(text)
+        self._report_state()
+        return response
+
+    def on_abort(self, request, response):
+        """Trigger: abort the test point in progress (its result, if any, is not published)."""
+        with self.lock:
+            point = self.points.abort()
+            latest = self.points.latest
+        if point is None:
+            response.success = False
+            response.message = ('no test point in progress' +
+                                (f' (last: {latest.describe()})' if latest else ''))
+        else:
+            self._publish_aborted(point)
+            response.success, response.message = True, point.describe()
+        self.get_logger().info(response.message)
+        self._report_state()
+        return response
+
+    def _publish_aborted(self, point):
+        msg = ParameterEstimate(status=ParameterEstimate.STATUS_ABORTED, names=self.unknowns,
+                                kind=ParameterEstimate.KIND_FINAL, test_point=point.number,
+                                message=f'{point.describe()}: {point.detail}',
+                                additional_data_s=-1.0)
+        msg.header.stamp = self.get_clock().now().to_msg()
+        msg.header.frame_id = self.d['frame_id']
+        msg.model = self.description.model
+        if point.stamp0_ns is not None:
+            msg.test_point_start = time_msg(point.stamp0_ns)
+        msg.window_requested_start_s, msg.window_requested_end_s = self.description.window_s
+        self.pub_estimate.publish(msg)
+        self.get_logger().warning(msg.message)
+
+    def _report_state(self):
+        latest = self.points.latest
+        self.diagnostics.set_value('test_point', latest.describe() if latest else 'none yet')
+        self.diagnostics.set_value('test_point_phase', self.points.phase.name.lower())
+
     # -------------------------------------------------------------------------- scheduling
-    def _covered_s(self):
-        """Seconds since the first flap stamp up to which all three streams have data."""
-        if self.stamp0 is None or min(self.pitch.size, self.azimuth.size) == 0:
-            return None
-        last = min(self.flap.last_stamp, self.pitch.last_stamp, self.azimuth.last_stamp)
-        return (last - self.stamp0) / NS
-
     def schedule(self):
-        """
-        Ask the worker for growing-window fits while the window fills, then the final one.
+        """Ask the test points for the fit that is due (growing window or final); queue it."""
+        clock = time.perf_counter()
+        with self.lock:
+            request = self.points.due(worker_idle=not (self.busy or self.requests))
+        if request is not None:
+            # the window's data copied out and checked, in the executor thread (ms)
+            request.build_ms = (time.perf_counter() - clock) * 1e3
+            kind = (ParameterEstimate.KIND_FINAL if request.final
+                    else ParameterEstimate.KIND_PROVISIONAL)
+            self._submit(request, kind)
+            if request.final:
+                self._report_state()
 
-        The first after ``min_window_rad``, then one every ``update_every_rad``; in the last
-        ``refit_tail_rad`` of the window a new one as soon as the worker is free, so the last
-        growing-window iterate (the final fit's start) is as close to the end as possible.
-        """
-        covered = self._covered_s()
-        if covered is None or self.final_done:
-            return
-        t0, t1 = self.description.window_s
-        omega = self.azimuth.values[-1, 1]
-        period = (self.flap.stamps[-1] - self.flap.stamps[-2]) / NS if self.flap.size > 1 else 0
-        if covered >= t1 - period:
-            self.final_done = True
-            self._submit((t0, t1), True)
-            return
-        if self.d['update_every_rad'] <= 0:
-            return
-        if self.next_update is None:
-            self.first_update = self.next_update = t0 + self.d['min_window_rad'] / omega
-        if covered < self.first_update or covered <= self.requested_until:
-            return
-        if covered >= self.next_update:
-            self.next_update = covered + self.d['update_every_rad'] / omega
-        elif covered < t1 - self.d['refit_tail_rad'] / omega or self.busy or self.requests:
-            return
-        self.requested_until = covered
-        self._submit((t0, covered), False)
-
-    def _submit(self, window_s, final, future=None):
+    def _submit(self, request, kind, future=None):
         """
         Queue a fit for the worker.
 
@@ -243,10 +324,12 @@ class Identifier(Node):
         in place (it stops after its first iteration and is published), so that one always
         precedes the final estimate, however late the worker thread gets a CPU.
         """
+        final = kind != ParameterEstimate.KIND_PROVISIONAL
         with self.wake:
             keep = final and not self.provisional_published
-            self.requests = [r for r in self.requests if r[1] or r[3] is not None or keep]
-            self.requests.append((window_s, final, self.arrival or time.monotonic(), future))
+            self.requests = [r for r in self.requests
+                             if r[1] != ParameterEstimate.KIND_PROVISIONAL or keep]
+            self.requests.append((request, kind, self.arrival or time.monotonic(), future))
             self.wake.notify()
 
     def work(self):
@@ -257,38 +340,46 @@ class Identifier(Node):
                     self.wake.wait(0.2)
                 if not self.running:
                     break
-                window_s, final, requested, future = self.requests.pop(0)
+                request, kind, requested, future = self.requests.pop(0)
                 self.busy = True
             try:
-                self._run(window_s, final, requested, future)
+                self._run(request, kind, requested, future)
             finally:
                 self.busy = False
         self.worker_times = _thread_times()
 
-    def _run(self, window_s, final, requested, future):
+    def _run(self, request, kind, requested, future):
         """Fit one request; publish it with its latency and where that time went."""
         started = time.monotonic()
         cpu0, waiting0 = _thread_times()
         taken0 = self.taken
-        timing = {}
-        msg = self.fit(window_s, final, timing=timing, remember=future is None)
+        timing = {'record': getattr(request, 'build_ms', 0.0)}
+        msg = self.fit(request, kind, timing=timing, remember=future is None)
         if msg is None:                   # superseded by a final fit or a service call
             return
         if future is not None:
             future.set_result(msg)
             return
+        if kind == ParameterEstimate.KIND_FINAL:
+            with self.lock:
+                point = self.points.finish(request.test_point, _OUTCOME_OF[msg.status])
+            if point is None:             # aborted while it was fitted: already published
+                return
+            self._report_state()
         published = time.monotonic()
         self.pub_estimate.publish(msg)
         done = time.monotonic()
         cpu1, waiting1 = _thread_times()
-        self.provisional_published += not final
+        self.provisional_published += kind == ParameterEstimate.KIND_PROVISIONAL
         # latency: newest sample of the window taken -> its estimate published
         self.latencies_ms.append((done - requested) * 1e3)
         cpu, waiting = (cpu1 - cpu0) * 1e3, (waiting1 - waiting0) * 1e3
-        stages = sum(timing.get(k, 0.0) for k in ('record', 'identify', 'verdict', 'message'))
+        stages = sum(timing.get(k, 0.0) for k in ('identify', 'verdict', 'message'))
         self.breakdowns.append({
-            'kind': 'final' if final else 'provisional', 'window_end_s': round(window_s[1], 5),
-            'total': self.latencies_ms[-1], 'queued': (started - requested) * 1e3, **timing,
+            'kind': 'final' if request.final else 'provisional',
+            'test_point': request.test_point, 'window_end_s': round(request.window_s[1], 5),
+            'total': self.latencies_ms[-1],
+            'queued': (started - requested) * 1e3 - timing['record'], **timing,
             'publish': (done - published) * 1e3,
             # between the stages: mostly taking the GIL back after a blocking call
             'other': (published - started) * 1e3 - stages,
@@ -305,7 +396,7 @@ class Identifier(Node):
     # -------------------------------------------------------------------------- fitting
     def _final_waiting(self):
         """Say whether a final fit or a service call waits for the worker."""
-        return any(r[1] or r[3] is not None for r in self.requests)
+        return any(r[1] != ParameterEstimate.KIND_PROVISIONAL for r in self.requests)
 
     def _remember(self, names, values):
         """
@@ -324,34 +415,45 @@ class Identifier(Node):
                for n, v in guess.items()):
             self.guess = guess
 
-    def fit(self, window_s, final, max_iter=None, timing=None, remember=True):
-        """
-        Identify over ``window_s``; return a ParameterEstimate (STATUS_FAILED on error).
+    def _annotate(self, msg, request, kind):
+        """Test point, window used and integrity fields of an estimate (from the request)."""
+        check = request.check
+        msg.kind = kind
+        msg.test_point = request.test_point
+        msg.test_point_start = time_msg(request.stamp0_ns)
+        msg.window_requested_start_s, msg.window_requested_end_s = (
+            float(v) for v in request.window_s)
+        first, last = check.used_ns()
+        if first is not None:
+            msg.window_start, msg.window_end = time_msg(first), time_msg(last)
+            msg.window_s = (last - first) / NS
+        msg.time_base_consistent = check.time_base_consistent
+        missing = check.missing
+        msg.missing_channels = list(missing)
+        msg.missing_samples = [int(v) for v in missing.values()]
+        return msg
 
-        ``timing`` (a dict), when given, receives the milliseconds of each stage. With
-        ``remember`` (growing windows and the final one, not service calls) the iterates are
-        the next fit's starting values. Returns None when a provisional fit gave way.
+    def fit(self, request, kind, max_iter=None, timing=None, remember=True):
+        """
+        Identify a FitRequest's window; return a ParameterEstimate.
+
+        The status never claims convergence from an incomplete window
+        (:func:`rotor_id.nodes.test_points.outcome`). ``timing`` (a dict), when given, receives
+        the milliseconds of each stage. With ``remember`` (test points, not service calls) the
+        iterates are the next fit's starting values. Returns None when a provisional fit gave
+        way to a final one.
         """
         timing = {} if timing is None else timing
-        clock = time.perf_counter()
-        with self.lock:
-            try:
-                # only the window and 1.5 revolutions either side (identify uses one)
-                margin = int(3.0 * math.pi / self.azimuth.values[-1, 1] * NS)
-                span = (self.stamp0 + int(window_s[0] * NS) - margin,
-                        self.stamp0 + int(window_s[1] * NS) + margin)
-                record = record_from_series(self.flap, self.pitch, self.azimuth,
-                                            self.flap_joints, self.stamp0, span_ns=span,
-                                            unwrapped=self.unwrapped)
-            except ValueError as exc:
-                return self._failed(str(exc), window_s)
-            gaps = window_gaps({'flap': self.flap, 'pitch': self.pitch,
-                                'azimuth': self.azimuth},
-                               self.stamp0 + int(window_s[0] * NS),
-                               self.stamp0 + int(window_s[1] * NS))
-        timing['record'] = (time.perf_counter() - clock) * 1e3
-        if gaps:       # interpolated across: say so (the blade pitch turns once per revolution)
-            self.diagnostics.count('window_gaps', '; '.join(gaps))
+        final = kind != ParameterEstimate.KIND_PROVISIONAL
+        check = request.check
+        problems = check.describe()
+        if not check.complete:
+            self.diagnostics.count('window_incomplete', problems)
+        if request.record is None:
+            status = (ParameterEstimate.STATUS_INCOMPLETE if not check.complete
+                      else ParameterEstimate.STATUS_FAILED)
+            return self._failed(request, kind, status, request.error +
+                                (f'; {problems}' if problems else ''))
         desc = self.description
         if self.guess:
             desc = replace(desc, initial_guess={**desc.initial_guess, **self.guess})
@@ -372,15 +474,18 @@ class Identifier(Node):
             # growing windows start from the latest iterate (or the description's guess) without
             # the multi-start grid; the final fit uses the grid only if there is no iterate yet
             # and the description does not give every starting value
-            ident = identify(record, desc, progress=progress, window_s=window_s,
+            ident = identify(request.record, desc, progress=progress, window_s=request.window_s,
                              max_iter=max_iter or self.d['max_iter' if final
                                                          else 'max_iter_provisional'],
                              multi_start=final, step_tol=self.d['step_tol'])
         except _Superseded:
             return None
         except (ValueError, np.linalg.LinAlgError, FloatingPointError) as exc:
-            return self._failed(str(exc), window_s)
-        ident.stamp0_ns = self.stamp0
+            status = (ParameterEstimate.STATUS_INCOMPLETE if not check.complete
+                      else ParameterEstimate.STATUS_FAILED)
+            return self._failed(request, kind, status, str(exc) +
+                                (f'; {problems}' if problems else ''))
+        ident.stamp0_ns = request.stamp0_ns
         est = ident.estimate
         self.last_fit_s = time.perf_counter() - started
         timing['identify'] = self.last_fit_s * 1e3
@@ -399,56 +504,76 @@ class Identifier(Node):
             verdict = data_length_verdict(std, self.targets, t, hist, ident.omega_rad_s)
         timing['verdict'] = (time.perf_counter() - clock) * 1e3
         clock = time.perf_counter()
-        status = None if final else ParameterEstimate.STATUS_ITERATING
-        note = (f'{"final" if final else "growing window (provisional)"}: '
-                f'{window_s[0]:.4f}-{window_s[1]:.4f} s, {est.message}, '
-                f'{self.last_fit_s * 1e3:.0f} ms'
-                + ('' if not gaps else '; WARNING samples lost: ' + '; '.join(gaps)))
+        result = outcome(check, True, est.converged)
+        if result == 'incomplete':
+            status = ParameterEstimate.STATUS_INCOMPLETE
+        elif kind == ParameterEstimate.KIND_PROVISIONAL:
+            status = ParameterEstimate.STATUS_ITERATING
+        else:
+            status = FINAL_STATUS[result]
+        label = {ParameterEstimate.KIND_PROVISIONAL: 'growing window (provisional)',
+                 ParameterEstimate.KIND_FINAL: 'final',
+                 ParameterEstimate.KIND_ON_DEMAND: 'on demand'}[kind]
+        point = f'test point {request.test_point}, ' if request.test_point else ''
+        note = (f'{point}{label}: {request.window_s[0]:.4f}-{request.window_s[1]:.4f} s, '
+                + (f'INCOMPLETE WINDOW ({problems}), no convergence claimed (fit: '
+                   f'{est.message})' if result == 'incomplete' else est.message)
+                + f', {self.last_fit_s * 1e3:.0f} ms')
         msg = estimate_message(ident, self.get_clock().now().to_msg(), status, verdict,
                                self.d['frame_id'], note)
+        self._annotate(msg, request, kind)
         self.diagnostics.set_value('last_estimate', ', '.join(
             f'{n}={v:.4g}±{s:.2g}' for n, v, s in zip(msg.names, msg.values, msg.std)))
         self.diagnostics.set_value('last_fit_ms', f'{self.last_fit_s * 1e3:.1f}')
         timing['message'] = (time.perf_counter() - clock) * 1e3
-        if final:
-            self.get_logger().info(f'final estimate: {self.diagnostics.values["last_estimate"]}'
-                                   f' ({est.message}); target met: {verdict[0]}')
+        if kind == ParameterEstimate.KIND_FINAL:
+            self.get_logger().info(f'{point}final estimate: '
+                                   f'{self.diagnostics.values["last_estimate"]} ({note}); '
+                                   f'target met: {verdict[0]}')
         return msg
 
-    def _failed(self, reason, window_s):
-        self.get_logger().warning(f'identification over {window_s} s failed: {reason}')
-        msg = ParameterEstimate(status=ParameterEstimate.STATUS_FAILED, message=reason,
-                                names=self.unknowns, additional_data_s=-1.0)
+    def _failed(self, request, kind, status, reason):
+        self.get_logger().warning(f'identification over {request.window_s} s: {reason}')
+        msg = ParameterEstimate(status=status, message=reason, names=self.unknowns,
+                                additional_data_s=-1.0)
         msg.header.stamp = self.get_clock().now().to_msg()
         msg.header.frame_id = self.d['frame_id']
         msg.model = self.description.model
-        return msg
+        return self._annotate(msg, request, kind)
 
     async def on_identify(self, request, response):
         """
         Identify.srv: fit the buffered data between the given bounds (0, 0 = all).
 
-        The fit runs on the worker thread; the executor keeps taking sensor data meanwhile.
+        The bounds are seconds after the latest test point's first flap sample (or the oldest
+        sample kept). The fit runs on the worker thread; the executor keeps taking data.
         """
-        covered = self._covered_s()
-        if covered is None:
-            response.success, response.message = False, 'no data buffered yet'
-            return response
-        start = request.window_start_s
-        end = request.window_end_s if request.window_end_s > 0 else covered
-        if not (0 <= start < end <= covered + 1e-3):
-            response.success = False
-            response.message = (f'window [{start}, {end}] s is not inside the buffered '
-                                f'[0, {covered:.4f}] s')
-            return response
+        with self.lock:
+            buffered = self.points.buffered_s()
+            if buffered is None:
+                response.success, response.message = False, 'no data buffered yet'
+                return response
+            origin, first, covered = buffered
+            start = request.window_start_s
+            end = request.window_end_s if request.window_end_s > 0 else covered
+            if request.window_start_s == 0 and request.window_end_s == 0:
+                start = max(first, 0.0)
+            if not (first - 1e-3 <= start < end <= covered + 1e-3):
+                response.success = False
+                response.message = (f'window [{start}, {end}] s is not inside the buffered '
+                                    f'[{first:.4f}, {covered:.4f}] s (seconds after the '
+                                    "latest test point's first flap sample)")
+                return response
+            fit_request = self.points.window_request(0, origin, (start, end), True)
         future = Future(executor=self.executor)
         future.add_done_callback(lambda _: None)     # wakes the executor when the fit is done
-        self._submit((start, end), True, future)
+        self._submit(fit_request, ParameterEstimate.KIND_ON_DEMAND, future)
         msg = await future
         response.estimate = msg
-        response.success = msg.status != ParameterEstimate.STATUS_FAILED
+        response.success = msg.status not in (ParameterEstimate.STATUS_FAILED,
+                                              ParameterEstimate.STATUS_INCOMPLETE)
         response.message = msg.message
-        if response.success:
+        if msg.status != ParameterEstimate.STATUS_FAILED:
             self.pub_estimate.publish(msg)
         return response
 
@@ -471,9 +596,13 @@ class Identifier(Node):
         print(f'identifier: thread times: {json.dumps(threads)}', file=sys.stderr, flush=True)
 
 
+#: The test point's outcome a final estimate's status stands for.
+_OUTCOME_OF = {status: result for result, status in FINAL_STATUS.items()}
+
+
 def _breakdown_text(b):
     """One line of a latency breakdown (ms) for /diagnostics."""
-    return (f'{b["total"]:.1f} = queued {b["queued"]:.1f} + record {b.get("record", 0):.1f} + '
+    return (f'{b["total"]:.1f} = record {b.get("record", 0):.1f} + queued {b["queued"]:.1f} + '
             f'identify {b.get("identify", 0):.1f} (Gauss-Newton {b.get("gauss_newton", 0):.1f}, '
             f'{b.get("iterations", 0)} it) + verdict {b.get("verdict", 0):.1f} + message '
             f'{b.get("message", 0):.1f} + publish {b["publish"]:.1f} + other {b["other"]:.1f}; '

@@ -13,7 +13,8 @@ from rotor_id.estimation.information import information_history
 from rotor_id.estimation.kalman import default_noise_rows, DiscreteModel, discretize, kalman_filter
 from rotor_id.estimation.simulate import simulate
 from rotor_id.io.record import Record
-from rotor_id.io.timebase import interpolate_columns, nondimensional_time, TWO_PI
+from rotor_id.io.timebase import (AzimuthUnwrapper, interpolate_columns,
+                                  nondimensional_time, TWO_PI)
 from rotor_id.physics.blades import blade_flap_from_states
 from rotor_id.physics.models import build_model, RotorConstants
 from rotor_id.physics.stirring import blade_pitch_from_multiblade
@@ -326,27 +327,56 @@ def check_azimuth_sample(names, position, velocity, joint, stamp_ns, last_stamp_
 
 # ------------------------------------------------------------------------------ buffers
 class StampedSeries:
-    """Growing (stamp_ns, values) arrays of one topic, in arrival (= stamp) order."""
+    """
+    (stamp_ns, values) arrays of one topic, in arrival (= stamp) order, optionally bounded.
 
-    def __init__(self, width):
+    ``append(..., keep_from_ns)`` first forgets the samples stamped before ``keep_from_ns`` when
+    the arrays are full, and grows them only when that frees less than a quarter: the memory
+    follows the span the caller needs (a window), not the length of the run.
+    """
+
+    def __init__(self, width, capacity=1024):
         self.width = width
-        self._stamps = np.empty(1024, dtype=np.int64)
-        self._values = np.empty((1024, width))
+        self._stamps = np.empty(capacity, dtype=np.int64)
+        self._values = np.empty((capacity, width))
         self.size = 0
 
-    def append(self, stamp_ns, values):
-        """Add one accepted sample."""
+    def append(self, stamp_ns, values, keep_from_ns=None):
+        """Add one accepted sample (forgetting those before ``keep_from_ns`` if full)."""
         if self.size == self._stamps.size:
-            self._stamps = np.concatenate([self._stamps, np.empty_like(self._stamps)])
-            self._values = np.concatenate([self._values, np.empty_like(self._values)])
+            if keep_from_ns is not None:
+                self.drop_before(keep_from_ns)
+            if self.size > 0.75 * self._stamps.size:
+                self._stamps = np.concatenate([self._stamps, np.empty_like(self._stamps)])
+                self._values = np.concatenate([self._values, np.empty_like(self._values)])
         self._stamps[self.size] = stamp_ns
         self._values[self.size] = values
         self.size += 1
+
+    def drop_before(self, stamp_ns):
+        """Forget the samples stamped before ``stamp_ns``; return how many."""
+        cut = int(np.searchsorted(self._stamps[:self.size], stamp_ns, side='left'))
+        if cut:
+            keep = self.size - cut
+            self._stamps[:keep] = self._stamps[cut:self.size]
+            self._values[:keep] = self._values[cut:self.size]
+            self.size = keep
+        return cut
+
+    @property
+    def capacity(self):
+        """Return how many samples the arrays hold before they are trimmed or grown."""
+        return self._stamps.size
 
     @property
     def last_stamp(self):
         """Stamp of the newest sample (None when empty)."""
         return int(self._stamps[self.size - 1]) if self.size else None
+
+    @property
+    def first_stamp(self):
+        """Stamp of the oldest sample kept (None when empty)."""
+        return int(self._stamps[0]) if self.size else None
 
     @property
     def stamps(self):
@@ -367,24 +397,22 @@ class AzimuthTracker:
     """
     Unwrapped azimuth of blade 1 (the report's t) from wrapped samples, as they arrive.
 
-    Each increment is taken on the 2π branch nearest to what Ω predicts (the rule of
-    :func:`rotor_id.io.timebase.unwrap_azimuth`), so it stays right across gaps. The first
+    The unwrapping is :class:`rotor_id.io.timebase.AzimuthUnwrapper` (the rule of
+    :func:`~rotor_id.io.timebase.unwrap_azimuth`, so it stays right across gaps). The first
     sample's wrapped ψ is the origin, as in a recording (t = Ω·(stamp − first) + ψ(first)).
+    ``series`` holds (stamp, (ψ wrapped, Ω, ψ unwrapped)): the azimuth series that
+    :func:`record_from_series` takes.
     """
 
     def __init__(self):
-        self.series = StampedSeries(2)        # (unwrapped ψ, Ω)
+        self.series = StampedSeries(3)        # (ψ wrapped, Ω, ψ unwrapped)
+        self.unwrapper = AzimuthUnwrapper()
 
-    def add(self, stamp_ns, psi, omega):
+    def add(self, stamp_ns, psi, omega, keep_from_ns=None):
         """Add one accepted sample (ψ in [0, 2π), Ω > 0); return its unwrapped ψ."""
-        if self.series.size:
-            stamp0 = self.series.last_stamp
-            psi0, omega0 = self.series.values[-1]
-            expected = 0.5 * (omega + omega0) * (stamp_ns - stamp0) / NS
-            delta = math.remainder(psi - psi0, TWO_PI)
-            psi = psi0 + delta + TWO_PI * round((expected - delta) / TWO_PI)
-        self.series.append(stamp_ns, (psi, omega))
-        return psi
+        value = self.unwrapper.add(stamp_ns, psi, omega)
+        self.series.append(stamp_ns, (psi, omega, value), keep_from_ns)
+        return value
 
     @property
     def ready(self):
@@ -395,14 +423,14 @@ class AzimuthTracker:
         """Return t at the given stamps: interpolated, or extrapolated with the last Ω."""
         stamps = np.asarray(stamps_ns, dtype=np.int64)
         s = self.series
-        last, (psi_last, omega_last) = s.last_stamp, s.values[-1]
+        last, (_, omega_last, psi_last) = s.last_stamp, s.values[-1]
         t = psi_last + omega_last * (stamps - last) / NS
         later = stamps > last
         if np.all(later):
             return t
         i0 = max(0, int(np.searchsorted(s.stamps, stamps.min())) - 1)
         ref = s.stamps[i0]
-        t = np.interp((stamps - ref) / NS, (s.stamps[i0:] - ref) / NS, s.values[i0:, 0])
+        t = np.interp((stamps - ref) / NS, (s.stamps[i0:] - ref) / NS, s.values[i0:, 2])
         t[later] = psi_last + omega_last * (stamps[later] - last) / NS
         return t
 
@@ -412,41 +440,6 @@ class AzimuthTracker:
         return float(self.series.values[-1, 1])
 
 
-class UnwrappedAzimuth:
-    """
-    The azimuth of blade 1 unwrapped as its samples arrive (the record's t at those stamps).
-
-    Each step is unwrapped by the rule of :func:`rotor_id.io.timebase.unwrap_azimuth` and the
-    steps are summed in the same order, so the values equal ``nondimensional_time`` of the whole
-    series from its first sample, bit for bit; a fit can then cut a window out of a long buffer
-    without unwrapping everything before it.
-    """
-
-    def __init__(self):
-        self.series = StampedSeries(1)
-        self._first = None
-        self._sum = 0.0
-        self._last = None
-
-    def add(self, stamp_ns, psi, omega):
-        """Add one accepted sample (ψ wrapped to [0, 2π), Ω in rad/s)."""
-        if self._last is None:
-            self._first = value = float(psi)
-        else:
-            stamp_prev, psi_prev, omega_prev = self._last
-            step = psi - psi_prev
-            expected = 0.5 * (omega + omega_prev) * (stamp_ns - stamp_prev) / NS
-            step += TWO_PI * round((expected - step) / TWO_PI)
-            self._sum += step
-            value = self._first + self._sum
-        self._last = (stamp_ns, psi, omega)
-        self.series.append(stamp_ns, (value,))
-
-    def clear(self):
-        """Forget every sample."""
-        self.__init__()
-
-
 def _bracket(stamps, lo, hi):
     """Index range of the stamps in [lo, hi] plus one neighbour each side (for interpolation)."""
     return (max(0, int(np.searchsorted(stamps, lo, side='left')) - 1),
@@ -454,7 +447,7 @@ def _bracket(stamps, lo, hi):
 
 
 def record_from_series(flap, pitch, azimuth, blade_names, stamp0_ns, source='live topics',
-                       span_ns=None, unwrapped=None):
+                       span_ns=None):
     """
     Form a Record on the flap stamps, as :func:`rotor_id.io.bag.read_record` forms it from a bag.
 
@@ -463,7 +456,9 @@ def record_from_series(flap, pitch, azimuth, blade_names, stamp0_ns, source='liv
     flap, pitch : StampedSeries
         Per-blade flap and pitch (rad).
     azimuth : StampedSeries
-        Width 2: ψ of blade 1 wrapped to [0, 2π), and Ω (rad/s).
+        ψ of blade 1 wrapped to [0, 2π), Ω (rad/s) and, in a third column, ψ unwrapped as it
+        arrived (:class:`AzimuthTracker`'s series); without that column the azimuth is
+        unwrapped here from its first sample.
     blade_names : list of str
         Joint of each blade column.
     stamp0_ns : int
@@ -472,10 +467,8 @@ def record_from_series(flap, pitch, azimuth, blade_names, stamp0_ns, source='liv
         Where the data came from (for messages).
     span_ns : (int, int), optional
         Keep only the flap samples stamped in this range (and the pitch and azimuth samples
-        around them): the record of a window without copying the whole buffer. Needs
-        ``unwrapped``; the samples kept are exactly those of the whole record.
-    unwrapped : UnwrappedAzimuth, optional
-        The azimuth series unwrapped as it arrived (same stamps as ``azimuth``).
+        around them): the record of a window without copying the whole buffer. Needs the
+        unwrapped column; the samples kept are exactly those of the whole record.
 
     Raises
     ------
@@ -490,7 +483,7 @@ def record_from_series(flap, pitch, azimuth, blade_names, stamp0_ns, source='liv
     hi = min(pitch.stamps[-1], azimuth.stamps[-1])
     flap_part, pitch_part, az_part = slice(None), slice(None), slice(None)
     if span_ns is not None:
-        if unwrapped is None or unwrapped.series.size != azimuth.size:
+        if azimuth.width < 3:
             raise ValueError('a span of the buffer needs the azimuth unwrapped as it arrived')
         lo, hi = max(lo, span_ns[0]), min(hi, span_ns[1])
         flap_part = slice(int(np.searchsorted(flap.stamps, lo, side='left')),
@@ -505,8 +498,8 @@ def record_from_series(flap, pitch, azimuth, blade_names, stamp0_ns, source='liv
     time_s = (stamps - stamp0_ns) / NS
     az_time = (azimuth.stamps[az_part] - stamp0_ns) / NS
     az_values = azimuth.values[az_part]
-    if unwrapped is not None:
-        psi_unwrapped = unwrapped.series.values[az_part, 0]
+    if azimuth.width >= 3:
+        psi_unwrapped = az_values[:, 2]
     else:
         psi_unwrapped = nondimensional_time(az_time, az_values[:, 0], az_values[:, 1])
     return Record(time_s=time_s, t=np.interp(time_s, az_time, psi_unwrapped),
@@ -516,35 +509,6 @@ def record_from_series(flap, pitch, azimuth, blade_names, stamp0_ns, source='liv
                       time_s, (pitch.stamps[pitch_part] - stamp0_ns) / NS,
                       pitch.values[pitch_part]),
                   blade_names=list(blade_names), source=source, stamp0_ns=int(stamp0_ns))
-
-
-def window_gaps(named_series, lo_ns, hi_ns, factor=1.5):
-    """
-    Describe the gaps (missing samples) of each series inside [lo_ns, hi_ns].
-
-    A gap is a step between consecutive stamps longer than ``factor`` times the series'
-    sampling period (the median of the last 2000 steps), so one lost sample, a step of two
-    periods, counts, while stamp jitter below ±50 % does not. Scattered losses are found as
-    long as fewer than half the samples are lost (the median step is then still one period).
-    Returns a list of short texts (empty when complete).
-    """
-    notes = []
-    for name, series in named_series.items():
-        stamps = series.stamps
-        if stamps.size < 3:
-            continue
-        period = float(np.median(np.diff(stamps[-min(stamps.size, 2001):])))
-        if period <= 0:
-            continue
-        inside = stamps[np.searchsorted(stamps, lo_ns - period, side='left'):
-                        np.searchsorted(stamps, hi_ns + period, side='right')]
-        steps = np.diff(inside)
-        big = steps > factor * period
-        if np.any(big):
-            missing = int(np.sum(np.round(steps[big] / period) - 1))
-            notes.append(f'{name}: {missing} sample(s) missing in {int(np.sum(big))} gap(s), '
-                         f'longest {steps.max() / 1e6:.1f} ms')
-    return notes
 
 
 # ------------------------------------------------------------------------------ Ch.3 verdict

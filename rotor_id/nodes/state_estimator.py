@@ -98,10 +98,15 @@ class StateEstimator(Node):
         self.azimuth.add(stamp, psi, omega)
 
     def on_estimate(self, msg):
-        """Adopt the identifier's parameters (converged, or provisional if asked to)."""
-        if msg.status == ParameterEstimate.STATUS_FAILED or (
-                msg.status == ParameterEstimate.STATUS_ITERATING and
-                not self.d['use_provisional']):
+        """
+        Adopt the identifier's parameters: a test point's result, or provisional if asked to.
+
+        Never from an incomplete window, a failed fit or an aborted test point.
+        """
+        adopt = (ParameterEstimate.STATUS_CONVERGED, ParameterEstimate.STATUS_MAX_ITERATIONS)
+        if self.d['use_provisional']:
+            adopt += (ParameterEstimate.STATUS_ITERATING,)
+        if msg.status not in adopt:
             return
         names, values, _, _ = estimate_from_message(msg)
         if not np.all(np.isfinite(values)):

@@ -50,10 +50,10 @@ class RunWatcher:
                 self.on_message(kind, msg)
         return callback
 
-    def final_estimate(self):
-        """Return the first estimate that is not provisional (None yet)."""
+    def final_estimate(self, test_point=None):
+        """Return the first test-point result (of ``test_point``, if given), or None yet."""
         for msg in self.messages['estimate']:
-            if msg.status != ParameterEstimate.STATUS_ITERATING:
+            if msg.kind == ParameterEstimate.KIND_FINAL and test_point in (None, msg.test_point):
                 return msg
         return None
 

@@ -1,21 +1,17 @@
 """
-When the identifier asks for fits (rotor_id/nodes/identifier.py, Identifier.schedule).
+When the identifier asks for fits (rotor_id/nodes/test_points.py, TestPointSequence.due).
 
-What it proves, on the demo's wake window at 1 kHz with the schedule driven sample by sample:
-the first growing-window fit comes after min_window_rad, then one every update_every_rad; in
-the last refit_tail_rad a new one as soon as the worker is free (so the last growing-window
-iterate lies close to the window's end); the final fit is asked for exactly once, when the
-window is complete, and nothing after it. No ROS traffic: the method runs on a stand-in.
+What it proves, on the demo's wake window at 1 kHz with the machine fed sample by sample: the
+first growing-window fit comes after min_window_rad, then one every update_every_rad; in the
+last refit_tail_rad a new one as soon as the worker is free (so the last growing-window iterate
+lies close to the window's end); the final fit is asked for exactly once, when the window is
+complete, and nothing after it. ROS-free: the node only adapts this machine.
 """
 
 import math
-from types import SimpleNamespace
 
 import numpy as np
-import pytest
-
-identifier = pytest.importorskip('rotor_id.nodes.identifier',
-                                 reason='rclpy / rotor_id_msgs not importable')
+from rotor_id.nodes.test_points import FitSchedule, TestPointSequence
 
 OMEGA = 30 * math.pi
 WINDOW = (0.80939, 0.93671)
@@ -23,26 +19,22 @@ PERIOD = 0.001
 
 
 def _drive(fit_ms, update_every=math.pi / 4, tail=math.pi, min_window=3 * math.pi):
-    """Call schedule() after every sample; each fit keeps the worker busy ``fit_ms`` ms."""
-    node = SimpleNamespace(
-        description=SimpleNamespace(window_s=WINDOW), final_done=False, next_update=None,
-        first_update=None, requested_until=-math.inf, busy=False, requests=[],
-        d={'update_every_rad': update_every, 'min_window_rad': min_window,
-           'refit_tail_rad': tail},
-        azimuth=SimpleNamespace(values=np.array([[0.0, OMEGA]])),
-        flap=SimpleNamespace(size=2, stamps=np.array([0, int(PERIOD * 1e9)])))
-    asked, busy_until = [], [-1.0]
-
-    def submit(window_s, final):
-        asked.append((window_s, final))
-        busy_until[0] = node.now + fit_ms / 1e3
-
-    node._submit = submit
+    """Feed 1 s of samples; each fit keeps the worker busy ``fit_ms`` ms."""
+    machine = TestPointSequence(
+        4, WINDOW, [f'blade_{k}' for k in range(1, 5)], auto_start='data',
+        schedule=FitSchedule(update_every_rad=update_every, min_window_rad=min_window,
+                             refit_tail_rad=tail))
+    asked, busy_until = [], -1.0
     for k in range(int(1.0 / PERIOD)):
-        node.now = k * PERIOD
-        node.busy = node.now < busy_until[0]
-        node._covered_s = lambda: node.now
-        identifier.Identifier.schedule(node)
+        now = k * PERIOD
+        stamp = int(round(now * 1e9))
+        machine.add_flap(stamp, np.zeros(4))
+        machine.add_pitch(stamp, np.zeros(4))
+        machine.add_azimuth(stamp, (OMEGA * now) % (2 * math.pi), OMEGA)
+        request = machine.due(worker_idle=now >= busy_until)
+        if request is not None:
+            asked.append((request.window_s, request.final))
+            busy_until = now + fit_ms / 1e3
     return asked
 
 

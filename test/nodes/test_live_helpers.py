@@ -19,7 +19,8 @@ from rotor_id.io.timebase import nondimensional_time
 from rotor_id.nodes.live import (AzimuthTracker, BadSample, check_azimuth_sample,
                                  check_joint_sample, data_length_verdict, PlantStepper,
                                  record_from_series, rotor_constants, StampedSeries,
-                                 StreamingKalman, UnwrappedAzimuth, window_gaps)
+                                 StreamingKalman)
+from rotor_id.nodes.test_points import channel_coverage
 from rotor_id.physics.blades import blade_flap_from_multiblade_state
 from rotor_id.physics.models import build_model, multiblade_from_blade_flap, RotorConstants
 from rotor_id.physics.stirring import SampledInput, StirringSchedule
@@ -154,31 +155,29 @@ def test_record_of_a_span_equals_the_whole_record_cut():
     omega = OMEGA * (1 + 0.05 * np.sin(np.arange(n) / 300))
     psi = np.concatenate([[0.3], 0.3 + np.cumsum(omega[1:] * np.diff(stamps) / 1e9)])
     series = [StampedSeries(4), StampedSeries(4), StampedSeries(2)]
-    unwrapped = UnwrappedAzimuth()
+    tracker = AzimuthTracker()                    # the azimuth unwrapped as it arrives
     for i, stamp in enumerate(stamps):
         if i % 7:                                 # pitch and azimuth on every sample but some
             series[1].append(stamp + 300_000, rng.normal(size=4))
         series[0].append(stamp, rng.normal(size=4))
         series[2].append(stamp - 200_000, (math.fmod(psi[i], 2 * math.pi), omega[i]))
-        unwrapped.add(stamp - 200_000, math.fmod(psi[i], 2 * math.pi), omega[i])
+        tracker.add(stamp - 200_000, math.fmod(psi[i], 2 * math.pi), omega[i])
     az = series[2]
-    np.testing.assert_array_equal(unwrapped.series.values[:, 0], nondimensional_time(
+    np.testing.assert_array_equal(tracker.series.values[:, 2], nondimensional_time(
         (az.stamps - stamps[0]) / 1e9, az.values[:, 0], az.values[:, 1]))
     names = [f'blade_{k}' for k in range(1, 5)]
-    whole = record_from_series(*series, names, stamps[0])
+    whole = record_from_series(*series, names, stamps[0])     # unwrapped here, from the start
     for lo, hi in ((stamps[1200], stamps[1500] + 1), (0, stamps[40]), (stamps[2990], 2 * 10**18)):
-        part = record_from_series(*series, names, stamps[0], span_ns=(lo, hi),
-                                  unwrapped=unwrapped)
+        part = record_from_series(series[0], series[1], tracker.series, names, stamps[0],
+                                  span_ns=(lo, hi))
         keep = (whole.time_s >= (lo - stamps[0]) / 1e9) & (whole.time_s <= (hi - stamps[0]) / 1e9)
         for field in ('time_s', 't', 'rotor_speed_rad_s', 'blade_flap', 'blade_pitch'):
             np.testing.assert_array_equal(getattr(part, field), getattr(whole, field)[keep])
     with pytest.raises(ValueError, match='unwrapped'):
         record_from_series(*series, names, stamps[0], span_ns=(0, stamps[5]))
-    gappy = StampedSeries(1)
-    for stamp in np.delete(stamps, [100, 101, 2000]):
-        gappy.append(stamp, (0.0,))
-    assert len(window_gaps({'x': gappy}, stamps[50], stamps[150])) == 1
-    assert window_gaps({'x': gappy}, stamps[150], stamps[1900]) == []
+    gappy = np.delete(stamps, [100, 101, 2000])
+    assert channel_coverage('x', gappy, stamps[50], stamps[150]).gaps == 1
+    assert channel_coverage('x', gappy, stamps[150], stamps[1900]).complete
 
 
 def test_streaming_kalman_equals_the_batch_filter():
@@ -223,17 +222,15 @@ def test_sampled_input_of_the_plant_pitch_recovers_the_commands():
     assert np.allclose(u, np.array([k[1] for k in knots])[:400], atol=1e-12)
 
 
-def test_window_gaps_count_the_missing_samples():
-    from rotor_id.nodes.live import window_gaps
-    series = StampedSeries(1)
-    for k in list(range(0, 100)) + list(range(110, 200)):      # k = 100..109 lost
-        series.append(k * 1_000_000, [0.0])
-    assert window_gaps({'flap': series}, 0, 50_000_000) == []
-    notes = window_gaps({'flap': series}, 50_000_000, 150_000_000)
-    assert notes == ['flap: 10 sample(s) missing in 1 gap(s), longest 11.0 ms']
+def test_window_coverage_counts_the_missing_samples():
+    stamps = np.array([k * 1_000_000 for k in list(range(0, 100)) + list(range(110, 200))])
+    assert channel_coverage('flap', stamps, 0, 50_000_000).complete
+    coverage = channel_coverage('flap', stamps, 50_000_000, 150_000_000)
+    assert (coverage.missing_inside, coverage.gaps, coverage.missing) == (10, 1, 10)
+    assert coverage.describe() == 'flap: 10 sample(s) missing (10 in 1 gap(s) inside)'
 
 
-def test_window_gaps_report_heavy_scattered_loss():
+def test_window_coverage_reports_heavy_scattered_loss():
     """
     A loaded identifier losing a quarter of the samples, one here and there, must say so.
 
@@ -241,21 +238,14 @@ def test_window_gaps_report_heavy_scattered_loss():
     never reported: under overload the identifier published fits on thinned windows without
     a warning.
     """
-    from rotor_id.nodes.live import window_gaps
     rng = np.random.default_rng(3)
     kept = np.flatnonzero(rng.random(3000) > 0.25)
-    series = StampedSeries(1)
-    for k in kept:
-        series.append(int(k) * 1_000_000, [0.0])
     lo, hi = 1000, 1127
-    notes = window_gaps({'flap': series}, lo * 1_000_000, hi * 1_000_000)
+    coverage = channel_coverage('flap', kept * 1_000_000, lo * 1_000_000, hi * 1_000_000)
     lost = (hi - lo + 1) - np.count_nonzero((kept >= lo) & (kept <= hi))
-    assert len(notes) == 1 and notes[0].startswith(f'flap: {lost} sample(s) missing'), \
-        (notes, lost)
-    jitter = StampedSeries(1)                     # ±20 % stamp jitter is not a loss
-    for k in range(3000):
-        jitter.append(k * 1_000_000 + int(rng.uniform(-2e5, 2e5)), [0.0])
-    assert window_gaps({'flap': jitter}, lo * 1_000_000, hi * 1_000_000) == []
+    assert coverage.missing == lost and not coverage.complete
+    jitter = np.arange(3000) * 1_000_000 + rng.uniform(-2e5, 2e5, 3000).astype(np.int64)
+    assert channel_coverage('flap', jitter, lo * 1_000_000, hi * 1_000_000).complete
 
 
 @pytest.mark.parametrize('model, mu', [('multiblade_wake', 0.0), ('multiblade', 0.4),
