@@ -66,6 +66,9 @@ build: venv | sysdeps
 	@echo "== build: colcon build (rotor_id_msgs, rotor_id)"
 	@$(VENV_ENV) && \
 	  $(call locked,.build.lock) colcon build $(COLCON_PKG_ARGS) $(COLCON_BUILD_ARGS)
+	@# byte-compile our sources and the generated message code once here, so that starting
+	@# ./rotor-id reads .pyc even where PYTHONDONTWRITEBYTECODE is set (see tools/make_venv.sh)
+	@$(VENV_ENV) && python -m compileall -q rotor_id install > /dev/null
 
 test: build
 	@echo "== test: pytest"
