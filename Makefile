@@ -69,6 +69,8 @@ build: venv | sysdeps
 	@# byte-compile our sources and the generated message code once here, so that starting
 	@# ./rotor-id reads .pyc even where PYTHONDONTWRITEBYTECODE is set (see tools/make_venv.sh)
 	@$(VENV_ENV) && python -m compileall -q rotor_id install > /dev/null
+	@# compile the numba kernel into its cache now (2-6 s once), not in a user's first study
+	@$(WS_ENV) && python -m rotor_id.estimation.kernels
 
 test: build
 	@echo "== test: pytest"

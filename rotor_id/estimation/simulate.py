@@ -26,8 +26,11 @@ Everything is vectorised over time (bench/iteration_cost.py measured the gain):
 
 from dataclasses import dataclass
 import math
+import time
 
 import numpy as np
+
+from rotor_id.estimation import kernels
 
 #: Longest RK4 step (nondimensional time). 0.05 keeps the truncation error of a 2/rev mode at
 #: about 1e-7 per revolution, far below any measurement noise.
@@ -102,16 +105,9 @@ def _rk4_maps(F, g, h):
     ``h`` (M,). Returns Φ (M, n, n) and c (M, n). A time-invariant system may pass F (1, n, n)
     and one step length h (1,): then Φ (1, n, n) is computed once, c still per step.
     """
-    F0, Fm, F1 = _stages(F)
+    Phi = _rk4_transition(F, h)
+    _, Fm, F1 = _stages(F)
     g0, gm, g1 = _stages(g)
-    hh = h[:, None, None]
-    eye = np.eye(F.shape[-1])
-    # stage matrices: k_i = A_i x + b_i
-    A1 = F0
-    A2 = Fm + 0.5 * hh * (Fm @ A1)
-    A3 = Fm + 0.5 * hh * (Fm @ A2)
-    A4 = F1 + hh * (F1 @ A3)
-    Phi = eye + hh / 6.0 * (A1 + 2.0 * A2 + 2.0 * A3 + A4)
     hv = h[:, None]
     b1 = g0
     b2 = gm + 0.5 * hv * _mv(Fm, b1)
@@ -119,6 +115,18 @@ def _rk4_maps(F, g, h):
     b4 = g1 + hv * _mv(F1, b3)
     c = hv / 6.0 * (b1 + 2.0 * b2 + 2.0 * b3 + b4)
     return Phi, c
+
+
+def _rk4_transition(F, h):
+    """Φ (M, n, n) of the affine RK4 step maps of :func:`_rk4_maps` (F and h shaped as there)."""
+    F0, Fm, F1 = _stages(F)
+    hh = h[:, None, None]
+    # stage matrices: k_i = A_i x + b_i
+    A1 = F0
+    A2 = Fm + 0.5 * hh * (Fm @ A1)
+    A3 = Fm + 0.5 * hh * (Fm @ A2)
+    A4 = F1 + hh * (F1 @ A3)
+    return np.eye(F.shape[-1]) + hh / 6.0 * (A1 + 2.0 * A2 + 2.0 * A3 + A4)
 
 
 def _rk4_step_derivative(F, g, h, dF, dg, x):
@@ -211,6 +219,8 @@ def simulate(model, p, inputs, t, x0, param_index=(), x0_jacobian=None,
         if forcing is not None:
             raise ValueError('forcing is for plain simulation only')
     x, S = x0.copy(), (S0.copy() if want_sens else None)
+    kernel = kernels.rk4_kernel() if forcing is None else None
+    clock = time.perf_counter()
     # process the record in chunks of whole sample intervals to bound memory
     per_chunk = max(1, _CHUNK // m)
     for start in range(0, T - 1, per_chunk):
@@ -220,6 +230,12 @@ def simulate(model, p, inputs, t, x0, param_index=(), x0_jacobian=None,
         u = inputs(tf)
         F, g = model.system(tf, p, u)
         h = np.repeat(np.diff(ts) / m, m)
+        if kernel is not None:
+            x, S = _compiled_chunk(kernel, model, p, tf, u, F, g, h, m, param_index,
+                                   x, S if want_sens else np.zeros((n, 0)),
+                                   xs[start:stop + 1],
+                                   Ss[start:stop + 1] if want_sens else None)
+            continue
         if _time_invariant(F, h, ts):
             # one Φ for every step; c still follows the input step by step
             F_maps, h_maps = F[:1], h[:1]
@@ -252,6 +268,8 @@ def simulate(model, p, inputs, t, x0, param_index=(), x0_jacobian=None,
             Sc = _recursion(levels, W, S)
             Ss[start:stop + 1] = Sc
             S = Sc[-1]
+    if kernel is None and want_sens:
+        kernels.note_numpy_seconds(time.perf_counter() - clock)
     H = model.output_matrix(t)
     y = np.einsum('tij,tj->ti', H, xs) + model.output_offset(t, p)
     if not want_sens:
@@ -260,6 +278,50 @@ def simulate(model, p, inputs, t, x0, param_index=(), x0_jacobian=None,
     dd = model.output_offset_jacobian(t, p)[:, :, param_index]
     dy[:, :, :len(param_index)] += dd
     return Simulation(t, xs, y, Ss, dy)
+
+
+def _compiled_chunk(kernel, model, p, tf, u, F, g, h, m, param_index, x, S, xs, Ss):
+    """
+    One chunk through the compiled RK4 scan (:mod:`rotor_id.estimation.kernels`).
+
+    Writes the samples into the views ``xs`` (L+1, n) and ``Ss`` (L+1, n, k) or None (plain
+    simulation, S of shape (n, 0)); returns the last state and sensitivities.
+    """
+    n = x.shape[0]
+    if _time_invariant(F, h, tf[::2]):
+        Phi = _rk4_transition(F[:1], h[:1])
+    else:
+        Phi = _rk4_transition(F, h)
+    F_val, (F_i, F_j) = _nonzero_entries(F)
+    if param_index:
+        dF, dg = model.system_jacobian(tf, p, u)
+        dF_val, (dF_p, dF_i, dF_j) = _nonzero_entries(dF[:, param_index])
+        dg = dg[:, param_index]
+    else:
+        dF_p = dF_i = dF_j = np.zeros(0, dtype=np.int64)
+        dF_val = np.zeros((1, 0))
+        dg = np.zeros((g.shape[0], 0, n))
+    S_out = np.empty((xs.shape[0], n, S.shape[1])) if Ss is None else Ss
+    kernel(np.ascontiguousarray(Phi), F_val, F_i, F_j, np.ascontiguousarray(g, dtype=float),
+           dF_val, dF_p, dF_i, dF_j, np.ascontiguousarray(dg, dtype=float),
+           np.ascontiguousarray(h, dtype=float), m, x, np.ascontiguousarray(S, dtype=float), xs,
+           S_out)
+    return xs[-1].copy(), S_out[-1].copy()
+
+
+def _nonzero_entries(A):
+    """
+    Entries of the stacked arrays A (T, ...) that are non-zero at any t: (values, indices).
+
+    values (T, nnz), or (1, nnz) when they are the same at every t; indices one int64 array
+    per axis of A[0], as np.nonzero gives them.
+    """
+    index = np.nonzero(np.any(A != 0.0, axis=0))
+    values = A[(slice(None),) + index]
+    if np.all(values == values[:1]):
+        values = values[:1]
+    return (np.ascontiguousarray(values, dtype=float),
+            tuple(i.astype(np.int64) for i in index))
 
 
 def _time_invariant(F, h, ts):

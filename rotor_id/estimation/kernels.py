@@ -1,0 +1,113 @@
+"""
+Compiled kernels (numba) of the simulator's RK4 recursion, loaded only where they pay.
+
+A Gauss-Newton iteration of the 7-parameter wake case is about 10⁵ multiply-adds; the
+vectorised numpy code of :mod:`rotor_id.estimation.simulate` spends 30-70 times that in the
+interpreter (bench/ml_vs_peers.py). The kernel here runs one RK4 step after another for the
+state and all its sensitivities, with F, g, ∂F/∂p and ∂g/∂p evaluated by the model at the stage
+times as before (any :class:`rotor_id.physics.models.LinearModel`, time-invariant or periodic).
+∂F/∂p enters as its non-zero entries only, which the kernel finds per call.
+
+It is the same arithmetic as the numpy path: the RK4 stages of the state and of the variational
+equations S′ = F S + (∂F/∂p) x + ∂g/∂p evaluated at the state's stages, which is the exact
+derivative of the RK4 step map (test/estimation/test_kernels.py checks agreement to 1e-12).
+
+Loading numba costs 0.4-1 s (import, then the cached machine code), more than a whole
+``rotor-id identify`` of a short record takes. So with ``ROTOR_ID_KERNELS=auto`` (the default)
+the numpy code runs until the simulations it did have taken :data:`AUTO_SWITCH_SECONDS`; then
+the kernel is loaded and used from there on (Monte Carlo studies, diagnosis, long records).
+``ROTOR_ID_KERNELS=numba`` loads it at the first simulation, ``numpy`` never does (the
+reference). Where numba is missing or fails to compile, the numpy path is used and
+:func:`status` says why.
+
+The machine code is cached next to this file (numba ``cache=True``), or, where that directory is
+read-only, in numba's per-user cache directory (``NUMBA_CACHE_DIR`` overrides both); with no
+writable place numba compiles at every start (about 2 s) and still gives the same results.
+"""
+
+import os
+import time
+
+MODES = ('auto', 'numba', 'numpy')
+#: Seconds of numpy simulation after which ``auto`` loads the kernel (its measured load cost).
+AUTO_SWITCH_SECONDS = 0.5
+
+_state = {'kernel': None, 'tried': False, 'error': None, 'numpy_seconds': 0.0,
+          'load_seconds': None}
+
+
+def mode():
+    """Return the kernel mode from ``ROTOR_ID_KERNELS`` (auto, numba or numpy)."""
+    value = os.environ.get('ROTOR_ID_KERNELS', 'auto').strip().lower() or 'auto'
+    if value not in MODES:
+        raise ValueError(f'ROTOR_ID_KERNELS={value!r}: use one of {", ".join(MODES)}')
+    return value
+
+
+def status():
+    """Return a dict: mode, kernel loaded?, why not, its load time, numpy seconds so far."""
+    return {'mode': mode(), 'loaded': _state['kernel'] is not None, 'error': _state['error'],
+            'load_seconds': _state['load_seconds'], 'numpy_seconds': _state['numpy_seconds']}
+
+
+def note_numpy_seconds(seconds):
+    """Account time spent in the numpy recursion (drives the ``auto`` switch)."""
+    _state['numpy_seconds'] += seconds
+
+
+def rk4_kernel():
+    """Return the compiled RK4 scan, or None when the numpy path is to be used now."""
+    if _state['kernel'] is not None:
+        return _state['kernel']
+    chosen = mode()
+    if chosen == 'numpy' or _state['tried']:
+        return None
+    if chosen == 'auto' and _state['numpy_seconds'] < AUTO_SWITCH_SECONDS:
+        return None
+    return load()
+
+
+def load():
+    """Import numba and compile (or load from the cache) the kernel; None if that fails."""
+    if _state['kernel'] is not None or _state['tried']:
+        return _state['kernel']
+    _state['tried'] = True
+    start = time.perf_counter()
+    try:
+        from rotor_id.estimation import _kernels_numba
+        kernel = _kernels_numba.rk4_scan
+        _kernels_numba.warm_up()
+    except Exception as err:  # noqa: B902 - ImportError, numba's compile errors: use numpy
+        _state['error'] = f'{type(err).__name__}: {err}'
+        return None
+    _state['load_seconds'] = time.perf_counter() - start
+    _state['kernel'] = kernel
+    return kernel
+
+
+def prefer():
+    """
+    Load the kernel now unless ``ROTOR_ID_KERNELS=numpy``: for callers about to simulate a lot.
+
+    A Monte Carlo study or a diagnosis calls this before it forks its workers, so that they
+    inherit the loaded kernel instead of each running numpy until the ``auto`` switch and
+    loading it again. Returns the kernel or None.
+    """
+    if mode() == 'numpy':
+        return None
+    return load()
+
+
+def main():
+    """Load (compile or read from the cache) the kernel and print how long that took."""
+    kernel = prefer()
+    state = status()
+    if kernel is None:
+        print(f'rotor_id kernels: numpy only ({state["error"] or "ROTOR_ID_KERNELS=numpy"})')
+        return 1
+    print(f'rotor_id kernels: compiled kernel ready in {state["load_seconds"]:.2f} s')
+    return 0
+
+
+if __name__ == '__main__':
+    raise SystemExit(main())
