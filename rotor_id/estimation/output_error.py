@@ -320,14 +320,21 @@ def dependence_warnings(names, M, threshold=1e-7):
         zero = [n for n, v in zip(names, np.diag(M)) if v <= 0]
         warnings.append('no information at all on ' + ', '.join(zero)
                         + ': the data do not depend on them; fix them or change the input')
-    ratio = vals[0] / vals[-1] if vals[-1] > 0 else 0.0
-    if ratio < threshold:
-        vec = vecs[:, 0]
-        order = np.argsort(-np.abs(vec))
-        terms = [f'{vec[i]:+.3f}·{names[i]}' for i in order if abs(vec[i]) > 0.1]
+    ratios = vals / vals[-1] if vals[-1] > 0 else np.zeros_like(vals)
+    if ratios[0] < threshold:
+        # every direction of the near-null space: where it has more than one dimension, which
+        # basis vector eigh returns first is decided by rounding, so one alone names too few
+        combinations = []
+        for c in np.flatnonzero(ratios < threshold):
+            vec = vecs[:, c]
+            order = np.argsort(-np.abs(vec))
+            combinations.append(' '.join(f'{vec[i]:+.3f}·{names[i]}' for i in order
+                                         if abs(vec[i]) > 0.1))
+        what = (f'the combination {combinations[0]} is' if len(combinations) == 1 else
+                f'the {len(combinations)} combinations {"; ".join(combinations)} are')
         warnings.append('near-dependent parameters (scaled information eigenvalue ratio '
-                        f'{ratio:.1e}): the combination {" ".join(terms)} is not identifiable '
-                        'from these data; fix one of them or add a prior')
+                        f'{ratios[0]:.1e}): {what} not identifiable from these data; '
+                        'fix one of them or add a prior')
     return warnings, vals
 
 
