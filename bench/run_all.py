@@ -21,7 +21,7 @@ BENCH_DIR = Path(__file__).resolve().parent
 #: name -> (script, full arguments, quick arguments, what it measures)
 BENCHMARKS = {
     'ml_vs_peers': ('ml_vs_peers.py', ['--repeat', '9'], ['--repeat', '1', '--no-write'],
-                    'ML vs least_squares peers (target ≥ 20× vs (a), > 1× vs (b))'),
+                    'ML vs least_squares peers (wake fit ≤ 1 ms, ≥ 500× (a), ≥ 3× (b))'),
     'iteration_cost': ('iteration_cost.py', ['--repeat', '15'], ['--repeat', '2', '--no-write'],
                        'GN iteration / (p+1) simulations (target ≤ 1.5)'),
     'scaling': ('scaling.py', ['--repeat', '7'], ['--repeat', '1', '--no-write'],
@@ -31,7 +31,7 @@ BENCHMARKS = {
                            '10-minute 1 kHz bag (target ≥ 200× real time)'),
     'monte_carlo_speed': ('monte_carlo_speed.py', ['--seeds', '1000'],
                           ['--seeds', '100', '--efficiency-seeds', '50', '--no-write'],
-                          '1000-seed wake Monte Carlo on 2 cores (target < 60 s)'),
+                          '1000-seed wake Monte Carlo on 2 cores (target ≤ 5 s, issue 15)'),
 }
 
 
