@@ -67,6 +67,7 @@ class Excitation(enum.IntEnum):
     CYCLIC_STEP = 1
     STIRRING = 2
     DONE = 3
+    RAMP_DOWN = 4       # the cyclic ramps back to trim (end of the stirring, or its abort)
 
 
 #: What the final fit's outcome makes of a test point.
@@ -433,8 +434,9 @@ class TestPointSequence:
 
         A schedule starts with TRIM after any other phase (or as the first phase seen): with
         ``auto_start`` 'excitation' it arms a test point from ``stamp_ns``, aborting one that
-        records (SUPERSEDED). DONE stamped before the recording test point's window end aborts
-        it (EXCITATION_ENDED): its window would hold no excitation at the end.
+        records (SUPERSEDED). RAMP_DOWN or DONE stamped before the recording test point's
+        window end aborts it (EXCITATION_ENDED): the stirring was cut short (aborted, or it
+        reached its limits) and the window would not hold the excitation it was planned on.
         """
         phase = Excitation(phase)
         previous, self.excitation = self.excitation, phase
@@ -451,7 +453,8 @@ class TestPointSequence:
             if point is not None:
                 ended.append(self.abort(Reason.SUPERSEDED, 'a new excitation schedule started'))
             self.arm('excitation', int(stamp_ns))
-        elif phase == Excitation.DONE and previous != Excitation.DONE:
+        elif (phase in (Excitation.DONE, Excitation.RAMP_DOWN) and
+              previous not in (Excitation.DONE, Excitation.RAMP_DOWN)):
             point = self.current
             if point is None:
                 return ended

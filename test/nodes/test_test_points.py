@@ -281,8 +281,15 @@ def test_state_machine_transitions_and_reasons(stream):
     assert machine.points[1].reason == Reason.SUPERSEDED
     assert machine.points[2].phase == Phase.RECORDING
     assert machine.points[2].stamp0_ns == stream['stamps'][300]
-    machine.on_excitation(Excitation.DONE, int(stream['stamps'][499]))
+    machine.on_excitation(Excitation.RAMP_DOWN, int(stream['stamps'][499]))
     assert machine.points[2].reason == Reason.EXCITATION_ENDED and machine.phase == Phase.IDLE
+    machine.on_excitation(Excitation.DONE, int(stream['stamps'][499]))
+    assert machine.phase == Phase.IDLE and machine.count == 2
+    # a DONE after the window's end leaves the test point alone
+    machine.on_excitation(Excitation.TRIM, int(stream['stamps'][499]))
+    machine.add_flap(int(stream['stamps'][499]), stream['flap'][499])
+    machine.on_excitation(Excitation.DONE, int(stream['stamps'][499]) + 2 * 10**9)
+    assert machine.phase == Phase.RECORDING and machine.count == 3
 
     # the final request moves the point to FITTING; the next one can be armed meanwhile
     machine = _machine(auto_start='data')

@@ -1,0 +1,217 @@
+"""
+The identifier node itself, in this process, fed through DDS by a test publisher.
+
+What it proves: test points run in a row without restart through ``~/start_test_point`` and
+``~/abort`` (std_srvs/Trigger; the answers name the test point); the first is identified within
+3σ from exactly its window (the message's window fields are the samples used); a starved
+identifier (its executor not spun while 150 samples arrive; its sensor queues hold 100) loses the
+window's first samples and publishes the test point as STATUS_INCOMPLETE with the channels and
+counts missing, never as converged; two pitch samples not sent in the middle of a window do the
+same for that channel alone; an aborted test point ends with STATUS_ABORTED.
+"""
+
+import math
+import os
+
+import numpy as np
+import pytest
+
+rclpy = pytest.importorskip('rclpy', reason='rclpy not importable')
+msgs = pytest.importorskip('rotor_id_msgs.msg', reason='rotor_id_msgs not built')
+
+from test_test_points import _stream, LENGTH, OMEGA, WAKE, WINDOW  # noqa: E402
+
+BLADES = [f'blade_{k}' for k in range(1, 5)]
+
+
+@pytest.fixture(scope='module')
+def run():
+    """Four test points through one identifier node; return what it published and answered."""
+    from rclpy.executors import SingleThreadedExecutor
+    from rclpy.parameter import Parameter
+    from rclpy.signals import SignalHandlerOptions
+    from rotor_id.nodes.common import joint_state, RESULT_QOS, SENSOR_OFFER_QOS
+    from rotor_id.nodes.identifier import Identifier
+    from rotor_id_msgs.msg import ParameterEstimate
+    from sensor_msgs.msg import JointState
+    from std_srvs.srv import Trigger
+
+    data = _stream(points=4)
+    domain = 201 + os.getpid() % 30
+    os.environ['ROS_AUTOMATIC_DISCOVERY_RANGE'] = 'LOCALHOST'
+    context = rclpy.context.Context()
+    rclpy.init(context=context, domain_id=domain, signal_handler_options=SignalHandlerOptions.NO)
+    params = [Parameter('run_description', value='demo_wake.yaml'),
+              Parameter('auto_start', value='none'), Parameter('sensor_queue_depth', value=100),
+              Parameter('update_every_rad', value=0.0)]
+    node = Identifier(parameter_overrides=params, context=context)
+    test = rclpy.create_node('test_identifier_node', context=context)
+    executor = SingleThreadedExecutor(context=context)
+    executor.add_node(node)
+    executor.add_node(test)
+    pubs = {topic: test.create_publisher(JointState, f'/rotor/{topic}', SENSOR_OFFER_QOS)
+            for topic in ('blade_flap', 'blade_pitch', 'azimuth')}
+    estimates = []
+    test.create_subscription(ParameterEstimate, '/rotor_id/estimate', estimates.append,
+                             RESULT_QOS)
+    clients = {name: test.create_client(Trigger, f'/identifier/{name}')
+               for name in ('start_test_point', 'abort')}
+    out = {'answers': [], 'estimates': estimates, 'data': data}
+
+    def spin_until(condition, timeout=30.0):
+        clock = rclpy.clock.Clock(clock_type=rclpy.clock.ClockType.STEADY_TIME)
+        end = clock.now().nanoseconds + timeout * 1e9
+        while not condition():
+            if clock.now().nanoseconds > end:
+                return False
+            executor.spin_once(timeout_sec=0.01)
+        return True
+
+    def drain():
+        """Spin until the identifier has taken everything delivered (no callback for 3 spins)."""
+        idle = 0
+        while idle < 3:
+            before = node.taken
+            executor.spin_once(timeout_sec=0.002)
+            idle = idle + 1 if node.taken == before else 0
+
+    def call(name):
+        drain()                     # a test point starts at the next flap sample taken
+        future = clients[name].call_async(Trigger.Request())
+        assert spin_until(future.done), f'no answer from ~/{name}'
+        out['answers'].append((name, future.result().success, future.result().message))
+
+    def send(i, topics=('blade_flap', 'blade_pitch', 'azimuth')):
+        stamp = int(data['stamps'][i])
+        for topic in topics:
+            if topic == 'azimuth':
+                msg = joint_state(stamp, ['rotor'], [data['psi'][i]], [OMEGA])
+            else:
+                msg = joint_state(stamp, BLADES, data['flap' if topic == 'blade_flap'
+                                                      else 'pitch'][i])
+            pubs[topic].publish(msg)
+
+    def test_point(k, starve=None, skip_pitch=()):
+        """Send test point k's samples; the identifier spun every 20, except while starved."""
+        for i in range(k * LENGTH, (k + 1) * LENGTH):
+            send(i, ('blade_flap', 'azimuth') if i - k * LENGTH in skip_pitch
+                 else ('blade_flap', 'blade_pitch', 'azimuth'))
+            starved = starve is not None and starve[0] <= i - k * LENGTH < starve[1]
+            if i % 20 == 0 and not starved:
+                drain()
+        return spin_until(lambda: any(m.test_point == k + 1 and m.kind == 1 for m in estimates),
+                          60.0)
+
+    try:
+        assert spin_until(lambda: all(p.get_subscription_count() for p in pubs.values()) and
+                          all(c.service_is_ready() for c in clients.values()))
+        lo = math.ceil(WINDOW[0] * 1000)
+        call('start_test_point')
+        call('start_test_point')                       # refused: one is armed
+        assert test_point(0), 'no final estimate of test point 1'
+        call('start_test_point')
+        assert test_point(1, starve=(lo - 50, lo + 100)), 'no final estimate of test point 2'
+        call('start_test_point')
+        assert test_point(2, skip_pitch=(lo + 60, lo + 61)), 'no final of test point 3'
+        call('start_test_point')
+        for i in range(3 * LENGTH, 3 * LENGTH + 100):
+            send(i)
+            executor.spin_once(timeout_sec=0)
+        call('abort')
+        call('abort')
+        spin_until(lambda: any(m.test_point == 4 for m in estimates), 10.0)
+        out['limits'] = {name: series.capacity for name, series in (
+            ('flap', node.points.flap), ('pitch', node.points.pitch),
+            ('azimuth', node.points.azimuth.series))}
+    finally:
+        node.close()
+        executor.shutdown()
+        node.destroy_node()
+        test.destroy_node()
+        rclpy.try_shutdown(context=context)
+    return out
+
+
+def _final(run, number):
+    finals = [m for m in run['estimates'] if m.test_point == number and m.kind == 1]
+    assert len(finals) == 1, [(m.test_point, m.kind, m.status) for m in run['estimates']]
+    return finals[0]
+
+
+def _ns(t):
+    return t.sec * 1_000_000_000 + t.nanosec
+
+
+def test_services_name_the_test_points(run):
+    answers = run['answers']
+    assert answers[0] == ('start_test_point', True, answers[0][2])
+    assert answers[0][2].startswith('test point 1 armed')
+    assert answers[1][1] is False and 'test point 1 (armed) is in progress' in answers[1][2]
+    assert [a[2].split(' armed')[0] for a in answers[2:5]] == [
+        'test point 2', 'test point 3', 'test point 4']
+    assert answers[5] == ('abort', True, 'test point 4 (aborted: abort requested)')
+    assert answers[6][1] is False and 'no test point in progress' in answers[6][2]
+
+
+def test_first_test_point_converges_from_its_own_window(run):
+    from rotor_id_msgs.msg import ParameterEstimate
+    final = _final(run, 1)
+    assert final.status == ParameterEstimate.STATUS_CONVERGED, final.message
+    stamps = run['data']['stamps']
+    assert _ns(final.test_point_start) == stamps[0]
+    first, last = math.ceil(WINDOW[0] * 1000), math.floor(WINDOW[1] * 1000)
+    assert (_ns(final.window_start), _ns(final.window_end)) == (stamps[first], stamps[last])
+    assert final.window_s == pytest.approx((last - first) / 1000)
+    assert (final.window_requested_start_s, final.window_requested_end_s) == WINDOW
+    assert final.time_base_consistent and list(final.missing_channels) == []
+    for name, value, std in zip(final.names, final.values, final.std):
+        assert abs(value - WAKE[name]) < 3 * std, (name, value, std)
+
+
+def test_a_starved_identifier_never_claims_convergence(run):
+    from rotor_id_msgs.msg import ParameterEstimate
+    final = _final(run, 2)
+    assert final.status == ParameterEstimate.STATUS_INCOMPLETE, final.message
+    assert set(final.missing_channels) == {'flap', 'pitch', 'azimuth'}
+    # spun last at sample 740, next at 920 (every 20th, not in 760..909): the queues of 100
+    # keep samples 821..920, so the window's first samples 810..820 are lost in each channel
+    lost = (920 - 100 + 1) - math.ceil(WINDOW[0] * 1000)
+    assert list(final.missing_samples) == [lost] * 3, final.message
+    assert 'INCOMPLETE' in final.message and 'at the start' in final.message
+    stamps = run['data']['stamps']
+    first = math.ceil(WINDOW[0] * 1000)
+    assert _ns(final.window_start) > stamps[LENGTH + first]       # the samples used
+    assert _ns(final.test_point_start) == stamps[LENGTH]
+
+
+def test_samples_missing_in_one_channel_are_named(run):
+    from rotor_id_msgs.msg import ParameterEstimate
+    final = _final(run, 3)
+    assert final.status == ParameterEstimate.STATUS_INCOMPLETE, final.message
+    assert list(final.missing_channels) == ['pitch'] and list(final.missing_samples) == [2]
+    assert final.time_base_consistent
+
+
+def test_aborted_test_point_is_published_as_aborted(run):
+    from rotor_id_msgs.msg import ParameterEstimate
+    final = _final(run, 4)
+    assert final.status == ParameterEstimate.STATUS_ABORTED
+    assert 'abort requested' in final.message and len(final.values) == 0
+    assert not any(m.status == ParameterEstimate.STATUS_CONVERGED
+                   for m in run['estimates'] if m.test_point in (2, 3, 4))
+
+
+def test_buffers_are_bounded(run):
+    need = (WINDOW[1] - WINDOW[0] + 2 * 3 * math.pi / OMEGA + 1.0) * 1000
+    assert all(capacity <= 4 * need for capacity in run['limits'].values())
+    assert np.all(np.isfinite(list(run['limits'].values())))
+
+
+def test_excitation_phases_are_the_stirring_command_constants():
+    from rotor_id.nodes.test_points import Excitation
+    from rotor_id_msgs.msg import StirringCommand
+    for phase in Excitation:
+        constant = getattr(StirringCommand, f'PHASE_{phase.name}', None)
+        assert constant in (None, phase.value), phase
+    assert all(getattr(StirringCommand, f'PHASE_{p.name}', None) is not None
+               for p in list(Excitation)[:4])
