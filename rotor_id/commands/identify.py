@@ -60,7 +60,8 @@ def progress_printer(label, stream=sys.stderr):
 def load_inputs(bag, config):
     """Run description and record, with the window checked against the record."""
     description = load_run_description(config)
-    record = read_record(bag, description.topics, joint_names=description.joint_names)
+    record = read_record(bag, description.topics, joint_names=description.joint_names,
+                         run=description.run, window_s=description.window_s)
     validate_window(description, record)
     return description, record
 

@@ -15,6 +15,7 @@ counted in ``record.warnings`` and announced once as a :class:`BagWarning`.
 """
 
 from contextlib import suppress
+from dataclasses import dataclass, field
 from pathlib import Path
 import re
 import struct
@@ -26,9 +27,12 @@ from rosbags.rosbag2 import Reader, StoragePlugin, Writer
 from rosbags.typesys import get_types_from_msg, get_typestore, Stores
 from rotor_id.io.errors import BagError, BagWarning
 from rotor_id.io.jointstate_cdr import decode_batch, encode_batch, JOINT_STATE
-from rotor_id.io.mcap_recover import read_indexed_mcap, scan_mcap
+from rotor_id.io.mcap_recover import read_indexed_mcap, scan_mcap, zstd
 from rotor_id.io.record import Record
 from rotor_id.io.run_description import DEFAULT_TOPICS, normalize_joint_names, validate_window
+from rotor_id.io.streams import (
+    interleaved_streams, phase_outliers, spikes, split_runs,
+)
 from rotor_id.io.timebase import interpolate_columns, nondimensional_time, TWO_PI
 import yaml
 
@@ -40,15 +44,28 @@ __all__ = [
 MAX_ANGLE_RAD = 1.0     # |flap| or |pitch| above this: the recording is taken to be in degrees
 GAP_FACTOR = 1.5        # a step longer than this many median sample periods is a gap
 RATE_TOLERANCE = 0.05   # relative disagreement allowed between Ω and the azimuth's rate
+SHARED_STAMP_FRACTION = 0.05  # more samples than this sharing a stamp with other values: 2 sources
+SPEED_SPIKE_FRACTION = 0.05   # a rotor-speed sample this far (relative) from its neighbours: spike
+PHASE_FLOOR_FRACTION = 0.25   # azimuth off its predicted phase by this much of a sample's advance
 STORAGES = {'mcap': StoragePlugin.MCAP, 'sqlite3': StoragePlugin.SQLITE3}
 SUFFIXES = {'.mcap': 'mcap', '.db3': 'sqlite3'}
+COMPRESSION_FORMATS = ('zstd',)    # what rosbag2's file/message compression may use here
+_ZSTD_MAGIC = b'\x28\xb5\x2f\xfd'
 _NS = 1_000_000_000
 
 
 # --------------------------------------------------------------------------- locating the bag
 
 def _resolve(bag_path):
-    """Return (path to open with rosbags, storage id, storage file, expected message counts)."""
+    """
+    Locate the bag.
+
+    Returns
+    -------
+    (path to open with rosbags, storage id, storage file, expected message counts, metadata
+    facts: 'compression' (mode, format) and 'publishers' topic -> number of publishers).
+
+    """
     path = Path(bag_path)
     if not path.exists():
         raise BagError(f'bag {path} does not exist; give a bag directory (with metadata.yaml) '
@@ -70,7 +87,16 @@ def _resolve(bag_path):
                        f'.mcap / .db3 file, got suffix {path.suffix!r}')
     if path.stat().st_size == 0:
         raise BagError(f'bag file {path} is empty (0 bytes); the recording wrote nothing')
-    return path, SUFFIXES[path.suffix], path, {}
+    return path, SUFFIXES[path.suffix], path, {}, {}
+
+
+def _publisher_count(topic_metadata):
+    """Count the publishers the recorder saw on a topic (one offered QoS profile each)."""
+    profiles = topic_metadata.get('offered_qos_profiles') or []
+    if isinstance(profiles, str):           # metadata versions before 9 hold a YAML string
+        with suppress(yaml.YAMLError):
+            profiles = yaml.safe_load(profiles) or []
+    return len(profiles) if isinstance(profiles, list) else 0
 
 
 def _resolve_metadata(directory):
@@ -79,14 +105,25 @@ def _resolve_metadata(directory):
         info = yaml.safe_load(meta_path.read_text(encoding='utf-8'))['rosbag2_bagfile_information']
         storage = info['storage_identifier']
         files = [directory / Path(name).name for name in info['relative_file_paths']]
-        counts = {t['topic_metadata']['name']: int(t['message_count'])
-                  for t in info.get('topics_with_message_count') or []}
+        listed = info.get('topics_with_message_count') or []
+        counts = {t['topic_metadata']['name']: int(t['message_count']) for t in listed}
+        facts = {
+            'compression': (str(info.get('compression_mode') or '').lower(),
+                            str(info.get('compression_format') or '').lower()),
+            'publishers': {t['topic_metadata']['name']: _publisher_count(t['topic_metadata'])
+                           for t in listed},
+        }
     except (OSError, UnicodeDecodeError, yaml.YAMLError, KeyError, TypeError, ValueError) as err:
         raise BagError(f'{meta_path} is not rosbag2 metadata ({type(err).__name__}: {err}); '
                        'repair it, or give the .mcap / .db3 file instead of the directory') \
             from None
     if storage not in STORAGES:
         raise BagError(f'{meta_path}: storage {storage!r} is not supported; use mcap or sqlite3')
+    mode, fmt = facts['compression']
+    if mode and mode != 'none' and fmt not in COMPRESSION_FORMATS:
+        raise BagError(f'{meta_path}: rosbag2 {mode}-level compression with format {fmt!r} is '
+                       f'not supported (only {", ".join(COMPRESSION_FORMATS)}); decompress the '
+                       'bag first, e.g. ros2 bag convert with an output without compression')
     missing = [str(f) for f in files if not f.is_file()]
     if missing or len(files) != 1:
         raise BagError(f'{meta_path} lists storage files {[f.name for f in files]}; '
@@ -94,7 +131,7 @@ def _resolve_metadata(directory):
                        'the directory holding the file(s) listed in metadata.yaml')
     if files[0].stat().st_size == 0:
         raise BagError(f'bag file {files[0]} is empty (0 bytes); the recording wrote nothing')
-    return directory, storage, files[0], counts
+    return directory, storage, files[0], counts, facts
 
 
 # -------------------------------------------------------------------------- raw messages
@@ -212,17 +249,58 @@ def _check_topics(raw, wanted, storage_file, omega_rad_s):
 
 # --------------------------------------------------------------------------- cleaning
 
-def _topic_samples(raw, topic, role, issues, with_velocity):
+@dataclass
+class _Context:
+    """What one read of a bag collects while it cleans the topics."""
+
+    raw: _Raw
+    issues: list
+    run: object = None                  # 1-based run asked for, or None
+    publishers: dict = field(default_factory=dict)
+    several_runs: bool = False
+    faults: list = field(default_factory=list)   # (stamp_ns, message): judged by the window
+    origin_ns: object = None            # first flap stamp, for times in messages
+
+    def when(self, stamp_ns):
+        """Format a stamp as seconds of record time (after the first flap stamp)."""
+        if self.origin_ns is None:
+            return f'stamp {stamp_ns / _NS:.6f} s'
+        return f'{(stamp_ns - self.origin_ns) / _NS:.4f} s'
+
+    def message(self, topic, index):
+        """'message i of n, received x s into the bag' of a topic's message number."""
+        log = self.raw.log_ns.get(topic)
+        n = len(self.raw.data.get(topic, ()))
+        text = f'message {index + 1} of {n}'
+        if log is not None and len(log) > index:
+            starts = [int(v[0]) for v in self.raw.log_ns.values() if len(v)]
+            text += f', received {(int(log[index]) - min(starts)) / _NS:.3f} s into the bag'
+        return text
+
+
+@dataclass
+class _Samples:
+    """One topic's cleaned samples, sorted by stamp."""
+
+    stamps: np.ndarray
+    names: tuple
+    position: np.ndarray
+    velocity: object             # (n, k) or None
+    message: np.ndarray          # message number of each sample, in recording order
+
+
+def _topic_samples(ctx, topic, role, with_velocity):
     """
-    Decode, then drop bad samples, sort and de-duplicate one topic.
+    Decode one topic, drop what cannot be used, select the run, sort and check the stream.
 
     Returns
     -------
-    (stamps_ns (n,), names, position (n, k), velocity (n, k)).
+    _Samples.
 
     """
+    raw, issues = ctx.raw, ctx.issues
     messages = raw.data.get(topic, [])
-    if not messages:
+    if not len(messages):
         raise BagError(f'topic {topic} ({role}) has no messages in the bag: the recording is '
                        'empty; record the test again')
     batch = decode_batch(messages)
@@ -230,8 +308,10 @@ def _topic_samples(raw, topic, role, issues, with_velocity):
         issues.append(f'{topic}: dropped {count} message(s): {reason}')
     if not len(batch.stamps_ns):
         raise BagError(f'topic {topic} ({role}): none of its {len(messages)} messages could be '
-                       'decoded as JointState; the bag is corrupt')
+                       'decoded as sensor_msgs/msg/JointState (CDR); the messages are damaged '
+                       'or were written as another type under this topic name')
     stamps, position, velocity = batch.stamps_ns, batch.position, batch.velocity
+    sent, message = batch.velocity_sent, batch.kept
     unfilled = stamps == 0
     if np.count_nonzero(unfilled) > len(stamps) // 2:
         issues.append(f'{topic}: header.stamp is not filled (zero); the receive time is used '
@@ -240,32 +320,153 @@ def _topic_samples(raw, topic, role, issues, with_velocity):
     elif unfilled.any():
         issues.append(f'{topic}: dropped {np.count_nonzero(unfilled)} sample(s) whose '
                       'header.stamp is not filled (zero)')
-        stamps, position, velocity = (a[~unfilled] for a in (stamps, position, velocity))
-    if with_velocity and np.isnan(velocity).all():
-        with_velocity = False
-    values = np.hstack([position, velocity]) if with_velocity else position
-    finite = np.isfinite(values).all(axis=1)
+        keep = ~unfilled
+        stamps, position, velocity, sent, message = (
+            a[keep] for a in (stamps, position, velocity, sent, message))
+    finite = np.isfinite(position).all(axis=1)
     if not finite.all():
-        issues.append(f'{topic}: dropped {np.count_nonzero(~finite)} sample(s) with NaN/inf '
-                      'values')
-        stamps, position, velocity = stamps[finite], position[finite], velocity[finite]
+        issues.append(f'{topic}: dropped {np.count_nonzero(~finite)} sample(s) whose position '
+                      'is NaN/inf')
+        stamps, position, velocity, sent, message = (
+            a[finite] for a in (stamps, position, velocity, sent, message))
     if not len(stamps):
-        raise BagError(f'topic {topic} ({role}): every sample is NaN or inf; check the sensor')
+        raise BagError(f'topic {topic} ({role}): the position of every sample is NaN or inf; '
+                       'check the sensor')
+    if with_velocity:
+        usable = sent & np.isfinite(velocity).all(axis=1)
+        if not usable.any():
+            with_velocity = False
+        else:
+            if not sent.all():
+                issues.append(f'{topic}: {np.count_nonzero(~sent)} message(s) carry no velocity '
+                              '(rotor speed); it is interpolated there from the neighbouring '
+                              'samples')
+            if (sent & ~usable).any():
+                issues.append(f'{topic}: {np.count_nonzero(sent & ~usable)} sample(s) have a '
+                              'NaN/inf velocity (rotor speed); it is interpolated there from '
+                              'the neighbouring samples')
+            velocity = np.where(usable[:, None], velocity, np.nan)
+    stamps, position, velocity, message = _select_run(
+        ctx, topic, role, stamps, position, velocity, message)
     backwards = np.count_nonzero(np.diff(stamps) < 0)
     if backwards:
         order = np.argsort(stamps, kind='stable')
-        stamps, position, velocity = stamps[order], position[order], velocity[order]
+        stamps, position, velocity, message = (a[order] for a in
+                                               (stamps, position, velocity, message))
         issues.append(f'{topic}: {backwards} stamp(s) out of order; samples sorted by '
                       'header.stamp')
+    stamps, position, velocity, message = _repeated_stamps(
+        ctx, topic, role, stamps, position, velocity, message)
+    _check_one_stream(ctx, topic, role, stamps, position)
+    if with_velocity:
+        missing = np.isnan(velocity).any(axis=1)
+        if missing.all():
+            with_velocity = False
+        elif missing.any():
+            for column in range(velocity.shape[1]):
+                velocity[missing, column] = np.interp(stamps[missing], stamps[~missing],
+                                                      velocity[~missing, column])
+    return _Samples(stamps, batch.names, position, velocity if with_velocity else None, message)
+
+
+def _select_run(ctx, topic, role, stamps, position, velocity, message):
+    """Drop clock glitches; with several runs (clock resets), keep the one asked for."""
+    split = split_runs(stamps)
+    keep = split.labels >= 0
+    glitches = split.glitches()
+    if glitches.size:
+        first = int(glitches[0])
+        neighbour = int(np.flatnonzero(keep)[np.searchsorted(np.flatnonzero(keep), first) - 1]) \
+            if first > 0 and keep[:first].any() else int(np.flatnonzero(keep)[0])
+        off = (int(stamps[first]) - int(stamps[neighbour])) / _NS
+        ctx.issues.append(
+            f'{topic}: dropped {glitches.size} sample(s) whose header.stamp jumps away from its '
+            f'neighbours and back (a clock glitch), the first at '
+            f'{ctx.message(topic, message[first])} with its stamp {off:+.6g} s off')
+    if split.n_runs > 1:
+        ctx.several_runs = True
+        if ctx.run is None:
+            raise BagError(_runs_message(ctx, topic, role, split, stamps, message))
+        if ctx.run > split.n_runs:
+            raise BagError(f'{topic} ({role}): run {ctx.run} asked for, but the topic holds '
+                           f'{split.n_runs} runs; choose run 1..{split.n_runs}')
+        keep &= split.labels == ctx.run - 1
+    if keep.all():
+        return stamps, position, velocity, message
+    return stamps[keep], position[keep], velocity[keep], message[keep]
+
+
+def _runs_message(ctx, topic, role, split, stamps, message):
+    """One line: where the runs of a topic are, and how to choose one."""
+    reference = int(stamps[split.labels == 0].min())
+    runs = []
+    for run in range(split.n_runs):
+        own = stamps[split.labels == run]
+        runs.append(f'run {run + 1}: {own.size} samples, stamps '
+                    f'{(own.min() - reference) / _NS:+.3f} to '
+                    f'{(own.max() - reference) / _NS:+.3f} s')
+    jump = int(split.jumps[0])
+    real = np.flatnonzero(split.labels[:jump] >= 0)
+    step = (int(stamps[jump]) - int(stamps[real[-1]])) / _NS if real.size else 0.0
+    where = ctx.message(topic, message[jump])
+    if split.interleaved():
+        cause = (f'the stamps switch between {split.n_runs} clocks {split.jumps.size} times, the '
+                 f'first at {where} (several publishers with different clocks on one topic)')
+    else:
+        cause = (f'the stamps jump {"back" if step < 0 else "forward"} {abs(step):.6g} s at '
+                 f'{where} and continue from there (a clock reset: {split.n_runs} runs in one '
+                 'bag)')
+    return (f'{topic} ({role}): {cause}; {"; ".join(runs)} (stamps relative to the first of '
+            'run 1). Sorted by stamp they would merge: choose one with `run: K` in the run '
+            f'description (K = 1..{split.n_runs} in recording order; window_s then counts from '
+            'the first flap stamp of that run)')
+
+
+def _repeated_stamps(ctx, topic, role, stamps, position, velocity, message):
+    """Drop repeated stamps; refuse when a second publisher stamps the same instants."""
     repeated = np.concatenate([[False], np.diff(stamps) == 0])
-    if repeated.any():
-        keep = ~repeated
-        stamps, position, velocity = stamps[keep], position[keep], velocity[keep]
-        issues.append(f'{topic}: dropped {np.count_nonzero(repeated)} sample(s) with a repeated '
-                      'stamp (the first of each is kept)')
-    if not with_velocity:
-        velocity = None
-    return stamps, batch.names, position, velocity
+    if not repeated.any():
+        return stamps, position, velocity, message
+    differ = repeated & np.any(position != np.roll(position, 1, axis=0), axis=1)
+    largest = float(np.max(np.abs(position - np.roll(position, 1, axis=0))[differ])) \
+        if differ.any() else 0.0
+    count = np.count_nonzero(repeated)
+    if np.count_nonzero(differ) > SHARED_STAMP_FRACTION * len(stamps):
+        raise BagError(
+            f'{topic} ({role}): {count} of {len(stamps)} stamps come twice with different '
+            f'values (up to {largest:.4g} apart): two publishers stamp the same instants on '
+            f'this topic{_publishers_note(ctx, topic)}. Record one publisher per topic (remap '
+            f'the other to its own topic) and set topics.{role}')
+    keep = ~repeated
+    what = (f'; their values differ by up to {largest:.4g}' if differ.any()
+            else ' (exact duplicates)')
+    ctx.issues.append(f'{topic}: dropped {count} sample(s) with a repeated stamp{what}; the '
+                      'first of each is kept')
+    return stamps[keep], position[keep], velocity[keep], message[keep]
+
+
+def _publishers_note(ctx, topic):
+    count = ctx.publishers.get(topic, 0)
+    return f' (metadata.yaml lists {count} publishers on it)' if count > 1 else ''
+
+
+def _check_one_stream(ctx, topic, role, stamps, position):
+    """Refuse a topic whose samples are two streams merged (see :mod:`.streams`)."""
+    values = np.unwrap(position, axis=0) if role == 'azimuth' else position
+    evidence = interleaved_streams(stamps, values)
+    if evidence is None:
+        if ctx.publishers.get(topic, 0) > 1:
+            ctx.issues.append(
+                f'{topic}: metadata.yaml lists {ctx.publishers[topic]} publishers on this topic; '
+                'the samples show no sign of two interleaved streams (e.g. a restarted node)')
+        return
+    rate = (len(stamps) - 1) * _NS / max(int(stamps[-1] - stamps[0]), 1)   # mean rate
+    raise BagError(
+        f'{topic} ({role}): the samples are two streams merged, not one sensor: '
+        f'{evidence.describe()}, in {len(stamps)} samples at {rate:.4g} Hz'
+        f'{_publishers_note(ctx, topic)}. Several publishers on one topic cannot be told apart '
+        f'message by message: record one publisher per topic (remap the other, e.g. to '
+        f'{topic}_raw) and set topics.{role}')
 
 
 def _blade_columns(names, topic, role, joint_names):
@@ -316,7 +517,8 @@ def _gaps(stamps_ns, omega, topic, issues, what):
 
 # --------------------------------------------------------------------------- reading
 
-def read_record(bag_path, topics=None, joint_names=None, *, n_blades=None, omega_rad_s=None):
+def read_record(bag_path, topics=None, joint_names=None, *, n_blades=None, omega_rad_s=None,
+                run=None, window_s=None):
     """
     Read a test-stand recording into a Record on the flap stamps.
 
@@ -338,15 +540,25 @@ def read_record(bag_path, topics=None, joint_names=None, *, n_blades=None, omega
     omega_rad_s
         Rotor speed, rad/s, used when no azimuth topic is given or the bag has
         none (then t = Ω·time from 0, with a warning).
+    run
+        1-based run to read when the bag holds several (the stamps jump back: a clock
+        reset, or publishers with different clocks), in recording order; None: the bag
+        must hold one run.
+    window_s
+        (t0, t1) seconds after the first flap stamp that will be analysed, or None. A fault
+        that cannot be repaired (an azimuth slip) is an error inside it (or with no window)
+        and a warning outside it.
 
     Returns
     -------
-    Record. Its ``warnings`` list every repair (also announced once as a BagWarning).
+    Record. Its ``warnings`` list every repair, once each (also announced once as a
+    BagWarning).
 
     Raises
     ------
     BagError
-        The bag cannot be read or does not follow the convention.
+        The bag cannot be read, does not follow the convention, or holds several runs or
+        streams on one topic that must be told apart.
 
     """
     topics = {**DEFAULT_TOPICS, **(topics or {})}
@@ -355,34 +567,61 @@ def read_record(bag_path, topics=None, joint_names=None, *, n_blades=None, omega
             joint_names = normalize_joint_names(joint_names, n_blades)
         except ValueError as err:
             raise BagError(f'joint_names: {err}') from None
-    open_path, storage, storage_file, counts = _resolve(bag_path)
+    if run is not None and (isinstance(run, bool) or not isinstance(run, (int, np.integer))
+                            or run < 1):
+        raise BagError(f'run must be a positive integer (1 = the first run), got {run!r}')
+    open_path, storage, storage_file, counts, facts = _resolve(bag_path)
     wanted = {role: topic for role, topic in topics.items() if topic}
     if 'azimuth' not in wanted and omega_rad_s is None:
         raise BagError('no azimuth topic given: pass omega_rad_s (the rotor speed) so that the '
                        'nondimensional time can be formed')
     raw = _read_raw(open_path, storage, storage_file, wanted, omega_rad_s)
-    issues = list(raw.notes)
+    _decompress_messages(raw)
+    ctx = _Context(raw=raw, issues=list(raw.notes), run=run,
+                   publishers=facts.get('publishers', {}))
     for topic, expected in counts.items():
         got = len(raw.data.get(topic, []))
         if topic in raw.data and got < expected:
-            issues.append(f'{topic}: {got} of the {expected} messages listed in metadata.yaml '
-                          'were read')
+            ctx.issues.append(f'{topic}: {got} of the {expected} messages listed in '
+                              'metadata.yaml were read')
 
-    record = _assemble(raw, wanted, joint_names, n_blades, omega_rad_s, issues)
+    record = _assemble(ctx, wanted, joint_names, n_blades, omega_rad_s, window_s)
     record.source = (f'{storage_file} ({storage}; flap {wanted["blade_flap"]}, pitch '
-                     f'{wanted["blade_pitch"]}, azimuth {wanted.get("azimuth")})')
-    if issues:
-        warnings.warn(f'{storage_file}: ' + '; '.join(issues), BagWarning, stacklevel=2)
+                     f'{wanted["blade_pitch"]}, azimuth {wanted.get("azimuth")}'
+                     + (f', run {run}' if run is not None else '') + ')')
+    if record.warnings:
+        warnings.warn(f'{storage_file}: ' + '; '.join(record.warnings), BagWarning,
+                      stacklevel=2)
     return record
 
 
-def _assemble(raw, wanted, joint_names, n_blades, omega_rad_s, issues):
+def _decompress_messages(raw):
+    """Decompress messages written with rosbag2's per-message compression (zstd frames)."""
+    for topic, messages in raw.data.items():
+        if not len(messages) or bytes(messages[0][:4]) != _ZSTD_MAGIC:
+            continue
+        out = []
+        for number, message in enumerate(messages):
+            try:
+                out.append(zstd.decompress(bytes(message)))
+            except zstd.ZstdError as err:
+                raise BagError(f'{topic}: message {number + 1} is compressed per message '
+                               f'(rosbag2 compression_mode: message, zstd) but does not '
+                               f'decompress ({err}); the file is damaged at that message') \
+                    from None
+        raw.data[topic] = out
+
+
+def _assemble(ctx, wanted, joint_names, n_blades, omega_rad_s, window_s):
+    issues = ctx.issues
     flap_topic, pitch_topic = wanted['blade_flap'], wanted['blade_pitch']
-    flap_ns, flap_names, flap, _ = _topic_samples(raw, flap_topic, 'blade_flap', issues, False)
-    pitch_ns, pitch_names, pitch, _ = _topic_samples(raw, pitch_topic, 'blade_pitch', issues,
-                                                     False)
-    flap_cols, blade_names = _blade_columns(flap_names, flap_topic, 'blade_flap', joint_names)
-    pitch_cols, _ = _blade_columns(pitch_names, pitch_topic, 'blade_pitch', joint_names)
+    flap_s = _topic_samples(ctx, flap_topic, 'blade_flap', False)
+    ctx.origin_ns = int(flap_s.stamps[0])
+    pitch_s = _topic_samples(ctx, pitch_topic, 'blade_pitch', False)
+    flap_ns, flap, pitch_ns, pitch = flap_s.stamps, flap_s.position, pitch_s.stamps, \
+        pitch_s.position
+    flap_cols, blade_names = _blade_columns(flap_s.names, flap_topic, 'blade_flap', joint_names)
+    pitch_cols, _ = _blade_columns(pitch_s.names, pitch_topic, 'blade_pitch', joint_names)
     if len(flap_cols) != len(pitch_cols):
         raise BagError(f'{flap_topic} has {len(flap_cols)} blades but {pitch_topic} has '
                        f'{len(pitch_cols)}; both must carry every blade')
@@ -395,8 +634,11 @@ def _assemble(raw, wanted, joint_names, n_blades, omega_rad_s, issues):
 
     spans = [pitch_ns]
     if 'azimuth' in wanted:
-        az_ns, psi_u, omega = _azimuth(raw, wanted['azimuth'], issues)
+        az_ns, psi_u, omega = _azimuth(ctx, wanted['azimuth'])
         spans.append(az_ns)
+    if ctx.run is not None and ctx.run > 1 and not ctx.several_runs:
+        raise BagError(f'run {ctx.run} asked for, but the bag holds one run (the stamps of '
+                       f'{", ".join(wanted.values())} never jump back); remove run')
     # Flap samples outside the span of the other channels cannot be interpolated: drop them.
     inside = (flap_ns >= max(s[0] for s in spans)) & (flap_ns <= min(s[-1] for s in spans))
     if not inside.any():
@@ -423,38 +665,92 @@ def _assemble(raw, wanted, joint_names, n_blades, omega_rad_s, issues):
         issues.append('no azimuth topic: t = Ω·time from 0, blade-1 azimuth at the first stamp '
                       'taken as 0')
     omega_mean = float(np.mean(speed))
+    _judge_faults(ctx, stamp0, window_s, omega_mean)
+    _check_increasing(ctx, t, time_s, wanted.get('azimuth'), window_s)
     _gaps(flap_ns, omega_mean, flap_topic, issues, 'flap samples there are missing')
     _gaps(pitch_ns, omega_mean, pitch_topic, issues, 'pitch is interpolated across')
     if 'azimuth' in wanted:
         _gaps(az_ns, omega_mean, wanted['azimuth'], issues, 'azimuth is interpolated across')
     return Record(time_s=time_s, t=t, rotor_speed_rad_s=speed, blade_flap=flap,
-                  blade_pitch=pitch, blade_names=blade_names, warnings=list(issues),
-                  stamp0_ns=stamp0, flap_joints=flap_names, pitch_joints=pitch_names)
+                  blade_pitch=pitch, blade_names=blade_names,
+                  warnings=list(dict.fromkeys(issues)), stamp0_ns=stamp0,
+                  flap_joints=flap_s.names, pitch_joints=pitch_s.names)
 
 
-def _azimuth(raw, topic, issues):
-    """Return (stamps_ns, unwrapped ψ of blade 1, Ω) of the azimuth topic."""
-    stamps, names, position, velocity = _topic_samples(raw, topic, 'azimuth', issues, True)
+def _in_window(time_s, window_s, margin_s):
+    return window_s is None or window_s[0] - margin_s <= time_s <= window_s[1] + margin_s
+
+
+def _judge_faults(ctx, stamp0, window_s, omega_mean):
+    """Faults that cannot be repaired: an error in (or near) the window, a warning outside."""
+    margin = 2 * TWO_PI / omega_mean      # identification uses a revolution either side
+    for stamp, text in ctx.faults:
+        at = (stamp - stamp0) / _NS
+        if _in_window(at, window_s, margin):
+            raise BagError(f'{text}; choose window_s clear of {at:.4f} s'
+                           + (' (the record is read without a window)' if window_s is None
+                              else f' (window_s is [{window_s[0]}, {window_s[1]}] s)'))
+        ctx.issues.append(f'{text} (outside window_s, not used)')
+
+
+def _check_increasing(ctx, t, time_s, azimuth_topic, window_s):
+    """
+    Check that the nondimensional time increases; say where it does not.
+
+    In (or near) the window, or without a window, that is an error; outside it a warning.
+    """
+    back = np.flatnonzero(np.diff(t) <= 0)
+    if not back.size:
+        return
+    margin = 2 * TWO_PI / max(float(np.median(np.diff(t) / np.diff(time_s))), 1e-9)
+    inside = [i for i in back if window_s is None
+              or (time_s[i + 1] >= window_s[0] - margin and time_s[i] <= window_s[1] + margin)]
+    i = int(inside[0] if inside else back[0])
+    text = (f'{azimuth_topic or "rotor speed"}: the rotor azimuth goes back by '
+            f'{t[i] - t[i + 1]:.4g} rad between {time_s[i]:.4f} and {time_s[i + 1]:.4f} s '
+            f'(record time), in {back.size} place(s): the nondimensional time t = azimuth must '
+            'increase')
+    if inside:
+        raise BagError(f'{text}; check the azimuth sensor there, or choose window_s (and run) '
+                       'to avoid it')
+    ctx.issues.append(f'{text} (outside window_s, not used)')
+
+
+def _azimuth(ctx, topic):
+    """Return (stamps_ns, unwrapped ψ of blade 1, Ω) of the azimuth topic, glitches repaired."""
+    issues = ctx.issues
+    samples = _topic_samples(ctx, topic, 'azimuth', True)
+    stamps, names, position, velocity = (samples.stamps, samples.names, samples.position,
+                                         samples.velocity)
     if len(names) != 1:
         if 'rotor' not in names:
             raise BagError(f'{topic}: expected one joint named rotor, got {list(names)}')
         column = names.index('rotor')
-        position = position[:, column]
-        velocity = None if velocity is None else velocity[:, column]
     else:
-        position = position[:, 0]
-        velocity = None if velocity is None else velocity[:, 0]
+        column = 0
+    position = position[:, column]
+    velocity = None if velocity is None else velocity[:, column].copy()
     time_s = (stamps - stamps[0]) / _NS
     if velocity is None:
         issues.append(f'{topic}: no velocity (rotor speed); Ω is taken from the azimuth rate')
         if len(stamps) < 2:
             raise BagError(f'{topic}: one sample and no velocity: the rotor speed is unknown')
-        velocity = np.gradient(np.unwrap(position), time_s)
-    if not (velocity > 0).all():
-        bad = velocity[~(velocity > 0)]
+        steps = np.diff(np.unwrap(position))
+        rate = np.full(len(stamps), float(np.median(steps / np.diff(time_s))))
+    else:
+        _repair_speed_spikes(ctx, topic, stamps, velocity)
+        rate = velocity
+    if not (rate > 0).all():
+        bad = rate[~(rate > 0)]
         raise BagError(f'{topic}: the rotor speed (velocity) is zero or negative in {len(bad)} '
-                       f'sample(s), down to {bad.min():.4g} rad/s; t = ψ needs a turning rotor '
-                       'in the positive sense: cut the recording to where the rotor turns')
+                       f'sample(s), down to {bad.min():.4g} rad/s, the first at '
+                       f'{ctx.when(int(stamps[np.argmax(~(rate > 0))]))}; t = ψ needs a turning '
+                       'rotor in the positive sense: cut the recording to where the rotor turns')
+    stamps, position, rate, time_s = _repair_phase(ctx, topic, stamps, position, rate, time_s)
+    if velocity is None:
+        velocity = np.gradient(np.unwrap(position), time_s) if len(stamps) > 1 else rate
+    else:
+        velocity = rate
     psi_u = nondimensional_time(time_s, position, velocity)
     if len(stamps) > 1 and time_s[-1] > 0:
         rate = (psi_u[-1] - psi_u[0]) / time_s[-1]
@@ -467,6 +763,52 @@ def _azimuth(raw, topic, issues):
     return stamps, psi_u, velocity
 
 
+def _repair_speed_spikes(ctx, topic, stamps, velocity):
+    """Replace isolated rotor-speed samples far from their neighbours (in place)."""
+    typical = float(np.median(np.abs(velocity)))
+    spiky = spikes(velocity, SPEED_SPIKE_FRACTION * typical)
+    if not spiky.size:
+        return
+    good = np.ones(len(velocity), dtype=bool)
+    good[spiky] = False
+    smooth = np.interp(stamps[spiky], stamps[good], velocity[good])
+    worst = int(np.argmax(np.abs(velocity[spiky] - smooth)))
+    ctx.issues.append(
+        f'{topic}: {spiky.size} rotor-speed (velocity) sample(s) jump away from their '
+        f'neighbours and back (e.g. {velocity[spiky][worst]:.4g} rad/s among '
+        f'{smooth[worst]:.4g} at {ctx.when(int(stamps[spiky][worst]))}); replaced by '
+        'interpolation')
+    velocity[spiky] = smooth
+
+
+def _repair_phase(ctx, topic, stamps, position, rate, time_s):
+    """Drop azimuth samples off the phase the rotor speed predicts; record lasting slips."""
+    if len(stamps) < 3:
+        return stamps, position, rate, time_s
+    predicted = 0.5 * (rate[1:] + rate[:-1]) * np.diff(time_s)
+    residual = np.mod(np.diff(position) - predicted + np.pi, TWO_PI) - np.pi
+    found = phase_outliers(residual, PHASE_FLOOR_FRACTION * float(np.median(predicted)))
+    for index, size in found.slips:
+        ctx.faults.append((int(stamps[index]), (
+            f'{topic}: the azimuth steps {size:+.4g} rad ({np.degrees(size):+.3g} deg) off the '
+            f'phase the rotor speed predicts at {ctx.when(int(stamps[index]))} and stays there '
+            '(an encoder slip or a wrong index pulse): the time base is wrong across it')))
+    bad = found.repaired
+    if not bad.size:
+        return stamps, position, rate, time_s
+    good = np.ones(len(stamps), dtype=bool)
+    good[bad] = False
+    expected = np.interp(stamps[bad], stamps[good], np.unwrap(position[good]))
+    off = np.mod(position[bad] - expected + np.pi, TWO_PI) - np.pi
+    worst = int(np.argmax(np.abs(off)))
+    ctx.issues.append(
+        f'{topic}: dropped {bad.size} azimuth sample(s) off the phase the rotor speed predicts '
+        f'(e.g. {position[bad][worst]:.4g} rad at {ctx.when(int(stamps[bad][worst]))}, '
+        f'{off[worst]:+.3g} rad off, threshold {found.threshold:.3g} rad); the azimuth is '
+        'interpolated across them')
+    return stamps[good], position[good], rate[good], time_s[good]
+
+
 def read_run(description, bag_path=None):
     """
     Read the bag of a run description, and check its window against the record.
@@ -474,7 +816,7 @@ def read_run(description, bag_path=None):
     Parameters
     ----------
     description
-        RunDescription.
+        RunDescription (its ``run``, if any, selects one of several runs in the bag).
     bag_path
         The bag; default NAME/ beside the description's NAME.yaml.
 
@@ -492,7 +834,8 @@ def read_run(description, bag_path=None):
     """
     bag_path = description.bag_path() if bag_path is None else bag_path
     record = read_record(bag_path, description.topics, description.joint_names,
-                         n_blades=description.rotor.blades)
+                         n_blades=description.rotor.blades,
+                         run=getattr(description, 'run', None), window_s=description.window_s)
     validate_window(description, record)
     return record
 

@@ -82,6 +82,8 @@ class JointStateBatch:
         (n, k) float64.
     velocity
         (n, k) float64, NaN where a message had no velocity.
+    velocity_sent
+        (n,) bool, True where the message carried a velocity array.
     dropped
         Reason -> number of messages that could not be decoded or did not match
         ``names``.
@@ -96,6 +98,7 @@ class JointStateBatch:
     velocity: np.ndarray
     dropped: dict
     kept: np.ndarray
+    velocity_sent: np.ndarray = None
 
 
 def _align(pos, alignment):
@@ -240,6 +243,7 @@ def decode_batch(raws):
         lengths = np.fromiter((len(r) for r in raws), dtype=np.int64, count=n)
     stamps = np.zeros(n, dtype=np.int64)
     ok = np.zeros(n, dtype=bool)
+    sent = np.zeros(n, dtype=bool)
     dropped = {}
     names = None
     position = velocity = None
@@ -272,6 +276,7 @@ def decode_batch(raws):
         position[index] = _values(rows, layout, 'position')[:, order]
         if nvel:
             velocity[index] = _values(rows, layout, 'velocity')[:, order]
+            sent[index] = True
         stamps[index] = _stamps(rows, layout.little)
         ok[index] = True
 
@@ -302,7 +307,8 @@ def decode_batch(raws):
     kept = np.flatnonzero(ok)
     if names is None:
         names, position, velocity = (), np.empty((0, 0)), np.empty((0, 0))
-    return JointStateBatch(stamps[kept], names, position[kept], velocity[kept], dropped, kept)
+    return JointStateBatch(stamps[kept], names, position[kept], velocity[kept], dropped, kept,
+                           sent[kept])
 
 
 def _encode_template(frame_id, names, counts, little=True):

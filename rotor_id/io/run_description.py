@@ -61,7 +61,7 @@ ROTOR_KEYS = ('blades', 'advance_ratio', 'flap_frequency', 'tip_loss')
 TOP_LEVEL_KEYS = (
     'rotor', 'topics', 'model', 'unknowns', 'window_s', 'joint_names', 'known',
     'initial_guess', 'initial_state', 'noise_std_rad', 'method', 'measurement', 'lock_number',
-    'conditions',
+    'conditions', 'run',
 )
 BLADE_JOINT_ROLES = ('blade_pitch', 'blade_flap')
 
@@ -106,7 +106,10 @@ class RunDescription:
     unknowns
         Parameters to identify, in the file's order.
     window_s
-        (t0, t1), seconds after the first flap stamp.
+        (t0, t1), seconds after the first flap stamp (of the chosen run).
+    run
+        Which run of a bag holding several (its stamps jump back: a clock reset), 1-based
+        in recording order; None when the bag holds one.
     joint_names
         None, or role ('blade_pitch', 'blade_flap') -> tuple of joint names in
         blade order.
@@ -140,6 +143,7 @@ class RunDescription:
     model: str
     unknowns: tuple
     window_s: tuple
+    run: object = None
     joint_names: object = None
     known: dict = field(default_factory=dict)
     initial_guess: dict = field(default_factory=dict)
@@ -475,6 +479,8 @@ def _validate(parser):
                     'window_s')
 
     options = {}
+    if 'run' in data:
+        options['run'] = parser.number(data['run'], 'run', integer=True, minimum=1)
     if 'joint_names' in data:
         try:
             options['joint_names'] = normalize_joint_names(data['joint_names'], spec.blades)

@@ -335,8 +335,8 @@ def test_nan_and_inf_samples_are_dropped_and_counted(tmp_path):
     with pytest.warns(BagWarning, match='NaN/inf'):
         got = read_record(write_streams(tmp_path / 'bag', streams))
     assert len(got) == 296
-    assert f'{FLAP}: dropped 4 sample(s) with NaN/inf values' in got.warnings
-    assert f'{PITCH}: dropped 1 sample(s) with NaN/inf values' in got.warnings
+    assert f'{FLAP}: dropped 4 sample(s) whose position is NaN/inf' in got.warnings
+    assert f'{PITCH}: dropped 1 sample(s) whose position is NaN/inf' in got.warnings
     # the pitch sample is interpolated from its neighbours
     i = int(np.flatnonzero(got.time_s == record.time_s[50])[0])
     assert got.blade_pitch[i, 0] == pytest.approx(

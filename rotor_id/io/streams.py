@@ -1,0 +1,383 @@
+"""
+Faults of one sampled stream as a test stand produces them (no ROS).
+
+A topic's samples, in the order they were recorded, should carry increasing stamps from one
+clock, one publisher, and (for the azimuth) a phase that follows the rotor speed. What goes
+wrong on a rig, and how each is told from the others:
+
+* clock reset / second run: the stamps jump back by far more than transport reordering
+  (``RESET_PERIODS`` sample periods) and continue from there: two runs, the second overlapping or
+  preceding the first in stamp time. Sorting by stamp would merge them, so they are separated
+  (:func:`split_runs`) and the caller selects one.
+* clock glitch: one or two samples whose stamps are far from their neighbours while the samples
+  after them continue the earlier ones: dropped.
+* several publishers on one topic: the merged stream has a period-2 structure that one sensor
+  sampled well above the rotor's harmonics never has: alternate samples differ by a steady
+  offset (raw vs. calibrated), or come in near-identical pairs (same noise twice), or the stamp
+  steps alternate short/long (:func:`interleaved_streams`).
+* azimuth glitch or encoder slip: the measured phase leaves what the rotor speed predicts and
+  returns (glitch, repaired) or stays off (slip, reported) (:func:`phase_outliers`).
+"""
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.ndimage import median_filter
+
+NS_PER_S = 1_000_000_000
+#: A backward stamp step longer than this many sample periods (and RESET_MIN_S) is a clock
+#: reset, not transport reordering (which moves a message by a few periods at most).
+RESET_PERIODS = 50
+RESET_MIN_S = 0.05
+#: A piece of at most this many samples between two jumps, which the next samples do not
+#: continue, is a clock glitch, not a run.
+GLITCH_MAX_SAMPLES = 2
+#: Interleaving test, on blocks of BLOCK samples (at least MIN_BLOCKS): the median block's
+#: squared z of the alternate-sample offset must exceed OFFSET_MEDIAN_Z2 (half the blocks at
+#: 3σ: for one stream a chance below 1e-4 with 4 blocks, far less with more), and the offset be
+#: at least MIN_OFFSET_NOISE_RATIO noise σ; or the step variance must differ by
+#: MIN_PAIR_VARIANCE_RATIO between alternate steps, on the same parity in every block.
+BLOCK = 128
+MIN_BLOCKS = 4
+MAX_BLOCKS = 256                  # blocks spread over a long record (a merged stream is in all)
+OFFSET_MEDIAN_Z2 = 9.0
+MIN_OFFSET_NOISE_RATIO = 0.5
+MIN_PAIR_VARIANCE_RATIO = 4.0
+CHI2_1_MEDIAN = 0.4549
+#: Phase outliers: robust threshold in noise σ, and how long a repaired stretch may be.
+OUTLIER_SIGMAS = 10.0
+MEDIAN_SPAN = 11
+REPAIR_MAX_SAMPLES = 5
+
+
+@dataclass
+class RunSplit:
+    """
+    Samples of one topic grouped into runs, in recording order.
+
+    Attributes
+    ----------
+    labels
+        (n,) run number of each sample (0-based, in order of first appearance), or -1 for a
+        clock glitch.
+    jumps
+        Index (in recording order) of every sample where the stamps jump back to start or
+        resume another run.
+    period_ns
+        Median stamp step, ns.
+
+    """
+
+    labels: np.ndarray
+    jumps: np.ndarray
+    period_ns: float
+
+    @property
+    def n_runs(self):
+        """Return the number of runs."""
+        return int(self.labels.max()) + 1 if self.labels.size else 0
+
+    def glitches(self):
+        """Return the indices of the glitch samples."""
+        return np.flatnonzero(self.labels < 0)
+
+    def interleaved(self):
+        """Return True if samples of different runs alternate (several clocks at once)."""
+        runs = self.labels[self.labels >= 0]
+        return int(np.count_nonzero(np.diff(runs) != 0)) > 2 * max(self.n_runs - 1, 0)
+
+
+def split_runs(stamps_ns):
+    """
+    Group stamps given in recording order into runs separated by clock resets.
+
+    A jump (backward by more than ``RESET_PERIODS`` periods, or forward by as much) cuts the
+    sequence into pieces; each piece joins the earlier run whose last stamp lies closest below
+    its first stamp (so a gap, or the return after a glitch, continues the run), else it
+    starts a new run. Runs of at most ``GLITCH_MAX_SAMPLES`` samples are glitches.
+
+    Parameters
+    ----------
+    stamps_ns
+        (n,) int64 stamps in the order the messages were recorded.
+
+    Returns
+    -------
+    RunSplit.
+
+    """
+    stamps = np.asarray(stamps_ns, dtype=np.int64)
+    n = stamps.size
+    steps = np.diff(stamps)
+    if np.count_nonzero(steps < 0) > 0.1 * steps.size:    # clocks taking turns: steps say nothing
+        steps = np.diff(np.sort(stamps))
+    positive = steps[steps > 0]
+    period = float(np.median(positive)) if positive.size else 0.0
+    steps = np.diff(stamps)
+    limit = max(RESET_PERIODS * period, RESET_MIN_S * NS_PER_S)
+    cuts = np.flatnonzero((steps < -limit) | (steps > limit)) + 1
+    labels = np.zeros(n, dtype=np.int64)
+    if not cuts.size:
+        return RunSplit(labels, cuts, period)
+    starts = np.concatenate([[0], cuts])
+    ends = np.concatenate([cuts, [n]])
+    sizes = ends - starts
+    # A short piece is a glitch when the pieces either side of it join up (or it is at an end).
+    short = sizes <= GLITCH_MAX_SAMPLES
+    glitch_piece = short.copy()
+    for j in np.flatnonzero(short):
+        if 0 < j < len(starts) - 1:
+            bridge = stamps[starts[j + 1]] - stamps[ends[j - 1] - 1]
+            # (short pieces on both sides: clocks taking turns, not a glitch)
+            glitch_piece[j] = 0 < bridge <= limit and not (short[j - 1] and short[j + 1])
+    last = []                   # last stamp of each run so far
+    run_of_piece = []
+    for start, end, is_glitch in zip(starts, ends, glitch_piece):
+        if is_glitch:
+            run_of_piece.append(-1)
+            continue
+        first = stamps[start]
+        below = [(first - stamp, run) for run, stamp in enumerate(last) if stamp < first]
+        if below:
+            run = min(below)[1]
+            last[run] = max(last[run], int(stamps[start:end].max()))
+        else:
+            run = len(last)
+            last.append(int(stamps[start:end].max()))
+        run_of_piece.append(run)
+    sizes = np.zeros(len(last), dtype=np.int64)
+    for start, end, run in zip(starts, ends, run_of_piece):
+        if run >= 0:
+            sizes[run] += end - start
+    glitch = sizes <= GLITCH_MAX_SAMPLES
+    if not len(last) or glitch.all():   # nothing but short pieces: no structure to trust
+        return RunSplit(np.zeros(n, dtype=np.int64), np.empty(0, dtype=np.int64), period)
+    renumber = np.full(len(last) + 1, -1)          # index -1: glitch pieces
+    renumber[:-1][~glitch] = np.arange(np.count_nonzero(~glitch))
+    for start, end, run in zip(starts, ends, run_of_piece):
+        labels[start:end] = renumber[run]
+    # a jump is where a sample's run differs from the previous real sample's run
+    real = np.flatnonzero(labels >= 0)
+    jumps = real[1:][np.diff(labels[real]) != 0]
+    return RunSplit(labels, np.asarray(jumps, dtype=np.int64), period)
+
+
+@dataclass
+class Interleaving:
+    """
+    Evidence that a stream is two streams merged (see :func:`interleaved_streams`).
+
+    Attributes
+    ----------
+    offset
+        Mean difference between alternate samples (units of the values), or 0.
+    noise
+        Sample-to-sample noise σ of the values.
+    step_variance_ratio
+        Ratio of the squared steps at the two parities (≥ 1).
+    stamp_steps_ns
+        Median stamp step at the two parities (equal for evenly spaced stamps).
+    column
+        Value column where the evidence is strongest.
+
+    """
+
+    offset: float
+    noise: float
+    step_variance_ratio: float
+    stamp_steps_ns: tuple
+    column: int
+
+    def describe(self, unit='rad'):
+        """One phrase with the figures."""
+        parts = []
+        if self.offset:
+            parts.append(f'alternate samples differ by {self.offset:.3g} {unit} on average '
+                         f'(noise σ {self.noise:.3g} {unit})')
+        if self.step_variance_ratio >= MIN_PAIR_VARIANCE_RATIO:
+            parts.append('samples come in near-identical pairs (step variance differs '
+                         f'{self.step_variance_ratio:.3g}x between alternate steps)')
+        short, long = sorted(self.stamp_steps_ns)
+        if long > 1.5 * short:
+            parts.append(f'stamp steps alternate {short / 1e6:.4g} ms / {long / 1e6:.4g} ms')
+        return '; '.join(parts)
+
+
+def _blocks(values, block, most):
+    """
+    Return (K, block + 2, m) stretches of ``values``, at most ``most``, spread over the record.
+
+    Each starts at an even index, so that a sample's parity within its stretch is its parity
+    in the record.
+    """
+    n = values.shape[0]
+    count = min((n - 2) // (block + 2), most)
+    starts = np.linspace(0, n - block - 2, count).astype(np.int64) & ~1
+    return values[starts[:, None] + np.arange(block + 2)]
+
+
+def interleaved_streams(stamps_ns, values):
+    """
+    Test whether sorted samples are two interleaved streams (e.g. two publishers).
+
+    One sensor sampled well above the signal's bandwidth gives alternate samples that differ
+    only by noise. Two merged streams give, at alternate samples, a steady offset (different
+    calibration) or near-duplicate values (the same measurement published twice). Both are
+    measured block by block and judged on the median block, so that a pitch step or a short
+    burst (one block) does not count, while a merged stream shows in every block.
+
+    Parameters
+    ----------
+    stamps_ns
+        (n,) increasing stamps.
+    values
+        (n, m) samples.
+
+    Returns
+    -------
+    Interleaving, or None when the stream looks like one stream.
+
+    """
+    values = np.asarray(values, dtype=float)
+    if values.ndim == 1:
+        values = values[:, None]
+    n = values.shape[0]
+    if n < MIN_BLOCKS * (BLOCK + 2) + 2:
+        return None
+    tiny = np.finfo(float).tiny
+    blocks = _blocks(values, BLOCK, MAX_BLOCKS)              # (K, B + 2, m)
+    steps = np.diff(blocks, axis=1)                          # (K, B + 1, m)
+    curvature = steps[:, 1:] - steps[:, :-1]                 # (K, B, m): 6σ² for white noise
+    noise = np.sqrt(np.median(curvature ** 2, axis=(0, 1)) / CHI2_1_MEDIAN / 6.0)
+    noise = np.maximum(noise, tiny)
+    # Offset: the detrended x[i] − (x[i−1] + x[i+1])/2 is ±δ at alternate samples for two
+    # streams; its (−1)^i block mean is N(0, 3.5σ²/B) for one stream of white noise.
+    signs = np.where(np.arange(BLOCK) % 2 == 0, 1.0, -1.0)
+    means = np.einsum('kbm,b->km', -0.5 * curvature, signs) / BLOCK
+    z2 = means ** 2 / (noise ** 2 * 3.5 / BLOCK)
+    median_z2 = np.median(z2, axis=0)
+    offset = np.sqrt(np.median(means ** 2, axis=0))
+    by_offset = (median_z2 > OFFSET_MEDIAN_Z2) & (offset > MIN_OFFSET_NOISE_RATIO * noise)
+    # Pairs: the squared steps at even and odd positions differ by a steady factor.
+    even, odd = steps[:, 0:BLOCK:2] ** 2, steps[:, 1:BLOCK:2] ** 2
+    log_ratio = np.log((even.mean(axis=1) + tiny) / (odd.mean(axis=1) + tiny))   # (K, m)
+    pair_ratio = np.exp(np.median(np.abs(log_ratio), axis=0))
+    steady = np.abs(np.median(np.sign(log_ratio), axis=0)) == 1     # same parity throughout
+    by_pairs = (pair_ratio >= MIN_PAIR_VARIANCE_RATIO) & steady
+    flagged = by_offset | by_pairs
+    if not flagged.any():
+        return None
+    strength = np.where(by_offset, offset / noise, 0.0) + np.where(by_pairs, pair_ratio, 0.0)
+    column = int(np.argmax(strength))
+    stamp_steps = np.diff(np.asarray(stamps_ns, dtype=np.int64))
+    parity_steps = (float(np.median(stamp_steps[0::2])), float(np.median(stamp_steps[1::2])))
+    return Interleaving(
+        offset=float(offset[column]) if by_offset[column] else 0.0,
+        noise=float(noise[column]),
+        step_variance_ratio=float(pair_ratio[column]) if by_pairs[column] else 1.0,
+        stamp_steps_ns=parity_steps, column=column)
+
+
+@dataclass
+class PhaseOutliers:
+    """
+    Samples whose phase leaves what the rotor speed predicts.
+
+    Attributes
+    ----------
+    repaired
+        Indices of bad samples in stretches of at most REPAIR_MAX_SAMPLES after which the
+        phase comes back to the prediction (glitches), or at either end of the stream.
+    slips
+        (index of the first sample after the step, size in rad) of each lasting step.
+    threshold
+        Step deviation counted as an outlier, rad.
+
+    """
+
+    repaired: np.ndarray
+    slips: list
+    threshold: float
+
+
+def _robust_threshold(residual, floor):
+    spread = 1.4826 * np.median(np.abs(residual - np.median(residual)))
+    return max(OUTLIER_SIGMAS * spread, float(floor))
+
+
+def phase_outliers(step_residual, floor):
+    """
+    Find glitches and lasting steps in a phase from its step residuals.
+
+    Parameters
+    ----------
+    step_residual
+        (n − 1,) measured phase step minus the step the rotor speed predicts, each wrapped to
+        (−π, π], rad: ``step_residual[i]`` belongs to the step from sample i to i + 1.
+    floor
+        Smallest deviation worth calling an outlier, rad (e.g. a fraction of a sample's
+        advance), used when the noise is tiny or quantised.
+
+    Returns
+    -------
+    PhaseOutliers. A glitch shows as a step out and a step back (their sum is within the
+    threshold); a slip as a step that is not undone.
+
+    """
+    residual = np.asarray(step_residual, dtype=float)
+    n = residual.size + 1
+    if residual.size < MEDIAN_SPAN:
+        return PhaseOutliers(np.empty(0, dtype=np.int64), [], float(floor))
+    residual = residual - np.median(residual)
+    threshold = _robust_threshold(residual, floor)
+    bad = np.flatnonzero(np.abs(residual) > threshold)
+    repaired, slips = [], []
+    if bad.size:
+        # bad steps closer than a glitch's length belong to one event
+        groups = np.split(bad, np.flatnonzero(np.diff(bad) > REPAIR_MAX_SAMPLES) + 1)
+        for group in groups:
+            first, last = int(group[0]), int(group[-1])
+            net = float(np.sum(residual[first:last + 1]))
+            inner = list(range(first + 1, last + 1))       # samples between the steps
+            if abs(net) <= threshold and 0 < len(inner) <= REPAIR_MAX_SAMPLES:
+                repaired.extend(inner)
+            elif last < REPAIR_MAX_SAMPLES:                 # the stream starts off the phase
+                repaired.extend(range(0, last + 1))
+            elif first >= n - 1 - REPAIR_MAX_SAMPLES:       # ... or ends off it
+                repaired.extend(range(first + 1, n))
+            else:
+                slips.append((first + 1, net))
+    return PhaseOutliers(np.asarray(sorted(set(repaired)), dtype=np.int64), slips, threshold)
+
+
+def spikes(values, floor):
+    """
+    Find the isolated spikes of a slowly varying signal, each at most REPAIR_MAX_SAMPLES long.
+
+    Parameters
+    ----------
+    values
+        (n,) samples (e.g. the rotor speed).
+    floor
+        Smallest deviation from the running median worth calling a spike.
+
+    Returns
+    -------
+    (k,) indices; longer excursions are left alone (they are the signal, or a fault that
+    needs more than a repair).
+
+    """
+    values = np.asarray(values, dtype=float)
+    if values.size < MEDIAN_SPAN:
+        return np.empty(0, dtype=np.int64)
+    residual = values - median_filter(values, size=MEDIAN_SPAN, mode='nearest')
+    threshold = _robust_threshold(residual, floor)
+    out = [np.arange(a, b) for a, b in _stretches(np.abs(residual) > threshold)
+           if b - a <= REPAIR_MAX_SAMPLES]
+    return np.concatenate(out) if out else np.empty(0, dtype=np.int64)
+
+
+def _stretches(mask):
+    """(start, end) of each run of True in a boolean array."""
+    edges = np.diff(np.concatenate([[0], mask.astype(np.int8), [0]]))
+    return list(zip(np.flatnonzero(edges == 1), np.flatnonzero(edges == -1)))

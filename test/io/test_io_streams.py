@@ -1,0 +1,90 @@
+"""The stream-fault detectors on their own: runs, interleaving (false alarms and power), phase."""
+
+import numpy as np
+import pytest
+from rotor_id.io.streams import (
+    BLOCK, interleaved_streams, MIN_BLOCKS, phase_outliers, spikes, split_runs,
+)
+
+MS = 1_000_000
+
+
+def test_split_runs_separates_resets_and_drops_glitches():
+    run1 = np.arange(1000) * MS
+    run2 = -50_000 * MS + np.arange(800) * MS          # clock restarted 50 s earlier
+    stamps = np.concatenate([run1, run2])
+    stamps[300] += 3_600_000 * MS                      # one stamp an hour off
+    split = split_runs(stamps)
+    assert split.n_runs == 2 and not split.interleaved()
+    assert split.glitches().tolist() == [300]
+    assert np.all(split.labels[:1000][np.arange(1000) != 300] == 0)
+    assert np.all(split.labels[1000:] == 1)
+    assert split.jumps.tolist() == [1000]
+
+
+def test_split_runs_keeps_gaps_and_reordering_in_one_run():
+    stamps = np.concatenate([np.arange(500), np.arange(2500, 3000)]) * MS   # 2 s gap
+    stamps[[100, 101]] = stamps[[101, 100]]                                # swapped pair
+    split = split_runs(stamps)
+    assert split.n_runs == 1 and split.glitches().size == 0
+
+
+def test_split_runs_tells_two_clocks_interleaved():
+    a = np.arange(600) * MS
+    b = 7_000_000 * MS + np.arange(600) * MS
+    stamps = np.empty(1200, dtype=np.int64)
+    stamps[0::2], stamps[1::2] = a, b
+    split = split_runs(stamps)
+    assert split.n_runs == 2 and split.interleaved()
+
+
+def smooth_signal(rng, n, rate_hz=1000.0):
+    """Rotor-like signal: a few harmonics of 10-25 Hz, a step, white noise σ = 1."""
+    t = np.arange(n) / rate_hz
+    omega = 2 * np.pi * rng.uniform(10, 25)
+    signal = sum(rng.uniform(0, 5) * np.sin(k * omega * t + rng.uniform(0, 6)) for k in (1, 2, 4))
+    signal += rng.uniform(-20, 20) * (t > t[n // 2])
+    return signal + rng.normal(size=n)
+
+
+def test_interleaving_false_alarm_rate_on_one_sensor():
+    """No alarm in 300 single-sensor records (the design rate is far below 1 in 300)."""
+    rng = np.random.default_rng(7)
+    alarms = 0
+    for _ in range(300):
+        n = int(rng.integers(MIN_BLOCKS * (BLOCK + 2) + 2, 20_000))
+        values = smooth_signal(rng, n)[:, None]
+        alarms += interleaved_streams(np.arange(n) * MS, values) is not None
+    assert alarms == 0
+
+
+@pytest.mark.parametrize('offset', [1.0, 3.0])
+def test_interleaving_is_found_at_an_offset_of_one_noise_sigma(offset):
+    rng = np.random.default_rng(3)
+    found = 0
+    for _ in range(50):
+        n = 4000
+        values = smooth_signal(rng, n)
+        values[1::2] += offset                         # second stream: calibration offset
+        found += interleaved_streams(np.arange(n) * MS // 2, values[:, None]) is not None
+    assert found == 50
+
+
+def test_phase_outliers_repairs_glitches_and_reports_slips():
+    rng = np.random.default_rng(0)
+    phase = 0.001 * rng.normal(size=3000)
+    phase[700] = -2.0                                  # glitch
+    phase[1500:1502] += 0.8                            # two-sample glitch
+    phase[2200:] += 0.5                                # slip
+    steps = np.diff(phase)
+    found = phase_outliers(steps, floor=0.02)
+    assert found.repaired.tolist() == [700, 1500, 1501]
+    assert len(found.slips) == 1 and found.slips[0][0] == 2200
+    assert found.slips[0][1] == pytest.approx(0.5, abs=0.01)
+
+
+def test_spikes_finds_isolated_speed_readings():
+    rng = np.random.default_rng(1)
+    speed = 94.0 + 0.5 * np.sin(np.arange(2000) / 300) + 0.01 * rng.normal(size=2000)
+    speed[[10, 1200, 1201]] = [0.0, 180.0, 180.0]
+    assert spikes(speed, floor=0.05 * 94).tolist() == [10, 1200, 1201]
