@@ -139,3 +139,18 @@ def test_inadequate_fits_are_flagged_and_kept_out_of_the_trend():
     assert list(analysis['outlier']) == [False] * 9 + [True]
     usable = ~np.isnan(analysis['z'])
     assert np.all(np.abs(analysis['z'][usable][:8]) < 3.0)
+
+
+def test_campaign_diagnoses_on_request(tmp_path, capsys):
+    """One clean test point with --diagnose: the diagnosis finds nothing missing (none)."""
+    entry = tmp_path / 'entry'
+    write_test_point(entry, 'clean', seed=3, noise_deg=0.05, conditions={'run': 1})
+    out = tmp_path / 'out'
+    rc = cli.main(['campaign', str(entry), '--out', str(out), '--diagnose', '--jobs', '1',
+                   '--no-figures'])
+    assert rc == 0, capsys.readouterr().err
+    row = _csv(out / 'campaign.csv')[0]
+    diagnosis = json.loads((out / 'points' / 'clean' / 'diagnose.json').read_text())
+    assert row['diagnosis'] == diagnosis['explanation']['effect'] == 'none'
+    assert not (out / 'points' / 'clean' / 'fit.png').exists()
+    assert '| none | ok |' in (out / 'campaign.md').read_text()
