@@ -100,35 +100,7 @@ def _status(data):
 
 def plot_fit(result, record, path, title=''):
     """Measured vs fitted channels and residuals, against time in seconds."""
-    import matplotlib
-    matplotlib.use('Agg')
-    import matplotlib.pyplot as plt
-    est = result.estimate
-    exps = result.experiments
-    n_ch = exps[0].y.shape[1]
-    fig, axes = plt.subplots(n_ch + 1, 1, figsize=(9, 1.9 * (n_ch + 1)), sharex=True)
-    omega = result.omega_rad_s
-    t_of = (lambda t: (t - record.t[0]) / omega + record.time_s[0])
-    for r, exp in enumerate(exps):
-        ts = t_of(exp.t)
-        for c in range(n_ch):
-            ax = axes[c]
-            ax.plot(ts, np.degrees(exp.y[:, c]), '.', ms=2, color='0.5',
-                    label='measured' if r == 0 else None)
-            ax.plot(ts, np.degrees(est.fitted[r][:, c]), '-', lw=1.2, color='C0',
-                    label='fitted' if r == 0 else None)
-            ax.set_ylabel(f'{exp.model.output_names[c]}\n[deg]')
-        axes[-1].plot(ts, np.degrees(est.residuals[r]), lw=0.6)
-    axes[0].legend(loc='upper right', fontsize=8)
-    axes[-1].set_ylabel('residuals\n[deg]')
-    axes[-1].set_xlabel('time since first sample [s]')
-    params = ', '.join(f'{n} = {v["value"]:.4g} ± {v["std"]:.2g}'
-                       for n, v in result.as_json()['parameters'].items())
-    fig.suptitle(f'{title}\n{params}', fontsize=9)
-    fig.tight_layout()
-    Path(path).parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
+    plot_runs(result, [record], path, title)
 
 
 def configs_for(bags, configs):
@@ -160,19 +132,25 @@ def run(args):
                                progress=None if args.quiet else progress_printer(method),
                                filter_bounds=args.filter_bounds)
     print(format_table(result))
+    write_outputs(result, [record], args, str(args.bag), started,
+                  title=f'{Path(args.bag).name}: {label}')
+    return 0 if result.estimate.converged else 1
+
+
+def write_outputs(result, records, args, bag, started, title):
+    """Print the estimator's warnings, write the JSON and the figure when asked for."""
     for warning in result.estimate.warnings:
         print(f'warning: {warning}', file=sys.stderr)
     data = result.as_json()
-    data['bag'] = str(args.bag)
+    data['bag'] = bag
     data['elapsed_s'] = time.perf_counter() - started
     if args.json_out:
         Path(args.json_out).parent.mkdir(parents=True, exist_ok=True)
         Path(args.json_out).write_text(json.dumps(data, indent=1))
         print(f'JSON: {args.json_out}')
     if args.figure:
-        plot_fit(result, record, args.figure, title=f'{Path(args.bag).name}: {label}')
+        plot_runs(result, records, args.figure, title=title)
         print(f'figure: {args.figure}')
-    return 0 if result.estimate.converged else 1
 
 
 def run_names(bags):
@@ -214,47 +192,47 @@ def run_several(args, configs):
         method=args.method, progress=None if args.quiet else progress_printer(method))
     print(format_table(result))
     print(format_runs(result))
-    for warning in result.estimate.warnings:
-        print(f'warning: {warning}', file=sys.stderr)
-    data = result.as_json()
-    data['bag'] = [str(b) for b in args.bag]
-    data['elapsed_s'] = time.perf_counter() - started
-    if args.json_out:
-        Path(args.json_out).parent.mkdir(parents=True, exist_ok=True)
-        Path(args.json_out).write_text(json.dumps(data, indent=1))
-        print(f'JSON: {args.json_out}')
-    if args.figure:
-        plot_runs(result, [record for _, record in loaded], args.figure, title=label)
-        print(f'figure: {args.figure}')
+    write_outputs(result, [record for _, record in loaded], args, [str(b) for b in args.bag],
+                  started, title=label)
     return 0 if result.estimate.converged else 1
 
 
 def plot_runs(result, records, path, title=''):
-    """Measured vs fitted channels and residuals of every run, one column per run."""
+    """
+    Measured vs fitted channels and residuals against time in seconds, a column per run.
+
+    One column for a single recording (all its experiments, e.g. the blades of single_blade);
+    with several recordings (``result.runs``) one per recording, headed by its residual RMS.
+    """
     import matplotlib
     matplotlib.use('Agg')
     import matplotlib.pyplot as plt
     est = result.estimate
-    runs = result.runs
+    columns = result.runs or [pipeline.Run(
+        name='', source='', description=result.description, window_s=result.window_s,
+        omega_rad_s=result.omega_rad_s, experiments=list(range(len(result.experiments))))]
     n_ch = result.experiments[0].y.shape[1]
-    fig, axes = plt.subplots(n_ch + 1, len(runs), figsize=(4.2 * len(runs), 1.9 * (n_ch + 1)),
+    width = 9.0 if len(columns) == 1 else 4.2 * len(columns)
+    fig, axes = plt.subplots(n_ch + 1, len(columns), figsize=(width, 1.9 * (n_ch + 1)),
                              sharex='col', squeeze=False)
-    data = result.as_json()['runs']
-    for col, (run, record, summary) in enumerate(zip(runs, records, data)):
+    for col, (run, record) in enumerate(zip(columns, records)):
         for r in run.experiments:
             exp = result.experiments[r]
             ts = (exp.t - record.t[0]) / run.omega_rad_s + record.time_s[0]
+            first = r == run.experiments[0]
             for c in range(n_ch):
                 ax = axes[c, col]
                 ax.plot(ts, np.degrees(exp.y[:, c]), '.', ms=2, color='0.5',
-                        label='measured' if r == run.experiments[0] else None)
+                        label='measured' if first else None)
                 ax.plot(ts, np.degrees(est.fitted[r][:, c]), '-', lw=1.2, color='C0',
-                        label='fitted' if r == run.experiments[0] else None)
+                        label='fitted' if first else None)
                 if col == 0:
                     ax.set_ylabel(f'{exp.model.output_names[c]}\n[deg]')
             axes[-1, col].plot(ts, np.degrees(est.residuals[r]), lw=0.6)
-        rms = ', '.join(f'{np.degrees(v):.3g}' for v in summary['residual_rms'])
-        axes[0, col].set_title(f'{run.name}\nresidual RMS {rms} deg', fontsize=8)
+        if run.name:
+            residuals = np.concatenate([est.residuals[r] for r in run.experiments])
+            rms = ', '.join(f'{v:.3g}' for v in np.degrees(np.sqrt(np.mean(residuals**2, 0))))
+            axes[0, col].set_title(f'{run.name}\nresidual RMS {rms} deg', fontsize=8)
         axes[-1, col].set_xlabel('time since first sample [s]')
     axes[0, 0].legend(loc='upper right', fontsize=8)
     axes[-1, 0].set_ylabel('residuals\n[deg]')
