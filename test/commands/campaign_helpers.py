@@ -23,13 +23,14 @@ OMEGADOT = 0.1 / math.pi                  # the report's stirring law constant
 
 
 def write_test_point(directory, name, direction='progressing', truth=None, noise_deg=0.1,
-                     seed=0, duration_rev=2.0, conditions=None, guess=True):
+                     seed=0, duration_rev=2.0, conditions=None, guess=True, custom_data=None):
     """
     Simulate one test point into ``directory``: bag NAME/ and run description NAME.yaml.
 
     ``truth`` overrides the plan's parameter values (A, AL_over_tau, inv_tau); ``conditions``
     goes into the run description's ``conditions:``; ``guess`` gives the nominal values as
-    ``initial_guess`` (no start-value grid).
+    ``initial_guess`` (no start-value grid); ``custom_data`` (text values) goes into the bag's
+    metadata.yaml as a recorder's ``--custom-data`` would put it.
     """
     directory = Path(directory)
     plan = planning.load_plan(PLAN)
@@ -40,7 +41,12 @@ def write_test_point(directory, name, direction='progressing', truth=None, noise
                                    amplitude_rad=planning.DEFAULT_AMPLITUDE_RAD, t0=70.0,
                                    duration_rev=duration_rev)
     run = planning.simulate_run(plan, candidate, rng=np.random.default_rng(seed))
-    write_record_bag(directory / name, replace(run.record, stamp0_ns=STAMP0_NS))
+    bag = write_record_bag(directory / name, replace(run.record, stamp0_ns=STAMP0_NS))
+    if custom_data:
+        meta = bag / 'metadata.yaml'
+        info = yaml.safe_load(meta.read_text())
+        info['rosbag2_bagfile_information']['custom_data'] = dict(custom_data)
+        meta.write_text(yaml.safe_dump(info, sort_keys=False))
     data = yaml.safe_load(PLAN.read_text())
     for key in planning.PLAN_KEYS + ('noise_std_rad',):
         data.pop(key, None)

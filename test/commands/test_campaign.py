@@ -34,7 +34,8 @@ def entry(tmp_path_factory):
         write_test_point(root, f'tp{speed}', seed=i, noise_deg=0.05,
                          direction='progressing' if i % 2 == 0 else 'regressing',
                          truth={'A': 1.0} if f'tp{speed}' == OUTLIER else None,
-                         conditions={'tunnel_speed_m_s': speed})
+                         conditions={'tunnel_speed_m_s': speed},
+                         custom_data={'tunnel_run': '17'} if speed == 10 else None)
     write_test_point(root, 'broken', seed=9)
     config = root / 'broken.yaml'
     data = yaml.safe_load(config.read_text())
@@ -77,6 +78,7 @@ def test_campaign_identifies_every_bag_flags_the_outlier_and_resumes(entry, tmp_
         assert row['status'] == 'ok' and row['converged'] == 'True'
         assert row['stirring_direction'] == direction
         assert float(row['tunnel_speed_m_s']) == speed
+        assert row['tunnel_run'] == ('17' if speed == 10 else '')     # the bag's custom_data
         assert float(row['noise_std_rad']) == pytest.approx(np.radians(0.05) / np.sqrt(2),
                                                             rel=0.15)
         truth = 1.0 if f'tp{speed}' == OUTLIER else 0.5
