@@ -27,7 +27,9 @@ from rosbags.rosbag2 import Reader, StoragePlugin, Writer
 from rosbags.typesys import get_types_from_msg, get_typestore, Stores
 from rotor_id.io.errors import BagError, BagWarning
 from rotor_id.io.jointstate_cdr import decode_batch, encode_batch, JOINT_STATE
-from rotor_id.io.mcap_recover import read_indexed_mcap, scan_mcap, zstd
+from rotor_id.io.mcap_recover import (
+    read_indexed_mcap, read_mcap_chunks, read_mcap_summary, scan_mcap, zstd,
+)
 from rotor_id.io.record import Record
 from rotor_id.io.run_description import DEFAULT_TOPICS, normalize_joint_names, validate_window
 from rotor_id.io.streams import (
@@ -47,6 +49,12 @@ RATE_TOLERANCE = 0.05   # relative disagreement allowed between Ω and the azimu
 SHARED_STAMP_FRACTION = 0.05  # more samples than this sharing a stamp with other values: 2 sources
 SPEED_SPIKE_FRACTION = 0.05   # a rotor-speed sample this far (relative) from its neighbours: spike
 PHASE_FLOOR_FRACTION = 0.25   # azimuth off its predicted phase by this much of a sample's advance
+# Reading only the window of a long MCAP (memory follows the window, not the bag):
+WINDOW_READ_MIN_BYTES = 64_000_000   # smaller bags are read whole, with every check
+WINDOW_READ_HEAD_S = 0.5             # receive time read at the start to find the first stamp
+WINDOW_READ_MARGIN_S = 2.0           # read this much either side of the window
+WINDOW_READ_CLOCK_TOLERANCE_S = 1.0  # stamp-to-receive offset drift allowed over the bag
+WINDOW_READ_MAX_FRACTION = 0.5       # a window needing more of the bag reads it all
 STORAGES = {'mcap': StoragePlugin.MCAP, 'sqlite3': StoragePlugin.SQLITE3}
 SUFFIXES = {'.mcap': 'mcap', '.db3': 'sqlite3'}
 COMPRESSION_FORMATS = ('zstd',)    # what rosbag2's file/message compression may use here
@@ -144,6 +152,7 @@ class _Raw:
         self.data = {}        # topic -> list of bytes
         self.log_ns = {}      # topic -> list of receive times
         self.notes = []
+        self.bag_start_ns = None   # first receive time of the bag, when only a part is read
 
 
 def _read_raw(open_path, storage, storage_file, wanted, omega_rad_s):
@@ -271,10 +280,12 @@ class _Context:
         """'message i of n, received x s into the bag' of a topic's message number."""
         log = self.raw.log_ns.get(topic)
         n = len(self.raw.data.get(topic, ()))
-        text = f'message {index + 1} of {n}'
+        partial = self.raw.bag_start_ns is not None
+        text = 'the message' if partial else f'message {index + 1} of {n}'
         if log is not None and len(log) > index:
-            starts = [int(v[0]) for v in self.raw.log_ns.values() if len(v)]
-            text += f', received {(int(log[index]) - min(starts)) / _NS:.3f} s into the bag'
+            start = self.raw.bag_start_ns if partial else min(
+                int(v[0]) for v in self.raw.log_ns.values() if len(v))
+            text += f', received {(int(log[index]) - start) / _NS:.3f} s into the bag'
         return text
 
 
@@ -575,24 +586,127 @@ def read_record(bag_path, topics=None, joint_names=None, *, n_blades=None, omega
     if 'azimuth' not in wanted and omega_rad_s is None:
         raise BagError('no azimuth topic given: pass omega_rad_s (the rotor speed) so that the '
                        'nondimensional time can be formed')
-    raw = _read_raw(open_path, storage, storage_file, wanted, omega_rad_s)
-    _decompress_messages(raw)
+    raw = origin_ns = None
+    if window_s is not None and run is None and storage == 'mcap':
+        raw, origin_ns = _read_window(storage_file, wanted, window_s)
+    if raw is None:
+        raw = _read_raw(open_path, storage, storage_file, wanted, omega_rad_s)
+        _decompress_messages(raw)
     ctx = _Context(raw=raw, issues=list(raw.notes), run=run,
-                   publishers=facts.get('publishers', {}))
-    for topic, expected in counts.items():
+                   publishers=facts.get('publishers', {}), origin_ns=origin_ns)
+    for topic, expected in ({} if origin_ns is not None else counts).items():
         got = len(raw.data.get(topic, []))
         if topic in raw.data and got < expected:
             ctx.issues.append(f'{topic}: {got} of the {expected} messages listed in '
                               'metadata.yaml were read')
 
     record = _assemble(ctx, wanted, joint_names, n_blades, omega_rad_s, window_s)
+    part = ''
+    if origin_ns is not None:
+        part = (f', read {record.time_s[0]:.3f}-{record.time_s[-1]:.3f} s around window_s '
+                'only')
     record.source = (f'{storage_file} ({storage}; flap {wanted["blade_flap"]}, pitch '
                      f'{wanted["blade_pitch"]}, azimuth {wanted.get("azimuth")}'
-                     + (f', run {run}' if run is not None else '') + ')')
+                     + (f', run {run}' if run is not None else '') + part + ')')
     if record.warnings:
         warnings.warn(f'{storage_file}: ' + '; '.join(record.warnings), BagWarning,
                       stacklevel=2)
     return record
+
+
+def _read_window(storage_file, wanted, window_s):
+    """
+    Read only the part of an indexed MCAP around the window (memory follows the window).
+
+    window_s counts from the first flap stamp, so the first chunk(s) give that origin and
+    the offset from stamps to receive times; the last chunk checks that the offset holds to
+    the end (no clock reset, no second run). The chunks whose receive times overlap the
+    window (plus WINDOW_READ_MARGIN_S) are read and decompressed one by one.
+
+    Returns
+    -------
+    (_Raw, origin ns) or (None, None): the bag is small, not an indexed MCAP, or its clocks
+    disagree; then the whole bag is read with every check.
+
+    """
+    none = None, None
+    if storage_file.stat().st_size < WINDOW_READ_MIN_BYTES:
+        return none
+    try:
+        summary = read_mcap_summary(storage_file)
+    except (OSError, ValueError, IndexError, struct.error):
+        return none
+    topics = set(wanted.values())
+    flap_topic = wanted['blade_flap']
+    chunks = summary.topic_chunks(topics) if summary else []
+    flap_chunks = summary.topic_chunks({flap_topic}) if summary else []
+    if not flap_chunks or len(chunks) < 3:
+        return none
+    bag_start = min(c.start_ns for c in chunks)
+
+    def offsets(part, topic=flap_topic):
+        """(stamps, receive − stamp) of a topic's decodable, stamped messages in part."""
+        log, messages = part[1].get(topic, ([], []))
+        if not len(messages):
+            return np.empty(0, np.int64), np.empty(0, np.int64)
+        raw = _Raw()
+        raw.data[topic] = messages
+        _decompress_messages(raw)
+        batch = decode_batch(raw.data[topic])
+        stamps = batch.stamps_ns
+        keep = stamps != 0
+        return stamps[keep], (np.asarray(log, np.int64)[batch.kept] - stamps)[keep]
+
+    try:
+        head_chunks = [c for c in chunks if c.start_ns <= bag_start + WINDOW_READ_HEAD_S * _NS]
+        head = read_mcap_chunks(storage_file, topics, summary, head_chunks)
+        tail = read_mcap_chunks(storage_file, {flap_topic}, summary, flap_chunks[-1:])
+        if head is None or tail is None:
+            return none
+        head_stamps, head_offset = offsets(head)
+        _, tail_offset = offsets(tail)
+        if not head_stamps.size or not tail_offset.size:
+            return none
+        offset = int(np.median(head_offset))
+        if abs(int(np.median(tail_offset)) - offset) > WINDOW_READ_CLOCK_TOLERANCE_S * _NS:
+            return none                       # clocks disagree: the full read finds out why
+        # origin as the full read takes it: the first flap stamp inside the other topics' span
+        steady = np.abs(head_offset - offset) <= WINDOW_READ_CLOCK_TOLERANCE_S * _NS
+        starts = [int(head_stamps[steady].min())]
+        for topic in topics - {flap_topic}:
+            stamps, other = offsets(head, topic)
+            good = np.abs(other - offset) <= WINDOW_READ_CLOCK_TOLERANCE_S * _NS
+            if not good.any():
+                return none
+            starts.append(int(stamps[good].min()))
+        flap_head = np.sort(head_stamps[steady])
+        origin = int(flap_head[np.searchsorted(flap_head, max(starts))]) \
+            if flap_head[-1] >= max(starts) else None
+        if origin is None:
+            return none
+        margin = (WINDOW_READ_MARGIN_S + WINDOW_READ_CLOCK_TOLERANCE_S) * _NS
+        first = origin + offset + int(window_s[0] * _NS) - margin
+        last = origin + offset + int(window_s[1] * _NS) + margin
+        selected = [c for c in chunks if c.end_ns >= first and c.start_ns <= last]
+        if len(selected) > WINDOW_READ_MAX_FRACTION * len(chunks):
+            return none                       # most of the bag anyway: read it all
+        part = read_mcap_chunks(storage_file, topics, summary, selected, (first, last))
+        if part is None:
+            return none
+        _, part_offset = offsets(part)
+        if part_offset.size and abs(int(np.median(part_offset)) - offset) > \
+                WINDOW_READ_CLOCK_TOLERANCE_S * _NS:
+            return none
+    except (OSError, ValueError, IndexError, struct.error):
+        return none
+    raw = _Raw()
+    raw.available, found = part
+    raw.bag_start_ns = bag_start
+    _check_topics(raw, wanted, storage_file, None)
+    for topic in wanted.values():
+        raw.log_ns[topic], raw.data[topic] = found.get(topic, ([], []))
+    _decompress_messages(raw)
+    return raw, origin
 
 
 def _decompress_messages(raw):
@@ -616,7 +730,9 @@ def _assemble(ctx, wanted, joint_names, n_blades, omega_rad_s, window_s):
     issues = ctx.issues
     flap_topic, pitch_topic = wanted['blade_flap'], wanted['blade_pitch']
     flap_s = _topic_samples(ctx, flap_topic, 'blade_flap', False)
-    ctx.origin_ns = int(flap_s.stamps[0])
+    origin_ns = ctx.origin_ns                   # known when only the window was read
+    if origin_ns is None:
+        ctx.origin_ns = int(flap_s.stamps[0])
     pitch_s = _topic_samples(ctx, pitch_topic, 'blade_pitch', False)
     flap_ns, flap, pitch_ns, pitch = flap_s.stamps, flap_s.position, pitch_s.stamps, \
         pitch_s.position
@@ -650,7 +766,7 @@ def _assemble(ctx, wanted, joint_names, n_blades, omega_rad_s, window_s):
                       'time span of the pitch/azimuth topics')
         flap_ns, flap = flap_ns[inside], flap[inside]
 
-    stamp0 = int(flap_ns[0])
+    stamp0 = int(flap_ns[0]) if origin_ns is None else origin_ns
     time_s = (flap_ns - stamp0) / _NS
     pitch = interpolate_columns(time_s, (pitch_ns - stamp0) / _NS, pitch)
     if 'azimuth' in wanted:

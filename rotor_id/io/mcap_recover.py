@@ -22,6 +22,7 @@ import numpy as np
 MAGIC = b'\x89MCAP0\r\n'
 _OP_HEADER, _OP_FOOTER, _OP_SCHEMA, _OP_CHANNEL, _OP_MESSAGE, _OP_CHUNK = 1, 2, 3, 4, 5, 6
 _OP_MESSAGE_INDEX = 0x07
+_OP_CHUNK_INDEX = 0x08
 _OP_DATA_END = 0x0F
 
 
@@ -292,6 +293,11 @@ def read_indexed_mcap(path, topics):
         starts_of = np.concatenate([[0], np.cumsum(sizes)[:-1]])
     chunks.clear()
     del buf                           # (still referenced by buffer when read in place)
+    return _gather(buffer, starts_of, sizes, schemas, channels, pieces, topics)
+
+
+def _gather(buffer, starts_of, sizes, schemas, channels, pieces, topics):
+    """Return (topic -> type, topic -> (log times, PackedMessages)) from indexed chunks."""
     available, messages = {}, {}
     for cid, (topic, sid) in channels.items():
         available[topic] = schemas.get(sid, '')
@@ -305,6 +311,8 @@ def read_indexed_mcap(path, topics):
         limits = np.concatenate([np.full(off.size, starts_of[c] + sizes[c])
                                  for c, off, _ in pieces[cid]])
         log_ns = np.concatenate([lt for _, _, lt in pieces[cid]])
+        if not offsets.size:
+            continue
         if np.any(buffer[offsets] != _OP_MESSAGE):
             return None
         record_len = np.lib.stride_tricks.sliding_window_view(buffer, 8)[offsets + 1]
@@ -321,3 +329,173 @@ def read_indexed_mcap(path, topics):
         order = np.argsort(starts, kind='stable')          # file order
         out[topic] = (log_ns[order], PackedMessages(buffer, starts[order], lengths[order]))
     return available, out
+
+
+@dataclass
+class McapChunk:
+    """
+    One chunk as the summary's ChunkIndex describes it (MCAP spec).
+
+    Attributes
+    ----------
+    start_ns, end_ns
+        Earliest and latest log time of its messages.
+    offset
+        Byte offset of the Chunk record in the file.
+    length
+        Length of the Chunk record, bytes.
+    index_length
+        Length of the MessageIndex records that follow it, bytes.
+    channels
+        Channel ids with messages in it.
+
+    """
+
+    start_ns: int
+    end_ns: int
+    offset: int
+    length: int
+    index_length: int
+    channels: frozenset
+
+
+@dataclass
+class McapSummary:
+    """Schemas, channels and chunk index of an MCAP file, read from its summary section."""
+
+    schemas: dict
+    channels: dict
+    chunks: list
+
+    def topic_chunks(self, topics):
+        """Return the chunks holding a message of any of ``topics``, in file order."""
+        ids = {cid for cid, (topic, _) in self.channels.items() if topic in topics}
+        return [c for c in self.chunks if c.channels & ids]
+
+
+def read_mcap_summary(path):
+    """
+    Read the summary section of an MCAP file (schemas, channels, chunk index).
+
+    Reads the footer and the summary only, not the data: a few kB for an hour of recording.
+
+    Returns
+    -------
+    McapSummary, or None when the file has no footer, no summary or no chunk index.
+
+    """
+    with open(path, 'rb') as handle:
+        handle.seek(0, 2)
+        size = handle.tell()
+        tail = len(MAGIC) + 9 + 20
+        if size < len(MAGIC) + tail:
+            return None
+        handle.seek(size - tail)
+        footer = handle.read(tail)
+        if footer[-len(MAGIC):] != MAGIC or footer[0] != _OP_FOOTER:
+            return None
+        summary_start, _, _ = struct.unpack_from('<QQI', footer, 9)
+        if not 0 < summary_start < size - tail:
+            return None
+        handle.seek(summary_start)
+        data = memoryview(handle.read(size - tail - summary_start))
+    schemas, channels, chunks = {}, {}, []
+    pos = 0
+    while pos + 9 <= len(data):
+        op = data[pos]
+        (length,) = struct.unpack_from('<Q', data, pos + 1)
+        body = data[pos + 9:pos + 9 + length]
+        if len(body) != length:
+            return None
+        if op == _OP_SCHEMA:
+            (sid,) = struct.unpack_from('<H', body, 0)
+            schemas[sid] = _string(body, 2)[0]
+        elif op == _OP_CHANNEL:
+            cid, sid = struct.unpack_from('<HH', body, 0)
+            channels[cid] = (_string(body, 4)[0], sid)
+        elif op == _OP_CHUNK_INDEX:
+            start, end, offset, length_ = struct.unpack_from('<QQQQ', body, 0)
+            (map_bytes,) = struct.unpack_from('<I', body, 32)
+            entries = np.frombuffer(bytes(body[36:36 + map_bytes]),
+                                    dtype=np.dtype([('cid', '<u2'), ('at', '<u8')]))
+            (index_length,) = struct.unpack_from('<Q', body, 36 + map_bytes)
+            chunks.append(McapChunk(start, end, offset, length_, index_length,
+                                    frozenset(int(c) for c in entries['cid'])))
+        pos += 9 + length
+    if not chunks:
+        return None
+    chunks.sort(key=lambda c: c.offset)
+    return McapSummary(schemas, channels, chunks)
+
+
+def read_mcap_chunks(path, topics, summary, chunks, log_range=None):
+    """
+    Read the messages of ``topics`` from some chunks of an indexed MCAP only.
+
+    Each chunk is read from the file with its MessageIndex records and decompressed on its
+    own, so memory follows the chunks asked for, not the file.
+
+    Parameters
+    ----------
+    path
+        The .mcap file.
+    topics
+        Topic names wanted.
+    summary
+        McapSummary of the file.
+    chunks
+        McapChunk list (e.g. those overlapping a time window).
+    log_range
+        (first, last) log time in ns: messages outside are left out; None keeps all.
+
+    Returns
+    -------
+    Like :func:`read_indexed_mcap`, or None when a chunk is not as the index says.
+
+    """
+    kept, pieces = [], {}
+    with open(path, 'rb') as handle:
+        for chunk in chunks:
+            handle.seek(chunk.offset)
+            data = handle.read(chunk.length + chunk.index_length)
+            if len(data) != chunk.length + chunk.index_length or data[0] != _OP_CHUNK:
+                return None
+            body = memoryview(data)[9:chunk.length]
+            _, _, size, crc = struct.unpack_from('<QQQI', body, 0)
+            compression, at = _string(body, 28)
+            (compressed_size,) = struct.unpack_from('<Q', body, at)
+            records = bytes(body[at + 8:at + 8 + compressed_size])
+            raw = np.frombuffer(_decompress_partial(records, compression) if compression
+                                else records, dtype=np.uint8)
+            if raw.size != size or (crc and crc32(raw) != crc):
+                return None
+            number = len(kept)
+            wanted_here = False
+            pos = chunk.length
+            while pos + 9 <= len(data):
+                op = data[pos]
+                (length,) = struct.unpack_from('<Q', data, pos + 1)
+                if op == _OP_MESSAGE_INDEX:
+                    cid, nbytes = struct.unpack_from('<HI', data, pos + 9)
+                    if summary.channels.get(cid, ('',))[0] in topics:
+                        pairs = np.frombuffer(data, dtype='<u8', count=nbytes // 8,
+                                              offset=pos + 15).reshape(-1, 2)
+                        log_ns = pairs[:, 0].astype(np.int64)
+                        offsets = pairs[:, 1].astype(np.int64)
+                        if log_range is not None:
+                            inside = (log_ns >= log_range[0]) & (log_ns <= log_range[1])
+                            log_ns, offsets = log_ns[inside], offsets[inside]
+                        if offsets.size:
+                            pieces.setdefault(cid, []).append((number, offsets, log_ns))
+                            wanted_here = True
+                pos += 9 + length
+            if wanted_here:
+                kept.append(raw)
+    if not kept:
+        return ({topic: summary.schemas.get(sid, '') for topic, sid in summary.channels.values()},
+                {})
+    sizes = np.array([c.size for c in kept], dtype=np.int64)
+    buffer = np.concatenate(kept)
+    starts_of = np.concatenate([[0], np.cumsum(sizes)[:-1]])
+    kept.clear()
+    return _gather(buffer, starts_of, sizes, summary.schemas, summary.channels, pieces, topics)
