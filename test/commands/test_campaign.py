@@ -144,12 +144,13 @@ def test_inadequate_fits_are_flagged_and_kept_out_of_the_trend():
 
 
 def test_campaign_diagnoses_on_request(tmp_path, capsys):
-    """One clean test point with --diagnose: the diagnosis finds nothing missing (none)."""
+    """One clean test point, one --config, --diagnose: the diagnosis finds nothing missing."""
     entry = tmp_path / 'entry'
     write_test_point(entry, 'clean', seed=3, noise_deg=0.05, conditions={'run': 1})
+    config = (entry / 'clean.yaml').rename(tmp_path / 'one_for_all.yaml')   # --config instead
     out = tmp_path / 'out'
     rc = cli.main(['campaign', str(entry), '--out', str(out), '--diagnose', '--jobs', '1',
-                   '--no-figures'])
+                   '--no-figures', '--config', str(config)])
     assert rc == 0, capsys.readouterr().err
     row = _csv(out / 'campaign.csv')[0]
     diagnosis = json.loads((out / 'points' / 'clean' / 'diagnose.json').read_text())
