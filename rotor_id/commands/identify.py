@@ -82,12 +82,16 @@ def format_table(result):
         rel = std / abs(value) if value else float('inf')
         lines.append(f'{name:<{width}} {value:13.6g} {std:11.3g} {rel:10.2%}  '
                      + ' '.join(f'{corr[i][j]:8.3f}' for j in range(len(names))))
-    lines.append(f'model {data["model"]}, method {data["method"]}, '
-                 f'window {data["window_s"][0]:.4f}-{data["window_s"][1]:.4f} s '
-                 f'({data["n_samples"]} samples, Ω = {data["omega_rad_s"]:.2f} rad/s), '
-                 f'{data["iterations"]} iterations, '
-                 f'{_status(data)}')
+    if 'runs' in data:
+        where = f'{len(data["runs"])} runs ({data["n_samples"]} samples; windows below)'
+    else:
+        where = (f'window {data["window_s"][0]:.4f}-{data["window_s"][1]:.4f} s '
+                 f'({data["n_samples"]} samples, Ω = {data["omega_rad_s"]:.2f} rad/s)')
+    lines.append(f'model {data["model"]}, method {data["method"]}, {where}, '
+                 f'{data["iterations"]} iterations, {_status(data)}')
     noise = ', '.join(f'{c} {s:.3g}' for c, s in zip(data['channels'], data['noise_std']))
+    if 'runs' in data:
+        noise += ' (pooled over the runs)'
     lines.append(f'noise σ (rad): {noise}')
     return '\n'.join(lines)
 
