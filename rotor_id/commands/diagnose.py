@@ -74,6 +74,10 @@ def format_summary(diagnosis):
         if not c['available']:
             lines.append(f'{name:<30} {"":>9} {"":>10} {"":>11}  {c.get("reason", "")}')
             continue
+        if c.get('bound_limited'):
+            lines.append(f'{name:<30} {_fmt(c["delta_loglik"], ".1f"):>9} {"":>10} {"":>11}  '
+                         f'no: {c["reason"]}')
+            continue
         lines.append(f'{name:<30} {_fmt(c["delta_loglik"], ".1f"):>9} '
                      f'{_fmt(c["criterion"], ".1f"):>10} {_fmt(c["validation_rms"]):>11}  '
                      f'{"yes" if c["eligible"] else "no"}')

@@ -171,6 +171,34 @@ class Augmented(LinearModel):
         """Return the number of the baseline's parameters."""
         return len(self.base.parameters)
 
+    #: extra-parameter bounds that are physics, not a catalogue range: {name: ('lower',...)}
+    #: (a fit stopping there has found the physical limit, e.g. no wake gain, and competes on
+    #: its likelihood); every other bound is a range the catalogue chose and is widened
+    physical_bounds = {}
+
+    def with_bounds(self, bounds):
+        """Replace extra-parameter bounds {name: (lower, upper)} (a widened catalogue range)."""
+        self.extra_parameters = tuple(
+            replace(par, lower=float(bounds[par.name][0]), upper=float(bounds[par.name][1]))
+            if par.name in bounds else par for par in self.extra_parameters)
+        self.parameters = tuple(self.base.parameters) + tuple(self.extra_parameters)
+        return self
+
+    def widened(self, name, side):
+        """
+        Return (lower, upper) of extra parameter ``name`` widened on ``side``, or None.
+
+        None when that side is a physical bound. The range is doubled on the side the fit
+        stopped at.
+        """
+        if side in self.physical_bounds.get(name, ()):
+            return None
+        par = self.parameter(name)
+        span = par.upper - par.lower
+        if side == 'lower':
+            return par.lower - span, par.upper
+        return par.lower, par.upper + span
+
     def _split(self, p):
         p = np.asarray(p, dtype=float)
         return p[:self.n_base_parameters], p[self.n_base_parameters:]
@@ -274,6 +302,27 @@ class SensorLag(Augmented):
                                   'flap-sensor first-order time constant, rad of azimuth'),)
     #: RK4 step that keeps the fastest admissible lag (τ_s = 0.03) stable (|hλ| < 2.78)
     max_step = 0.05
+    #: RK4 steps per unit of the smallest admissible τ_s (0.05 at 0.03, |hλ| = 1.67)
+    STEP_PER_LAG = 0.05 / 0.03
+    #: smallest τ_s the widening goes to. Below it the lag is the delay d = τ_s to first order
+    #: (they differ by τ_s²β″/2, under the noise at these sizes) and ``time_delay``, nested at
+    #: d = 0 and without a stiff state, measures it; a smaller τ_s would need RK4 steps of
+    #: 1.7 τ_s on a time-varying 10-state model (3× the cost per third of τ_s). So a lag fit
+    #: stopped here is reported bound-limited, not widened.
+    SMALLEST_LAG = 0.03
+
+    def widened(self, name, side):
+        """Return the upper bound doubled; None at the lower (see :data:`SMALLEST_LAG`)."""
+        par = self.parameter(name)
+        if side == 'lower':
+            if par.lower <= self.SMALLEST_LAG * 1.0001:
+                return None
+            return max(par.lower / 3.0, self.SMALLEST_LAG), par.upper
+        return par.lower, 2.0 * par.upper
+
+    def step(self):
+        """Return the longest stable RK4 step for the smallest admissible τ_s."""
+        return self.STEP_PER_LAG * self.parameter('lag_rad').lower
 
     def __init__(self, base):
         n = BladeView(base).n_blades
@@ -516,6 +565,8 @@ class DynamicInflow(Augmented):
     extra_parameters = (
         Parameter('AL_over_tau', 'AL/τ', '-', 0.25, 0.0, 50.0, 'wake gain over time constant'),
         Parameter('inv_tau', '1/τ', '-', 0.125, 1e-4, 50.0, 'inverse wake time constant'))
+    #: no wake gain (AL/τ = 0) and a frozen wake (1/τ → 0) are physical limits
+    physical_bounds = {'AL_over_tau': ('lower',), 'inv_tau': ('lower',)}
     extra_states = ('lambda_I', 'lambda_II')
     free_extra_states = ('lambda_I', 'lambda_II')
 
@@ -589,6 +640,8 @@ class BladeDissimilarity(Augmented):
                   'relative Lock-number difference of the odd blade'),
         Parameter('dtheta_static', '(1+ε)Δθ_j + εθ0', 'rad', 0.0, -0.2, 0.2,
                   "the odd blade's static pitch-equivalent offset"))
+    #: γ_j > 0: ε = −0.9 is close to a blade without aerodynamics
+    physical_bounds = {'dgamma_rel': ('lower',)}
     extra_states = ('eta', 'eta_dot')
     free_extra_states = ('eta', 'eta_dot')
 

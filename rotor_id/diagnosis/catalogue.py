@@ -11,13 +11,17 @@ and residuals compare directly. ``process_noise`` uses the filter-error likeliho
 """
 
 from dataclasses import dataclass, field
+from dataclasses import replace as _replace
 import math
 import time
 
 import numpy as np
 
 from rotor_id.diagnosis import augmentations as aug
-from rotor_id.estimation.output_error import Experiment, fit_output_error, IdentificationError
+from rotor_id.estimation.output_error import (
+    _fit_initial_states, _Problem, evaluate, Experiment, fit_output_error, IdentificationError,
+    information_matrix, STOP)
+from rotor_id.estimation.simulate import DEFAULT_MAX_STEP
 
 #: Every effect of the catalogue, in the order they are tried (issue 4 ids first).
 EFFECTS = ('dynamic_inflow', 'periodic_coefficients', 'sensor_lag', 'time_delay',
@@ -76,6 +80,10 @@ class Job:
     verbose: bool = False
     #: starting values of the augmented model (validation of an already fitted candidate)
     start: dict = None
+    #: the baseline's −log L (a fit at a bound that does not beat it is not widened)
+    baseline_nll: float = math.inf
+    #: widened catalogue ranges {extra parameter: (lower, upper)} (see :func:`fit_candidate`)
+    bounds: dict = None
 
 
 @dataclass
@@ -96,6 +104,11 @@ class CandidateFit:
     validation_rms: float = None
     validation_ms: list = None
     elapsed_s: float = 0.0
+    #: the catalogue ranges the fit ended with (widened where a fit stopped at one)
+    bounds: dict = field(default_factory=dict)
+    #: extra parameters still at a catalogue bound after widening: the likelihood is capped,
+    #: so the candidate is reported but not compared
+    bound_limited: list = field(default_factory=list)
 
 
 def _free_of(exp, model, extra_free):
@@ -180,7 +193,6 @@ def _build(job, baseline_model, experiments):
     max_step = None
     if effect == 'sensor_lag':
         runs, model = _augment_runs(experiments, aug.SensorLag, record)
-        max_step = aug.SensorLag.max_step
     elif effect == 'time_delay':
         runs, model = _augment_runs(experiments, aug.TimeDelay, record, _pitch_rates)
     elif effect == 'sensor_bias':
@@ -206,12 +218,65 @@ def _build(job, baseline_model, experiments):
         model = runs[0].model
     else:
         raise IdentificationError(f'unknown effect {effect!r}')
+    if job.bounds:
+        for exp in runs:
+            exp.model.with_bounds(job.bounds)
+    if effect == 'sensor_lag':
+        max_step = model.step()
     extra = [p.name for p in getattr(model, 'extra_parameters', ())]
     unknowns = list(job.unknowns) + extra
     for par in getattr(model, 'extra_parameters', ()):
         guess[par.name] = par.nominal
     guess.update(job.start or {})
     return runs, model, unknowns, extra, guess, max_step
+
+
+#: Most times a catalogue range is widened when a fit stops at it.
+MAX_WIDENINGS = 2
+
+
+def _at_catalogue_bound(est, model, extra):
+    """[(name, 'lower'|'upper')] of extra parameters at a catalogue (not physical) bound."""
+    return _at_catalogue_bound_values(est.model_parameters, model, extra)
+
+
+def _at_catalogue_bound_values(values, model, extra):
+    """[(name, side)] of the extra parameters in ``values`` at a catalogue bound."""
+    out = []
+    for name in extra:
+        par = model.parameter(name)
+        value = values[name]
+        tol = 1e-9 * max(1.0, abs(par.lower), abs(par.upper))
+        for side, bound in (('lower', par.lower), ('upper', par.upper)):
+            if abs(value - bound) <= tol and side not in model.physical_bounds.get(name, ()):
+                out.append((name, side))
+    return out
+
+
+def _stop_at_bound(model, extra, show):
+    """
+    Progress callback: print, and stop a fit whose extra parameter stays at a catalogue bound.
+
+    Two iterations there mean the data push beyond the range: the fit will either be widened
+    and repeated from there or reported bound-limited, so crawling on along the bound (the
+    other parameters creep, the bounded one cannot move) is wasted work.
+    """
+    streak = [0]
+
+    def check(info):
+        if show is not None:
+            show(info)
+        values = dict(zip(info['names'], info['values']))
+        streak[0] = streak[0] + 1 if _at_catalogue_bound_values(values, model, extra) else 0
+        return STOP if streak[0] >= 2 else None
+    return check
+
+
+def _lag_starts(model, guess):
+    """Yield starting τ_s from the smallest admissible up (the best by cost starts the fit)."""
+    lower = model.parameter('lag_rad').lower
+    for factor in (1.0, 2.0, 4.0, 10.0, 30.0):
+        yield {**guess, 'lag_rad': lower * factor}
 
 
 def _wake_starts(model, guess, unknowns):
@@ -330,17 +395,36 @@ def fit_candidate(job):
             return _fit_process_noise(job, out, t_start)
         experiments = experiments_from_record(job.record, job.description, base_model,
                                               job.window_s)
-        if job.effect == 'blade_dissimilarity' and not job.variant:
+        if job.effect == 'blade_dissimilarity':
             job = _screen_blade(job, base_model, experiments)
             out.variant = job.variant
             label = f'{job.effect} {job.variant}'
-        runs, model, unknowns, extra, guess, max_step = _build(job, base_model, experiments)
-        kw = {'max_step': max_step} if max_step else {}
-        if job.effect == 'dynamic_inflow':
-            guess = _best_start(runs, unknowns, _wake_starts(model, guess, unknowns),
-                                job.known, max_step) or guess
-        est = fit_output_error(runs, unknowns, guess=guess, known=job.known, max_iter=40,
-                               progress=_printer(label, job.verbose), label=label, **kw)
+        for widening in range(MAX_WIDENINGS + 1):
+            runs, model, unknowns, extra, guess, max_step = _build(job, base_model,
+                                                                   experiments)
+            kw = {'max_step': max_step} if max_step else {}
+            starts = None
+            if job.effect == 'dynamic_inflow':
+                starts = _wake_starts(model, guess, unknowns)
+            elif job.effect == 'sensor_lag' and not job.start:
+                starts = _lag_starts(model, guess)
+            if starts is not None:
+                guess = _best_start(runs, unknowns, starts, job.known, max_step) or guess
+            fit_kw = dict(known=job.known, label=label, **kw,
+                          progress=_stop_at_bound(model, extra, _printer(label, job.verbose)))
+            est = fit_output_error(runs, unknowns, guess=guess, max_iter=40, **fit_kw)
+            at_bound = _at_catalogue_bound(est, model, extra)
+            out.bounds = dict(job.bounds or {})
+            out.bound_limited = [name for name, _ in at_bound]
+            wider = {name: model.widened(name, side) for name, side in at_bound}
+            if not at_bound or widening == MAX_WIDENINGS or None in wider.values():
+                break
+            # a fit that is no better than the baseline at the bound asks for no effect: the
+            # baseline is the limit beyond the bound (e.g. τ_s → 0), nothing to widen for
+            if est.neg_log_likelihood >= job.baseline_nll:
+                break
+            job = _replace(job, bounds={**(job.bounds or {}), **wider},
+                           start={n: est.model_parameters[n] for n in unknowns})
     except (IdentificationError, np.linalg.LinAlgError, FloatingPointError) as exc:
         out.available, out.reason = False, f'fit failed: {exc}'
         out.elapsed_s = time.perf_counter() - t_start
@@ -367,6 +451,64 @@ def fit_candidate(job):
     return out
 
 
+#: Effects screened by a score test at the baseline estimate (nested at a neutral value and
+#: close to linear in their extra parameters there). The others are always fitted:
+#: ``periodic_coefficients`` is not nested by a parameter, ``dynamic_inflow``'s gain is far
+#: from linear (its benefit comes at a wake gain where the local test says little), and
+#: ``process_noise`` is the explanation of last resort (fitted only when needed).
+SCREENED = ('sensor_lag', 'time_delay', 'sensor_bias', 'blade_dissimilarity',
+            'flap_frequency', 'cubic_stiffness')
+
+
+def score_statistic(runs, unknowns, guess, known, noise_var, max_step=None):
+    """
+    Score (Lagrange-multiplier) statistic of extra parameters at the baseline estimate.
+
+    LM = gᵀ M⁻¹ g with g the gradient of the output-error cost ½Σ r²/σ² and M the information
+    matrix, both at ``guess`` (baseline estimate, extra parameters at their neutral values,
+    initial states refitted); σ² is the baseline's. LM is the Gauss-Newton prediction of
+    2Δlog L of the full fit and is χ²(k) under the null of no effect (Rao's score test), from
+    one sensitivity simulation and no refitting.
+    """
+    max_step = max_step or DEFAULT_MAX_STEP
+    problem = _Problem(runs, unknowns, guess, known)
+    k = len(problem.names)
+    theta = np.concatenate([problem.p_base[problem.param_index],
+                            np.zeros(k - len(problem.param_index))])
+    theta = _fit_initial_states(problem, theta, max_step)
+    results = evaluate(problem, theta, max_step)
+    inv_var = 1.0 / np.asarray(noise_var, dtype=float)
+    grad = -sum(np.einsum('tmi,m,tm->i', dy, inv_var, res) for res, dy, _ in results)
+    M = information_matrix([dy for _, dy, _ in results], noise_var)
+    return float(grad @ np.linalg.lstsq(M, grad, rcond=1e-12)[0])
+
+
+def screen_candidate(job, noise_var):
+    """
+    Return [(variant, LM, k)] of a screened effect's score tests at the baseline.
+
+    k counts the extra parameters and estimated extra initial states (the test's degrees of
+    freedom). A blade dissimilarity is tested per blade; a sensor lag, which is not nested
+    (τ_s > 0), by its first-order equivalent, the delay d = τ_s nested at d = 0.
+    """
+    from rotor_id.pipeline import experiments_from_record, model_for
+    base_model = model_for(job.description)
+    experiments = experiments_from_record(job.record, job.description, base_model,
+                                          job.window_s)
+    effect = job.effect
+    if effect == 'sensor_lag':
+        job = _replace(job, effect='time_delay')
+    blades = _blades_of(base_model, job.record) if effect == 'blade_dissimilarity' else [None]
+    out = []
+    for blade in blades:
+        trial = job if blade is None else _replace(job, variant=f'blade_{blade}')
+        runs, model, unknowns, extra, guess, max_step = _build(trial, base_model, experiments)
+        lm = score_statistic(runs, unknowns, guess, job.known, noise_var, max_step)
+        k = len(extra) + _n_initial(runs) - _n_initial(experiments)
+        out.append(('' if blade is None else f'blade_{blade}', lm, k))
+    return out
+
+
 #: Starting Lock-number differences: the fit is bilinear (ε multiplies the state), and from
 #: ε = 0 alone Gauss-Newton can stall where a static offset explains the trim shift.
 DISSIMILARITY_STARTS = (-0.1, 0.0, 0.1)
@@ -378,9 +520,10 @@ def _screen_blade(job, base_model, experiments):
 
     The full fit starts there.
     """
-    from dataclasses import replace as _replace
     best, best_cost = None, math.inf
-    for blade in _blades_of(base_model, job.record):
+    blades = [int(job.variant.split('_')[1])] if job.variant else \
+        _blades_of(base_model, job.record)
+    for blade in blades:
         for eps in DISSIMILARITY_STARTS:
             trial = _replace(job, variant=f'blade_{blade}',
                              start={**(job.start or {}), 'dgamma_rel': eps})

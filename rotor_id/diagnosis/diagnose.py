@@ -20,7 +20,7 @@ Model-mismatch diagnosis of one recording (issue 4): fit, locate, explain, choos
 5. Show: :meth:`Diagnosis.as_json` (stable keys of issue 4) and :mod:`rotor_id.diagnosis.figures`.
 """
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace as _replace
 import math
 import multiprocessing
 import time
@@ -30,7 +30,9 @@ import numpy as np
 from rotor_id.diagnosis import residuals as rs
 from rotor_id.diagnosis.augmentations import BladeView
 from rotor_id.diagnosis.catalogue import (
-    EFFECTS, EQUIVALENT, fit_candidate, Job, n_choices, validate_candidate, variants)
+    applicable, CandidateFit, EFFECTS, EQUIVALENT, fit_candidate, Job, n_choices,
+    screen_candidate, SCREENED, validate_candidate, variants)
+from rotor_id.estimation.output_error import IdentificationError
 from rotor_id.estimation.simulate import simulate
 from rotor_id.physics.models import multiblade_from_blade_flap
 from rotor_id.pipeline import identify
@@ -41,6 +43,12 @@ CRITERION_THRESHOLD = 10.0
 CONFIDENCE_GAP = 10.0
 #: Strongest candidates cross-validated (the others cannot be chosen anyway).
 MAX_VALIDATED = 3
+#: A score test's LM may underpredict the full fit's 2Δlog L where the effect is not small;
+#: screening credits the fit with this multiple of LM before ruling it out.
+SCREEN_SAFETY = 2.0
+#: Random inflow is fitted when the baseline residuals' combined whiteness p is below this
+#: or their RMS is 2 standard errors above the floor (and no deterministic effect is adequate).
+PROCESS_NOISE_WHITENESS = 0.05
 _MBC = ('beta_0', 'beta_I', 'beta_II', 'beta_d')
 
 
@@ -204,8 +212,54 @@ def _score(fit, baseline_est, n_obs, n_variants):
     return dll, rho, criterion
 
 
+def _screen(job, noise_var, n_obs, n_blades):
+    """
+    Score-test one effect at the baseline: {'effect', 'variant', 'lm', 'k', 'fit'}.
+
+    ``fit`` is False only when even the most generous criterion the full fit could reach,
+    2Δlog L·1 − k log(n ρ_min) − 2 log(choices) with 2Δlog L = SCREEN_SAFETY·LM, stays below
+    :data:`CRITERION_THRESHOLD` (ρ_min = 1/50 is the smallest autocorrelation correction
+    :func:`rotor_id.diagnosis.residuals.effective_fraction` gives).
+    """
+    try:
+        tests = screen_candidate(job, noise_var)
+    except (IdentificationError, np.linalg.LinAlgError, FloatingPointError):
+        return {'effect': job.effect, 'variant': job.variant, 'lm': math.nan, 'k': 0,
+                'fit': True}
+    variant, lm, k = max(tests, key=lambda v: v[1])
+    reach = SCREEN_SAFETY * lm - k * math.log(n_obs / 50.0) \
+        - 2.0 * math.log(n_choices(job.effect, n_blades))
+    return {'effect': job.effect, 'variant': variant, 'lm': lm, 'k': k,
+            'fit': bool(reach > CRITERION_THRESHOLD or not math.isfinite(lm))}
+
+
+def _process_noise_not_needed(fits, est, n_obs, n_blades, channels, u, t, model_stats, screen):
+    """
+    Return why random inflow need not be fitted, or '' when it must be.
+
+    It is the explanation of last resort (:func:`_choose`): not needed when a deterministic
+    candidate is eligible by its criterion and leaves white residuals at the floor, nor when
+    the baseline's residuals show no structure at all (white, at the floor) for it to explain.
+    """
+    if not screen:
+        return ''
+    floors = [c.floor for c in channels if c.model_channel]
+    for fit in fits:
+        if not fit.available or fit.bound_limited:
+            continue
+        _, _, crit = _score(fit, est, n_obs, n_choices(fit.effect, n_blades))
+        if crit > CRITERION_THRESHOLD and _adequate(fit, floors, u, t):
+            return (f'{fit.effect} leaves white residuals at the noise floor and random '
+                    'inflow is the explanation of last resort')
+    white = rs.combined_whiteness_p(model_stats)
+    if white > PROCESS_NOISE_WHITENESS and max(s.z_excess for s in model_stats) < 2.0:
+        return (f'the baseline residuals are white (p = {white:.2g}) at the noise floor: '
+                'nothing for random inflow to explain')
+    return ''
+
+
 def diagnose(record, description, progress=None, workers=2, effects=EFFECTS, window_s=None,
-             verbose_fits=False):
+             verbose_fits=False, screen=True):
     """
     Diagnose the mismatch between a recording and the run description's model.
 
@@ -225,6 +279,10 @@ def diagnose(record, description, progress=None, workers=2, effects=EFFECTS, win
         Overrides the description's window.
     verbose_fits : bool
         Worker processes print every Gauss-Newton iteration to stderr.
+    screen : bool
+        Score-test the nested candidates at the baseline and fit only those that could reach
+        the criterion; fit random inflow only when needed (False: fit everything, as a
+        reference for the benchmark).
 
     Returns
     -------
@@ -264,13 +322,29 @@ def diagnose(record, description, progress=None, workers=2, effects=EFFECTS, win
     values = {n: est.model_parameters[n] for n in unknowns}
     known = {n: v for n, v in est.model_parameters.items() if n not in unknowns}
     n_blades = record.n_blades
-    jobs = []
-    for effect in effects:
+    n_obs = sum(e.t.size * e.model.n_outputs for e in ident.experiments)
+    noise_var = np.asarray(est.noise_std, dtype=float)**2
+    jobs, screened_out = [], []
+    deterministic = [e for e in effects if e != 'process_noise']
+    for effect in deterministic:
         for variant in variants(effect, ident.model.name, n_blades):
-            jobs.append(Job(effect, variant, record, description, values, unknowns, known,
-                            window_s, verbose=verbose_fits))
+            job = Job(effect, variant, record, description, values, unknowns, known,
+                      window_s, verbose=verbose_fits, baseline_nll=est.neg_log_likelihood)
+            if screen and effect in SCREENED and not applicable(
+                    effect, ident.model.name, ident.model.rotor, unknowns):
+                verdict = _screen(job, noise_var, n_obs, n_blades)
+                if verdict['fit']:
+                    job = _replace(job, variant=verdict['variant'])
+                else:
+                    screened_out.append(verdict)
+                    _say(progress, f'candidate {effect}: screened out, score test '
+                                   f'2Δlog L ≈ {verdict["lm"]:.1f} with {verdict["k"]} '
+                                   'extra at the baseline')
+                    continue
+            jobs.append(job)
     _say(progress, f'candidates: fitting {len(jobs)} augmented models '
-                   f'({", ".join(effects)}) in {max(1, workers)} process(es)')
+                   f'({", ".join(j.effect for j in jobs)}) in {max(1, workers)} process(es) '
+                   f'({time.perf_counter() - t_start:.1f} s)')
 
     def done(fit):
         label = fit.effect + (f' {fit.variant}' if fit.variant else '')
@@ -283,11 +357,21 @@ def diagnose(record, description, progress=None, workers=2, effects=EFFECTS, win
                        f'(total {time.perf_counter() - t_start:.1f} s)')
 
     fits = _run_jobs(fit_candidate, jobs, workers, done)
+    if 'process_noise' in effects:
+        why_not = _process_noise_not_needed(fits, est, n_obs, n_blades, channels, u, exp0.t,
+                                            model_stats, screen)
+        if why_not:
+            fits.append(CandidateFit(effect='process_noise', available=False,
+                                     reason=f'not fitted: {why_not}'))
+        else:
+            fits += _run_jobs(fit_candidate, [
+                Job('process_noise', '', record, description, values, unknowns, known,
+                    window_s, verbose=verbose_fits, baseline_nll=est.neg_log_likelihood)],
+                1, done)
     fits.sort(key=lambda f: (EFFECTS.index(f.effect), f.variant))
-    n_obs = sum(e.t.size * e.model.n_outputs for e in ident.experiments)
     scored = {}
     for fit in fits:
-        if not fit.available:
+        if not fit.available or fit.bound_limited:
             continue
         n_var = n_choices(fit.effect, n_blades)
         dll, rho, crit = _score(fit, est, n_obs, n_var)
@@ -305,7 +389,7 @@ def diagnose(record, description, progress=None, workers=2, effects=EFFECTS, win
         start = {n: fit.estimate.model_parameters[n] for n in fit.unknowns} \
             if effect != 'process_noise' else None
         val_jobs.append(Job(effect, fit.variant, record, description, values, unknowns, known,
-                            window_s, start=start))
+                            window_s, start=start, bounds=fit.bounds))
     _say(progress, f'validation: fitting {len(val_jobs)} model(s) on one half of the window '
                    'and predicting the other, both ways')
     validation = {}
@@ -333,12 +417,35 @@ def diagnose(record, description, progress=None, workers=2, effects=EFFECTS, win
                           'validation_rms': v, 'n_extra': fit.n_extra,
                           'n_eff_fraction': s['rho'], 'eligible': eligible,
                           'available': True, 'fit': fit})
+        elif fit.available and fit.bound_limited:
+            # a likelihood capped by a catalogue range is not compared (issue 16, item 3)
+            names = ', '.join(fit.bound_limited)
+            table.append({'effect': fit.effect, 'variant': fit.variant,
+                          'delta_loglik': float(est.neg_log_likelihood
+                                                - fit.estimate.neg_log_likelihood),
+                          'criterion': None, 'validation_rms': None,
+                          'n_extra': fit.n_extra, 'eligible': False, 'available': True,
+                          'bound_limited': list(fit.bound_limited),
+                          'reason': f'bound-limited: {names} at the catalogue bound '
+                                    f'{_bound_text(fit)} (the data ask for less of it than '
+                                    'the range allows; not compared on a capped likelihood)',
+                          'fit': fit})
         elif not fit.available and not any(t['effect'] == fit.effect for t in table):
             table.append({'effect': fit.effect, 'variant': fit.variant,
                           'delta_loglik': None, 'criterion': None, 'validation_rms': None,
                           'n_extra': 0, 'eligible': False, 'available': False,
                           'reason': fit.reason, 'fit': fit})
-    ranked = sorted([t for t in table if t['available']], key=lambda t: -t['criterion'])
+    for v in screened_out:
+        table.append({'effect': v['effect'], 'variant': v['variant'],
+                      'delta_loglik': 0.5 * v['lm'], 'criterion': None,
+                      'validation_rms': None, 'n_extra': v['k'], 'eligible': False,
+                      'available': True, 'score_test': True,
+                      'reason': 'screened out: the score test at the baseline predicts '
+                                f'2Δlog L ≈ {v["lm"]:.1f} with {v["k"]} extra, no criterion '
+                                f'can reach {CRITERION_THRESHOLD:g}', 'fit': None})
+    table.sort(key=lambda t: EFFECTS.index(t['effect']))
+    ranked = sorted([t for t in table if t['criterion'] is not None],
+                    key=lambda t: -t['criterion'])
     eligible = [t for t in ranked if t['eligible']]
     floors = [c.floor for c in channels if c.model_channel]
     for t in eligible:
@@ -420,7 +527,7 @@ def diagnose(record, description, progress=None, workers=2, effects=EFFECTS, win
     candidates = []
     for t in table:
         row = {k: v for k, v in t.items() if k != 'fit'}
-        if t['available'] and t['fit'].parameters:
+        if t['available'] and t['fit'] is not None and t['fit'].parameters:
             row['parameters'] = {n: {'value': v, 'std': s}
                                  for n, (v, s) in t['fit'].parameters.items()}
         candidates.append(row)
@@ -432,6 +539,12 @@ def diagnose(record, description, progress=None, workers=2, effects=EFFECTS, win
                      channels=channels, stats_baseline=stats_base, stats_augmented=stats_aug,
                      blade_floor=blade_sigma, record_window=part, elapsed_s=elapsed,
                      notes=notes, fits=fits)
+
+
+def _bound_text(fit):
+    """Return 'name = value' of the bound-limited parameters."""
+    return ', '.join(f'{n} = {fit.estimate.model_parameters[n]:.4g}'
+                     for n in fit.bound_limited)
 
 
 def _adequate(fit, floors, u, t):
