@@ -22,6 +22,20 @@ if settings is not None:
 _domain_ids = itertools.count()
 
 
+@pytest.fixture(scope='session', autouse=True)
+def compiled_kernels():
+    """
+    Put this process's simulations on one kernel from the start (the compiled one).
+
+    With ROTOR_ID_KERNELS=auto a process switches from numpy to the compiled kernel once its
+    simulations have taken 0.5 s; results then differ in the last bits (1e-10 after a fit), so
+    tests that compare two fits bit for bit must not straddle that switch. Commands run as
+    subprocesses keep the default. test_kernels compares the two paths.
+    """
+    from rotor_id.estimation import kernels
+    kernels.prefer()
+
+
 @pytest.fixture(scope='session')
 def repo_root():
     """Return the repository root (the rotor_id package's source directory)."""

@@ -136,3 +136,212 @@ def warm_up():
     Ss = np.empty((2, n, k))
     rk4_scan(Phi, F_val, idx, idx, g, dF_val, idx, idx, idx, dg, h, 1, np.zeros(n),
              np.zeros((n, k)), xs, Ss)
+
+
+@njit(cache=True, nogil=True)
+def _invert(A, inverse):
+    """Set inverse = A⁻¹ (Gauss-Jordan, partial pivoting); return log|det A| (-inf: singular)."""
+    m = A.shape[0]
+    work = A.copy()
+    for i in range(m):
+        for j in range(m):
+            inverse[i, j] = 1.0 if i == j else 0.0
+    logdet = 0.0
+    for col in range(m):
+        pivot = col
+        for r in range(col + 1, m):
+            if abs(work[r, col]) > abs(work[pivot, col]):
+                pivot = r
+        if work[pivot, col] == 0.0:
+            return -np.inf
+        if pivot != col:
+            for j in range(m):
+                tmp = work[col, j]
+                work[col, j] = work[pivot, j]
+                work[pivot, j] = tmp
+                tmp = inverse[col, j]
+                inverse[col, j] = inverse[pivot, j]
+                inverse[pivot, j] = tmp
+        p = work[col, col]
+        logdet += np.log(abs(p))
+        for j in range(m):
+            work[col, j] /= p
+            inverse[col, j] /= p
+        for r in range(m):
+            if r != col:
+                f = work[r, col]
+                if f != 0.0:
+                    for j in range(m):
+                        work[r, j] -= f * work[col, j]
+                        inverse[r, j] -= f * inverse[col, j]
+    return logdet
+
+
+@njit(cache=True, nogil=True)
+def filter_scan(Phi, c, Q, H, d, y, x0, R, P_steady, steady, nu, B, gains, cost):
+    """
+    Kalman filters of K stacked discrete models, the equations of filter_error.filter_batch.
+
+    Phi (T-1, K, n, n), c (T-1, K, n), Q (T-1, K, n, n), H (T, K, m, n), d (T, K, m), y (T, m),
+    x0 (K, n), R (K, m, m), P_steady (K, n, n) used when ``steady``. Fills nu (K, T, m),
+    B (K, T, m, m), gains (K, T, n, m) and cost (K,) (Σ νᵀB⁻¹ν + log|B|).
+    """
+    T = y.shape[0]
+    m = y.shape[1]
+    K_ = x0.shape[0]
+    n = x0.shape[1]
+    x = np.empty(n)
+    xn = np.empty(n)
+    P = np.empty((n, n))
+    PHT = np.empty((n, m))
+    Bj = np.empty((m, m))
+    Binv = np.empty((m, m))
+    Kj = np.empty((n, m))
+    KB = np.empty((n, m))
+    PP = np.empty((n, n))
+    v = np.empty(m)
+    for kk in range(K_):
+        for i in range(n):
+            x[i] = x0[kk, i]
+            for j in range(n):
+                P[i, j] = P_steady[kk, i, j] if steady else 0.0
+        total = 0.0
+        for t in range(T):
+            Ht = H[t, kk]
+            for a in range(m):
+                acc = y[t, a] - d[t, kk, a]
+                for i in range(n):
+                    acc -= Ht[a, i] * x[i]
+                v[a] = acc
+                nu[kk, t, a] = acc
+            for i in range(n):
+                for a in range(m):
+                    acc = 0.0
+                    for j in range(n):
+                        acc += P[i, j] * Ht[a, j]
+                    PHT[i, a] = acc
+            for a in range(m):
+                for b in range(m):
+                    acc = R[kk, a, b]
+                    for i in range(n):
+                        acc += Ht[a, i] * PHT[i, b]
+                    Bj[a, b] = acc
+            for a in range(m):
+                for b in range(a + 1, m):
+                    s = 0.5 * (Bj[a, b] + Bj[b, a])
+                    Bj[a, b] = s
+                    Bj[b, a] = s
+            logdet = _invert(Bj, Binv)
+            for i in range(n):
+                for b in range(m):
+                    acc = 0.0
+                    for a in range(m):
+                        acc += PHT[i, a] * Binv[a, b]
+                    Kj[i, b] = acc
+            quad = 0.0
+            for a in range(m):
+                for b in range(m):
+                    quad += v[a] * Binv[a, b] * v[b]
+                    B[kk, t, a, b] = Bj[a, b]
+            for i in range(n):
+                for a in range(m):
+                    gains[kk, t, i, a] = Kj[i, a]
+            total += quad + logdet
+            for i in range(n):
+                acc = x[i]
+                for a in range(m):
+                    acc += Kj[i, a] * v[a]
+                x[i] = acc
+            if not steady:
+                for i in range(n):
+                    for b in range(m):
+                        acc = 0.0
+                        for a in range(m):
+                            acc += Kj[i, a] * Bj[a, b]
+                        KB[i, b] = acc
+                for i in range(n):
+                    for j in range(n):
+                        acc = 0.0
+                        for b in range(m):
+                            acc += KB[i, b] * Kj[j, b]
+                        P[i, j] -= acc
+            if t < T - 1:
+                F = Phi[t, kk]
+                for i in range(n):
+                    acc = c[t, kk, i]
+                    for j in range(n):
+                        acc += F[i, j] * x[j]
+                    xn[i] = acc
+                for i in range(n):
+                    x[i] = xn[i]
+                if not steady:
+                    for i in range(n):
+                        for j in range(n):
+                            acc = 0.0
+                            for q in range(n):
+                                acc += F[i, q] * P[q, j]
+                            PP[i, j] = acc
+                    for i in range(n):
+                        for j in range(n):
+                            acc = Q[t, kk, i, j]
+                            for q in range(n):
+                                acc += PP[i, q] * F[j, q]
+                            P[i, j] = acc
+                    for i in range(n):
+                        for j in range(i + 1, n):
+                            s = 0.5 * (P[i, j] + P[j, i])
+                            P[i, j] = s
+                            P[j, i] = s
+        cost[kk] = total
+
+
+def warm_up_filter():
+    """Compile (or load from the cache) the filter for the argument types filter_batch passes."""
+    K_, T, n, m = 1, 2, 2, 1
+    Phi = np.zeros((T - 1, K_, n, n))
+    c = np.zeros((T - 1, K_, n))
+    H = np.ones((T, K_, m, n))
+    d = np.zeros((T, K_, m))
+    R = np.ones((K_, m, m))
+    filter_scan(Phi, c, Phi.copy(), H, d, np.zeros((T, m)), np.zeros((K_, n)), R,
+                np.zeros((K_, n, n)), False, np.empty((K_, T, m)), np.empty((K_, T, m, m)),
+                np.empty((K_, T, n, m)), np.empty(K_))
+    initial_state_innovations(Phi[:, 0], np.zeros((T, n, m)), H[:, 0], np.eye(n),
+                              np.empty((T, m, n)))
+
+
+@njit(cache=True, nogil=True)
+def initial_state_innovations(Phi, gains, H, Psi, out):
+    """
+    ∂ν_j/∂x(t0) at fixed gains: out[j] = −H_j Ψ_j, Ψ_{j+1} = Φ_j (Ψ_j − K_j H_j Ψ_j).
+
+    Phi (T-1, n, n), gains (T, n, m), H (T, m, n), Psi (n, f) the selection of the free
+    states (overwritten), out (T, m, f).
+    """
+    T = H.shape[0]
+    m = H.shape[1]
+    n = Psi.shape[0]
+    f = Psi.shape[1]
+    HP = np.empty((m, f))
+    A = np.empty((n, f))
+    for t in range(T):
+        for a in range(m):
+            for c in range(f):
+                acc = 0.0
+                for i in range(n):
+                    acc += H[t, a, i] * Psi[i, c]
+                HP[a, c] = acc
+                out[t, a, c] = -acc
+        if t < T - 1:
+            for i in range(n):
+                for c in range(f):
+                    acc = Psi[i, c]
+                    for a in range(m):
+                        acc -= gains[t, i, a] * HP[a, c]
+                    A[i, c] = acc
+            for i in range(n):
+                for c in range(f):
+                    acc = 0.0
+                    for j in range(n):
+                        acc += Phi[t, i, j] * A[j, c]
+                    Psi[i, c] = acc

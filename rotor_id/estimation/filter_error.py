@@ -51,7 +51,7 @@ import time
 
 import numpy as np
 
-from rotor_id.estimation import kalman
+from rotor_id.estimation import kalman, kernels
 from rotor_id.estimation.output_error import (_fit_initial_states, _Problem,
                                               damped_gauss_newton_step, dependence_warnings,
                                               Estimate, IdentificationError)
@@ -149,12 +149,12 @@ class _FilterProblem:
             return 'steady' if dm.time_invariant else 'time-varying'
         return self.gain
 
-    def run(self, r, theta):
-        """Kalman filter of run r at θ (the readable single filter of :mod:`kalman`)."""
+    def innovations(self, r, theta):
+        """Innovations ν (T, m) of run r at θ (process noise as its variance, as optimised)."""
         dm, x0, R = self.discretized(r, theta)
-        n = dm.Phi.shape[1]
-        return kalman.kalman_filter(dm, self.experiments[r].y, x0, np.zeros((n, n)), R,
-                                    gain=self.gain_mode(dm)), dm
+        nu, _, _, _ = filter_batch([dm], self.experiments[r].y, x0[None], R[None],
+                                   self.gain_mode(dm))
+        return nu[0]
 
     def evaluate(self, theta, sensitivities=True):
         """Per run: (ν (T,m), B (T,m,m), ∂ν (T,m,k) or None, ∂B (T,m,m,k) or None, cost)."""
@@ -193,11 +193,18 @@ class _FilterProblem:
             Psi = np.zeros((n, len(free)))
             Psi[free, np.arange(len(free))] = 1.0
             cols = self.base.state_slices[r]
-            eye = np.eye(n)
-            for j in range(T):
-                dnu[j, :, cols] = -dm.H[j] @ Psi
-                if j < T - 1:
-                    Psi = dm.Phi[j] @ (eye - gains[0, j] @ dm.H[j]) @ Psi
+            compiled = kernels.initial_state_kernel()
+            if compiled is not None:
+                part = np.empty((T, self.m, len(free)))
+                compiled(np.ascontiguousarray(dm.Phi), gains[0],
+                         np.ascontiguousarray(dm.H, dtype=float), Psi, part)
+                dnu[:, :, cols] = part
+            else:
+                eye = np.eye(n)
+                for j in range(T):
+                    dnu[j, :, cols] = -dm.H[j] @ Psi
+                    if j < T - 1:
+                        Psi = dm.Phi[j] @ (eye - gains[0, j] @ dm.H[j]) @ Psi
             out.append((nu[0], B[0], dnu, dB, cost[0]))
         return out
 
@@ -247,6 +254,13 @@ def filter_batch(dms, y, x0, R, gain='time-varying'):
     P = np.zeros((K_, n, n))
     if gain == 'steady':
         P_ss = np.stack([kalman.steady_state_covariance(dm, R[i]) for i, dm in enumerate(dms)])
+    compiled = kernels.filter_kernel()
+    if compiled is not None:
+        compiled(Phi, c, Q, H, d, np.ascontiguousarray(y, dtype=float), x,
+                 np.ascontiguousarray(R, dtype=float), P_ss if gain == 'steady' else P,
+                 gain == 'steady', nu, B, gains, cost)
+        return nu, B, gains, cost
+    clock = time.perf_counter()
     for j in range(T):
         Hj = H[j]
         if gain == 'steady':
@@ -270,6 +284,7 @@ def filter_batch(dms, y, x0, R, gain='time-varying'):
             if gain != 'steady':
                 P = Phi[j] @ P @ np.swapaxes(Phi[j], -1, -2) + Q[j]
                 P = 0.5 * (P + np.swapaxes(P, -1, -2))
+    kernels.note_numpy_seconds(time.perf_counter() - clock)
     return nu, B, gains, cost
 
 
@@ -469,18 +484,19 @@ def fit_filter_error_ml(experiments, unknowns, guess=None, known=None, noise_std
     if not converged:
         warnings.append(message)
     base_theta, sig_p, sig_m = prob.split(theta)
+    # before θ reports σ in place of the variance q that split() expects
+    residuals = [prob.innovations(r, theta) for r in range(len(experiments))]
     theta = _reported(prob, theta)
     p_final = base.full_parameters(base_theta)
     n_total = sum(exp.t.size for exp in experiments)
     nll = cost + 0.5 * n_total * prob.m * math.log(2.0 * math.pi)
-    fits = [prob.run(r, theta)[0] for r in range(len(experiments))]
     return Estimate(
         names=names, values=theta, covariance=cov, information=M, noise_std=sig_m,
         channel_names=list(prob.model.output_names), cost=float(cost),
         neg_log_likelihood=float(nll), iterations=iteration, converged=converged,
         message=message, n_samples=n_total, history=history,
-        residuals=[fr.innovations for fr in fits],
-        fitted=[exp.y - fr.innovations for exp, fr in zip(experiments, fits)],
+        residuals=residuals,
+        fitted=[exp.y - nu for exp, nu in zip(experiments, residuals)],
         initial_states=[base.initial_state(r, base_theta, p_final)[0]
                         for r in range(len(experiments))],
         warnings=warnings, model_parameters=dict(zip(prob.model.parameter_names, p_final)),

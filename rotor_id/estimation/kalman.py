@@ -29,7 +29,7 @@ import math
 
 import numpy as np
 from rotor_id.estimation.simulate import (_fine_grid, _rk4_constant_forcing, _rk4_maps,
-                                          DEFAULT_MAX_STEP, substeps_for)
+                                          _time_invariant, DEFAULT_MAX_STEP, substeps_for)
 import scipy.linalg
 
 NOISE_MODELS = ('held', 'white')
@@ -147,7 +147,13 @@ def discretize(model, p, inputs, t, rows=(), noise_std=0.0, noise_model='white',
     u = inputs(tf)
     F, g = model.system(tf, p, u)
     h = np.repeat(np.diff(t) / m, m)
-    Phi_s, c_s = _rk4_maps(F, g, h)
+    constant = _time_invariant(F, h, t)
+    if constant:
+        # one transition for every step (as the simulator does); c still per step
+        Phi_s, c_s = _rk4_maps(F[:1], g, h[:1])
+        Phi_s = np.broadcast_to(Phi_s, (h.size, n, n))
+    else:
+        Phi_s, c_s = _rk4_maps(F, g, h)
     Phi_s = Phi_s.reshape(T - 1, m, n, n)
     c_s = c_s.reshape(T - 1, m, n)
     # response of each step to a unit input held on each noise row
@@ -158,11 +164,11 @@ def discretize(model, p, inputs, t, rows=(), noise_std=0.0, noise_model='white',
             w[:, row] = 1.0
             G_s[:, :, :, k] = _rk4_constant_forcing(F, w, h).reshape(T - 1, m, n)
     # compose the m steps of each sample interval (vectorised over intervals)
-    Phi = np.broadcast_to(np.eye(n), (T - 1, n, n)).copy()
+    Phi = np.broadcast_to(np.eye(n), (T - 1 if not constant else 1, n, n)).copy()
     c = np.zeros((T - 1, n))
     G = np.zeros((T - 1, n, len(rows)))
     for s in range(m):
-        Phi = Phi_s[:, s] @ Phi
+        Phi = Phi_s[:Phi.shape[0], s] @ Phi
         c = np.einsum('jab,jb->ja', Phi_s[:, s], c) + c_s[:, s]
         G = Phi_s[:, s] @ G + G_s[:, s]
     if noise_model == 'held':
@@ -172,8 +178,13 @@ def discretize(model, p, inputs, t, rows=(), noise_std=0.0, noise_model='white',
         Fmid = model.system(mid, p, inputs(mid))[0]
         Qc = np.zeros((n, n))
         Qc[rows, rows] = sigma**2
-        Q = van_loan(Fmid, Qc, np.diff(t))[1]
+        if constant:                    # the same F and Δt: one matrix exponential
+            Q = np.broadcast_to(van_loan(Fmid[:1], Qc, np.diff(t)[:1])[1], (T - 1, n, n))
+        else:
+            Q = van_loan(Fmid, Qc, np.diff(t))[1]
         G = None
+    if constant:
+        Phi = np.broadcast_to(Phi, (T - 1, n, n))
     H = model.output_matrix(t)
     d = model.output_offset(t, p)
     return DiscreteModel(t=t, Phi=Phi, c=c, Q=Q, H=H, d=d, G=G)

@@ -33,7 +33,7 @@ MODES = ('auto', 'numba', 'numpy')
 AUTO_SWITCH_SECONDS = 0.5
 
 _state = {'kernel': None, 'tried': False, 'error': None, 'numpy_seconds': 0.0,
-          'load_seconds': None}
+          'load_seconds': None, 'module': None}
 
 
 def mode():
@@ -67,6 +67,20 @@ def rk4_kernel():
     return load()
 
 
+def filter_kernel():
+    """Return the compiled Kalman filter of stacked models, or None (as :func:`rk4_kernel`)."""
+    if rk4_kernel() is None:
+        return None
+    return _state['module'].filter_scan
+
+
+def initial_state_kernel():
+    """Return the compiled ∂ν/∂x(t0) recursion of filter error, or None."""
+    if rk4_kernel() is None:
+        return None
+    return _state['module'].initial_state_innovations
+
+
 def load():
     """Import numba and compile (or load from the cache) the kernel; None if that fails."""
     if _state['kernel'] is not None or _state['tried']:
@@ -77,10 +91,12 @@ def load():
         from rotor_id.estimation import _kernels_numba
         kernel = _kernels_numba.rk4_scan
         _kernels_numba.warm_up()
+        _kernels_numba.warm_up_filter()
     except Exception as err:  # noqa: B902 - ImportError, numba's compile errors: use numpy
         _state['error'] = f'{type(err).__name__}: {err}'
         return None
     _state['load_seconds'] = time.perf_counter() - start
+    _state['module'] = _kernels_numba
     _state['kernel'] = kernel
     return kernel
 

@@ -93,3 +93,35 @@ def test_auto_mode_switches_after_the_numpy_time(monkeypatch):
     monkeypatch.setenv('ROTOR_ID_KERNELS', 'fast')
     with pytest.raises(ValueError, match='ROTOR_ID_KERNELS'):
         kernels.mode()
+
+
+@pytest.mark.parametrize('gain', ['time-varying', 'steady'])
+def test_filter_kernel_matches_numpy(gain, monkeypatch):
+    """The compiled Kalman filter of filter error gives the numpy filter's ν, B, gains, cost."""
+    from rotor_id.estimation import kalman
+    from rotor_id.estimation.filter_error import filter_batch
+    model = MultibladeConstant(MU04, 'delta', 'deg') if gain == 'steady' else \
+        CASES['wake'][0]
+    stirring, t0 = (STIR12, 12.0) if gain == 'steady' else CASES['wake'][1:]
+    t = t0 + 0.1 * np.arange(201)
+    rows = kalman.default_noise_rows(model)
+    p = model.nominal()
+    rng = np.random.default_rng(5)
+    x0 = 0.1 * rng.standard_normal(model.n_states)
+    y = simulate(model, p, stirring, t, x0).y + 0.05 * rng.standard_normal(
+        (t.size, model.n_outputs))
+    dms = [kalman.discretize(model, p * (1 + 0.01 * i), stirring, t, rows, 0.1 * (1 + i))
+           for i in range(3)]
+    if gain == 'steady':
+        assert all(dm.time_invariant for dm in dms)
+    x0s = np.array([x0] * 3)
+    R = np.array([np.eye(model.n_outputs) * 0.05**2 * (1 + i) for i in range(3)])
+    kernel = kernels.load()
+    assert kernel is not None, kernels.status()['error']
+    monkeypatch.setitem(kernels._state, 'kernel', None)
+    monkeypatch.setenv('ROTOR_ID_KERNELS', 'numpy')
+    reference = filter_batch(dms, y, x0s, R, gain)
+    monkeypatch.setitem(kernels._state, 'kernel', kernel)
+    compiled = filter_batch(dms, y, x0s, R, gain)
+    for what, a, b in zip(('innovations', 'B', 'gains', 'cost'), reference, compiled):
+        _assert_close(a, b, what)
