@@ -342,3 +342,23 @@ def test_steady_state_gain_for_a_time_invariant_model():
     assert np.all(np.abs(steady.values[:2] - varying.values[:2]) < 0.5 * varying.std[:2])
     assert steady.value(fe.PROCESS_NOISE) == pytest.approx(0.3, rel=0.15)
     assert np.all(np.abs(steady.values[:2] - p) < 3 * steady.std[:2])
+
+
+def test_residuals_are_the_innovations_at_the_estimate():
+    """
+    The reported residuals are the Kalman innovations at the reported estimate, σ_V included.
+
+    (They were once computed with √σ̂_V in place of σ̂_V: θ held σ for the report while the
+    filter read the entry as the variance it optimises.)
+    """
+    y = wake_data(3, 0.3, 0.05)
+    exp = Experiment(WAKE, PROGRESSING, T_WAKE, y, initial_state='positions')
+    est = fe.fit_filter_error_ml([exp], UNKNOWNS, guess=GUESS, noise_std=0.05)
+    sigma_v = est.value(fe.PROCESS_NOISE)
+    assert sigma_v > 0.01                                   # the check needs process noise
+    p = WAKE.parameter_vector({n: est.value(n) for n in UNKNOWNS})
+    dm = kalman.discretize(WAKE, p, PROGRESSING, T_WAKE, kalman.default_noise_rows(WAKE), sigma_v)
+    run = kalman.kalman_filter(dm, y, est.initial_states[0], np.zeros((6, 6)),
+                               np.diag([0.05**2] * 2))
+    assert np.allclose(est.residuals[0], run.innovations, rtol=1e-9, atol=1e-12)
+    assert np.allclose(est.fitted[0], y - run.innovations, rtol=1e-9, atol=1e-12)
