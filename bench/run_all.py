@@ -29,6 +29,8 @@ BENCHMARKS = {
     'offline_throughput': ('offline_throughput.py', ['--repeat', '3'],
                            ['--repeat', '1', '--no-write'],
                            '10-minute 1 kHz bag (target ≥ 200× real time)'),
+    'command_speed': ('command_speed.py', ['--repeat', '3'], ['--repeat', '1', '--no-write'],
+                      'whole identify commands (127-sample OE ≤ 0.5 s, 1065-sample FE ≤ 2 s)'),
     'monte_carlo_speed': ('monte_carlo_speed.py', ['--seeds', '1000'],
                           ['--seeds', '100', '--efficiency-seeds', '50', '--no-write'],
                           '1000-seed wake Monte Carlo on 2 cores (target ≤ 5 s, issue 15)'),
