@@ -268,6 +268,7 @@ class _Context:
     publishers: dict = field(default_factory=dict)
     several_runs: bool = False
     faults: list = field(default_factory=list)   # (stamp_ns, message): judged by the window
+    frame_ids: dict = field(default_factory=dict)  # topic -> {header.frame_id: messages}
     origin_ns: object = None            # first flap stamp, for times in messages
 
     def when(self, stamp_ns):
@@ -298,6 +299,7 @@ class _Samples:
     position: np.ndarray
     velocity: object             # (n, k) or None
     message: np.ndarray          # message number of each sample, in recording order
+    frame_ids: dict = None       # header.frame_id -> messages
 
 
 def _topic_samples(ctx, topic, role, with_velocity):
@@ -366,6 +368,7 @@ def _topic_samples(ctx, topic, role, with_velocity):
                                                (stamps, position, velocity, message))
         issues.append(f'{topic}: {backwards} stamp(s) out of order; samples sorted by '
                       'header.stamp')
+    ctx.frame_ids[topic] = batch.frame_ids or {}
     stamps, position, velocity, message = _repeated_stamps(
         ctx, topic, role, stamps, position, velocity, message)
     _check_one_stream(ctx, topic, role, stamps, position)
@@ -457,8 +460,15 @@ def _repeated_stamps(ctx, topic, role, stamps, position, velocity, message):
 
 
 def _publishers_note(ctx, topic):
+    notes = []
     count = ctx.publishers.get(topic, 0)
-    return f' (metadata.yaml lists {count} publishers on it)' if count > 1 else ''
+    if count > 1:
+        notes.append(f'metadata.yaml lists {count} publishers on it')
+    frames = ctx.frame_ids.get(topic, {})
+    if len(frames) > 1:
+        notes.append('header.frame_id ' + ', '.join(f'{name!r} in {number} messages'
+                                                    for name, number in frames.items()))
+    return f' ({"; ".join(notes)})' if notes else ''
 
 
 def _check_one_stream(ctx, topic, role, stamps, position):

@@ -232,6 +232,20 @@ def test_same_measurement_published_twice_is_refused(tmp_path):
         read_record(write_streams(tmp_path / 'bag', streams))
 
 
+def test_publishers_naming_their_frames_are_named(tmp_path):
+    record = make_record(n=1000)
+    streams = record_streams(record)
+    stamps = streams[FLAP][0]
+    raw = encode_batch(stamps, BLADES, record.blade_flap, frame_id='flap_raw')
+    calibrated = encode_batch(stamps + MS // 2, BLADES, record.blade_flap + CALIBRATION,
+                              frame_id='flap_calibrated')
+    streams[FLAP] = sorted([(int(s), m) for s, m in zip(stamps, raw)]
+                           + [(int(s) + MS // 2, m) for s, m in zip(stamps, calibrated)])
+    with pytest.raises(BagError, match="header.frame_id 'flap_raw' in 1000 messages, "
+                                       "'flap_calibrated' in 1000 messages"):
+        read_record(write_streams(tmp_path / 'bag', streams))
+
+
 def test_second_publisher_with_the_same_stamps_is_refused(tmp_path):
     record = make_record(n=600)
     streams = interleaved(record, 0, record.blade_flap + CALIBRATION)
