@@ -627,7 +627,11 @@ def write_report(summaries, out_dir, directory, options, requested_key=None):
         writer = csv.writer(f)
         writer.writerow(header)
         writer.writerows(rows)
-    key = trend_key(summaries, requested_key)
+    try:
+        key = trend_key(summaries, requested_key)
+    except ValueError as exc:           # checked before the work; only if the bags changed
+        print(f'campaign: warning: {exc}; trends against the bag order', file=sys.stderr)
+        key = 'bag'
     analysis = analyse(summaries, key)
     figures = plot_trends(summaries, key, analysis, out_dir)
     (out_dir / 'campaign.md').write_text(markdown_report(
@@ -635,22 +639,32 @@ def write_report(summaries, out_dir, directory, options, requested_key=None):
     return [out_dir / 'campaign.csv', out_dir / 'campaign.md'] + figures
 
 
+#: Standard conditions that are not numbers (no trend against them).
+TEXT_CONDITIONS = ('stirring_direction',)
+
+
 def _check_trend_key(points, requested):
-    """Refuse an unknown --trend-against before any work (names from the descriptions)."""
-    if requested is None or requested == 'bag' or requested in STANDARD_CONDITIONS:
+    """Refuse an unknown or non-numeric --trend-against before any work."""
+    standard = [c for c in STANDARD_CONDITIONS if c not in TEXT_CONDITIONS]
+    if requested is None or requested == 'bag' or requested in standard:
         return
     from rotor_id.io.run_description import load_run_description
-    known = set()
+    numeric, text = set(), set()
     for point in points:
-        known |= set(_bag_custom_data(point.bag))
+        conditions = dict(_bag_custom_data(point.bag))
         if point.config is not None:
             try:
-                known |= set(load_run_description(point.config).conditions)
+                conditions.update(load_run_description(point.config).conditions)
             except ValueError:
-                continue               # that bag fails later, with its own message
-    if requested not in known:
-        raise ValueError(f'--trend-against {requested}: no test point has that condition; use '
-                         f'one of {", ".join(list(STANDARD_CONDITIONS) + sorted(known))} or bag')
+                pass                   # that bag fails later, with its own message
+        for name, value in conditions.items():
+            (numeric if _numeric(value) else text).add(name)
+    choices = ', '.join(standard + sorted(numeric) + ['bag'])
+    if requested in numeric:
+        return
+    what = ('is not a number' if requested in text or requested in TEXT_CONDITIONS
+            else 'is not a condition of any test point')
+    raise ValueError(f'--trend-against {requested}: {what}; use one of {choices}')
 
 
 def default_jobs():

@@ -119,6 +119,10 @@ def test_campaign_input_errors_are_one_line_before_any_work(entry, tmp_path, cap
                    '--trend-against', 'tunnel_sped'])
     err = capsys.readouterr().err.strip().splitlines()
     assert rc == 2 and len(err) == 1 and 'tunnel_speed_m_s' in err[0]
+    rc = cli.main(['campaign', str(entry), '--out', str(tmp_path / 'o'),
+                   '--trend-against', 'stirring_direction'])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert rc == 2 and len(err) == 1 and 'is not a number' in err[0]
     assert not (tmp_path / 'o').exists()
 
 
