@@ -288,11 +288,12 @@ def _compiled_chunk(kernel, model, p, tf, u, F, g, h, m, param_index, x, S, xs, 
     simulation, S of shape (n, 0)); returns the last state and sensitivities.
     """
     n = x.shape[0]
-    if _time_invariant(F, h, tf[::2]):
+    constant_F = bool(np.all(F == F[:1]))
+    if constant_F and _equal_steps(h, tf):
         Phi = _rk4_transition(F[:1], h[:1])
     else:
         Phi = _rk4_transition(F, h)
-    F_val, (F_i, F_j) = _nonzero_entries(F)
+    F_val, (F_i, F_j) = _nonzero_entries(F[:1] if constant_F else F)
     if param_index:
         dF, dg = model.system_jacobian(tf, p, u)
         dF_val, (dF_p, dF_i, dF_j) = _nonzero_entries(dF[:, param_index])
@@ -316,9 +317,9 @@ def _nonzero_entries(A):
     values (T, nnz), or (1, nnz) when they are the same at every t; indices one int64 array
     per axis of A[0], as np.nonzero gives them.
     """
-    index = np.nonzero(np.any(A != 0.0, axis=0))
+    index = np.nonzero(A[0] if A.shape[0] == 1 else np.any(A != 0.0, axis=0))
     values = A[(slice(None),) + index]
-    if np.all(values == values[:1]):
+    if values.shape[0] > 1 and np.all(values == values[:1]):
         values = values[:1]
     return (np.ascontiguousarray(values, dtype=float),
             tuple(i.astype(np.int64) for i in index))
@@ -332,8 +333,11 @@ def _time_invariant(F, h, ts):
     ``round(t0 + 0.1 j, 10)``, whose differences carry errors of a few ulp of t, i.e. 1e-13
     of a step at t ≈ 1000) count as equal; anything larger (time-stamp jitter) does not.
     """
-    if not np.all(F == F[:1]):
-        return False
+    return bool(np.all(F == F[:1])) and _equal_steps(h, ts)
+
+
+def _equal_steps(h, ts):
+    """Tell whether the steps h are equal to the rounding of the times ts (see above)."""
     rounding = 8.0 * np.finfo(float).eps * float(np.max(np.abs(ts)))
     return bool(np.ptp(h) <= 1e-12 * abs(h[0]) + rounding)
 
