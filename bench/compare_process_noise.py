@@ -47,6 +47,7 @@ import numpy as np  # noqa: E402
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
+from rotor_id.estimation import kernels  # noqa: E402
 from rotor_id.estimation.ekf import fit_ekf  # noqa: E402
 from rotor_id.estimation.filter_error import (fit_filter_error, fit_filter_error_ml,  # noqa: E402,E501
                                               PROCESS_NOISE)
@@ -180,6 +181,7 @@ def main(argv=None):
     jobs = [(seed, sv, args.sigma_m) for sv in SIGMA_V for seed in range(args.seeds)]
     start = time.perf_counter()
     results = []
+    kernels.prefer()                        # compiled simulator and filter, before the fork
     with multiprocessing.Pool(args.workers) as pool:
         for i, res in enumerate(pool.imap_unordered(run_one, jobs, chunksize=4), 1):
             results.append(res)
