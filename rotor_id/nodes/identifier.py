@@ -43,10 +43,11 @@ from rotor_id.estimation.output_error import STOP
 from rotor_id.nodes.common import (declare, Diagnostics, estimate_message, node_run_description,
                                    NS, progress_message, RESULT_QOS, SENSOR_BUFFER_QOS,
                                    spin_node, stamp_ns, STATE_QOS, time_msg, wait_for_acks)
-from rotor_id.nodes.live import (BadSample, bound_history, check_azimuth_sample,
-                                 check_joint_sample, data_length_verdict)
+from rotor_id.nodes.fit_process import (Abandoned, fit_window, FitOptions, FitProcess,
+                                        thread_times)
+from rotor_id.nodes.live import BadSample, check_azimuth_sample, check_joint_sample
 from rotor_id.nodes.test_points import FitSchedule, outcome, TestPointSequence
-from rotor_id.pipeline import identify, model_for
+from rotor_id.pipeline import model_for
 from rotor_id_msgs.msg import IdentificationProgress, ParameterEstimate, StirringCommand
 from rotor_id_msgs.srv import Identify
 from sensor_msgs.msg import JointState
@@ -57,28 +58,6 @@ FINAL_STATUS = {'converged': ParameterEstimate.STATUS_CONVERGED,
                 'not_converged': ParameterEstimate.STATUS_MAX_ITERATIONS,
                 'incomplete': ParameterEstimate.STATUS_INCOMPLETE,
                 'failed': ParameterEstimate.STATUS_FAILED}
-
-
-class _Superseded(Exception):
-    """A provisional fit gave way to a final fit or a service call."""
-
-
-def _thread_times(tid=None):
-    """
-    Return (CPU s, run-queue wait s) of a thread of this process (default: the caller).
-
-    From /proc/<pid>/task/<tid>/schedstat (on CPU, waiting for a CPU): the run-queue wait is the
-    time the thread was ready but the machine had no free core. Where that file is missing
-    (not Linux) the CPU time is the caller's ``time.thread_time()`` and the wait is 0.
-    """
-    path = ('/proc/thread-self/schedstat' if tid is None
-            else f'/proc/self/task/{tid}/schedstat')
-    try:
-        with open(path) as stat:
-            on_cpu, waiting = stat.read().split()[:2]
-        return int(on_cpu) / NS, int(waiting) / NS
-    except (OSError, ValueError):
-        return (time.thread_time() if tid is None else float('nan')), 0.0
 
 
 class Identifier(Node):
@@ -119,6 +98,9 @@ class Identifier(Node):
              'sampling periods is a gap (the window is then incomplete)', 1.01, 100.0),
             ('azimuth_slip_tolerance_rad', 0.1, 'an azimuth step that differs from rotor speed '
              'x time step by more than this is a slip of the time base (rad)', 1e-4, 3.0),
+            ('fit_process', True, 'fit in a separate process, so that a fit never waits for '
+             "the interpreter lock behind the subscriptions (false: in a thread of the node's "
+             'process)'),
             ('sensor_queue_depth', 10000, 'samples each sensor subscription queues while the '
              'node is busy (10 s at 1 kHz); older ones are lost, and the window says so',
              1, 1000000),
@@ -186,6 +168,8 @@ class Identifier(Node):
         self.diagnostics = Diagnostics(self, 'identification')
         self.created = time.monotonic()
         self.create_timer(0.05, self.schedule)        # also checked on every azimuth sample
+        self.fitter = FitProcess() if self.d['fit_process'] else None
+        self.running_kind = None          # kind of the fit in progress (None: idle)
         self.running = True
         self.worker = threading.Thread(target=self.work, name='identifier-fit', daemon=True)
         self.worker.start()
@@ -331,6 +315,13 @@ class Identifier(Node):
                              if r[1] != ParameterEstimate.KIND_PROVISIONAL or keep]
             self.requests.append((request, kind, self.arrival or time.monotonic(), future))
             self.wake.notify()
+            if final:
+                self._give_way()
+
+    def _give_way(self):
+        """Stop (or abandon) a growing-window fit in the fit process: a final fit waits."""
+        if self.fitter is not None and self.running_kind == ParameterEstimate.KIND_PROVISIONAL:
+            (self.fitter.abandon if self.provisional_published else self.fitter.stop)()
 
     def work(self):
         """Worker thread: run the queued fits in order, publish them (or answer the service)."""
@@ -341,17 +332,17 @@ class Identifier(Node):
                 if not self.running:
                     break
                 request, kind, requested, future = self.requests.pop(0)
-                self.busy = True
+                self.busy, self.running_kind = True, kind
             try:
                 self._run(request, kind, requested, future)
             finally:
-                self.busy = False
-        self.worker_times = _thread_times()
+                self.busy, self.running_kind = False, None
+        self.worker_times = thread_times()
 
     def _run(self, request, kind, requested, future):
         """Fit one request; publish it with its latency and where that time went."""
         started = time.monotonic()
-        cpu0, waiting0 = _thread_times()
+        cpu0, waiting0 = thread_times()
         taken0 = self.taken
         timing = {'record': getattr(request, 'build_ms', 0.0)}
         msg = self.fit(request, kind, timing=timing, remember=future is None)
@@ -369,12 +360,15 @@ class Identifier(Node):
         published = time.monotonic()
         self.pub_estimate.publish(msg)
         done = time.monotonic()
-        cpu1, waiting1 = _thread_times()
+        cpu1, waiting1 = thread_times()
         self.provisional_published += kind == ParameterEstimate.KIND_PROVISIONAL
         # latency: newest sample of the window taken -> its estimate published
         self.latencies_ms.append((done - requested) * 1e3)
         cpu, waiting = (cpu1 - cpu0) * 1e3, (waiting1 - waiting0) * 1e3
-        stages = sum(timing.get(k, 0.0) for k in ('identify', 'verdict', 'message'))
+        # in the fit process: its wall time (identify and verdict there, and the pipe)
+        stages = timing.get('in_fit_process', sum(timing.get(k, 0.0)
+                                                  for k in ('identify', 'verdict')))
+        stages += timing.get('message', 0.0)
         self.breakdowns.append({
             'kind': 'final' if request.final else 'provisional',
             'test_point': request.test_point, 'window_end_s': round(request.window_s[1], 5),
@@ -384,7 +378,8 @@ class Identifier(Node):
             # between the stages: mostly taking the GIL back after a blocking call
             'other': (published - started) * 1e3 - stages,
             'cpu': cpu, 'cpu_wait': waiting,
-            'gil_or_lock_wait': max(0.0, (done - started) * 1e3 - cpu - waiting),
+            'gil_or_lock_wait': max(0.0, (done - started) * 1e3 - cpu - waiting
+                                    - timing.get('in_fit_process', 0.0)),
             'samples_taken': self.taken - taken0})
         lat = np.array(self.latencies_ms)
         self.diagnostics.set_value('latency_ms_last', f'{lat[-1]:.1f}')
@@ -464,46 +459,44 @@ class Identifier(Node):
             if remember:
                 self._remember(info['names'], info['values'])
             if not final and self._final_waiting():
-                if self.provisional_published:
-                    raise _Superseded
-                return STOP               # the first growing-window estimate: publish it now
+                if self.fitter is not None:
+                    self._give_way()
+                elif self.provisional_published:
+                    raise Abandoned
+                else:
+                    return STOP           # the first growing-window estimate: publish it now
             return None
 
+        # growing windows start from the latest iterate (or the description's guess) without
+        # the multi-start grid; the final fit uses the grid only if there is no iterate yet
+        # and the description does not give every starting value
+        options = FitOptions(max_iter=max_iter or self.d['max_iter' if final
+                                                         else 'max_iter_provisional'],
+                             multi_start=final, step_tol=self.d['step_tol'],
+                             targets=tuple(self.targets),
+                             full_verdict=final or not self._final_waiting())
         started = time.perf_counter()
         try:
-            # growing windows start from the latest iterate (or the description's guess) without
-            # the multi-start grid; the final fit uses the grid only if there is no iterate yet
-            # and the description does not give every starting value
-            ident = identify(request.record, desc, progress=progress, window_s=request.window_s,
-                             max_iter=max_iter or self.d['max_iter' if final
-                                                         else 'max_iter_provisional'],
-                             multi_start=final, step_tol=self.d['step_tol'])
-        except _Superseded:
+            if self.fitter is not None:
+                ident, verdict, fit_timing = self.fitter.fit(request, desc, options, progress)
+                timing['in_fit_process'] = (time.perf_counter() - started) * 1e3
+            else:
+                ident, verdict, fit_timing = fit_window(request, desc, options, progress)
+        except Abandoned:
             return None
         except (ValueError, np.linalg.LinAlgError, FloatingPointError) as exc:
             status = (ParameterEstimate.STATUS_INCOMPLETE if not check.complete
                       else ParameterEstimate.STATUS_FAILED)
             return self._failed(request, kind, status, str(exc) +
                                 (f'; {problems}' if problems else ''))
-        ident.stamp0_ns = request.stamp0_ns
+        timing.update(fit_timing)
         est = ident.estimate
         self.last_fit_s = time.perf_counter() - started
-        timing['identify'] = self.last_fit_s * 1e3
-        timing['gauss_newton'] = est.history[-1]['elapsed'] * 1e3 if est.history else 0.0
-        timing['iterations'] = int(est.iterations)
         clock = time.perf_counter()
         if remember:
             self._remember(est.names, est.values)
-        hurry = not final and self._final_waiting()
-        if hurry and self.provisional_published:
+        if not final and self._final_waiting() and self.provisional_published:
             return None                   # the final fit is waiting: give way to it now
-        std = np.array([est.std_of(n) for n in self.unknowns])
-        verdict = data_length_verdict(std, self.targets)
-        if not verdict[0] and not hurry:  # how much more data: from the M⁻¹(t_f) trend
-            t, hist = bound_history(ident)
-            verdict = data_length_verdict(std, self.targets, t, hist, ident.omega_rad_s)
-        timing['verdict'] = (time.perf_counter() - clock) * 1e3
-        clock = time.perf_counter()
         result = outcome(check, True, est.converged)
         if result == 'incomplete':
             status = ParameterEstimate.STATUS_INCOMPLETE
@@ -583,6 +576,8 @@ class Identifier(Node):
         with self.wake:
             self.wake.notify()
         self.worker.join(timeout=5.0)
+        if self.fitter is not None:
+            self.fitter.close()
         wait_for_acks([self.pub_estimate, self.pub_progress])
         print(f'identifier: estimate latencies (ms): '
               f'{" ".join(f"{v:.1f}" for v in self.latencies_ms)}', file=sys.stderr, flush=True)
@@ -590,7 +585,7 @@ class Identifier(Node):
         print(f'identifier: latency breakdown (ms): {json.dumps(self.breakdowns)}',
               file=sys.stderr, flush=True)
         threads = {'wall_s': time.monotonic() - self.created, 'samples_taken': self.taken}
-        for name, (cpu, waiting) in (('executor', _thread_times()),     # (this is the executor)
+        for name, (cpu, waiting) in (('executor', thread_times()),     # (this is the executor)
                                      ('worker', self.worker_times)):
             threads[f'{name}_cpu_s'], threads[f'{name}_cpu_wait_s'] = cpu, waiting
         print(f'identifier: thread times: {json.dumps(threads)}', file=sys.stderr, flush=True)

@@ -43,7 +43,10 @@ def run():
     rclpy.init(context=context, domain_id=domain, signal_handler_options=SignalHandlerOptions.NO)
     params = [Parameter('run_description', value='demo_wake.yaml'),
               Parameter('auto_start', value='none'), Parameter('sensor_queue_depth', value=100),
-              Parameter('update_every_rad', value=0.0)]
+              Parameter('update_every_rad', value=0.0),
+              # fits in the node's thread here (no child process to start); the multi-process
+              # tests run the default, a separate fit process
+              Parameter('fit_process', value=False)]
     node = Identifier(parameter_overrides=params, context=context)
     test = rclpy.create_node('test_identifier_node', context=context)
     executor = SingleThreadedExecutor(context=context)
