@@ -68,8 +68,13 @@ def azimuth_step(wrapped_step, omega_before, omega_after, dt_s):
     Ω·Δt is the trapezoidal prediction 0.5 (Ω_before + Ω_after) Δt, so the rule stays right
     across gaps of any length as long as the speed is measured. Scalars or arrays.
     """
-    expected = 0.5 * (omega_after + omega_before) * dt_s
+    expected = predicted_azimuth_step(omega_before, omega_after, dt_s)
     return wrapped_step + TWO_PI * np.round((expected - wrapped_step) / TWO_PI)
+
+
+def predicted_azimuth_step(omega_before, omega_after, dt_s):
+    """Return the azimuth step the measured rotor speed predicts: 0.5 (Ω_before + Ω_after) Δt."""
+    return 0.5 * (omega_after + omega_before) * dt_s
 
 
 class AzimuthUnwrapper:

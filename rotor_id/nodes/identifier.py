@@ -36,8 +36,9 @@ import time
 
 import numpy as np
 from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
+from rclpy.event_handler import SubscriptionEventCallbacks
 from rclpy.node import Node
-from rclpy.qos import QoSProfile
+from rclpy.qos import QoSProfile, ReliabilityPolicy
 from rclpy.task import Future
 from rotor_id.estimation.output_error import STOP
 from rotor_id.nodes.common import (declare, Diagnostics, estimate_message, node_run_description,
@@ -101,6 +102,11 @@ class Identifier(Node):
             ('fit_process', True, 'fit in a separate process, so that a fit never waits for '
              "the interpreter lock behind the subscriptions (false: in a thread of the node's "
              'process)'),
+            ('sensor_reliability', 'reliable', 'QoS reliability of the sensor subscriptions: '
+             "'reliable' (what a publisher still holds is re-sent, so a node that falls behind "
+             'loses no sample; the publisher must offer reliable, as rotor_plant does) or '
+             "'best_effort' (matches any publisher; a starved node loses samples, and the "
+             'window says so)'),
             ('sensor_queue_depth', 10000, 'samples each sensor subscription queues while the '
              'node is busy (10 s at 1 kHz); older ones are lost, and the window says so',
              1, 1000000),
@@ -150,13 +156,22 @@ class Identifier(Node):
                                                   RESULT_QOS)
         self.pub_progress = self.create_publisher(IdentificationProgress,
                                                   self.d['progress_topic'], STATE_QOS)
-        sensor_qos = QoSProfile(reliability=SENSOR_BUFFER_QOS.reliability,
-                                history=SENSOR_BUFFER_QOS.history,
+        reliability = {'reliable': ReliabilityPolicy.RELIABLE,
+                       'best_effort': ReliabilityPolicy.BEST_EFFORT}.get(
+                           self.d['sensor_reliability'])
+        if reliability is None:
+            raise ValueError(f"sensor_reliability must be 'reliable' or 'best_effort', got "
+                             f"{self.d['sensor_reliability']!r}")
+        sensor_qos = QoSProfile(reliability=reliability, history=SENSOR_BUFFER_QOS.history,
                                 depth=self.d['sensor_queue_depth'],
                                 durability=SENSOR_BUFFER_QOS.durability)
+        self.diagnostics = Diagnostics(self, 'identification')
         for role, callback in (('blade_flap', self.on_flap), ('blade_pitch', self.on_pitch),
                                ('azimuth', self.on_azimuth)):
-            self.create_subscription(JointState, desc.topics[role], callback, sensor_qos)
+            self.create_subscription(
+                JointState, desc.topics[role], callback, sensor_qos,
+                event_callbacks=SubscriptionEventCallbacks(
+                    incompatible_qos=self._incompatible(desc.topics[role])))
         # volatile: a latched schedule of the past must not start a test point
         self.create_subscription(StirringCommand, self.d['stirring_topic'], self.on_stirring,
                                  STATE_QOS)
@@ -165,7 +180,6 @@ class Identifier(Node):
                             callback_group=MutuallyExclusiveCallbackGroup())
         self.create_service(Trigger, '~/start_test_point', self.on_start_test_point)
         self.create_service(Trigger, '~/abort', self.on_abort)
-        self.diagnostics = Diagnostics(self, 'identification')
         self.created = time.monotonic()
         self.create_timer(0.05, self.schedule)        # also checked on every azimuth sample
         self.fitter = FitProcess() if self.d['fit_process'] else None
@@ -178,6 +192,15 @@ class Identifier(Node):
                                f'window_s {desc.window_s} of each test point from '
                                f'{desc.topics["blade_flap"]} (auto_start: '
                                f'{self.d["auto_start"]})')
+
+    def _incompatible(self, topic):
+        def callback(event):
+            self.diagnostics.count(
+                'incompatible_qos', f'a publisher of {topic} does not offer what the '
+                f'subscription requests (policy {event.last_policy_kind}): with '
+                f"sensor_reliability '{self.d['sensor_reliability']}' no sample of it arrives; "
+                'set sensor_reliability: best_effort for a best-effort publisher')
+        return callback
 
     # -------------------------------------------------------------------------- buffering
     def _accept(self, msg, joints, last_stamp):

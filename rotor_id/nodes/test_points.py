@@ -30,7 +30,7 @@ import enum
 import math
 
 import numpy as np
-from rotor_id.io.timebase import TWO_PI
+from rotor_id.io.timebase import azimuth_step, predicted_azimuth_step
 from rotor_id.nodes.live import AzimuthTracker, record_from_series, StampedSeries
 
 NS = 1_000_000_000
@@ -228,8 +228,8 @@ def azimuth_slips(stamps, psi_wrapped, omega, tolerance_rad):
     """
     Count the azimuth steps that disagree with the rotor speed; return (count, largest, rad).
 
-    Each step of the wrapped azimuth is compared with Ω·Δt (the trapezoidal prediction of
-    :func:`rotor_id.io.timebase.azimuth_step`) modulo 2π: a disagreement above
+    Each step of the wrapped azimuth, unwrapped by :func:`rotor_id.io.timebase.azimuth_step`, is
+    compared with the step the rotor speed predicts: a disagreement above
     ``tolerance_rad`` is a slip of the record's time base (a wrong stamp, a glitch of the
     encoder, a speed that does not belong to the azimuth).
     """
@@ -238,8 +238,9 @@ def azimuth_slips(stamps, psi_wrapped, omega, tolerance_rad):
         return 0, 0.0
     psi = np.asarray(psi_wrapped, dtype=float)
     omega = np.asarray(omega, dtype=float)
-    expected = 0.5 * (omega[1:] + omega[:-1]) * np.diff(stamps) / NS
-    error = np.abs(np.remainder(np.diff(psi) - expected + math.pi, TWO_PI) - math.pi)
+    dt_s = np.diff(stamps) / NS
+    error = np.abs(azimuth_step(np.diff(psi), omega[:-1], omega[1:], dt_s)
+                   - predicted_azimuth_step(omega[:-1], omega[1:], dt_s))
     bad = error > tolerance_rad
     return int(np.count_nonzero(bad)), float(error.max())
 

@@ -1,0 +1,143 @@
+"""
+Three test points in a row through the running nodes, without restarting the identifier.
+
+Plant, identifier (its fits in a separate process), state estimator and recorder run as separate
+processes on the wake case; the stirring input is started once per test point (each start is a
+new stirring schedule, on which the identifier arms a test point) while the rotor runs on. What
+it proves: each test point gets exactly one final estimate, tagged with its number; it is
+converged exactly when its window is complete (every sample of every channel received: the
+identifier's sensor subscriptions are best effort, and a machine starved of CPU drops samples in
+DDS, bench/results/live_latency.md) and then within 3σ of the plant's truth, and at least two of
+the three are; its window lies inside its own test point and the windows do not overlap;
+identified offline from the recorded bag over the same stamps, each converged one agrees with
+the live result to 0.2σ (the live fit used exactly that window's data, nothing of another test
+point); the state estimator adopted every converged result and nothing else; every node exits
+with 0.
+"""
+
+from live_helpers import domain_id, require_workspace, RosSession, within_sigma
+import pytest
+
+TRUTH = {'A': 0.5, 'AL_over_tau': 0.25, 'inv_tau': 0.125}
+NS = 1_000_000_000
+POINTS = 3
+
+
+def _ns(stamp):
+    return stamp.sec * NS + stamp.nanosec
+
+
+@pytest.fixture(scope='module')
+def three_points(tmp_path_factory):
+    """Run three test points; return the estimates, the bag and the exit codes."""
+    require_workspace()
+    from rotor_id.commands.demo import case_files
+    from rotor_id.io.run_description import load_run_description
+    from rotor_id.nodes.processes import isolated_env, NodeProcesses
+    from rotor_id.nodes.watch import RunWatcher
+
+    params_file, description_path, _ = case_files('wake')
+    tmp = tmp_path_factory.mktemp('points')
+    domain = domain_id()
+    session = RosSession(domain)
+    watcher = RunWatcher(session.node)
+    procs = NodeProcesses(isolated_env(domain, tmp / 'ros_log'), tmp / 'logs')
+    run = {'bag': tmp / 'bag', 'watcher': watcher,
+           'description': load_run_description(description_path)}
+    try:
+        procs.start('identifier', params_file, {'target_std': [0.02, 0.02, 0.01]})
+        procs.start('state_estimator', params_file)
+        procs.start('recorder', params_file, {'output': str(run['bag'])})
+        # the rotor runs on, holding the last pitch command, between the stirring schedules
+        procs.start('rotor_plant', params_file, {'duration_s': 300.0, 'seed': 11,
+                                                 'wait_for_commands': False,
+                                                 'wait_for_subscribers': 3})
+        for k in range(1, POINTS + 1):
+            name = f'stirring_input_{k}'
+            procs.start(name, params_file, node='stirring_input')
+            done = watcher.spin_until(lambda: watcher.final_estimate(k) is not None, 150.0,
+                                      alive=lambda: not {'identifier', 'rotor_plant'} &
+                                      set(procs.dead()))
+            assert done, (f'no final estimate of test point {k}; exited: {procs.dead()}\n'
+                          + procs.log('identifier')[-4000:])
+            procs.stop(name)
+        converged = sum(watcher.final_estimate(k).status == 1 for k in range(1, POINTS + 1))
+        watcher.spin_until(lambda: any(v.key == 'parameter_updates' and
+                                       v.value == str(converged)
+                                       for s in watcher.diagnostics('state_estimator')
+                                       for v in s.values), 10.0)
+    finally:
+        run['codes'] = procs.stop_all()
+        run['logs'] = {name: procs.log(name) for name in procs.procs}
+        session.close()
+    return run
+
+
+def test_each_test_point_is_identified_once(three_points):
+    from rotor_id_msgs.msg import ParameterEstimate
+    watcher = three_points['watcher']
+    finals = [m for m in watcher.messages['estimate'] if m.kind == ParameterEstimate.KIND_FINAL]
+    assert [m.test_point for m in finals] == list(range(1, POINTS + 1))
+    for final in finals:
+        complete = final.time_base_consistent and not list(final.missing_channels)
+        assert (final.status == ParameterEstimate.STATUS_CONVERGED) == complete, final.message
+        if complete:
+            ok, text = within_sigma(final.values, final.std, TRUTH, final.names)
+            assert ok, f'test point {final.test_point}: {text}'
+        else:
+            assert final.status == ParameterEstimate.STATUS_INCOMPLETE, final.message
+    converged = [m for m in finals if m.status == ParameterEstimate.STATUS_CONVERGED]
+    assert len(converged) >= 2, [m.message for m in finals]
+    provisional = [m for m in watcher.messages['estimate']
+                   if m.kind == ParameterEstimate.KIND_PROVISIONAL]
+    assert {m.test_point for m in provisional} == set(range(1, POINTS + 1))
+
+
+def test_windows_are_their_own_test_points(three_points):
+    from rotor_id_msgs.msg import ParameterEstimate
+    finals = [three_points['watcher'].final_estimate(k) for k in range(1, POINTS + 1)]
+    w0, w1 = three_points['description'].window_s
+    for final in finals:
+        start = _ns(final.test_point_start)
+        assert start + w0 * NS <= _ns(final.window_start) <= start + w0 * NS + 2e6
+        assert start + w1 * NS - 2e6 <= _ns(final.window_end) <= start + w1 * NS
+        assert (final.window_requested_start_s, final.window_requested_end_s) == (w0, w1)
+    for before, after in zip(finals, finals[1:]):
+        assert _ns(before.window_end) < _ns(after.test_point_start)
+    # every estimate of a test point comes from a window inside that test point
+    for msg in three_points['watcher'].messages['estimate']:
+        if msg.kind != ParameterEstimate.KIND_ON_DEMAND:
+            assert _ns(msg.window_start) >= _ns(msg.test_point_start) + w0 * NS
+
+
+def test_offline_identification_of_each_window_agrees(three_points):
+    from dataclasses import replace
+    from rotor_id.io.bag import read_record
+    from rotor_id.pipeline import identify
+    record = read_record(three_points['bag'])
+    description = three_points['description']
+    for k in range(1, POINTS + 1):
+        final = three_points['watcher'].final_estimate(k)
+        if list(final.missing_channels):
+            continue                  # the live fit had fewer samples than the bag
+        shift = (_ns(final.test_point_start) - record.stamp0_ns) / NS
+        window = (description.window_s[0] + shift, description.window_s[1] + shift)
+        offline = identify(record, replace(description, window_s=window)).as_json()
+        for name, value, std in zip(final.names, final.values, final.std):
+            assert abs(value - offline['parameters'][name]['value']) < 0.2 * std, (k, name)
+
+
+def test_state_estimator_adopted_every_converged_result(three_points):
+    from rotor_id_msgs.msg import ParameterEstimate
+    values = {v.key: v.value for s in three_points['watcher'].diagnostics('state_estimator')
+              for v in s.values}
+    finals = [three_points['watcher'].final_estimate(k) for k in range(1, POINTS + 1)]
+    converged = [m for m in finals if m.status == ParameterEstimate.STATUS_CONVERGED]
+    assert values.get('parameter_updates') == str(len(converged)), values
+    assert f'A={converged[-1].values[0]:.4g}' in values['parameters']
+
+
+def test_every_node_exits_cleanly(three_points):
+    assert three_points['codes'] == dict.fromkeys(three_points['codes'], 0), three_points['codes']
+    for name, log in three_points['logs'].items():
+        assert 'Traceback' not in log, f'{name}:\n{log}'
