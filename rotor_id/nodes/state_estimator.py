@@ -19,6 +19,7 @@ from rotor_id.nodes.common import (declare, Diagnostics, estimate_from_message,
                                    spin_node, stamp_ns, wait_for_acks)
 from rotor_id.nodes.live import (AzimuthTracker, BadSample, check_azimuth_sample,
                                  check_joint_sample, StampedSeries, StreamingKalman)
+from rotor_id.nodes.test_points import sampling_period_ns
 from rotor_id.physics.stirring import SampledInput
 from rotor_id.pipeline import channel_noise, model_for
 from rotor_id_msgs.msg import ParameterEstimate, StateEstimate
@@ -28,8 +29,8 @@ from sensor_msgs.msg import JointState
 class StateEstimator(Node):
     """Kalman filter on the live flap stream, re-parameterised by the identifier."""
 
-    def __init__(self):
-        super().__init__('state_estimator')
+    def __init__(self, **node_options):
+        super().__init__('state_estimator', **node_options)
         spec = [
             ('run_description', '', 'run-description YAML: rotor, model and topics'),
             ('flap_noise_std_rad', math.radians(0.05), 'flap sensor noise sigma (rad)',
@@ -40,6 +41,8 @@ class StateEstimator(Node):
              1e-6, 1.0),
             ('update_period_s', 0.02, 'filter the new samples and publish the state this often '
              '(s)', 0.001, 1.0),
+            ('buffer_s', 2.0, 'samples kept for filtering (s): the buffers never grow with the '
+             'run; samples not filtered within this time are dropped and counted', 0.1, 600.0),
             ('use_provisional', False, 'also adopt provisional (growing-window) estimates'),
             ('estimate_topic', '/rotor_id/estimate', 'ParameterEstimate topic (subscribed)'),
             ('state_topic', '/rotor_id/state', 'StateEstimate topic'),
@@ -58,7 +61,8 @@ class StateEstimator(Node):
         self.flap = StampedSeries(n)
         self.pitch = StampedSeries(n)
         self.azimuth = AzimuthTracker()
-        self.done = 0                      # flap samples filtered so far
+        self.done_ns = None                # stamp of the last flap sample filtered
+        self.filtered = 0                  # flap samples filtered so far
         self.kalman = None
         self.updates = 0
         self.published = 0
@@ -83,7 +87,7 @@ class StateEstimator(Node):
             except BadSample as bad:
                 self.diagnostics.count(bad.kind, str(bad))
                 return
-            series.append(stamp, values)
+            series.append(stamp, values, self._keep_from(stamp))
         return callback
 
     def on_azimuth(self, msg):
@@ -95,7 +99,11 @@ class StateEstimator(Node):
         except BadSample as bad:
             self.diagnostics.count(bad.kind, str(bad))
             return
-        self.azimuth.add(stamp, psi, omega)
+        self.azimuth.add(stamp, psi, omega, self._keep_from(stamp))
+
+    def _keep_from(self, stamp):
+        """Oldest stamp the buffers keep: ``buffer_s`` before the newest sample."""
+        return stamp - int(self.d['buffer_s'] * 1e9)
 
     def on_estimate(self, msg):
         """
@@ -128,16 +136,23 @@ class StateEstimator(Node):
             return
         limit = min(self.pitch.last_stamp, self.azimuth.series.last_stamp)
         end = int(np.searchsorted(self.flap.stamps, limit, side='right'))
-        if end <= self.done:
+        start = (0 if self.done_ns is None else
+                 int(np.searchsorted(self.flap.stamps, self.done_ns, side='right')))
+        if end <= start:
             return
-        stamps = self.flap.stamps[self.done:end]
+        stamps = self.flap.stamps[start:end]
         t = self.azimuth.t_at(stamps)
         first = max(0, int(np.searchsorted(self.pitch.stamps, stamps[0])) - 20)
         t_pitch = self.azimuth.t_at(self.pitch.stamps[first:])
         keep = np.concatenate([[True], np.diff(t_pitch) > 0])
         inputs = SampledInput.from_blade_pitch(t_pitch[keep], self.pitch.values[first:][keep])
-        y = self.model.observe_blades(t, self.flap.values[self.done:end])
-        self.done = end
+        y = self.model.observe_blades(t, self.flap.values[start:end])
+        if self.done_ns is not None and (self.flap.first_stamp - self.done_ns >
+                                         1.5 * sampling_period_ns(self.flap.stamps)):
+            self.diagnostics.count('dropped_unfiltered', 'flap samples older than buffer_s '
+                                   'were dropped before they were filtered')
+        self.done_ns = int(stamps[-1])
+        self.filtered += end - start
         try:
             if self.kalman is None:
                 self._start(t[0], inputs)
@@ -176,7 +191,7 @@ class StateEstimator(Node):
         msg.rotor_speed = float(omega)
         self.pub_state.publish(msg)
         self.published += 1
-        self.diagnostics.set_value('samples_filtered', self.done)
+        self.diagnostics.set_value('samples_filtered', self.filtered)
 
     def close(self):
         """Let reliable readers take what is in flight; print how many states were sent."""

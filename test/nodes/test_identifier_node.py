@@ -218,3 +218,40 @@ def test_excitation_phases_are_the_stirring_command_constants():
         assert constant in (None, phase.value), phase
     assert all(getattr(StirringCommand, f'PHASE_{p.name}', None) is not None
                for p in list(Excitation)[:4])
+
+
+@pytest.mark.parametrize('buffer_s, tick_every', [(2.0, 20), (0.1, 500)])
+def test_state_estimator_buffers_are_bounded(buffer_s, tick_every):
+    """Three test points of samples through the state estimator's callbacks (no DDS traffic)."""
+    from rclpy.parameter import Parameter
+    from rclpy.signals import SignalHandlerOptions
+    from rotor_id.nodes.common import joint_state
+    from rotor_id.nodes.state_estimator import StateEstimator
+    data = _stream(points=3)
+    context = rclpy.context.Context()
+    rclpy.init(context=context, domain_id=201 + os.getpid() % 30,
+               signal_handler_options=SignalHandlerOptions.NO)
+    node = StateEstimator(context=context, parameter_overrides=[
+        Parameter('run_description', value='demo_wake.yaml'),
+        Parameter('buffer_s', value=buffer_s)])
+    try:
+        flap, pitch = node._joint_callback(node.flap, BLADES), node._joint_callback(node.pitch,
+                                                                                     BLADES)
+        for i, stamp in enumerate(data['stamps']):
+            flap(joint_state(int(stamp), BLADES, data['flap'][i]))
+            pitch(joint_state(int(stamp), BLADES, data['pitch'][i]))
+            node.on_azimuth(joint_state(int(stamp), ['rotor'], [data['psi'][i]], [OMEGA]))
+            if i % tick_every == tick_every - 1:
+                node.tick()
+        kept = buffer_s * 1000
+        for series in (node.flap, node.pitch, node.azimuth.series):
+            assert series.capacity <= max(4 * kept, 1024)
+        dropped = node.diagnostics.counts.get('dropped_unfiltered', 0)
+        if tick_every * 1e-3 < buffer_s:           # ticks keep up: every sample filtered
+            assert node.filtered == data['stamps'].size and dropped == 0
+            assert node.published == data['stamps'].size // tick_every
+        else:                                      # they do not: the loss is counted
+            assert dropped > 0 and node.filtered < data['stamps'].size
+    finally:
+        node.destroy_node()
+        rclpy.try_shutdown(context=context)
