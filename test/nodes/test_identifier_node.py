@@ -235,8 +235,8 @@ def test_state_estimator_buffers_are_bounded(buffer_s, tick_every):
         Parameter('run_description', value='demo_wake.yaml'),
         Parameter('buffer_s', value=buffer_s)])
     try:
-        flap, pitch = node._joint_callback(node.flap, BLADES), node._joint_callback(node.pitch,
-                                                                                     BLADES)
+        flap = node._joint_callback(node.flap, BLADES)
+        pitch = node._joint_callback(node.pitch, BLADES)
         for i, stamp in enumerate(data['stamps']):
             flap(joint_state(int(stamp), BLADES, data['flap'][i]))
             pitch(joint_state(int(stamp), BLADES, data['pitch'][i]))
