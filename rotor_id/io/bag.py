@@ -55,6 +55,7 @@ WINDOW_READ_HEAD_S = 0.5             # receive time read at the start to find th
 WINDOW_READ_MARGIN_S = 2.0           # read this much either side of the window
 WINDOW_READ_CLOCK_TOLERANCE_S = 1.0  # stamp-to-receive offset drift allowed over the bag
 WINDOW_READ_MAX_FRACTION = 0.5       # a window needing more of the bag reads it all
+WINDOW_READ_TAIL_MESSAGES = 1000     # last flap messages of a sqlite3 bag checked for the clock
 STORAGES = {'mcap': StoragePlugin.MCAP, 'sqlite3': StoragePlugin.SQLITE3}
 SUFFIXES = {'.mcap': 'mcap', '.db3': 'sqlite3'}
 COMPRESSION_FORMATS = ('zstd',)    # what rosbag2's file/message compression may use here
@@ -597,8 +598,8 @@ def read_record(bag_path, topics=None, joint_names=None, *, n_blades=None, omega
         raise BagError('no azimuth topic given: pass omega_rad_s (the rotor speed) so that the '
                        'nondimensional time can be formed')
     raw = origin_ns = None
-    if window_s is not None and run is None and storage == 'mcap':
-        raw, origin_ns = _read_window(storage_file, wanted, window_s)
+    if window_s is not None and run is None and '.zstd' not in storage_file.suffixes:
+        raw, origin_ns = _read_window(storage_file, storage, wanted, window_s)
     if raw is None:
         raw = _read_raw(open_path, storage, storage_file, wanted, omega_rad_s)
         _decompress_messages(raw)
@@ -624,94 +625,157 @@ def read_record(bag_path, topics=None, joint_names=None, *, n_blades=None, omega
     return record
 
 
-def _read_window(storage_file, wanted, window_s):
-    """
-    Read only the part of an indexed MCAP around the window (memory follows the window).
+class _McapParts:
+    """Parts of an indexed MCAP by receive time, read chunk by chunk (see _read_window)."""
 
-    window_s counts from the first flap stamp, so the first chunk(s) give that origin and
-    the offset from stamps to receive times; the last chunk checks that the offset holds to
-    the end (no clock reset, no second run). The chunks whose receive times overlap the
-    window (plus WINDOW_READ_MARGIN_S) are read and decompressed one by one.
+    def __init__(self, storage_file, topics):
+        self.file, self.topics = storage_file, topics
+        self.summary = read_mcap_summary(storage_file)
+        self.chunks = self.summary.topic_chunks(topics) if self.summary else []
+        if len(self.chunks) < 3:
+            raise ValueError('not an indexed MCAP with several chunks')
+        self.start_ns = min(c.start_ns for c in self.chunks)
+        self.end_ns = max(c.end_ns for c in self.chunks)
+
+    def read(self, topics, first, last):
+        """Return (topic -> type, topic -> (receive times, messages)) received in [first, last]."""
+        selected = [c for c in self.chunks if c.end_ns >= first and c.start_ns <= last]
+        part = read_mcap_chunks(self.file, topics, self.summary, selected, (first, last))
+        if part is None:
+            raise ValueError('a chunk is not as the index says')
+        return part
+
+    def last(self, topic):
+        """Return topic -> (receive times, messages) of the last chunk holding ``topic``."""
+        chunks = self.summary.topic_chunks({topic})
+        return self.read({topic}, chunks[-1].start_ns, chunks[-1].end_ns)[1]
+
+
+class _SqliteParts:
+    """Parts of a rosbag2 sqlite3 file by receive time, queried on its timestamp index."""
+
+    def __init__(self, storage_file, topics):
+        import sqlite3
+        self.connection = sqlite3.connect(f'file:{storage_file}?mode=ro', uri=True)
+        rows = self.connection.execute('SELECT id, name, type FROM topics').fetchall()
+        self.ids = {name: topic_id for topic_id, name, _ in rows if name in topics}
+        self.available = {name: msgtype for _, name, msgtype in rows}
+        self.names = {topic_id: name for name, topic_id in self.ids.items()}
+        marks = ','.join('?' * len(self.ids))
+        self.start_ns, self.end_ns = self.connection.execute(
+            f'SELECT MIN(timestamp), MAX(timestamp) FROM messages WHERE topic_id IN ({marks})',
+            list(self.ids.values())).fetchone()
+        if self.start_ns is None:
+            raise ValueError('no messages')
+
+    def _collect(self, rows):
+        found = {}
+        for topic_id, stamp, data in rows:
+            log, messages = found.setdefault(self.names[topic_id], ([], []))
+            log.append(stamp)
+            messages.append(data)
+        return found
+
+    def read(self, topics, first, last):
+        """Return (topic -> type, topic -> (receive times, messages)) received in [first, last]."""
+        ids = [self.ids[t] for t in topics if t in self.ids]
+        rows = self.connection.execute(
+            f'SELECT topic_id, timestamp, data FROM messages WHERE timestamp BETWEEN ? AND ? '
+            f'AND topic_id IN ({",".join("?" * len(ids))}) ORDER BY timestamp, id',
+            [int(first), int(last)] + ids)
+        return self.available, self._collect(rows)
+
+    def last(self, topic):
+        """Return topic -> (receive times, messages) of the last messages of ``topic``."""
+        rows = self.connection.execute(
+            'SELECT topic_id, timestamp, data FROM messages WHERE topic_id = ? '
+            'ORDER BY timestamp DESC LIMIT ?', (self.ids[topic], WINDOW_READ_TAIL_MESSAGES))
+        return self._collect(reversed(rows.fetchall()))
+
+    def close(self):
+        """Close the database."""
+        self.connection.close()
+
+
+def _read_window(storage_file, storage, wanted, window_s):
+    """
+    Read only the part of a long bag around the window (memory follows the window).
+
+    window_s counts from the first flap stamp, so the first WINDOW_READ_HEAD_S of receive
+    time give that origin and the offset from stamps to receive times; the last messages
+    check that the offset holds to the end (no clock reset, no second run). Then only the
+    messages received within the window (plus WINDOW_READ_MARGIN_S) are read: for MCAP the
+    chunks the chunk index places there, each read and decompressed on its own; for sqlite3
+    a query on the timestamp index.
 
     Returns
     -------
-    (_Raw, origin ns) or (None, None): the bag is small, not an indexed MCAP, or its clocks
-    disagree; then the whole bag is read with every check.
+    (_Raw, origin ns) or (None, None): the bag is small, has no index to read a part by, or
+    its clocks disagree; then the whole bag is read with every check.
 
     """
     none = None, None
     if storage_file.stat().st_size < WINDOW_READ_MIN_BYTES:
         return none
-    try:
-        summary = read_mcap_summary(storage_file)
-    except (OSError, ValueError, IndexError, struct.error):
-        return none
     topics = set(wanted.values())
     flap_topic = wanted['blade_flap']
-    chunks = summary.topic_chunks(topics) if summary else []
-    flap_chunks = summary.topic_chunks({flap_topic}) if summary else []
-    if not flap_chunks or len(chunks) < 3:
-        return none
-    bag_start = min(c.start_ns for c in chunks)
-
-    def offsets(part, topic=flap_topic):
-        """(stamps, receive − stamp) of a topic's decodable, stamped messages in part."""
-        log, messages = part[1].get(topic, ([], []))
-        if not len(messages):
-            return np.empty(0, np.int64), np.empty(0, np.int64)
-        raw = _Raw()
-        raw.data[topic] = messages
-        _decompress_messages(raw)
-        batch = decode_batch(raw.data[topic])
-        stamps = batch.stamps_ns
-        keep = stamps != 0
-        return stamps[keep], (np.asarray(log, np.int64)[batch.kept] - stamps)[keep]
-
+    tolerance = WINDOW_READ_CLOCK_TOLERANCE_S * _NS
+    parts = None
     try:
-        head_chunks = [c for c in chunks if c.start_ns <= bag_start + WINDOW_READ_HEAD_S * _NS]
-        head = read_mcap_chunks(storage_file, topics, summary, head_chunks)
-        tail = read_mcap_chunks(storage_file, {flap_topic}, summary, flap_chunks[-1:])
-        if head is None or tail is None:
-            return none
+        parts = (_McapParts if storage == 'mcap' else _SqliteParts)(storage_file, topics)
+
+        def offsets(found, topic=flap_topic):
+            """(stamps, receive − stamp) of a topic's decodable, stamped messages."""
+            log, messages = found.get(topic, ([], []))
+            if not len(messages):
+                return np.empty(0, np.int64), np.empty(0, np.int64)
+            raw = _Raw()
+            raw.data[topic] = messages
+            _decompress_messages(raw)
+            batch = decode_batch(raw.data[topic])
+            keep = batch.stamps_ns != 0
+            received = np.asarray(log, np.int64)[batch.kept]
+            return batch.stamps_ns[keep], (received - batch.stamps_ns)[keep]
+
+        _, head = parts.read(topics, parts.start_ns, parts.start_ns + WINDOW_READ_HEAD_S * _NS)
         head_stamps, head_offset = offsets(head)
-        _, tail_offset = offsets(tail)
+        _, tail_offset = offsets(parts.last(flap_topic))
         if not head_stamps.size or not tail_offset.size:
             return none
         offset = int(np.median(head_offset))
-        if abs(int(np.median(tail_offset)) - offset) > WINDOW_READ_CLOCK_TOLERANCE_S * _NS:
+        if abs(int(np.median(tail_offset)) - offset) > tolerance:
             return none                       # clocks disagree: the full read finds out why
-        # origin as the full read takes it: the first flap stamp inside the other topics' span
-        steady = np.abs(head_offset - offset) <= WINDOW_READ_CLOCK_TOLERANCE_S * _NS
+        # the origin as the full read takes it: the first flap stamp inside the other
+        # topics' span (stamps off the steady offset, e.g. glitches, left out)
+        steady = np.abs(head_offset - offset) <= tolerance
         starts = [int(head_stamps[steady].min())]
         for topic in topics - {flap_topic}:
             stamps, other = offsets(head, topic)
-            good = np.abs(other - offset) <= WINDOW_READ_CLOCK_TOLERANCE_S * _NS
+            good = np.abs(other - offset) <= tolerance
             if not good.any():
                 return none
             starts.append(int(stamps[good].min()))
         flap_head = np.sort(head_stamps[steady])
-        origin = int(flap_head[np.searchsorted(flap_head, max(starts))]) \
-            if flap_head[-1] >= max(starts) else None
-        if origin is None:
+        if flap_head[-1] < max(starts):
             return none
+        origin = int(flap_head[np.searchsorted(flap_head, max(starts))])
         margin = (WINDOW_READ_MARGIN_S + WINDOW_READ_CLOCK_TOLERANCE_S) * _NS
         first = origin + offset + int(window_s[0] * _NS) - margin
         last = origin + offset + int(window_s[1] * _NS) + margin
-        selected = [c for c in chunks if c.end_ns >= first and c.start_ns <= last]
-        if len(selected) > WINDOW_READ_MAX_FRACTION * len(chunks):
+        if last - first > WINDOW_READ_MAX_FRACTION * (parts.end_ns - parts.start_ns):
             return none                       # most of the bag anyway: read it all
-        part = read_mcap_chunks(storage_file, topics, summary, selected, (first, last))
-        if part is None:
+        available, found = parts.read(topics, first, last)
+        _, part_offset = offsets(found)
+        if part_offset.size and abs(int(np.median(part_offset)) - offset) > tolerance:
             return none
-        _, part_offset = offsets(part)
-        if part_offset.size and abs(int(np.median(part_offset)) - offset) > \
-                WINDOW_READ_CLOCK_TOLERANCE_S * _NS:
-            return none
-    except (OSError, ValueError, IndexError, struct.error):
+    except Exception:  # noqa: B902 - any trouble with the index: the full read decides
         return none
+    finally:
+        with suppress(Exception):
+            parts.close()
     raw = _Raw()
-    raw.available, found = part
-    raw.bag_start_ns = bag_start
+    raw.available = available
+    raw.bag_start_ns = parts.start_ns
     _check_topics(raw, wanted, storage_file, None)
     for topic in wanted.values():
         raw.log_ns[topic], raw.data[topic] = found.get(topic, ([], []))
@@ -760,7 +824,7 @@ def _assemble(ctx, wanted, joint_names, n_blades, omega_rad_s, window_s):
 
     spans = [pitch_ns]
     if 'azimuth' in wanted:
-        az_ns, psi_u, omega = _azimuth(ctx, wanted['azimuth'])
+        az_ns, psi_u, omega, az_sampled_ns = _azimuth(ctx, wanted['azimuth'])
         spans.append(az_ns)
     if ctx.run is not None and ctx.run > 1 and not ctx.several_runs:
         raise BagError(f'run {ctx.run} asked for, but the bag holds one run (the stamps of '
@@ -796,7 +860,9 @@ def _assemble(ctx, wanted, joint_names, n_blades, omega_rad_s, window_s):
     _gaps(flap_ns, omega_mean, flap_topic, issues, 'flap samples there are missing')
     _gaps(pitch_ns, omega_mean, pitch_topic, issues, 'pitch is interpolated across')
     if 'azimuth' in wanted:
-        _gaps(az_ns, omega_mean, wanted['azimuth'], issues, 'azimuth is interpolated across')
+        # (samples dropped as glitches were sampled: they are no gap)
+        _gaps(az_sampled_ns, omega_mean, wanted['azimuth'], issues,
+              'azimuth is interpolated across')
     return Record(time_s=time_s, t=t, rotor_speed_rad_s=speed, blade_flap=flap,
                   blade_pitch=pitch, blade_names=blade_names,
                   warnings=list(dict.fromkeys(issues)), stamp0_ns=stamp0,
@@ -843,7 +909,7 @@ def _check_increasing(ctx, t, time_s, azimuth_topic, window_s):
 
 
 def _azimuth(ctx, topic):
-    """Return (stamps_ns, unwrapped ψ of blade 1, Ω) of the azimuth topic, glitches repaired."""
+    """Return (stamps_ns, unwrapped ψ of blade 1, Ω, stamps before repairs) of the azimuth."""
     issues = ctx.issues
     samples = _topic_samples(ctx, topic, 'azimuth', True)
     stamps, names, position, velocity = (samples.stamps, samples.names, samples.position,
@@ -872,6 +938,7 @@ def _azimuth(ctx, topic):
                        f'sample(s), down to {bad.min():.4g} rad/s, the first at '
                        f'{ctx.when(int(stamps[np.argmax(~(rate > 0))]))}; t = ψ needs a turning '
                        'rotor in the positive sense: cut the recording to where the rotor turns')
+    sampled = stamps
     stamps, position, rate, time_s = _repair_phase(ctx, topic, stamps, position, rate, time_s)
     if velocity is None:
         velocity = np.gradient(np.unwrap(position), time_s) if len(stamps) > 1 else rate
@@ -886,7 +953,7 @@ def _azimuth(ctx, topic):
                            f'speed (velocity) says {mean_speed:.4g} rad/s; position must be '
                            'ψ in rad wrapped to [0, 2π) and velocity Ω in rad/s (degrees or '
                            'rpm?)')
-    return stamps, psi_u, velocity
+    return stamps, psi_u, velocity, sampled
 
 
 def _repair_speed_spikes(ctx, topic, stamps, velocity):

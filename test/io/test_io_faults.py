@@ -126,6 +126,16 @@ def test_clock_reset_is_reported_with_its_place_and_a_run_is_selected(tmp_path, 
         read_record(bag, run=3)
 
 
+@pytest.mark.parametrize('storage', ['mcap', 'sqlite3'])
+def test_reset_is_found_when_only_the_window_would_be_read(tmp_path, monkeypatch, storage):
+    """The window read checks the clock offset at the end and reads it all when it moved."""
+    from rotor_id.io import bag as bag_module
+    monkeypatch.setattr(bag_module, 'WINDOW_READ_MIN_BYTES', 0)
+    bag, _, _ = two_runs(tmp_path, 1.5 - 100.0, storage)
+    with pytest.raises(BagError, match='jump back 99.999 s.*`run: K`'):
+        read_record(bag, window_s=(0.2, 0.3))
+
+
 def test_overlapping_runs_are_separated(tmp_path):
     bag, first, second = two_runs(tmp_path, 0.5)       # run 2's stamps overlap run 1's
     with pytest.raises(BagError, match='jump back 0.999 s.*run 2: 1200 samples, stamps '
@@ -290,6 +300,7 @@ def test_azimuth_sample_reading_zero_is_repaired(tmp_path):
     np.testing.assert_allclose(got.t, record.t, atol=2e-5)
     assert any('dropped 1 azimuth sample(s)' in w and '0 rad at 0.7770 s' in w
                for w in got.warnings)
+    assert not any('gap' in w for w in got.warnings)         # the sample was there, but wrong
 
 
 def test_rotor_speed_sample_reading_zero_is_repaired(tmp_path):
