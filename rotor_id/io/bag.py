@@ -386,7 +386,9 @@ def _topic_samples(ctx, topic, role, with_velocity):
 
 def _select_run(ctx, topic, role, stamps, position, velocity, message):
     """Drop clock glitches; with several runs (clock resets), keep the one asked for."""
-    split = split_runs(stamps)
+    received = ctx.raw.log_ns.get(topic)
+    split = split_runs(stamps, None if received is None or not len(received)
+                       else np.asarray(received, dtype=np.int64)[message])
     keep = split.labels >= 0
     glitches = split.glitches()
     if glitches.size:
@@ -427,10 +429,12 @@ def _runs_message(ctx, topic, role, split, stamps, message):
     if split.interleaved():
         cause = (f'the stamps switch between {split.n_runs} clocks {split.jumps.size} times, the '
                  f'first at {where} (several publishers with different clocks on one topic)')
+    elif step > 0:
+        cause = (f'the stamps jump forward {step:.6g} s at {where} while the receive times '
+                 'do not (the clock stepped: the time base is broken there)')
     else:
-        cause = (f'the stamps jump {"back" if step < 0 else "forward"} {abs(step):.6g} s at '
-                 f'{where} and continue from there (a clock reset: {split.n_runs} runs in one '
-                 'bag)')
+        cause = (f'the stamps jump back {-step:.6g} s at {where} and continue from there (a '
+                 f'clock reset: {split.n_runs} runs in one bag)')
     return (f'{topic} ({role}): {cause}; {"; ".join(runs)} (stamps relative to the first of '
             'run 1). Sorted by stamp they would merge: choose one with `run: K` in the run '
             f'description (K = 1..{split.n_runs} in recording order; window_s then counts from '

@@ -87,19 +87,23 @@ class RunSplit:
         return int(np.count_nonzero(np.diff(runs) != 0)) > 2 * max(self.n_runs - 1, 0)
 
 
-def split_runs(stamps_ns):
+def split_runs(stamps_ns, received_ns=None):
     """
     Group stamps given in recording order into runs separated by clock resets.
 
     A jump (backward by more than ``RESET_PERIODS`` periods, or forward by as much) cuts the
     sequence into pieces; each piece joins the earlier run whose last stamp lies closest below
     its first stamp (so a gap, or the return after a glitch, continues the run), else it
-    starts a new run. Runs of at most ``GLITCH_MAX_SAMPLES`` samples are glitches.
+    starts a new run. A forward jump of the stamps while the receive times advance less than
+    half as much is the sensor's clock stepping, not samples lost: a new run too. Runs of at
+    most ``GLITCH_MAX_SAMPLES`` samples are glitches.
 
     Parameters
     ----------
     stamps_ns
         (n,) int64 stamps in the order the messages were recorded.
+    received_ns
+        (n,) receive times of the same messages, or None.
 
     Returns
     -------
@@ -130,14 +134,22 @@ def split_runs(stamps_ns):
             bridge = stamps[starts[j + 1]] - stamps[ends[j - 1] - 1]
             # (short pieces on both sides: clocks taking turns, not a glitch)
             glitch_piece[j] = 0 < bridge <= limit and not (short[j - 1] and short[j + 1])
+    received = None if received_ns is None else np.asarray(received_ns, dtype=np.int64)
     last = []                   # last stamp of each run so far
     run_of_piece = []
+    previous = None             # last sample of the previous piece that is no glitch
     for start, end, is_glitch in zip(starts, ends, glitch_piece):
         if is_glitch:
             run_of_piece.append(-1)
             continue
         first = stamps[start]
-        below = [(first - stamp, run) for run, stamp in enumerate(last) if stamp < first]
+        # the stamps step ahead while the messages keep arriving: the clock stepped
+        stepped = previous is not None and received is not None and (
+            first - stamps[previous] > limit
+            and received[start] - received[previous] < (first - stamps[previous]) // 2)
+        previous = end - 1
+        below = [] if stepped else [(first - stamp, run) for run, stamp in enumerate(last)
+                                    if stamp < first]
         if below:
             run = min(below)[1]
             last[run] = max(last[run], int(stamps[start:end].max()))

@@ -162,6 +162,19 @@ def test_run_asked_of_a_bag_with_one_run(tmp_path):
         read_record(bag, run=2)
 
 
+def test_clock_stepping_forward_is_not_a_gap(tmp_path):
+    """Stamps jump 30 s ahead while the messages keep arriving every 1 ms: two runs."""
+    record = make_record(n=1000)
+    later = make_record(n=1000, psi0=1.0, seed=3)
+    messages = messages_of(record) + messages_of(later, stamp0=STAMP0 + 31_000 * MS,
+                                                 log0=STAMP0 + 1_000 * MS)
+    bag = write_in_order(tmp_path / 'bag', messages)
+    with pytest.raises(BagError, match='jump forward 30.001 s at message 1001 of 2000.*while '
+                                       'the receive times do not.*`run: K`'):
+        read_record(bag)
+    np.testing.assert_array_equal(read_quietly(bag, run=2).blade_flap, later.blade_flap)
+
+
 def test_forward_gap_is_not_a_second_run(tmp_path):
     """Stamps that jump forward (samples lost) continue the run: a gap, reported in rev."""
     record = make_record(n=1000)
