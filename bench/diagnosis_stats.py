@@ -64,9 +64,10 @@ def summarize(runs, seeds):
              'chosen model; `3σ` = extra parameters within 3σ of the truth; `orig z` = worst '
              '|estimate − truth|/σ of the original parameters, baseline → corrected.', '',
              '| scenario | truth effect | named right | names given | wrong names (high conf.) | '
+             'runs with an effect added beyond the truth | '
              'excess mean (max) | aug excess mean (max) | extra within 3σ | orig z before → '
              'after | s/run |',
-             '|---|---|---|---|---|---|---|---|---|---|']
+             '|---|---|---|---|---|---|---|---|---|---|---|']
     for sc in SCENARIOS:
         rs = [r for r in runs if r['scenario'] == sc.name]
         if not rs:
@@ -80,7 +81,9 @@ def summarize(runs, seeds):
         wrong_txt = ', '.join(f'{k}×{v}' for k, v in sorted(names.items())) or '–'
         given = {}
         for r in rs:
-            given[r['effect']] = given.get(r['effect'], 0) + 1
+            key = ' + '.join(r.get('named') or [r['effect']])
+            given[key] = given.get(key, 0) + 1
+        added = sum(bool(r.get('extra_names')) for r in rs)
         given_txt = ', '.join(f'{k}×{v}' for k, v in sorted(given.items()))
         exc = [r['excess'] for r in rs if 'excess' in r]
         aug = [r['augmented_excess'] for r in rs if 'augmented_excess' in r]
@@ -88,7 +91,8 @@ def summarize(runs, seeds):
         ob = [r['original_bias_before'] for r in rs if r.get('original_bias_before') is not None]
         oa = [r['original_bias_after'] for r in rs if r.get('original_bias_after') is not None]
         lines.append(
-            f'| {sc.name} | {sc.effect} | {right}/{len(rs)} | {given_txt} | {wrong_txt} | '
+            f'| {sc.name} | {" + ".join(g[0] for g in sc.together) or sc.effect} | '
+            f'{right}/{len(rs)} | {given_txt} | {wrong_txt} | {added}/{len(rs)} | '
             f'{_fmt(np.mean(exc) if exc else None)} ({_fmt(max(exc) if exc else None)}) | '
             f'{_fmt(np.mean(aug) if aug else None)} ({_fmt(max(aug) if aug else None)}) | '
             f'{sum(w3)}/{len(w3)} | {_fmt(np.mean(ob) if ob else None, ".1f")} → '

@@ -59,7 +59,19 @@ def format_summary(diagnosis):
     lines.append(f'whiteness p (Ljung-Box, Bonferroni): baseline '
                  f'{fit["whiteness_p_baseline"]:.2g}, augmented '
                  f'{fit["whiteness_p_augmented"]:.2g}')
-    if d['explanation']['parameters']:
+    effects = d['explanation'].get('effects', [])
+    if len(effects) > 1:
+        lines.append(f'effects, added one at a time (residual RMS above the floor: baseline '
+                     f'{fit["baseline_rms"] / fit["noise_floor"] - 1:+.1%}):')
+        for i, e in enumerate(effects, 1):
+            name = e['effect'] + (f' ({e["variant"]})' if e.get('variant') else '')
+            lines.append(f'  {i}. + {name:<28} Δlog L {e["delta_loglik"]:8.1f}, criterion '
+                         f'{e["criterion"]:7.1f}, held-out RMS {_fmt(e["validation_rms"])} rad, '
+                         f'residual RMS {e["residual_rms"]:.4g} rad '
+                         f'({e["excess_over_floor"]:+.1%} of the floor)')
+            for pname, p in e['parameters'].items():
+                lines.append(f'       {pname:<14} {p["value"]:12.5g} ± {p["std"]:.3g}')
+    elif d['explanation']['parameters']:
         lines.append('extra parameters (Cramér-Rao σ):')
         for name, p in d['explanation']['parameters'].items():
             lines.append(f'  {name:<14} {p["value"]:12.5g} ± {p["std"]:.3g}')

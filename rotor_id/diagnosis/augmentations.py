@@ -36,6 +36,12 @@ class BladeView:
     """Per-blade flap, flap rate and inflow of a baseline model's state (see module docstring)."""
 
     def __init__(self, model):
+        # an augmented model over another: the blades are the root model's states, which come
+        # first in the state vector; the inner augmentations' extra states get zero columns
+        self.n_states = model.n_states
+        self.n_outputs = model.n_outputs
+        while isinstance(model, (Augmented, ChannelSubset)):
+            model = model.base if isinstance(model, Augmented) else model.inner
         self.model = model
         self.kind = model.name
         if self.kind == 'single_blade':
@@ -53,7 +59,7 @@ class BladeView:
     def flap(self, t):
         """Hb (T, N, n): β_k = Hb x."""
         psi = self._psi(t)
-        T, N, n = psi.shape[0], psi.shape[1], self.model.n_states
+        T, N, n = psi.shape[0], psi.shape[1], self.n_states
         Hb = np.zeros((T, N, n))
         if self.kind == 'single_blade':
             Hb[:, 0, 0] = 1.0
@@ -69,7 +75,7 @@ class BladeView:
     def flap_rate(self, t):
         """Hbr (T, N, n): β_k′ = Hbr x (rates are states, so no input enters)."""
         psi = self._psi(t)
-        T, N, n = psi.shape[0], psi.shape[1], self.model.n_states
+        T, N, n = psi.shape[0], psi.shape[1], self.n_states
         c, s = np.cos(psi), np.sin(psi)
         H = np.zeros((T, N, n))
         if self.kind == 'single_blade':
@@ -88,7 +94,7 @@ class BladeView:
     def inflow(self, t):
         """Return Hl (T, N, n): the wake's inflow angle λ_k = λI cos ψ_k + λII sin ψ_k."""
         psi = self._psi(t)
-        H = np.zeros((psi.shape[0], psi.shape[1], self.model.n_states))
+        H = np.zeros((psi.shape[0], psi.shape[1], self.n_states))
         if self.kind == 'multiblade_wake':
             H[:, :, 4], H[:, :, 5] = np.cos(psi), np.sin(psi)
         return H
@@ -108,12 +114,12 @@ class BladeView:
         rows = [np.full((T, N), 1.0 / N), (2.0 / N) * np.cos(psi), (2.0 / N) * np.sin(psi),
                 np.broadcast_to((-1.0) ** np.arange(1, N + 1) / N, (T, N))]
         C = np.stack(rows, axis=1)
-        return C[:, :model.n_outputs]
+        return C[:, :self.n_outputs]
 
     def force(self, t):
         """G (T, n, N): change of x′ for a unit flapping acceleration of blade k alone."""
         psi = self._psi(t)
-        T, N, n = psi.shape[0], psi.shape[1], self.model.n_states
+        T, N, n = psi.shape[0], psi.shape[1], self.n_states
         G = np.zeros((T, n, N))
         if self.kind == 'single_blade':
             G[:, 1, 0] = 1.0
@@ -160,6 +166,30 @@ class Augmented(LinearModel):
         self.state_names = tuple(base.state_names) + tuple(self.extra_states)
         self.output_names = base.output_names
         self.time_invariant = base.time_invariant and not self.extra_inputs
+        #: columns of u the base model reads: [θ0, θI, θII] and every inner extra input
+        self.n_base_inputs = 3 + len(getattr(base, 'all_extra_inputs', ()))
+        self.all_extra_inputs = tuple(getattr(base, 'all_extra_inputs', ())) + \
+            tuple(self.extra_inputs)
+
+    def own_inputs(self, u):
+        """Return [θ0, θI, θII, this augmentation's extra inputs] out of the full u."""
+        u = np.asarray(u, dtype=float)
+        if self.n_base_inputs == 3:
+            return u
+        return np.concatenate([u[:, :3], u[:, self.n_base_inputs:]], axis=1)
+
+    def base_inputs(self, u, pitch=None):
+        """Return the columns of u the base reads, optionally with [θ0, θI, θII] replaced."""
+        u = np.asarray(u, dtype=float)[:, :self.n_base_inputs]
+        if pitch is None:
+            return u
+        return np.concatenate([pitch, u[:, 3:]], axis=1)
+
+    @property
+    def effects(self):
+        """Return the effects of this model from the innermost to this one."""
+        inner = getattr(self.base, 'effects', ())
+        return tuple(inner) + (self.effect,)
 
     @property
     def n_base_states(self):
@@ -208,13 +238,13 @@ class Augmented(LinearModel):
         t = np.atleast_1d(np.asarray(t, dtype=float))
         u = np.asarray(u, dtype=float)
         pb, pe = self._split(p)
-        Fb, gb = self.base.system(t, pb, u[:, :3])
+        Fb, gb = self.base.system(t, pb, self.base_inputs(u))
         n, nb = self.n_states, self.n_base_states
         F = np.zeros((t.size, n, n))
         F[:, :nb, :nb] = Fb
         g = np.zeros((t.size, n))
         g[:, :nb] = gb
-        self._extra(t, pb, pe, u, F, g)
+        self._extra(t, pb, pe, self.own_inputs(u), F, g)
         return F, g
 
     def system_jacobian(self, t, p, u):
@@ -222,13 +252,13 @@ class Augmented(LinearModel):
         t = np.atleast_1d(np.asarray(t, dtype=float))
         u = np.asarray(u, dtype=float)
         pb, pe = self._split(p)
-        dFb, dgb = self.base.system_jacobian(t, pb, u[:, :3])
+        dFb, dgb = self.base.system_jacobian(t, pb, self.base_inputs(u))
         n, nb, P, Pb = self.n_states, self.n_base_states, len(self.parameters), len(pb)
         dF = np.zeros((t.size, P, n, n))
         dF[:, :Pb, :nb, :nb] = dFb
         dg = np.zeros((t.size, P, n))
         dg[:, :Pb, :nb] = dgb
-        self._extra_jacobian(t, pb, pe, u, dF, dg)
+        self._extra_jacobian(t, pb, pe, self.own_inputs(u), dF, dg)
         return dF, dg
 
     def _extra(self, t, pb, pe, u, F, g):
@@ -382,23 +412,23 @@ class TimeDelay(Augmented):
         t = np.atleast_1d(np.asarray(t, dtype=float))
         u = np.asarray(u, dtype=float)
         pb, pe = self._split(p)
-        us, _ = self._shifted(u, pe[0])
-        return self.base.system(t, pb, us)
+        us, _ = self._shifted(self.own_inputs(u), pe[0])
+        return self.base.system(t, pb, self.base_inputs(u, us))
 
     def system_jacobian(self, t, p, u):
         """Baseline derivatives at the delayed pitch, and ∂g/∂d = G ∂u/∂d (g affine in u)."""
         t = np.atleast_1d(np.asarray(t, dtype=float))
         u = np.asarray(u, dtype=float)
         pb, pe = self._split(p)
-        us, dus = self._shifted(u, pe[0])
-        dFb, dgb = self.base.system_jacobian(t, pb, us)
+        us, dus = self._shifted(self.own_inputs(u), pe[0])
+        dFb, dgb = self.base.system_jacobian(t, pb, self.base_inputs(u, us))
         T, Pb, n = dgb.shape
         dF = np.zeros((T, Pb + 1, n, n))
         dF[:, :Pb] = dFb
         dg = np.zeros((T, Pb + 1, n))
         dg[:, :Pb] = dgb
-        _, g_du = self.base.system(t, pb, dus)
-        _, g_0 = self.base.system(t, pb, np.zeros_like(us))
+        _, g_du = self.base.system(t, pb, self.base_inputs(u, dus))
+        _, g_0 = self.base.system(t, pb, self.base_inputs(u, np.zeros_like(us)))
         dg[:, Pb] = g_du - g_0
         return dF, dg
 
@@ -485,12 +515,12 @@ class FlapFrequency(Augmented):
     def system(self, t, p, u):
         """Return the baseline's F, g with P replaced."""
         pb, pe = self._split(p)
-        return self._with_P(pe[0]).system(t, pb, np.asarray(u)[:, :3])
+        return self._with_P(pe[0]).system(t, pb, self.base_inputs(u))
 
     def system_jacobian(self, t, p, u):
         """Baseline derivatives at P, and ∂F/∂P by an exact central difference."""
         t = np.atleast_1d(np.asarray(t, dtype=float))
-        u = np.asarray(u, dtype=float)[:, :3]
+        u = self.base_inputs(u)
         pb, pe = self._split(p)
         P = pe[0]
         dFb, dgb = self._with_P(P).system_jacobian(t, pb, u)
@@ -667,7 +697,7 @@ class BladeDissimilarity(Augmented):
         Hbr = self.view.flap_rate(t)[:, j]
         T, Pb = t.size, len(pb)
         theta_cyc = -u[:, 1] * np.sin(psi) + u[:, 2] * np.cos(psi)
-        if base.name == 'multiblade_wake':
+        if self.view.kind == 'multiblade_wake':
             A = pb[0]
             Hl = self.view.inflow(t)[:, j]
             row = Hl - Hbr
@@ -731,7 +761,7 @@ class BladeDissimilarity(Augmented):
         F[:, nb + 1, nb + 1] = -(1.0 + eps) * c
         F[:, nb + 1, :nb] = eps * a
         g[:, nb + 1] = eps * a0 + m * stat
-        if self.base.name == 'multiblade_wake':
+        if self.view.kind == 'multiblade_wake':
             gain = pb[1]                                   # AL/τ
             w, row, q = self._wake_feedback(t, pb, u)
             for i, lam in enumerate((4, 5)):
@@ -753,7 +783,7 @@ class BladeDissimilarity(Augmented):
         dF[:, kb, nb + 1, :nb] = a
         dg[:, kb, nb + 1] = a0
         dg[:, kb + 1, nb + 1] = m
-        if self.base.name == 'multiblade_wake':
+        if self.view.kind == 'multiblade_wake':
             gain = pb[1]
             w, row, q = self._wake_feedback(t, pb, u)
             for i, lam in enumerate((4, 5)):
@@ -776,7 +806,7 @@ class BladeDissimilarity(Augmented):
         out = super().report_parameters(values, cov)
         k = self.n_base_parameters
         theta0 = getattr(self, '_collective', 0.0)
-        if self.base.name != 'multiblade_wake':
+        if self.view.kind != 'multiblade_wake':
             gi = _gamma_index(self.base)
             coll = self.base.parameter_names[1]
             theta0 = values[1] / values[gi] if coll == 'delta' else values[1]

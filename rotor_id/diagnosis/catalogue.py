@@ -84,6 +84,8 @@ class Job:
     baseline_nll: float = math.inf
     #: widened catalogue ranges {extra parameter: (lower, upper)} (see :func:`fit_candidate`)
     bounds: dict = None
+    #: effects already kept, [(effect, variant)], fitted together with this one
+    prior: tuple = ()
 
 
 @dataclass
@@ -104,6 +106,10 @@ class CandidateFit:
     validation_rms: float = None
     validation_ms: list = None
     elapsed_s: float = 0.0
+    #: {effect: its parameters {name: (value, std)}} of every effect in the fitted model
+    effect_parameters: dict = field(default_factory=dict)
+    #: effects fitted together with this one [(effect, variant)]
+    prior: tuple = ()
     #: the catalogue ranges the fit ended with (widened where a fit stopped at one)
     bounds: dict = field(default_factory=dict)
     #: extra parameters still at a catalogue bound after widening: the likelihood is capped,
@@ -138,6 +144,8 @@ def _augment_runs(experiments, make, record, extra_inputs=None):
 
 def _pitch_rates(exp, model):
     base = exp.inputs
+    while isinstance(base, ExtendedInput):
+        base = base.base
     rate = np.gradient(base.u, base.t, axis=0)
     return base.t, rate
 
@@ -185,48 +193,85 @@ def n_choices(effect, n_blades):
     return n_blades if effect == 'blade_dissimilarity' else 1
 
 
-def _build(job, baseline_model, experiments):
-    """Experiments, unknowns, guesses and RK4 step of a candidate."""
-    effect = job.effect
-    record = job.record
-    guess = dict(job.baseline_values)
-    max_step = None
+#: The order in which effects are stacked on the rotor model when several are fitted together
+#: (innermost first): the flap frequency replaces a coefficient of the rotor model itself, the
+#: wake and the blade's dynamics add states to the rotor, the delay shifts the pitch seen by
+#: all of them, and the sensor effects act on what the rotor's flap becomes on the way to the
+#: recording.
+COMPOSE_ORDER = ('periodic_coefficients', 'flap_frequency', 'dynamic_inflow', 'cubic_stiffness',
+                 'blade_dissimilarity', 'time_delay', 'sensor_lag', 'sensor_bias')
+
+
+def _augment_one(effect, variant, record, experiments):
+    """Wrap every run's model in one effect's augmentation: (runs, model)."""
     if effect == 'sensor_lag':
-        runs, model = _augment_runs(experiments, aug.SensorLag, record)
-    elif effect == 'time_delay':
-        runs, model = _augment_runs(experiments, aug.TimeDelay, record, _pitch_rates)
-    elif effect == 'sensor_bias':
+        return _augment_runs(experiments, aug.SensorLag, record)
+    if effect == 'time_delay':
+        return _augment_runs(experiments, aug.TimeDelay, record, _pitch_rates)
+    if effect == 'sensor_bias':
         t_all = np.concatenate([e.t for e in experiments])
-        runs, model = _augment_runs(experiments, lambda m: aug.SensorBias(m, t_all), record)
-    elif effect == 'flap_frequency':
-        runs, model = _augment_runs(experiments, aug.FlapFrequency, record)
-    elif effect == 'cubic_stiffness':
-        runs, model = _augment_runs(experiments, aug.CubicStiffness, record,
-                                    _measured_flap(record))
-    elif effect == 'dynamic_inflow':
-        runs, model = _augment_runs(experiments, aug.DynamicInflow, record)
-    elif effect == 'blade_dissimilarity':
-        blade = int((job.variant or 'blade_1').split('_')[1])
-        runs, model = _augment_runs(experiments, lambda m: aug.BladeDissimilarity(m, blade),
-                                    record)
-    elif effect == 'periodic_coefficients':
+        return _augment_runs(experiments, lambda m: aug.SensorBias(m, t_all), record)
+    if effect == 'flap_frequency':
+        return _augment_runs(experiments, aug.FlapFrequency, record)
+    if effect == 'cubic_stiffness':
+        return _augment_runs(experiments, aug.CubicStiffness, record, _measured_flap(record))
+    if effect == 'dynamic_inflow':
+        return _augment_runs(experiments, aug.DynamicInflow, record)
+    if effect == 'blade_dissimilarity':
+        blade = int((variant or 'blade_1').split('_')[1])
+        return _augment_runs(experiments, lambda m: aug.BladeDissimilarity(m, blade), record)
+    if effect == 'periodic_coefficients':
+        if any(isinstance(e.model, aug.Augmented) for e in experiments):
+            raise IdentificationError('periodic_coefficients replaces the rotor model and is '
+                                      'stacked first')
         runs = []
         for exp in experiments:
             sub = aug.periodic_coefficients(exp.model)
             runs.append(Experiment(sub, exp.inputs, exp.t, exp.y,
                                    initial_state=exp.initial_state, name=exp.name))
-        model = runs[0].model
-    else:
-        raise IdentificationError(f'unknown effect {effect!r}')
-    if job.bounds:
-        for exp in runs:
-            exp.model.with_bounds(job.bounds)
-    if effect == 'sensor_lag':
-        max_step = model.step()
-    extra = [p.name for p in getattr(model, 'extra_parameters', ())]
-    unknowns = list(job.unknowns) + extra
-    for par in getattr(model, 'extra_parameters', ()):
-        guess[par.name] = par.nominal
+        return runs, runs[0].model
+    raise IdentificationError(f'unknown effect {effect!r}')
+
+
+def layers(model):
+    """Return the augmentation layers of a model, outermost first."""
+    out = []
+    while isinstance(model, aug.Augmented):
+        out.append(model)
+        model = model.base
+    return out
+
+
+def _build(job, baseline_model, experiments):
+    """
+    Experiments, unknowns, guesses and RK4 step of a candidate.
+
+    The candidate is ``job.effect`` on top of the effects already kept (``job.prior``), all
+    stacked in :data:`COMPOSE_ORDER` on the one rotor model. ``extra`` names the candidate's
+    own extra parameters; the unknowns are the baseline's and every effect's.
+    """
+    record = job.record
+    guess = dict(job.baseline_values)
+    stack = sorted(list(job.prior) + [(job.effect, job.variant)],
+                   key=lambda ev: COMPOSE_ORDER.index(ev[0]))
+    runs, model = experiments, None
+    for effect, variant in stack:
+        runs, model = _augment_one(effect, variant, record, runs)
+        if job.bounds and isinstance(model, aug.Augmented):
+            for exp in runs:
+                exp.model.with_bounds(job.bounds)
+    max_step = None
+    all_extra, extra = [], []
+    for layer in reversed(layers(model)):
+        names = [par.name for par in layer.extra_parameters]
+        all_extra += names
+        if layer.effect == job.effect:
+            extra = names
+        for par in layer.extra_parameters:
+            guess[par.name] = par.nominal
+        if layer.effect == 'sensor_lag':
+            max_step = layer.step()
+    unknowns = list(job.unknowns) + all_extra
     guess.update(job.start or {})
     return runs, model, unknowns, extra, guess, max_step
 
@@ -244,13 +289,22 @@ def _at_catalogue_bound_values(values, model, extra):
     """[(name, side)] of the extra parameters in ``values`` at a catalogue bound."""
     out = []
     for name in extra:
-        par = model.parameter(name)
+        layer = _layer_of(model, name)
+        par = layer.parameter(name)
         value = values[name]
         tol = 1e-9 * max(1.0, abs(par.lower), abs(par.upper))
         for side, bound in (('lower', par.lower), ('upper', par.upper)):
-            if abs(value - bound) <= tol and side not in model.physical_bounds.get(name, ()):
+            if abs(value - bound) <= tol and side not in layer.physical_bounds.get(name, ()):
                 out.append((name, side))
     return out
+
+
+def _layer_of(model, name):
+    """Return the augmentation layer that owns extra parameter ``name``."""
+    for layer in layers(model):
+        if name in [par.name for par in layer.extra_parameters]:
+            return layer
+    raise KeyError(name)
 
 
 def _stop_at_bound(model, extra, show):
@@ -384,7 +438,7 @@ def fit_candidate(job):
     from rotor_id.pipeline import experiments_from_record, model_for
     t_start = time.perf_counter()
     label = job.effect + (f' {job.variant}' if job.variant else '')
-    out = CandidateFit(effect=job.effect, variant=job.variant)
+    out = CandidateFit(effect=job.effect, variant=job.variant, prior=tuple(job.prior))
     base_model = model_for(job.description)
     reason = applicable(job.effect, base_model.name, base_model.rotor, job.unknowns)
     if reason:
@@ -416,7 +470,8 @@ def fit_candidate(job):
             at_bound = _at_catalogue_bound(est, model, extra)
             out.bounds = dict(job.bounds or {})
             out.bound_limited = [name for name, _ in at_bound]
-            wider = {name: model.widened(name, side) for name, side in at_bound}
+            wider = {name: _layer_of(model, name).widened(name, side)
+                     for name, side in at_bound}
             if not at_bound or widening == MAX_WIDENINGS or None in wider.values():
                 break
             # a fit that is no better than the baseline at the bound asks for no effect: the
@@ -434,7 +489,11 @@ def fit_candidate(job):
     out.n_extra = len(est.names) - len(job.unknowns) - _n_initial(experiments)
     p_full = np.array([est.model_parameters[n] for n in model.parameter_names])
     cov_full = _full_covariance(est, model)
-    out.parameters = model.report_parameters(p_full, cov_full)
+    for layer in layers(model):
+        n = len(layer.parameters)
+        out.effect_parameters[layer.effect] = layer.report_parameters(p_full[:n],
+                                                                      cov_full[:n, :n])
+    out.parameters = out.effect_parameters.get(job.effect, {})
     if job.validate:
         try:
             start = {n: est.model_parameters[n] for n in unknowns}

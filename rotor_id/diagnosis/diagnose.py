@@ -43,6 +43,8 @@ CRITERION_THRESHOLD = 10.0
 CONFIDENCE_GAP = 10.0
 #: Strongest candidates cross-validated (the others cannot be chosen anyway).
 MAX_VALIDATED = 3
+#: Most effects named together.
+MAX_EFFECTS = 3
 #: A score test's LM may underpredict the full fit's 2Δlog L where the effect is not small;
 #: screening credits the fit with this multiple of LM before ruling it out.
 SCREEN_SAFETY = 2.0
@@ -87,6 +89,8 @@ class Diagnosis:
     elapsed_s: float
     notes: list = field(default_factory=list)
     fits: list = field(default_factory=list)
+    #: the effects added one at a time (forward selection), each with what it adds
+    steps: list = field(default_factory=list)
 
     def as_json(self):
         """JSON of ``rotor-id diagnose`` (issue 4 keys; more allowed)."""
@@ -94,7 +98,8 @@ class Diagnosis:
             'mismatch': bool(self.mismatch),
             'location': self.location,
             'explanation': {'effect': self.effect, 'confidence': self.confidence,
-                            'parameters': self.explanation_parameters},
+                            'parameters': self.explanation_parameters,
+                            'effects': [_effect_json(st) for st in self.steps]},
             'fit': self.fit,
             'candidates': self.candidates,
             'parameters': self.parameters,
@@ -110,6 +115,17 @@ class Diagnosis:
             'notes': list(self.notes),
             'elapsed_s': float(self.elapsed_s),
         }
+
+
+def _effect_json(step):
+    """One entry of ``explanation.effects``."""
+    return {'effect': step['effect'], 'variant': step['variant'],
+            'parameters': {n: {'value': v, 'std': s}
+                           for n, (v, s) in step.get('parameters', {}).items()},
+            'delta_loglik': step['delta_loglik'], 'criterion': step['criterion'],
+            'validation_rms': step['validation_rms'], 'residual_rms': step['residual_rms'],
+            'excess_over_floor': step['excess_over_floor'],
+            'residuals_are_noise': bool(step['adequate'])}
 
 
 def _say(progress, text):
@@ -481,8 +497,26 @@ def diagnose(record, description, progress=None, workers=2, effects=EFFECTS, win
         effect = 'unexplained' if mismatch else 'none'
         confidence = 'high' if not ranked or ranked[0]['criterion'] < 0 else 'low'
 
-    # ---- show ----
+    # ---- more effects: forward selection with refits and a backward check ----
+    steps = []
     chosen_fit = chosen['fit'] if chosen else None
+    if chosen is not None:
+        steps.append(_step_row(chosen['fit'], chosen['delta_loglik'], chosen['criterion'],
+                               validation.get(chosen['effect']), floors, u, exp0.t))
+        if chosen['effect'] != 'process_noise':
+            context = {'record': record, 'description': description, 'values': values,
+                       'unknowns': unknowns, 'known': known, 'window_s': window_s,
+                       'n_obs': n_obs, 'n_blades': n_blades, 'floors': floors, 'u': u,
+                       't': exp0.t, 'workers': workers, 'screen': screen,
+                       'effects': deterministic, 'model_name': ident.model.name,
+                       'rotor': ident.model.rotor, 'progress': progress, 't_start': t_start,
+                       'verbose': verbose_fits}
+            chosen_fit, steps, dropped = _forward_selection(chosen['fit'], steps, context)
+            for old in dropped:
+                notes.append(f'{old} was dropped by the backward check: with the effects added '
+                             'after it, it no longer earns its place')
+            if len(steps) > 1:
+                mismatch = True
     if chosen_fit is not None:
         aug_est = chosen_fit.estimate
         aug_res = np.concatenate(aug_est.residuals, axis=0)
@@ -510,8 +544,11 @@ def diagnose(record, description, progress=None, workers=2, effects=EFFECTS, win
         'validation_rms_baseline': base_val,
     }
     explanation = {}
+    if steps:
+        effect = max(steps, key=lambda st: st['criterion'])['effect']
     if chosen_fit is not None:
-        explanation = {n: {'value': v, 'std': s} for n, (v, s) in chosen_fit.parameters.items()}
+        own = chosen_fit.effect_parameters.get(effect, chosen_fit.parameters)
+        explanation = {n: {'value': v, 'std': s} for n, (v, s) in own.items()}
         if effect == 'time_delay' and 'delay_rad' in explanation:
             omega = ident.omega_rad_s
             explanation['delay_s'] = {'value': explanation['delay_rad']['value'] / omega,
@@ -538,7 +575,169 @@ def diagnose(record, description, progress=None, workers=2, effects=EFFECTS, win
                      parameters=parameters, baseline=ident, chosen=chosen_fit,
                      channels=channels, stats_baseline=stats_base, stats_augmented=stats_aug,
                      blade_floor=blade_sigma, record_window=part, elapsed_s=elapsed,
-                     notes=notes, fits=fits)
+                     notes=notes, fits=fits, steps=steps)
+
+
+def _residual_matrix(est):
+    """Return the residuals of an estimate as (T, channels) (several runs: a column each)."""
+    if len(est.residuals) > 1:
+        return np.column_stack([r[:, 0] for r in est.residuals])
+    return est.residuals[0]
+
+
+def _step_row(fit, dll, criterion, validation_rms, floors, u, t):
+    """One effect added: what it adds (Δlog L, criterion, held-out RMS, residual RMS after)."""
+    res = _residual_matrix(fit.estimate)
+    rms = [float(math.sqrt(np.mean(res[:, j]**2))) for j in range(res.shape[1])]
+    return {'effect': fit.effect, 'variant': fit.variant, 'delta_loglik': float(dll),
+            'criterion': float(criterion), 'validation_rms': validation_rms,
+            'residual_rms': _overall(rms),
+            'excess_over_floor': _overall(rms) / _overall(floors) - 1.0,
+            'adequate': _adequate(fit, floors, u, t), 'fit': fit}
+
+
+def _say_t(ctx, text):
+    _say(ctx['progress'], f'{text} ({time.perf_counter() - ctx["t_start"]:.1f} s)')
+
+
+def _candidate_jobs(current, kept, ctx):
+    """Jobs of every effect that can still be added to the kept ones (screened first)."""
+    est = current.estimate
+    start = {n: est.model_parameters[n] for n in current.unknowns}
+    names = {e for e, _ in kept}
+    excluded = set(names)
+    for e in names:
+        excluded.update(EQUIVALENT.get(e, ()))
+    noise_var = np.asarray(est.noise_std, dtype=float)**2
+    jobs = []
+    for effect in ctx['effects']:
+        if effect in excluded or applicable(effect, ctx['model_name'], ctx['rotor'],
+                                            ctx['unknowns']):
+            continue
+        if effect == 'periodic_coefficients' and names:
+            continue            # replaces the rotor model: only as the first effect
+        job = Job(effect, '', ctx['record'], ctx['description'], ctx['values'],
+                  ctx['unknowns'], ctx['known'], ctx['window_s'], verbose=ctx['verbose'],
+                  baseline_nll=est.neg_log_likelihood, start=start, prior=tuple(kept))
+        if ctx['screen'] and effect in SCREENED:
+            verdict = _screen(job, noise_var, ctx['n_obs'], ctx['n_blades'])
+            if not verdict['fit']:
+                _say_t(ctx, f'  + {effect}: screened out, score test 2Δlog L ≈ '
+                            f'{verdict["lm"]:.1f}')
+                continue
+            job = _replace(job, variant=verdict['variant'])
+        jobs.append(job)
+    return jobs
+
+
+def _forward_step(current, cur_val, kept, ctx):
+    """
+    Return the best effect to add to ``current`` as (row, fit), or None.
+
+    The same tests as for the first effect, relative to the current model: criterion above
+    :data:`CRITERION_THRESHOLD` and a better prediction of the unfitted half of the window.
+    """
+    jobs = _candidate_jobs(current, kept, ctx)
+    if not jobs:
+        return None
+    _say_t(ctx, f'step {len(kept) + 1}: fitting {len(jobs)} effect(s) on top of '
+                f'{" + ".join(e for e, _ in kept)}')
+    fits = _run_jobs(fit_candidate, jobs, ctx['workers'], lambda f: None)
+    cur = current.estimate
+    scored = []
+    for fit in fits:
+        if not fit.available or fit.bound_limited:
+            continue
+        dll = float(cur.neg_log_likelihood - fit.estimate.neg_log_likelihood)
+        res = np.concatenate(fit.estimate.residuals, axis=0)
+        rho = min(rs.effective_fraction(res[:, j]) for j in range(res.shape[1]))
+        k = max(fit.n_extra - current.n_extra, 0)
+        crit = 2.0 * dll * rho - k * math.log(ctx['n_obs'] * rho)
+        if n_choices(fit.effect, ctx['n_blades']) > 1:
+            crit -= 2.0 * math.log(n_choices(fit.effect, ctx['n_blades']))
+        _say_t(ctx, f'  + {fit.effect}: Δlog L = {dll:.1f}, criterion {crit:.1f}')
+        if crit > CRITERION_THRESHOLD:
+            scored.append((crit, dll, fit))
+    scored.sort(key=lambda c: -c[0])
+    scored = scored[:MAX_VALIDATED]
+    if not scored:
+        return None
+    val_jobs = [Job(f.effect, f.variant, ctx['record'], ctx['description'], ctx['values'],
+                    ctx['unknowns'], ctx['known'], ctx['window_s'], prior=tuple(kept),
+                    start={n: f.estimate.model_parameters[n] for n in f.unknowns},
+                    bounds=f.bounds) for _, _, f in scored]
+    vals = {e: v for e, _, v in _run_jobs(validate_candidate, val_jobs, ctx['workers'],
+                                          lambda r: None)}
+    ok = [(c, d, f) for c, d, f in scored
+          if vals.get(f.effect) is not None and (cur_val is None or vals[f.effect] < cur_val)]
+    if not ok:
+        return None
+    best = ok[0]
+    near = [c for c in ok if best[0] - c[0] <= CONFIDENCE_GAP]
+    if len(near) > 1:
+        best = min(near, key=lambda c: vals[c[2].effect])
+    crit, dll, fit = best
+    row = _step_row(fit, dll, crit, vals[fit.effect], ctx['floors'], ctx['u'], ctx['t'])
+    return row, fit
+
+
+def _without(effect, fit, kept, ctx):
+    """Refit ``fit``'s model without ``effect`` (backward check): the fit, or None."""
+    rest = [(e, v) for e, v in kept if e != effect]
+    new = (fit.effect, fit.variant)
+    others = [ev for ev in rest if ev != new]
+    start = {n: fit.estimate.model_parameters[n] for n in fit.unknowns}
+    job = Job(new[0], new[1], ctx['record'], ctx['description'], ctx['values'],
+              ctx['unknowns'], ctx['known'], ctx['window_s'], prior=tuple(others),
+              start=start)
+    out = fit_candidate(job)
+    return out if out.available else None
+
+
+def _forward_selection(first, steps, ctx):
+    """
+    Add effects one at a time until the residuals are noise or no effect earns its place.
+
+    Returns (the fit of the final model, the step rows, the effects dropped by the backward
+    check). After each addition every effect kept before is tested by refitting without it:
+    it stays only if its criterion, given the others, still exceeds the threshold.
+    """
+    current, kept, dropped = first, [(first.effect, first.variant)], []
+    cur_val = steps[0]['validation_rms']
+    # not stopped by white residuals at the floor alone: the whiteness test removes the mean,
+    # so a small sensor offset on top of an explained effect would pass it unseen
+    while len(kept) < MAX_EFFECTS:
+        found = _forward_step(current, cur_val, kept, ctx)
+        if found is None:
+            break
+        row, fit = found
+        kept.append((fit.effect, fit.variant))
+        steps.append(row)
+        _say_t(ctx, f'step {len(kept)}: + {fit.effect} (criterion {row["criterion"]:.1f}, '
+                    f'residual RMS {row["residual_rms"]:.4g} rad)')
+        current, cur_val = fit, row['validation_rms']
+        for old, variant in list(kept[:-1]):
+            without = _without(old, current, kept, ctx)
+            if without is None:
+                continue
+            dll = float(without.estimate.neg_log_likelihood
+                        - current.estimate.neg_log_likelihood)
+            res = np.concatenate(current.estimate.residuals, axis=0)
+            rho = min(rs.effective_fraction(res[:, j]) for j in range(res.shape[1]))
+            k = max(current.n_extra - without.n_extra, 0)
+            crit = 2.0 * dll * rho - k * math.log(ctx['n_obs'] * rho)
+            if crit > CRITERION_THRESHOLD:
+                continue
+            _say_t(ctx, f'backward check: {old} no longer earns its place '
+                        f'(criterion {crit:.1f} given the others); dropped')
+            kept.remove((old, variant))
+            dropped.append(old)
+            steps = [st for st in steps if st['effect'] != old]
+            current = without
+            steps[-1]['fit'] = current
+    for st in steps:
+        st['parameters'] = current.effect_parameters.get(st['effect'], {})
+    return current, steps, dropped
 
 
 def _bound_text(fit):

@@ -7,6 +7,8 @@ Figures of a diagnosis (matplotlib, Agg): what a person would rather look at tha
   relative to the noise floor's flat level, smoothed; the located band shaded.
 * ``residual_energy.png``: residual mean square per revolution over time, relative to the
   floor, baseline and augmented; the located time span shaded.
+* ``effects.png``: the fit improving effect by effect (forward selection): residual RMS over
+  the floor after each added effect, and the residual energy over time of every step.
 """
 
 import math
@@ -54,7 +56,7 @@ def plot_fits(diagnosis, path):
         ax.plot(ts, np.degrees(c.fitted), '-', lw=1.0, color='C0', label='baseline fit')
         if aug_fit is not None:
             ax.plot(ts, np.degrees(aug_fit[j]), '--', lw=1.0, color='C3',
-                    label=f'with {diagnosis.effect}')
+                    label=f'with {_effect_names(diagnosis)}')
         ax.set_ylabel(f'{c.name}\n[deg]')
         axr.plot(ts, np.degrees(c.residual), lw=0.5, color='C0', label='baseline residual')
         if aug_res is not None:
@@ -72,9 +74,13 @@ def plot_fits(diagnosis, path):
     plt.close(fig)
 
 
+def _effect_names(diagnosis):
+    return ' + '.join(st['effect'] for st in diagnosis.steps) or diagnosis.effect
+
+
 def _title(diagnosis):
     fit = diagnosis.fit
-    return (f'{diagnosis.baseline.model.name}: {diagnosis.effect} '
+    return (f'{diagnosis.baseline.model.name}: {_effect_names(diagnosis)} '
             f'({diagnosis.confidence} confidence) — RMS baseline {fit["baseline_rms"]:.3g}, '
             f'augmented {fit["augmented_rms"]:.3g}, floor {fit["noise_floor"]:.3g} rad')
 
@@ -143,12 +149,58 @@ def plot_energy(diagnosis, path):
     plt.close(fig)
 
 
+def plot_effects(diagnosis, path):
+    """Show the fit improving effect by effect: RMS over the floor per step, energy in time."""
+    plt = _plt()
+    chans = _model_channels(diagnosis)
+    part = diagnosis.record_window
+    t = diagnosis.baseline.experiments[0].t
+    floors = [c.floor for c in chans]
+    floor = math.sqrt(np.mean(np.square(floors)))
+    series = [('baseline', [c.residual for c in chans])]
+    label = ''
+    for st in diagnosis.steps:
+        est = st['fit'].estimate
+        res = [r[:, 0] for r in est.residuals] if len(est.residuals) > 1 else \
+            [est.residuals[0][:, j] for j in range(est.residuals[0].shape[1])]
+        label = f'{label} + {st["effect"]}' if label else f'+ {st["effect"]}'
+        series.append((label, res))
+    fig, (ax_bar, ax) = plt.subplots(1, 2, figsize=(12, 3.8),
+                                     gridspec_kw={'width_ratios': [1, 2]})
+    excess = [math.sqrt(np.mean([np.mean(r**2) for r in res])) / floor - 1.0
+              for _, res in series]
+    ax_bar.bar(range(len(series)), [100 * e for e in excess],
+               color=['C0'] + [f'C{i + 1}' for i in range(len(series) - 1)])
+    ax_bar.set_xticks(range(len(series)))
+    ax_bar.set_xticklabels(['baseline'] + [f'+ {st["effect"]}' for st in diagnosis.steps],
+                           rotation=20, fontsize=7)
+    ax_bar.axhline(0.0, color='k', lw=0.8)
+    ax_bar.set_ylabel('residual RMS above the floor [%]')
+    for i, (name, res) in enumerate(series):
+        total = None
+        for r, f in zip(res, floors):
+            centres, ms = rs.windowed_energy(r, t)
+            total = ms / f**2 if total is None else total + ms / f**2
+        ax.plot(np.interp(centres, part.t, part.time_s), total / len(res), 'o-', ms=3,
+                color=f'C{i}', label=name)
+    ax.axhline(1.0, color='k', ls=':', lw=0.8, label='noise floor')
+    ax.set_xlabel('time since first sample [s]')
+    ax.set_ylabel('mean square / floor² (per rev)')
+    ax.legend(fontsize=7)
+    fig.suptitle(_title(diagnosis), fontsize=9)
+    fig.tight_layout(rect=(0, 0, 1, 0.95))
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+
+
 def write_report(diagnosis, directory):
-    """Write the three figures into ``directory``; return their paths."""
+    """Write the figures into ``directory``; return their paths."""
     out = Path(directory)
     out.mkdir(parents=True, exist_ok=True)
-    paths = [out / 'fits.png', out / 'residual_spectra.png', out / 'residual_energy.png']
+    paths = [out / 'fits.png', out / 'residual_spectra.png', out / 'residual_energy.png',
+             out / 'effects.png']
     plot_fits(diagnosis, paths[0])
     plot_spectra(diagnosis, paths[1])
     plot_energy(diagnosis, paths[2])
+    plot_effects(diagnosis, paths[3])
     return paths

@@ -141,3 +141,50 @@ def test_sensor_bias_patterns_are_what_the_channels_see():
     assert const.basis.shape == (4, 2)              # no βd channel: no reactionless pattern
     assert math.isclose(float(np.sum(const.basis[:, 0] * (-1.0) ** np.arange(1, 5))), 0.0,
                         abs_tol=1e-12)
+
+
+def _stacked(base):
+    """Pairs a rig produces together, stacked as the forward selection stacks them."""
+    def extended(columns):
+        return ExtendedInput(SCHEDULE, T, columns)
+    rates = 0.01 * np.column_stack([np.zeros_like(T), np.cos(T), np.sin(T)])
+    flap = 0.02 + 0.01 * np.column_stack([np.cos(T), np.sin(2 * T), np.cos(3 * T), np.sin(T)])
+    out = [(aug.SensorBias(aug.SensorLag(base), T), extended(np.zeros((T.size, 0)))),
+           (aug.SensorLag(aug.TimeDelay(base)), extended(rates)),
+           (aug.TimeDelay(aug.CubicStiffness(base)),
+            ExtendedInput(ExtendedInput(SCHEDULE, T, flap), T, rates)),
+           (aug.SensorLag(aug.BladeDissimilarity(aug.FlapFrequency(base), 3)),
+            extended(np.zeros((T.size, 0))))]
+    return out
+
+
+@pytest.mark.parametrize('name,mu', [('multiblade_wake', 0.0), ('multiblade', 0.4)])
+def test_stacked_effects_have_exact_sensitivities_and_nest(name, mu):
+    # two or three effects on the one rotor model: analytic sensitivities equal finite
+    # differences, and with the outer effect neutral the stack is the inner model exactly
+    rng = np.random.default_rng(4)
+    base = _base(name, mu)
+    for model, inputs in _stacked(base):
+        p = _away_from_neutral(model)
+        x0 = 0.01 * rng.standard_normal(model.n_states)
+        idx = list(range(len(p)))
+        sim = simulate(model, p, inputs, T, x0, param_index=idx)
+        for i in idx:
+            h = 1e-6 * max(1.0, abs(p[i]))
+            up, down = p.copy(), p.copy()
+            up[i] += h
+            down[i] -= h
+            fd = (simulate(model, up, inputs, T, x0).y
+                  - simulate(model, down, inputs, T, x0).y) / (2 * h)
+            scale = np.max(np.abs(fd)) + 1e-12
+            assert np.max(np.abs(fd - sim.dy[:, :, i])) / scale < 1e-5, \
+                (model.name, model.parameter_names[i])
+    inner = aug.TimeDelay(base)
+    outer = aug.SensorBias(inner, T)
+    inputs = ExtendedInput(SCHEDULE, T, 0.01 * np.column_stack(
+        [np.zeros_like(T), np.cos(T), np.sin(T)]))
+    p_inner = _away_from_neutral(inner)
+    p_outer = np.concatenate([p_inner, np.zeros(len(outer.parameters) - len(p_inner))])
+    x0 = 0.01 * rng.standard_normal(inner.n_states)
+    assert np.allclose(simulate(outer, p_outer, inputs, T, x0).y,
+                       simulate(inner, p_inner, inputs, T, x0).y, atol=1e-14)

@@ -90,7 +90,12 @@ def test_json_keys_and_figures(diagnoses):
     for key in ('mismatch', 'location', 'explanation', 'fit', 'candidates', 'parameters'):
         assert key in result
     assert set(result['location']) >= {'channels', 'band_per_rev', 'window_s'}
-    assert set(result['explanation']) >= {'effect', 'parameters'}
+    assert set(result['explanation']) >= {'effect', 'parameters', 'effects'}
+    effects = result['explanation']['effects']
+    assert effects and effects[0]['effect'] == result['explanation']['effect']
+    for entry in effects:
+        assert set(entry) >= {'effect', 'parameters', 'delta_loglik', 'validation_rms',
+                              'residual_rms'}
     assert set(result['fit']) >= {'noise_floor', 'baseline_rms', 'augmented_rms',
                                   'whiteness_p_baseline', 'whiteness_p_augmented'}
     for cand in result['candidates']:
@@ -98,7 +103,7 @@ def test_json_keys_and_figures(diagnoses):
     ids = {c['effect'] for c in result['candidates']}
     assert {'dynamic_inflow', 'periodic_coefficients', 'sensor_lag', 'time_delay',
             'sensor_bias', 'blade_dissimilarity', 'process_noise', 'flap_frequency'} <= ids
-    for name in ('fits.png', 'residual_spectra.png', 'residual_energy.png'):
+    for name in ('fits.png', 'residual_spectra.png', 'residual_energy.png', 'effects.png'):
         path = work / 'report' / name
         assert path.is_file() and path.stat().st_size > 10_000
 

@@ -26,6 +26,26 @@ from rotor_id.diagnosis.diagnose import diagnose
 ROOT = Path(__file__).resolve().parents[2]
 
 
+def test_two_concealed_effects_are_both_named():
+    # a lagging flap sensor with offsets: forward selection names both, each with its
+    # parameters, and the fit comes to the floor only with both
+    scenario = BY_NAME['lag+bias']
+    record, description = scenario.record_and_description(1)
+    result = diagnose(record, description, workers=2).as_json()
+    out = evaluate(scenario, result)
+    assert out['right'], out['named']
+    assert not out['extra_names']
+    effects = result['explanation']['effects']
+    assert result['explanation']['effect'] == effects[0]['effect']
+    assert effects[0]['residual_rms'] > effects[-1]['residual_rms']
+    assert effects[-1]['excess_over_floor'] <= 0.05
+    bias = next(e for e in effects if e['effect'] == 'sensor_bias')['parameters']
+    # what the (β1−β3)/2, (β2−β4)/2 channels see of the concealed biases
+    for name, truth in (('bias_1', 0.0002), ('bias_2', -0.00025)):
+        assert abs(bias[name]['value'] - truth) < 3.0 * bias[name]['std']
+    assert out['original_within_3sigma']
+
+
 @pytest.mark.parametrize('name', ['blade_lock_number', 'time_delay'])
 def test_concealed_effect_named_with_bounds(name):
     scenario = BY_NAME[name]
@@ -63,7 +83,8 @@ def test_full_study_statistics():
         rs = [r for r in runs if r['scenario'] == sc.name]
         if not rs or sc.effect == 'none':
             continue
-        assert sum(r['right'] for r in rs) >= 0.9 * len(rs), sc.name
+        # single effects: as before; pairs (issue 16): both named in >= 80 %
+        assert sum(r['right'] for r in rs) >= (0.8 if sc.together else 0.9) * len(rs), sc.name
         if sc.effect != 'process_noise':    # filter error: innovations, above the floor
             assert np.mean([r['augmented_excess'] for r in rs]) <= 0.05, sc.name
         w3 = [r['within_3sigma'] for r in rs if r.get('within_3sigma') is not None]
