@@ -210,6 +210,19 @@ class PackedMessages:
         return windows[self.starts[index]]
 
 
+def _take_definition(op, body, schemas, channels):
+    """Keep a Schema (id -> name) or Channel (id -> (topic, schema id)) record; say if it was."""
+    if op == _OP_SCHEMA:
+        (sid,) = struct.unpack_from('<H', body, 0)
+        schemas[sid] = _string(body, 2)[0]
+    elif op == _OP_CHANNEL:
+        cid, sid = struct.unpack_from('<HH', body, 0)
+        channels[cid] = (_string(body, 4)[0], sid)
+    else:
+        return False
+    return True
+
+
 def read_indexed_mcap(path, topics):
     """
     Read the messages of ``topics`` from a healthy, chunked and indexed MCAP, vectorised.
@@ -246,12 +259,8 @@ def read_indexed_mcap(path, topics):
         body = memoryview(buf)[body_start:body_start + length]
         # Schemas and channels live inside the chunks; the summary section after DataEnd
         # repeats them, which is where this reader takes them from.
-        if op == _OP_SCHEMA:
-            (sid,) = struct.unpack_from('<H', body, 0)
-            schemas[sid] = _string(body, 2)[0]
-        elif op == _OP_CHANNEL:
-            cid, sid = struct.unpack_from('<HH', body, 0)
-            channels[cid] = (_string(body, 4)[0], sid)
+        if _take_definition(op, body, schemas, channels):
+            pass
         elif op == _OP_MESSAGE:
             return None
         elif op == _OP_CHUNK and current_summary:
@@ -407,12 +416,8 @@ def read_mcap_summary(path):
         body = data[pos + 9:pos + 9 + length]
         if len(body) != length:
             return None
-        if op == _OP_SCHEMA:
-            (sid,) = struct.unpack_from('<H', body, 0)
-            schemas[sid] = _string(body, 2)[0]
-        elif op == _OP_CHANNEL:
-            cid, sid = struct.unpack_from('<HH', body, 0)
-            channels[cid] = (_string(body, 4)[0], sid)
+        if _take_definition(op, body, schemas, channels):
+            pass
         elif op == _OP_CHUNK_INDEX:
             start, end, offset, length_ = struct.unpack_from('<QQQQ', body, 0)
             (map_bytes,) = struct.unpack_from('<I', body, 32)
