@@ -14,6 +14,7 @@ the bag reader's rule bit for bit.
 from collections import deque
 import math
 
+from hypothesis import given, settings, strategies as st
 import numpy as np
 import pytest
 from rotor_id.io.run_description import load_run_description
@@ -346,3 +347,50 @@ def test_check_window_of_a_complete_stream(stream):
     hi = BASE + int(WINDOW[1] * 1e9)
     check = check_window(machine.flap, machine.pitch, machine.azimuth.series, lo, hi)
     assert check.complete and check.describe() == '' and check.missing == {}
+
+
+def _final_check(drops, jitter_seed, offset_ms):
+    """Feed a 1 kHz stream (±20 % stamp jitter) with samples dropped; return the final check."""
+    rng = np.random.default_rng(jitter_seed)
+    n = 1100
+    stamps = BASE + np.arange(n) * MS + (rng.uniform(-0.2, 0.2, n) * MS).astype(np.int64)
+    machine = _machine(auto_start='none', schedule=FitSchedule(update_every_rad=0.0))
+    start = 100 + offset_ms                            # the test point's first flap sample
+    for i, stamp in enumerate(stamps):
+        if i == start:
+            machine.arm()
+        if i not in drops['flap']:
+            machine.add_flap(int(stamp), np.zeros(4))
+        if i not in drops['pitch']:
+            machine.add_pitch(int(stamp), np.zeros(4))
+        if i not in drops['azimuth']:
+            machine.add_azimuth(int(stamp), (OMEGA * (stamp - BASE) / 1e9) % TWO_PI, OMEGA)
+        request = machine.due()
+        if request is not None:
+            return request, stamps
+    raise AssertionError('no final request')
+
+
+@settings(max_examples=150)
+@given(data=st.data())
+def test_no_sample_of_the_window_is_lost_unnoticed(data):
+    """
+    Property: a window is complete exactly when no sample stamped inside it was lost.
+
+    Samples are dropped at random, in any channel, around and inside the window (its start and
+    end included), with ±20 % stamp jitter; whatever is dropped, a loss inside the window is
+    never taken for a complete window (so never for a converged estimate), and a loss outside
+    it never spoils one.
+    """
+    offset = data.draw(st.integers(0, 30))
+    first = 100 + offset + math.ceil(WINDOW[0] * 1000) - 3
+    last = 100 + offset + math.floor(WINDOW[1] * 1000) + 3
+    near = st.integers(first, last)
+    drops = {c: set(data.draw(st.lists(near, max_size=3), label=c))
+             for c in ('flap', 'pitch', 'azimuth')}
+    request, stamps = _final_check(drops, data.draw(st.integers(0, 2**16)), offset)
+    check = request.check
+    lost_inside = any(check.lo_ns <= stamps[i] <= check.hi_ns
+                      for c in drops for i in drops[c] if c != 'flap' or i != 100 + offset)
+    assert check.complete == (not lost_inside), (drops, check.describe())
+    assert (outcome(check, True, True) == 'converged') == (not lost_inside)
