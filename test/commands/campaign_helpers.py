@@ -23,14 +23,16 @@ OMEGADOT = 0.1 / math.pi                  # the report's stirring law constant
 
 
 def write_test_point(directory, name, direction='progressing', truth=None, noise_deg=0.1,
-                     seed=0, duration_rev=2.0, conditions=None, guess=True, custom_data=None):
+                     seed=0, duration_rev=2.0, conditions=None, guess=True, custom_data=None,
+                     flap_delay_samples=0):
     """
     Simulate one test point into ``directory``: bag NAME/ and run description NAME.yaml.
 
     ``truth`` overrides the plan's parameter values (A, AL_over_tau, inv_tau); ``conditions``
     goes into the run description's ``conditions:``; ``guess`` gives the nominal values as
     ``initial_guess`` (no start-value grid); ``custom_data`` (text values) goes into the bag's
-    metadata.yaml as a recorder's ``--custom-data`` would put it.
+    metadata.yaml as a recorder's ``--custom-data`` would put it. ``flap_delay_samples`` reads
+    the flap sensors that many samples late (physics the model lacks: an inadequate fit).
     """
     directory = Path(directory)
     plan = planning.load_plan(PLAN)
@@ -41,7 +43,12 @@ def write_test_point(directory, name, direction='progressing', truth=None, noise
                                    amplitude_rad=planning.DEFAULT_AMPLITUDE_RAD, t0=70.0,
                                    duration_rev=duration_rev)
     run = planning.simulate_run(plan, candidate, rng=np.random.default_rng(seed))
-    bag = write_record_bag(directory / name, replace(run.record, stamp0_ns=STAMP0_NS))
+    record = replace(run.record, stamp0_ns=STAMP0_NS)
+    if flap_delay_samples:
+        late = np.roll(record.blade_flap, flap_delay_samples, axis=0)
+        late[:flap_delay_samples] = record.blade_flap[0]
+        record = replace(record, blade_flap=late)
+    bag = write_record_bag(directory / name, record)
     if custom_data:
         meta = bag / 'metadata.yaml'
         info = yaml.safe_load(meta.read_text())
