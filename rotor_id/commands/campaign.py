@@ -541,7 +541,7 @@ def csv_rows(summaries):
     for name in params:
         header += [name, f'{name}_std']
     header += ['status', 'converged', 'adequacy', 'diagnosis', 'noise_std_rad',
-               'window_start_s', 'window_end_s', 'model'] + conditions + ['error']
+               'window_start_s', 'window_end_s', 'model'] + conditions + ['error', 'warnings']
     rows = []
     for s in summaries:
         row = [s['bag']]
@@ -555,7 +555,7 @@ def csv_rows(summaries):
                 repr(float(np.sqrt(np.mean(np.square(noise))))) if noise else '',
                 _cell(window[0]), _cell(window[1]), s.get('model', '')]
         row += [_cell(s.get('conditions', {}).get(c)) for c in conditions]
-        row.append(s.get('error', ''))
+        row += [s.get('error', ''), ' | '.join(dict.fromkeys(s.get('warnings') or []))]
         rows.append(row)
     return header, rows
 
@@ -593,6 +593,11 @@ def markdown_report(summaries, key, analysis, figures, directory, options, tool)
                      'assume; see its identify.json, or run with --diagnose)')
     for s in unconverged:
         flags.append(f'- not converged: `{s["bag"]}`')
+    for s in summaries:
+        warned = list(dict.fromkeys(s.get('warnings') or []))
+        if warned:
+            more = f' (and {len(warned) - 1} more in campaign.csv)' if len(warned) > 1 else ''
+            flags.append(f'- warning: `{s["bag"]}`: {warned[0]}{more}')
     lines += ['## Flags', ''] + (flags or ['none']) + ['']
     # the conditions that vary (the constant ones are in the CSV)
     conditions = [c for c in condition_names(summaries)
