@@ -46,7 +46,8 @@ def run():
               Parameter('update_every_rad', value=0.0),
               # fits in the node's thread here (no child process to start); the multi-process
               # tests run the default, a separate fit process
-              Parameter('fit_process', value=False)]
+              Parameter('fit_process', value=False),
+              Parameter('subscription_niceness', value=0)]     # leave pytest's thread alone
     node = Identifier(parameter_overrides=params, context=context)
     test = rclpy.create_node('test_identifier_node', context=context)
     executor = SingleThreadedExecutor(context=context)
