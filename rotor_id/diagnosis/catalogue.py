@@ -252,6 +252,10 @@ def _build(job, baseline_model, experiments):
     """
     record = job.record
     guess = dict(job.baseline_values)
+    unknown = [e for e, _ in list(job.prior) + [(job.effect, job.variant)]
+               if e not in COMPOSE_ORDER]
+    if unknown:
+        raise IdentificationError(f'{unknown[0]!r} is not an augmented model of the rotor')
     stack = sorted(list(job.prior) + [(job.effect, job.variant)],
                    key=lambda ev: COMPOSE_ORDER.index(ev[0]))
     runs, model = experiments, None

@@ -468,35 +468,14 @@ def diagnose(record, description, progress=None, workers=2, effects=EFFECTS, win
         t['adequate'] = _adequate(t['fit'], floors, u, exp0.t)
     chosen, passed_over = _choose(eligible)
     notes = []
-    if passed_over:
-        notes.append('process_noise also raises the likelihood (a Kalman filter tracks any '
-                     f'unmodelled dynamics), but {chosen["effect"]} leaves white residuals at '
-                     'the noise floor: random inflow is the explanation of last resort')
-    if chosen is not None:
-        effect = chosen['effect']
-        rivals = [t for t in ranked if t['effect'] != effect
-                  and t['effect'] not in EQUIVALENT.get(effect, ())
-                  and not (passed_over and t['effect'] == 'process_noise')]
-        gap = chosen['criterion'] - (rivals[0]['criterion'] if rivals else 0.0)
-        confidence = 'high' if gap > CONFIDENCE_GAP else 'low'
-        for eq in EQUIVALENT.get(effect, ()):
-            if any(t['effect'] == eq for t in eligible):
-                notes.append(f'{effect} and {eq} are the same physics to first order at this '
-                             'size; both explain the data')
-        if effect == 'blade_dissimilarity' and ident.model.name == 'multiblade_wake':
-            notes.append('the (β1−β3)/2, (β2−β4)/2 channels see blade j and blade j+2 alike '
-                         '(the mirror blade with the opposite static offset dtheta_static); '
-                         'measure every blade to tell them apart')
-        if rivals and gap <= CONFIDENCE_GAP:
-            notes.append(f'{rivals[0]["effect"]} is about as strong by the criterion '
-                         f'({rivals[0]["criterion"]:.1f} against {chosen["criterion"]:.1f}); '
-                         'the prediction of the unfitted half-window decided')
-        mismatch = True
-    else:
-        mismatch = residual_flag
-        effect = 'unexplained' if mismatch else 'none'
-        confidence = 'high' if not ranked or ranked[0]['criterion'] < 0 else 'low'
-
+    noise_row = None
+    if chosen is not None and chosen['effect'] == 'process_noise':
+        deterministic_rows = [t for t in eligible if t['effect'] != 'process_noise']
+        if deterministic_rows:
+            # several deterministic effects may explain together what none explains alone:
+            # try them first; random inflow stays the explanation of last resort
+            noise_row = chosen
+            chosen, _ = _choose(deterministic_rows)
     # ---- more effects: forward selection with refits and a backward check ----
     steps = []
     chosen_fit = chosen['fit'] if chosen else None
@@ -517,6 +496,47 @@ def diagnose(record, description, progress=None, workers=2, effects=EFFECTS, win
                              'after it, it no longer earns its place')
             if len(steps) > 1:
                 mismatch = True
+    if noise_row is not None:
+        if steps and steps[-1]['adequate']:
+            passed_over = True
+        else:
+            chosen, chosen_fit = noise_row, noise_row['fit']
+            steps = [_step_row(chosen_fit, noise_row['delta_loglik'], noise_row['criterion'],
+                               validation.get('process_noise'), floors, u, exp0.t)]
+            steps[0]['parameters'] = chosen_fit.parameters
+    if passed_over:
+        notes.append('process_noise also raises the likelihood (a Kalman filter tracks any '
+                     f'unmodelled dynamics), but {" + ".join(st["effect"] for st in steps)} '
+                     'leave(s) white residuals at '
+                     'the noise floor: random inflow is the explanation of last resort')
+    if chosen is not None:
+        effect = chosen['effect']
+        named = {st['effect'] for st in steps} | {effect}
+        named |= {eq for e in list(named) for eq in EQUIVALENT.get(e, ())}
+        rivals = [t for t in ranked if t['effect'] not in named
+                  and not (passed_over and t['effect'] == 'process_noise')]
+        gap = chosen['criterion'] - (rivals[0]['criterion'] if rivals else 0.0)
+        confidence = 'high' if gap > CONFIDENCE_GAP else 'low'
+        for one in [st['effect'] for st in steps] or [effect]:
+            for eq in EQUIVALENT.get(one, ()):
+                if any(t['effect'] == eq for t in eligible):
+                    notes.append(f'{one} and {eq} are the same physics to first order at this '
+                                 'size; both explain the data')
+        if effect == 'blade_dissimilarity' and ident.model.name == 'multiblade_wake':
+            notes.append('the (β1−β3)/2, (β2−β4)/2 channels see blade j and blade j+2 alike '
+                         '(the mirror blade with the opposite static offset dtheta_static); '
+                         'measure every blade to tell them apart')
+        if rivals and gap <= CONFIDENCE_GAP:
+            notes.append(f'{rivals[0]["effect"]} is about as strong by the criterion '
+                         f'({rivals[0]["criterion"]:.1f} against {chosen["criterion"]:.1f}); '
+                         'the prediction of the unfitted half-window decided')
+        mismatch = True
+    else:
+        mismatch = residual_flag
+        effect = 'unexplained' if mismatch else 'none'
+        confidence = 'high' if not ranked or ranked[0]['criterion'] < 0 else 'low'
+
+    # ---- show ----
     if chosen_fit is not None:
         aug_est = chosen_fit.estimate
         aug_res = np.concatenate(aug_est.residuals, axis=0)
