@@ -44,6 +44,7 @@ OFFSET_MEDIAN_Z2 = 9.0
 MIN_OFFSET_NOISE_RATIO = 0.5
 MIN_PAIR_VARIANCE_RATIO = 4.0
 CHI2_1_MEDIAN = 0.4549
+STEADY_PARITY = 0.9               # the near-duplicates sit at the same parity in 95 % of blocks
 #: Phase outliers: robust threshold in noise σ, and how long a repaired stretch may be.
 OUTLIER_SIGMAS = 10.0
 MEDIAN_SPAN = 11
@@ -206,7 +207,9 @@ class Interleaving:
         if self.offset:
             parts.append(f'alternate samples differ by {self.offset:.3g} {unit} on average '
                          f'(noise σ {self.noise:.3g} {unit})')
-        if self.step_variance_ratio >= MIN_PAIR_VARIANCE_RATIO:
+        if self.step_variance_ratio >= 1e6:
+            parts.append('samples come in identical pairs (every other step is zero)')
+        elif self.step_variance_ratio >= MIN_PAIR_VARIANCE_RATIO:
             parts.append('samples come in near-identical pairs (step variance differs '
                          f'{self.step_variance_ratio:.3g}x between alternate steps)')
         short, long = sorted(self.stamp_steps_ns)
@@ -260,7 +263,11 @@ def interleaved_streams(stamps_ns, values):
     blocks = _blocks(values, BLOCK, MAX_BLOCKS)              # (K, B + 2, m)
     steps = np.diff(blocks, axis=1)                          # (K, B + 1, m)
     curvature = steps[:, 1:] - steps[:, :-1]                 # (K, B, m): 6σ² for white noise
-    noise = np.sqrt(np.median(curvature ** 2, axis=(0, 1)) / CHI2_1_MEDIAN / 6.0)
+    # Noise σ: robust (median) for white noise, but never below the RMS estimate, which a
+    # quantised sensor (most curvatures exactly 0) or a staircase signal (a command held
+    # between updates) would otherwise drive to zero.
+    noise = np.maximum(np.sqrt(np.median(curvature ** 2, axis=(0, 1)) / CHI2_1_MEDIAN / 6.0),
+                       np.sqrt(np.mean(curvature ** 2, axis=(0, 1)) / 6.0))
     noise = np.maximum(noise, tiny)
     # Offset: the detrended x[i] − (x[i−1] + x[i+1])/2 is ±δ at alternate samples for two
     # streams; its (−1)^i block mean is N(0, 3.5σ²/B) for one stream of white noise.
@@ -274,8 +281,12 @@ def interleaved_streams(stamps_ns, values):
     even, odd = steps[:, 0:BLOCK:2] ** 2, steps[:, 1:BLOCK:2] ** 2
     log_ratio = np.log((even.mean(axis=1) + tiny) / (odd.mean(axis=1) + tiny))   # (K, m)
     pair_ratio = np.exp(np.median(np.abs(log_ratio), axis=0))
-    steady = np.abs(np.median(np.sign(log_ratio), axis=0)) == 1     # same parity throughout
-    by_pairs = (pair_ratio >= MIN_PAIR_VARIANCE_RATIO) & steady
+    steady = np.abs(np.mean(np.sign(log_ratio), axis=0)) >= STEADY_PARITY   # same parity
+    # ... and the other parity changes at nearly every step, as a sensor does: a command held
+    # for several samples (steps mostly exactly 0 at both parities) is not a duplicate pair
+    loud = np.where((log_ratio > 0)[:, None, :], steps[:, 0:BLOCK:2], steps[:, 1:BLOCK:2])
+    changing = np.mean(loud != 0, axis=(0, 1)) >= STEADY_PARITY
+    by_pairs = (pair_ratio >= MIN_PAIR_VARIANCE_RATIO) & steady & changing
     flagged = by_offset | by_pairs
     if not flagged.any():
         return None

@@ -253,6 +253,9 @@ def test_same_measurement_published_twice_is_refused(tmp_path):
     streams = interleaved(record, MS // 2, record.blade_flap + 1e-6)
     with pytest.raises(BagError, match='near-identical pairs'):
         read_record(write_streams(tmp_path / 'bag', streams))
+    streams = interleaved(record, MS // 2, record.blade_flap)            # bit for bit
+    with pytest.raises(BagError, match='samples come in identical pairs'):
+        read_record(write_streams(tmp_path / 'exact', streams))
 
 
 def test_publishers_naming_their_frames_are_named(tmp_path):

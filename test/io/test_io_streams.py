@@ -58,6 +58,18 @@ def test_interleaving_false_alarm_rate_on_one_sensor():
     assert alarms == 0
 
 
+def test_quantised_sensor_and_held_command_are_one_stream():
+    """A coarse ADC (most steps exactly 0) or a command held between updates is no alarm."""
+    rng = np.random.default_rng(5)
+    n = 20_000
+    lsb = 0.5
+    quantised = lsb * np.round((0.3 * np.sin(np.arange(n) / 400) + 0.3 * rng.normal(size=n))
+                               / lsb)
+    held = np.repeat(rng.normal(size=n // 10).cumsum(), 10)             # 100 Hz command
+    for values in (quantised, held, held + quantised):
+        assert interleaved_streams(np.arange(n) * MS, values[:, None]) is None
+
+
 @pytest.mark.parametrize('offset', [1.0, 3.0])
 def test_interleaving_is_found_at_an_offset_of_one_noise_sigma(offset):
     rng = np.random.default_rng(3)
