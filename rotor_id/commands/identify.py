@@ -176,11 +176,27 @@ def format_runs(result):
     return '\n'.join(lines)
 
 
+def check_no_overlap(bags, windows):
+    """Refuse one bag given twice with overlapping windows (its samples would count twice)."""
+    seen = []
+    for bag, window in zip(bags, windows):
+        path = Path(bag).resolve()
+        for other, other_window in seen:
+            if other == path and window[0] < other_window[1] and other_window[0] < window[1]:
+                raise ValueError(
+                    f'{bag} is given twice with overlapping windows ({other_window[0]:.4g}-'
+                    f'{other_window[1]:.4g} s and {window[0]:.4g}-{window[1]:.4g} s): its '
+                    'samples would count twice and the bounds come out too small; give each '
+                    'bag once, or windows that do not overlap')
+        seen.append((path, window))
+
+
 def run_several(args, configs):
     """Identify several bags together; exit 0 when converged, 1 when not."""
     started = time.perf_counter()
     names = run_names(args.bag)
     loaded = [load_inputs(bag, config) for bag, config in zip(args.bag, configs)]
+    check_no_overlap(args.bag, [desc.window_s for desc, _ in loaded])
     for (description, record), name in zip(loaded, names):
         for warning in record.warnings + list(description.warnings):
             print(f'warning: {name}: {warning}', file=sys.stderr)

@@ -146,3 +146,7 @@ def test_runs_that_disagree_are_refused_in_one_line(two_runs, tmp_path, capsys):
                    '--config', str(config)])
     err = capsys.readouterr().err.strip().splitlines()
     assert rc == 2 and len(err) == 1 and 'disagree on unknowns' in err[0], err
+    one = str(runs['progressing']['bag'])
+    rc = cli.main(['identify', one, one, '--config', str(runs['progressing']['config'])])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert rc == 2 and len(err) == 1 and 'overlapping windows' in err[0], err
