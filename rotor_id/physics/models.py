@@ -1,5 +1,5 @@
 """
-The report's flapping models behind one interface (MODELS.md §1-3).
+One general rotor model, and the report's flapping models as special cases (docs/models.md).
 
 Every model is a linear state-space system in the report's nondimensional time t:
 
@@ -12,6 +12,13 @@ vectorised over an array of times. The estimators need nothing else, so models a
 
 The collective pitch enters through the parameter θ0 (or δ = γθ0, the report's choice), not through
 ``u[0]``: the identified collective is the aerodynamic one, which a pitch sensor does not know.
+
+:class:`RotorModel` builds every model from one blade equation
+(:mod:`rotor_id.physics.aerodynamics`) for any number of blades N ≥ 2, pitch-flap coupling and
+advance ratio, in the blade's rotating frame or in multiblade coordinates
+(:mod:`rotor_id.physics.multiblade`), with periodic or averaged coefficients and optionally a
+dynamic inflow (the report's two-state cyclic wake or a three-state uniform + first-harmonic
+inflow). The report's four models are instances with the report's choices (:func:`build_model`).
 """
 
 from dataclasses import dataclass, replace
@@ -19,7 +26,9 @@ import math
 
 import numpy as np
 
-from rotor_id.physics.multiblade import blade_azimuths, multiblade_coordinates
+from rotor_id.physics.aerodynamics import blade_aerodynamics, flap_damping, hover_coning
+from rotor_id.physics.multiblade import (blade_from_multiblade_matrix, coordinate_harmonics,
+                                         multiblade_coordinates, multiblade_from_blade_matrix)
 
 
 @dataclass(frozen=True)
@@ -37,12 +46,33 @@ class Parameter:
 
 @dataclass(frozen=True)
 class RotorConstants:
-    """Known rotor data (MODELS.md §0): blades, advance ratio μ, flap frequency P, tip loss B."""
+    """
+    Known rotor data (docs/models.md §1): blades N, advance ratio μ, flap frequency P, tip loss B.
+
+    ``pitch_flap_coupling`` is K_P = tan δ3: the blade pitch falls by K_P β when the blade
+    flaps up by β (θ_effective = θ − K_P β).
+    """
 
     n_blades: int = 4
     advance_ratio: float = 0.4
     flap_frequency: float = 1.2
     tip_loss: float = 0.97
+    pitch_flap_coupling: float = 0.0
+
+    def check(self):
+        """Raise ValueError naming the first rotor constant no model can be built for."""
+        if int(self.n_blades) != self.n_blades or self.n_blades < 2:
+            raise ValueError(f'a rotor needs a whole number of blades >= 2, got {self.n_blades}')
+        if not 0.0 < self.tip_loss <= 1.0:
+            raise ValueError(f'tip_loss must be in (0, 1], got {self.tip_loss}')
+        if not self.flap_frequency > 0.0:
+            raise ValueError(f'flap_frequency must be > 0 per rev, got {self.flap_frequency}')
+        if not 0.0 <= self.advance_ratio < 1.0:
+            raise ValueError(f'advance_ratio must be in [0, 1) (no reversed-flow model), '
+                             f'got {self.advance_ratio}')
+        if not math.isfinite(self.pitch_flap_coupling):
+            raise ValueError(f'pitch_flap_coupling must be finite, got {self.pitch_flap_coupling}')
+        return self
 
 
 class LinearModel:
@@ -141,368 +171,739 @@ class LinearModel:
 
 
 # ------------------------------------------------------------------------------------------------
-# Models 1 and 2: second-order flapping with parameters (γ, δ = γθ0) or (γ, θ0)
+# Parameters
 # ------------------------------------------------------------------------------------------------
 
-def _collective_parameter(collective):
+def _collective_parameter(collective, angle_unit='rad'):
     if collective == 'delta':
-        return Parameter('delta', 'δ = γθ0', 'angle', 10.0, -200.0, 200.0,
-                         'Lock number times collective pitch (report Ch.2 parameter 2)')
+        par = Parameter('delta', 'δ = γθ0', 'angle', 10.0, -200.0, 200.0,
+                        'Lock number times collective pitch (report Ch.2 parameter 2)')
+        if angle_unit == 'rad':
+            return replace(par, nominal=10.0 * math.pi / 180.0, lower=-4.0, upper=4.0, unit='rad')
+        return replace(par, unit='deg')
     if collective == 'theta0':
-        return Parameter('theta0', 'θ0', 'angle', 2.0, -45.0, 45.0,
-                         'collective pitch (aerodynamic, from flapping)')
+        par = Parameter('theta0', 'θ0', 'angle', 2.0, -45.0, 45.0,
+                        'collective pitch (aerodynamic, from flapping)')
+        if angle_unit == 'rad':
+            return replace(par, nominal=math.radians(2.0), lower=-math.pi / 4,
+                           upper=math.pi / 4, unit='rad')
+        return replace(par, unit='deg')
     raise ValueError(f"collective must be 'delta' or 'theta0', not {collective!r}")
 
 
 GAMMA = Parameter('gamma', 'γ', '-', 5.0, 0.05, 50.0, 'blade Lock number')
+DAMPING = Parameter('A', 'A = γB⁴/8', '-', 0.5, 1e-3, 10.0, 'flap damping (Ch.2 eq. 27)')
+#: the report's two-parameter cyclic wake (Ch.2 eq. 29): gain over time constant, 1/τ
+CYCLIC_INFLOW = (
+    Parameter('AL_over_tau', 'AL/τ', '-', 0.25, 0.0, 50.0, 'wake gain over wake time constant'),
+    Parameter('inv_tau', '1/τ', '-', 0.125, 1e-4, 50.0, 'inverse wake time constant'),
+)
+#: the uniform inflow of the three-state inflow, normalised like the cyclic wake
+UNIFORM_INFLOW = (
+    Parameter('AL0_over_tau0', 'AL0/τ0', '-', 0.25, 0.0, 50.0,
+              'uniform-inflow gain over its time constant'),
+    Parameter('inv_tau0', '1/τ0', '-', 0.125, 1e-4, 50.0, 'inverse uniform-inflow time constant'),
+)
+INFLOW_STATES = {None: (), 'cyclic': ('lambda_I', 'lambda_II'),
+                 'three_state': ('lambda_0', 'lambda_I', 'lambda_II')}
+OUTPUTS = ('multiblade', 'blades', 'eq30')
 
 
-class _SecondOrderGammaModel(LinearModel):
+# ------------------------------------------------------------------------------------------------
+# The general rotor model
+# ------------------------------------------------------------------------------------------------
+
+class RotorModel(LinearModel):
     """
-    Flapping q″ + D q′ + K q = f with D, K, f affine in γ and δ (models 1 and 2).
+    N rigid flapping blades from one blade equation, with optional dynamic inflow (docs/models.md).
 
-    Subclasses return, at times t, the pieces ``D = D0 + γ D1``, ``K = K0 + γ K1`` and
-    ``f = δ f_δ + γ f_u`` from :meth:`_pieces`. With the θ0 parametrisation δ = γθ0 and the
-    chain rule gives the derivatives.
+    Per blade k at ψ_k (module :mod:`rotor_id.physics.aerodynamics`):
+
+        β_k″ + P² β_k = (γ/2) m_k(β_k, β_k′, θ_k − K_P β_k, λ0, λ_h)
+
+    written either for one blade in its rotating frame (``blade=k``) or, with β = T(t) q, for
+    the N multiblade coordinates q (``blade=None``): q″ = T⁻¹[β″ − 2T′q′ − T″q]. The optional
+    inflow states (report sign, up positive) follow the aerodynamic load they are driven by:
+
+        λ_h′ = −(1/τ) λ_h − (AL/τ)(4/B⁴) (2/N) Σ_k m_k (cos ψ_k, sin ψ_k)      h = I, II
+        λ0′  = −(1/τ0) λ0 − (AL0/τ0)(4/B⁴) (1/N) Σ_k l_k                       (three_state)
+
+    with l_k the blade's lift per γ/2. At μ = 0 the cyclic rows are exactly the report's
+    Ch.2 eq. 29 (docs/models.md §4 gives the mapping).
+
+    Parameters
+    ----------
+    rotor : RotorConstants
+        N, μ, P, B, K_P.
+    blade : int, optional
+        Model this blade alone (1..N) in its rotating frame (the report's model 1).
+    periodic : bool
+        Keep the periodic coefficients (True) or average them over a revolution (the report's
+        "omitting all periodic terms", model 2 constant).
+    inflow : None, 'cyclic' or 'three_state'
+        Dynamic inflow states.
+    collective : 'theta0', 'delta' or None
+        How the collective enters: parameter θ0, parameter δ = γθ0 (report Ch.2) or not at all
+        (None: only when no retained state is driven by it, as in the report's wake model).
+    damping_parameter : bool
+        Parametrise the blade aerodynamics by A = γB⁴/8 (the wake model, Ch.2 eq. 27) instead of γ.
+    outputs : 'multiblade', 'blades' or 'eq30'
+        Measured channels: the multiblade coordinates the inputs drive, every blade's flap, or
+        the report's eq. 30 tilt in blade 1's frame ((β1 − β3)/2, (β2 − β4)/2 for N = 4).
+    interleave : bool
+        State order [q1, q1′, q2, q2′, ...] with the tilt first (report's wake) instead of
+        [q, q′] (report's multiblade); inflow states last.
+    all_coordinates : bool
+        Keep all N multiblade coordinates (the report's periodic model 2), not only those the
+        measurement sees, the inputs drive or that feed those (below).
+    angle_unit : 'rad' or 'deg'
+        Unit of the collective parameter's nominal value and bounds.
+    name : str
+        Model name.
+
+    Only coordinates that the measurement sees, the inputs drive, or that feed those are kept:
+    the report's constant model drops βd (it decouples) and the report's wake keeps the tilt.
+
     """
 
-    def __init__(self, rotor, collective='theta0', angle_unit='rad'):
-        self.rotor = rotor
-        self.collective = collective
-        gamma = GAMMA
-        coll = _collective_parameter(collective)
-        if collective == 'theta0' and angle_unit == 'rad':
-            coll = replace(coll, nominal=math.radians(2.0), lower=-math.pi / 4,
-                           upper=math.pi / 4, unit='rad')
-        elif collective == 'delta' and angle_unit == 'rad':
-            coll = replace(coll, nominal=10.0 * math.pi / 180.0, lower=-4.0, upper=4.0,
-                           unit='rad')
+    def __init__(self, rotor=RotorConstants(), *, blade=None, periodic=True, inflow=None,
+                 collective='theta0', damping_parameter=False, outputs='multiblade',
+                 interleave=False, all_coordinates=False, angle_unit='rad', name='rotor'):
+        self.rotor = rotor.check()
+        self.all_coordinates = bool(all_coordinates)
+        self.name = name
+        self.periodic = bool(periodic)
+        self.inflow = inflow
+        self.outputs = outputs
+        self.damping_parameter = bool(damping_parameter)
+        N = int(rotor.n_blades)
+        if inflow not in INFLOW_STATES:
+            raise ValueError(f"inflow must be None, 'cyclic' or 'three_state', not {inflow!r}")
+        if blade is not None:
+            if not 1 <= int(blade) <= N:
+                raise ValueError(f'blade {blade} is not one of the blades 1..{N} of the rotor')
+            if inflow is not None:
+                raise ValueError('a dynamic inflow couples all blades: model the rotor in '
+                                 'multiblade coordinates (blade=None)')
+            self.blade = int(blade)
+            self.blade_offset = 2.0 * math.pi * (self.blade - 1) / N
+            self.blades = (self.blade,)
+            self._coords = (('beta', 'blade', 0, 'blade'),)
         else:
-            coll = replace(coll, unit='deg')
-        self.parameters = (gamma, coll)
+            if outputs not in OUTPUTS:
+                raise ValueError(f"outputs must be one of {', '.join(OUTPUTS)}, not {outputs!r}")
+            if outputs == 'eq30' and N < 3:
+                raise ValueError(f'a {N}-bladed rotor has no cyclic flap: measure its blades '
+                                 '(measurement: blades)')
+            self.blade = None
+            self.blades = tuple(range(1, N + 1))
+            self._coords = coordinate_harmonics(N)
+        self._inflow_names = INFLOW_STATES[inflow]
+        nq, ni = len(self._coords), len(self._inflow_names)
+        self._nq, self._nf = nq, 2 * nq + ni
+        self._cache = {}
+        self._build_parameters(collective, angle_unit)
+        self._select_states(interleave)
+        self._build_terms()
+        self._build_outputs()
 
-    def _gamma_delta(self, p):
-        gamma = p[0]
-        delta = p[1] if self.collective == 'delta' else gamma * p[1]
-        return gamma, delta
+    # -- construction -------------------------------------------------------------------------
+    def _build_parameters(self, collective, angle_unit):
+        B = self.rotor.tip_loss
+        if self.damping_parameter:
+            aero = DAMPING
+            self._aero_factor = 4.0 / B**4              # γ/2 = 4A/B⁴
+        else:
+            aero = GAMMA
+            self._aero_factor = 0.5
+        params = [aero]
+        if self.inflow is not None:
+            params += list(CYCLIC_INFLOW)
+        if self.inflow == 'three_state':
+            params += list(UNIFORM_INFLOW)
+        self._requested_collective = collective
+        self.collective = None
+        if collective is not None:
+            if collective == 'delta' and self.damping_parameter:
+                raise ValueError('with A = γB⁴/8 the collective is the parameter theta0, '
+                                 'not delta')
+            params.append(_collective_parameter(collective, angle_unit))
+            self.collective = collective
+        self.parameters = tuple(params)
 
-    def _pieces(self, t, u):
-        raise NotImplementedError
+    def _index(self, name):
+        return self.parameter_names.index(name)
+
+    def _full_pieces(self, t):
+        """Parameter-free building blocks over the full internal state [q, q′, λ]."""
+        t = np.atleast_1d(np.asarray(t, dtype=float))
+        rotor = self.rotor
+        N, nq, nf = int(rotor.n_blades), self._nq, self._nf
+        B, P, KP = rotor.tip_loss, rotor.flap_frequency, rotor.pitch_flap_coupling
+        T = t.size
+        if self.blade is not None:
+            psi = t[:, None] + self.blade_offset
+            Tb = np.ones((T, 1, 1))
+            T1 = T2 = np.zeros((T, 1, 1))
+            Tinv = np.ones((T, 1, 1))
+        else:
+            psi = t[:, None] + 2.0 * math.pi * np.arange(N) / N
+            Tb = blade_from_multiblade_matrix(t, N)
+            T1 = blade_from_multiblade_matrix(t, N, 1)
+            T2 = blade_from_multiblade_matrix(t, N, 2)
+            Tinv = multiblade_from_blade_matrix(t, N)
+        Nb = psi.shape[1]
+        q, qd = slice(0, nq), slice(nq, 2 * nq)
+        Eb = np.zeros((T, Nb, nf))
+        Eb[:, :, q] = Tb
+        Ebr = np.zeros((T, Nb, nf))
+        Ebr[:, :, q], Ebr[:, :, qd] = T1, Tb
+        El0 = np.zeros((T, Nb, nf))
+        Elh = np.zeros((T, Nb, nf))
+        for i, lname in enumerate(self._inflow_names):
+            col = 2 * nq + i
+            if lname == 'lambda_0':
+                El0[:, :, col] = 1.0
+            elif lname == 'lambda_I':
+                Elh[:, :, col] = np.cos(psi)
+            else:
+                Elh[:, :, col] = np.sin(psi)
+        aero = blade_aerodynamics(psi, B, rotor.advance_ratio)
+        pitch = np.stack([-np.sin(psi), np.cos(psi)], axis=-1)       # ∂θ_k/∂(θI, θII), eq. 3
+
+        def load(kind):
+            c = {key: aero[f'{kind}_{key}'][:, :, None]
+                 for key in ('theta', 'rate', 'flap', 'lambda0', 'lambda1')}
+            x_row = (-(KP * c['theta'] + c['flap']) * Eb - c['rate'] * Ebr
+                     + c['lambda0'] * El0 + c['lambda1'] * Elh)
+            return x_row, c['theta'] * pitch, c['theta'][:, :, 0]
+
+        Mx, Mu, M0 = load('m')
+        pieces = {'moment': (Mx, Mu, M0), 'Eb': Eb, 'Ebr': Ebr, 'Elh': Elh, 'Tinv': Tinv}
+        F_const = np.zeros((T, nf, nf))
+        F_const[:, q, qd] = np.eye(nq)
+        F_const[:, qd, q] = Tinv @ (-P**2 * Tb - T2)
+        F_const[:, qd, qd] = Tinv @ (-2.0 * T1)
+        aero_F = np.zeros((T, nf, nf))
+        aero_G = np.zeros((T, nf, 2))
+        aero_g0 = np.zeros((T, nf))
+        aero_F[:, qd] = Tinv @ Mx
+        aero_G[:, qd] = Tinv @ Mu
+        aero_g0[:, qd] = np.einsum('tij,tj->ti', Tinv, M0)
+        pieces.update(F_const=F_const, aero=(aero_F, aero_G, aero_g0))
+        if self.inflow is not None:
+            scale = -4.0 / B**4
+            wake = (np.zeros((T, nf, nf)), np.zeros((T, nf, 2)), np.zeros((T, nf)))
+            decay = np.zeros((T, nf, nf))
+            wake0 = (np.zeros((T, nf, nf)), np.zeros((T, nf, 2)), np.zeros((T, nf)))
+            decay0 = np.zeros((T, nf, nf))
+            Lx, Lu, L0 = load('l')
+            for i, lname in enumerate(self._inflow_names):
+                row = 2 * nq + i
+                if lname == 'lambda_0':
+                    w, (x_row, u_row, c_row), out, dec = np.full((T, Nb), 1.0 / N), \
+                        (Lx, Lu, L0), wake0, decay0
+                else:
+                    trig = np.cos(psi) if lname == 'lambda_I' else np.sin(psi)
+                    w, (x_row, u_row, c_row), out, dec = (2.0 / N) * trig, (Mx, Mu, M0), \
+                        wake, decay
+                out[0][:, row] = scale * np.einsum('tk,tkj->tj', w, x_row)
+                out[1][:, row] = scale * np.einsum('tk,tkj->tj', w, u_row)
+                out[2][:, row] = scale * np.einsum('tk,tk->t', w, c_row)
+                dec[:, row, row] = -1.0
+            pieces.update(wake=wake, decay=decay, wake0=wake0, decay0=decay0)
+        return pieces
+
+    def _sample_times(self):
+        n = 8 * int(self.rotor.n_blades) + 32          # > every harmonic of the coefficients
+        return 2.0 * math.pi * np.arange(n) / n
+
+    def _select_states(self, interleave):
+        """Keep the coordinates measured, driven, or feeding those (class docstring)."""
+        nq, nf = self._nq, self._nf
+        full = self._full_pieces(self._sample_times())
+        coupling = np.abs(full['F_const']).max(axis=0) + np.abs(full['aero'][0]).max(axis=0)
+        driven = np.abs(full['aero'][1]).max(axis=(0, 2))
+        if self.collective is not None:
+            driven = driven + np.abs(full['aero'][2]).max(axis=0)
+        if self.inflow is not None:
+            for key in ('wake', 'decay', 'wake0', 'decay0'):
+                block = full[key] if key.startswith('decay') else full[key][0]
+                coupling = coupling + np.abs(block).max(axis=0)
+            for key in ('wake', 'wake0'):
+                driven = driven + np.abs(full[key][1]).max(axis=(0, 2))
+        if not self.periodic:
+            coupling = np.abs(full['F_const'].mean(axis=0) + full['aero'][0].mean(axis=0))
+            if self.inflow is not None:
+                for key in ('wake', 'decay', 'wake0', 'decay0'):
+                    block = full[key] if key.startswith('decay') else full[key][0]
+                    coupling = coupling + np.abs(block.mean(axis=0))
+            driven = np.abs(full['aero'][1].mean(axis=0)).max(axis=1)
+            if self.collective is not None:
+                driven = driven + np.abs(full['aero'][2].mean(axis=0))
+        tol = 1e-12
+
+        def node(i):        # state index -> graph node: coordinate index or inflow
+            return i % nq if i < 2 * nq else i - nq
+
+        n_nodes = nq + len(self._inflow_names)
+        edge = np.zeros((n_nodes, n_nodes), dtype=bool)      # edge[i, j]: j feeds i
+        for i in range(nf):
+            for j in range(nf):
+                if coupling[i, j] > tol:
+                    edge[node(i), node(j)] = True
+        forced = {node(i) for i in range(nf) if driven[i] > tol}
+        names = [c[0] for c in self._coords]
+        if self.blade is not None or self.outputs == 'blades' or self.all_coordinates:
+            measured = set(range(nq))
+        elif self.outputs == 'eq30':
+            measured = {names.index('beta_I'), names.index('beta_II')}
+        else:                                   # the coordinates the inputs reach
+            measured, frontier = set(forced), list(forced)
+            while frontier:
+                j = frontier.pop()
+                for i in np.flatnonzero(edge[:, j]):
+                    if i not in measured:
+                        measured.add(int(i))
+                        frontier.append(int(i))
+            measured = {i for i in measured if i < nq}
+        keep, frontier = set(measured), list(measured)
+        while frontier:                         # everything that feeds the measured states
+            i = frontier.pop()
+            for j in np.flatnonzero(edge[i]):
+                if j not in keep:
+                    keep.add(int(j))
+                    frontier.append(int(j))
+        missing = [name for i, name in enumerate(self._inflow_names) if nq + i not in keep]
+        if missing:
+            raise ValueError(f'the inflow states {", ".join(missing)} do not reach the measured '
+                             'flap here (at advance ratio 0 the uniform inflow only moves the '
+                             'coning): measure every blade (measurement: blades) or use '
+                             'inflow: cyclic')
+        coords = sorted(i for i in keep if i < nq)
+        self._measured = sorted(measured)
+        if interleave:
+            tilt = [i for i in coords if names[i] in ('beta_I', 'beta_II')]
+            coords = tilt + [i for i in coords if i not in tilt]
+            order = [s for i in coords for s in (i, nq + i)]
+        else:
+            order = coords + [nq + i for i in coords]
+        order += [2 * nq + i for i in range(len(self._inflow_names))]
+        self._keep = np.array(order, dtype=int)
+        self._kept_coords = coords
+        self.state_names = tuple(
+            (names[s] if s < nq else f'{names[s - nq]}_dot') if s < 2 * nq
+            else self._inflow_names[s - 2 * nq] for s in order)
+        # the collective is a parameter only if it drives a kept state (always for γ models)
+        if self.collective is not None and self.damping_parameter:
+            g0 = np.abs(full['aero'][2]).max(axis=0)
+            if self.inflow is not None:
+                g0 = (g0 + np.abs(full['wake'][2]).max(axis=0)
+                      + np.abs(full['wake0'][2]).max(axis=0))
+            if not np.any(g0[self._keep] > tol):
+                self.parameters = tuple(par for par in self.parameters
+                                        if par.name not in ('theta0', 'delta'))
+                self.collective = None
+        # time invariance: every kept block the same at every sample time
+        sub = self._restrict(full)
+        self.time_invariant = not self.periodic or all(
+            np.allclose(block, block[:1], rtol=0.0, atol=1e-12) for block in self._blocks(sub))
+
+    def _blocks(self, pieces):
+        for key in ('F_const', 'aero', 'wake', 'decay', 'wake0', 'decay0'):
+            if key in pieces:
+                value = pieces[key]
+                yield from (value if isinstance(value, tuple) else (value,))
+
+    def _restrict(self, full):
+        k = self._keep
+        out = {}
+        for key, value in full.items():
+            if key in ('F_const', 'decay', 'decay0'):
+                out[key] = value[:, k][:, :, k]
+            elif key in ('aero', 'wake', 'wake0'):
+                F, G, g0 = value
+                out[key] = (F[:, k][:, :, k], G[:, k], g0[:, k])
+            elif key == 'moment':
+                Mx, Mu, M0 = value
+                out[key] = (Mx[:, :, k], Mu, M0)
+            elif key in ('Eb', 'Ebr', 'Elh'):
+                out[key] = value[:, :, k]
+            else:
+                out[key] = value
+        return out
+
+    def _build_terms(self):
+        """List the terms of F = F_const + Σ c·Πp·F_k and g = Σ c·Πp·(G_k u + g0_k)."""
+        ia = 0
+        terms = [((ia,), self._aero_factor, 'aero', 'F'), ((ia,), self._aero_factor, 'aero', 'G')]
+        if self.collective == 'theta0':
+            terms.append(((ia, self._index('theta0')), self._aero_factor, 'aero', 'g0'))
+        elif self.collective == 'delta':
+            terms.append(((self._index('delta'),), 0.5, 'aero', 'g0'))     # (γ/2)θ0 = δ/2
+        if self.inflow is not None:
+            ic, ir = self._index('AL_over_tau'), self._index('inv_tau')
+            terms += [((ic,), 1.0, 'wake', 'F'), ((ic,), 1.0, 'wake', 'G'),
+                      ((ir,), 1.0, 'decay', 'F')]
+            if self.collective == 'theta0':
+                terms.append(((ic, self._index('theta0')), 1.0, 'wake', 'g0'))
+        if self.inflow == 'three_state':
+            ic0, ir0 = self._index('AL0_over_tau0'), self._index('inv_tau0')
+            terms += [((ic0,), 1.0, 'wake0', 'F'), ((ic0,), 1.0, 'wake0', 'G'),
+                      ((ir0,), 1.0, 'decay0', 'F')]
+            if self.collective == 'theta0':
+                terms.append(((ic0, self._index('theta0')), 1.0, 'wake0', 'g0'))
+        self._terms = terms
+
+    def _build_outputs(self):
+        N = int(self.rotor.n_blades)
+        names = [c[0] for c in self._coords]
+        if self.blade is not None:
+            self.outputs = 'blade'
+            self.output_names = (f'beta_{self.blade}',)
+        elif self.outputs == 'blades':
+            self.output_names = tuple(f'beta_{k}' for k in range(1, N + 1))
+        elif self.outputs == 'eq30':
+            self.output_names = ('beta_m1', 'beta_m2')
+        else:
+            self.output_names = tuple(names[i] for i in self._kept_coords
+                                      if i in self._measured)
+
+    # -- evaluation ---------------------------------------------------------------------------
+    _SYSTEM_KEYS = ('F_const', 'aero', 'wake', 'decay', 'wake0', 'decay0')
+
+    def _cached(self, kind, t, compute):
+        key = (kind, t.size, hash(t.tobytes()))
+        hit = self._cache.get(key)
+        if hit is None:
+            if len(self._cache) > 8:
+                self._cache.clear()
+            hit = self._cache[key] = compute()
+        return hit
+
+    def _pieces(self, t):
+        """Return the parameter-free blocks of F and g at times t (computed once per time grid)."""
+        t = np.atleast_1d(np.asarray(t, dtype=float))
+
+        def compute():
+            if not self.time_invariant:
+                full = self._restrict(self._full_pieces(t))
+                return {k: v for k, v in full.items() if k in self._SYSTEM_KEYS}
+            if self.periodic:
+                one = self._restrict(self._full_pieces(t[:1]))
+            else:
+                one = _mean_pieces(self._restrict(self._full_pieces(self._sample_times())))
+            return _broadcast_pieces({k: v for k, v in one.items() if k in self._SYSTEM_KEYS},
+                                     t.size)
+        return self._cached('system', t, compute)
+
+    def _blade_pieces(self, t):
+        """Return the blade matrices (flap, rate, inflow, moment, T⁻¹) at times t, periodic."""
+        t = np.atleast_1d(np.asarray(t, dtype=float))
+        return self._cached('blades', t, lambda: self._restrict(self._full_pieces(t)))
+
+    def _term_value(self, params, factor, p):
+        value = factor
+        for i in params:
+            value = value * p[i]
+        return value
 
     def system(self, t, p, u):
         t = np.atleast_1d(np.asarray(t, dtype=float))
-        gamma, delta = self._gamma_delta(p)
-        D0, D1, K0, K1, f_delta, f_u = self._pieces(t, u)
-        nq = D0.shape[1]
-        F = np.zeros((t.size, 2 * nq, 2 * nq))
-        F[:, :nq, nq:] = np.eye(nq)
-        F[:, nq:, :nq] = -(K0 + gamma * K1)
-        F[:, nq:, nq:] = -(D0 + gamma * D1)
-        g = np.zeros((t.size, 2 * nq))
-        g[:, nq:] = delta * f_delta + gamma * f_u
+        p = np.asarray(p, dtype=float)
+        u = np.asarray(u, dtype=float)
+        pieces = self._pieces(t)
+        F = pieces['F_const'].copy()
+        g = np.zeros((t.size, self.n_states))
+        ucyc = u[:, 1:3]
+        for params, factor, key, part in self._terms:
+            c = self._term_value(params, factor, p)
+            if part == 'F':
+                block = pieces[key] if key.startswith('decay') else pieces[key][0]
+                F += c * block
+            elif part == 'G':
+                g += c * np.einsum('tij,tj->ti', pieces[key][1], ucyc)
+            else:
+                g += c * pieces[key][2]
         return F, g
 
     def system_jacobian(self, t, p, u):
         t = np.atleast_1d(np.asarray(t, dtype=float))
-        gamma, delta = self._gamma_delta(p)
-        D0, D1, K0, K1, f_delta, f_u = self._pieces(t, u)
-        nq = D0.shape[1]
-        dF = np.zeros((t.size, 2, 2 * nq, 2 * nq))
-        dF[:, 0, nq:, :nq] = -K1
-        dF[:, 0, nq:, nq:] = -D1
-        dg = np.zeros((t.size, 2, 2 * nq))
-        if self.collective == 'delta':
-            dg[:, 0, nq:] = f_u
-            dg[:, 1, nq:] = f_delta
-        else:                                   # δ = γθ0
-            dg[:, 0, nq:] = f_u + p[1] * f_delta
-            dg[:, 1, nq:] = gamma * f_delta
+        p = np.asarray(p, dtype=float)
+        u = np.asarray(u, dtype=float)
+        pieces = self._pieces(t)
+        n, P = self.n_states, len(self.parameters)
+        dF = np.zeros((t.size, P, n, n))
+        dg = np.zeros((t.size, P, n))
+        ucyc = u[:, 1:3]
+        for params, factor, key, part in self._terms:
+            for pos, i in enumerate(params):
+                c = self._term_value(params[:pos] + params[pos + 1:], factor, p)
+                if part == 'F':
+                    block = pieces[key] if key.startswith('decay') else pieces[key][0]
+                    dF[:, i] += c * block
+                elif part == 'G':
+                    dg[:, i] += c * np.einsum('tij,tj->ti', pieces[key][1], ucyc)
+                else:
+                    dg[:, i] += c * pieces[key][2]
         return dF, dg
 
+    # -- blades and channels ------------------------------------------------------------------
+    def lock_number(self, p):
+        """γ at the parameter vector p, and ∂γ/∂p."""
+        d = np.zeros(len(self.parameters))
+        scale = 2.0 * self._aero_factor                # γ = 2·(γ/2)
+        d[0] = scale
+        return scale * float(p[0]), d
 
-class SingleBlade(_SecondOrderGammaModel):
-    """
-    Model 1: one rigid centrally hinged blade with periodic coefficients (MODELS.md §1.1).
+    def blade_azimuth(self, t):
+        """(T, Nb) azimuths of the modelled blades."""
+        t = np.atleast_1d(np.asarray(t, dtype=float))
+        if self.blade is not None:
+            return t[:, None] + self.blade_offset
+        N = int(self.rotor.n_blades)
+        return t[:, None] + 2.0 * math.pi * np.arange(N) / N
 
-    Corrected Ch.3 eq. 24:  β″ + (γ/2) C β′ + [P² + (γ/2) K] β = (γ/2) m_θ θ
+    def blade_flap_matrix(self, t):
+        """Hb (T, Nb, n): flap of each modelled blade, β_k = Hb x."""
+        return self._blade_pieces(t)['Eb'].copy()
 
-        C   = B⁴/4 + (B³μ/3) sin ψ
-        K   = (B³μ/3) cos ψ + (B²μ²/4) sin 2ψ
-        m_θ = (B⁴ + B²μ²)/4 + (2/3) B³μ sin ψ − (B²μ²/4) cos 2ψ
+    def blade_flap_rate_matrix(self, t):
+        """Hbr (T, Nb, n): flap rate of each modelled blade, β_k′ = Hbr x."""
+        return self._blade_pieces(t)['Ebr'].copy()
 
-    ψ = t + ``blade_offset`` is the azimuth of the modelled blade; θ = θ0 + θ_c with the cyclic
-    part θ_c = −θI sin ψ + θII cos ψ (eq. 3). States x = [β, β′], output y = β.
-    """
+    def blade_inflow_matrix(self, t):
+        """Hl (T, Nb, n): first-harmonic inflow at each blade, λ_k = λI cos ψ_k + λII sin ψ_k."""
+        return self._blade_pieces(t)['Elh'].copy()
 
-    name = 'single_blade'
-    state_names = ('beta', 'beta_dot')
-    output_names = ('beta',)
+    def blade_force_matrix(self, t):
+        """G (T, n, Nb): change of x′ for a unit flapping acceleration of blade k alone."""
+        Tinv = self._blade_pieces(t)['Tinv']
+        nq = self._nq
+        full = np.zeros((Tinv.shape[0], self._nf, Tinv.shape[2]))
+        full[:, nq:2 * nq] = Tinv
+        return full[:, self._keep]
 
-    def __init__(self, rotor=RotorConstants(), collective='theta0', angle_unit='rad',
-                 blade=1):
-        super().__init__(rotor, collective, angle_unit)
-        self.blade = blade
-        self.blade_offset = 2.0 * math.pi * (blade - 1) / rotor.n_blades
-        self.output_names = (f'beta_{blade}',)
+    def blade_moment(self, t):
+        """
+        Return the blades' aerodynamic moment per γ/2 (module aerodynamics): linear in x, u, θ0.
 
-    def _pieces(self, t, u):
-        B, mu, P = self.rotor.tip_loss, self.rotor.advance_ratio, self.rotor.flap_frequency
-        psi = t + self.blade_offset
-        s1, c1, s2, c2 = np.sin(psi), np.cos(psi), np.sin(2 * psi), np.cos(2 * psi)
-        damping = B**4 / 4 + (B**3 * mu / 3) * s1                               # C(t)
-        stiffness = (B**3 * mu / 3) * c1 + (B**2 * mu**2 / 4) * s2              # K(t)
-        m_theta = ((B**4 + B**2 * mu**2) / 4 + (2.0 / 3.0) * B**3 * mu * s1
-                   - (B**2 * mu**2 / 4) * c2)                                   # m_θ(t)
-        u = np.asarray(u, dtype=float)
-        theta_cyclic = -u[:, 1] * s1 + u[:, 2] * c1
-        one = np.ones((t.size, 1, 1))
-        return (0.0 * one, 0.5 * damping[:, None, None], P**2 * one,
-                0.5 * stiffness[:, None, None], 0.5 * m_theta[:, None],
-                (0.5 * m_theta * theta_cyclic)[:, None])
+        Returns ``(Mx (T, Nb, n), Mu (T, Nb, 2), M0 (T, Nb))``: m_k = Mx x + Mu [θI, θII] + M0 θ0.
+        """
+        Mx, Mu, M0 = self._blade_pieces(t)['moment']
+        return Mx.copy(), Mu.copy(), M0.copy()
+
+    def channel_matrix(self, t):
+        """C (T, m, N): the model's output channels from the N blades' flap, y = C β."""
+        t = np.atleast_1d(np.asarray(t, dtype=float))
+        N = int(self.rotor.n_blades)
+        if self.blade is not None:
+            C = np.zeros((t.size, 1, N))
+            C[:, 0, self.blade - 1] = 1.0
+            return C
+        if self.outputs == 'blades':
+            return np.broadcast_to(np.eye(N), (t.size, N, N)).copy()
+        if self.outputs == 'eq30':
+            offsets = 2.0 * math.pi * np.arange(N) / N        # ψ_k − t
+            rows = (2.0 / N) * np.stack([np.cos(offsets), np.sin(offsets)])
+            return np.broadcast_to(rows, (t.size, 2, N)).copy()
+        Tinv = multiblade_from_blade_matrix(t, N)
+        names = [c[0] for c in self._coords]
+        return Tinv[:, [names.index(n) for n in self.output_names]]
 
     def output_matrix(self, t):
-        H = np.zeros((np.size(t), 1, 2))
-        H[:, 0, 0] = 1.0
+        t = np.atleast_1d(np.asarray(t, dtype=float))
+        if self.outputs in ('blade', 'blades'):
+            return self.blade_flap_matrix(t)
+        H = np.zeros((t.size, self.n_outputs, self.n_states))
+        if self.outputs == 'eq30':                  # report eq. 30: the tilt in blade 1's frame
+            iI, iII = self.state_names.index('beta_I'), self.state_names.index('beta_II')
+            H[:, 0, iI], H[:, 0, iII] = np.cos(t), np.sin(t)
+            H[:, 1, iI], H[:, 1, iII] = -np.sin(t), np.cos(t)
+            return H
+        for row, name in enumerate(self.output_names):
+            H[:, row, self.state_names.index(name)] = 1.0
         return H
 
     def observe_blades(self, t, blade_flap):
-        return np.asarray(blade_flap, dtype=float)[:, self.blade - 1:self.blade]
+        blade_flap = np.asarray(blade_flap, dtype=float)
+        if self.outputs == 'blade':
+            return blade_flap[:, self.blade - 1:self.blade]
+        if self.outputs == 'blades':
+            return blade_flap
+        return np.einsum('tij,tj->ti', self.channel_matrix(t), blade_flap)
+
+    # -- trim ---------------------------------------------------------------------------------
+    def trim_state(self, p, collective, t=0.0, steps_per_rev=512):
+        """
+        State at time t of the rotor trimmed at collective pitch only (no cyclic).
+
+        The equilibrium of a time-invariant model; otherwise the periodic response, found exactly
+        (to the RK4 error of ``steps_per_rev`` steps) from the one-revolution map x(t + 2π) =
+        Φ x(t) + c as x = (I − Φ)⁻¹ c (Floquet), so that no settling length is needed.
+        """
+        u = np.array([[float(collective), 0.0, 0.0]])
+        if self.time_invariant:
+            return self.equilibrium(np.array([float(t)]), p, u)
+        h = 2.0 * math.pi / steps_per_rev
+        grid = float(t) + 0.5 * h * np.arange(2 * steps_per_rev + 1)
+        F, g = self.system(grid, p, np.repeat(u, grid.size, axis=0))
+        n = self.n_states
+        # propagate [Φ | c] as the augmented system z′ = [[F, g], [0, 0]] z
+        A = np.zeros((grid.size, n + 1, n + 1))
+        A[:, :n, :n], A[:, :n, n] = F, g
+        Z = np.eye(n + 1)
+        for i in range(steps_per_rev):
+            a0, a1, a2 = A[2 * i], A[2 * i + 1], A[2 * i + 2]
+            k1 = a0 @ Z
+            k2 = a1 @ (Z + 0.5 * h * k1)
+            k3 = a1 @ (Z + 0.5 * h * k2)
+            k4 = a2 @ (Z + h * k3)
+            Z = Z + (h / 6.0) * (k1 + 2 * k2 + 2 * k3 + k4)
+        return np.linalg.solve(np.eye(n) - Z[:n, :n], Z[:n, n])
+
+    def coning(self, p, collective):
+        """
+        Steady coning β0 = Aθ0/(P² + A K_P) to add to blades of a model without a β0 state.
+
+        Zero for models that carry β0 (or a single blade). The report's wake model drops the
+        coning, which decouples at μ = 0 (docs/models.md §7); a flap sensor still sees it.
+        """
+        if 'beta_0' in self.state_names or self.blade is not None:
+            return 0.0
+        r = self.rotor
+        return hover_coning(self.lock_number(p)[0], collective, r.flap_frequency, r.tip_loss,
+                            r.pitch_flap_coupling)
+
+    def describe(self):
+        """One-line description for tables and logs."""
+        r = self.rotor
+        return (f'{self.name}: N = {r.n_blades}, mu = {r.advance_ratio:g}, '
+                f'P = {r.flap_frequency:g}, B = {r.tip_loss:g}, K_P = {r.pitch_flap_coupling:g}; '
+                f'states {", ".join(self.state_names)}')
 
 
-class Multiblade(_SecondOrderGammaModel):
+def _mean_pieces(pieces):
+    out = {}
+    for key, value in pieces.items():
+        if isinstance(value, tuple):
+            out[key] = tuple(v.mean(axis=0, keepdims=True) for v in value)
+        else:
+            out[key] = value.mean(axis=0, keepdims=True)
+    return out
+
+
+def _broadcast_pieces(pieces, size):
+    out = {}
+    for key, value in pieces.items():
+        if isinstance(value, tuple):
+            out[key] = tuple(np.broadcast_to(v[:1], (size,) + v.shape[1:]) for v in value)
+        else:
+            out[key] = np.broadcast_to(value[:1], (size,) + value.shape[1:])
+    return out
+
+
+# ------------------------------------------------------------------------------------------------
+# The report's models (docs/models.md §5-7) as special cases
+# ------------------------------------------------------------------------------------------------
+
+class SingleBlade(RotorModel):
     """
-    Model 2: four blades in multiblade coordinates, μ > 0, periodic coefficients (§2.1).
+    Model 1: one blade in its rotating frame, periodic coefficients (report Ch.3 eq. 24).
 
-    q = [β0, βI, βII, βd], x = [q, q′]; q″ + D(t) q′ + K(t) q = f(t) with D, K, f as printed in
-    MODELS.md §2.1 (a = γB⁴/8, b3 = γB³μ, b2 = γB²μ²). ``outputs='multiblade'`` measures
-    [β0, βI, βII, βd]; ``outputs='blades'`` measures each blade, β_k = β0 + βI cos ψ_k +
-    βII sin ψ_k + (−1)^k βd.
+    States x = [β, β′], output y = β of blade ``blade``; parameters γ and θ0 (or δ = γθ0).
     """
 
-    name = 'multiblade'
-    state_names = ('beta_0', 'beta_I', 'beta_II', 'beta_d',
-                   'beta_0_dot', 'beta_I_dot', 'beta_II_dot', 'beta_d_dot')
+    def __init__(self, rotor=RotorConstants(), collective='theta0', angle_unit='rad', blade=1):
+        super().__init__(rotor, blade=blade, collective=collective, angle_unit=angle_unit,
+                         name='single_blade')
+        self.state_names = ('beta', 'beta_dot')
+
+
+class Multiblade(RotorModel):
+    """
+    Model 2: the rotor in multiblade coordinates with periodic coefficients (report Ch.2 §2.1).
+
+    For N = 4: q = [β0, βI, βII, βd], x = [q, q′]. ``outputs='multiblade'`` measures q,
+    ``outputs='blades'`` every blade's flap.
+    """
 
     def __init__(self, rotor=RotorConstants(), collective='theta0', angle_unit='rad',
                  outputs='multiblade'):
-        if rotor.n_blades != 4:
-            raise ValueError('the multiblade model is written for 4 blades '
-                             f'(got {rotor.n_blades}); use single_blade for other rotors')
-        super().__init__(rotor, collective, angle_unit)
-        self.outputs = outputs
-        if outputs == 'multiblade':
-            self.output_names = ('beta_0', 'beta_I', 'beta_II', 'beta_d')
-        elif outputs == 'blades':
-            self.output_names = tuple(f'beta_{k}' for k in range(1, 5))
-        else:
+        if outputs not in ('multiblade', 'blades'):
             raise ValueError(f"outputs must be 'multiblade' or 'blades', not {outputs!r}")
-
-    def _pieces(self, t, u):
-        B, mu, P = self.rotor.tip_loss, self.rotor.advance_ratio, self.rotor.flap_frequency
-        s2, c2, s4, c4 = np.sin(2 * t), np.cos(2 * t), np.sin(4 * t), np.cos(4 * t)
-        T = t.size
-        u = np.asarray(u, dtype=float)
-        th_i, th_ii = u[:, 1], u[:, 2]
-        a1 = B**4 / 8          # a / γ
-        b3 = B**3 * mu         # b3 / γ
-        b2 = B**2 * mu**2      # b2 / γ
-        g16 = B**2 / 16        # (γB²/16) / γ
-        D0 = np.zeros((T, 4, 4))
-        D0[:, 1, 2], D0[:, 2, 1] = 2.0, -2.0
-        D1 = np.zeros((T, 4, 4))
-        D1[:, [0, 1, 2, 3], [0, 1, 2, 3]] = a1
-        D1[:, 0, 2] = b3 / 12
-        D1[:, 1, 3] = -(b3 / 6) * s2
-        D1[:, 2, 0] = b3 / 6
-        D1[:, 2, 3] = (b3 / 6) * c2
-        D1[:, 3, 1] = -(b3 / 12) * s2
-        D1[:, 3, 2] = (b3 / 12) * c2
-        K0 = np.zeros((T, 4, 4))
-        K0[:, [0, 1, 2, 3], [0, 1, 2, 3]] = [P**2, P**2 - 1, P**2 - 1, P**2]
-        K1 = np.zeros((T, 4, 4))
-        K1[:, 0, 3] = -(b2 / 8) * s2
-        K1[:, 1, 0] = b3 / 6
-        K1[:, 1, 1] = (b2 / 16) * s4
-        K1[:, 1, 2] = g16 * (2 * B**2 + mu**2 - mu**2 * c4)
-        K1[:, 1, 3] = -(b3 / 6) * c2
-        K1[:, 2, 1] = -g16 * (2 * B**2 - mu**2 + mu**2 * c4)
-        K1[:, 2, 2] = -(b2 / 16) * s4
-        K1[:, 2, 3] = -(b3 / 6) * s2
-        K1[:, 3, 0] = -(b2 / 8) * s2
-        K1[:, 3, 1] = -(b3 / 6) * c2
-        K1[:, 3, 2] = -(b3 / 6) * s2
-        f_delta = np.column_stack([np.full(T, (B**2 / 8) * (B**2 + mu**2)), np.zeros(T),
-                                   np.full(T, B**3 * mu / 3), (B**2 * mu**2 / 8) * c2])
-        f_u = np.column_stack([
-            -(b3 / 6) * th_i,
-            (b2 / 16) * s4 * th_i + g16 * (2 * B**2 + mu**2 - mu**2 * c4) * th_ii,
-            -g16 * (2 * B**2 + 3 * mu**2 + mu**2 * c4) * th_i - (b2 / 16) * s4 * th_ii,
-            -(b3 / 6) * (c2 * th_i + s2 * th_ii)])
-        return D0, D1, K0, K1, f_delta, f_u
-
-    def output_matrix(self, t):
-        T = np.size(t)
-        if self.outputs == 'multiblade':
-            H = np.zeros((T, 4, 8))
-            H[:, [0, 1, 2, 3], [0, 1, 2, 3]] = 1.0
-            return H
-        psi = blade_azimuths(t, 4)
-        H = np.zeros((T, 4, 8))
-        H[:, :, 0] = 1.0
-        H[:, :, 1] = np.cos(psi)
-        H[:, :, 2] = np.sin(psi)
-        H[:, :, 3] = (-1.0) ** np.arange(1, 5)
-        return H
-
-    def observe_blades(self, t, blade_flap):
-        blade_flap = np.asarray(blade_flap, dtype=float)
-        if self.outputs == 'blades':
-            return blade_flap
-        return multiblade_from_blade_flap(t, blade_flap)
+        super().__init__(rotor, collective=collective, angle_unit=angle_unit, outputs=outputs,
+                         all_coordinates=True, name='multiblade')
 
 
-class MultibladeConstant(_SecondOrderGammaModel):
+class MultibladeConstant(RotorModel):
     """
-    Model 2 with all periodic terms omitted; βd decouples and is dropped (MODELS.md §2.2).
+    Model 2 with its periodic coefficients averaged over a revolution.
 
-    x = [β0, βI, βII, β0′, βI′, βII′]; y = [β0, βI, βII]. Time-invariant.
+    The report's "omitting all periodic terms".
+
+    For N = 4: x = [β0, βI, βII, β0′, βI′, βII′] (βd decouples and is dropped), y = [β0, βI, βII].
+    Time-invariant.
     """
 
-    name = 'multiblade_constant'
-    state_names = ('beta_0', 'beta_I', 'beta_II', 'beta_0_dot', 'beta_I_dot', 'beta_II_dot')
-    output_names = ('beta_0', 'beta_I', 'beta_II')
-    time_invariant = True
-
-    def __init__(self, rotor=RotorConstants(), collective='theta0', angle_unit='rad'):
-        if rotor.n_blades != 4:
-            raise ValueError('the multiblade model is written for 4 blades '
-                             f'(got {rotor.n_blades}); use single_blade for other rotors')
-        super().__init__(rotor, collective, angle_unit)
-
-    def _pieces(self, t, u):
-        B, mu, P = self.rotor.tip_loss, self.rotor.advance_ratio, self.rotor.flap_frequency
-        T = t.size
-        u = np.asarray(u, dtype=float)
-        th_i, th_ii = u[:, 1], u[:, 2]
-        a1, b3, g16 = B**4 / 8, B**3 * mu, B**2 / 16
-        D0 = np.zeros((T, 3, 3))
-        D0[:, 1, 2], D0[:, 2, 1] = 2.0, -2.0
-        D1 = np.zeros((T, 3, 3))
-        D1[:, [0, 1, 2], [0, 1, 2]] = a1
-        D1[:, 0, 2] = b3 / 12
-        D1[:, 2, 0] = b3 / 6
-        K0 = np.zeros((T, 3, 3))
-        K0[:, [0, 1, 2], [0, 1, 2]] = [P**2, P**2 - 1, P**2 - 1]
-        K1 = np.zeros((T, 3, 3))
-        K1[:, 1, 0] = b3 / 6
-        K1[:, 1, 2] = g16 * (2 * B**2 + mu**2)
-        K1[:, 2, 1] = -g16 * (2 * B**2 - mu**2)
-        f_delta = np.tile([(B**2 / 8) * (B**2 + mu**2), 0.0, B**3 * mu / 3], (T, 1))
-        f_u = np.column_stack([-(b3 / 6) * th_i, g16 * (2 * B**2 + mu**2) * th_ii,
-                               -g16 * (2 * B**2 + 3 * mu**2) * th_i])
-        return D0, D1, K0, K1, f_delta, f_u
-
-    def output_matrix(self, t):
-        H = np.zeros((np.size(t), 3, 6))
-        H[:, [0, 1, 2], [0, 1, 2]] = 1.0
-        return H
-
-    def observe_blades(self, t, blade_flap):
-        return multiblade_from_blade_flap(t, blade_flap)[:, :3]
+    def __init__(self, rotor=RotorConstants(), collective='theta0', angle_unit='rad',
+                 outputs='multiblade'):
+        if outputs not in ('multiblade', 'blades'):
+            raise ValueError(f"outputs must be 'multiblade' or 'blades', not {outputs!r}")
+        super().__init__(rotor, periodic=False, collective=collective, angle_unit=angle_unit,
+                         outputs=outputs, name='multiblade_constant')
 
 
-class MultibladeWake(LinearModel):
+class MultibladeWake(RotorModel):
     """
-    Model 3: μ = 0 tilt modes with the two-parameter dynamic wake (MODELS.md §3, Ch.2 eq. 29).
+    Model 3: the rotor with a dynamic inflow, parametrised by A = γB⁴/8 (report Ch.2 eq. 29).
 
-    x = [βI, βI′, βII, βII′, λI, λII], p = [A, AL/τ, 1/τ] with A = γB⁴/8 (Ch.2 eq. 27); λ is the
-    report's inflow sign (up positive). Output (Ch.2 eq. 30): β_m1 = (β1 − β3)/2 =
-    cos t βI + sin t βII and β_m2 = (β2 − β4)/2 = −sin t βI + cos t βII.
+    With the defaults (μ = 0, ``inflow='cyclic'``, ``outputs='eq30'``) this is the report's model:
+    x = [βI, βI′, βII, βII′, λI, λII], p = [A, AL/τ, 1/τ], y = report eq. 30. Any N ≥ 3, any μ,
+    ``inflow='three_state'`` (adds λ0 with AL0/τ0, 1/τ0) and ``outputs='blades'`` or
+    ``'multiblade'`` generalise it (docs/models.md §4); the collective θ0 becomes a parameter
+    whenever it reaches a modelled state (μ > 0, or coning measured).
     """
 
-    name = 'multiblade_wake'
-    state_names = ('beta_I', 'beta_I_dot', 'beta_II', 'beta_II_dot', 'lambda_I', 'lambda_II')
-    output_names = ('beta_m1', 'beta_m2')
-    time_invariant = True
-
-    def __init__(self, rotor=RotorConstants(advance_ratio=0.0)):
-        if rotor.n_blades != 4:
-            raise ValueError(f'the wake model is written for 4 blades (got {rotor.n_blades})')
-        if rotor.advance_ratio != 0.0:
-            raise ValueError('the wake model holds at advance ratio 0 only '
-                             f'(got mu = {rotor.advance_ratio})')
-        self.rotor = rotor
-        self.parameters = (
-            Parameter('A', 'A = γB⁴/8', '-', 0.5, 1e-3, 10.0, 'flap damping (Ch.2 eq. 27)'),
-            Parameter('AL_over_tau', 'AL/τ', '-', 0.25, 0.0, 50.0,
-                      'wake gain over wake time constant'),
-            Parameter('inv_tau', '1/τ', '-', 0.125, 1e-4, 50.0, 'inverse wake time constant'),
-        )
-
-    def system(self, t, p, u):
-        t = np.atleast_1d(np.asarray(t, dtype=float))
-        A, c, r = p
-        k = self.rotor.flap_frequency**2 - 1.0
-        u = np.asarray(u, dtype=float)
-        th_i, th_ii = u[:, 1], u[:, 2]
-        F1 = np.array([[0.0, 1.0, 0.0, 0.0, 0.0, 0.0],
-                       [-k, -A, -A, -2.0, A, 0.0],
-                       [0.0, 0.0, 0.0, 1.0, 0.0, 0.0],
-                       [A, 2.0, -k, -A, 0.0, A],
-                       [0.0, c, c, 0.0, -(c + r), 0.0],
-                       [-c, 0.0, 0.0, c, 0.0, -(c + r)]])
-        F = np.broadcast_to(F1, (t.size, 6, 6)).copy()
-        zero = np.zeros(t.size)
-        g = np.column_stack([zero, A * th_ii, zero, -A * th_i, -c * th_ii, c * th_i])
-        return F, g
-
-    def system_jacobian(self, t, p, u):
-        t = np.atleast_1d(np.asarray(t, dtype=float))
-        u = np.asarray(u, dtype=float)
-        th_i, th_ii = u[:, 1], u[:, 2]
-        dF1 = np.zeros((3, 6, 6))
-        dF1[0, 1, [1, 2, 4]] = [-1.0, -1.0, 1.0]             # ∂/∂A
-        dF1[0, 3, [0, 3, 5]] = [1.0, -1.0, 1.0]
-        dF1[1, 4, [1, 2, 4]] = [1.0, 1.0, -1.0]              # ∂/∂(AL/τ)
-        dF1[1, 5, [0, 3, 5]] = [-1.0, 1.0, -1.0]
-        dF1[2, 4, 4] = dF1[2, 5, 5] = -1.0                   # ∂/∂(1/τ)
-        dF = np.broadcast_to(dF1, (t.size, 3, 6, 6)).copy()
-        dg = np.zeros((t.size, 3, 6))
-        dg[:, 0, 1], dg[:, 0, 3] = th_ii, -th_i
-        dg[:, 1, 4], dg[:, 1, 5] = -th_ii, th_i
-        return dF, dg
-
-    def output_matrix(self, t):
-        t = np.atleast_1d(np.asarray(t, dtype=float))
-        H = np.zeros((t.size, 2, 6))
-        H[:, 0, 0], H[:, 0, 2] = np.cos(t), np.sin(t)
-        H[:, 1, 0], H[:, 1, 2] = -np.sin(t), np.cos(t)
-        return H
-
-    def observe_blades(self, t, blade_flap):
-        blade_flap = np.asarray(blade_flap, dtype=float)
-        return np.column_stack([(blade_flap[:, 0] - blade_flap[:, 2]) / 2,
-                                (blade_flap[:, 1] - blade_flap[:, 3]) / 2])
+    def __init__(self, rotor=RotorConstants(advance_ratio=0.0), collective='theta0',
+                 angle_unit='rad', outputs='eq30', inflow='cyclic'):
+        if inflow not in ('cyclic', 'three_state'):
+            raise ValueError(f"inflow must be 'cyclic' or 'three_state', not {inflow!r}")
+        super().__init__(rotor, inflow=inflow, collective=collective, damping_parameter=True,
+                         outputs=outputs, interleave=True, angle_unit=angle_unit,
+                         name='multiblade_wake')
 
 
 def multiblade_from_blade_flap(t, blade_flap):
-    """Return [β0, βI, βII, βd] (T, 4) from four blade flap angles (MODELS.md §0)."""
+    """Return the multiblade coordinates (T, N) of N blade flap angles (docs/models.md §3)."""
     coords = multiblade_coordinates(blade_flap, np.atleast_1d(np.asarray(t, dtype=float)))
-    return np.column_stack([coords['collective'], coords['cos'], coords['sin'],
-                            coords['differential']])
+    return np.column_stack(list(coords.values()))
+
+
+def lock_number_from_known(known, model):
+    """Translate a known Lock number into the model's aerodynamic parameter (γ, or A = γB⁴/8)."""
+    known = dict(known)
+    if getattr(model, 'damping_parameter', False) and 'gamma' in known and 'A' not in known:
+        known['A'] = flap_damping(known.pop('gamma'), model.rotor.tip_loss)    # Ch.2 eq. 27
+    return known
 
 
 MODEL_NAMES = ('single_blade', 'multiblade', 'multiblade_constant', 'multiblade_wake')
 
 
 def build_model(name, rotor=RotorConstants(), collective='theta0', angle_unit='rad', **options):
-    """Model by its run-description name (see ../shared/recordings/README.md)."""
+    """
+    Model by its run-description name (docs/run_description.md).
+
+    Options: ``blade`` (single_blade), ``outputs`` ('multiblade' | 'blades', and 'eq30' for
+    the wake), ``inflow`` ('cyclic' | 'three_state', wake only).
+    """
     if name == 'single_blade':
         return SingleBlade(rotor, collective, angle_unit, **options)
     if name == 'multiblade':
         return Multiblade(rotor, collective, angle_unit, **options)
     if name == 'multiblade_constant':
-        return MultibladeConstant(rotor, collective, angle_unit)
+        return MultibladeConstant(rotor, collective, angle_unit, **options)
     if name == 'multiblade_wake':
-        return MultibladeWake(rotor)
+        return MultibladeWake(rotor, 'theta0', angle_unit, **options)
     raise ValueError(f'unknown model {name!r}; choose one of {", ".join(MODEL_NAMES)}')

@@ -1,15 +1,18 @@
 """
-Multiblade coordinates of an N-bladed rotor (MODELS.md §0): the one place they are defined.
+Multiblade coordinates of an N-bladed rotor (docs/models.md §3): the one place they are defined.
 
 Blade k (k = 1..N) sits at ψ_k = ψ + (k − 1)·2π/N, ψ the azimuth of blade 1 (= the report's
-nondimensional time t).
+nondimensional time t). The N blade flaps β_k and N multiblade coordinates q are related by
 
-    β0  = (1/N) Σ β_k                       collective
-    βI  = (2/N) Σ β_k cos ψ_k               cos   (forward tilt of the tip-path plane)
-    βII = (2/N) Σ β_k sin ψ_k               sin   (left tilt)
-    βd  = (1/N) Σ (−1)^k β_k   (N even)     differential (reactionless)
+    β_k = β0 + Σ_h (β_hc cos hψ_k + β_hs sin hψ_k) + βd (−1)^k,      h = 1 .. ⌊(N − 1)/2⌋
 
-and for N = 4 exactly  β_k = β0 + βI cos ψ_k + βII sin ψ_k + (−1)^k βd.
+    β0   = (1/N) Σ β_k                      collective (coning)
+    β_hc = (2/N) Σ β_k cos hψ_k             cyclic cos of harmonic h (h = 1: βI, forward tilt)
+    β_hs = (2/N) Σ β_k sin hψ_k             cyclic sin of harmonic h (h = 1: βII, left tilt)
+    βd   = (1/N) Σ (−1)^k β_k   (N even)     differential (reactionless)
+
+N = 2 has β0 and βd only, N = 3 has β0, βI, βII, N = 4 adds βd (the report's four coordinates),
+N = 5 adds β2c, β2s, and so on: always N coordinates, so the transform is exact and invertible.
 
 For pitch (report Ch.2 eq. 3), θ_k = θ0 − θI sin ψ_k + θII cos ψ_k, so the 'cos' coordinate of
 the blade pitches is the lateral cyclic θII and the 'sin' coordinate is −θI.
@@ -40,57 +43,119 @@ def blade_azimuths(psi, n_blades):
     return psi[:, None] + TWO_PI * np.arange(n_blades) / n_blades
 
 
+def coordinate_harmonics(n_blades):
+    """
+    Return the multiblade coordinates of an N-bladed rotor as (name, key, harmonic, kind) tuples.
+
+    ``kind`` is 'collective', 'cos', 'sin' or 'differential'; ``key`` is the dictionary key of
+    :func:`multiblade_coordinates` ('collective', 'cos', 'sin', 'cos2', 'sin2', ...,
+    'differential') and ``name`` the state name ('beta_0', 'beta_I', 'beta_II', 'beta_2c',
+    'beta_2s', ..., 'beta_d').
+    """
+    n_blades = int(n_blades)
+    if n_blades < 2:
+        raise ValueError(f'a rotor needs at least 2 blades for multiblade coordinates, '
+                         f'got {n_blades}')
+    coords = [('beta_0', 'collective', 0, 'collective')]
+    for h in range(1, (n_blades - 1) // 2 + 1):
+        if h == 1:
+            coords += [('beta_I', 'cos', 1, 'cos'), ('beta_II', 'sin', 1, 'sin')]
+        else:
+            coords += [(f'beta_{h}c', f'cos{h}', h, 'cos'), (f'beta_{h}s', f'sin{h}', h, 'sin')]
+    if n_blades % 2 == 0:
+        coords.append(('beta_d', 'differential', n_blades // 2, 'differential'))
+    return tuple(coords)
+
+
+def coordinate_names(n_blades):
+    """State names of the N multiblade coordinates, in transform order (β0, βI, βII, ..., βd)."""
+    return tuple(c[0] for c in coordinate_harmonics(n_blades))
+
+
+def blade_from_multiblade_matrix(psi, n_blades, derivative=0):
+    """
+    Return T (n, N, N) with β = T q (blade flaps from multiblade coordinates), or its d/dψ.
+
+    ``derivative`` = 1 or 2 gives dT/dψ and d²T/dψ² (needed to transform the equations of
+    motion: β′ = T q′ + T′ q, β″ = T q″ + 2T′ q′ + T″ q).
+    """
+    azimuths = blade_azimuths(psi, n_blades)
+    k = np.arange(1, n_blades + 1)
+    columns = []
+    for _, _, h, kind in coordinate_harmonics(n_blades):
+        if kind == 'collective':
+            col = np.full(azimuths.shape, 1.0 if derivative == 0 else 0.0)
+        elif kind == 'differential':
+            col = np.broadcast_to(((-1.0) ** k) * (1.0 if derivative == 0 else 0.0),
+                                  azimuths.shape)
+        else:
+            phase = h * azimuths + 0.5 * np.pi * ((kind == 'cos') + derivative)
+            col = h**derivative * np.sin(phase)     # d^n/dψ^n of sin(hψ) or cos(hψ)
+        columns.append(col)
+    return np.stack(columns, axis=2)
+
+
+def multiblade_from_blade_matrix(psi, n_blades):
+    """Return T⁻¹ (n, N, N) with q = T⁻¹ β: (1/N) rows for β0 and βd, (2/N) cos/sin rows."""
+    azimuths = blade_azimuths(psi, n_blades)
+    k = np.arange(1, n_blades + 1)
+    rows = []
+    for _, _, h, kind in coordinate_harmonics(n_blades):
+        if kind == 'collective':
+            row = np.full(azimuths.shape, 1.0 / n_blades)
+        elif kind == 'differential':
+            row = np.broadcast_to((-1.0) ** k / n_blades, azimuths.shape)
+        elif kind == 'cos':
+            row = (2.0 / n_blades) * np.cos(h * azimuths)
+        else:
+            row = (2.0 / n_blades) * np.sin(h * azimuths)
+        rows.append(row)
+    return np.stack(rows, axis=1)
+
+
 def _check_blades(values, psi):
     values = np.asarray(values, dtype=float)
     psi = np.asarray(psi, dtype=float)
     if values.ndim != 2 or psi.shape != values.shape[:1]:
         raise ValueError(f'values must be (n, N) and psi (n,); got {values.shape} and {psi.shape}')
-    if values.shape[1] < 3:
-        raise ValueError(f'multiblade coordinates need at least 3 blades, got {values.shape[1]}')
+    if values.shape[1] < 2:
+        raise ValueError(f'multiblade coordinates need at least 2 blades, got {values.shape[1]}')
     return values, psi
 
 
 def multiblade_coordinates(values, psi):
     """
-    Transform blade quantities to multiblade coordinates (MODELS.md §0).
+    Transform blade quantities to multiblade coordinates (docs/models.md §3).
 
     Parameters
     ----------
     values
-        (n, N) per-blade flap (or pitch), N ≥ 3.
+        (n, N) per-blade flap (or pitch), N ≥ 2.
     psi
         (n,) azimuth of blade 1 (the nondimensional time t).
 
     Returns
     -------
-    Dict with (n,) arrays 'collective' (β0), 'cos' (βI), 'sin' (βII) and, for even N,
-    'differential' (βd).
+    Dict with (n,) arrays 'collective' (β0), for N ≥ 3 'cos' (βI) and 'sin' (βII), for N ≥ 5
+    'cos2', 'sin2', ... (higher cyclics) and, for even N, 'differential' (βd).
 
     """
     values, psi = _check_blades(values, psi)
     n_blades = values.shape[1]
-    azimuths = blade_azimuths(psi, n_blades)
-    coords = {
-        'collective': values.mean(axis=1),
-        'cos': 2.0 / n_blades * np.sum(values * np.cos(azimuths), axis=1),
-        'sin': 2.0 / n_blades * np.sum(values * np.sin(azimuths), axis=1),
-    }
-    if n_blades % 2 == 0:
-        sign = (-1.0) ** np.arange(1, n_blades + 1)
-        coords['differential'] = values @ sign / n_blades
-    return coords
+    q = np.einsum('tij,tj->ti', multiblade_from_blade_matrix(psi, n_blades), values)
+    return {key: q[:, i] for i, (_, key, _, _) in enumerate(coordinate_harmonics(n_blades))}
 
 
 def blade_values(coords, psi, n_blades=4):
     """
-    Inverse of :func:`multiblade_coordinates`: β_k = β0 + βI cos ψ_k + βII sin ψ_k + (−1)^k βd.
+    Inverse of :func:`multiblade_coordinates`: β_k = β0 + Σ_h (...) + (−1)^k βd.
 
-    Exact for N = 3 and N = 4 (where the coordinates span all blade motions).
+    Exact when every coordinate of the N-bladed rotor is given; missing coordinates count as 0.
 
     Parameters
     ----------
     coords
-        Dict as returned by :func:`multiblade_coordinates`; 'differential' optional.
+        Dict as returned by :func:`multiblade_coordinates` (any coordinate may be left out).
     psi
         (n,) azimuth of blade 1.
     n_blades
@@ -101,12 +166,11 @@ def blade_values(coords, psi, n_blades=4):
     (n, N) per-blade values.
 
     """
-    psi = np.asarray(psi, dtype=float)
-    azimuths = blade_azimuths(psi, n_blades)
-    values = (np.asarray(coords['collective'], dtype=float)[:, None]
-              + np.asarray(coords['cos'], dtype=float)[:, None] * np.cos(azimuths)
-              + np.asarray(coords['sin'], dtype=float)[:, None] * np.sin(azimuths))
-    if 'differential' in coords:
-        sign = (-1.0) ** np.arange(1, n_blades + 1)
-        values = values + np.asarray(coords['differential'], dtype=float)[:, None] * sign
+    psi = np.atleast_1d(np.asarray(psi, dtype=float))
+    T = blade_from_multiblade_matrix(psi, n_blades)
+    values = np.zeros((psi.size, n_blades))
+    for i, (_, key, _, _) in enumerate(coordinate_harmonics(n_blades)):
+        if key in coords:
+            value = np.asarray(coords[key], dtype=float).reshape(-1)
+            values = values + value[:, None] * T[:, :, i]
     return values
