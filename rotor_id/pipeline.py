@@ -14,7 +14,7 @@ import math
 import numpy as np
 
 from rotor_id.estimation.output_error import Experiment, fit_output_error, IdentificationError
-from rotor_id.physics.models import build_model, RotorConstants
+from rotor_id.physics.models import build_model, lock_number_from_known, RotorConstants
 from rotor_id.physics.stirring import SampledInput
 
 #: Default output channels per model when the run description does not say.
@@ -123,30 +123,35 @@ def rotor_constants(description):
     rotor = description.rotor
     return RotorConstants(n_blades=int(rotor.blades), advance_ratio=float(rotor.advance_ratio),
                           flap_frequency=float(rotor.flap_frequency),
-                          tip_loss=float(rotor.tip_loss))
+                          tip_loss=float(rotor.tip_loss),
+                          pitch_flap_coupling=float(getattr(rotor, 'pitch_flap_coupling', 0.0)))
 
 
 def model_for(description, **options):
     """Return the identification model a run description names, in radians."""
     rotor = rotor_constants(description)
     measurement = description.measurement or DEFAULT_MEASUREMENT[description.model]
-    if description.model == 'multiblade':
-        options.setdefault('outputs', 'blades' if measurement == 'blades' else 'multiblade')
-    if description.model == 'multiblade_wake' and measurement not in ('eq30', 'multiblade'):
+    if description.model != 'single_blade':
+        options.setdefault('outputs', measurement)
+    if description.model == 'multiblade_wake':
+        options.setdefault('inflow', getattr(description, 'inflow', None) or 'cyclic')
+    elif getattr(description, 'inflow', None):
+        raise IdentificationError('inflow applies to the wake model only, not '
+                                  f'{description.model}')
+    if description.model in ('multiblade', 'multiblade_constant') and measurement == 'eq30':
         raise IdentificationError(
-            'the wake model measures (β1−β3)/2 and (β2−β4)/2 (report eq. 30); set '
-            'measurement: eq30 (or leave it out) in the run description')
+            'measurement eq30 ((β1−β3)/2, (β2−β4)/2) belongs to the wake model; use '
+            'measurement: multiblade or blades')
     collective = 'delta' if 'delta' in description.unknowns else 'theta0'
-    return build_model(description.model, rotor, collective=collective, angle_unit='rad',
-                       **({} if description.model in ('multiblade_constant', 'multiblade_wake')
-                          else options))
+    try:
+        return build_model(description.model, rotor, collective=collective, angle_unit='rad',
+                           **options)
+    except ValueError as err:
+        raise IdentificationError(f'{description.model} for this rotor: {err}') from None
 
 
 def _known_values(description, model, record):
-    known = dict(description.known)
-    if model.name == 'multiblade_wake' and 'gamma' in known:
-        gamma = known.pop('gamma')
-        known['A'] = gamma * model.rotor.tip_loss**4 / 8.0           # Ch.2 eq. 27
+    known = lock_number_from_known(description.known, model)
     names = model.parameter_names
     if 'theta0' in names and 'theta0' not in known and 'theta0' not in description.unknowns:
         known['theta0'] = float(np.mean(_pitch_input(record)(record.t)[:, 0]))
@@ -388,12 +393,14 @@ def identify_runs(runs, method=None, progress=None, multi_start=True, max_iter=5
 
 
 def channel_noise(model, blade_noise):
-    """Noise σ of the model's channels for independent per-blade flap noise σ (N = 4)."""
-    names = model.output_names
-    if model.name == 'multiblade_wake':
-        return blade_noise / math.sqrt(2.0)             # (β1 − β3)/2
-    if names and names[0] == 'beta_0':
-        # β0 and βd average four blades; βI, βII are (2/N) Σ β cos ψ
-        return np.array([blade_noise / 2.0 if n in ('beta_0', 'beta_d')
-                         else blade_noise / math.sqrt(2.0) for n in names])
-    return blade_noise
+    """
+    Noise σ of the model's channels for independent per-blade flap noise σ, any N.
+
+    A channel y_i = Σ_k C_ik β_k (the model's :meth:`channel_matrix`: the blade itself, a
+    multiblade coordinate or report eq. 30) has σ_i = σ·sqrt(Σ_k C_ik²), averaged over a
+    revolution (for the coordinates and eq. 30 it does not depend on the azimuth).
+    """
+    t = 2.0 * math.pi * np.arange(64) / 64
+    C = model.channel_matrix(t)
+    sigma = blade_noise * np.sqrt(np.mean(np.sum(C * C, axis=2), axis=0))
+    return float(sigma[0]) if np.allclose(sigma, sigma[0], rtol=1e-12) else sigma

@@ -3,7 +3,8 @@ Run descriptions: what the experimenter knows about a recording (YAML).
 
 The schema of /work/shared/recordings/README.md::
 
-    rotor: {blades: 4, advance_ratio: 0.0, flap_frequency: 1.2, tip_loss: 0.97}
+    rotor: {blades: 4, advance_ratio: 0.0, flap_frequency: 1.2, tip_loss: 0.97,
+            pitch_flap_coupling: 0.0}          # optional, tan δ3 (default 0)
     topics: {blade_pitch: /rotor/blade_pitch, blade_flap: /rotor/blade_flap,
              azimuth: /rotor/azimuth}
     model: multiblade_wake
@@ -24,6 +25,7 @@ extended, without breaking it, by optional keys::
     conditions: {collective_deg: 4, tunnel_speed_m_s: 20, run: 17}
                                          # the test point's conditions (numbers or text),
                                          # reported by ``rotor-id campaign``
+    inflow: cyclic                       # wake model: cyclic (report) | three_state
 
 Errors raise :class:`RunDescriptionError` naming the file, the line and what to do; unknown
 keys only warn (:class:`RunDescriptionWarning`), so that newer files still load.
@@ -36,32 +38,35 @@ import re
 import warnings
 
 from rotor_id.io.errors import RunDescriptionError, RunDescriptionWarning
+from rotor_id.physics.aerodynamics import flap_damping
 import yaml
 
 MODEL_PARAMETERS = {
     'single_blade': ('gamma', 'theta0', 'delta'),
     'multiblade': ('gamma', 'theta0', 'delta'),
     'multiblade_constant': ('gamma', 'theta0', 'delta'),
-    'multiblade_wake': ('A', 'AL_over_tau', 'inv_tau', 'gamma'),
+    'multiblade_wake': ('A', 'AL_over_tau', 'inv_tau', 'gamma', 'theta0', 'AL0_over_tau0',
+                        'inv_tau0'),
 }
 MODELS = tuple(MODEL_PARAMETERS)
-POSITIVE_PARAMETERS = ('gamma', 'A', 'AL_over_tau', 'inv_tau')
+POSITIVE_PARAMETERS = ('gamma', 'A', 'AL_over_tau', 'inv_tau', 'AL0_over_tau0', 'inv_tau0')
 ANGLE_PARAMETERS = ('theta0',)  # radians: a value above MAX_ANGLE_RAD is taken for degrees
 MAX_ANGLE_RAD = 1.0
 INITIAL_STATES = ('estimate', 'equilibrium', 'zero')
 METHODS = ('output-error', 'filter-error', 'equation-error')
 MEASUREMENTS = ('blades', 'multiblade', 'eq30')
+INFLOWS = ('cyclic', 'three_state')
 TOPIC_ROLES = ('blade_pitch', 'blade_flap', 'azimuth')
 DEFAULT_TOPICS = {
     'blade_pitch': '/rotor/blade_pitch',
     'blade_flap': '/rotor/blade_flap',
     'azimuth': '/rotor/azimuth',
 }
-ROTOR_KEYS = ('blades', 'advance_ratio', 'flap_frequency', 'tip_loss')
+ROTOR_KEYS = ('blades', 'advance_ratio', 'flap_frequency', 'tip_loss', 'pitch_flap_coupling')
 TOP_LEVEL_KEYS = (
     'rotor', 'topics', 'model', 'unknowns', 'window_s', 'joint_names', 'known',
     'initial_guess', 'initial_state', 'noise_std_rad', 'method', 'measurement', 'lock_number',
-    'conditions', 'run',
+    'conditions', 'run', 'inflow',
 )
 BLADE_JOINT_ROLES = ('blade_pitch', 'blade_flap')
 
@@ -81,6 +86,8 @@ class RotorSpec:
         P, rotating flap natural frequency, per rev.
     tip_loss
         B.
+    pitch_flap_coupling
+        K_P = tan δ3 (0 unless the description says).
 
     """
 
@@ -88,6 +95,7 @@ class RotorSpec:
     advance_ratio: float
     flap_frequency: float
     tip_loss: float
+    pitch_flap_coupling: float = 0.0
 
 
 @dataclass(frozen=True)
@@ -129,6 +137,8 @@ class RunDescription:
         γ for the wake model, or None.
     conditions
         Name -> number or text: the test point's conditions (tunnel speed, run number ...).
+    inflow
+        Wake model's inflow: 'cyclic' (the report's) or 'three_state'; None for the default.
     path
         File the description was read from ('<string>' if parsed from text).
     warnings
@@ -153,6 +163,7 @@ class RunDescription:
     measurement: object = None
     lock_number: object = None
     conditions: dict = field(default_factory=dict)
+    inflow: object = None
     path: str = '<string>'
     warnings: tuple = ()
     extra: dict = field(default_factory=dict)
@@ -436,6 +447,8 @@ def _validate(parser):
                                      'rotor', 'flap_frequency', positive=True),
         tip_loss=parser.number(parser.require(rotor, 'tip_loss', 'rotor'),
                                'rotor', 'tip_loss', positive=True),
+        pitch_flap_coupling=parser.number(rotor.get('pitch_flap_coupling', 0.0), 'rotor',
+                                          'pitch_flap_coupling'),
     )
     if spec.tip_loss > 1:
         parser.fail(f'rotor.tip_loss must be in (0, 1], got {spec.tip_loss}', 'rotor', 'tip_loss')
@@ -523,6 +536,11 @@ def _validate(parser):
                 parser.fail(f'conditions.{name} must be a number or a text, got {value!r}',
                             'conditions', name)
         options['conditions'] = dict(conditions)
+    if 'inflow' in data:
+        if model != 'multiblade_wake':
+            parser.fail(f'inflow applies to the wake model only (model: {model}); remove it or '
+                        'use model: multiblade_wake', 'inflow')
+        options['inflow'] = parser.choice(data['inflow'], INFLOWS, 'inflow')
 
     return RunDescription(
         rotor=spec, topics=topics, model=model, unknowns=tuple(unknowns), window_s=(t0, t1),
@@ -543,7 +561,7 @@ def _check_wake_gain(parser, rotor, unknowns, known, data):
         parser.fail('gamma is unknown but fixed by the known A (A = γB⁴/8 in the wake model); '
                     'remove gamma from unknowns or drop the known A', 'known')
     if 'gamma' in known and 'A' in known:
-        implied = known['gamma'] * rotor.tip_loss ** 4 / 8.0
+        implied = flap_damping(known['gamma'], rotor.tip_loss)
         if not math.isclose(known['A'], implied, rel_tol=1e-6):
             parser.fail(f'known A = {known["A"]} contradicts γ = {known["gamma"]} '
                         f'(A = γB⁴/8 = {implied:.6g}); give one of them', *where)
