@@ -46,7 +46,7 @@ from rotor_id.io.errors import RunDescriptionError, RunDescriptionWarning
 from rotor_id.io.record import Record
 from rotor_id.io.run_description import _Lines, parse_run_description
 from rotor_id.physics.blades import blade_flap_from_states
-from rotor_id.physics.models import build_model
+from rotor_id.physics.models import build_model, lock_number_from_known
 from rotor_id.physics.stirring import PROGRESSING_OMEGADOT, StirringSchedule
 import yaml
 
@@ -64,9 +64,6 @@ DEFAULT_DURATION_REV = (1.0, 2.0, 3.0)
 DEFAULT_COLLECTIVE_RAD = math.radians(2.0)
 #: The lateral cyclic is stepped one revolution after the record starts (recording convention).
 CYCLIC_STEP = 2.0 * math.pi
-#: Nondimensional time a periodic (μ > 0) model is run at collective pitch from rest to reach
-#: trim before the record starts (the flap mode decays like exp(−γB⁴t/16): e⁻¹⁶ after 60).
-TRIM_SETTLE = 80.0
 MAX_CANDIDATES = 500
 #: The M⁻¹(t_f) curve of a transient is computed this many times beyond its longest candidate,
 #: to say how long a record would have to be when no planned length meets the targets.
@@ -327,9 +324,9 @@ def _parse_guess(parser, data, description, model):
     raw = parser.mapping(data['guess'], 'guess') if data.get('guess') is not None else {}
     guess = {}
     for name, value in raw.items():
-        if model.name == 'multiblade_wake' and name == 'gamma':
-            gamma = parser.number(value, 'guess', name)
-            guess['A'] = gamma * model.rotor.tip_loss**4 / 8.0          # Ch.2 eq. 27
+        if name == 'gamma' and name not in names:
+            guess.update(lock_number_from_known({name: parser.number(value, 'guess', name)},
+                                                model))
             continue
         if name not in names:
             parser.fail(f'guess.{name}: model {model.name} has no parameter {name!r}; its '
@@ -449,10 +446,8 @@ def description_for(plan, candidate):
 
 def parameter_values(plan, model):
     """Full parameter vector to plan around: nominal < known < guess (radians)."""
-    values = {k: v for k, v in plan.description.known.items() if k in model.parameter_names}
-    if model.name == 'multiblade_wake' and 'gamma' in plan.description.known \
-            and 'A' not in plan.guess:
-        values['A'] = plan.description.known['gamma'] * model.rotor.tip_loss**4 / 8.0
+    known = lock_number_from_known(plan.description.known, model)
+    values = {k: v for k, v in known.items() if k in model.parameter_names}
     if 'theta0' in model.parameter_names and 'theta0' not in plan.guess:
         values.setdefault('theta0', plan.collective_rad)
     values.update(plan.guess)
@@ -468,30 +463,9 @@ def _simulated_models(plan):
                                angle_unit='rad', blade=k) for k in range(1, rotor.n_blades + 1)]
 
 
-_TRIMS = {}      # (model, p, collective) -> trim state: candidates of a plan share the trim
-
-
 def _trim_state(model, p, collective):
     """State at the record start: trim at collective pitch only (recording convention)."""
-    u = np.array([[collective, 0.0, 0.0]])
-    if model.time_invariant:
-        return model.equilibrium(np.zeros(1), p, u)
-    key = (model.name, getattr(model, 'blade', 0), getattr(model, 'collective', ''),
-           model.rotor, tuple(np.asarray(p, dtype=float)), float(collective))
-    if key not in _TRIMS:
-        hold = StirringSchedule(collective=collective, amplitude=0.0, t0=0.0, t_step=0.0)
-        sim = simulate(model, p, hold, np.array([-TRIM_SETTLE, 0.0]), np.zeros(model.n_states))
-        if len(_TRIMS) > 64:
-            _TRIMS.clear()
-        _TRIMS[key] = sim.x[-1]
-    return _TRIMS[key].copy()
-
-
-def _coning(model, p, collective):
-    """Hover coning for the wake model, which has no β0 state: β0 = Aθ0/P² (cosmetic)."""
-    if model.name != 'multiblade_wake':
-        return 0.0
-    return p[0] * collective / model.rotor.flap_frequency**2
+    return model.trim_state(p, collective, t=0.0)
 
 
 def simulate_run(plan, candidate, rng=None):
@@ -525,7 +499,7 @@ def simulate_run(plan, candidate, rng=None):
     t = plan.omega_rad_s * time_s
     states = [simulate(m, p, schedule, t, _trim_state(m, p, plan.collective_rad)).x
               for m in models]
-    flap = blade_flap_from_states(models, t, states, _coning(model, p, plan.collective_rad))
+    flap = blade_flap_from_states(models, t, states, model.coning(p, plan.collective_rad))
     if rng is not None:
         flap = flap + plan.noise_std_rad * rng.standard_normal(flap.shape)
     n_blades = plan.description.rotor.blades

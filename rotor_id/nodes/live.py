@@ -22,7 +22,6 @@ from rotor_id.physics.stirring import blade_pitch_from_multiblade
 NS = 1_000_000_000
 _NOISE_BLOCK = 1024
 #: Revolutions simulated at collective pitch before the run to reach the periodic trim.
-TRIM_REVOLUTIONS = 20
 
 
 # ------------------------------------------------------------------------------ the plant
@@ -121,23 +120,14 @@ class PlantStepper:
         return p
 
     def _trim(self, model, collective):
-        """Trim at collective only: equilibrium, or the settled periodic response."""
-        u = np.array([[collective, 0.0, 0.0]])
-        p = self._parameters(collective)
-        if model.time_invariant:
-            return model.equilibrium([self.t], p, u)
-        span = TRIM_REVOLUTIONS * TWO_PI
-        grid = np.linspace(self.t - span, self.t, TRIM_REVOLUTIONS * 64 + 1)
-        sim = simulate(model, p, lambda tt: np.tile(u, (np.size(tt), 1)), grid,
-                       np.zeros(model.n_states))
-        return sim.x[-1]
+        """Trim at collective only: the model's equilibrium or periodic trim."""
+        return model.trim_state(self._parameters(collective), collective, t=self.t)
 
     @property
     def coning(self):
-        """Quasi-static coning Aθ0/P² added to the wake model's blades (no inflow, no state)."""
-        if self.models[0].name != 'multiblade_wake':
-            return 0.0
-        return self.p[0] * self.cmd_u[-1, 0] / self.rotor.flap_frequency**2
+        """Steady coning added to the blades of a model without a β0 state (the report's wake)."""
+        collective = self.cmd_u[-1, 0]
+        return self.models[0].coning(self._parameters(collective), collective)
 
     def command(self, t_cmd, u):
         """Hold the multiblade pitch ``u`` = [θ0, θI, θII] from nondimensional time ``t_cmd``."""
@@ -182,12 +172,12 @@ class PlantStepper:
         return t, flap, pitch
 
 
-def rotor_constants(n_blades, advance_ratio, flap_frequency, tip_loss):
+def rotor_constants(n_blades, advance_ratio, flap_frequency, tip_loss, pitch_flap_coupling=0.0):
     """Return the RotorConstants of node parameters (checked like a run description)."""
     if n_blades < 1:
         raise ValueError(f'n_blades must be at least 1, got {n_blades}')
     return RotorConstants(int(n_blades), float(advance_ratio), float(flap_frequency),
-                          float(tip_loss))
+                          float(tip_loss), float(pitch_flap_coupling)).check()
 
 
 # ------------------------------------------------------------------------------ Kalman, streaming
