@@ -20,120 +20,72 @@ import math
 
 import numpy as np
 
-from rotor_id.physics.models import LinearModel, Multiblade, Parameter
+from rotor_id.physics.aerodynamics import (blade_aerodynamics, flap_damping,
+                                           lock_number_from_damping)
+from rotor_id.physics.models import LinearModel, Multiblade, Parameter, RotorModel
 
 
 # ------------------------------------------------------------------------------------------------
 # Blades as seen from a model's states
 # ------------------------------------------------------------------------------------------------
 
-def _azimuths(t, n_blades):
-    t = np.atleast_1d(np.asarray(t, dtype=float))
-    return t[:, None] + 2.0 * np.pi * np.arange(n_blades)[None, :] / n_blades
-
-
 class BladeView:
-    """Per-blade flap, flap rate and inflow of a baseline model's state (see module docstring)."""
+    """
+    Per-blade flap, flap rate and inflow of a baseline model's state (see module docstring).
+
+    The transform belongs to the model (:class:`~rotor_id.physics.models.RotorModel`, any N):
+    this view only names its matrices for the augmentations. Over an augmented model the
+    blades are the root model's states, which come first in the state vector; the inner
+    augmentations' extra states get zero columns, and a channel subset picks its rows.
+    """
 
     def __init__(self, model):
-        # an augmented model over another: the blades are the root model's states, which come
-        # first in the state vector; the inner augmentations' extra states get zero columns
         self.n_states = model.n_states
         self.n_outputs = model.n_outputs
+        rows = None
         while isinstance(model, (Augmented, ChannelSubset)):
-            model = model.base if isinstance(model, Augmented) else model.inner
+            if isinstance(model, ChannelSubset):
+                rows = list(model.rows) if rows is None else [model.rows[i] for i in rows]
+                model = model.inner
+            else:
+                model = model.base
+        self._rows = rows
         self.model = model
         self.kind = model.name
-        if self.kind == 'single_blade':
-            self.n_blades = 1
-            self.blades = (model.blade,)
-        else:
-            self.n_blades = model.rotor.n_blades
-            self.blades = tuple(range(1, self.n_blades + 1))
+        self.blades = tuple(model.blades)
+        self.n_blades = len(self.blades)
 
     def _psi(self, t):
-        if self.kind == 'single_blade':
-            return np.atleast_1d(np.asarray(t, dtype=float))[:, None] + self.model.blade_offset
-        return _azimuths(t, self.n_blades)
+        return self.model.blade_azimuth(t)
+
+    def _columns(self, H):
+        out = np.zeros(H.shape[:2] + (self.n_states,))
+        out[:, :, :H.shape[2]] = H
+        return out
 
     def flap(self, t):
         """Hb (T, N, n): β_k = Hb x."""
-        psi = self._psi(t)
-        T, N, n = psi.shape[0], psi.shape[1], self.n_states
-        Hb = np.zeros((T, N, n))
-        if self.kind == 'single_blade':
-            Hb[:, 0, 0] = 1.0
-        elif self.kind == 'multiblade_wake':
-            Hb[:, :, 0], Hb[:, :, 2] = np.cos(psi), np.sin(psi)
-        else:
-            Hb[:, :, 0] = 1.0
-            Hb[:, :, 1], Hb[:, :, 2] = np.cos(psi), np.sin(psi)
-            if self.kind == 'multiblade':
-                Hb[:, :, 3] = (-1.0) ** np.arange(1, N + 1)
-        return Hb
+        return self._columns(self.model.blade_flap_matrix(t))
 
     def flap_rate(self, t):
         """Hbr (T, N, n): β_k′ = Hbr x (rates are states, so no input enters)."""
-        psi = self._psi(t)
-        T, N, n = psi.shape[0], psi.shape[1], self.n_states
-        c, s = np.cos(psi), np.sin(psi)
-        H = np.zeros((T, N, n))
-        if self.kind == 'single_blade':
-            H[:, 0, 1] = 1.0
-        elif self.kind == 'multiblade_wake':       # x = [βI, βI′, βII, βII′, λI, λII]
-            H[:, :, 0], H[:, :, 1], H[:, :, 2], H[:, :, 3] = -s, c, c, s
-        else:
-            nq = n // 2
-            H[:, :, 1], H[:, :, 2] = -s, c
-            H[:, :, nq] = 1.0
-            H[:, :, nq + 1], H[:, :, nq + 2] = c, s
-            if self.kind == 'multiblade':
-                H[:, :, nq + 3] = (-1.0) ** np.arange(1, N + 1)
-        return H
+        return self._columns(self.model.blade_flap_rate_matrix(t))
 
     def inflow(self, t):
         """Return Hl (T, N, n): the wake's inflow angle λ_k = λI cos ψ_k + λII sin ψ_k."""
-        psi = self._psi(t)
-        H = np.zeros((psi.shape[0], psi.shape[1], self.n_states))
-        if self.kind == 'multiblade_wake':
-            H[:, :, 4], H[:, :, 5] = np.cos(psi), np.sin(psi)
-        return H
+        return self._columns(self.model.blade_inflow_matrix(t))
 
     def channels(self, t):
-        """C (T, m, N): the model's output channels from blade values."""
-        psi = self._psi(t)
-        T, N = psi.shape
-        model = self.model
-        if self.kind == 'single_blade' or getattr(model, 'outputs', None) == 'blades':
-            return np.broadcast_to(np.eye(N), (T, N, N)).copy()
-        if self.kind == 'multiblade_wake':
-            C = np.zeros((T, 2, N))
-            C[:, 0, 0], C[:, 0, 2] = 0.5, -0.5
-            C[:, 1, 1], C[:, 1, 3] = 0.5, -0.5
-            return C
-        rows = [np.full((T, N), 1.0 / N), (2.0 / N) * np.cos(psi), (2.0 / N) * np.sin(psi),
-                np.broadcast_to((-1.0) ** np.arange(1, N + 1) / N, (T, N))]
-        C = np.stack(rows, axis=1)
-        return C[:, :self.n_outputs]
+        """C (T, m, N): the model's output channels from the modelled blades' values."""
+        C = self.model.channel_matrix(t)[:, :, [k - 1 for k in self.blades]]
+        return C if self._rows is None else C[:, self._rows]
 
     def force(self, t):
         """G (T, n, N): change of x′ for a unit flapping acceleration of blade k alone."""
-        psi = self._psi(t)
-        T, N, n = psi.shape[0], psi.shape[1], self.n_states
-        G = np.zeros((T, n, N))
-        if self.kind == 'single_blade':
-            G[:, 1, 0] = 1.0
-        elif self.kind == 'multiblade_wake':
-            G[:, 1, :] = (2.0 / N) * np.cos(psi)
-            G[:, 3, :] = (2.0 / N) * np.sin(psi)
-        else:
-            nq = n // 2
-            G[:, nq, :] = 1.0 / N
-            G[:, nq + 1, :] = (2.0 / N) * np.cos(psi)
-            G[:, nq + 2, :] = (2.0 / N) * np.sin(psi)
-            if self.kind == 'multiblade':
-                G[:, nq + 3, :] = (-1.0) ** np.arange(1, N + 1) / N
-        return G
+        G = self.model.blade_force_matrix(t)
+        out = np.zeros((G.shape[0], self.n_states, G.shape[2]))
+        out[:, :G.shape[1]] = G
+        return out
 
 
 # ------------------------------------------------------------------------------------------------
@@ -573,21 +525,24 @@ class ChannelSubset(LinearModel):
 
 def periodic_coefficients(base):
     """Return the periodic multiblade model (MODELS.md §2.1) on the constant model's channels."""
-    inner = Multiblade(base.rotor, collective=base.collective, outputs='multiblade')
+    inner = Multiblade(base.rotor, collective=base.collective, outputs=base.outputs)
     inner.parameters = base.parameters
-    return ChannelSubset(inner, [0, 1, 2], 'periodic_coefficients')
+    rows = [inner.output_names.index(name) for name in base.output_names]
+    return ChannelSubset(inner, rows, 'periodic_coefficients')
 
 
 class DynamicInflow(Augmented):
     """
-    Two-parameter dynamic wake on the tilt modes (Ch.2 eq. 29, MODELS.md §3.1-3.2).
+    The report's two-parameter cyclic wake (Ch.2 eq. 29) added to a multiblade γ-model.
 
-    Adds λI, λII (report sign, up positive) to a multiblade γ-model:
+    The augmented model is the baseline's rotor built again with ``inflow='cyclic'``
+    (:class:`~rotor_id.physics.models.RotorModel`, docs/models.md §4): at μ = 0
 
         βI″ += A λI,   βII″ += A λII,          A = γB⁴/8 (Ch.2 eq. 27)
         λI′  = −(AL/τ + 1/τ) λI  + (AL/τ)(βI′ + βII − θII)
         λII′ = −(AL/τ + 1/τ) λII + (AL/τ)(βII′ − βI + θI)
 
+    and in forward flight the same inflow driven by the blades' full periodic moment.
     Parameters ``AL_over_tau`` and ``inv_tau``; A is reported from γ.
     """
 
@@ -602,35 +557,65 @@ class DynamicInflow(Augmented):
 
     def __init__(self, base):
         super().__init__(base)
-        names = base.state_names
-        self._i = [names.index(s) for s in ('beta_I', 'beta_II', 'beta_I_dot', 'beta_II_dot')]
         self._gamma = _gamma_index(base)
-        self._a1 = base.rotor.tip_loss**4 / 8.0
+        self._a1 = flap_damping(1.0, base.rotor.tip_loss)      # A/γ, Ch.2 eq. 27
+        root = self.view.model                  # the rotor model under any augmentation
+        self.root = root
+        self.inner = RotorModel(root.rotor, periodic=root.periodic, inflow='cyclic',
+                                collective=root.collective, outputs=root.outputs,
+                                all_coordinates=root.all_coordinates, name=root.name)
+        missing = set(self.inner.state_names) - set(self.state_names)
+        if missing:
+            raise ValueError(f'the wake couples {", ".join(sorted(missing))}, which the '
+                             f'baseline {base.name} does not carry')
+        self._states = np.array([self.state_names.index(n) for n in self.inner.state_names])
+        # the root's states within the inner model's, to subtract what the baseline has
+        self._root_in_inner = np.array([self.inner.state_names.index(n)
+                                        for n in root.state_names])
+        names = self.parameter_names
+        self._params = [(names.index(n), i) for i, n in enumerate(self.inner.parameter_names)]
+        self._root_params = [(names.index(n), i) for i, n in enumerate(root.parameter_names)]
+
+    def _inner_p(self, pb, pe):
+        p = np.concatenate([pb, pe])
+        q = np.zeros(len(self.inner.parameters))
+        for mine, theirs in self._params:
+            q[theirs] = p[mine]
+        return q, p[:len(self.root.parameters)]
+
+    def _embed(self, A, axes):
+        """Place the root model's blocks (F: axes 2, g: axes 1) into the inner state space."""
+        n, r = self.inner.n_states, self._root_in_inner
+        if axes == 2:
+            out = np.zeros(A.shape[:-2] + (n, n))
+            out[..., r[:, None], r[None, :]] = A
+        else:
+            out = np.zeros(A.shape[:-1] + (n,))
+            out[..., r] = A
+        return out
 
     def _extra(self, t, pb, pe, u, F, g):
-        bI, bII, rI, rII = self._i
-        nb = self.n_base_states
-        A = self._a1 * pb[self._gamma]
-        c, r = pe
-        F[:, rI, nb], F[:, rII, nb + 1] = A, A
-        F[:, nb, [rI, bII]] = c
-        F[:, nb + 1, [rII]] = c
-        F[:, nb + 1, bI] = -c
-        F[:, nb, nb] = F[:, nb + 1, nb + 1] = -(c + r)
-        g[:, nb] = -c * u[:, 2]
-        g[:, nb + 1] = c * u[:, 1]
+        """Add the wake: the inner model's F, g minus the root's (which the baseline has)."""
+        q, pr = self._inner_p(pb, pe)
+        Fi, gi = self.inner.system(t, q, u[:, :3])
+        Fr, gr = self.root.system(t, pr, u[:, :3])
+        idx = self._states
+        F[:, idx[:, None], idx[None, :]] += Fi - self._embed(Fr, 2)
+        g[:, idx] += gi - self._embed(gr, 1)
 
     def _extra_jacobian(self, t, pb, pe, u, dF, dg):
-        bI, bII, rI, rII = self._i
-        nb, k = self.n_base_states, self.n_base_parameters
-        dF[:, self._gamma, rI, nb] = dF[:, self._gamma, rII, nb + 1] = self._a1
-        dF[:, k, nb, [rI, bII]] = 1.0
-        dF[:, k, nb + 1, rII] = 1.0
-        dF[:, k, nb + 1, bI] = -1.0
-        dF[:, k, nb, nb] = dF[:, k, nb + 1, nb + 1] = -1.0
-        dF[:, k + 1, nb, nb] = dF[:, k + 1, nb + 1, nb + 1] = -1.0
-        dg[:, k, nb] = -u[:, 2]
-        dg[:, k, nb + 1] = u[:, 1]
+        q, pr = self._inner_p(pb, pe)
+        dFi, dgi = self.inner.system_jacobian(t, q, u[:, :3])
+        dFr, dgr = self.root.system_jacobian(t, pr, u[:, :3])
+        dFr, dgr = self._embed(dFr, 2), self._embed(dgr, 1)
+        root_of = dict(self._root_params)
+        idx = self._states
+        for mine, theirs in self._params:
+            dFm, dgm = dFi[:, theirs], dgi[:, theirs]
+            if mine in root_of:
+                dFm, dgm = dFm - dFr[:, root_of[mine]], dgm - dgr[:, root_of[mine]]
+            dF[:, mine][:, idx[:, None], idx[None, :]] += dFm
+            dg[:, mine][:, idx] += dgm
 
     def report_parameters(self, values, cov):
         """Return A = γB⁴/8 with its σ, AL/τ and 1/τ (the answers' names)."""
@@ -676,6 +661,9 @@ class BladeDissimilarity(Augmented):
     free_extra_states = ('eta', 'eta_dot')
 
     def __init__(self, base, blade):
+        if 'lambda_0' in BladeView(base).model.state_names:
+            raise ValueError('blade dissimilarity is modelled with the cyclic wake only, not '
+                             'with the three-state inflow')
         super().__init__(base)
         self.blade = int(blade)
         self.name = f'{base.name}+{self.effect}[blade {self.blade}]'
@@ -686,70 +674,67 @@ class BladeDissimilarity(Augmented):
         Return blade j's flapping coefficients and moment, with their derivatives.
 
         Damping c, stiffness k, pitch gain m, moment row a (T, n), constant a0 (T,), and their
-        derivatives with respect to the baseline parameters.
+        derivatives with respect to the baseline parameters. All come from the baseline's one
+        blade equation (:meth:`~rotor_id.physics.models.RotorModel.blade_moment` and
+        :func:`~rotor_id.physics.aerodynamics.blade_aerodynamics`), for any N, μ and K_P.
         """
-        base = self.base
-        rotor = base.rotor
-        B, mu, P = rotor.tip_loss, rotor.advance_ratio, rotor.flap_frequency
+        root = self.view.model                   # the rotor model under any augmentation
+        rotor = root.rotor
         j = self._j
-        psi = self.view._psi(t)[:, j]
-        Hb = self.view.flap(t)[:, j]
-        Hbr = self.view.flap_rate(t)[:, j]
-        T, Pb = t.size, len(pb)
-        theta_cyc = -u[:, 1] * np.sin(psi) + u[:, 2] * np.cos(psi)
-        if self.view.kind == 'multiblade_wake':
-            A = pb[0]
-            Hl = self.view.inflow(t)[:, j]
-            row = Hl - Hbr
+        gamma, dgamma = root.lock_number(pb)
+        dgamma = np.concatenate([dgamma, np.zeros(len(pb) - dgamma.size)])
+        half, dhalf = 0.5 * gamma, 0.5 * np.broadcast_to(dgamma, (t.size, len(pb)))
+        row, moment_u = self._moment(t, u)
+        coef = blade_aerodynamics(self.view._psi(t)[:, j], rotor.tip_loss, rotor.advance_ratio)
+        damping = coef['m_rate']
+        stiff = coef['m_flap'] + rotor.pitch_flap_coupling * coef['m_theta']
+        m_theta = coef['m_theta']
+        names = root.parameter_names
+        if 'theta0' in names:
+            self._collective = float(pb[names.index('theta0')])
+        elif 'delta' in names:
+            self._collective = float(pb[names.index('delta')] / gamma)
+        else:
             self._collective = float(np.mean(u[:, 0]))
-            theta = theta_cyc
-            da = np.zeros((T, Pb, base.n_states))
-            da[:, 0] = row
-            da0 = np.zeros((T, Pb))
-            da0[:, 0] = theta
-            one = np.ones(T)
-            dcoef = np.zeros((T, Pb))
-            dcoef[:, 0] = 1.0
-            return (A * one, P**2 * one, A * one, A * row, A * theta,
-                    dcoef, 0.0 * dcoef, dcoef, da, da0)
-        s1, c1 = np.sin(psi), np.cos(psi)
-        s2, c2 = np.sin(2 * psi), np.cos(2 * psi)
-        damping = B**4 / 4 + (B**3 * mu / 3) * s1
-        stiff = (B**3 * mu / 3) * c1 + (B**2 * mu**2 / 4) * s2
-        m_theta = ((B**4 + B**2 * mu**2) / 4 + (2.0 / 3.0) * B**3 * mu * s1
-                   - (B**2 * mu**2 / 4) * c2)
-        gi = _gamma_index(base)
-        gamma = pb[gi]
-        coll = base.parameter_names[1]
-        delta = pb[1] if coll == 'delta' else gamma * pb[1]
-        row = -0.5 * (damping[:, None] * Hbr + stiff[:, None] * Hb)
-        a = gamma * row
-        self._collective = delta / gamma
-        a0 = 0.5 * gamma * m_theta * theta_cyc
-        da = np.zeros((T, Pb, base.n_states))
-        da[:, gi] = row
-        da0 = np.zeros((T, Pb))
-        da0[:, gi] = 0.5 * m_theta * theta_cyc
-        dcoef = np.zeros((T, Pb))
-        dcoef[:, gi] = 1.0
-        return (0.5 * gamma * damping, P**2 + 0.5 * gamma * stiff, 0.5 * gamma * m_theta,
-                a, a0, dcoef * 0.5 * damping[:, None], dcoef * 0.5 * stiff[:, None],
-                dcoef * 0.5 * m_theta[:, None], da, da0)
+        da = dhalf[:, :, None] * row[:, None, :]
+        da0 = dhalf * moment_u[:, None]
+        return (half * damping, rotor.flap_frequency**2 + half * stiff, half * m_theta,
+                half * row, half * moment_u, dhalf * damping[:, None], dhalf * stiff[:, None],
+                dhalf * m_theta[:, None], da, da0)
 
-    def _wake_feedback(self, t, pb, u):
+    def _wake_feedback(self, t):
         """
-        Return the pieces of the odd blade's moment δM/A seen by the wake.
+        Return the pieces of the odd blade's extra moment seen by the cyclic wake.
 
-        Harmonic weights w (T, 2), state row r (T, n_base) and input part q (T,), so that
-        δM/A = ε (r x + q) + s − (1 + ε) η′.
+        The wake rows of the baseline are λ_h′ = … − (AL/τ)(4/B⁴)(2/N) Σ_k m_k (cos, sin)ψ_k
+        with m_k the moment per γ/2 (docs/models.md §9). Blade j adds
+        δm_j = ε (r x + q) + m_θ s − (1 + ε)(m_rate η′ + k η): returned are the weights
+        w (T, 2) = (4/B⁴)(2/N)(cos ψ_j, sin ψ_j), r (T, n_base), the cyclic-pitch row
+        (T, 2) of q, and m_θ, m_rate, k (T,) each.
         """
+        rotor = self.view.model.rotor
         j = self._j
         psi = self.view._psi(t)[:, j]
-        n_blades = self.view.n_blades
-        w = (2.0 / n_blades) * np.column_stack([np.cos(psi), np.sin(psi)])
-        row = self.view.inflow(t)[:, j] - self.view.flap_rate(t)[:, j]
-        q = -u[:, 1] * np.sin(psi) + u[:, 2] * np.cos(psi)
-        return w, row, q
+        per_damping = 0.5 * lock_number_from_damping(1.0, rotor.tip_loss)    # 4/B⁴ = (γ/2)/A
+        w = per_damping * (2.0 / rotor.n_blades) * np.column_stack([np.cos(psi), np.sin(psi)])
+        row, _ = self._moment(t, None)
+        Mu = self.view.model.blade_moment(t)[1]
+        coef = blade_aerodynamics(psi, rotor.tip_loss, rotor.advance_ratio)
+        stiff = coef['m_flap'] + rotor.pitch_flap_coupling * coef['m_theta']
+        return w, row, Mu[:, j], coef['m_theta'], coef['m_rate'], stiff
+
+    def _moment(self, t, u):
+        """Blade j's moment per γ/2: row on the baseline's state (T, n_base), cyclic-pitch part."""
+        Mx, Mu, _ = self.view.model.blade_moment(t)
+        row = np.zeros((Mx.shape[0], self.n_base_states))
+        row[:, :Mx.shape[2]] = Mx[:, self._j]
+        moment_u = None if u is None else np.einsum('tk,tk->t', Mu[:, self._j], u[:, 1:3])
+        return row, moment_u
+
+
+    def _wake_rows(self):
+        names = self.view.model.state_names           # the root's states come first
+        return [names.index('lambda_I'), names.index('lambda_II')]
 
     def _extra(self, t, pb, pe, u, F, g):
         nb = self.n_base_states
@@ -761,13 +746,15 @@ class BladeDissimilarity(Augmented):
         F[:, nb + 1, nb + 1] = -(1.0 + eps) * c
         F[:, nb + 1, :nb] = eps * a
         g[:, nb + 1] = eps * a0 + m * stat
-        if self.view.kind == 'multiblade_wake':
-            gain = pb[1]                                   # AL/τ
-            w, row, q = self._wake_feedback(t, pb, u)
-            for i, lam in enumerate((4, 5)):
+        if 'lambda_I' in self.view.model.state_names:
+            gain = pb[self.view.model.parameter_names.index('AL_over_tau')]
+            w, row, qrow, m_th, m_rate, stiff = self._wake_feedback(t)
+            q = np.einsum('tk,tk->t', qrow, u[:, 1:3])
+            for i, lam in enumerate(self._wake_rows()):
                 F[:, lam, :nb] += -gain * w[:, i, None] * eps * row
-                F[:, lam, nb + 1] += gain * w[:, i] * (1.0 + eps)
-                g[:, lam] += -gain * w[:, i] * (eps * q + stat)
+                F[:, lam, nb] += gain * w[:, i] * (1.0 + eps) * stiff
+                F[:, lam, nb + 1] += gain * w[:, i] * (1.0 + eps) * m_rate
+                g[:, lam] += -gain * w[:, i] * (eps * q + m_th * stat)
 
     def _extra_jacobian(self, t, pb, pe, u, dF, dg):
         nb, kb = self.n_base_states, self.n_base_parameters
@@ -783,17 +770,22 @@ class BladeDissimilarity(Augmented):
         dF[:, kb, nb + 1, :nb] = a
         dg[:, kb, nb + 1] = a0
         dg[:, kb + 1, nb + 1] = m
-        if self.view.kind == 'multiblade_wake':
-            gain = pb[1]
-            w, row, q = self._wake_feedback(t, pb, u)
-            for i, lam in enumerate((4, 5)):
-                dF[:, 1, lam, :nb] += -w[:, i, None] * eps * row      # ∂/∂(AL/τ)
-                dF[:, 1, lam, nb + 1] += w[:, i] * (1.0 + eps)
-                dg[:, 1, lam] += -w[:, i] * (eps * q + stat)
-                dF[:, kb, lam, :nb] += -gain * w[:, i, None] * row    # ∂/∂ε
-                dF[:, kb, lam, nb + 1] += gain * w[:, i]
-                dg[:, kb, lam] += -gain * w[:, i] * q
-                dg[:, kb + 1, lam] += -gain * w[:, i]                 # ∂/∂(Δθ + εθ0)
+        if 'lambda_I' in self.view.model.state_names:
+            ig = self.view.model.parameter_names.index('AL_over_tau')
+            gain = pb[ig]
+            w, row, qrow, m_th, m_rate, stiff = self._wake_feedback(t)
+            q = np.einsum('tk,tk->t', qrow, u[:, 1:3])
+            for i, lam in enumerate(self._wake_rows()):
+                wi = w[:, i]
+                dF[:, ig, lam, :nb] += -wi[:, None] * eps * row           # ∂/∂(AL/τ)
+                dF[:, ig, lam, nb] += wi * (1.0 + eps) * stiff
+                dF[:, ig, lam, nb + 1] += wi * (1.0 + eps) * m_rate
+                dg[:, ig, lam] += -wi * (eps * q + m_th * stat)
+                dF[:, kb, lam, :nb] += -gain * wi[:, None] * row          # ∂/∂ε
+                dF[:, kb, lam, nb] += gain * wi * stiff
+                dF[:, kb, lam, nb + 1] += gain * wi * m_rate
+                dg[:, kb, lam] += -gain * wi * q
+                dg[:, kb + 1, lam] += -gain * wi * m_th                  # ∂/∂(Δθ + εθ0)
 
     def output_matrix(self, t):
         """Return H of y = H x + C_{:,j} η."""
@@ -806,10 +798,11 @@ class BladeDissimilarity(Augmented):
         out = super().report_parameters(values, cov)
         k = self.n_base_parameters
         theta0 = getattr(self, '_collective', 0.0)
-        if self.view.kind != 'multiblade_wake':
-            gi = _gamma_index(self.base)
-            coll = self.base.parameter_names[1]
-            theta0 = values[1] / values[gi] if coll == 'delta' else values[1]
+        names = self.view.model.parameter_names
+        if 'theta0' in names:
+            theta0 = values[names.index('theta0')]
+        elif 'delta' in names:
+            theta0 = values[names.index('delta')] / self.view.model.lock_number(values)[0]
         eps, stat = values[k], values[k + 1]
         # Δθ = (s − εθ0)/(1 + ε), s = (1 + ε)Δθ + εθ0 the fitted static offset
         g_s = 1.0 / (1.0 + eps)

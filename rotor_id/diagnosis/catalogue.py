@@ -22,6 +22,7 @@ from rotor_id.estimation.output_error import (
     _fit_initial_states, _Problem, evaluate, Experiment, fit_output_error, IdentificationError,
     information_matrix, STOP)
 from rotor_id.estimation.simulate import DEFAULT_MAX_STEP
+from rotor_id.physics.aerodynamics import flap_damping
 
 #: Every effect of the catalogue, in the order they are tried (issue 4 ids first).
 EFFECTS = ('dynamic_inflow', 'periodic_coefficients', 'sensor_lag', 'time_delay',
@@ -344,7 +345,7 @@ def _wake_starts(model, guess, unknowns):
     Gains L and time constants τ; γ raised so that the quasi-steady damping γ/(1+AL) stays at
     the baseline's.
     """
-    a1 = model.rotor.tip_loss**4 / 8.0
+    a1 = flap_damping(1.0, model.rotor.tip_loss)           # A/γ, Ch.2 eq. 27
     gamma_b = guess['gamma']
     for L in (0.5, 1.5, 3.0):
         denominator = 1.0 - gamma_b * a1 * L

@@ -34,7 +34,7 @@ from rotor_id.diagnosis.catalogue import (
     screen_candidate, SCREENED, validate_candidate, variants)
 from rotor_id.estimation.output_error import IdentificationError
 from rotor_id.estimation.simulate import simulate
-from rotor_id.physics.models import multiblade_from_blade_flap
+from rotor_id.physics.multiblade import coordinate_names, multiblade_from_blade_matrix
 from rotor_id.pipeline import identify
 
 #: ΔBIC above which a candidate counts as an explanation ("very strong": > 10).
@@ -51,7 +51,6 @@ SCREEN_SAFETY = 2.0
 #: Random inflow is fitted when the baseline residuals' combined whiteness p is below this
 #: or their RMS is 2 standard errors above the floor (and no deterministic effect is adequate).
 PROCESS_NOISE_WHITENESS = 0.05
-_MBC = ('beta_0', 'beta_I', 'beta_II', 'beta_d')
 
 
 @dataclass
@@ -166,20 +165,20 @@ def baseline_channels(ident, part, blade_sigma):
     view = BladeView(model)
     pred_blades = np.einsum('tkn,tn->tk', view.flap(exp.t), sim.x)
     meas_blades = part.blade_flap
-    pred_mbc = multiblade_from_blade_flap(exp.t, pred_blades)
-    meas_mbc = multiblade_from_blade_flap(exp.t, meas_blades)
-    psi = exp.t[:, None] + 2 * math.pi * np.arange(4)[None, :] / 4
-    rows = [np.full((exp.t.size, 4), 0.25), 0.5 * np.cos(psi), 0.5 * np.sin(psi),
-            np.broadcast_to((-1.0) ** np.arange(1, 5) / 4, (exp.t.size, 4))]
-    predicted = [s for s in _MBC if s in model.state_names]
+    n_blades = model.rotor.n_blades
+    coordinates = coordinate_names(n_blades)
+    to_mbc = multiblade_from_blade_matrix(exp.t, n_blades)         # the one transform, any N
+    pred_mbc = np.einsum('tij,tj->ti', to_mbc, pred_blades)
+    meas_mbc = np.einsum('tij,tj->ti', to_mbc, meas_blades)
+    predicted = [s for s in coordinates if s in model.state_names]
     have = {c.name for c in channels}
-    for i, name in enumerate(_MBC):
+    for i, name in enumerate(coordinates):
         if name in predicted and name not in have:
-            floor = rs.channel_floor(rows[i][:, None, :], blade_sigma)[0]
+            floor = rs.channel_floor(to_mbc[:, i:i + 1, :], blade_sigma)[0]
             channels.append(Channel(name, meas_mbc[:, i] - pred_mbc[:, i], meas_mbc[:, i],
-                                    pred_mbc[:, i], float(floor), 4, False))
-    if len(predicted) == 4:
-        for k in range(4):
+                                    pred_mbc[:, i], float(floor), n_blades, False))
+    if len(predicted) == n_blades:
+        for k in range(n_blades):
             name = f'beta_{k + 1}'
             if name not in have:
                 channels.append(Channel(name, meas_blades[:, k] - pred_blades[:, k],

@@ -1,0 +1,95 @@
+"""
+The catalogue's augmentations on rotors other than the report's (any N, μ > 0, δ3).
+
+They wrap the general model (docs/models.md), so their analytic sensitivities must equal finite
+differences of the simulator for 3- and 5-bladed rotors in forward flight with pitch-flap
+coupling, and the dynamic-inflow candidate must be the wake model itself.
+"""
+
+import numpy as np
+import pytest
+import test_diagnosis_augmentations as four_blades
+
+from rotor_id.diagnosis import augmentations as aug
+from rotor_id.diagnosis.catalogue import ExtendedInput
+from rotor_id.estimation.simulate import simulate
+from rotor_id.physics.models import build_model, RotorConstants
+
+T = four_blades.T
+BASES = [('multiblade', 3, 0.3, {}), ('multiblade_constant', 5, 0.3, {}),
+         ('multiblade_wake', 3, 0.25, {'outputs': 'blades'}), ('multiblade_wake', 5, 0.0, {})]
+
+
+def _base(name, n_blades, mu, options):
+    rotor = RotorConstants(n_blades=n_blades, advance_ratio=mu, pitch_flap_coupling=0.2)
+    return build_model(name, rotor, collective='theta0', angle_unit='rad', **options)
+
+
+def _inputs(n_blades):
+    k = np.arange(1, n_blades + 1)
+    extra = 0.02 + 0.01 * np.cos(np.outer(T, k) + k)
+    return ExtendedInput(four_blades.SCHEDULE, T, extra)
+
+
+@pytest.mark.parametrize('name,n_blades,mu,options', BASES)
+def test_sensitivities_equal_finite_differences(name, n_blades, mu, options):
+    rng = np.random.default_rng(5)
+    base = _base(name, n_blades, mu, options)
+    inputs = _inputs(n_blades)
+    for model in four_blades._augmented(base):
+        p = four_blades._away_from_neutral(model)
+        x0 = 0.01 * rng.standard_normal(model.n_states)
+        idx = list(range(len(p)))
+        sim = simulate(model, p, inputs, T, x0, param_index=idx)
+        for i in idx:
+            h = 1e-6 * max(1.0, abs(p[i]))
+            up, down = p.copy(), p.copy()
+            up[i] += h
+            down[i] -= h
+            fd = (simulate(model, up, inputs, T, x0).y
+                  - simulate(model, down, inputs, T, x0).y) / (2 * h)
+            scale = np.max(np.abs(fd)) + 1e-12
+            assert np.max(np.abs(fd - sim.dy[:, :, i])) / scale < 1e-5, \
+                (model.name, model.parameter_names[i])
+
+
+@pytest.mark.parametrize('n_blades,mu', [(3, 0.3), (5, 0.0)])
+def test_dynamic_inflow_candidate_is_the_wake_model(n_blades, mu):
+    """The γ-model plus the wake candidate equals the wake model with A = γB⁴/8."""
+    rotor = RotorConstants(n_blades=n_blades, advance_ratio=mu)
+    base = build_model('multiblade', rotor, outputs='blades')
+    candidate = aug.DynamicInflow(base)
+    wake = build_model('multiblade_wake', rotor, outputs='blades')
+    gamma, theta0, c, r = 5.5, 0.04, 0.3, 0.1
+    p_candidate = candidate.parameter_vector({'gamma': gamma, 'theta0': theta0,
+                                              'AL_over_tau': c, 'inv_tau': r})
+    p_wake = wake.parameter_vector({'A': gamma * rotor.tip_loss**4 / 8, 'theta0': theta0,
+                                    'AL_over_tau': c, 'inv_tau': r})
+    x0 = 0.01 * np.random.default_rng(1).standard_normal(wake.n_states)
+    order = [wake.state_names.index(n) for n in candidate.state_names]
+    y_wake = simulate(wake, p_wake, four_blades.SCHEDULE, T, x0).y
+    y_candidate = simulate(candidate, p_candidate, four_blades.SCHEDULE, T, x0[order]).y
+    np.testing.assert_allclose(y_candidate, y_wake, atol=1e-12)
+
+
+def test_nested_candidates_equal_finite_differences():
+    """Two effects at once (issue 16): the wake over a sensor lag, an odd blade over the wake."""
+    rng = np.random.default_rng(9)
+    base = _base('multiblade', 3, 0.3, {'outputs': 'blades'})
+    inputs = _inputs(3)
+    for model in (aug.DynamicInflow(aug.SensorLag(base)),
+                  aug.BladeDissimilarity(aug.DynamicInflow(base), 2)):
+        p = four_blades._away_from_neutral(model)
+        x0 = 0.01 * rng.standard_normal(model.n_states)
+        idx = list(range(len(p)))
+        sim = simulate(model, p, inputs, T, x0, param_index=idx)
+        for i in idx:
+            h = 1e-6 * max(1.0, abs(p[i]))
+            up, down = p.copy(), p.copy()
+            up[i] += h
+            down[i] -= h
+            fd = (simulate(model, up, inputs, T, x0).y
+                  - simulate(model, down, inputs, T, x0).y) / (2 * h)
+            scale = np.max(np.abs(fd)) + 1e-12
+            assert np.max(np.abs(fd - sim.dy[:, :, i])) / scale < 1e-5, \
+                (model.name, model.parameter_names[i])
