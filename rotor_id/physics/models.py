@@ -412,6 +412,11 @@ class RotorModel(LinearModel):
                 out[2][:, row] = scale * np.einsum('tk,tk->t', w, c_row)
                 dec[:, row, row] = -1.0
             pieces.update(wake=wake, decay=decay, wake0=wake0, decay0=decay0)
+        for key in self._SYSTEM_KEYS:
+            if key in pieces:
+                value = pieces[key]
+                for block in (value if isinstance(value, tuple) else (value,)):
+                    _drop_rounding(block)
         return pieces
 
     def _sample_times(self):
@@ -783,6 +788,18 @@ class RotorModel(LinearModel):
                 f'states {", ".join(self.state_names)}')
 
 
+def _drop_rounding(block):
+    """
+    Zero in place the entries of a coefficient block that are rounding residue of exact zeros.
+
+    Sums such as Σ_k cos ψ_k sin ψ_k vanish exactly but come out as 1e-17; left in, they make
+    an exactly dependent parameter combination look merely ill-conditioned. A physical
+    coefficient 1e-14 times the block's largest (μ² below 1e-14) is negligible anyway.
+    """
+    scale = np.max(np.abs(block)) if block.size else 0.0
+    block[np.abs(block) < 1e-14 * scale] = 0.0
+
+
 def _mean_pieces(pieces):
     out = {}
     for key, value in pieces.items():
@@ -790,6 +807,8 @@ def _mean_pieces(pieces):
             out[key] = tuple(v.mean(axis=0, keepdims=True) for v in value)
         else:
             out[key] = value.mean(axis=0, keepdims=True)
+        for block in (out[key] if isinstance(out[key], tuple) else (out[key],)):
+            _drop_rounding(block)
     return out
 
 
