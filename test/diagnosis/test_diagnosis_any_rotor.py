@@ -8,12 +8,11 @@ coupling, and the dynamic-inflow candidate must be the wake model itself.
 
 import numpy as np
 import pytest
-import test_diagnosis_augmentations as four_blades
-
 from rotor_id.diagnosis import augmentations as aug
 from rotor_id.diagnosis.catalogue import ExtendedInput
 from rotor_id.estimation.simulate import simulate
 from rotor_id.physics.models import build_model, RotorConstants
+import test_diagnosis_augmentations as four_blades  # noqa: I100
 
 T = four_blades.T
 BASES = [('multiblade', 3, 0.3, {}), ('multiblade_constant', 5, 0.3, {}),

@@ -4,26 +4,34 @@ Independent generator of "real" test-stand recordings with concealed effects (is
 This is the test suite's stand-in for the rotor. It is written from the blade equations, blade
 by blade, with scipy's adaptive integrator, and shares no code with the identification models
 of :mod:`rotor_id.physics` or the simulator of :mod:`rotor_id.estimation` (only the Record
-container is used, to hand the data over). Each blade k at azimuth ψ_k = t + (k−1)2π/N obeys
-the Sissingh rigid-blade equation (MODELS.md §1.1, corrected Ch.3 eq. 24), with its own Lock
-number γ_k, pitch θ_k and a cubic flap spring:
+container is used, to hand the data over). Each of the N blades, k at azimuth
+ψ_k = t + (k−1)2π/N, obeys the Sissingh rigid-blade equation (docs/models.md §2, corrected
+Ch.3 eq. 24), with its own Lock number γ_k, pitch θ_k, pitch-flap coupling K_P = tan δ3
+(``pitch_flap``) and a cubic flap spring:
 
-    β_k″ + (γ_k/2) C(ψ_k) β_k′ + [P² + (γ_k/2) K(ψ_k)] β_k + κ β_k³
-        = (γ_k/2) m_θ(ψ_k) (θ_k + λ_k)
+    β_k″ + P² β_k + κ β_k³ = M_k
+    M_k = (γ_k/2) [m_θ (θ_k − K_P β_k + w_k) + C (λ_h,k − β_k′) − K β_k + m_λ λ0]
 
-The inflow angle λ_k (up positive, the report's sign) acts like a pitch change. It holds the
-first-harmonic dynamic wake (Crews-Hohenemser-Ormiston gain L, Peters time constant τ), driven by
-the first harmonics of the blades' aerodynamic moments,
+with the coefficients of Ch.3 eqs 25-28 (m_λ = B³/3 + (B²μ/2) sin ψ). The wake's inflow
+(up positive, the report's sign) varies linearly along the span: its first harmonic
+λ_h,k = λ_c cos ψ_k + λ_s sin ψ_k (Crews-Hohenemser-Ormiston gain L, Peters time constant τ)
+enters like −β′ (both are x-proportional normal velocities) and is driven by the first
+harmonics of the blades' moments,
 
     τ λ_c′ + λ_c = −L (2/N) Σ M_k cos ψ_k,   τ λ_s′ + λ_s = −L (2/N) Σ M_k sin ψ_k,
-    M_k = (γ_k/2) [m_θ (θ_k + λ_k) − C β_k′ − K β_k],    λ_k = λ_c cos ψ_k + λ_s sin ψ_k + w_k
 
-plus a random inflow (turbulence) w_k = w_0 + w_c cos ψ_k + w_s sin ψ_k whose three components
-are independent Gauss-Markov processes (σ ``turbulence``, correlation time ``turbulence_corr``
-in rad of azimuth). The sensors: each flap sensor lags (first order, time constant
-``sensor_lag`` rad of azimuth), is read ``time_delay_s`` late with respect to the pitch, has a
-constant bias and white noise; pitch sensors have white noise and do not see a blade's
-aerodynamic pitch offset ``pitch_offset``.
+and, with ``uniform_inflow``, a uniform inflow λ0 driven by the mean blade lift,
+
+    τ0 λ0′ + λ0 = −L0 (1/N) Σ F_k,
+    F_k = (γ_k/2) [f_θ (θ_k − K_P β_k + w_k) + f_r (λ_h,k − β_k′) − f_β β_k + f_λ λ0]
+    f_θ = ∫U_T², f_r = ∫x U_T, f_β = μ cos ψ ∫U_T, f_λ = ∫U_T  (x in [0, B], U_T = x + μ sin ψ).
+
+w_k = w_0 + w_c cos ψ_k + w_s sin ψ_k is a random pitch-like inflow angle (turbulence) whose
+three components are independent Gauss-Markov processes (σ ``turbulence``, correlation time
+``turbulence_corr`` in rad of azimuth). The sensors: each flap sensor lags (first order,
+time constant ``sensor_lag`` rad of azimuth), is read ``time_delay_s`` late with respect to
+the pitch, has a constant bias and white noise; pitch sensors have white noise and do not see
+a blade's aerodynamic pitch offset ``pitch_offset``.
 
 The record starts in trim at collective pitch only (settled over ``t_settle`` from rest), the
 lateral cyclic is stepped on at ``t_step``, and pitch stirring θI = a sin φ, θII = a cos φ,
@@ -70,6 +78,10 @@ class TruthConfig:
     turbulence_corr: float = 2.0
     cubic_stiffness: float = 0.0
     n_blades: int = 4
+    pitch_flap: float = 0.0
+    uniform_inflow: bool = False
+    wake_L0: float = 2.0
+    wake_tau0: float = 4.0
 
     @property
     def t_end(self):
@@ -138,25 +150,32 @@ def _rhs_factory(cfg, turbulence):
     lag = cfg.sensor_lag
     wake = cfg.wake
     L, tau = cfg.wake_L, cfg.wake_tau
+    kp = cfg.pitch_flap
+    uniform = cfg.uniform_inflow
+    L0, tau0 = cfg.wake_L0, cfg.wake_tau0
+    nl = 3 * n + 2                                   # index of λ0 (after the sensor lags)
 
     def rhs(t, s):
         beta, rate = s[:n], s[n:2 * n]
         lam_c, lam_s = s[2 * n], s[2 * n + 1]
+        lam0 = s[nl] if uniform else 0.0
         psi = t + offsets
         s1, c1, s2, c2 = np.sin(psi), np.cos(psi), np.sin(2 * psi), np.cos(2 * psi)
         damping = B**4 / 4 + (B**3 * mu / 3) * s1
         stiffness = (B**3 * mu / 3) * c1 + (B**2 * mu**2 / 4) * s2
         m_theta = ((B**4 + B**2 * mu**2) / 4 + (2.0 / 3.0) * B**3 * mu * s1
                    - (B**2 * mu**2 / 4) * c2)
+        m_lambda = B**3 / 3 + (B**2 * mu / 2) * s1
         th_i, th_ii = _pitch_schedule(cfg, t)
-        theta = cfg.theta0 + dtheta - th_i * np.sin(psi) + th_ii * np.cos(psi)
+        theta = cfg.theta0 + dtheta - th_i * np.sin(psi) + th_ii * np.cos(psi) - kp * beta
         lam = lam_c * c1 + lam_s * s1 if wake else 0.0 * c1
         if turbulence is not None:
             w = turbulence(t)
-            lam = lam + w[0] + w[1] * c1 + w[2] * s1
-        aero = 0.5 * gam * (m_theta * (theta + lam) - damping * rate - stiffness * beta)
+            theta = theta + w[0] + w[1] * c1 + w[2] * s1
+        aero = 0.5 * gam * (m_theta * theta + damping * (lam - rate) - stiffness * beta
+                            + m_lambda * lam0)
         accel = aero - P**2 * beta - kappa * beta**3
-        out = np.empty_like(s)
+        out = np.zeros_like(s)
         out[:n] = rate
         out[n:2 * n] = accel
         if wake:
@@ -164,12 +183,16 @@ def _rhs_factory(cfg, turbulence):
             moment_s = (2.0 / n) * np.sum(aero * s1)
             out[2 * n] = (-lam_c - L * moment_c) / tau
             out[2 * n + 1] = (-lam_s - L * moment_s) / tau
-        else:
-            out[2 * n:2 * n + 2] = 0.0
         if lag > 0:
-            out[2 * n + 2:] = (beta - s[2 * n + 2:]) / lag
-        else:
-            out[2 * n + 2:] = 0.0
+            out[2 * n + 2:nl] = (beta - s[2 * n + 2:nl]) / lag
+        if uniform:
+            f_theta = B**3 / 3 + B**2 * mu * s1 + B * mu**2 * s1 * s1
+            f_rate = B**3 / 3 + (B**2 * mu / 2) * s1
+            f_beta = mu * c1 * (B**2 / 2 + B * mu * s1)
+            f_lambda = B**2 / 2 + B * mu * s1
+            lift = 0.5 * gam * (f_theta * theta + f_rate * (lam - rate) - f_beta * beta
+                                + f_lambda * lam0)
+            out[nl] = (-lam0 - L0 * np.mean(lift)) / tau0
         return out
 
     return rhs
@@ -191,7 +214,7 @@ def generate(cfg):
         turbulence = _GaussMarkov(cfg.turbulence, cfg.turbulence_corr, t_start - 1.0,
                                   cfg.t_end + 1.0, rng)
     rhs = _rhs_factory(cfg, turbulence)
-    s0 = np.zeros(3 * n + 2)
+    s0 = np.zeros(3 * n + 2 + (1 if cfg.uniform_inflow else 0))
     t_read = t - delay                       # flap read late: it shows the rotor at t − delay
     sol = solve_ivp(rhs, (t_start, float(max(t[-1], t_read[-1]))), s0, method='DOP853',
                     t_eval=t_read, rtol=1e-9, atol=1e-12,
@@ -199,7 +222,7 @@ def generate(cfg):
     if not sol.success:
         raise RuntimeError(f'truth simulation failed: {sol.message}')
     states = sol.y.T
-    flap_true = states[:, 2 * n + 2:] if cfg.sensor_lag > 0 else states[:, :n]
+    flap_true = states[:, 2 * n + 2:3 * n + 2] if cfg.sensor_lag > 0 else states[:, :n]
     flap = (flap_true + np.asarray(cfg.sensor_bias, dtype=float)[None, :]
             + cfg.flap_noise * rng.standard_normal((n_samples, n)))
     psi = t[:, None] + 2.0 * math.pi * np.arange(n)[None, :] / n
@@ -230,7 +253,8 @@ def run_description_text(cfg, model, unknowns, window_s=None, guess=True):
         extra = 'initial_guess: {' + ', '.join(f'{n}: {NOMINAL_GUESS[n]!r}'
                                                for n in unknowns) + '}\n'
     return (extra + f'rotor:\n  blades: {cfg.n_blades}\n  advance_ratio: {cfg.mu}\n'
-            f'  flap_frequency: 1.2\n  tip_loss: {cfg.tip_loss}\n'
+            f'  flap_frequency: {cfg.flap_freq}\n  tip_loss: {cfg.tip_loss}\n'
+            f'  pitch_flap_coupling: {cfg.pitch_flap}\n'
             'topics: {blade_pitch: /rotor/blade_pitch, blade_flap: /rotor/blade_flap, '
             'azimuth: /rotor/azimuth}\n'
             f'model: {model}\nunknowns: [{names}]\n'
