@@ -201,7 +201,7 @@ def report(results, seed, repeat, rate, kernel_status):
             'unknowns (2-point differences); ours does one simulation with sensitivities per '
             'iteration plus one at the start. Peer (a) is least_squares over solve_ivp (RK45, '
             f'rtol {AFTERNOON_TOL[0]:g}, atol {AFTERNOON_TOL[1]:g}) of the right-hand sides '
-            'typed in again from MODELS.md (bench/peers.py).\n\n'
+            'typed in again from docs/models.md (bench/peers.py).\n\n'
             f'## Optima (they must agree to {AGREEMENT_SIGMA:g} σ)\n\n{opt_table}\n')
 
 

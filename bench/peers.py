@@ -2,7 +2,7 @@
 The two peers our output-error ML is measured against (issue 6 item 1).
 
 (a) ``afternoon``: what a user writes in an afternoon. The right-hand side of each report model is
-    typed in again here straight from the equations of MODELS.md (§1.2 single blade, §2.2
+    typed in again here straight from the equations of docs/models.md (§1.2 single blade, §2.2
     constant-coefficient multiblade, §3.2 dynamic wake), integrated with
     ``scipy.integrate.solve_ivp`` and fitted with ``scipy.optimize.least_squares`` and its
     finite-difference Jacobian. Nothing of rotor_id is used inside the fit, so it also checks
@@ -22,20 +22,20 @@ from rotor_id.estimation.simulate import simulate
 from scipy.integrate import solve_ivp
 from scipy.optimize import least_squares
 
-# report rotor (MODELS.md §0)
+# report rotor (docs/models.md §0)
 B = 0.97        # tip loss
 P = 1.2         # flap frequency, per rev
 AMPLITUDE = 1.5  # cyclic amplitude, deg
 
 
 def stirring(t, t0, omegadot):
-    """θI, θII at scalar t: 1.5 sin φ, 1.5 cos φ with φ = ω̇ (t − t0)² after t0 (MODELS.md §0)."""
+    """θI, θII at scalar t: 1.5 sin φ, 1.5 cos φ, φ = ω̇ (t − t0)² after t0 (docs/models.md §0)."""
     phi = omegadot * (t - t0) ** 2 if t > t0 else 0.0
     return AMPLITUDE * math.sin(phi), AMPLITUDE * math.cos(phi)
 
 
 class SingleBladeRHS:
-    """MODELS.md §1.2: x = [β, β′], p = [γ, δ], y = β (μ = 0.4, blade 1: ψ = t)."""
+    """docs/models.md §1.2: x = [β, β′], p = [γ, δ], y = β (μ = 0.4, blade 1: ψ = t)."""
 
     n_params = 2
 
@@ -62,7 +62,7 @@ class SingleBladeRHS:
 
 
 class MultibladeConstantRHS:
-    """MODELS.md §2.2: x = [β0, βI, βII, β0′, βI′, βII′], p = [γ, δ], y = [β0, βI, βII]."""
+    """docs/models.md §2.2: x = [β0, βI, βII, β0′, βI′, βII′], p = [γ, δ], y = [β0, βI, βII]."""
 
     n_params = 2
 
@@ -93,7 +93,7 @@ class MultibladeConstantRHS:
 
 
 class WakeRHS:
-    """MODELS.md §3.2: x = [βI, βI′, βII, βII′, λI, λII], p = [A, AL/τ, 1/τ], y = eq. 30."""
+    """docs/models.md §3.2: x = [βI, βI′, βII, βII′, λI, λII], p = [A, AL/τ, 1/τ], y = eq. 30."""
 
     n_params = 3
 

@@ -85,8 +85,8 @@ class Candidate:
     direction : str
         'progressing' (ω̇ < 0) or 'regressing' (ω̇ > 0).
     omegadot : float
-        ω̇ of the stirring law φ = ω̇ (t − t_s)² (Ch.2 eqs 1-2, MODELS.md §0), signed, per unit
-        nondimensional time squared (report: ∓0.1/π).
+        ω̇ of the stirring law φ = ω̇ (t − t_s)² (Ch.2 eqs 1-2, docs/models.md §0), signed, per
+        unit nondimensional time squared (report: ∓0.1/π).
     amplitude_rad : float
         Cyclic stirring amplitude, rad (report: 1.5° = 0.0262 rad).
     t0 : float

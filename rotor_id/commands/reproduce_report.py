@@ -96,7 +96,7 @@ def print_iterations(results, out):
             idx = [res.names.index(c) for c in cols]
             out.write('   σ_CRB ' + ''.join(f'{est.std[i]:14.4f}' for i in idx) + '\n')
         if case.noise_free_limit:
-            out.write('   noise-free limit (modelling-error bias, MODELS.md §2.3): '
+            out.write('   noise-free limit (modelling-error bias, docs/models.md §2.3): '
                       + ', '.join(f'{v:g}' for v in case.noise_free_limit) + '\n')
 
 
@@ -189,7 +189,7 @@ def run(args):
                   for state, ok in zip(r.case.states, r.passed))
     out.write(f'\n{n_ok} of {len(result.matrices)} printed M⁻¹ agree; the initial states '
               f'{"agree" if init_ok else "DIFFER"} to the printed digits (bar the report\'s '
-              'βI(70) = .601, MODELS.md §5.9).\n')
+              'βI(70) = .601, docs/models.md §5.9).\n')
     if args.json is not None:
         args.json.write_text(json.dumps(result.as_json(), indent=1) + '\n')
         progress(f'wrote {args.json}')

@@ -10,7 +10,7 @@ compare on the same data.
 The link between a model's states and the blades is :class:`BladeView`: per blade k the flap
 β_k = Hb x, the flap rate β_k′ = Hbr x, the inflow angle λ_k = Hl x (wake model), and the map C
 from blade values to the model's output channels (y = C·[β_1..β_N], e.g. report eq. 30 or the
-multiblade transform, MODELS.md §0). Extra inputs (measured pitch rates, measured flap for the
+multiblade transform, docs/models.md §0). Extra inputs (measured pitch rates, measured flap for the
 cubic spring) ride in extra columns of u after the report's [θ0, θI, θII].
 """
 
@@ -524,7 +524,7 @@ class ChannelSubset(LinearModel):
 
 
 def periodic_coefficients(base):
-    """Return the periodic multiblade model (MODELS.md §2.1) on the constant model's channels."""
+    """Return the periodic model (docs/models.md §2.1) on the constant model's outputs."""
     inner = Multiblade(base.rotor, collective=base.collective, outputs=base.outputs)
     inner.parameters = base.parameters
     rows = [inner.output_names.index(name) for name in base.output_names]
@@ -536,7 +536,7 @@ class DynamicInflow(Augmented):
     The report's two-parameter cyclic wake (Ch.2 eq. 29) added to a multiblade γ-model.
 
     The augmented model is the baseline's rotor built again with ``inflow='cyclic'``
-    (:class:`~rotor_id.physics.models.RotorModel`, docs/models.md §4): at μ = 0
+    (:class:`~rotor_id.physics.models.RotorModel`, docs/models.md §9): at μ = 0
 
         βI″ += A λI,   βII″ += A λII,          A = γB⁴/8 (Ch.2 eq. 27)
         λI′  = −(AL/τ + 1/τ) λI  + (AL/τ)(βI′ + βII − θII)
@@ -631,7 +631,7 @@ class BladeDissimilarity(Augmented):
     Blade j's Lock number is γ(1+ε) and its aerodynamic pitch θ_j + Δθ (unseen by the sensor).
 
     The deviation η = β_j − (what the symmetric model predicts for blade j) obeys blade j's
-    own flapping equation (single blade, MODELS.md §1.1; at μ = 0 with the wake: A(θ+λ−β′)),
+    own flapping equation (single blade, docs/models.md §1.1; at μ = 0 with the wake: A(θ+λ−β′)),
     forced by ε times the symmetric blade's aerodynamic moment M_j and by the pitch offset:
 
         η″ + (1+ε)(γ/2) C η′ + [P² + (1+ε)(γ/2) K] η = ε M_j(x, t) + (γ/2) m_θ s,
@@ -645,7 +645,7 @@ class BladeDissimilarity(Augmented):
     the dynamic part only (that keeps the two nearly uncorrelated and Gauss-Newton well
     conditioned); ``dtheta`` = Δθ is reported. With the wake model the
     odd blade's extra aerodynamic moment δM = A[ε(θ_j + λ_j − β_j′) + Δθ − η′] also drives the
-    first-harmonic wake (MODELS.md §3.1: τλ′ + λ = −L·M): λI′ += −(AL/τ)(2/N) cos ψ_j δM/A,
+    first-harmonic wake (docs/models.md §3.1: τλ′ + λ = −L·M): λI′ += −(AL/τ)(2/N) cos ψ_j δM/A,
     λII′ += −(AL/τ)(2/N) sin ψ_j δM/A, which feeds back on every blade.
     """
 

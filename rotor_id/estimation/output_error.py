@@ -1,5 +1,5 @@
 """
-Output-error maximum likelihood (report Ch.2 steps 1-8, Ch.1 eq. 25; MODELS.md §0.1).
+Output-error maximum likelihood (report Ch.2 steps 1-8, Ch.1 eq. 25; docs/models.md §0.1).
 
 For measurement noise only, the negative log-likelihood of samples y_j is
 

@@ -8,9 +8,9 @@ the derivative of that same map,
 
     S⁺ = Φ S + (∂Φ/∂p) x + ∂c/∂p,
 
-which is what the report's sensitivity equations (MODELS.md §0.1, S′ = F S + (∂F/∂p) x + ∂g/∂p)
-become under RK4; so the sensitivities are the exact derivatives of the simulated samples, and
-agree with finite differences of :func:`simulate` to rounding.
+which is what the report's sensitivity equations (docs/models.md §0.1,
+S′ = F S + (∂F/∂p) x + ∂g/∂p) become under RK4; so the sensitivities are the exact derivatives
+of the simulated samples, and agree with finite differences of :func:`simulate` to rounding.
 
 Everything is vectorised over time (bench/iteration_cost.py measured the gain):
 

@@ -21,7 +21,7 @@ class Record:
         (n,) seconds since the first flap stamp of the recording (a window keeps the
         recording's origin).
     t
-        (n,) nondimensional time: unwrapped azimuth of blade 1, rad (MODELS.md §0).
+        (n,) nondimensional time: unwrapped azimuth of blade 1, rad (docs/models.md §0).
     rotor_speed_rad_s
         (n,) measured rotor speed Ω.
     blade_flap

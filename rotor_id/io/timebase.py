@@ -1,13 +1,13 @@
 """
 Time base of a recording: rotor azimuth, nondimensional time, multiblade coordinates.
 
-The report's nondimensional time is the rotor azimuth of blade 1, t = ψ (MODELS.md §0), so a
+The report's nondimensional time is the rotor azimuth of blade 1, t = ψ (docs/models.md §0), so a
 revolution is 2π. At constant rotor speed Ω this is t = Ω·(stamp − first stamp) + ψ(first
 stamp); computed from the measured, unwrapped azimuth it stays right when Ω drifts.
 
 Blade k (k = 1..N) sits at ψ_k = ψ + (k − 1)·2π/N, i.e. ψ + (k − 1)·π/2 for four blades.
 
-Multiblade coordinates (MODELS.md §0, N blades, N ≥ 3)::
+Multiblade coordinates (docs/models.md §0, N blades, N ≥ 3)::
 
     β0  = (1/N) Σ β_k                       collective
     βI  = (2/N) Σ β_k cos ψ_k               cos   (forward tilt of the tip-path plane)

@@ -1,7 +1,7 @@
 """
 The flapping blade's aerodynamics: the one place the blade equation's coefficients are written.
 
-docs/models.md §2 derives them. A rigid, centrally hinged blade (flap frequency P per rev, Lock
+docs/models.md §7 derives them. A rigid, centrally hinged blade (flap frequency P per rev, Lock
 number γ, tip loss B, no reversed flow, no root cut-out) at azimuth ψ in forward flight at advance
 ratio μ sees, at radius x (fraction of R), the velocities (per ΩR)
 

@@ -2,12 +2,12 @@
 Per-blade flap angles from the state of any library model (what a flap sensor on blade k sees).
 
 The model owns the transform (:meth:`~rotor_id.physics.models.RotorModel.blade_flap_matrix`,
-docs/models.md §3): β_k = β0 + Σ_h (β_hc cos hψ_k + β_hs sin hψ_k) + (−1)^k βd.
+docs/models.md §8): β_k = β0 + Σ_h (β_hc cos hψ_k + β_hs sin hψ_k) + (−1)^k βd.
 
 * a multiblade model carries the coordinates its inputs drive (the report's constant model drops
   βd, which decouples);
 * the report's wake model carries the tilt modes βI, βII only: coning and λ0 decouple at μ = 0
-  (docs/models.md §7), so a constant ``coning`` (rad) is added to every blade. Eq. 30's outputs
+  (docs/models.md §3.1), so a constant ``coning`` (rad) is added to every blade. Eq. 30's outputs
   (β1 − β3)/2 and (β2 − β4)/2 do not see it;
 * ``single_blade`` models one blade: a rotor of N such blades is N states, one per blade
   (see :func:`blade_flap_from_states`).

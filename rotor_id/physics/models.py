@@ -47,7 +47,7 @@ class Parameter:
 @dataclass(frozen=True)
 class RotorConstants:
     """
-    Known rotor data (docs/models.md §1): blades N, advance ratio μ, flap frequency P, tip loss B.
+    Known rotor data (docs/models.md §0): blades N, advance ratio μ, flap frequency P, tip loss B.
 
     ``pitch_flap_coupling`` is K_P = tan δ3: the blade pitch falls by K_P β when the blade
     flaps up by β (θ_effective = θ − K_P β).
@@ -229,7 +229,7 @@ class RotorModel(LinearModel):
         λ0′  = −(1/τ0) λ0 − (AL0/τ0)(4/B⁴) (1/N) Σ_k l_k                       (three_state)
 
     with l_k the blade's lift per γ/2. At μ = 0 the cyclic rows are exactly the report's
-    Ch.2 eq. 29 (docs/models.md §4 gives the mapping).
+    Ch.2 eq. 29 (docs/models.md §9 gives the mapping).
 
     Parameters
     ----------
@@ -772,7 +772,7 @@ class RotorModel(LinearModel):
         Steady coning β0 = Aθ0/(P² + A K_P) to add to blades of a model without a β0 state.
 
         Zero for models that carry β0 (or a single blade). The report's wake model drops the
-        coning, which decouples at μ = 0 (docs/models.md §7); a flap sensor still sees it.
+        coning, which decouples at μ = 0 (docs/models.md §3.1); a flap sensor still sees it.
         """
         if 'beta_0' in self.state_names or self.blade is not None:
             return 0.0
@@ -823,7 +823,7 @@ def _broadcast_pieces(pieces, size):
 
 
 # ------------------------------------------------------------------------------------------------
-# The report's models (docs/models.md §5-7) as special cases
+# The report's models (docs/models.md §1-3) as special cases
 # ------------------------------------------------------------------------------------------------
 
 class SingleBlade(RotorModel):
@@ -880,7 +880,7 @@ class MultibladeWake(RotorModel):
     With the defaults (μ = 0, ``inflow='cyclic'``, ``outputs='eq30'``) this is the report's model:
     x = [βI, βI′, βII, βII′, λI, λII], p = [A, AL/τ, 1/τ], y = report eq. 30. Any N ≥ 3, any μ,
     ``inflow='three_state'`` (adds λ0 with AL0/τ0, 1/τ0) and ``outputs='blades'`` or
-    ``'multiblade'`` generalise it (docs/models.md §4); the collective θ0 becomes a parameter
+    ``'multiblade'`` generalise it (docs/models.md §9); the collective θ0 becomes a parameter
     whenever it reaches a modelled state (μ > 0, or coning measured).
     """
 
@@ -894,7 +894,7 @@ class MultibladeWake(RotorModel):
 
 
 def multiblade_from_blade_flap(t, blade_flap):
-    """Return the multiblade coordinates (T, N) of N blade flap angles (docs/models.md §3)."""
+    """Return the multiblade coordinates (T, N) of N blade flap angles (docs/models.md §8)."""
     coords = multiblade_coordinates(blade_flap, np.atleast_1d(np.asarray(t, dtype=float)))
     return np.column_stack(list(coords.values()))
 

@@ -1,5 +1,5 @@
 """
-Multiblade coordinates of an N-bladed rotor (docs/models.md §3): the one place they are defined.
+Multiblade coordinates of an N-bladed rotor (docs/models.md §8): the one place they are defined.
 
 Blade k (k = 1..N) sits at ψ_k = ψ + (k − 1)·2π/N, ψ the azimuth of blade 1 (= the report's
 nondimensional time t). The N blade flaps β_k and N multiblade coordinates q are related by
@@ -125,7 +125,7 @@ def _check_blades(values, psi):
 
 def multiblade_coordinates(values, psi):
     """
-    Transform blade quantities to multiblade coordinates (docs/models.md §3).
+    Transform blade quantities to multiblade coordinates (docs/models.md §8).
 
     Parameters
     ----------

@@ -1,8 +1,8 @@
 """
-The report's test cases and printed numbers, in one place (NASA CR-137965; MODELS.md).
+The report's test cases and printed numbers, in one place (NASA CR-137965; docs/models.md).
 
 Everything the report prints that we reproduce is data in this module, with the report location
-and the MODELS.md section that explains how it was obtained:
+and the docs/models.md section that explains how it was obtained:
 
 * :data:`SCENARIOS`: the three simulated test configurations (truth model, stirring, noise σ).
 * :data:`MATRIX_CASES`: every printed M⁻¹ (R = I) of Ch.2, and Ch.3 Table 1's nine rows
@@ -14,7 +14,7 @@ and the MODELS.md section that explains how it was obtained:
 
 All report cases use the report's units: angles in degrees, parameters (γ, δ = γθ0) for models
 1-2 (``angle_unit='deg'``, ``collective='delta'``) and (A, AL/τ, 1/τ) for model 3. Time is the
-nondimensional azimuth t; samples are t0 + 0.1·j, end points included (MODELS.md §0.1).
+nondimensional azimuth t; samples are t0 + 0.1·j, end points included (docs/models.md §0.1).
 """
 
 from dataclasses import dataclass, field
@@ -26,7 +26,7 @@ from rotor_id.estimation.simulate import simulate
 from rotor_id.physics.models import build_model, RotorConstants
 from rotor_id.physics.stirring import PROGRESSING_OMEGADOT, StirringSchedule
 
-#: Sampling interval Δt of every report case (MODELS.md §0.1 and §4).
+#: Sampling interval Δt of every report case (docs/models.md §0.1 and §4).
 SAMPLE_INTERVAL = 0.1
 #: Record length t_f − t0 of the Ch.2 cases (two revolutions).
 RECORD_LENGTH = 12.0
@@ -44,7 +44,7 @@ class Scenario:
         Identification model (``build_model`` name).
     truth_model : str
         Model that makes the data: the periodic multiblade model for the constant-coefficient
-        identification (modelling error, MODELS.md §2.2), else the identification model.
+        identification (modelling error, docs/models.md §2.2), else the identification model.
     advance_ratio : float
     t0 : float
         Stirring start = identification start.
@@ -54,7 +54,7 @@ class Scenario:
         True parameter values (report units).
     truth_start : str
         'rest' (from zero state at t = 0 with collective and lateral cyclic switched on,
-        MODELS.md §1.1, §2.1) or 'equilibrium' (steady state before stirring, §3.3).
+        docs/models.md §1.1, §2.1) or 'equilibrium' (steady state before stirring, §3.3).
     noise_std : float
         Measurement σ of the report's noisy runs (deg).
     source : str
@@ -73,7 +73,7 @@ class Scenario:
     source: str
 
     def rotor(self):
-        """RotorConstants: 4 blades, P = 1.2, B = 0.97 (MODELS.md §0)."""
+        """RotorConstants: 4 blades, P = 1.2, B = 0.97 (docs/models.md §0)."""
         return RotorConstants(n_blades=4, advance_ratio=self.advance_ratio,
                               flap_frequency=1.2, tip_loss=0.97)
 
@@ -163,32 +163,32 @@ SCENARIOS = {
         name='single_blade', model='single_blade', truth_model='single_blade',
         advance_ratio=0.4, t0=12.0, omegadot=PROGRESSING_OMEGADOT,
         truth={'gamma': 5.0, 'delta': 10.0}, truth_start='rest', noise_std=0.2,
-        source='Ch.2 single-blade ML, Ch.3; MODELS.md §1'),
+        source='Ch.2 single-blade ML, Ch.3; docs/models.md §1'),
     'multiblade_periodic': Scenario(
         name='multiblade_periodic', model='multiblade', truth_model='multiblade',
         advance_ratio=0.4, t0=12.0, omegadot=PROGRESSING_OMEGADOT,
         truth={'gamma': 5.0, 'delta': 10.0}, truth_start='rest', noise_std=0.2,
-        source='Ch.2 multiblade truth (periodic); MODELS.md §2.1'),
+        source='Ch.2 multiblade truth (periodic); docs/models.md §2.1'),
     'multiblade_constant': Scenario(
         name='multiblade_constant', model='multiblade_constant', truth_model='multiblade',
         advance_ratio=0.4, t0=12.0, omegadot=PROGRESSING_OMEGADOT,
         truth={'gamma': 5.0, 'delta': 10.0}, truth_start='rest', noise_std=0.2,
-        source='Ch.2 multiblade ML (constant-coefficient model); MODELS.md §2.2-2.3'),
+        source='Ch.2 multiblade ML (constant-coefficient model); docs/models.md §2.2-2.3'),
     'wake_progressing': Scenario(
         name='wake_progressing', model='multiblade_wake', truth_model='multiblade_wake',
         advance_ratio=0.0, t0=70.0, omegadot=PROGRESSING_OMEGADOT,
         truth={'A': 0.5, 'AL_over_tau': 0.25, 'inv_tau': 0.125}, truth_start='equilibrium',
-        noise_std=0.1, source='Ch.2 dynamic wake, progressing; MODELS.md §3'),
+        noise_std=0.1, source='Ch.2 dynamic wake, progressing; docs/models.md §3'),
     'wake_regressing': Scenario(
         name='wake_regressing', model='multiblade_wake', truth_model='multiblade_wake',
         advance_ratio=0.0, t0=70.0, omegadot=-PROGRESSING_OMEGADOT,
         truth={'A': 0.5, 'AL_over_tau': 0.25, 'inv_tau': 0.125}, truth_start='equilibrium',
-        noise_std=0.1, source='Ch.2 dynamic wake, regressing; MODELS.md §3'),
+        noise_std=0.1, source='Ch.2 dynamic wake, regressing; docs/models.md §3'),
 }
 
 SB = ('gamma', 'delta')
 WAKE = ('A', 'AL_over_tau', 'inv_tau')
-#: the report's 7-parameter wake start: A = .4, L = 2, τ = 12 (MODELS.md §3.3)
+#: the report's 7-parameter wake start: A = .4, L = 2, τ = 12 (docs/models.md §3.3)
 WAKE_START_7 = {'A': 0.4, 'AL_over_tau': 0.4 * 2.0 / 12.0, 'inv_tau': 1.0 / 12.0}
 
 
@@ -203,11 +203,11 @@ class MatrixCase:
         Stable key (JSON).
     title : str
     source : str
-        Report location and MODELS.md section.
+        Report location and docs/models.md section.
     scenario : str
     unknowns : tuple of str
     evaluated_at : dict
-        Parameter values at which the report's M⁻¹ was evaluated (MODELS.md §0.1).
+        Parameter values at which the report's M⁻¹ was evaluated (docs/models.md §0.1).
     initial_state : str or tuple
         'truth' (fixed, the truth's state at t0), 'zero', 'estimate', 'positions'.
     x0 : tuple, optional
@@ -249,7 +249,7 @@ def _table1(window, iteration, at, report):
     return MatrixCase(
         name=f'table1_12_{int(t_end)}_iter{iteration}',
         title=f'Ch.3 Table 1, data t = 12-{int(t_end)}, iteration {iteration}',
-        source='Ch.3 Table 1; MODELS.md §1.4', scenario='single_blade', unknowns=SB,
+        source='Ch.3 Table 1; docs/models.md §1.4', scenario='single_blade', unknowns=SB,
         evaluated_at={'gamma': at[0], 'delta': at[1]}, initial_state='truth',
         report=((report[0], 0.0), (0.0, report[1])), kind='table1', block=SB, t_end=t_end,
         noise_std=0.2,
@@ -259,53 +259,54 @@ def _table1(window, iteration, at, report):
 MATRIX_CASES = (
     MatrixCase(
         name='single_blade_2par', title='Single blade, correct initial conditions',
-        source='Ch.2 p.23 (single blade ML); MODELS.md §1.4', scenario='single_blade',
+        source='Ch.2 p.23 (single blade ML); docs/models.md §1.4', scenario='single_blade',
         unknowns=SB, evaluated_at={'gamma': 4.91, 'delta': 9.82}, initial_state='truth',
         report=((0.211, -0.036), (-0.036, 0.365)), block=SB),
     MatrixCase(
         name='single_blade_4par', title='Single blade, identified initial conditions',
-        source='Ch.2 p.23; MODELS.md §1.4', scenario='single_blade', unknowns=SB,
+        source='Ch.2 p.23; docs/models.md §1.4', scenario='single_blade', unknowns=SB,
         evaluated_at={'gamma': 4.90, 'delta': 9.85}, initial_state='estimate', x0=(-0.89, 1.01),
         report=((0.230, -0.059, -0.048, 0.023), (-0.059, 0.405, 0.058, 0.022),
                 (-0.048, 0.058, 0.130, -0.066), (0.023, 0.022, -0.066, 0.228)),
         block=SB + ('beta(t0)', 'beta_dot(t0)')),
     MatrixCase(
         name='multiblade_a', title='Multiblade (a), correct initial states',
-        source='Ch.2 p.25; MODELS.md §2.3-2.4', scenario='multiblade_constant', unknowns=SB,
+        source='Ch.2 p.25; docs/models.md §2.3-2.4', scenario='multiblade_constant', unknowns=SB,
         evaluated_at={'gamma': 5.0, 'delta': 10.0},
         initial_state=(0.880, -0.983, 1.698, 0.038, 0.034, 0.03),
         report=((0.125, 0.003), (0.003, 0.269)), block=SB,
         note='reproduced at the true parameters, not at the printed 3rd iterate (4.99, 9.65) '
-             '(MODELS.md §2.4, unresolved)'),
+             '(docs/models.md §2.4, unresolved)'),
     MatrixCase(
         name='multiblade_b', title='Multiblade (b), zero initial states',
-        source='Ch.2 p.25; MODELS.md §2.3', scenario='multiblade_constant', unknowns=SB,
+        source='Ch.2 p.25; docs/models.md §2.3', scenario='multiblade_constant', unknowns=SB,
         evaluated_at={'gamma': 4.92, 'delta': 10.26}, initial_state='zero',
         report=((0.151, 0.043), (0.043, 0.278)), block=SB),
     MatrixCase(
         name='multiblade_c', title='Multiblade (c), identified deflections, zero rates',
-        source='Ch.2 p.26; MODELS.md §2.3', scenario='multiblade_constant', unknowns=SB,
+        source='Ch.2 p.26; docs/models.md §2.3', scenario='multiblade_constant', unknowns=SB,
         evaluated_at={'gamma': 5.00, 'delta': 9.98}, initial_state='positions',
         x0=(0.920, -0.984, 1.730, 0.0, 0.0, 0.0),
         report=((0.133, -0.006), (-0.006, 0.304)), block=SB,
-        note='printed non-symmetric ([.006] below the diagonal): read as −.006 (MODELS.md §5.6)'),
+        note='printed non-symmetric ([.006] below the diagonal): read as −.006 '
+             '(docs/models.md §5.6)'),
     MatrixCase(
         name='wake_progressing', title='Dynamic wake, progressing stirring',
-        source='Ch.2 p.34; MODELS.md §3.3', scenario='wake_progressing', unknowns=WAKE,
+        source='Ch.2 p.34; docs/models.md §3.3', scenario='wake_progressing', unknowns=WAKE,
         evaluated_at={'A': 0.487, 'AL_over_tau': 0.255, 'inv_tau': 0.128},
         initial_state='truth',
         report=((0.052, 0.059, 0.013), (0.059, 0.094, 0.023), (0.013, 0.023, 0.010)),
         block=WAKE),
     MatrixCase(
         name='wake_regressing', title='Dynamic wake, regressing stirring',
-        source='Ch.2 p.35; MODELS.md §3.3', scenario='wake_regressing', unknowns=WAKE,
+        source='Ch.2 p.35; docs/models.md §3.3', scenario='wake_regressing', unknowns=WAKE,
         evaluated_at={'A': 0.536, 'AL_over_tau': 0.264, 'inv_tau': 0.139},
         initial_state='truth',
         report=((0.167, 0.179, 0.029), (0.179, 0.256, 0.045), (0.029, 0.045, 0.013)),
         block=WAKE),
     MatrixCase(
         name='wake_7par', title='Dynamic wake, 7 parameters (diagonal), progressing',
-        source='Ch.2 p.36; MODELS.md §3.3', scenario='wake_progressing', unknowns=WAKE,
+        source='Ch.2 p.36; docs/models.md §3.3', scenario='wake_progressing', unknowns=WAKE,
         evaluated_at={'A': 0.474, 'AL_over_tau': 0.236, 'inv_tau': 0.120},
         initial_state='positions', x0=_wake_x0(0.497, 0.211, -0.871, -0.327),
         report=tuple(tuple(v if i == j else 0.0 for j in range(7)) for i, v in enumerate(
@@ -351,7 +352,7 @@ class IterationCase:
     t_end : float, optional
     noise_free_limit : tuple, optional
         Where noise-free Gauss-Newton converges when that is not the truth (modelling-error
-        bias, MODELS.md §2.3), in the order of ``columns``.
+        bias, docs/models.md §2.3), in the order of ``columns``.
 
     """
 
@@ -372,35 +373,35 @@ class IterationCase:
 ITERATION_CASES = (
     IterationCase(
         name='single_blade_2par', title='Single blade, correct initial conditions',
-        source='Ch.2 p.23; MODELS.md §1.4', scenario='single_blade', unknowns=SB,
+        source='Ch.2 p.23; docs/models.md §1.4', scenario='single_blade', unknowns=SB,
         start={'gamma': 4.0, 'delta': 8.0}, initial_state='truth', columns=SB,
         report=((4.94, 9.70), (4.91, 9.82), (4.91, 9.82))),
     IterationCase(
         name='single_blade_4par', title='Single blade, identified initial conditions',
-        source='Ch.2 p.23; MODELS.md §1.4', scenario='single_blade', unknowns=SB,
+        source='Ch.2 p.23; docs/models.md §1.4', scenario='single_blade', unknowns=SB,
         start={'gamma': 4.0, 'delta': 8.0}, initial_state='estimate', x0_start=(-0.75, 1.2),
         columns=SB + ('beta(t0)', 'beta_dot(t0)'),
         report=((4.96, 9.68, -0.89, 1.02), (4.90, 9.85, -0.89, 1.01),
                 (4.90, 9.85, -0.89, 1.01))),
     IterationCase(
         name='multiblade_periodic', title='Multiblade, periodic model (convergence check)',
-        source='MODELS.md §2.1 (not in the report: the model of the truth)',
+        source='docs/models.md §2.1 (not in the report: the model of the truth)',
         scenario='multiblade_periodic', unknowns=SB, start={'gamma': 2.5, 'delta': 5.0},
         initial_state='truth', columns=SB, report=()),
     IterationCase(
         name='multiblade_a', title='Multiblade (a), correct initial states',
-        source='Ch.2 p.25; MODELS.md §2.3', scenario='multiblade_constant', unknowns=SB,
+        source='Ch.2 p.25; docs/models.md §2.3', scenario='multiblade_constant', unknowns=SB,
         start={'gamma': 2.5, 'delta': 5.0},
         initial_state=(0.880, -0.983, 1.698, 0.038, 0.034, 0.03), columns=SB,
         report=((4.97, 8.46), (5.00, 9.62), (4.99, 9.65)), noise_free_limit=(4.941, 10.095)),
     IterationCase(
         name='multiblade_b', title='Multiblade (b), zero initial states',
-        source='Ch.2 p.25; MODELS.md §2.3', scenario='multiblade_constant', unknowns=SB,
+        source='Ch.2 p.25; docs/models.md §2.3', scenario='multiblade_constant', unknowns=SB,
         start={'gamma': 2.5, 'delta': 5.0}, initial_state='zero', columns=SB,
         report=((5.68, 9.45), (4.87, 10.27), (4.92, 10.26)), noise_free_limit=(4.855, 10.374)),
     IterationCase(
         name='multiblade_c', title='Multiblade (c), identified deflections, zero rates',
-        source='Ch.2 p.26; MODELS.md §2.3', scenario='multiblade_constant', unknowns=SB,
+        source='Ch.2 p.26; docs/models.md §2.3', scenario='multiblade_constant', unknowns=SB,
         start={'gamma': 2.5, 'delta': 5.0}, initial_state='positions',
         x0_start=(1.0, -1.0, 2.0, 0.0, 0.0, 0.0),
         columns=SB + ('beta_0(t0)', 'beta_I(t0)', 'beta_II(t0)'),
@@ -409,21 +410,21 @@ ITERATION_CASES = (
         noise_free_limit=(4.936, 10.113, 0.898, -0.977, 1.708)),
     IterationCase(
         name='wake_progressing', title='Dynamic wake, progressing stirring',
-        source='Ch.2 p.34; MODELS.md §3.3', scenario='wake_progressing', unknowns=WAKE,
+        source='Ch.2 p.34; docs/models.md §3.3', scenario='wake_progressing', unknowns=WAKE,
         start={'A': 0.4, 'AL_over_tau': 0.2, 'inv_tau': 0.25}, initial_state='truth',
         columns=WAKE,
         report=((0.500, 0.290, 0.086), (0.485, 0.253, 0.125), (0.487, 0.255, 0.128),
                 (0.487, 0.255, 0.128))),
     IterationCase(
         name='wake_regressing', title='Dynamic wake, regressing stirring',
-        source='Ch.2 p.35; MODELS.md §3.3', scenario='wake_regressing', unknowns=WAKE,
+        source='Ch.2 p.35; docs/models.md §3.3', scenario='wake_regressing', unknowns=WAKE,
         start={'A': 0.4, 'AL_over_tau': 0.2, 'inv_tau': 0.25}, initial_state='truth',
         columns=WAKE,
         report=((0.524, 0.252, 0.087), (0.540, 0.264, 0.134), (0.536, 0.264, 0.139),
                 (0.536, 0.264, 0.139))),
     IterationCase(
         name='wake_7par', title='Dynamic wake, 7 parameters, progressing',
-        source='Ch.2 p.36; MODELS.md §3.3', scenario='wake_progressing', unknowns=WAKE,
+        source='Ch.2 p.36; docs/models.md §3.3', scenario='wake_progressing', unknowns=WAKE,
         start=WAKE_START_7, initial_state='positions', x0_start='equilibrium',
         columns=WAKE + ('beta_I(t0)', 'beta_II(t0)', 'lambda_I(t0)', 'lambda_II(t0)'),
         report=((0.443, 0.184, 0.150, 0.500, 0.211, -0.864, -0.309),
@@ -479,7 +480,7 @@ SUMMARY_ROWS = (
                0.0111, 8.0),
     SummaryRow('ML multiblade, zero rates, identified deflections', 'multiblade_c', 2, 5.01,
                9.97, 0.0053, 0.0210, 12.0,
-               note='report var δ .0210 is a typo for .0122 = .304 × .04 (MODELS.md §5.5)'),
+               note='report var δ .0210 is a typo for .0122 = .304 × .04 (docs/models.md §5.5)'),
 )
 
 
@@ -505,22 +506,23 @@ class InitialStateCase:
 
 INITIAL_STATES = (
     InitialStateCase(
-        'single_blade_t12', 'Single blade at t = 12', 'Ch.2 p.23; MODELS.md §1.1',
+        'single_blade_t12', 'Single blade at t = 12', 'Ch.2 p.23; docs/models.md §1.1',
         'single_blade', 'truth', ('beta', 'beta_dot'), (-0.921, 0.986)),
     InitialStateCase(
-        'multiblade_t12', 'Multiblade (periodic truth) at t = 12', 'Ch.2 p.24; MODELS.md §2.1',
+        'multiblade_t12', 'Multiblade (periodic truth) at t = 12',
+        'Ch.2 p.24; docs/models.md §2.1',
         'multiblade_periodic', 'truth',
         ('beta_0', 'beta_I', 'beta_II', 'beta_d', 'beta_0_dot', 'beta_I_dot', 'beta_II_dot',
          'beta_d_dot'), (0.880, -0.983, 1.698, 0.060, 0.038, 0.034, 0.03, -0.030)),
     InitialStateCase(
         'wake_true_t70', 'Wake equilibrium at t = 70, true parameters',
-        'Ch.2 p.36; MODELS.md §3.3', 'wake_progressing', 'equilibrium_true',
+        'Ch.2 p.36; docs/models.md §3.3', 'wake_progressing', 'equilibrium_true',
         ('beta_I', 'beta_II', 'lambda_I', 'lambda_II'), (0.497, 0.188, -0.874, -0.331)),
     InitialStateCase(
         'wake_start_t70', 'Wake equilibrium at t = 70, starting parameters (.4, .0667, .0833)',
-        'Ch.2 p.36; MODELS.md §3.3', 'wake_progressing', 'equilibrium_start',
+        'Ch.2 p.36; docs/models.md §3.3', 'wake_progressing', 'equilibrium_start',
         ('beta_I', 'beta_II', 'lambda_I', 'lambda_II'), (0.601, 0.305, -0.531, -0.268),
-        exceptions={'beta_I': 'report .601, stated procedure gives .6036 (MODELS.md §5.9)'}),
+        exceptions={'beta_I': 'report .601, stated procedure gives .6036 (docs/models.md §5.9)'}),
 )
 
 
@@ -588,7 +590,7 @@ class GradientCase:
     """
     The Ch.2 eq. 22 gradient column of the single-blade ML table at the initial estimate.
 
-    ∂J/∂Θ = Σ νᵀR⁻¹ ∂ν/∂Θ = −Σ νᵀR⁻¹ H S with R = I (MODELS.md §0.1 sign note), at (4, 8). The
+    ∂J/∂Θ = Σ νᵀR⁻¹ ∂ν/∂Θ = −Σ νᵀR⁻¹ H S with R = I (docs/models.md §0.1 sign note), at (4, 8). The
     report's value comes from its noisy data; ours noise-free differs by the noise term, whose
     standard deviation σ·√diag(M) (M with R = I) is known, so the two can be compared.
     """
@@ -601,5 +603,5 @@ class GradientCase:
 
 
 GRADIENT = GradientCase(
-    name='single_blade_gradient_iter1', source='Ch.2 p.23 (∂J/∂γ, ∂J/∂δ); MODELS.md §1.4',
+    name='single_blade_gradient_iter1', source='Ch.2 p.23 (∂J/∂γ, ∂J/∂δ); docs/models.md §1.4',
     scenario='single_blade', at={'gamma': 4.0, 'delta': 8.0}, report=(-6.11, -5.84))

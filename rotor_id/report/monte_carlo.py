@@ -4,7 +4,7 @@ Monte Carlo of the report's cases: the ML estimate's scatter against the Cramér
 For each case, measurement noise of the report's σ (0.2 deg at μ = 0.4, 0.1 deg for the wake) is
 drawn with seeds 0 … n−1 and output-error ML (R known) is fitted to each draw. Compared with the
 bound at the reference point (the truth, or for the constant-coefficient multiblade model the
-noise-free estimate, i.e. the modelling-error bias of MODELS.md §2.3):
+noise-free estimate, i.e. the modelling-error bias of docs/models.md §2.3):
 
 * **bias**: (mean estimate − reference) / σ_CRB per parameter;
 * **scatter**: sample σ / σ_CRB;

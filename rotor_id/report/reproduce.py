@@ -16,8 +16,8 @@ What is compared, and how:
   diagonal matrix [[M⁻¹(γ), 0], [0, M⁻¹(δ)]].
 * **Estimates per iteration** from the report's starting values: ours on noise-free data and
   on one seeded noisy draw. The report's own noise draws are not reproducible, so only the
-  noise-free limit (truth, or the modelling-error bias of MODELS.md §2.3) is checked.
-* **Initial states** to the printed digits (MODELS.md §1.1, §2.1, §3.3).
+  noise-free limit (truth, or the modelling-error bias of docs/models.md §2.3) is checked.
+* **Initial states** to the printed digits (docs/models.md §1.1, §2.1, §3.3).
 """
 
 from dataclasses import dataclass, field
@@ -191,7 +191,7 @@ def run_iteration_case(case, seed=None, max_iter=30, progress=None, step_tol=1e-
 
     ``seed=None`` fits the noise-free data, else the seeded noisy draw. Records every iterate
     and, for the two-parameter cases, M⁻¹ (R = σ²) at the estimate each iteration starts from
-    (the rule of Ch.3 Table 1, MODELS.md §0.1).
+    (the rule of Ch.3 Table 1, docs/models.md §0.1).
     """
     scenario = C.SCENARIOS[case.scenario]
     exp = iteration_experiment(case, case_data(case, seed))
@@ -443,7 +443,7 @@ def validation_results(iterations):
 
     The single-blade and wake models are the truth models, so their residuals should be white
     noise of the report's σ; the constant-coefficient multiblade model misses the periodic terms
-    (MODELS.md §2.2), which at σ = 0.2 may or may not show (that is what the p-values say).
+    (docs/models.md §2.2), which at σ = 0.2 may or may not show (that is what the p-values say).
     """
     out = []
     for res in iterations:

@@ -5,7 +5,7 @@ Every candidate of the catalogue is a correct LinearModel built from the baselin
 * with its extra parameters at their neutral values an augmentation is the baseline itself;
 * the dynamic-inflow augmentation of the multiblade model at μ = 0 *is* the report's wake model
   (Ch.2 eq. 29, MultibladeWake) on the tilt modes;
-* the periodic-coefficients candidate is the periodic model (MODELS.md §2.1) on the constant
+* the periodic-coefficients candidate is the periodic model (docs/models.md §2.1) on the constant
   model's channels;
 * sensor bias has exactly the patterns the channels can see.
 """

@@ -5,7 +5,7 @@ This is the test suite's stand-in for the rotor. It is written from the blade eq
 by blade, with scipy's adaptive integrator, and shares no code with the identification models
 of :mod:`rotor_id.physics` or the simulator of :mod:`rotor_id.estimation` (only the Record
 container is used, to hand the data over). Each of the N blades, k at azimuth
-ψ_k = t + (k−1)2π/N, obeys the Sissingh rigid-blade equation (docs/models.md §2, corrected
+ψ_k = t + (k−1)2π/N, obeys the Sissingh rigid-blade equation (docs/models.md §7, corrected
 Ch.3 eq. 24), with its own Lock number γ_k, pitch θ_k, pitch-flap coupling K_P = tan δ3
 (``pitch_flap``) and a cubic flap spring:
 

@@ -7,7 +7,8 @@ Cramér-Rao bound and optimal data utilization (report Ch.3 eqs 16-23).
   diagonal element; the 7-parameter diagonal: each element within 2 %; Table 1 (printed with
   1-2 significant digits, apparently truncated): the printed value is ours rounded or
   truncated to the printed digits.
-* M⁻¹ scales like Δt (MODELS.md §1.4 Δt scan) and the continuous form (eq. 21) is 1-3 % larger.
+* M⁻¹ scales like Δt (docs/models.md §1.4 Δt scan) and the continuous form (eq. 21) is 1-3 %
+  larger.
 * The history M⁻¹(t_f) is the bound of the truncated record, is monotone (eq. 22), and the
   shortest record / information density are consistent with it.
 """
@@ -61,7 +62,7 @@ def test_matrix_comparison_can_fail():
     (0.05, [[0.107, -0.018], [-0.018, 0.183]]),
 ])
 def test_bound_scales_with_sampling_interval(dt, expected):
-    """MODELS.md §1.4 Δt scan at p = (4.91, 9.82), R = I."""
+    """docs/models.md §1.4 Δt scan at p = (4.91, 9.82), R = I."""
     exp = C.make_experiment(SB, initial_state='truth')
     exp.t = C.sample_times(12.0, 24.0, dt)
     b = cramer_rao_bound(exp, exp.model.parameter_vector({'gamma': 4.91, 'delta': 9.82}),
@@ -70,7 +71,7 @@ def test_bound_scales_with_sampling_interval(dt, expected):
 
 
 def test_continuous_form_is_slightly_larger():
-    """Eq. 21 (Δt·[∫SᵀS]⁻¹) is 1-3 % above the discrete sum (MODELS.md §0.1, §1.4)."""
+    """Eq. 21 (Δt·[∫SᵀS]⁻¹) is 1-3 % above the discrete sum (docs/models.md §0.1, §1.4)."""
     exp = C.make_experiment(SB, initial_state='truth')
     p = exp.model.parameter_vector({'gamma': 4.91, 'delta': 9.82})
     cont = continuous_bound(exp, p, C.SB)
@@ -190,7 +191,7 @@ def test_noise_must_be_positive():
     (-0.1 / np.pi, True, -0.155, 1.131, False),    # φ = ω̇(t − t0)²/2
 ])
 def test_stirring_law_decided_by_the_bound(omegadot, half, corr, ratio, is_report):
-    """MODELS.md §1.3: corr(γ, δ) and var δ/var γ at (4.91, 9.82) single out ω̇ = −0.1/π."""
+    """docs/models.md §1.3: corr(γ, δ) and var δ/var γ at (4.91, 9.82) single out ω̇ = −0.1/π."""
     from dataclasses import replace
 
     from rotor_id.physics.stirring import StirringSchedule

@@ -14,7 +14,7 @@ under the hypothesis "unbiased, σ = σ_CRB", at two-sided level 0.3 % per stati
 * coverage: count inside ±1.96 σ_CRB ~ Binomial(N, 0.95) → [Binom_.0015, Binom_.9985] / N.
 
 The reference is the truth, or for the constant-coefficient multiblade model the noise-free
-estimate (the modelling-error bias of MODELS.md §2.3). ``test_limits_reject_wrong_bounds``
+estimate (the modelling-error bias of docs/models.md §2.3). ``test_limits_reject_wrong_bounds``
 shows on the same draws that a bound 30 % off or a 0.5 σ bias is rejected.
 """
 
@@ -57,10 +57,10 @@ def test_reference_is_truth_or_modelling_bias(results):
     for name, res in results.items():
         expected = 'modelling-error bias' if name.startswith('multiblade') else 'truth'
         assert res.reference.kind == expected
-    # MODELS.md §2.3 (b): the constant-coefficient model's noise-free estimate
+    # docs/models.md §2.3 (b): the constant-coefficient model's noise-free estimate
     np.testing.assert_allclose(results['multiblade_b'].reference.values, [4.855, 10.374],
                                atol=6e-4)
-    # the reported report-case bound: single blade σ_γ, σ_δ = .092, .12 (MODELS.md §1.4)
+    # the reported report-case bound: single blade σ_γ, σ_δ = .092, .12 (docs/models.md §1.4)
     np.testing.assert_allclose(results['single_blade_2par'].reference.crb_std, [0.092, 0.121],
                                atol=0.002)
 

@@ -4,7 +4,7 @@ Output-error ML on the report's cases, noise-free: convergence to the truth or t
 From the report's starting errors (20 % single blade, 50 % multiblade, the 7-parameter wake
 start (.4, .0667, .0833) plus its equilibrium) Gauss-Newton reaches the truth to 1e-6 relative
 within the number of iterations the report prints. The constant-coefficient multiblade model
-fitted to the periodic truth converges instead to the modelling-error bias of MODELS.md §2.3.
+fitted to the periodic truth converges instead to the modelling-error bias of docs/models.md §2.3.
 """
 
 import numpy as np
@@ -33,7 +33,7 @@ def _truth_columns(case):
     ('multiblade_periodic', 3, 3),   # 50 % start (2.5, 5), periodic model = truth model
     ('wake_progressing', 4, 4),      # (.4, .2, .25)
     ('wake_regressing', 4, 5),       # 4.4e-6 after the report's 4 iterations, 1e-11 after 5
-    ('wake_7par', 4, 4),             # (.4, .0667, .0833) + equilibrium; MODELS.md §3.3
+    ('wake_7par', 4, 4),             # (.4, .0667, .0833) + equilibrium; docs/models.md §3.3
     ('table1_12_24', 3, 3),
 ])
 def test_noise_free_converges_to_truth(name, report_iterations, to_1e6):
@@ -62,7 +62,7 @@ def test_constant_coefficient_model_converges_to_modelling_error_bias(name):
     result = run_iteration_case(case, seed=None)
     assert result.estimate.converged
     final = result.columns[-1]
-    # MODELS.md §2.3 prints the bias to 3 decimals
+    # docs/models.md §2.3 prints the bias to 3 decimals
     assert np.all(np.abs(final - np.array(case.noise_free_limit)) <= 0.0005 + 1e-9), final
     # and it is a bias: γ and δ are several Cramér-Rao σ (σ = 0.2) away from the truth
     gamma_sigma = result.estimate.std[0]
@@ -70,14 +70,14 @@ def test_constant_coefficient_model_converges_to_modelling_error_bias(name):
 
 
 def test_multiblade_a_first_iterates_match_models_md():
-    """MODELS.md §2.3: case (a) noise-free iterates 4.947/8.578, 4.944/10.095."""
+    """docs/models.md §2.3: case (a) noise-free iterates 4.947/8.578, 4.944/10.095."""
     result = run_iteration_case(ITER['multiblade_a'], seed=None)
     np.testing.assert_allclose(result.columns[:2], [[4.947, 8.578], [4.944, 10.095]],
                                atol=6e-4)
 
 
 def test_wake_progressing_iterates_match_models_md():
-    """MODELS.md §3.3: (.510, .282, .074) → (.501, .249, .120) → (.500, .250, .125)."""
+    """docs/models.md §3.3: (.510, .282, .074) → (.501, .249, .120) → (.500, .250, .125)."""
     result = run_iteration_case(ITER['wake_progressing'], seed=None)
     np.testing.assert_allclose(result.columns[:3], [[0.510, 0.282, 0.074],
                                                     [0.501, 0.249, 0.120],
@@ -90,7 +90,7 @@ def test_noisy_estimate_is_within_a_few_crb_sigma():
     est = result.estimate
     z = (est.values - np.array([5.0, 10.0])) / est.std
     assert np.all(np.abs(z) < 4.0), z
-    np.testing.assert_allclose(est.std, [0.092, 0.121], atol=0.003)   # MODELS.md §1.4
+    np.testing.assert_allclose(est.std, [0.092, 0.121], atol=0.003)   # docs/models.md §1.4
 
 
 def test_bad_unknown_is_a_clear_error():

@@ -4,7 +4,7 @@ The simulator's sensitivities are the derivatives of its own output.
 For every model (single blade, periodic multiblade in both output sets, constant-coefficient
 multiblade, dynamic wake) and every parameter and initial state, the analytic output
 sensitivities of :func:`simulate` agree with central finite differences of :func:`simulate`
-to 1e-6 relative to the largest sensitivity of that column (MODELS.md §0.1).
+to 1e-6 relative to the largest sensitivity of that column (docs/models.md §0.1).
 """
 
 import numpy as np

@@ -6,7 +6,7 @@ Validation statistics: analytic properties, their null distributions, and the re
   of 400 sequences (binomial band); an AR(1) sequence is rejected.
 * On the report's single-blade case (σ = 0.2) the fitted residuals are white with RMS ≈ σ;
   the constant-coefficient multiblade model on the periodic truth leaves coloured residuals
-  correlated with the input (the modelling error MODELS.md §2.2 describes).
+  correlated with the input (the modelling error docs/models.md §2.2 describes).
 * Held-out prediction (wake, regressing run predicted with the progressing-run estimate):
   RMS ≈ σ at the estimate, significantly larger at a wrong A.
 """

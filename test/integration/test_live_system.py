@@ -113,9 +113,9 @@ def test_live_estimate_within_3_sigma_with_a_consistent_covariance(live_run):
     assert np.all(np.linalg.eigvalsh(cov) > 0)
     assert np.allclose(np.sqrt(np.diag(cov)), final.std)
     # the report's progressing wake case, angles in degrees: M⁻¹(A, A) = .052 for R = I, Δt = .1
-    # and known initial states (MODELS.md §3.3). M⁻¹ scales with Δt (here Ω/1 kHz = .094), with
-    # the channel variance (σ²/2 per eq.-30 channel) and with (1 rad / 1°)²; estimating the six
-    # initial states as well can only raise it (the report's 7-parameter case: ×1.53 in σ)
+    # and known initial states (docs/models.md §3.3). M⁻¹ scales with Δt (here Ω/1 kHz = .094),
+    # with the channel variance (σ²/2 per eq.-30 channel) and with (1 rad / 1°)²; estimating the
+    # six initial states as well can only raise it (the report's 7-parameter case: ×1.53 in σ)
     sigma_channel = math.radians(0.05) / math.sqrt(2)
     bound = math.sqrt(0.052 * 0.094 / 0.1) * math.degrees(sigma_channel)
     assert 1.0 < final.std[0] / bound < 2.5, (final.std[0], bound)

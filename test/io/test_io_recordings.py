@@ -1,9 +1,9 @@
 """
 The six shared test-stand recordings read into Records that agree with what is known of them.
 
-Known facts (recordings/README.md, MODELS.md §0): 4 blades, 1 kHz, rotor at 900 rpm; the record
-starts in trim at collective pitch, the 1.5° lateral cyclic (θII) is stepped on at t = 2π, and
-stirring starts t0 later (t0 = 12 at μ = 0.4, 70 at μ = 0).
+Known facts (recordings/README.md, docs/models.md §0): 4 blades, 1 kHz, rotor at 900 rpm; the
+record starts in trim at collective pitch, the 1.5° lateral cyclic (θII) is stepped on at t = 2π,
+and stirring starts t0 later (t0 = 12 at μ = 0.4, 70 at μ = 0).
 """
 
 import math
@@ -75,7 +75,7 @@ def test_pitch_step_and_stirring_start(recordings, name):
     t0 = 12.0 if description.rotor.advance_ratio > 0 else 70.0
     step, stir = 2 * np.pi, 2 * np.pi + t0
     pitch = record.multiblade('pitch')
-    # 'cos' of the blade pitches is θII, 'sin' is −θI (MODELS.md §0)
+    # 'cos' of the blade pitches is θII, 'sin' is −θI (docs/models.md §0)
     trim = record.t < step - MARGIN
     stepped = (record.t > step + MARGIN) & (record.t < stir - MARGIN)
     assert abs(pitch['cos'][trim].mean()) < 1e-4

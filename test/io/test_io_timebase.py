@@ -1,4 +1,4 @@
-"""Time base and multiblade coordinates (MODELS.md §0)."""
+"""Time base and multiblade coordinates (docs/models.md §0)."""
 
 from hypothesis import given, settings, strategies as st
 from hypothesis.extra.numpy import arrays

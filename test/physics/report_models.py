@@ -3,7 +3,7 @@ The report's three flapping models transcribed entry by entry, as the report pri
 
 This is the reference the general :class:`rotor_id.physics.models.RotorModel` is checked against
 (test_rotor_model.py): an independent transcription of report Ch.3 eq. 24 (corrected), the
-four-blade multiblade matrices (docs/models.md §6) and Ch.2 eq. 29 (docs/models.md §7). It is
+four-blade multiblade matrices (docs/models.md §2.1) and Ch.2 eq. 29 (docs/models.md §3.2). It is
 test code only; the library builds every model from the one blade equation.
 """
 
@@ -86,7 +86,7 @@ class _SecondOrderGammaModel(LinearModel):
 
 class SingleBlade(_SecondOrderGammaModel):
     """
-    Model 1: one rigid centrally hinged blade with periodic coefficients (MODELS.md §1.1).
+    Model 1: one rigid centrally hinged blade with periodic coefficients (docs/models.md §1.1).
 
     Corrected Ch.3 eq. 24:  β″ + (γ/2) C β′ + [P² + (γ/2) K] β = (γ/2) m_θ θ
 
@@ -138,7 +138,7 @@ class Multiblade(_SecondOrderGammaModel):
     Model 2: four blades in multiblade coordinates, μ > 0, periodic coefficients (§2.1).
 
     q = [β0, βI, βII, βd], x = [q, q′]; q″ + D(t) q′ + K(t) q = f(t) with D, K, f as printed in
-    MODELS.md §2.1 (a = γB⁴/8, b3 = γB³μ, b2 = γB²μ²). ``outputs='multiblade'`` measures
+    docs/models.md §2.1 (a = γB⁴/8, b3 = γB³μ, b2 = γB²μ²). ``outputs='multiblade'`` measures
     [β0, βI, βII, βd]; ``outputs='blades'`` measures each blade, β_k = β0 + βI cos ψ_k +
     βII sin ψ_k + (−1)^k βd.
     """
@@ -227,7 +227,7 @@ class Multiblade(_SecondOrderGammaModel):
 
 class MultibladeConstant(_SecondOrderGammaModel):
     """
-    Model 2 with all periodic terms omitted; βd decouples and is dropped (MODELS.md §2.2).
+    Model 2 with all periodic terms omitted; βd decouples and is dropped (docs/models.md §2.2).
 
     x = [β0, βI, βII, β0′, βI′, βII′]; y = [β0, βI, βII]. Time-invariant.
     """
@@ -277,7 +277,7 @@ class MultibladeConstant(_SecondOrderGammaModel):
 
 class MultibladeWake(LinearModel):
     """
-    Model 3: μ = 0 tilt modes with the two-parameter dynamic wake (MODELS.md §3, Ch.2 eq. 29).
+    Model 3: μ = 0 tilt modes with the two-parameter dynamic wake (docs/models.md §3, Ch.2 eq. 29).
 
     x = [βI, βI′, βII, βII′, λI, λII], p = [A, AL/τ, 1/τ] with A = γB⁴/8 (Ch.2 eq. 27); λ is the
     report's inflow sign (up positive). Output (Ch.2 eq. 30): β_m1 = (β1 − β3)/2 =

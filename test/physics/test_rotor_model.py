@@ -61,7 +61,7 @@ def test_report_models_are_special_cases(collective):
 
 
 def test_constant_model_numbers_of_the_report():
-    """docs/models.md §6.2: a = .5533, D, K and the input columns at γ = 5, μ = 0.4."""
+    """docs/models.md §2.2: a = .5533, D, K and the input columns at γ = 5, μ = 0.4."""
     model = build_model('multiblade_constant', collective='delta', angle_unit='deg')
     F, g = model.system([0.0], [5.0, 0.0], [[0.0, 0.0, 1.0]])
     np.testing.assert_allclose(-F[0, 3:, 3:], [[.5533, 0, .1521], [0, .5533, 2],

@@ -2,7 +2,7 @@
 ``rotor-id reproduce-report``: the JSON it writes holds every printed M⁻¹ beside ours.
 
 The JSON is checked independently of the command's own verdict: the right cases, the right
-shapes, and |ours − report| within the documented rule for each (MODELS.md tables). The
+shapes, and |ours − report| within the documented rule for each (docs/models.md tables). The
 report's initial states agree to the printed digits (the one known report discrepancy
 excepted), and the figure is a real PNG.
 """
@@ -58,7 +58,7 @@ def test_json_has_every_printed_matrix(report_json):
 
 
 def test_json_single_blade_values(report_json):
-    """Spot values against MODELS.md §1.4 (ours): [[.2116, −.0360], [−.0360, .3649]]."""
+    """Spot values against docs/models.md §1.4 (ours): [[.2116, −.0360], [−.0360, .3649]]."""
     _, data, _ = report_json
     entry = next(c for c in data['cases'] if c['name'] == 'single_blade_2par')
     np.testing.assert_allclose(entry['ours_minv'], [[0.2116, -0.0360], [-0.0360, 0.3649]],
@@ -91,7 +91,7 @@ def test_initial_states_to_printed_digits():
         for state, ok in zip(res.case.states, res.passed):
             assert ok or state in res.case.exceptions, (res.case.name, state)
     start = next(r for r in initial_state_results() if r.case.name == 'wake_start_t70')
-    assert start.ours[0] == pytest.approx(0.6036, abs=5e-5)     # MODELS.md §5.9
+    assert start.ours[0] == pytest.approx(0.6036, abs=5e-5)     # docs/models.md §5.9
 
 
 @pytest.mark.parametrize('ours, printed, ok', [
@@ -197,7 +197,7 @@ def test_report_run_descriptions_parse(repo_root):
     description = load_run_description(repo_root / 'config' / 'report_multiblade.yaml')
     est = identify(C.report_record('multiblade_constant', dt=0.0125), description,
                    multi_start=False).estimate
-    # modelling error: converges, biased (MODELS.md §2.3), γ within 0.2 of the truth
+    # modelling error: converges, biased (docs/models.md §2.3), γ within 0.2 of the truth
     assert est.converged and abs(est.value('gamma') - 5.0) < 0.2
 
 
