@@ -1,5 +1,5 @@
 """
-Pitch-stirring inputs of CR-137965 (Ch.2 eqs 1-6, Ch.3 eq. 29, as corrected in MODELS.md §0).
+Pitch-stirring inputs of CR-137965 (Ch.2 eqs 1-6, Ch.3 eq. 29, as corrected in docs/models.md §0).
 
 Time ``t`` is the report's nondimensional time: the azimuth of blade 1 (2π per revolution).
 Angles are in whatever unit the caller uses consistently (the report uses degrees; the ROS
@@ -21,7 +21,7 @@ import numpy as np
 from rotor_id.physics.multiblade import blade_azimuths, multiblade_coordinates
 
 INPUT_NAMES = ('theta_0', 'theta_I', 'theta_II')
-PROGRESSING_OMEGADOT = -0.1 / math.pi   # MODELS.md §1.3: Ch.2 eq. 6 corrected to -0.1/π
+PROGRESSING_OMEGADOT = -0.1 / math.pi   # docs/models.md §1.3: Ch.2 eq. 6 corrected to -0.1/π
 
 
 @dataclass(frozen=True)
@@ -38,7 +38,7 @@ class StirringSchedule:
     omegadot : float
         ω̇ of eq. 1; negative = progressing, positive = regressing stirring. The phase law is
         φ = ω̇ (t − t0)² exactly as printed, so the instantaneous stirring rate is 2 ω̇ (t − t0)
-        (MODELS.md §0 and §5 item 3).
+        (docs/models.md §0 and §5 item 3).
     t0 : float
         Stirring start (report: 12 at μ = 0.4, 70 at μ = 0).
     t_step : float
@@ -98,8 +98,20 @@ def blade_pitch_from_multiblade(t, u, n_blades):
 
 
 def multiblade_from_blade_pitch(t, blade_pitch):
-    """Invert eq. 3: ``u = [θ0, θI, θII]`` from per-blade pitch (N ≥ 3)."""
-    coords = multiblade_coordinates(blade_pitch, np.atleast_1d(np.asarray(t, dtype=float)))
+    """
+    Invert eq. 3: ``u = [θ0, θI, θII]`` from per-blade pitch.
+
+    For N ≥ 3 the multiblade transform (docs/models.md §8). Two blades carry only the
+    differential pitch θ_c = (θ1 − θ2)/2 = −θI sin t + θII cos t, so one instant does not fix
+    θI and θII; but a two-bladed rotor responds to θ_c alone, and θI = −θ_c sin t,
+    θII = θ_c cos t reproduces both blades' pitch exactly (the smallest such pair).
+    """
+    t = np.atleast_1d(np.asarray(t, dtype=float))
+    coords = multiblade_coordinates(blade_pitch, t)
+    if 'cos' not in coords:                       # N = 2
+        theta_c = -coords['differential']          # blade 1 has the sign (−1)^1
+        return np.column_stack([coords['collective'], -theta_c * np.sin(t),
+                                theta_c * np.cos(t)])
     return np.column_stack([coords['collective'], -coords['sin'], coords['cos']])
 
 

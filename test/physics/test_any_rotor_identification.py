@@ -82,6 +82,7 @@ def _package_record(rotor, inflow, seed):
     (5, 0.2, 0.1, 'three_state', ('A', 'AL_over_tau', 'inv_tau', 'AL0_over_tau0', 'inv_tau0',
                                   'theta0'), 'blades'),
     (3, 0.0, 0.3, 'cyclic', ('A', 'AL_over_tau', 'inv_tau'), 'multiblade'),
+    (2, 0.2, 0.0, 'cyclic', ('A', 'AL_over_tau', 'inv_tau', 'theta0'), 'blades'),
 ])
 def test_package_simulated_rotors_identified_within_bounds(n_blades, mu, kp, inflow, unknowns,
                                                            measurement):
