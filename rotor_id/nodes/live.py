@@ -56,17 +56,26 @@ class PlantStepper:
         States driven by system noise; default the wake inflow (λI, λII) for the wake model and
         the flap rates otherwise.
     seed : int
+    inflow : str
+        Wake model only: 'cyclic' (the report's) or 'three_state' (docs/models.md §9). Any
+        number of blades N ≥ 2, advance ratio and pitch-flap coupling (``rotor``); the wake
+        model carries every blade's coordinates when it must (two blades, or the uniform
+        inflow, which moves the coning), otherwise the report's tilt states plus the coning.
 
     """
 
     def __init__(self, model_name, rotor, true_values, omega_rad_s, rate_hz, collective,
                  flap_noise_std=0.0, pitch_noise_std=0.0, process_noise_std=0.0,
-                 process_noise_states=None, seed=0, t_start=0.0):
+                 process_noise_states=None, seed=0, t_start=0.0, inflow='cyclic'):
         if not omega_rad_s > 0 or not rate_hz > 0:
             raise ValueError('rotor speed and sample rate must be positive')
         if model_name == 'single_blade':
             self.models = [build_model('single_blade', rotor, blade=k)
                            for k in range(1, rotor.n_blades + 1)]
+        elif model_name == 'multiblade_wake':
+            every_blade = rotor.n_blades < 3 or inflow == 'three_state'
+            self.models = [build_model(model_name, rotor, inflow=inflow,
+                                       **({'outputs': 'blades'} if every_blade else {}))]
         else:
             self.models = [build_model(model_name, rotor)]
         model = self.models[0]

@@ -29,7 +29,7 @@ class RotorPlant(Node):
         super().__init__('rotor_plant')
         d = self._declare_all()
         self.rotor = rotor_constants(d['n_blades'], d['advance_ratio'], d['flap_frequency'],
-                                     d['tip_loss'])
+                                     d['tip_loss'], d['pitch_flap_coupling'])
         self.joints = list(d['joint_names'])
         if self.joints == ['']:
             self.joints = [f'blade_{k}' for k in range(1, self.rotor.n_blades + 1)]
@@ -41,10 +41,11 @@ class RotorPlant(Node):
         noisy = [s for s in d['process_noise_states'] if s]
         self.stepper = PlantStepper(
             d['model'], self.rotor,
-            {k: d[k] for k in ('A', 'AL_over_tau', 'inv_tau', 'gamma')},
+            {k: d[k] for k in ('A', 'AL_over_tau', 'inv_tau', 'AL0_over_tau0', 'inv_tau0',
+                               'gamma')},
             self.omega, self.rate, d['initial_collective_rad'], d['flap_noise_std_rad'],
             d['pitch_noise_std_rad'], d['process_noise_std'], noisy or None, d['seed'],
-            t_start=d['initial_azimuth_rad'])
+            t_start=d['initial_azimuth_rad'], inflow=d['inflow'])
         self.d = d
         self.start_ns = None
         self.ready_ns = None
@@ -67,14 +68,20 @@ class RotorPlant(Node):
         two_deg = math.radians(2.0)
         spec = [
             ('model', 'multiblade_wake', f'truth model: {", ".join(MODEL_NAMES)}'),
-            ('n_blades', 4, 'number of blades N', 1, 12),
+            ('n_blades', 4, 'number of blades N', 2, 12),
             ('advance_ratio', 0.0, 'advance ratio mu (-)', 0.0, 1.0),
             ('flap_frequency', 1.2, 'rotating flap natural frequency P (per rev)', 0.5, 3.0),
             ('tip_loss', 0.97, 'tip-loss factor B (-)', 0.5, 1.0),
+            ('pitch_flap_coupling', 0.0, 'pitch-flap coupling K_P = tan delta3 (-)', -3.0, 3.0),
+            ('inflow', 'cyclic', 'wake model inflow: cyclic (report) | three_state'),
             ('A', 0.5, 'wake model: flap damping A = gamma B^4/8 (-), Ch.2 eq. 27', 1e-3, 10.0),
             ('AL_over_tau', 0.25, 'wake model: wake gain over time constant AL/tau (-)',
              0.0, 50.0),
             ('inv_tau', 0.125, 'wake model: inverse wake time constant 1/tau (-)', 1e-4, 50.0),
+            ('AL0_over_tau0', 0.25, 'three-state inflow: uniform gain over time constant (-)',
+             0.0, 50.0),
+            ('inv_tau0', 0.125, 'three-state inflow: inverse uniform time constant (-)',
+             1e-4, 50.0),
             ('gamma', 5.0, 'blade Lock number gamma (-) of the other models', 0.05, 50.0),
             ('rotor_speed_rad_s', 2.0 * math.pi * 15.0, 'rotor speed Omega (rad/s)',
              1.0, 1000.0),

@@ -181,3 +181,25 @@ def test_bad_rotors_are_refused_with_the_reason():
         build_model('multiblade_wake', RotorConstants(n_blades=2, advance_ratio=0.0))
     with pytest.raises(ValueError, match='uniform inflow only moves the coning'):
         build_model('multiblade_wake', RotorConstants(advance_ratio=0.0), inflow='three_state')
+
+
+@pytest.mark.parametrize('name,n_blades,mu,inflow', [
+    ('multiblade_wake', 5, 0.2, 'three_state'), ('multiblade_wake', 2, 0.0, 'cyclic'),
+    ('single_blade', 3, 0.3, 'cyclic'), ('multiblade', 6, 0.3, 'cyclic')])
+def test_plant_physics_any_rotor_starts_in_trim(name, n_blades, mu, inflow):
+    """The simulated plant holds any rotor in its periodic trim until commanded (no settling)."""
+    from rotor_id.nodes.live import PlantStepper, rotor_constants
+    rotor = rotor_constants(n_blades, mu, 1.2, 0.97, 0.2)
+    omega, rate = 2 * math.pi * 15, 1000.0
+    plant = PlantStepper(name, rotor, {'A': 0.6, 'AL_over_tau': 0.3, 'inv_tau': 0.15,
+                                       'AL0_over_tau0': 0.3, 'inv_tau0': 0.2, 'gamma': 6.0},
+                         omega, rate, 0.04, inflow=inflow)
+    per_rev = int(round(2 * math.pi / (omega / rate)))          # 67 samples ≈ one revolution
+    _, flap, pitch = plant.advance(3 * per_rev)
+    assert flap.shape == (3 * per_rev, n_blades)
+    assert np.all(np.abs(flap) < 0.2) and np.allclose(pitch, 0.04)
+    # one revolution later the trimmed flap repeats (to the 67-sample ≠ 2π rounding)
+    shift = 2 * math.pi - per_rev * omega / rate
+    rate_of_flap = np.gradient(flap, omega / rate, axis=0)
+    repeat = flap[per_rev:] + shift * rate_of_flap[per_rev:] - flap[:-per_rev]
+    assert np.max(np.abs(repeat)) < 1e-3 * max(np.max(np.abs(flap)), 1e-3)
