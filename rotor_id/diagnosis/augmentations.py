@@ -731,7 +731,6 @@ class BladeDissimilarity(Augmented):
         moment_u = None if u is None else np.einsum('tk,tk->t', Mu[:, self._j], u[:, 1:3])
         return row, moment_u
 
-
     def _wake_rows(self):
         names = self.view.model.state_names           # the root's states come first
         return [names.index('lambda_I'), names.index('lambda_II')]
