@@ -169,8 +169,12 @@ def discretize(model, p, inputs, t, rows=(), noise_std=0.0, noise_model='white',
     G = np.zeros((T - 1, n, len(rows)))
     for s in range(m):
         Phi = Phi_s[:Phi.shape[0], s] @ Phi
-        c = np.einsum('jab,jb->ja', Phi_s[:, s], c) + c_s[:, s]
-        G = Phi_s[:, s] @ G + G_s[:, s]
+        if constant:                    # one matrix for all intervals: a single product
+            c = c @ Phi_s[0, s].T + c_s[:, s]
+            G = Phi_s[0, s] @ G + G_s[:, s]
+        else:
+            c = np.einsum('jab,jb->ja', Phi_s[:, s], c) + c_s[:, s]
+            G = Phi_s[:, s] @ G + G_s[:, s]
     if noise_model == 'held':
         Q = np.einsum('jak,k,jbk->jab', G, sigma**2, G)
     else:
