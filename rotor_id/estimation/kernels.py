@@ -14,7 +14,8 @@ derivative of the RK4 step map (test/estimation/test_kernels.py checks agreement
 
 Loading numba costs 0.4-1 s (import, then the cached machine code), more than a whole
 ``rotor-id identify`` of a short record takes. So with ``ROTOR_ID_KERNELS=auto`` (the default)
-the numpy code runs until the simulations it did have taken :data:`AUTO_SWITCH_SECONDS`; then
+the numpy code runs until the simulations and filters it did have taken
+:data:`AUTO_SWITCH_SECONDS` of CPU time (not wall time, which a loaded machine inflates); then
 the kernel is loaded and used from there on (Monte Carlo studies, diagnosis, long records).
 ``ROTOR_ID_KERNELS=numba`` loads it at the first simulation, ``numpy`` never does (the
 reference). Where numba is missing or fails to compile, the numpy path is used and
@@ -29,7 +30,7 @@ import os
 import time
 
 MODES = ('auto', 'numba', 'numpy')
-#: Seconds of numpy simulation after which ``auto`` loads the kernel (its measured load cost).
+#: CPU seconds of numpy simulation after which ``auto`` loads the kernel (about its load cost).
 AUTO_SWITCH_SECONDS = 0.5
 
 _state = {'kernel': None, 'tried': False, 'error': None, 'numpy_seconds': 0.0,
@@ -51,7 +52,7 @@ def status():
 
 
 def note_numpy_seconds(seconds):
-    """Account time spent in the numpy recursion (drives the ``auto`` switch)."""
+    """Account CPU time spent in the numpy recursions (drives the ``auto`` switch)."""
     _state['numpy_seconds'] += seconds
 
 

@@ -220,7 +220,7 @@ def simulate(model, p, inputs, t, x0, param_index=(), x0_jacobian=None,
             raise ValueError('forcing is for plain simulation only')
     x, S = x0.copy(), (S0.copy() if want_sens else None)
     kernel = kernels.rk4_kernel() if forcing is None else None
-    clock = time.perf_counter()
+    clock = time.process_time()
     # process the record in chunks of whole sample intervals to bound memory
     per_chunk = max(1, _CHUNK // m)
     for start in range(0, T - 1, per_chunk):
@@ -269,7 +269,7 @@ def simulate(model, p, inputs, t, x0, param_index=(), x0_jacobian=None,
             Ss[start:stop + 1] = Sc
             S = Sc[-1]
     if kernel is None and want_sens:
-        kernels.note_numpy_seconds(time.perf_counter() - clock)
+        kernels.note_numpy_seconds(time.process_time() - clock)
     H = model.output_matrix(t)
     y = np.einsum('tij,tj->ti', H, xs) + model.output_offset(t, p)
     if not want_sens:
