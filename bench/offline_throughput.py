@@ -89,7 +89,7 @@ def make_record(seed=6):
                                 t0=T0, t_step=T_STEP)
     inputs = SustainedStirring(schedule, T0 + 12.0)
     sim = simulate(model, p, inputs, t, np.zeros(model.n_states))
-    coning = p[0] * schedule.collective / model.rotor.flap_frequency**2   # hover, no inflow
+    coning = model.coning(p, schedule.collective)                      # hover, no inflow
     rng = np.random.default_rng(seed)
     flap = blade_flap_from_multiblade_state(model, t, sim.x, coning=coning)
     flap = flap + math.radians(FLAP_NOISE_DEG) * rng.standard_normal(flap.shape)

@@ -138,10 +138,6 @@ def model_for(description, **options):
     elif getattr(description, 'inflow', None):
         raise IdentificationError('inflow applies to the wake model only, not '
                                   f'{description.model}')
-    if description.model in ('multiblade', 'multiblade_constant') and measurement == 'eq30':
-        raise IdentificationError(
-            'measurement eq30 ((β1−β3)/2, (β2−β4)/2) belongs to the wake model; use '
-            'measurement: multiblade or blades')
     collective = 'delta' if 'delta' in description.unknowns else 'theta0'
     try:
         return build_model(description.model, rotor, collective=collective, angle_unit='rad',

@@ -844,13 +844,11 @@ class Multiblade(RotorModel):
     Model 2: the rotor in multiblade coordinates with periodic coefficients (report Ch.2 §2.1).
 
     For N = 4: q = [β0, βI, βII, βd], x = [q, q′]. ``outputs='multiblade'`` measures q,
-    ``outputs='blades'`` every blade's flap.
+    ``outputs='blades'`` every blade's flap, ``outputs='eq30'`` the tilt in blade 1's frame.
     """
 
     def __init__(self, rotor=RotorConstants(), collective='theta0', angle_unit='rad',
                  outputs='multiblade'):
-        if outputs not in ('multiblade', 'blades'):
-            raise ValueError(f"outputs must be 'multiblade' or 'blades', not {outputs!r}")
         super().__init__(rotor, collective=collective, angle_unit=angle_unit, outputs=outputs,
                          all_coordinates=True, name='multiblade')
 
@@ -867,8 +865,6 @@ class MultibladeConstant(RotorModel):
 
     def __init__(self, rotor=RotorConstants(), collective='theta0', angle_unit='rad',
                  outputs='multiblade'):
-        if outputs not in ('multiblade', 'blades'):
-            raise ValueError(f"outputs must be 'multiblade' or 'blades', not {outputs!r}")
         super().__init__(rotor, periodic=False, collective=collective, angle_unit=angle_unit,
                          outputs=outputs, name='multiblade_constant')
 

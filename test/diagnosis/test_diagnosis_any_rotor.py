@@ -30,12 +30,9 @@ def _inputs(n_blades):
     return ExtendedInput(four_blades.SCHEDULE, T, extra)
 
 
-@pytest.mark.parametrize('name,n_blades,mu,options', BASES)
-def test_sensitivities_equal_finite_differences(name, n_blades, mu, options):
-    rng = np.random.default_rng(5)
-    base = _base(name, n_blades, mu, options)
-    inputs = _inputs(n_blades)
-    for model in four_blades._augmented(base):
+def _check_sensitivities(models, inputs, rng):
+    """Analytic sensitivities of every model equal central finite differences (1e-5)."""
+    for model in models:
         p = four_blades._away_from_neutral(model)
         x0 = 0.01 * rng.standard_normal(model.n_states)
         idx = list(range(len(p)))
@@ -50,6 +47,13 @@ def test_sensitivities_equal_finite_differences(name, n_blades, mu, options):
             scale = np.max(np.abs(fd)) + 1e-12
             assert np.max(np.abs(fd - sim.dy[:, :, i])) / scale < 1e-5, \
                 (model.name, model.parameter_names[i])
+
+
+@pytest.mark.parametrize('name,n_blades,mu,options', BASES)
+def test_sensitivities_equal_finite_differences(name, n_blades, mu, options):
+    base = _base(name, n_blades, mu, options)
+    _check_sensitivities(four_blades._augmented(base), _inputs(n_blades),
+                         np.random.default_rng(5))
 
 
 @pytest.mark.parametrize('n_blades,mu', [(3, 0.3), (5, 0.0)])
@@ -73,22 +77,27 @@ def test_dynamic_inflow_candidate_is_the_wake_model(n_blades, mu):
 
 def test_nested_candidates_equal_finite_differences():
     """Two effects at once (issue 16): the wake over a sensor lag, an odd blade over the wake."""
-    rng = np.random.default_rng(9)
     base = _base('multiblade', 3, 0.3, {'outputs': 'blades'})
-    inputs = _inputs(3)
-    for model in (aug.DynamicInflow(aug.SensorLag(base)),
-                  aug.BladeDissimilarity(aug.DynamicInflow(base), 2)):
-        p = four_blades._away_from_neutral(model)
-        x0 = 0.01 * rng.standard_normal(model.n_states)
-        idx = list(range(len(p)))
-        sim = simulate(model, p, inputs, T, x0, param_index=idx)
-        for i in idx:
-            h = 1e-6 * max(1.0, abs(p[i]))
-            up, down = p.copy(), p.copy()
-            up[i] += h
-            down[i] -= h
-            fd = (simulate(model, up, inputs, T, x0).y
-                  - simulate(model, down, inputs, T, x0).y) / (2 * h)
-            scale = np.max(np.abs(fd)) + 1e-12
-            assert np.max(np.abs(fd - sim.dy[:, :, i])) / scale < 1e-5, \
-                (model.name, model.parameter_names[i])
+    _check_sensitivities([aug.DynamicInflow(aug.SensorLag(base)),
+                          aug.BladeDissimilarity(aug.DynamicInflow(base), 2)], _inputs(3),
+                         np.random.default_rng(9))
+
+
+def test_diagnose_names_the_wake_of_a_three_bladed_rotor_in_forward_flight():
+    """Independent truth (N = 3, μ = 0.3, δ3), wake-free baseline: the wake is named, in bounds."""
+    from rotor_id.diagnosis.diagnose import diagnose
+    from rotor_id.io.run_description import parse_run_description
+    from truth_generator import generate, run_description_text, TruthConfig
+    cfg = TruthConfig(n_blades=3, mu=0.3, gamma=6.0, pitch_flap=0.2, t0=20.0, wake_L=3.0,
+                      wake_tau=6.0, sensor_bias=[0.0] * 3, gamma_scale=[1.0] * 3,
+                      pitch_offset=[0.0] * 3, seed=4)
+    text = (run_description_text(cfg, 'multiblade', ['gamma', 'theta0'], guess=False)
+            + f'measurement: blades\nnoise_std_rad: {cfg.flap_noise}\n')
+    result = diagnose(generate(cfg), parse_run_description(text), workers=1).as_json()
+    explanation = result['explanation']
+    assert result['mismatch'] and explanation['effect'] == 'dynamic_inflow'
+    A = cfg.gamma * cfg.tip_loss**4 / 8
+    truth = {'A': A, 'AL_over_tau': A * cfg.wake_L / cfg.wake_tau, 'inv_tau': 1 / cfg.wake_tau}
+    for name, value in truth.items():
+        estimate = explanation['parameters'][name]
+        assert abs(estimate['value'] - value) < 4 * estimate['std'], (name, estimate, value)
