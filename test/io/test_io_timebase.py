@@ -57,8 +57,8 @@ def test_pitch_law_maps_to_lateral_and_forward_cyclic():
 
 
 def test_multiblade_rejects_bad_shapes():
-    with pytest.raises(ValueError, match='at least 3 blades'):
-        multiblade_coordinates(np.zeros((5, 2)), np.zeros(5))
+    with pytest.raises(ValueError, match='at least 2 blades'):
+        multiblade_coordinates(np.zeros((5, 1)), np.zeros(5))
     with pytest.raises(ValueError, match='values must be'):
         multiblade_coordinates(np.zeros((5, 4)), np.zeros(4))
 
