@@ -75,8 +75,10 @@ def main(argv=None):
     if args.command is None:
         parser.print_help()
         return 2
+    from rotor_id.commands.common import capture_warnings
     try:
-        return int(args._run(args) or 0)
+        with capture_warnings():
+            return int(args._run(args) or 0)
     except KeyboardInterrupt:
         print(f'rotor-id {args.command}: interrupted', file=sys.stderr)
         return 130

@@ -39,6 +39,20 @@ class Identification:
     unknowns: list
     #: Several recordings fitted together (:func:`identify_runs`): one :class:`Run` each.
     runs: list = field(default_factory=list)
+    #: parameters neither identified nor given in ``known``: name -> value the fit used
+    defaults_used: dict = field(default_factory=dict)
+    #: the residual check (None only when the caller skipped it)
+    adequacy: object = None
+    #: remarks on the inputs (defaults taken), before the estimator's own warnings
+    notes: list = field(default_factory=list)
+
+    @property
+    def warnings(self):
+        """Every warning of this identification: inputs, estimator, adequacy."""
+        out = list(self.notes) + list(self.estimate.warnings)
+        if self.adequacy is not None and self.adequacy.warning():
+            out.append(self.adequacy.warning())
+        return out
 
     def as_json(self):
         """
@@ -71,8 +85,11 @@ class Identification:
             'initial_states': {n: {'value': float(v), 'std': float(s)}
                                for n, v, s in zip(est.names, est.values, est.std)
                                if n not in self.unknowns and '(t0)' in n},
-            'warnings': list(est.warnings),
+            'warnings': self.warnings,
+            'defaults_used': {k: float(v) for k, v in self.defaults_used.items()},
         }
+        if self.adequacy is not None:
+            out['adequacy'] = self.adequacy.as_json()
         # filter error also estimates noise σ's (process_noise_std, noise_std_<channel>)
         noise = {n: {'value': float(v), 'std': float(s)}
                  for n, v, s in zip(est.names, est.values, est.std)
@@ -138,7 +155,8 @@ def model_for(description, **options):
     elif getattr(description, 'inflow', None):
         raise IdentificationError('inflow applies to the wake model only, not '
                                   f'{description.model}')
-    collective = 'delta' if 'delta' in description.unknowns else 'theta0'
+    collective = ('delta' if 'delta' in description.unknowns or 'delta' in description.known
+                  else 'theta0')
     try:
         return build_model(description.model, rotor, collective=collective, angle_unit='rad',
                            **options)
@@ -146,12 +164,71 @@ def model_for(description, **options):
         raise IdentificationError(f'{description.model} for this rotor: {err}') from None
 
 
-def _known_values(description, model, record):
+def given_values(description, model):
+    """Return the description's ``known`` values as the model's parameters (γ → A: wake)."""
     known = lock_number_from_known(description.known, model)
-    names = model.parameter_names
-    if 'theta0' in names and 'theta0' not in known and 'theta0' not in description.unknowns:
-        known['theta0'] = float(np.mean(_pitch_input(record)(record.t)[:, 0]))
-    return {k: v for k, v in known.items() if k in names}
+    return {k: v for k, v in known.items() if k in model.parameter_names}
+
+
+def parameter_defaults(description, model, collective=None,
+                       collective_source='the mean measured collective pitch', given=()):
+    """
+    Model parameters neither identified nor given in ``known``, with the value used for them.
+
+    Returns (values, sources): name -> value and name -> where the value comes from. θ0 is
+    ``collective`` when given (identify: the measured mean collective pitch), else the model's
+    nominal value, as is every other parameter. ``given`` names further parameters the caller
+    has values for (the plan's ``guess``). These values change the answer, so every consumer
+    names them (a warning and the JSON key ``defaults_used``).
+    """
+    known = set(given_values(description, model)) | set(given)
+    values, sources = {}, {}
+    for par in model.parameters:
+        if par.name in known or par.name in description.unknowns:
+            continue
+        if par.name == 'theta0' and collective is not None:
+            values[par.name] = float(collective)
+            sources[par.name] = collective_source
+        else:
+            values[par.name] = float(par.nominal)
+            sources[par.name] = "the library's nominal value"
+    return values, sources
+
+
+def defaults_warning(values, sources):
+    """One warning naming every default taken, or None."""
+    if not values:
+        return None
+    listed = ', '.join(f'{name} = {values[name]:.6g} ({sources[name]})' for name in values)
+    return (f'not identified and not given in known: {listed}; the estimates depend on '
+            f'{"this value" if len(values) == 1 else "these values"}: give the true '
+            f'{"value" if len(values) == 1 else "values"} under known: in the run description, '
+            'or list them among the unknowns')
+
+
+def _known_values(description, model, record):
+    """Known values plus the defaults taken (name -> value), and those defaults' sources."""
+    collective = float(np.mean(_pitch_input(record)(record.t)[:, 0]))
+    defaults, sources = parameter_defaults(description, model, collective=collective)
+    return {**given_values(description, model), **defaults}, defaults, sources
+
+
+def check_values(description, model, values, what):
+    """
+    Check parameter values against the model's physical ranges before any fitting.
+
+    A value outside them (a known γ of 1e300, a guess in degrees) would overflow the simulation
+    or pull the fit to nonsense; the error names the key and its line.
+    """
+    for name, value in values.items():
+        par = model.parameter(name)
+        if not (math.isfinite(value) and par.lower <= value <= par.upper):
+            line = description.lines.get((what, name)) if hasattr(description, 'lines') else None
+            where = f'{description.path}:{line}: ' if line else f'{description.path}: '
+            raise IdentificationError(
+                f'{where}{what}.{name} = {value:g} is outside the physical range '
+                f'[{par.lower:g}, {par.upper:g}] {par.unit} of {model.name}; check its value '
+                'and unit')
 
 
 def _pitch_input(record):
@@ -265,14 +342,69 @@ def identify(record, description, method=None, progress=None, window_s=None,
     window_s = tuple(window_s or description.window_s)
     record = _near_window(record, window_s)
     experiments = experiments_from_record(record, description, model, window_s)
-    known = _known_values(description, model, record)
+    known, defaults, sources = _known_values(description, model, record)
     unknowns = list(description.unknowns)
     if model.name == 'multiblade_wake' and 'gamma' in unknowns:
         raise IdentificationError('the wake model is identified in A = γB⁴/8 (Ch.2 eq. 27); '
                                   'list A instead of gamma among the unknowns')
-    guess = starting_values(record, description, model, experiments, known, multi_start)
+    check_values(description, model, given_values(description, model), 'known')
+    check_values(description, model, {k: v for k, v in description.initial_guess.items()
+                                      if k in model.parameter_names}, 'initial_guess')
+    with np.errstate(over='ignore', invalid='ignore', divide='ignore'):
+        guess = starting_values(record, description, model, experiments, known, multi_start)
+        estimate = _fit_guarded(method, experiments, unknowns, guess, known, description,
+                                model, progress, max_iter, filter_bounds, step_tol)
+    from rotor_id import adequacy as adequacy_check   # imports diagnosis, which imports us
+    part = record.window(*window_s)
+    notes = [w for w in [defaults_warning(defaults, sources)] if w]
+    return Identification(estimate=estimate, model=experiments[0].model, experiments=experiments,
+                          description=description, window_s=window_s,
+                          omega_rad_s=part.omega_mean, unknowns=unknowns,
+                          defaults_used=defaults, notes=notes,
+                          adequacy=adequacy_check.check(
+                              estimate, experiments,
+                              [(part.blade_flap, part.time_s)] * len(experiments)))
+
+
+def _fit_guarded(method, experiments, unknowns, guess, known, description, model, progress,
+                 max_iter, filter_bounds, step_tol, noise_std=None):
+    """Run the estimator; a non-finite simulation or iterate becomes an error naming its cause."""
+    last = {}
+
+    def watch(info):
+        last.update(zip(info['names'], info['values']))
+        if progress is not None:
+            progress(info)
+    try:
+        estimate = _fit(method, experiments, unknowns, guess, known, description, model,
+                        watch, max_iter, filter_bounds, step_tol, noise_std)
+    except (OverflowError, FloatingPointError, np.linalg.LinAlgError) as err:
+        raise IdentificationError(_divergence_message(err, unknowns, last or guess, model,
+                                                      description)) from None
+    values = dict(zip(estimate.names, estimate.values))
+    if not all(math.isfinite(values[n]) for n in unknowns) or \
+            not np.all(np.isfinite(np.concatenate([np.ravel(f) for f in estimate.fitted]))):
+        raise IdentificationError(_divergence_message(None, unknowns, values, model,
+                                                      description))
+    return estimate
+
+
+def _divergence_message(err, unknowns, values, model, description):
+    rotor = description.rotor
+    shown = ', '.join(f'{n} = {float(values[n]):.4g}' for n in unknowns if n in values)
+    cause = f' ({type(err).__name__}: {err})' if err is not None else ''
+    return (f'the simulation of {model.name} became non-finite{cause} at {shown or "the start"} '
+            f'with rotor.flap_frequency = {rotor.flap_frequency:g}, advance_ratio = '
+            f'{rotor.advance_ratio:g}, tip_loss = {rotor.tip_loss:g}: the iterate of '
+            f'{", ".join(unknowns)} diverged; give initial_guess values near the truth, fix '
+            'known values, or shorten window_s')
+
+
+def _fit(method, experiments, unknowns, guess, known, description, model, progress,
+         max_iter, filter_bounds, step_tol, noise_std=None):
     noise = description.noise_std_rad
-    noise_std = None if noise is None else channel_noise(model, float(noise))
+    if noise_std is None and noise is not None:
+        noise_std = channel_noise(model, float(noise))
     if method == 'output-error':
         tolerance = {} if step_tol is None else {'step_tol': step_tol}
         estimate = fit_output_error(experiments, unknowns, guess=guess, known=known,
@@ -290,9 +422,7 @@ def identify(record, description, method=None, progress=None, window_s=None,
     else:
         raise IdentificationError(f'unknown method {method!r}; use output-error, '
                                   'filter-error or equation-error')
-    return Identification(estimate=estimate, model=experiments[0].model, experiments=experiments,
-                          description=description, window_s=window_s,
-                          omega_rad_s=record.window(*window_s).omega_mean, unknowns=unknowns)
+    return estimate
 
 
 #: What the runs of one multi-run estimate must agree on (they share the parameters).
@@ -353,13 +483,13 @@ def identify_runs(runs, method=None, progress=None, multi_start=True, max_iter=5
     if model.name == 'multiblade_wake' and 'gamma' in unknowns:
         raise IdentificationError('the wake model is identified in A = γB⁴/8 (Ch.2 eq. 27); '
                                   'list A instead of gamma among the unknowns')
-    experiments, parts, noise_std, known = [], [], [], None
+    experiments, parts, noise_std, known, measured = [], [], [], None, []
     for index, (record, desc, name) in enumerate(zip(records, descriptions, names)):
         window_s = tuple(desc.window_s)
         near = _near_window(record, window_s)
-        run_known = _known_values(desc, model, near)
+        run_known, run_defaults, sources = _known_values(desc, model, near)
         if known is None:
-            known = run_known
+            known, defaults = run_known, run_defaults
         elif set(run_known) != set(known) or any(
                 not math.isclose(run_known[k], known[k], rel_tol=1e-3, abs_tol=1e-5)
                 for k in known):
@@ -377,15 +507,22 @@ def identify_runs(runs, method=None, progress=None, multi_start=True, max_iter=5
         parts.append(Run(name=name, source=record.source, description=desc, window_s=window_s,
                          omega_rad_s=near.window(*window_s).omega_mean,
                          experiments=list(range(first, len(experiments)))))
-    guess = starting_values(records[0], description, model, experiments, known, multi_start)
-    tolerance = {} if step_tol is None else {'step_tol': step_tol}
-    estimate = fit_output_error(experiments, unknowns, guess=guess, known=known,
-                                noise_std=noise_std, progress=progress, max_iter=max_iter,
-                                **tolerance)
+        windowed = near.window(*window_s)
+        measured += [(windowed.blade_flap, windowed.time_s)] * (len(experiments) - first)
+    check_values(description, model, given_values(description, model), 'known')
+    with np.errstate(over='ignore', invalid='ignore', divide='ignore'):
+        guess = starting_values(records[0], description, model, experiments, known,
+                                multi_start)
+        estimate = _fit_guarded('output-error', experiments, unknowns, guess, known,
+                                description, model, progress, max_iter, 'marginal', step_tol,
+                                noise_std=noise_std)
+    from rotor_id import adequacy as adequacy_check   # imports diagnosis, which imports us
     return Identification(estimate=estimate, model=experiments[0].model,
                           experiments=experiments, description=description,
                           window_s=parts[0].window_s, omega_rad_s=parts[0].omega_rad_s,
-                          unknowns=unknowns, runs=parts)
+                          unknowns=unknowns, runs=parts, defaults_used=defaults,
+                          notes=[w for w in [defaults_warning(defaults, sources)] if w],
+                          adequacy=adequacy_check.check(estimate, experiments, measured))
 
 
 def channel_noise(model, blade_noise):

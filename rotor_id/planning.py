@@ -35,14 +35,13 @@ import itertools
 import math
 from pathlib import Path
 import time
-import warnings
 
 import numpy as np
 from rotor_id import pipeline
 from rotor_id.estimation.information import information_history, InformationHistory, \
     inverse_or_nan, shortest_record
 from rotor_id.estimation.simulate import simulate
-from rotor_id.io.errors import RunDescriptionError, RunDescriptionWarning
+from rotor_id.io.errors import RunDescriptionError
 from rotor_id.io.record import Record
 from rotor_id.io.run_description import _Lines, parse_run_description
 from rotor_id.physics.blades import blade_flap_from_states
@@ -172,6 +171,8 @@ class Plan:
     path : str
     known_initial_state : bool
         Plan as if the state at the window start were known (report Ch.3 Table 1).
+    defaults_used : dict
+        Parameters neither unknown, known nor guessed: name -> the value planned with.
 
     """
 
@@ -186,6 +187,7 @@ class Plan:
     warnings: tuple = ()
     path: str = '<string>'
     known_initial_state: bool = False
+    defaults_used: dict = field(default_factory=dict)
 
     @property
     def unknowns(self):
@@ -261,14 +263,7 @@ def parse_plan(text, path='<string>'):
         raise
     if isinstance(data, dict) and 'window_s' not in data:
         text = text.rstrip('\n') + '\nwindow_s: [0.0, 1.0]  # set per candidate by the plan\n'
-    with warnings.catch_warnings():
-        warnings.simplefilter('ignore', RunDescriptionWarning)
-        description = parse_run_description(text, path)
-    own = tuple(f'unknown key {key!r} ignored' for key in PLAN_KEYS)
-    remarks = tuple(w for w in description.warnings if not any(o in w for o in own))
-    description = replace(description, warnings=remarks,
-                          extra={k: v for k, v in description.extra.items()
-                                 if k not in PLAN_KEYS})
+    description = parse_run_description(text, path, extra_keys=PLAN_KEYS)
     parser = _PlanParser(data, _Lines(node), path)
     model = pipeline.model_for(description)
 
@@ -302,11 +297,20 @@ def parse_plan(text, path='<string>'):
     if not isinstance(known_state, bool):
         parser.fail(f'known_initial_state must be true or false, not {known_state!r}',
                     'known_initial_state')
+    given_collective = data.get('collective_rad') is not None
+    defaults, sources = pipeline.parameter_defaults(
+        description, model, collective=collective if given_collective else None,
+        collective_source='collective_rad', given=set(guess) | (
+            {'theta0'} if given_collective else set()))
+    remarks = list(description.warnings)
+    note = pipeline.defaults_warning(defaults, sources)
+    if note:
+        remarks.append(note)
     return Plan(description=description, guess=guess, noise_std_rad=description.noise_std_rad,
                 rate_hz=rate_hz, omega_rad_s=omega, target_std=target,
                 candidates=candidates, collective_rad=collective,
-                warnings=tuple(description.warnings), path=path,
-                known_initial_state=known_state)
+                warnings=tuple(remarks), path=path,
+                known_initial_state=known_state, defaults_used=defaults)
 
 
 def load_plan(path):
@@ -719,6 +723,7 @@ class PlanResult:
                               else plan.description.initial_state),
             'elapsed_s': float(self.elapsed_s),
             'warnings': list(self.warnings),
+            'defaults_used': {k: float(v) for k, v in plan.defaults_used.items()},
         }
 
 

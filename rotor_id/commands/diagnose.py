@@ -14,6 +14,7 @@ import json
 from pathlib import Path
 import sys
 
+from rotor_id.commands.common import check_output_paths
 from rotor_id.commands.identify import load_inputs
 from rotor_id.diagnosis.catalogue import EFFECTS
 from rotor_id.diagnosis.diagnose import diagnose
@@ -105,9 +106,8 @@ def run(args):
     """Diagnose and report; exit 0 (a diagnosis was made, whatever it says)."""
     if args.workers < 1:
         raise ValueError(f'--workers must be at least 1, got {args.workers}')
+    check_output_paths(json=args.json_out, report_dir=args.report)
     description, record = load_inputs(args.bag, args.config)
-    for warning in record.warnings + list(description.warnings):
-        print(f'warning: {warning}', file=sys.stderr)
 
     def progress(text):
         print(f'  {text}', file=sys.stderr, flush=True)

@@ -19,8 +19,9 @@ import time
 import numpy as np
 
 from rotor_id import pipeline
+from rotor_id.commands.common import check_output_paths, print_warnings
 from rotor_id.io.bag import read_record
-from rotor_id.io.run_description import load_run_description, validate_window
+from rotor_id.io.run_description import check_against_record, load_run_description
 
 METHODS = ('output-error', 'filter-error', 'equation-error')
 
@@ -58,11 +59,18 @@ def progress_printer(label, stream=sys.stderr):
 
 
 def load_inputs(bag, config):
-    """Run description and record, with the window checked against the record."""
+    """
+    Run description and record, checked against each other.
+
+    The one path by which identify, diagnose, campaign and demo read their inputs: the
+    description is validated (typo keys, ranges), the bag read, and the blade count and window
+    checked against what the bag holds, before any fitting. The warnings of both are in their
+    ``warnings`` (the caller prints them).
+    """
     description = load_run_description(config)
     record = read_record(bag, description.topics, joint_names=description.joint_names,
                          run=description.run, window_s=description.window_s)
-    validate_window(description, record)
+    check_against_record(description, record)
     return description, record
 
 
@@ -124,9 +132,9 @@ def run(args):
         return run_several(args, configs)
     args.bag, args.config = args.bag[0], configs[0]
     started = time.perf_counter()
+    check_output_paths(json=args.json_out, figure=args.figure)
     description, record = load_inputs(args.bag, args.config)
-    for warning in record.warnings + list(description.warnings):
-        print(f'warning: {warning}', file=sys.stderr)
+    print_warnings(list(description.warnings) + list(record.warnings))
     method = args.method or description.method
     label = f'{method} {description.model} ({", ".join(description.unknowns)})'
     if not args.quiet:
@@ -142,9 +150,8 @@ def run(args):
 
 
 def write_outputs(result, records, args, bag, started, title):
-    """Print the estimator's warnings, write the JSON and the figure when asked for."""
-    for warning in result.estimate.warnings:
-        print(f'warning: {warning}', file=sys.stderr)
+    """Print the result's warnings (once each), write the JSON and the figure when asked."""
+    print_warnings(result.warnings)
     data = result.as_json()
     data['bag'] = bag
     data['elapsed_s'] = time.perf_counter() - started
@@ -195,11 +202,12 @@ def run_several(args, configs):
     """Identify several bags together; exit 0 when converged, 1 when not."""
     started = time.perf_counter()
     names = run_names(args.bag)
+    check_output_paths(json=args.json_out, figure=args.figure)
     loaded = [load_inputs(bag, config) for bag, config in zip(args.bag, configs)]
     check_no_overlap(args.bag, [desc.window_s for desc, _ in loaded])
     for (description, record), name in zip(loaded, names):
-        for warning in record.warnings + list(description.warnings):
-            print(f'warning: {name}: {warning}', file=sys.stderr)
+        print_warnings(f'{name}: {warning}'
+                       for warning in list(description.warnings) + list(record.warnings))
     pipeline.check_runs_agree([desc for desc, _ in loaded], names)
     description = loaded[0][0]
     method = args.method or 'output-error'

@@ -18,6 +18,7 @@ from pathlib import Path
 import sys
 
 from rotor_id import planning
+from rotor_id.commands.common import check_output_paths, print_warnings
 
 
 def add_arguments(parser):
@@ -80,9 +81,9 @@ def format_recommendation(result):
 
 def run(args):
     """Plan and report; exit 0 when the recommendation meets the targets, else 1."""
+    check_output_paths(json=args.json_out, figure=args.figure)
     plan = planning.load_plan(args.config)
-    for warning in plan.warnings:
-        print(f'warning: {warning}', file=sys.stderr)
+    print_warnings(plan.warnings)
     n_transients = len({c.transient for c in plan.candidates})
     if not args.quiet:
         print(f'planning {len(plan.candidates)} candidates ({n_transients} transients) for '
@@ -97,8 +98,7 @@ def run(args):
     result = planning.evaluate_plan(plan, progress=None if args.quiet else show)
     print(format_table(result))
     print(format_recommendation(result))
-    for warning in result.warnings:
-        print(f'warning: {warning}', file=sys.stderr)
+    print_warnings(result.warnings)
     data = result.as_json()
     data['config'] = str(args.config)
     if args.json_out:

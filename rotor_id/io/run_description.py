@@ -27,11 +27,14 @@ extended, without breaking it, by optional keys::
                                          # reported by ``rotor-id campaign``
     inflow: cyclic                       # wake model: cyclic (report) | three_state
 
-Errors raise :class:`RunDescriptionError` naming the file, the line and what to do; unknown
-keys only warn (:class:`RunDescriptionWarning`), so that newer files still load.
+Errors raise :class:`RunDescriptionError` naming the file, the line and what to do. An
+unknown key that looks like a misspelt known one (``knwon:``) is an error with the suggestion,
+because ignoring it would change the answer silently; other unknown keys only warn
+(:class:`RunDescriptionWarning`), so that newer files still load.
 """
 
 from dataclasses import dataclass, field
+import difflib
 import math
 from pathlib import Path
 import re
@@ -63,6 +66,12 @@ DEFAULT_TOPICS = {
     'azimuth': '/rotor/azimuth',
 }
 ROTOR_KEYS = ('blades', 'advance_ratio', 'flap_frequency', 'tip_loss', 'pitch_flap_coupling')
+#: Largest plausible value of each rotor constant: beyond it the number is in another unit (the
+#: flap frequency P is per rev, ≈ 1-1.5 for test-stand rotors, not Hz or rad/s; μ is a ratio,
+#: not a percentage), and the model's coefficients (P², μ³) would overflow.
+ROTOR_LIMITS = {'blades': 64, 'advance_ratio': 2.0, 'flap_frequency': 10.0}
+#: An unknown key this similar (difflib ratio, case-insensitive) to a known one is a typo.
+TYPO_SIMILARITY = 0.75
 TOP_LEVEL_KEYS = (
     'rotor', 'topics', 'model', 'unknowns', 'window_s', 'joint_names', 'known',
     'initial_guess', 'initial_state', 'noise_std_rad', 'method', 'measurement', 'lock_number',
@@ -145,6 +154,9 @@ class RunDescription:
         Non-fatal remarks (unknown keys).
     extra
         Unknown top-level keys and their values, kept for newer tools.
+    lines
+        Key path (tuple, e.g. ('rotor', 'blades')) -> 1-based line in the file, for messages
+        about the description found later (e.g. against the bag, :func:`check_against_record`).
 
     """
 
@@ -167,6 +179,7 @@ class RunDescription:
     path: str = '<string>'
     warnings: tuple = ()
     extra: dict = field(default_factory=dict)
+    lines: dict = field(default_factory=dict, repr=False, compare=False)
 
     @property
     def parameters(self):
@@ -290,6 +303,17 @@ class _Parser:
         where = f'{self.path}:{line}' if line else self.path
         raise RunDescriptionError(f'{where}: {message}', self.path, line)
 
+    def unknown_key(self, key, valid, *path, note=''):
+        """Unknown key: an error when it looks like a typo of a valid key, else a warning."""
+        lowered = {v.lower(): v for v in valid}
+        close = difflib.get_close_matches(str(key).lower(), list(lowered), n=1,
+                                          cutoff=TYPO_SIMILARITY)
+        name = '.'.join(str(p) for p in path)
+        if close:
+            self.fail(f'unknown key {name!r}; did you mean `{lowered[close[0]]}`? (fix the '
+                      'spelling: as written the key would be ignored)', *path)
+        self.warn(f'unknown key {name!r} ignored{note}', *path)
+
     def warn(self, message, *path):
         text = f'{self.path}:{self.lines(*path)}: {message}'
         self.warnings.append(text)
@@ -348,7 +372,9 @@ class _Parser:
     def parameter_name(self, name, model, *path):
         valid = MODEL_PARAMETERS[model]
         if name not in valid:
-            self.fail(f'unknown parameter {name!r} for model {model}; valid: '
+            close = difflib.get_close_matches(str(name), valid, n=1, cutoff=TYPO_SIMILARITY)
+            hint = f'did you mean `{close[0]}`? ' if close else ''
+            self.fail(f'unknown parameter {name!r} for model {model}; {hint}valid: '
                       f'{", ".join(valid)}', *path)
 
     def parameter_value(self, name, value, *path):
@@ -363,7 +389,7 @@ def _kind(value):
     return 'nothing' if value is None else type(value).__name__
 
 
-def parse_run_description(text, path='<string>'):
+def parse_run_description(text, path='<string>', extra_keys=()):
     """
     Parse and validate a run description.
 
@@ -373,6 +399,9 @@ def parse_run_description(text, path='<string>'):
         The YAML text.
     path
         Name of its file, used in messages.
+    extra_keys
+        Further top-level keys the caller reads itself (e.g. the plan's ``rate_hz``): neither
+        warned about nor kept in ``extra``, and misspellings of them are caught too.
 
     Returns
     -------
@@ -401,7 +430,7 @@ def parse_run_description(text, path='<string>'):
             f'{where}: malformed YAML ({err}); fix the syntax', path, line) from None
     except (ValueError, TypeError, RecursionError) as err:  # e.g. bad dates, deep nesting
         raise RunDescriptionError(f'{path}: unreadable YAML ({err})', path) from None
-    return _validate(_Parser(data, lines, path))
+    return _validate(_Parser(data, lines, path), tuple(extra_keys))
 
 
 def load_run_description(path):
@@ -423,21 +452,22 @@ def load_run_description(path):
     return parse_run_description(text, path)
 
 
-def _validate(parser):
+def _validate(parser, extra_keys=()):
     data = parser.mapping(parser.data)
     if parser.lines.duplicates:
         where, first, second = parser.lines.duplicates[0]
         parser.fail(f'key {".".join(str(p) for p in where)!r} is given twice (lines {first} '
                     f'and {second}); keep one', *where)
+    valid_keys = TOP_LEVEL_KEYS + tuple(extra_keys)
     for key in data:
-        if key not in TOP_LEVEL_KEYS:
-            parser.warn(f'unknown key {key!r} ignored (known keys: {", ".join(TOP_LEVEL_KEYS)})',
-                        key)
+        if key not in valid_keys:
+            parser.unknown_key(key, valid_keys, key,
+                               note=f' (known keys: {", ".join(valid_keys)})')
 
     rotor = parser.mapping(parser.require(data, 'rotor'), 'rotor')
     for key in rotor:
         if key not in ROTOR_KEYS:
-            parser.warn(f'unknown key rotor.{key} ignored', 'rotor', key)
+            parser.unknown_key(key, ROTOR_KEYS, 'rotor', key)
     spec = RotorSpec(
         blades=parser.number(parser.require(rotor, 'blades', 'rotor'), 'rotor', 'blades',
                              integer=True, minimum=1),
@@ -452,13 +482,20 @@ def _validate(parser):
     )
     if spec.tip_loss > 1:
         parser.fail(f'rotor.tip_loss must be in (0, 1], got {spec.tip_loss}', 'rotor', 'tip_loss')
+    for key, limit in ROTOR_LIMITS.items():
+        value = getattr(spec, key)
+        if value > limit:
+            unit = {'flap_frequency': ' (per rev: P ≈ 1-1.5, not Hz or rad/s)',
+                    'advance_ratio': ' (a ratio V/ΩR, not a percentage or a speed)'}.get(key, '')
+            parser.fail(f'rotor.{key} = {value:g} is implausibly large{unit}; the largest value '
+                        f'accepted is {limit:g}', 'rotor', key)
 
     topics = dict(DEFAULT_TOPICS)
     if 'topics' in data:
         for role, topic in parser.mapping(data['topics'], 'topics').items():
             if role not in TOPIC_ROLES:
-                parser.warn(f'unknown key topics.{role} ignored (roles: '
-                            f'{", ".join(TOPIC_ROLES)})', 'topics', role)
+                parser.unknown_key(role, TOPIC_ROLES, 'topics', role,
+                                   note=f' (roles: {", ".join(TOPIC_ROLES)})')
                 continue
             if role == 'azimuth' and topic is None:
                 topics[role] = None  # azimuth not recorded: t from the rotor speed
@@ -509,6 +546,10 @@ def _validate(parser):
             parser.fail(f'lock_number {gamma} contradicts known.gamma {known["gamma"]}; '
                         'give one of them', 'lock_number')
         options['lock_number'] = known['gamma'] = gamma
+    collective = sorted({'theta0', 'delta'} & (set(known) | set(unknowns)))
+    if len(collective) == 2:
+        parser.fail('theta0 and delta (δ = γθ0) are one parameter in two forms; give one of '
+                    'them, as unknown or known', 'known' if 'known' in data else 'unknowns')
     both = sorted(set(known) & set(unknowns))
     if both:
         parser.fail(f'parameters {both} are both unknown and known; remove them from one '
@@ -545,7 +586,8 @@ def _validate(parser):
     return RunDescription(
         rotor=spec, topics=topics, model=model, unknowns=tuple(unknowns), window_s=(t0, t1),
         path=parser.path, warnings=tuple(parser.warnings),
-        extra={k: v for k, v in data.items() if k not in TOP_LEVEL_KEYS}, **options)
+        extra={k: v for k, v in data.items() if k not in valid_keys},
+        lines=dict(parser.lines.lines), **options)
 
 
 def _check_wake_gain(parser, rotor, unknowns, known, data):
@@ -596,3 +638,37 @@ def validate_window(description, record):
             f'[{first:.6f}, {last:.6f}] s after the first flap stamp ({record.source}); '
             'shorten the window or check that the description belongs to this bag',
             description.path)
+
+
+def check_against_record(description, record):
+    """
+    Check a run description against the record read from its bag, before any fitting.
+
+    The blade count ``rotor.blades`` must equal the number of blades whose joints the bag's
+    flap topic carries (a 3-blade description of a 4-blade recording would otherwise be fitted
+    with the wrong multiblade transform), and the window must lie inside the record
+    (:func:`validate_window`).
+
+    Parameters
+    ----------
+    description
+        RunDescription.
+    record
+        Record read from the bag.
+
+    Raises
+    ------
+    RunDescriptionError
+        Naming the file and line of the key, what the bag holds and what to do.
+
+    """
+    blades = description.rotor.blades
+    if record.n_blades != blades:
+        line = description.lines.get(('rotor', 'blades'))
+        where = f'{description.path}:{line}' if line else description.path
+        seen = ', '.join(record.blade_names)
+        raise RunDescriptionError(
+            f'{where}: rotor.blades = {blades}, but {description.topics["blade_flap"]} carries '
+            f'{record.n_blades} blade joints ({seen}); set rotor.blades: {record.n_blades}, '
+            'or name the joints of your blades in joint_names', description.path, line)
+    validate_window(description, record)

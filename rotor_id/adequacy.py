@@ -1,0 +1,252 @@
+"""
+Does the identified model explain the data? The residual check after every identification.
+
+A maximum-likelihood fit with Cramér-Rao bounds is only right when its residuals are the
+measurement noise it assumes (report Ch.1 "Validation"; MATLAB's ``resid``, SIDPAC's residual
+checks). After each fit :func:`check` tests, for every run and output channel:
+
+* **whiteness**: Ljung-Box Q over 20 lags, χ²(20) for white residuals
+  (:func:`rotor_id.estimation.validation.ljung_box` via the diagnosis's channel statistics);
+* **input correlation**: the largest |normalised cross-correlation| of the residual with the
+  stirring inputs θI, θII over ± one revolution of lags; for a white residual each value is
+  N(0, 1/N) whatever the input, so its p-value is the two-sided normal tail, Bonferroni over the
+  lags and inputs tried;
+* **zero mean**: z = mean·√N / s of the residual, N(0, 1) for zero-mean white residuals. A
+  constant misfit in a channel the model cannot hold constant (per-blade calibration offsets in
+  the eq.-30 differences, which the wake model can only half absorb by a wrong A) shows here
+  first;
+* **noise level** (output and equation error): the residual mean square against the model-free
+  noise floor of the flap sensors (their third differences,
+  :func:`rotor_id.diagnosis.residuals.blade_noise_floor`), one-sided z with the standard error
+  of both mean squares. Filter error's residuals are innovations, whose variance legitimately
+  exceeds the sensor noise (the state prediction's own uncertainty), so for it only the two
+  tests above apply: innovations of an adequate model are white even when process noise colours
+  output-error residuals.
+
+The family of K tests is corrected by Bonferroni: a test fails when its p-value is below α/K,
+so a recording the model explains raises the warning with probability at most α
+(:data:`FAMILY_ALPHA`) whatever the correlation between the tests. The verdict is a value
+(:class:`Verdict`); a misfit also says where it is (channels, band per rev, time span) and
+suggests ``rotor-id diagnose``, which locates and explains it. The exit code of a converged fit
+stays 0: the estimate is still the best the model can do, but its bounds no longer describe its
+error.
+"""
+
+from dataclasses import dataclass, field
+import enum
+import math
+
+import numpy as np
+from rotor_id.diagnosis import residuals as rs
+from scipy.stats import norm
+
+#: Family-wise false-alarm probability of the adequacy check on a recording the model explains.
+FAMILY_ALPHA = 0.01
+#: Fewest samples per channel the tests need (the noise floor and 20 Ljung-Box lags).
+MIN_SAMPLES = 80
+WHITENESS = 'whiteness'
+INPUT_CORRELATION = 'input_correlation'
+ZERO_MEAN = 'zero_mean'
+NOISE_LEVEL = 'noise_level'
+
+
+class Verdict(enum.Enum):
+    """Outcome of the adequacy check."""
+
+    ADEQUATE = 'adequate'           # every test passed: the residuals are noise
+    INADEQUATE = 'inadequate'       # at least one test failed at the family-wise level
+    NOT_TESTED = 'not_tested'       # too few samples (the note says why)
+
+
+@dataclass
+class ResidualTest:
+    """One test of one channel of one run."""
+
+    test: str
+    run: str
+    channel: str
+    statistic: float
+    p_value: float
+    detail: dict = field(default_factory=dict)
+
+    def as_json(self, limit):
+        """JSON-ready, with whether it passed at the per-test level ``limit``."""
+        return {'test': self.test, 'run': self.run, 'channel': self.channel,
+                'statistic': float(self.statistic), 'p_value': float(self.p_value),
+                'passed': bool(self.p_value >= limit),
+                **{k: (float(v) if isinstance(v, (float, np.floating)) else v)
+                   for k, v in self.detail.items()}}
+
+
+@dataclass
+class Adequacy:
+    """The adequacy check of one identification (see the module docstring)."""
+
+    verdict: Verdict
+    family_alpha: float
+    tests: list
+    residuals: str                  # 'output error' | 'innovations'
+    location: dict = None           # channels, tests, band_per_rev, window_s of the misfit
+    note: str = ''
+
+    @property
+    def per_test_alpha(self):
+        """Bonferroni level of each test, α/K."""
+        return self.family_alpha / max(len(self.tests), 1)
+
+    @property
+    def failed(self):
+        """Return the tests below the per-test level."""
+        return [t for t in self.tests if t.p_value < self.per_test_alpha]
+
+    @property
+    def adequate(self):
+        """Return True unless the check found a misfit (NOT_TESTED counts as adequate)."""
+        return self.verdict is not Verdict.INADEQUATE
+
+    def as_json(self):
+        """JSON-ready: the ``adequacy`` key of ``rotor-id identify --json``."""
+        limit = self.per_test_alpha
+        return {'verdict': self.verdict.value, 'family_alpha': self.family_alpha,
+                'per_test_alpha': limit, 'n_tests': len(self.tests),
+                'residuals': self.residuals,
+                'tests': [t.as_json(limit) for t in self.tests],
+                'misfit': self.location, 'note': self.note,
+                'suggestion': ('rotor-id diagnose' if self.verdict is Verdict.INADEQUATE
+                               else None)}
+
+    def warning(self):
+        """One-line warning for an inadequate fit, else None."""
+        if self.verdict is not Verdict.INADEQUATE:
+            return None
+        figures = '; '.join(_describe(t) for t in sorted(self.failed, key=lambda t: t.p_value)[:3])
+        loc = self.location or {}
+        where = (f'channel(s) {", ".join(loc.get("channels", []))}, '
+                 f'{loc["band_per_rev"][0]:.2f}-{loc["band_per_rev"][1]:.2f} per rev, '
+                 f'{loc["window_s"][0]:.3f}-{loc["window_s"][1]:.3f} s') if loc else 'unknown'
+        return (f'the {self.residuals} residuals are not noise ({figures}; {len(self.failed)} '
+                f'of {len(self.tests)} tests fail at the family-wise level '
+                f'{self.family_alpha:g}): the model does not explain the data there ({where}), '
+                'so the estimates may be biased and their σ too small; run `rotor-id diagnose` '
+                'with the same bag and run description to locate and explain the misfit')
+
+
+def _describe(test):
+    if test.test == WHITENESS:
+        return (f'{test.channel}: not white, Ljung-Box Q = {test.statistic:.1f}, '
+                f'p = {test.p_value:.2g}')
+    if test.test == ZERO_MEAN:
+        return (f'{test.channel}: mean {test.detail.get("mean", float("nan")):.3g} rad, '
+                f'z = {test.statistic:.1f}, p = {test.p_value:.2g}')
+    if test.test == INPUT_CORRELATION:
+        return (f'{test.channel}: correlated with {test.detail.get("input")}, '
+                f'|ρ| = {test.statistic:.3f}, p = {test.p_value:.2g}')
+    return (f'{test.channel}: residual RMS {test.detail.get("rms", float("nan")):.3g} rad vs '
+            f'noise floor {test.detail.get("floor", float("nan")):.3g} rad '
+            f'(z = {test.statistic:.1f}, p = {test.p_value:.2g})')
+
+
+def channel_matrix(model, t, n_blades):
+    """C (T, m, N): the model's output channels as linear combinations of the blade flaps."""
+    t = np.asarray(t, dtype=float)
+    columns = []
+    for k in range(n_blades):
+        unit = np.zeros((t.size, n_blades))
+        unit[:, k] = 1.0
+        columns.append(model.observe_blades(t, unit))
+    return np.stack(columns, axis=-1)
+
+
+def check(estimate, experiments, measured, family_alpha=FAMILY_ALPHA):
+    """
+    Test the residuals of an identification (see the module docstring).
+
+    Parameters
+    ----------
+    estimate : Estimate
+        The fit (its ``residuals``: output error for output/equation error, innovations for
+        filter error, ``method`` says which).
+    experiments : list of Experiment
+        The runs it was fitted to (their inputs and times).
+    measured : list of (blade_flap, time_s)
+        Per experiment: the measured flap of every blade over its window, shape (T, N), for
+        the model-free noise floor, and the seconds of its samples, to say where a misfit is.
+    family_alpha : float
+        Family-wise false-alarm probability.
+
+    Returns
+    -------
+    Adequacy
+
+    """
+    innovations = estimate.method == 'filter-error'
+    kind = 'innovations' if innovations else 'output error'
+    n = min(len(r) for r in estimate.residuals) if estimate.residuals else 0
+    if n < MIN_SAMPLES:
+        return Adequacy(Verdict.NOT_TESTED, family_alpha, [], kind,
+                        note=f'{n} samples per channel: the residual tests need at least '
+                             f'{MIN_SAMPLES}; the fit was not checked')
+    tests, series = [], {}
+    floors_of = {}
+    for r, exp in enumerate(experiments):
+        blade_flap, time_s = measured[r]
+        blade_flap = np.asarray(blade_flap, dtype=float)
+        key = id(blade_flap)
+        if key not in floors_of:
+            floors_of[key] = rs.blade_noise_floor(blade_flap)
+        blade_sigma = floors_of[key]
+        res_run = np.asarray(estimate.residuals[r], dtype=float)
+        t = np.asarray(exp.t, dtype=float)
+        u = exp.inputs(t)
+        C = channel_matrix(exp.model, t, blade_flap.shape[1])
+        floors = rs.channel_floor(C, blade_sigma)
+        used = np.count_nonzero(np.any(np.abs(C) > 0, axis=0), axis=-1)
+        run = exp.name
+        for j, name in enumerate(exp.model.output_names):
+            res = res_run[:, j]
+            label = name if len(experiments) == 1 else f'{name}[{run}]'
+            floor = float(floors[j]) if not innovations else float(np.sqrt(np.mean(res**2)))
+            stats = rs.channel_stats(label, res, floor, u, int(used[j]), t)
+            series[label] = (res, floor, t, np.asarray(time_s, dtype=float))
+            tests.append(ResidualTest(WHITENESS, run, label, stats.whiteness_q,
+                                      stats.whiteness_p, {'lags': rs.LAGS}))
+            lags = 2 * int(round(2.0 * math.pi / float(np.median(np.diff(t))))) + 1
+            varying = sum(1 for i in (1, 2) if np.std(u[:, i]) > 1e-12)
+            if varying:
+                count = lags * varying
+                p_x = min(1.0, count * 2.0 * norm.sf(abs(stats.xcorr) * math.sqrt(len(res))))
+                tests.append(ResidualTest(INPUT_CORRELATION, run, label, abs(stats.xcorr), p_x,
+                                          {'input': stats.xcorr_input,
+                                           'lag_samples': int(stats.xcorr_lag),
+                                           'correlations_tried': count}))
+            z_mean = float(np.mean(res) * math.sqrt(len(res)) / max(np.std(res), 1e-300))
+            tests.append(ResidualTest(ZERO_MEAN, run, label, z_mean,
+                                      float(2.0 * norm.sf(abs(z_mean))),
+                                      {'mean': float(np.mean(res))}))
+            if not innovations:
+                tests.append(ResidualTest(NOISE_LEVEL, run, label, stats.z_excess,
+                                          float(norm.sf(stats.z_excess)),
+                                          {'rms': stats.rms, 'floor': stats.floor,
+                                           'excess': stats.excess}))
+    result = Adequacy(Verdict.ADEQUATE, family_alpha, tests, kind)
+    failed = result.failed
+    if not failed:
+        return result
+    result.verdict = Verdict.INADEQUATE
+    names = list(dict.fromkeys(t.channel for t in failed))
+    # located on the run of the strongest failure (the runs' times differ)
+    worst = min(failed, key=lambda t: t.p_value)
+    use = [series[c] for c in names if failed and _run_of(failed, c) == worst.run]
+    t, time_s = use[0][2], use[0][3]
+    dt = float(np.median(np.diff(t)))
+    band = rs.band_of_excess([s[0] for s in use], [s[1] for s in use], dt)
+    t0, t1 = rs.span_of_excess([s[0] for s in use], [s[1] for s in use], t)
+    window = [float(np.interp(t0, t, time_s)), float(np.interp(t1, t, time_s))]
+    result.location = {'channels': names, 'tests': sorted({t.test for t in failed}),
+                       'run': worst.run, 'band_per_rev': [float(band[0]), float(band[1])],
+                       'window_s': window}
+    return result
+
+
+def _run_of(tests, channel):
+    return next(t.run for t in tests if t.channel == channel)
