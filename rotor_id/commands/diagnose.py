@@ -14,7 +14,7 @@ import json
 from pathlib import Path
 import sys
 
-from rotor_id.commands.common import check_output_paths
+from rotor_id.commands.common import check_output_paths, print_warnings
 from rotor_id.commands.identify import load_inputs
 from rotor_id.diagnosis.catalogue import EFFECTS
 from rotor_id.diagnosis.diagnose import diagnose
@@ -108,6 +108,7 @@ def run(args):
         raise ValueError(f'--workers must be at least 1, got {args.workers}')
     check_output_paths(json=args.json_out, report_dir=args.report)
     description, record = load_inputs(args.bag, args.config)
+    print_warnings(list(description.warnings) + list(record.warnings))
 
     def progress(text):
         print(f'  {text}', file=sys.stderr, flush=True)
