@@ -22,7 +22,8 @@ import numpy as np
 
 from rotor_id.physics.aerodynamics import (blade_aerodynamics, flap_damping,
                                            lock_number_from_damping)
-from rotor_id.physics.models import LinearModel, Multiblade, Parameter, RotorModel
+from rotor_id.physics.models import (CYCLIC_INFLOW, LinearModel, Multiblade, Parameter,
+                                     RotorModel)
 
 
 # ------------------------------------------------------------------------------------------------
@@ -547,9 +548,7 @@ class DynamicInflow(Augmented):
     """
 
     effect = 'dynamic_inflow'
-    extra_parameters = (
-        Parameter('AL_over_tau', 'AL/τ', '-', 0.25, 0.0, 50.0, 'wake gain over time constant'),
-        Parameter('inv_tau', '1/τ', '-', 0.125, 1e-4, 50.0, 'inverse wake time constant'))
+    extra_parameters = CYCLIC_INFLOW                  # the wake model's AL/τ and 1/τ
     #: no wake gain (AL/τ = 0) and a frozen wake (1/τ → 0) are physical limits
     physical_bounds = {'AL_over_tau': ('lower',), 'inv_tau': ('lower',)}
     extra_states = ('lambda_I', 'lambda_II')
