@@ -24,7 +24,7 @@ OMEGADOT = 0.1 / math.pi                  # the report's stirring law constant
 
 def write_test_point(directory, name, direction='progressing', truth=None, noise_deg=0.1,
                      seed=0, duration_rev=2.0, conditions=None, guess=True, custom_data=None,
-                     flap_delay_samples=0):
+                     flap_delay_samples=0, flap_bias_rad=None):
     """
     Simulate one test point into ``directory``: bag NAME/ and run description NAME.yaml.
 
@@ -32,7 +32,8 @@ def write_test_point(directory, name, direction='progressing', truth=None, noise
     goes into the run description's ``conditions:``; ``guess`` gives the nominal values as
     ``initial_guess`` (no start-value grid); ``custom_data`` (text values) goes into the bag's
     metadata.yaml as a recorder's ``--custom-data`` would put it. ``flap_delay_samples`` reads
-    the flap sensors that many samples late (physics the model lacks: an inadequate fit).
+    the flap sensors that many samples late, ``flap_bias_rad`` (one per blade) offsets them:
+    physics the model lacks.
     """
     directory = Path(directory)
     plan = planning.load_plan(PLAN)
@@ -48,6 +49,8 @@ def write_test_point(directory, name, direction='progressing', truth=None, noise
         late = np.roll(record.blade_flap, flap_delay_samples, axis=0)
         late[:flap_delay_samples] = record.blade_flap[0]
         record = replace(record, blade_flap=late)
+    if flap_bias_rad is not None:
+        record = replace(record, blade_flap=record.blade_flap + np.asarray(flap_bias_rad))
     bag = write_record_bag(directory / name, record)
     if custom_data:
         meta = bag / 'metadata.yaml'

@@ -4,12 +4,15 @@
 Five test points of the wake rotor at five "tunnel speeds" (a condition of the run
 descriptions), progressing and regressing stirring alternately; the one at 20 m/s has a
 different rotor (A = 1 instead of .5) and must be flagged as the outlier of the A trend, and
-nothing else. A sixth bag's run description has a window outside its record: it fails in one
-line, is recorded, and the others carry on.
+nothing else. A sixth, at 35 m/s, has a flap sensor offset the model lacks: identify's adequacy
+check calls its fit inadequate, and the report flags it and keeps it out of the trend. A seventh
+bag's run description has a window outside its record: it fails in one line, is recorded, and
+the others carry on.
 """
 
 import csv
 import json
+import math
 from pathlib import Path
 import sys
 
@@ -28,7 +31,7 @@ OUTLIER = 'tp20'
 
 @pytest.fixture(scope='module')
 def entry(tmp_path_factory):
-    """Return the campaign directory: five test points and one broken."""
+    """Return the campaign directory: five test points, one biased and one broken."""
     root = tmp_path_factory.mktemp('entry')
     for i, speed in enumerate(SPEEDS):
         write_test_point(root, f'tp{speed}', seed=i, noise_deg=0.05,
@@ -36,6 +39,8 @@ def entry(tmp_path_factory):
                          truth={'A': 1.0} if f'tp{speed}' == OUTLIER else None,
                          conditions={'tunnel_speed_m_s': speed},
                          custom_data={'tunnel_run': '17'} if speed == 10 else None)
+    write_test_point(root, 'biased', seed=7, noise_deg=0.05, conditions={'tunnel_speed_m_s': 35},
+                     flap_bias_rad=[math.radians(0.3), 0.0, 0.0, 0.0])
     write_test_point(root, 'broken', seed=9)
     config = root / 'broken.yaml'
     data = yaml.safe_load(config.read_text())
@@ -58,7 +63,7 @@ def test_campaign_identifies_every_bag_flags_the_outlier_and_resumes(entry, tmp_
     failures = [line for line in err if 'failed:' in line]
     assert len(failures) == 1 and failures[0].startswith('campaign: broken failed: ')
     assert 'outside the record' in failures[0]
-    assert 'campaign: 6/6 bags done (1 failed, 0 up to date)' in captured.err
+    assert 'campaign: 7/7 bags done (1 failed, 0 up to date)' in captured.err
     assert '~' in captured.err and 'left' in captured.err            # time left
 
     rows = _csv(out / 'campaign.csv')
@@ -70,12 +75,14 @@ def test_campaign_identifies_every_bag_flags_the_outlier_and_resumes(entry, tmp_
                    'collective_rad', 'advance_ratio'):
         assert column in header
     by_bag = {r['bag']: r for r in rows}
-    assert set(by_bag) == {'broken'} | {f'tp{s}' for s in SPEEDS}
+    assert set(by_bag) == {'broken', 'biased'} | {f'tp{s}' for s in SPEEDS}
+    assert by_bag['biased']['status'] == 'ok' and by_bag['biased']['adequacy'] == 'inadequate'
     assert by_bag['broken']['status'] == 'failed' and 'outside the record' in \
         by_bag['broken']['error']
     for speed, direction in zip(SPEEDS, ('progressing', 'regressing') * 3):
         row = by_bag[f'tp{speed}']
         assert row['status'] == 'ok' and row['converged'] == 'True'
+        assert row['adequacy'] == 'adequate'
         assert row['stirring_direction'] == direction
         assert float(row['tunnel_speed_m_s']) == speed
         assert row['tunnel_run'] == ('17' if speed == 10 else '')     # the bag's custom_data
@@ -88,6 +95,8 @@ def test_campaign_identifies_every_bag_flags_the_outlier_and_resumes(entry, tmp_
     assert 'Trends against `tunnel_speed_m_s`' in report
     flagged = [line for line in report.splitlines() if line.startswith('- outlier')]
     assert len(flagged) == 1 and f'`{OUTLIER}` A' in flagged[0]
+    inadequate = [line for line in report.splitlines() if line.startswith('- inadequate')]
+    assert len(inadequate) == 1 and '`biased`' in inadequate[0]
     assert '`broken`: ' in report
     for name in ('A', 'AL_over_tau', 'inv_tau'):
         assert f'(trend_{name}.png)' in report
@@ -100,13 +109,13 @@ def test_campaign_identifies_every_bag_flags_the_outlier_and_resumes(entry, tmp_
     stamp = (out / 'points' / 'tp10' / 'result.json').stat().st_mtime_ns
     rc = cli.main(['campaign', str(entry), '--out', str(out), '--jobs', '2'])
     captured = capsys.readouterr()
-    assert rc == 1 and 'campaign: 6/6 bags done (1 failed, 5 up to date)' in captured.err
+    assert rc == 1 and 'campaign: 7/7 bags done (1 failed, 6 up to date)' in captured.err
     assert (out / 'points' / 'tp10' / 'result.json').stat().st_mtime_ns == stamp
     config = entry / 'tp30.yaml'
     config.write_text(config.read_text() + '# edited\n')
     rc = cli.main(['campaign', str(entry), '--out', str(out), '--jobs', '2'])
     captured = capsys.readouterr()
-    assert 'campaign: 6/6 bags done (1 failed, 4 up to date)' in captured.err
+    assert 'campaign: 7/7 bags done (1 failed, 5 up to date)' in captured.err
     assert (out / 'points' / 'tp10' / 'result.json').stat().st_mtime_ns == stamp
     assert json.loads((out / 'points' / 'tp10' / 'result.json').read_text()) == point
 
