@@ -302,6 +302,7 @@ class RotorModel(LinearModel):
         nq, ni = len(self._coords), len(self._inflow_names)
         self._nq, self._nf = nq, 2 * nq + ni
         self._cache = {}
+        self._constant = None
         self._build_parameters(collective, angle_unit)
         self._select_states(interleave)
         self._build_terms()
@@ -587,19 +588,24 @@ class RotorModel(LinearModel):
         return hit
 
     def _pieces(self, t):
-        """Return the parameter-free blocks of F and g at times t (computed once per time grid)."""
+        """
+        Return the parameter-free blocks of F and g at times t (computed once per time grid).
+
+        A time-invariant model's blocks are computed once and have length 1 along time.
+        """
         t = np.atleast_1d(np.asarray(t, dtype=float))
+        if self.time_invariant:
+            if self._constant is None:
+                if self.periodic:
+                    one = self._restrict(self._full_pieces(np.zeros(1)))
+                else:
+                    one = _mean_pieces(self._restrict(self._full_pieces(self._sample_times())))
+                self._constant = {k: v for k, v in one.items() if k in self._SYSTEM_KEYS}
+            return self._constant
 
         def compute():
-            if not self.time_invariant:
-                full = self._restrict(self._full_pieces(t))
-                return {k: v for k, v in full.items() if k in self._SYSTEM_KEYS}
-            if self.periodic:
-                one = self._restrict(self._full_pieces(t[:1]))
-            else:
-                one = _mean_pieces(self._restrict(self._full_pieces(self._sample_times())))
-            return _broadcast_pieces({k: v for k, v in one.items() if k in self._SYSTEM_KEYS},
-                                     t.size)
+            full = self._restrict(self._full_pieces(t))
+            return {k: v for k, v in full.items() if k in self._SYSTEM_KEYS}
         return self._cached('system', t, compute)
 
     def _blade_pieces(self, t):
@@ -613,44 +619,51 @@ class RotorModel(LinearModel):
             value = value * p[i]
         return value
 
+    def _block(self, pieces, key, part):
+        if part == 'F':
+            return pieces[key] if key.startswith('decay') else pieces[key][0]
+        return pieces[key][1 if part == 'G' else 2]
+
+    def _input_term(self, pieces, key, part, ucyc):
+        """Return the g term of one block: G u_cyclic (T, n) or the collective column (L, n)."""
+        if part == 'G':
+            return np.matmul(pieces[key][1], ucyc[:, :, None])[:, :, 0]
+        return pieces[key][2]
+
     def system(self, t, p, u):
         t = np.atleast_1d(np.asarray(t, dtype=float))
         p = np.asarray(p, dtype=float)
-        u = np.asarray(u, dtype=float)
+        ucyc = np.asarray(u, dtype=float)[:, 1:3]
         pieces = self._pieces(t)
-        F = pieces['F_const'].copy()
+        F = pieces['F_const'].copy()                  # length 1 along time if time-invariant
         g = np.zeros((t.size, self.n_states))
-        ucyc = u[:, 1:3]
         for params, factor, key, part in self._terms:
             c = self._term_value(params, factor, p)
             if part == 'F':
-                block = pieces[key] if key.startswith('decay') else pieces[key][0]
-                F += c * block
-            elif part == 'G':
-                g += c * np.einsum('tij,tj->ti', pieces[key][1], ucyc)
+                F += c * self._block(pieces, key, part)
             else:
-                g += c * pieces[key][2]
+                g += c * self._input_term(pieces, key, part, ucyc)
+        if F.shape[0] != t.size:
+            F = np.broadcast_to(F, (t.size,) + F.shape[1:]).copy()
         return F, g
 
     def system_jacobian(self, t, p, u):
         t = np.atleast_1d(np.asarray(t, dtype=float))
         p = np.asarray(p, dtype=float)
-        u = np.asarray(u, dtype=float)
+        ucyc = np.asarray(u, dtype=float)[:, 1:3]
         pieces = self._pieces(t)
         n, P = self.n_states, len(self.parameters)
-        dF = np.zeros((t.size, P, n, n))
+        dF = np.zeros((pieces['F_const'].shape[0], P, n, n))
         dg = np.zeros((t.size, P, n))
-        ucyc = u[:, 1:3]
         for params, factor, key, part in self._terms:
             for pos, i in enumerate(params):
                 c = self._term_value(params[:pos] + params[pos + 1:], factor, p)
                 if part == 'F':
-                    block = pieces[key] if key.startswith('decay') else pieces[key][0]
-                    dF[:, i] += c * block
-                elif part == 'G':
-                    dg[:, i] += c * np.einsum('tij,tj->ti', pieces[key][1], ucyc)
+                    dF[:, i] += c * self._block(pieces, key, part)
                 else:
-                    dg[:, i] += c * pieces[key][2]
+                    dg[:, i] += c * self._input_term(pieces, key, part, ucyc)
+        if dF.shape[0] != t.size:
+            dF = np.broadcast_to(dF, (t.size,) + dF.shape[1:]).copy()
         return dF, dg
 
     # -- blades and channels ------------------------------------------------------------------
@@ -809,16 +822,6 @@ def _mean_pieces(pieces):
             out[key] = value.mean(axis=0, keepdims=True)
         for block in (out[key] if isinstance(out[key], tuple) else (out[key],)):
             _drop_rounding(block)
-    return out
-
-
-def _broadcast_pieces(pieces, size):
-    out = {}
-    for key, value in pieces.items():
-        if isinstance(value, tuple):
-            out[key] = tuple(np.broadcast_to(v[:1], (size,) + v.shape[1:]) for v in value)
-        else:
-            out[key] = np.broadcast_to(value[:1], (size,) + value.shape[1:])
     return out
 
 
