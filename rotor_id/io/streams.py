@@ -29,6 +29,8 @@ NS_PER_S = 1_000_000_000
 #: reset, not transport reordering (which moves a message by a few periods at most).
 RESET_PERIODS = 50
 RESET_MIN_S = 0.05
+#: Samples delivered late by at most this much (a driver's buffer) fill their run's gap.
+REORDER_MAX_S = 1.0
 #: A piece of at most this many samples between two jumps, which the next samples do not
 #: continue, is a clock glitch, not a run.
 GLITCH_MAX_SAMPLES = 2
@@ -149,14 +151,18 @@ def split_runs(stamps_ns, received_ns=None):
             first - stamps[previous] > limit
             and received[start] - received[previous] < (first - stamps[previous]) // 2)
         previous = end - 1
-        below = [] if stepped else [(first - stamp, run) for run, stamp in enumerate(last)
-                                    if stamp < first]
+        # (after a clock step only a run that this piece continues closely can take it)
+        below = [(first - stamp, run) for run, stamp in enumerate(last)
+                 if stamp < first and (not stepped or first - stamp <= limit)]
         if below:
             run = min(below)[1]
-            last[run] = max(last[run], int(stamps[start:end].max()))
         else:
+            run = _hole_filled(stamps, starts, ends, run_of_piece, start, end, period, last)
+        if run is None:
             run = len(last)
             last.append(int(stamps[start:end].max()))
+        else:
+            last[run] = max(last[run], int(stamps[start:end].max()))
         run_of_piece.append(run)
     sizes = np.zeros(len(last), dtype=np.int64)
     for start, end, run in zip(starts, ends, run_of_piece):
@@ -173,6 +179,30 @@ def split_runs(stamps_ns, received_ns=None):
     real = np.flatnonzero(labels >= 0)
     jumps = real[1:][np.diff(labels[real]) != 0]
     return RunSplit(labels, np.asarray(jumps, dtype=np.int64), period)
+
+
+def _hole_filled(stamps, starts, ends, run_of_piece, start, end, period, last):
+    """
+    Return the run whose gap the piece stamps[start:end] fills (samples delivered late), or None.
+
+    A late burst lands where its run has no samples (each of its stamps at least 3/4 of a
+    period from the run's), at most REORDER_MAX_S before the run's latest stamp; a second
+    run after a clock reset lands on stamps its predecessor already covers (within half a
+    period), or outside its recent span.
+    """
+    piece = stamps[start:end]
+    for run, latest in enumerate(last):
+        if piece.max() > latest or piece.min() < latest - REORDER_MAX_S * NS_PER_S:
+            continue
+        own = np.sort(np.concatenate([stamps[a:b] for a, b, r in zip(starts, ends, run_of_piece)
+                                      if r == run]))
+        if piece.min() < own[0] or piece.max() > own[-1]:
+            continue
+        at = np.clip(np.searchsorted(own, piece), 1, own.size - 1)
+        nearest = np.minimum(np.abs(own[at] - piece), np.abs(piece - own[at - 1]))
+        if np.all(nearest >= 0.75 * period):
+            return run
+    return None
 
 
 @dataclass

@@ -29,13 +29,23 @@ def test_split_runs_keeps_gaps_and_reordering_in_one_run():
     assert split.n_runs == 1 and split.glitches().size == 0
 
 
+def test_split_runs_takes_a_late_burst_for_reordering_not_a_reset():
+    """A driver delivering 30 ms of samples 80 ms late: the samples fill their own gap."""
+    stamps = np.arange(2000) * MS
+    late = stamps[1000:1030]
+    order = np.concatenate([stamps[:1000], stamps[1030:1110], late, stamps[1110:]])
+    split = split_runs(order)
+    assert split.n_runs == 1 and split.glitches().size == 0
+
+
 def test_split_runs_tells_two_clocks_interleaved():
     a = np.arange(600) * MS
     b = 7_000_000 * MS + np.arange(600) * MS
     stamps = np.empty(1200, dtype=np.int64)
     stamps[0::2], stamps[1::2] = a, b
-    split = split_runs(stamps)
-    assert split.n_runs == 2 and split.interleaved()
+    for first in (stamps, np.concatenate([stamps[1::2][:1], stamps])):   # either clock first
+        split = split_runs(first, received_ns=np.arange(first.size) * MS // 2)
+        assert split.n_runs == 2 and split.interleaved()
 
 
 def smooth_signal(rng, n, rate_hz=1000.0):
