@@ -149,3 +149,37 @@ def test_identify_command_on_a_five_bladed_bag(tmp_path):
     truth = _truth(cfg.tip_loss)
     for name, estimate in result['parameters'].items():
         assert abs(estimate['value'] - truth[name]) < Z_LIMIT * estimate['std'], name
+
+
+@pytest.mark.study
+def test_monte_carlo_spread_equals_the_cramer_rao_bound():
+    """
+    40 noise draws of a 3-bladed rotor (μ = 0.3, δ3, three-state inflow, every blade measured).
+
+    For every parameter the spread of the estimates matches the mean Cramér-Rao σ (ratio
+    within 1 ± 3.3/√(2·39), 99.9 %) and the mean is within 3.3 σ/√40 of the truth. The CI
+    variant is the single-draw check above.
+    """
+    n_runs = 40
+    rotor = RotorConstants(n_blades=3, advance_ratio=0.3, pitch_flap_coupling=0.2)
+    clean = _package_record(rotor, 'three_state', seed=0)
+    unknowns = ('A', 'AL_over_tau', 'inv_tau', 'AL0_over_tau0', 'inv_tau0')
+    truth = _truth(rotor.tip_loss)
+    window = (float(clean.time_s[0]), float(clean.time_s[-1]))
+    desc = _description(3, 0.3, 0.2, unknowns, 'three_state', window)
+    values, stds = [], []
+    for seed in range(n_runs):
+        record = _package_record(rotor, 'three_state', seed=100 + seed)
+        est = pipeline.identify(record, desc, multi_start=False).estimate
+        values.append([est.value(n) for n in unknowns])
+        stds.append([est.std[est.names.index(n)] for n in unknowns])
+    values, stds = np.array(values), np.array(stds)
+    spread, bound = values.std(axis=0, ddof=1), stds.mean(axis=0)
+    limit = 3.3 / math.sqrt(2 * (n_runs - 1))
+    print('spread / Cramér-Rao σ:', {n: round(float(spread[i] / bound[i]), 3)
+                                     for i, n in enumerate(unknowns)},
+          'bias / σ:', {n: round(float((values[:, i].mean() - truth[n]) / bound[i]), 3)
+                        for i, n in enumerate(unknowns)})
+    for i, name in enumerate(unknowns):
+        assert abs(spread[i] / bound[i] - 1) < limit, (name, spread[i], bound[i])
+        assert abs(values[:, i].mean() - truth[name]) < 3.3 * bound[i] / math.sqrt(n_runs), name
