@@ -44,7 +44,7 @@ EXPECTED_CONSTANTS = {
                           'STATUS_ABORTED': 5, 'KIND_PROVISIONAL': 0, 'KIND_FINAL': 1,
                           'KIND_ON_DEMAND': 2},
     'StirringCommand': {'PHASE_TRIM': 0, 'PHASE_CYCLIC_STEP': 1, 'PHASE_STIRRING': 2,
-                        'PHASE_DONE': 3},
+                        'PHASE_DONE': 3, 'PHASE_RAMP_DOWN': 4},
 }
 
 

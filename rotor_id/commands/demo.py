@@ -44,7 +44,7 @@ def case_files(case):
     params_file = resolve_config(f'nodes_{case}.yaml')
     params = yaml.safe_load(params_file.read_text())
     plant = params['/**/rotor_plant']['ros__parameters']
-    description = resolve_config(params['/**/identifier']['ros__parameters']['run_description'])
+    description = resolve_config(params['/**']['ros__parameters']['run_description'])
     if plant['model'] == 'multiblade_wake':
         truth = {k: plant[k] for k in ('A', 'AL_over_tau', 'inv_tau')}
     else:
@@ -88,8 +88,10 @@ def run_live(case, out, storage, domain_id, timeout, seed=None, stream=sys.stdou
             print(_estimate_line(msg, t_start), file=stream, flush=True)
         elif kind == 'stirring' and msg.phase not in phases:
             phases[msg.phase] = True
-            label = ('rotor in trim (collective only)', 'lateral cyclic step',
-                     'stirring started', 'stirring done')[msg.phase]
+            label = {0: 'rotor in trim (collective only)', 1: 'lateral cyclic step',
+                     2: 'stirring started', 3: 'stirring done, back at trim',
+                     4: 'stirring ended: cyclic ramping back to trim'}.get(msg.phase, 'phase '
+                                                                           f'{msg.phase}')
             print(f'  [{time.monotonic() - t_start:6.1f} s] {label}', file=stream, flush=True)
 
     # Ctrl-C sets a flag that the spin loop checks: a KeyboardInterrupt raised at an arbitrary

@@ -68,8 +68,7 @@ def load_inputs(bag, config):
     ``warnings`` (the caller prints them).
     """
     description = load_run_description(config)
-    record = read_record(bag, description.topics, joint_names=description.joint_names,
-                         run=description.run, window_s=description.window_s)
+    record = read_record(bag, **description.record_options())   # the rig's names, conventions
     check_against_record(description, record)
     return description, record
 

@@ -31,11 +31,12 @@ from rotor_id.io.mcap_recover import (
     read_indexed_mcap, read_mcap_chunks, read_mcap_summary, scan_mcap, zstd,
 )
 from rotor_id.io.record import Record
-from rotor_id.io.run_description import DEFAULT_TOPICS, normalize_joint_names, validate_window
+from rotor_id.io.run_description import (DEFAULT_AZIMUTH_JOINT, DEFAULT_TOPICS,
+                                         normalize_joint_names, recorded_topic, validate_window)
 from rotor_id.io.streams import (
     interleaved_streams, phase_outliers, spikes, split_runs,
 )
-from rotor_id.io.timebase import interpolate_columns, nondimensional_time, TWO_PI
+from rotor_id.io.timebase import interpolate_columns, nondimensional_time, TWO_PI, wrap_azimuth
 import yaml
 
 __all__ = [
@@ -162,7 +163,7 @@ def _read_raw(open_path, storage, storage_file, wanted, omega_rad_s):
         # message); anything unusual (unindexed, no footer, bad checksum) goes through rosbags
         # and, if that fails, the recovery scan.
         try:
-            indexed = read_indexed_mcap(storage_file, set(wanted.values()))
+            indexed = read_indexed_mcap(storage_file, _WantedTopics(wanted.values()))
         except (OSError, ValueError, IndexError, struct.error):
             indexed = None          # not readable this way: the general readers decide
         if indexed is not None:
@@ -240,9 +241,23 @@ def _raw_from_scan(scan, wanted, storage_file, omega_rad_s):
     return raw
 
 
+class _WantedTopics:
+    """``topic in wanted``: a relative name matches in the root or any namespace."""
+
+    def __init__(self, names):
+        self.names = set(names)
+
+    def __contains__(self, topic):
+        return topic in self.names or any(
+            not name.startswith('/') and (topic == '/' + name or topic.endswith('/' + name))
+            for name in self.names)
+
+
 def _check_topics(raw, wanted, storage_file, omega_rad_s):
     """Check that the wanted topics are JointState; without azimuth, fall back on Ω."""
     available = raw.available
+    for role, topic in wanted.items():       # relative names: root, else the one namespace
+        wanted[role] = recorded_topic(topic, available) or topic
     if 'azimuth' in wanted and wanted['azimuth'] not in available and omega_rad_s is not None:
         raw.notes.append(f'azimuth topic {wanted.pop("azimuth", None)} not in the bag')
     for role, topic in wanted.items():
@@ -544,7 +559,8 @@ def _gaps(stamps_ns, omega, topic, issues, what):
 # --------------------------------------------------------------------------- reading
 
 def read_record(bag_path, topics=None, joint_names=None, *, n_blades=None, omega_rad_s=None,
-                run=None, window_s=None):
+                run=None, window_s=None, azimuth_joint=DEFAULT_AZIMUTH_JOINT,
+                azimuth_convention='wrapped'):
     """
     Read a test-stand recording into a Record on the flap stamps.
 
@@ -574,6 +590,9 @@ def read_record(bag_path, topics=None, joint_names=None, *, n_blades=None, omega
         (t0, t1) seconds after the first flap stamp that will be analysed, or None. A fault
         that cannot be repaired (an azimuth slip) is an error inside it (or with no window)
         and a warning outside it.
+    azimuth_joint, azimuth_convention
+        Joint name on the azimuth topic, and 'wrapped' ([0, 2π)) or 'unwrapped' position
+        (the run description's; :meth:`RunDescription.record_options` gives all of these).
 
     Returns
     -------
@@ -615,7 +634,8 @@ def read_record(bag_path, topics=None, joint_names=None, *, n_blades=None, omega
             ctx.issues.append(f'{topic}: {got} of the {expected} messages listed in '
                               'metadata.yaml were read')
 
-    record = _assemble(ctx, wanted, joint_names, n_blades, omega_rad_s, window_s)
+    record = _assemble(ctx, wanted, joint_names, n_blades, omega_rad_s, window_s,
+                       (azimuth_joint, azimuth_convention))
     part = ''
     if origin_ns is not None:
         part = (f', read {record.time_s[0]:.3f}-{record.time_s[-1]:.3f} s around window_s '
@@ -636,6 +656,9 @@ class _McapParts:
         self.file, self.topics = storage_file, topics
         self.summary = read_mcap_summary(storage_file)
         self.chunks = self.summary.topic_chunks(topics) if self.summary else []
+        self.available = ({topic: self.summary.schemas.get(schema, '')
+                           for topic, schema in self.summary.channels.values()}
+                          if self.summary else {})
         if len(self.chunks) < 3:
             raise ValueError('not an indexed MCAP with several chunks')
         self.start_ns = min(c.start_ns for c in self.chunks)
@@ -721,12 +744,15 @@ def _read_window(storage_file, storage, wanted, window_s):
     none = None, None
     if storage_file.stat().st_size < WINDOW_READ_MIN_BYTES:
         return none
-    topics = set(wanted.values())
-    flap_topic = wanted['blade_flap']
     tolerance = WINDOW_READ_CLOCK_TOLERANCE_S * _NS
     parts = None
     try:
-        parts = (_McapParts if storage == 'mcap' else _SqliteParts)(storage_file, topics)
+        parts = (_McapParts if storage == 'mcap' else _SqliteParts)(
+            storage_file, _WantedTopics(wanted.values()))
+        for role, topic in wanted.items():     # relative names: root, else the one namespace
+            wanted[role] = recorded_topic(topic, parts.available) or topic
+        topics = set(wanted.values())
+        flap_topic = wanted['blade_flap']
 
         def offsets(found, topic=flap_topic):
             """(stamps, receive − stamp) of a topic's decodable, stamped messages."""
@@ -804,7 +830,8 @@ def _decompress_messages(raw):
         raw.data[topic] = out
 
 
-def _assemble(ctx, wanted, joint_names, n_blades, omega_rad_s, window_s):
+def _assemble(ctx, wanted, joint_names, n_blades, omega_rad_s, window_s,
+              azimuth=(DEFAULT_AZIMUTH_JOINT, 'wrapped')):
     issues = ctx.issues
     flap_topic, pitch_topic = wanted['blade_flap'], wanted['blade_pitch']
     flap_s = _topic_samples(ctx, flap_topic, 'blade_flap', False)
@@ -828,7 +855,7 @@ def _assemble(ctx, wanted, joint_names, n_blades, omega_rad_s, window_s):
 
     spans = [pitch_ns]
     if 'azimuth' in wanted:
-        az_ns, psi_u, omega, az_sampled_ns = _azimuth(ctx, wanted['azimuth'])
+        az_ns, psi_u, omega, az_sampled_ns = _azimuth(ctx, wanted['azimuth'], *azimuth)
         spans.append(az_ns)
     if ctx.run is not None and ctx.run > 1 and not ctx.several_runs:
         raise BagError(f'run {ctx.run} asked for, but the bag holds one run (the stamps of '
@@ -912,20 +939,25 @@ def _check_increasing(ctx, t, time_s, azimuth_topic, window_s):
     ctx.issues.append(f'{text} (outside window_s, not used)')
 
 
-def _azimuth(ctx, topic):
+def _azimuth(ctx, topic, joint=DEFAULT_AZIMUTH_JOINT, convention='wrapped'):
     """Return (stamps_ns, unwrapped ψ of blade 1, Ω, stamps before repairs) of the azimuth."""
     issues = ctx.issues
     samples = _topic_samples(ctx, topic, 'azimuth', True)
     stamps, names, position, velocity = (samples.stamps, samples.names, samples.position,
                                          samples.velocity)
-    if len(names) != 1:
-        if 'rotor' not in names:
-            raise BagError(f'{topic}: expected one joint named rotor, got {list(names)}')
-        column = names.index('rotor')
-    else:
-        column = 0
+    if joint not in names:
+        raise BagError(f'{topic}: expected the azimuth joint {joint!r}, got {list(names)}; '
+                       'set joint_names.azimuth in the run description')
+    column = names.index(joint)
     position = position[:, column]
     velocity = None if velocity is None else velocity[:, column].copy()
+    if convention == 'unwrapped':
+        position = wrap_azimuth(position)
+    elif len(position) and not 0.0 <= float(np.median(position)) < TWO_PI:
+        raise BagError(f'{topic}: the azimuth is mostly outside [0, 2π) (median '
+                       f'{float(np.median(position)):.4g} rad): degrees or rpm? position must be '
+                       'ψ in rad; if it is continuous (an encoder), set azimuth_convention: '
+                       'unwrapped in the run description')
     time_s = (stamps - stamps[0]) / _NS
     if velocity is None:
         issues.append(f'{topic}: no velocity (rotor speed); Ω is taken from the azimuth rate')
@@ -1030,9 +1062,7 @@ def read_run(description, bag_path=None):
 
     """
     bag_path = description.bag_path() if bag_path is None else bag_path
-    record = read_record(bag_path, description.topics, description.joint_names,
-                         n_blades=description.rotor.blades,
-                         run=getattr(description, 'run', None), window_s=description.window_s)
+    record = read_record(bag_path, **description.record_options())
     validate_window(description, record)
     return record
 

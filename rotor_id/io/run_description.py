@@ -1,7 +1,7 @@
 """
 Run descriptions: what the experimenter knows about a recording (YAML).
 
-The schema of /work/shared/recordings/README.md::
+The schema (docs/run_description.md, with the recording convention)::
 
     rotor: {blades: 4, advance_ratio: 0.0, flap_frequency: 1.2, tip_loss: 0.97,
             pitch_flap_coupling: 0.0}          # optional, tan δ3 (default 0)
@@ -14,7 +14,9 @@ The schema of /work/shared/recordings/README.md::
 extended, without breaking it, by optional keys::
 
     joint_names: [b1, b2, b3, b4]        # or {blade_1: b1, ...} or {blade_pitch: [...],
-                                         #    blade_flap: [...]}; joint of each blade
+                                         #    blade_flap: [...], azimuth: hub}; joint of each
+                                         #    blade, and the azimuth topic's joint (rotor)
+    azimuth_convention: wrapped          # wrapped: ψ in [0, 2π) | unwrapped: continuous ψ
     known: {gamma: 5.0}                  # parameters held fixed
     initial_guess: {gamma: 4.0}          # start of the iteration
     initial_state: estimate              # estimate | equilibrium | zero
@@ -26,6 +28,12 @@ extended, without breaking it, by optional keys::
                                          # the test point's conditions (numbers or text),
                                          # reported by ``rotor-id campaign``
     inflow: cyclic                       # wake model: cyclic (report) | three_state
+
+The same file describes the rig to the live nodes (parameter ``run_description``): ``topics``
+may also name ``pitch_command``, ``stirring``, ``estimate``, ``progress`` and ``state``, and topic
+names may be relative (``rotor/blade_flap``), so that a node's namespace (``-r __ns:=/rig2``)
+moves the whole rig. Offline, a relative name is the bag's topic of that name in the root
+namespace, else in the one namespace that has it (:func:`recorded_topic`).
 
 Errors raise :class:`RunDescriptionError` naming the file, the line and what to do. An
 unknown key that looks like a misspelt known one (``knwon:``) is an error with the suggestion,
@@ -59,7 +67,23 @@ INITIAL_STATES = ('estimate', 'equilibrium', 'zero')
 METHODS = ('output-error', 'filter-error', 'equation-error')
 MEASUREMENTS = ('blades', 'multiblade', 'eq30')
 INFLOWS = ('cyclic', 'three_state')
-TOPIC_ROLES = ('blade_pitch', 'blade_flap', 'azimuth')
+TOPIC_ROLES = ('blade_pitch', 'blade_flap', 'azimuth')      # recorded: read from bags
+#: Topics only the live nodes use (commands and results), default names relative.
+NODE_TOPIC_ROLES = ('pitch_command', 'stirring', 'estimate', 'progress', 'state')
+DEFAULT_NODE_TOPICS = {
+    'pitch_command': 'rotor/pitch_command',
+    'stirring': 'rotor/stirring',
+    'estimate': 'rotor_id/estimate',
+    'progress': 'rotor_id/progress',
+    'state': 'rotor_id/state',
+}
+#: wrapped: the azimuth joint's position is ψ of blade 1 in [0, 2π); unwrapped: it is continuous
+#: (an encoder count turned into radians); either way ψ of blade 1, rad, increasing.
+AZIMUTH_CONVENTIONS = ('wrapped', 'unwrapped')
+DEFAULT_AZIMUTH_JOINT = 'rotor'
+_TOPIC_NAME = re.compile(r'/?[A-Za-z_][A-Za-z0-9_]*(/[A-Za-z_][A-Za-z0-9_]*)*')
+#: The recorded topics of the test-stand convention (absolute: as they appear in a bag); a run
+#: description without ``topics`` means the same names relative to the node's namespace.
 DEFAULT_TOPICS = {
     'blade_pitch': '/rotor/blade_pitch',
     'blade_flap': '/rotor/blade_flap',
@@ -75,7 +99,7 @@ TYPO_SIMILARITY = 0.75
 TOP_LEVEL_KEYS = (
     'rotor', 'topics', 'model', 'unknowns', 'window_s', 'joint_names', 'known',
     'initial_guess', 'initial_state', 'noise_std_rad', 'method', 'measurement', 'lock_number',
-    'conditions', 'run', 'inflow',
+    'conditions', 'run', 'inflow', 'azimuth_convention',
 )
 BLADE_JOINT_ROLES = ('blade_pitch', 'blade_flap')
 
@@ -117,7 +141,7 @@ class RunDescription:
     rotor
         RotorSpec.
     topics
-        Role ('blade_pitch', 'blade_flap', 'azimuth') -> topic name.
+        Role ('blade_pitch', 'blade_flap', 'azimuth') -> topic name (relative or absolute).
     model
         One of :data:`MODELS`.
     unknowns
@@ -148,6 +172,12 @@ class RunDescription:
         Name -> number or text: the test point's conditions (tunnel speed, run number ...).
     inflow
         Wake model's inflow: 'cyclic' (the report's) or 'three_state'; None for the default.
+    node_topics
+        Role (:data:`NODE_TOPIC_ROLES`) -> topic name, for the live nodes.
+    azimuth_joint
+        Joint name on the azimuth topic ('rotor' unless ``joint_names.azimuth``).
+    azimuth_convention
+        'wrapped' (ψ in [0, 2π)) or 'unwrapped' (continuous ψ).
     path
         File the description was read from ('<string>' if parsed from text).
     warnings
@@ -176,6 +206,9 @@ class RunDescription:
     lock_number: object = None
     conditions: dict = field(default_factory=dict)
     inflow: object = None
+    node_topics: dict = field(default_factory=lambda: dict(DEFAULT_NODE_TOPICS))
+    azimuth_joint: str = DEFAULT_AZIMUTH_JOINT
+    azimuth_convention: str = 'wrapped'
     path: str = '<string>'
     warnings: tuple = ()
     extra: dict = field(default_factory=dict)
@@ -185,6 +218,19 @@ class RunDescription:
     def parameters(self):
         """Return the parameter names of the model."""
         return MODEL_PARAMETERS[self.model]
+
+    def record_options(self):
+        """Keyword arguments of :func:`rotor_id.io.bag.read_record` for this rig."""
+        return {'topics': dict(self.topics), 'joint_names': self.joint_names,
+                'n_blades': self.rotor.blades, 'run': self.run, 'window_s': self.window_s,
+                'azimuth_joint': self.azimuth_joint,
+                'azimuth_convention': self.azimuth_convention}
+
+    def blade_joints(self, role):
+        """Joint names of ``role`` ('blade_flap' | 'blade_pitch'), blade 1 first."""
+        if self.joint_names is not None:
+            return list(self.joint_names[role])
+        return [f'blade_{k}' for k in range(1, self.rotor.blades + 1)]
 
     def bag_path(self):
         """Return the conventional bag of this description: NAME/ beside NAME.yaml."""
@@ -225,6 +271,22 @@ def normalize_joint_names(value, n_blades=None):
         return roles
     names = _joint_list(value, n_blades, 'joint_names')
     return {role: names for role in BLADE_JOINT_ROLES}
+
+
+def recorded_topic(name, available):
+    """
+    Return the topic of a bag that a run description's topic ``name`` means.
+
+    An absolute name is itself. A relative one is the same name in the root namespace if the
+    bag has it, else the one topic ``/<namespace>/<name>`` of the bag (a rig recorded under
+    ``-r __ns:=/rig2``); None if none or several match.
+    """
+    if name is None or name.startswith('/'):
+        return name
+    if '/' + name in available:
+        return '/' + name
+    matches = [topic for topic in available if topic.endswith('/' + name)]
+    return matches[0] if len(matches) == 1 else None
 
 
 def _joint_list(value, n_blades, what):
@@ -490,20 +552,29 @@ def _validate(parser, extra_keys=()):
             parser.fail(f'rotor.{key} = {value:g} is implausibly large{unit}; the largest value '
                         f'accepted is {limit:g}', 'rotor', key)
 
-    topics = dict(DEFAULT_TOPICS)
+    options = {}
+    topics = {role: name[1:] for role, name in DEFAULT_TOPICS.items()}   # relative by default
+    node_topics = dict(DEFAULT_NODE_TOPICS)
     if 'topics' in data:
+        roles = TOPIC_ROLES + NODE_TOPIC_ROLES
         for role, topic in parser.mapping(data['topics'], 'topics').items():
-            if role not in TOPIC_ROLES:
-                parser.unknown_key(role, TOPIC_ROLES, 'topics', role,
-                                   note=f' (roles: {", ".join(TOPIC_ROLES)})')
+            if role not in roles:
+                parser.unknown_key(role, roles, 'topics', role,
+                                   note=f' (roles: {", ".join(roles)})')
                 continue
             if role == 'azimuth' and topic is None:
                 topics[role] = None  # azimuth not recorded: t from the rotor speed
                 continue
-            if not isinstance(topic, str) or not topic.startswith('/') or len(topic) < 2:
-                parser.fail(f'topics.{role} must be an absolute topic name such as '
-                            f'{DEFAULT_TOPICS[role]}, got {topic!r}', 'topics', role)
-            topics[role] = topic
+            if not isinstance(topic, str) or not _TOPIC_NAME.fullmatch(topic):
+                parser.fail(f'topics.{role} must be a ROS topic name such as '
+                            f'{DEFAULT_TOPICS.get(role, "")[1:] or DEFAULT_NODE_TOPICS[role]} '
+                            "(relative: moves with the node's namespace) or /rig/"
+                            f'{role} (absolute), got {topic!r}', 'topics', role)
+            (topics if role in TOPIC_ROLES else node_topics)[role] = topic
+    options['node_topics'] = node_topics
+    if 'azimuth_convention' in data:
+        options['azimuth_convention'] = parser.choice(
+            data['azimuth_convention'], AZIMUTH_CONVENTIONS, 'azimuth_convention')
 
     model = parser.choice(parser.require(data, 'model'), MODELS, 'model')
 
@@ -528,12 +599,19 @@ def _validate(parser, extra_keys=()):
         parser.fail(f'window_s must be increasing [t0, t1] with t1 > t0, got {window}',
                     'window_s')
 
-    options = {}
     if 'run' in data:
         options['run'] = parser.number(data['run'], 'run', integer=True, minimum=1)
-    if 'joint_names' in data:
+    joint_names = data.get('joint_names')
+    if isinstance(joint_names, dict) and 'azimuth' in joint_names:
+        joint_names = dict(joint_names)
+        azimuth = joint_names.pop('azimuth')
+        if not isinstance(azimuth, str) or not azimuth:
+            parser.fail(f'joint_names.azimuth must be the joint name on the azimuth topic, '
+                        f'got {azimuth!r}', 'joint_names', 'azimuth')
+        options['azimuth_joint'] = azimuth
+    if joint_names:
         try:
-            options['joint_names'] = normalize_joint_names(data['joint_names'], spec.blades)
+            options['joint_names'] = normalize_joint_names(joint_names, spec.blades)
         except ValueError as err:
             parser.fail(str(err), 'joint_names')
     for key in ('known', 'initial_guess'):

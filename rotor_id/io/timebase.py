@@ -29,6 +29,13 @@ from rotor_id.physics.multiblade import (  # noqa: F401
 TWO_PI = 2.0 * np.pi
 
 
+def wrap_azimuth(psi):
+    """Return an azimuth (rad, scalar or array, any branch) wrapped to [0, 2π)."""
+    wrapped = np.mod(psi, TWO_PI)
+    return np.where(wrapped >= TWO_PI, 0.0, wrapped) if np.ndim(wrapped) else (
+        0.0 if wrapped >= TWO_PI else float(wrapped))
+
+
 def unwrap_azimuth(psi_wrapped, time_s, omega_rad_s=None):
     """
     Unwrap a measured azimuth into a continuous angle.

@@ -17,7 +17,8 @@ import time
 from builtin_interfaces.msg import Time
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 import numpy as np
-from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor
+from rcl_interfaces.msg import (FloatingPointRange, IntegerRange, ParameterDescriptor,
+                                SetParametersResult)
 import rclpy
 from rclpy.duration import Duration
 from rclpy.exceptions import NameValidationException, ParameterException
@@ -25,6 +26,8 @@ from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.qos import (DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy)
 from rclpy.signals import SignalHandlerOptions
 from rotor_id.io.run_description import load_run_description
+from rotor_id.io.timebase import wrap_azimuth
+from rotor_id.nodes.live import check_azimuth_sample
 from rotor_id_msgs.msg import IdentificationProgress, ParameterEstimate
 from sensor_msgs.msg import JointState
 
@@ -122,8 +125,72 @@ def node_run_description(path):
     """Load the run description a node's ``run_description`` parameter names (one clear error)."""
     if not path:
         raise ValueError('parameter run_description is empty: give the path of a run '
-                         'description YAML (see config/nodes_*.yaml)')
+                         'description YAML (see config/nodes_*.yaml and docs/run_description.md)')
     return load_run_description(resolve_config(path))
+
+
+# ------------------------------------------------------------------------------ the rig
+RUN_DESCRIPTION_HELP = ('run description YAML of the rig (topics, joint names, blade count, '
+                        'azimuth convention; docs/run_description.md): a path, or a name in '
+                        "rotor_id's config/")
+
+
+class Rig:
+    """
+    The test stand as every node sees it: one run description, read by the library's loader.
+
+    Topics (``topics[role]`` for the recorded roles blade_pitch, blade_flap, azimuth and the
+    node roles pitch_command, stirring, estimate, progress, state), joint names, blade count
+    and azimuth convention. Relative topic names resolve in the node's namespace.
+    """
+
+    def __init__(self, description):
+        self.description = description
+        self.blades = description.rotor.blades
+        self.flap_joints = description.blade_joints('blade_flap')
+        self.pitch_joints = description.blade_joints('blade_pitch')
+        self.azimuth_joint = description.azimuth_joint
+        self.azimuth_convention = description.azimuth_convention
+        self.topics = {**description.topics, **description.node_topics}
+
+    def check_azimuth(self, msg, last_stamp_ns):
+        """Validate an azimuth JointState of this rig; return (ψ in [0, 2π), Ω). BadSample."""
+        return check_azimuth_sample(msg.name, msg.position, msg.velocity, self.azimuth_joint,
+                                    stamp_ns(msg.header.stamp), last_stamp_ns,
+                                    self.azimuth_convention)
+
+    def azimuth_position(self, psi):
+        """Return what this rig's azimuth joint reads for the unwrapped azimuth ``psi`` (rad)."""
+        return wrap_azimuth(psi) if self.azimuth_convention == 'wrapped' else psi
+
+
+def declare_rig(node):
+    """Declare the read-only ``run_description`` parameter and return the node's :class:`Rig`."""
+    path = declare(node, 'run_description', '', RUN_DESCRIPTION_HELP)
+    return Rig(node_run_description(path))
+
+
+# ------------------------------------------------------------------------------ parameters
+def allow_runtime_changes(node, check=None):
+    """
+    Let ``ros2 param set`` change the node's parameters declared with ``read_only=False``.
+
+    rclpy itself rejects read-only (structural) parameters, values of another type and values
+    outside a descriptor's range, each with a reason. ``check(name, value, values)`` may
+    reject more (return the reason, or None): ``values`` is the node's ``d`` with the proposed
+    changes applied, for checks across parameters. Accepted values go into ``node.d``.
+    """
+    def on_set(parameters):
+        proposed = dict(node.d)
+        proposed.update({p.name: p.value for p in parameters})
+        for parameter in parameters:
+            reason = check(parameter.name, parameter.value, proposed) if check else None
+            if reason:
+                return SetParametersResult(successful=False,
+                                           reason=f'{parameter.name}: {reason}')
+        node.d.update({p.name: p.value for p in parameters if p.name in node.d})
+        return SetParametersResult(successful=True)
+    node.add_on_set_parameters_callback(on_set)
 
 
 def time_msg(ns):
@@ -146,25 +213,105 @@ def joint_state(stamp, names, position, velocity=None, frame_id='rotor'):
 
 
 # ------------------------------------------------------------------------------ diagnostics
+#: Levels from least to most severe: an ERROR outweighs the STALE of an idle node.
+_SEVERITY = [DiagnosticStatus.OK, DiagnosticStatus.WARN, DiagnosticStatus.STALE,
+             DiagnosticStatus.ERROR]
+
+
 class Diagnostics:
     """
-    Counters of one node published as a DiagnosticArray on /diagnostics (~1 Hz).
+    The health of one node, published as a DiagnosticArray on /diagnostics (~1 Hz).
 
-    ``count(kind)`` records a rejected message; the status is WARN while messages were rejected
-    in the last period (the message names the last reason), OK once good data flows again.
+    One status per node: name ``<namespace/node>: <task>`` (``identifier: identification`` in
+    the root namespace, ``rig2/identifier: identification`` under ``/rig2``), hardware_id the
+    node's parameter ``hardware_id`` (default: its fully qualified name, so two rigs on one
+    graph never share one). /diagnostics stays absolute: the ROS convention, where aggregators
+    and rqt_robot_monitor listen. Levels, the worst one wins:
+
+    * ERROR: a watched input (:meth:`watch`) gave no data for ``stale_error_s`` (none at all
+      since the start, or none since its last message), or :meth:`problem` said so;
+    * WARN: messages rejected in the last period (the message names the last reason), an input
+      silent for ``stale_warn_s``, an input slower than ``min_rate_hz``, or :meth:`problem`;
+    * STALE: the node is idle by design (:attr:`idle`: a finished schedule, a finished run) and
+      its inputs went quiet: what it reports is old, nothing is wrong;
+    * OK: data flowing, nothing rejected. A node that never received data is never OK.
+
+    ``stale_warn_s``, ``stale_error_s`` and ``min_rate_hz`` are parameters settable at run time.
     """
 
-    def __init__(self, node, task, period_s=1.0, hardware_id='rotor_id'):
+    def __init__(self, node, task, period_s=1.0, hardware_id=None):
         self.node = node
-        self.name = f'{node.get_name()}: {task}'
-        self.hardware_id = hardware_id
+        qualified = node.get_fully_qualified_name().lstrip('/')
+        self.name = f'{qualified}: {task}'
+        self.hardware_id = hardware_id or declare(
+            node, 'hardware_id', '', 'hardware_id of this node on /diagnostics (empty: the '
+            "node's fully qualified name, e.g. /rig2/identifier)") or \
+            node.get_fully_qualified_name()
+        self.settings = {
+            'stale_warn_s': declare(node, 'stale_warn_s', 2.0, 'an input silent this long is '
+                                    'WARN on /diagnostics (s)', 0.01, 3600.0, read_only=False),
+            'stale_error_s': declare(node, 'stale_error_s', 10.0, 'and this long ERROR (s; at '
+                                     'least stale_warn_s)', 0.01, 3600.0, read_only=False),
+            'min_rate_hz': declare(node, 'min_rate_hz', 50.0, 'an input arriving slower than '
+                                   'this is WARN on /diagnostics (Hz; 0 = no check)', 0.0, 1e6,
+                                   read_only=False),
+        }
+        node.add_on_set_parameters_callback(self._on_set)
         self.counts = {}
         self.values = {}
         self.last_reason = ''
         self._reported = 0
         self.level_override = None
+        self.problems = {}
+        self.idle = False
+        self.streams = {}                 # name -> [topic, received, first_ns, last_ns, at_period]
+        self.started_ns = self._now()
+        self._period_start_ns = self.started_ns
         self.publisher = node.create_publisher(DiagnosticArray, '/diagnostics', DIAGNOSTICS_QOS)
         self.timer = node.create_timer(period_s, self.publish)
+
+    def _now(self):
+        return time.monotonic_ns()
+
+    def _on_set(self, parameters):
+        proposed = {**self.settings, **{p.name: p.value for p in parameters
+                                        if p.name in self.settings}}
+        if proposed['stale_error_s'] < proposed['stale_warn_s']:
+            return SetParametersResult(
+                successful=False, reason=f'stale_error_s {proposed["stale_error_s"]} is below '
+                f'stale_warn_s {proposed["stale_warn_s"]}: the ERROR must come after the WARN')
+        self.settings = proposed
+        return SetParametersResult(successful=True)
+
+    def watch(self, stream, topic):
+        """Check an input for staleness and rate; call :meth:`received` on each message."""
+        self.streams[stream] = [topic, 0, None, None, 0]
+
+    def received(self, stream):
+        """Note one message of a watched input (accepted or not: data arrives)."""
+        entry = self.streams[stream]
+        now = self._now()
+        entry[1] += 1
+        entry[3] = now
+        if entry[2] is None:
+            entry[2] = now
+
+    def subscribe(self, msg_type, topic, callback, qos, stream=None, **kwargs):
+        """``node.create_subscription`` of a watched input (``stream``: name, default topic)."""
+        stream = stream or topic
+        self.watch(stream, topic)
+
+        def watched(msg):
+            self.received(stream)
+            callback(msg)
+        return self.node.create_subscription(msg_type, topic, watched, qos, **kwargs)
+
+    def problem(self, key, level=None, message=''):
+        """Raise (level WARN or ERROR, with a message) or clear (level None) a node problem."""
+        if level is None:
+            self.problems.pop(key, None)
+        else:
+            self.problems[key] = (level, message)
 
     def count(self, kind, reason=''):
         """Count one rejected message of ``kind`` (reason: a short explanation)."""
@@ -185,22 +332,59 @@ class Diagnostics:
         """Total number of rejected messages."""
         return sum(self.counts.values())
 
+    def stream_findings(self, now_ns=None):
+        """Return ([(level, text)], {key: value}) of the watched inputs at ``now_ns``."""
+        now = self._now() if now_ns is None else now_ns
+        warn_s, error_s = self.settings['stale_warn_s'], self.settings['stale_error_s']
+        period_s = max((now - self._period_start_ns) / NS, 1e-9)
+        findings, values = [], {}
+        for stream, entry in self.streams.items():
+            topic, received, first, last, at_period = entry
+            silent_s = (now - (last if last is not None else self.started_ns)) / NS
+            values[f'{stream}_messages'] = received
+            values[f'{stream}_silent_s'] = f'{silent_s:.2f}'
+            what = (f'no data on {topic} since the start {silent_s:.1f} s ago: check the run '
+                    "description's topics, the namespace and that the publisher runs"
+                    if last is None else f'no data on {topic} for {silent_s:.1f} s')
+            if silent_s >= warn_s:
+                level = (DiagnosticStatus.STALE if self.idle and last is not None
+                         else DiagnosticStatus.ERROR if silent_s >= error_s
+                         else DiagnosticStatus.WARN)
+                findings.append((level, what))
+            elif first is not None and first <= self._period_start_ns:
+                rate = (received - at_period) / period_s
+                values[f'{stream}_rate_hz'] = f'{rate:.1f}'
+                if not self.idle and rate < self.settings['min_rate_hz']:
+                    findings.append((DiagnosticStatus.WARN, f'{topic} at {rate:.1f} Hz, below '
+                                     f'min_rate_hz {self.settings["min_rate_hz"]:g}'))
+        return findings, values
+
     def publish(self):
         """Publish the current status."""
         total = self.rejected
+        now = self._now()
+        findings, stream_values = self.stream_findings(now)
+        findings += list(self.problems.values())
+        if total > self._reported:
+            findings.append((DiagnosticStatus.WARN,
+                             f'{total - self._reported} message(s) rejected in the last '
+                             f'period; last: {self.last_reason}'))
         status = DiagnosticStatus(name=self.name, hardware_id=self.hardware_id)
         if self.level_override is not None:
             status.level, status.message = self.level_override
-        elif total > self._reported:
-            status.level = DiagnosticStatus.WARN
-            status.message = (f'{total - self._reported} message(s) rejected in the last '
-                              f'period; last: {self.last_reason}')
+        elif findings:
+            worst = max((level for level, _ in findings), key=_SEVERITY.index)
+            status.level = worst
+            status.message = '; '.join(text for level, text in findings if level == worst)
         else:
             status.level = DiagnosticStatus.OK
             status.message = 'ok' if not total else f'ok ({total} rejected earlier)'
         self._reported = total
+        for entry in self.streams.values():
+            entry[4] = entry[1]
+        self._period_start_ns = now
         values = {'rejected_total': total, **{f'rejected_{k}': v for k, v in self.counts.items()},
-                  **self.values}
+                  **stream_values, **self.values}
         status.values = [KeyValue(key=k, value=str(v)) for k, v in values.items()]
         msg = DiagnosticArray(status=[status])
         msg.header.stamp = self.node.get_clock().now().to_msg()

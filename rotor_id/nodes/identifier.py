@@ -3,8 +3,10 @@ identifier: live output-error identification of the rotor (``ros2 run rotor_id i
 
 Runs test points one after another without restart. The test points, their buffers and the
 window checks are :class:`rotor_id.nodes.test_points.TestPointSequence` (ROS-free); this node
-only feeds it the checked samples of ``/rotor/blade_pitch``, ``/rotor/blade_flap`` and
-``/rotor/azimuth`` and the phase of the stirring schedule, and publishes what it returns.
+only feeds it the checked samples of the rig's blade_pitch, blade_flap and azimuth topics and
+the phase of the stirring schedule, and publishes what it returns. The rig (topics, joint names,
+blade count, azimuth convention) is the run description's (``run_description``,
+docs/run_description.md), as for every node and ``rotor-id identify``.
 
 * A test point starts by the service ``~/start_test_point`` (std_srvs/Trigger: from the next
   flap sample; the answer names the test point) or, with ``auto_start: excitation``, when a
@@ -43,12 +45,12 @@ from rclpy.qos import QoSProfile, ReliabilityPolicy
 from rclpy.task import Future
 from rotor_id.estimation.output_error import STOP
 from rotor_id.nodes.common import (declare, Diagnostics, estimate_message, node_run_description,
-                                   NS, progress_message, RESULT_QOS, SENSOR_BUFFER_QOS,
+                                   NS, progress_message, RESULT_QOS, Rig, SENSOR_BUFFER_QOS,
                                    spin_node, stamp_ns, STATE_QOS, time_msg, wait_for_acks)
 from rotor_id.nodes.fit_process import (Abandoned, fit_window, FitOptions, FitProcess,
                                         thread_times)
-from rotor_id.nodes.live import BadSample, check_azimuth_sample, check_joint_sample
-from rotor_id.nodes.test_points import FitSchedule, outcome, TestPointSequence
+from rotor_id.nodes.live import BadSample, check_joint_sample
+from rotor_id.nodes.test_points import FitSchedule, outcome, Phase, TestPointSequence
 from rotor_id.pipeline import model_for
 from rotor_id_msgs.msg import IdentificationProgress, ParameterEstimate, StirringCommand
 from rotor_id_msgs.srv import Identify
@@ -75,8 +77,6 @@ class Identifier(Node):
             ('auto_start', 'excitation', 'how test points start besides ~/start_test_point: '
              "'excitation' (a stirring schedule that starts arms one), 'data' (the first one at "
              "the first flap sample), 'none'"),
-            ('stirring_topic', '/rotor/stirring', 'StirringCommand topic (subscribed: its phase '
-             'starts test points)'),
             ('update_every_rad', math.pi / 4, 'intermediate estimates every this much rotor '
              'azimuth while the window fills (rad; 0 = none)', 0.0, 1e6),
             ('min_window_rad', 3.0 * math.pi, 'first intermediate estimate after this much of '
@@ -114,13 +114,11 @@ class Identifier(Node):
             ('sensor_queue_depth', 10000, 'samples each sensor subscription queues while the '
              'node is busy (10 s at 1 kHz); older ones are lost, and the window says so',
              1, 1000000),
-            ('estimate_topic', '/rotor_id/estimate', 'ParameterEstimate topic'),
-            ('progress_topic', '/rotor_id/progress', 'IdentificationProgress topic'),
             ('frame_id', 'rotor', 'header.frame_id of the published messages'),
         ]
         self.d = {s[0]: declare(self, s[0], s[1], s[2], *s[3:]) for s in spec}
-        self.description = node_run_description(self.d['run_description'])
-        desc = self.description
+        self.rig = Rig(node_run_description(self.d['run_description']))
+        self.description = desc = self.rig.description
         self.unknowns = list(desc.unknowns)
         targets = list(self.d['target_std'])
         if targets == [0.0]:
@@ -130,11 +128,7 @@ class Identifier(Node):
                              f'{self.unknowns}; give one per unknown (0 = no target)')
         self.targets = np.array(targets, dtype=float)
         n = desc.rotor.blades
-        joints = desc.joint_names or {}
-        self.flap_joints = list(joints.get('blade_flap') or
-                                [f'blade_{k}' for k in range(1, n + 1)])
-        self.pitch_joints = list(joints.get('blade_pitch') or self.flap_joints)
-        self.azimuth_joint = getattr(desc, 'azimuth_joint', 'rotor')
+        self.flap_joints, self.pitch_joints = self.rig.flap_joints, self.rig.pitch_joints
         self.points = TestPointSequence(
             n, desc.window_s, self.flap_joints,
             FitSchedule(self.d['update_every_rad'], self.d['min_window_rad'],
@@ -156,10 +150,10 @@ class Identifier(Node):
         self.guess = {}                   # warm start: the latest sane iterate of a window fit
         self.bounds = None                # (lower, upper) of each unknown, for that check
         self.last_fit_s = float('nan')
-        self.pub_estimate = self.create_publisher(ParameterEstimate, self.d['estimate_topic'],
+        self.pub_estimate = self.create_publisher(ParameterEstimate, self.rig.topics['estimate'],
                                                   RESULT_QOS)
         self.pub_progress = self.create_publisher(IdentificationProgress,
-                                                  self.d['progress_topic'], STATE_QOS)
+                                                  self.rig.topics['progress'], STATE_QOS)
         reliability = {'reliable': ReliabilityPolicy.RELIABLE,
                        'best_effort': ReliabilityPolicy.BEST_EFFORT}.get(
                            self.d['sensor_reliability'])
@@ -172,12 +166,12 @@ class Identifier(Node):
         self.diagnostics = Diagnostics(self, 'identification')
         for role, callback in (('blade_flap', self.on_flap), ('blade_pitch', self.on_pitch),
                                ('azimuth', self.on_azimuth)):
-            self.create_subscription(
-                JointState, desc.topics[role], callback, sensor_qos,
+            self.diagnostics.subscribe(
+                JointState, desc.topics[role], callback, sensor_qos, role,
                 event_callbacks=SubscriptionEventCallbacks(
                     incompatible_qos=self._incompatible(desc.topics[role])))
         # volatile: a latched schedule of the past must not start a test point
-        self.create_subscription(StirringCommand, self.d['stirring_topic'], self.on_stirring,
+        self.create_subscription(StirringCommand, self.rig.topics['stirring'], self.on_stirring,
                                  STATE_QOS)
         # own callback group: while a service call awaits its fit, data keep being taken
         self.create_service(Identify, '~/identify', self.on_identify,
@@ -244,9 +238,7 @@ class Identifier(Node):
         stamp = stamp_ns(msg.header.stamp)
         with self.lock:
             try:
-                psi, omega = check_azimuth_sample(msg.name, msg.position, msg.velocity,
-                                                  self.azimuth_joint, stamp,
-                                                  self.points.azimuth.series.last_stamp)
+                psi, omega = self.rig.check_azimuth(msg, self.points.azimuth.series.last_stamp)
             except BadSample as bad:
                 self.diagnostics.count(bad.kind, str(bad))
                 return
@@ -313,6 +305,9 @@ class Identifier(Node):
         latest = self.points.latest
         self.diagnostics.set_value('test_point', latest.describe() if latest else 'none yet')
         self.diagnostics.set_value('test_point_phase', self.points.phase.name.lower())
+        # between test points quiet inputs are STALE, not a fault (never received: ERROR)
+        self.diagnostics.idle = self.points.phase not in (Phase.ARMED, Phase.RECORDING,
+                                                          Phase.FITTING)
 
     # -------------------------------------------------------------------------- scheduling
     def schedule(self):

@@ -14,7 +14,7 @@ from rotor_id.estimation.kalman import default_noise_rows, DiscreteModel, discre
 from rotor_id.estimation.simulate import simulate
 from rotor_id.io.record import Record
 from rotor_id.io.timebase import (AzimuthUnwrapper, interpolate_columns,
-                                  nondimensional_time, TWO_PI)
+                                  nondimensional_time, TWO_PI, wrap_azimuth)
 from rotor_id.physics.blades import blade_flap_from_states
 from rotor_id.physics.models import build_model, RotorConstants
 from rotor_id.physics.stirring import blade_pitch_from_multiblade
@@ -310,14 +310,22 @@ def check_joint_sample(names, position, expected, stamp_ns, last_stamp_ns,
     return values
 
 
-def check_azimuth_sample(names, position, velocity, joint, stamp_ns, last_stamp_ns):
-    """Validate one azimuth sample; return (ψ in [0, 2π), Ω > 0). Raises BadSample."""
+def check_azimuth_sample(names, position, velocity, joint, stamp_ns, last_stamp_ns,
+                         convention='wrapped'):
+    """
+    Validate one azimuth sample; return (ψ in [0, 2π), Ω > 0). Raises BadSample.
+
+    ``convention`` is the run description's azimuth_convention: 'wrapped' positions must lie in
+    [0, 2π) (else: degrees?), 'unwrapped' ones are wrapped here.
+    """
     psi = check_joint_sample(names, position, [joint], stamp_ns, last_stamp_ns)[0]
     velocity = np.asarray(velocity, dtype=float)
     if velocity.size != 1 or not np.isfinite(velocity[0]):
         raise BadSample('bad_speed', f'rotor speed (velocity) {velocity.tolist()} is not one '
                         'finite value')
-    if not 0.0 <= psi < TWO_PI + 1e-9:
+    if convention == 'unwrapped':
+        psi = wrap_azimuth(psi)
+    elif not 0.0 <= psi < TWO_PI + 1e-9:
         raise BadSample('degrees', f'azimuth {psi:.4g} outside [0, 2π): degrees?')
     if not velocity[0] > 0:
         raise BadSample('bad_speed', f'rotor speed {velocity[0]:.4g} rad/s is not positive')

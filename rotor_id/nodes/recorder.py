@@ -8,6 +8,12 @@ as rosbag2 does (reliable / transient-local only if every publisher offers it, C
 :func:`rotor_id.io.bag.open_writer` (rosbags; MCAP by default, sqlite3 on request) with every
 message definition embedded, rotor_id_msgs included, so mcap + mcap-ros2-support decode it.
 
+With a run description (parameter ``run_description``, docs/run_description.md) it records the
+rig's topics (resolved in its namespace, so a recorder under ``/rig2`` records rig 2 only) and
+/diagnostics, and copies the description beside the bag (``NAME/`` and ``NAME.yaml``, the
+recording convention), so that ``rotor-id identify NAME/ NAME.yaml`` reads it the same way.
+Without one, every topic discovered (or the ``topics`` list).
+
 SIGINT and SIGTERM stop the recording: the node takes every message already delivered to it
 (until the topics are quiet for ``drain_s``), then finalises the bag.
 """
@@ -18,6 +24,7 @@ from pathlib import Path
 import sys
 import time
 
+from diagnostic_msgs.msg import DiagnosticStatus
 from rclpy.executors import SingleThreadedExecutor
 try:
     from rclpy.experimental import EventsExecutor
@@ -29,7 +36,8 @@ from rosbags.interfaces import (Qos, QosDurability, QosHistory, QosLiveliness, Q
                                 QosTime)
 from rosbags.typesys import get_typestore, Stores
 from rotor_id.io.bag import open_writer, register_msg_dir
-from rotor_id.nodes.common import declare, Diagnostics, resolve_config, spin_node
+from rotor_id.nodes.common import (declare, Diagnostics, node_run_description, resolve_config,
+                                   RUN_DESCRIPTION_HELP, spin_node)
 
 _INFINITE_NS = 2**63 - 1
 
@@ -89,6 +97,7 @@ class Recorder(Node):
     def __init__(self):
         super().__init__('recorder')
         spec = [
+            ('run_description', '', RUN_DESCRIPTION_HELP + ' (empty: record every topic)'),
             ('output', '', 'bag directory to create (empty: rotor_id_<date>-<time> here)'),
             ('storage', 'mcap', 'storage plugin: mcap or sqlite3'),
             ('topics', [''], 'topics to record (empty: every topic discovered)'),
@@ -102,8 +111,15 @@ class Recorder(Node):
         ]
         self.d = {s[0]: declare(self, s[0], s[1], s[2], *s[3:]) for s in spec}
         output = self.d['output'] or time.strftime('rotor_id_%Y%m%d-%H%M%S')
-        self.wanted = [t for t in self.d['topics'] if t]
+        self.wanted = [self.resolve_topic_name(t) for t in self.d['topics'] if t]
         self.exclude = set(self.d['exclude_topics'])
+        description = None
+        if self.d['run_description']:
+            description = node_run_description(self.d['run_description'])
+            if not self.wanted:
+                rig_topics = {**description.topics, **description.node_topics}
+                self.wanted = [self.resolve_topic_name(t) for t in rig_topics.values() if t]
+                self.wanted.append('/diagnostics')
         store = typestore_with_custom_types(
             [resolve_config(p) if not Path(p).is_dir() else p for p in self.d['msg_dirs'] if p])
         self.writer = open_writer(output, self.d['storage'], store)
@@ -114,6 +130,14 @@ class Recorder(Node):
         self.last_message = time.monotonic()
         self.diagnostics = Diagnostics(self, 'bag recording')
         self.diagnostics.set_value('bag', str(self.path))
+        if description is not None:
+            self._copy_description(description)
+            for role in ('blade_pitch', 'blade_flap', 'azimuth'):
+                if description.topics.get(role):
+                    topic = self.resolve_topic_name(description.topics[role])
+                    self.diagnostics.watch(topic, topic)
+        else:
+            self.diagnostics.watch('messages', 'any topic')
         self.create_timer(self.d['discovery_period_s'], self.discover)
         self.discover()
         self.get_logger().info(f'recording to {self.path} ({self.d["storage"]}); '
@@ -147,11 +171,26 @@ class Recorder(Node):
         self.diagnostics.set_value('messages', sum(self.counts.values()))
         self.diagnostics.set_value('topics', len(self.counts))
 
+    def _copy_description(self, description):
+        """Put the run description beside the bag (NAME.yaml), never over an existing file."""
+        target = self.path.with_suffix('.yaml')
+        if target.exists():
+            self.diagnostics.problem('description', DiagnosticStatus.WARN,
+                                     f'{target} exists: the run description was not copied')
+            return
+        target.write_text(Path(description.path).read_text(encoding='utf-8'), encoding='utf-8')
+        self.diagnostics.set_value('run_description', str(target))
+
     def _writer_for(self, topic):
+        stream = topic if topic in self.diagnostics.streams else 'messages'
+        watched = stream in self.diagnostics.streams
+
         def write(data):
             self.writer.write_raw(topic, self.get_clock().now().nanoseconds, data)
             self.counts[topic] += 1
             self.last_message = time.monotonic()
+            if watched:
+                self.diagnostics.received(stream)
         return write
 
     def close(self):

@@ -1,19 +1,21 @@
 """
 rotor_plant: the simulated rotor of the test stand, in real time (``ros2 run rotor_id ...``).
 
-Subscribes ``/rotor/pitch_command`` (JointState blade_1..N, rad); publishes the test-stand
-convention (../shared/recordings/README.md): ``/rotor/blade_pitch`` and ``/rotor/blade_flap``
-(JointState, rad, header.stamp = acquisition time) and ``/rotor/azimuth`` (joint ``rotor``:
-position = azimuth of blade 1 wrapped to [0, 2π), velocity = Ω in rad/s). The physics is
+The rig it simulates is the run description's (parameter ``run_description``, docs/
+run_description.md): blade count and rotor constants, topics, joint names, azimuth convention.
+Subscribes ``pitch_command`` (JointState, the blade_pitch joints, rad); publishes
+``blade_pitch`` and ``blade_flap`` (JointState, rad, header.stamp = acquisition time) and
+``azimuth`` (the azimuth joint: position = azimuth of blade 1, wrapped to [0, 2π) or
+unwrapped as the description says; velocity = Ω in rad/s). The physics is
 :class:`rotor_id.nodes.live.PlantStepper` (one library model, the library's simulator).
 """
 
 import math
 
-import numpy as np
 from rclpy.node import Node
-from rotor_id.nodes.common import (declare, Diagnostics, joint_state, NS, SENSOR_OFFER_QOS,
-                                   SENSOR_QOS, spin_node, stamp_ns, wait_for_acks)
+from rotor_id.nodes.common import (declare, declare_rig, Diagnostics, joint_state, NS,
+                                   SENSOR_OFFER_QOS, SENSOR_QOS, spin_node, stamp_ns,
+                                   wait_for_acks)
 from rotor_id.nodes.live import BadSample, check_joint_sample, PlantStepper, rotor_constants
 from rotor_id.physics.models import MODEL_NAMES
 from rotor_id.physics.stirring import multiblade_from_blade_pitch
@@ -27,15 +29,11 @@ class RotorPlant(Node):
 
     def __init__(self):
         super().__init__('rotor_plant')
+        self.rig = rig = declare_rig(self)
         d = self._declare_all()
-        self.rotor = rotor_constants(d['n_blades'], d['advance_ratio'], d['flap_frequency'],
-                                     d['tip_loss'], d['pitch_flap_coupling'])
-        self.joints = list(d['joint_names'])
-        if self.joints == ['']:
-            self.joints = [f'blade_{k}' for k in range(1, self.rotor.n_blades + 1)]
-        if len(self.joints) != self.rotor.n_blades:
-            raise ValueError(f'joint_names has {len(self.joints)} names for n_blades = '
-                             f'{self.rotor.n_blades}')
+        spec = rig.description.rotor
+        self.rotor = rotor_constants(spec.blades, spec.advance_ratio, spec.flap_frequency,
+                                     spec.tip_loss, spec.pitch_flap_coupling)
         self.omega = d['rotor_speed_rad_s']
         self.rate = d['sample_rate_hz']
         noisy = [s for s in d['process_noise_states'] if s]
@@ -52,27 +50,23 @@ class RotorPlant(Node):
         self.last_cmd_ns = None
         self.commands = 0
         offer = SENSOR_OFFER_QOS if d['reliable_sensors'] else SENSOR_QOS
-        self.pub_pitch = self.create_publisher(JointState, d['blade_pitch_topic'], offer)
-        self.pub_flap = self.create_publisher(JointState, d['blade_flap_topic'], offer)
-        self.pub_azimuth = self.create_publisher(JointState, d['azimuth_topic'], offer)
-        self.create_subscription(JointState, d['pitch_command_topic'], self.on_command,
-                                 SENSOR_QOS)
+        topics = rig.topics
+        self.pub_pitch = self.create_publisher(JointState, topics['blade_pitch'], offer)
+        self.pub_flap = self.create_publisher(JointState, topics['blade_flap'], offer)
+        self.pub_azimuth = self.create_publisher(JointState, topics['azimuth'], offer)
         self.diagnostics = Diagnostics(self, 'simulated rotor')
+        self.diagnostics.subscribe(JointState, topics['pitch_command'], self.on_command,
+                                   SENSOR_QOS, 'pitch_command')
         self.timer = self.create_timer(d['publish_period_s'], self.tick)
         self.get_logger().info(
             f'{d["model"]} rotor at {self.omega:.4g} rad/s, {self.rate:g} Hz, flap noise '
             f'{d["flap_noise_std_rad"]:.3g} rad; waiting for {d["wait_for_subscribers"]} '
-            f'subscriber(s) of {d["azimuth_topic"]}')
+            f'subscriber(s) of {self.pub_azimuth.topic_name}')
 
     def _declare_all(self):
         two_deg = math.radians(2.0)
         spec = [
             ('model', 'multiblade_wake', f'truth model: {", ".join(MODEL_NAMES)}'),
-            ('n_blades', 4, 'number of blades N', 2, 12),
-            ('advance_ratio', 0.0, 'advance ratio mu (-)', 0.0, 1.0),
-            ('flap_frequency', 1.2, 'rotating flap natural frequency P (per rev)', 0.5, 3.0),
-            ('tip_loss', 0.97, 'tip-loss factor B (-)', 0.5, 1.0),
-            ('pitch_flap_coupling', 0.0, 'pitch-flap coupling K_P = tan delta3 (-)', -3.0, 3.0),
             ('inflow', 'cyclic', 'wake model inflow: cyclic (report) | three_state'),
             ('A', 0.5, 'wake model: flap damping A = gamma B^4/8 (-), Ch.2 eq. 27', 1e-3, 10.0),
             ('AL_over_tau', 0.25, 'wake model: wake gain over time constant AL/tau (-)',
@@ -99,13 +93,6 @@ class RotorPlant(Node):
             ('process_noise_states', [''], 'states driven by system noise (empty: lambda_I, '
              'lambda_II for the wake model, the flap rates otherwise)'),
             ('seed', 0, 'random seed of the noise', 0, 2**31 - 1),
-            ('joint_names', [''], 'joint name of each blade, blade 1 first (empty: '
-             'blade_1..blade_N)'),
-            ('azimuth_joint', 'rotor', 'joint name on the azimuth topic'),
-            ('pitch_command_topic', '/rotor/pitch_command', 'per-blade pitch command topic'),
-            ('blade_pitch_topic', '/rotor/blade_pitch', 'measured blade pitch topic'),
-            ('blade_flap_topic', '/rotor/blade_flap', 'measured blade flap topic'),
-            ('azimuth_topic', '/rotor/azimuth', 'azimuth and rotor speed topic'),
             ('command_latency_s', 0.02, 'simulate this far behind the clock, so that the pitch '
              'commands for a sample have arrived when it is computed (s; the samples keep '
              'their acquisition stamps)', 0.0, 1.0),
@@ -139,7 +126,7 @@ class RotorPlant(Node):
         """Hold a per-blade pitch command, converted to the swashplate input (eq. 3)."""
         stamp = stamp_ns(msg.header.stamp)
         try:
-            pitch = check_joint_sample(msg.name, msg.position, self.joints, stamp,
+            pitch = check_joint_sample(msg.name, msg.position, self.rig.pitch_joints, stamp,
                                        self.last_cmd_ns, self.d['max_abs_pitch_rad'])
         except BadSample as bad:
             self.diagnostics.count(bad.kind, str(bad))
@@ -156,7 +143,7 @@ class RotorPlant(Node):
         now = self.get_clock().now().nanoseconds
         if self.start_ns is None:
             if self.ready_ns is None:
-                if self.count_subscribers(self.d['azimuth_topic']) < \
+                if self.pub_azimuth.get_subscription_count() < \
                         self.d['wait_for_subscribers']:
                     return
                 self.ready_ns = now
@@ -169,6 +156,7 @@ class RotorPlant(Node):
         if self.d['duration_s'] > 0 and self.stepper.samples >= self.d['duration_s'] * self.rate:
             if self.timer is not None:
                 self.timer.cancel()
+                self.diagnostics.idle = True          # finished by design: quiet is STALE
                 self.get_logger().info(f'run complete: {self.stepper.samples} samples')
             return
         due = int(elapsed * self.rate)
@@ -184,13 +172,13 @@ class RotorPlant(Node):
         first = self.stepper.samples + 1
         # a bounded batch per tick, so command callbacks run in between while catching up
         t, flap, pitch = self.stepper.advance(min(due, self.d['max_batch']))
-        psi = np.mod(t, TWO_PI)
-        frame = self.d['frame_id']
+        psi = self.rig.azimuth_position(t)
+        frame, rig = self.d['frame_id'], self.rig
         for i in range(t.size):
             stamp = self.start_ns + int(round((first + i) * NS / self.rate))
-            self.pub_pitch.publish(joint_state(stamp, self.joints, pitch[i], frame_id=frame))
-            self.pub_flap.publish(joint_state(stamp, self.joints, flap[i], frame_id=frame))
-            self.pub_azimuth.publish(joint_state(stamp, [self.d['azimuth_joint']], [psi[i]],
+            self.pub_pitch.publish(joint_state(stamp, rig.pitch_joints, pitch[i], frame_id=frame))
+            self.pub_flap.publish(joint_state(stamp, rig.flap_joints, flap[i], frame_id=frame))
+            self.pub_azimuth.publish(joint_state(stamp, [rig.azimuth_joint], [psi[i]],
                                                  [self.omega], frame_id=frame))
         self.diagnostics.set_value('samples_published', self.stepper.samples)
         self.diagnostics.set_value('commands_received', self.commands)

@@ -4,9 +4,10 @@ state_estimator: Kalman reconstruction of the unmeasured states (``ros2 run roto
 Filters the flap stream with the run description's model (flap rates, and the inflow λI, λII of
 the wake model, which no sensor measures) using the library's Kalman filter through
 :class:`rotor_id.nodes.live.StreamingKalman`, and publishes rotor_id_msgs/StateEstimate with its
-covariance on ``/rotor_id/state`` (angles in rad, rates in rad/s: the model's d/dt of azimuth
-times Ω). It takes the identifier's ParameterEstimate on ``/rotor_id/estimate`` as its new
-model parameters: the report's iterated filter / identification loop (Ch.2).
+covariance on ``rotor_id/state`` (angles in rad, rates in rad/s: the model's d/dt of azimuth
+times Ω). It takes the identifier's ParameterEstimate on ``rotor_id/estimate`` as its new
+model parameters: the report's iterated filter / identification loop (Ch.2). Topics, joint
+names and the azimuth convention are the run description's (docs/run_description.md).
 """
 
 import math
@@ -15,9 +16,9 @@ import sys
 import numpy as np
 from rclpy.node import Node
 from rotor_id.nodes.common import (declare, Diagnostics, estimate_from_message,
-                                   node_run_description, RESULT_QOS, SENSOR_BUFFER_QOS,
+                                   node_run_description, RESULT_QOS, Rig, SENSOR_BUFFER_QOS,
                                    spin_node, stamp_ns, wait_for_acks)
-from rotor_id.nodes.live import (AzimuthTracker, BadSample, check_azimuth_sample,
+from rotor_id.nodes.live import (AzimuthTracker, BadSample,
                                  check_joint_sample, StampedSeries, StreamingKalman)
 from rotor_id.nodes.test_points import sampling_period_ns
 from rotor_id.physics.stirring import SampledInput
@@ -44,20 +45,16 @@ class StateEstimator(Node):
             ('buffer_s', 2.0, 'samples kept for filtering (s): the buffers never grow with the '
              'run; samples not filtered within this time are dropped and counted', 0.1, 600.0),
             ('use_provisional', False, 'also adopt provisional (growing-window) estimates'),
-            ('estimate_topic', '/rotor_id/estimate', 'ParameterEstimate topic (subscribed)'),
-            ('state_topic', '/rotor_id/state', 'StateEstimate topic'),
             ('frame_id', 'rotor', 'header.frame_id of the published messages'),
         ]
         self.d = {s[0]: declare(self, s[0], s[1], s[2], *s[3:]) for s in spec}
-        desc = node_run_description(self.d['run_description'])
+        self.rig = Rig(node_run_description(self.d['run_description']))
+        desc = self.rig.description
         self.model = model_for(desc)
         self.p = self.model.nominal()
         self.noise = channel_noise(self.model, self.d['flap_noise_std_rad'])
         n = desc.rotor.blades
-        joints = desc.joint_names or {}
-        self.flap_joints = list(joints.get('blade_flap') or
-                                [f'blade_{k}' for k in range(1, n + 1)])
-        self.pitch_joints = list(joints.get('blade_pitch') or self.flap_joints)
+        self.flap_joints, self.pitch_joints = self.rig.flap_joints, self.rig.pitch_joints
         self.flap = StampedSeries(n)
         self.pitch = StampedSeries(n)
         self.azimuth = AzimuthTracker()
@@ -66,16 +63,18 @@ class StateEstimator(Node):
         self.kalman = None
         self.updates = 0
         self.published = 0
-        self.pub_state = self.create_publisher(StateEstimate, self.d['state_topic'], RESULT_QOS)
+        self.pub_state = self.create_publisher(StateEstimate, self.rig.topics['state'],
+                                               RESULT_QOS)
+        self.diagnostics = Diagnostics(self, 'state reconstruction')
         for role, series, joints in (('blade_flap', self.flap, self.flap_joints),
                                      ('blade_pitch', self.pitch, self.pitch_joints)):
-            self.create_subscription(JointState, desc.topics[role],
-                                     self._joint_callback(series, joints), SENSOR_BUFFER_QOS)
-        self.create_subscription(JointState, desc.topics['azimuth'], self.on_azimuth,
-                                 SENSOR_BUFFER_QOS)
-        self.create_subscription(ParameterEstimate, self.d['estimate_topic'], self.on_estimate,
-                                 RESULT_QOS)
-        self.diagnostics = Diagnostics(self, 'state reconstruction')
+            self.diagnostics.subscribe(JointState, desc.topics[role],
+                                       self._joint_callback(series, joints), SENSOR_BUFFER_QOS,
+                                       role)
+        self.diagnostics.subscribe(JointState, desc.topics['azimuth'], self.on_azimuth,
+                                   SENSOR_BUFFER_QOS, 'azimuth')
+        self.create_subscription(ParameterEstimate, self.rig.topics['estimate'],
+                                 self.on_estimate, RESULT_QOS)
         self.create_timer(self.d['update_period_s'], self.tick)
 
     def _joint_callback(self, series, joints):
@@ -94,8 +93,7 @@ class StateEstimator(Node):
         """Track the unwrapped azimuth (the model's time)."""
         stamp = stamp_ns(msg.header.stamp)
         try:
-            psi, omega = check_azimuth_sample(msg.name, msg.position, msg.velocity, 'rotor',
-                                              stamp, self.azimuth.series.last_stamp)
+            psi, omega = self.rig.check_azimuth(msg, self.azimuth.series.last_stamp)
         except BadSample as bad:
             self.diagnostics.count(bad.kind, str(bad))
             return

@@ -2,112 +2,234 @@
 stirring_input: the report's stirring schedule as per-blade pitch commands (``ros2 run``).
 
 The schedule (:class:`rotor_id.physics.stirring.StirringSchedule`, Ch.2 eqs 1-5): collective only
-(trim), then the lateral cyclic stepped on ``step_after_rad`` of azimuth after the first azimuth
-sample (one revolution, as in ../shared/recordings/README.md), then stirring ``t0`` later with
-phase φ = ω̇ (t − t0)². Time is the report's nondimensional time: the unwrapped azimuth of blade 1
-from ``/rotor/azimuth``, extrapolated with Ω to each command's stamp: the time the command applies
-from, on a regular grid that starts at the first azimuth stamp and runs ``lead_s`` ahead of the
-clock (the plant interpolates between commands).
-Publishes JointState blade_1..N (rad) on ``/rotor/pitch_command`` and
-rotor_id_msgs/StirringCommand on ``/rotor/stirring``.
+(trim), then the lateral cyclic stepped on ``step_after_rad`` of azimuth after the test point
+starts (one revolution, as in the recording convention of docs/run_description.md), then
+stirring ``t0`` later with phase φ = ω̇ (t − t0)². It is bounded
+(:class:`rotor_id.excitation.StirringTestPoint`): the stirring ends after ``duration_rad`` of
+azimuth or when its rate reaches ``max_stirring_rate_rad_s``, the cyclic then ramps back to trim
+over ``ramp_s`` and PHASE_DONE is published; ``~/abort`` (std_srvs/Trigger) starts that ramp at
+once, ``~/start`` (std_srvs/Trigger) starts a new test point once the previous one is done
+(``autostart``: the first one starts with the first azimuth sample). After a test point the node
+holds trim (collective only), so that an actuator driver never sees its command stream stop.
+
+Time is the report's nondimensional time: the unwrapped azimuth of blade 1 from the rig's
+azimuth topic, extrapolated with Ω to each command's stamp: the time the command applies from,
+on a regular grid that runs ``lead_s`` ahead of the clock (the plant interpolates between
+commands). Commands whose time has already passed (the node was stalled) are skipped, never
+sent late. The rig (topics, joint names, blade count, azimuth convention) is the run
+description's (parameter ``run_description``). Publishes JointState (the blade_pitch joints,
+rad) on ``pitch_command`` and rotor_id_msgs/StirringCommand on ``stirring``.
 """
 
 import math
 import sys
 
+from rclpy.duration import Duration
 from rclpy.node import Node
-from rotor_id.nodes.common import (declare, Diagnostics, joint_state, RESULT_QOS, SENSOR_OFFER_QOS,
-                                   SENSOR_QOS, spin_node, stamp_ns, time_msg, wait_for_acks)
-from rotor_id.nodes.live import AzimuthTracker, BadSample, check_azimuth_sample
+from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+from rotor_id.excitation import (check_excitation_limits, PHASE_DONE, PHASE_NAMES,
+                                 StirringTestPoint)
+from rotor_id.nodes.common import (allow_runtime_changes, declare, declare_rig, Diagnostics,
+                                   joint_state, RESULT_QOS, SENSOR_QOS, spin_node, stamp_ns,
+                                   time_msg, wait_for_acks)
+from rotor_id.nodes.live import AzimuthTracker, BadSample
 from rotor_id.physics.stirring import blade_pitch_from_multiblade, StirringSchedule
 from rotor_id_msgs.msg import StirringCommand
 from sensor_msgs.msg import JointState
+from std_srvs.srv import Trigger
 
 TWO_PI = 2.0 * math.pi
+#: Time a pitch command may live after the time it applies from, s (QoS lifespan on top of lead_s).
+COMMAND_LIFETIME_S = 0.1
+
+
+def pitch_command_qos(lead_s, rate_hz):
+    """
+    Return the QoS of the pitch commands: no stale backlog can build up anywhere.
+
+    Reliable, so a reader that is keeping up gets every command of the grid (the recorder
+    too); KEEP_LAST with a depth of the commands of one lead (``lead_s`` × ``rate_hz`` + 1, 21
+    by default, not 10000), so a reader that falls behind is re-sent at most that many, all of
+    them current or ahead; and a lifespan of ``lead_s`` + 0.1 s, so that DDS drops from the
+    writer's and the reader's queues any command whose time passed more than 0.1 s ago: a slow
+    actuator driver is never fed a backlog of old commands. Best effort would also avoid the
+    backlog but loses commands under load even when the reader keeps up.
+    """
+    return QoSProfile(reliability=ReliabilityPolicy.RELIABLE, history=HistoryPolicy.KEEP_LAST,
+                      depth=int(math.ceil(lead_s * rate_hz)) + 1,
+                      durability=DurabilityPolicy.VOLATILE,
+                      lifespan=Duration(nanoseconds=int((lead_s + COMMAND_LIFETIME_S) * 1e9)))
 
 
 class StirringInput(Node):
-    """Publishes the stirring transient, locked to the measured rotor azimuth."""
+    """Publishes bounded stirring test points, locked to the measured rotor azimuth."""
 
     def __init__(self):
         super().__init__('stirring_input')
+        self.rig = rig = declare_rig(self)
         spec = [
-            ('collective_rad', math.radians(2.0), 'collective pitch theta_0 (rad)', -0.5, 0.5),
-            ('amplitude_rad', math.radians(1.5), 'cyclic amplitude (rad)', 0.0, 0.3),
+            # test-point settings: settable at run time, used by the next test point
+            ('collective_rad', math.radians(2.0), 'collective pitch theta_0 (rad)', -0.5, 0.5,
+             False),
+            ('amplitude_rad', math.radians(1.5), 'cyclic amplitude (rad; at most '
+             'max_amplitude_rad)', 0.0, 0.3, False),
             ('omegadot', -0.1 / math.pi, 'stirring acceleration: phase = omegadot (t - t0)^2, '
              't in rad of azimuth (per rad^2); negative = progressing, positive = regressing',
-             -10.0, 10.0),
+             -10.0, 10.0, False),
             ('t0', 70.0, 'stirring start after the cyclic step (rad of azimuth; report: 70 '
-             'at mu = 0, 12 at mu = 0.4)', 0.0, 1e6),
-            ('step_after_rad', TWO_PI, 'lateral cyclic step after the first azimuth sample '
-             '(rad of azimuth)', 0.0, 1e6),
+             'at mu = 0, 12 at mu = 0.4)', 0.0, 1e6, False),
+            ('step_after_rad', TWO_PI, 'lateral cyclic step after the test point starts '
+             '(rad of azimuth)', 0.0, 1e6, False),
+            ('duration_rad', 100.0, 'longest stirring, after t0 (rad of azimuth)', 1e-3, 1e7,
+             False),
+            ('ramp_s', 0.5, 'ramp of the cyclic back to trim at the end of the stirring or on '
+             'abort (s)', 0.0, 60.0, False),
+            # safety limits and structure: read-only
+            ('max_amplitude_rad', math.radians(3.0), 'largest cyclic amplitude accepted (rad)',
+             0.0, 0.5),
+            ('max_stirring_rate_rad_s', 2.0 * math.pi * 15.0, 'the stirring ends when its rate '
+             '|d phi/dt| reaches this (rad/s; default: 15 Hz)', 1e-3, 1e5),
+            ('autostart', True, 'start the first test point with the first azimuth sample '
+             '(false: wait for ~/start)'),
             ('rate_hz', 200.0, 'pitch command rate (Hz); the plant interpolates between '
              'commands', 1.0, 10000.0),
             ('lead_s', 0.1, 'commands are published up to this far ahead of the clock, each '
              'stamped with the time it applies from (s)', 0.0, 5.0),
             ('stirring_every', 10, 'publish the StirringCommand every this many commands',
              1, 100000),
-            ('n_blades', 4, 'number of blades N', 1, 12),
-            ('joint_names', [''], 'joint name of each blade (empty: blade_1..blade_N)'),
-            ('azimuth_joint', 'rotor', 'joint name on the azimuth topic'),
-            ('azimuth_topic', '/rotor/azimuth', 'azimuth and rotor speed topic (subscribed)'),
-            ('pitch_command_topic', '/rotor/pitch_command', 'per-blade pitch command topic'),
-            ('stirring_topic', '/rotor/stirring', 'StirringCommand topic'),
             ('frame_id', 'rotor', 'header.frame_id of the published messages'),
         ]
-        self.d = {s[0]: declare(self, s[0], s[1], s[2], *s[3:]) for s in spec}
-        d = self.d
-        self.joints = list(d['joint_names'])
-        if self.joints == ['']:
-            self.joints = [f'blade_{k}' for k in range(1, d['n_blades'] + 1)]
-        if len(self.joints) != d['n_blades']:
-            raise ValueError(f'joint_names has {len(self.joints)} names for n_blades = '
-                             f'{d["n_blades"]}')
-        self.schedule = None
+        self.d = {s[0]: declare(self, s[0], s[1], s[2], *s[3:5],
+                                read_only=s[5] if len(s) > 5 else True) for s in spec}
+        reason = self._limits_reason(self.d)
+        if reason:
+            raise ValueError(reason)
+        allow_runtime_changes(self, lambda _name, _value, values: self._limits_reason(values))
+        self.joints = rig.pitch_joints
+        self.test_point = None           # StirringTestPoint of the current or last test point
+        self.start_requested = self.d['autostart']
         self.next_ns = None              # stamp of the next command on the grid
         self.azimuth = AzimuthTracker()
         self.published = 0
-        # commands are offered reliable (CONVENTIONS §4); the plant reads them best effort
-        self.pub_command = self.create_publisher(JointState, d['pitch_command_topic'],
-                                                 SENSOR_OFFER_QOS)
-        # what was commanded, for monitors and the bag (no node acts on it): latched
-        self.pub_stirring = self.create_publisher(StirringCommand, d['stirring_topic'],
+        self.skipped = 0
+        self.last_phase = None
+        self.pub_command = self.create_publisher(
+            JointState, rig.topics['pitch_command'],
+            pitch_command_qos(self.d['lead_s'], self.d['rate_hz']))
+        # what was commanded, for monitors, the identifier and the bag: latched
+        self.pub_stirring = self.create_publisher(StirringCommand, rig.topics['stirring'],
                                                   RESULT_QOS)
-        self.create_subscription(JointState, d['azimuth_topic'], self.on_azimuth, SENSOR_QOS)
         self.diagnostics = Diagnostics(self, 'stirring schedule')
-        self.create_timer(1.0 / d['rate_hz'], self.tick)
+        self.diagnostics.subscribe(JointState, rig.topics['azimuth'], self.on_azimuth,
+                                   SENSOR_QOS, 'azimuth')
+        self.create_service(Trigger, '~/start', self.on_start)
+        self.create_service(Trigger, '~/abort', self.on_abort)
+        self.create_timer(1.0 / self.d['rate_hz'], self.tick)
+
+    @staticmethod
+    def _limits_reason(values):
+        return check_excitation_limits(values['amplitude_rad'], values['max_amplitude_rad'],
+                                       values['duration_rad'],
+                                       values['max_stirring_rate_rad_s'], values['ramp_s'])
+
+    # -------------------------------------------------------------------------- services
+    def on_start(self, _request, response):
+        """Start a new test point (refused while one is running)."""
+        if self.test_point is not None and not self._done():
+            response.success = False
+            response.message = (f'test point {self.test_points} is still running '
+                                f'({self._phase_name()}); abort it first')
+        elif not self.azimuth.ready:
+            self.start_requested = True
+            response.success = True
+            response.message = 'test point starts with the first azimuth sample'
+        else:
+            self._start(self.azimuth.t_at([self.next_ns])[0], self.azimuth.omega)
+            response.success = True
+            response.message = (f'test point {self.test_points} started: cyclic step at t = '
+                                f'{self.test_point.schedule.t_step:.4g}, stirring ends by t = '
+                                f'{self.test_point.t_end:.4g}')
+        return response
+
+    def on_abort(self, _request, response):
+        """Ramp the cyclic back to trim from the first command not yet sent."""
+        if self.test_point is None or self._done():
+            response.success = False
+            response.message = 'no test point is running: nothing to abort'
+            return response
+        t = float(self.azimuth.t_at([self.next_ns])[0])
+        changed = self.test_point.abort(t)
+        response.success = True
+        response.message = (f'test point {self.test_points}: '
+                            + (f'aborted at t = {t:.4g}, cyclic back at trim by t = '
+                               f'{self.test_point.t_done:.4g}' if changed else
+                               'already ramping back to trim'))
+        self.get_logger().warning(response.message)
+        return response
+
+    # -------------------------------------------------------------------------- schedule
+    @property
+    def test_points(self):
+        """Return the number of test points started."""
+        return getattr(self, '_test_points', 0)
+
+    def _done(self):
+        t = float(self.azimuth.t_at([self.next_ns])[0])
+        return self.test_point.phase(t) == PHASE_DONE
+
+    def _phase_name(self):
+        t = float(self.azimuth.t_at([self.next_ns])[0])
+        return PHASE_NAMES[self.test_point.phase(t)]
+
+    def _start(self, t_start, omega):
+        d = self.d
+        step = t_start + d['step_after_rad']
+        schedule = StirringSchedule(d['collective_rad'], d['amplitude_rad'], d['omegadot'],
+                                    step + d['t0'], step)
+        self.test_point = StirringTestPoint(schedule, omega, d['duration_rad'],
+                                            d['max_stirring_rate_rad_s'], d['ramp_s'],
+                                            d['max_amplitude_rad'])
+        self._test_points = self.test_points + 1
+        self.start_requested = False
+        self.diagnostics.idle = False
+        self.get_logger().info(
+            f'test point {self.test_points}: cyclic step at t = {step:.4g}, stirring '
+            f'({schedule.direction}) at t = {schedule.t0:.4g}, ends by t = '
+            f'{self.test_point.t_end:.4g} ({self.test_point.end_reason}), trim again by '
+            f't = {self.test_point.t_done:.4g}')
 
     def on_azimuth(self, msg):
         """Track the unwrapped azimuth of blade 1 (nearest branch to what Ω predicts)."""
         stamp = stamp_ns(msg.header.stamp)
         try:
-            psi, omega = check_azimuth_sample(msg.name, msg.position, msg.velocity,
-                                              self.d['azimuth_joint'], stamp,
-                                              self.azimuth.series.last_stamp)
+            psi, omega = self.rig.check_azimuth(msg, self.azimuth.series.last_stamp)
         except BadSample as bad:
             self.diagnostics.count(bad.kind, str(bad))
             return
-        self.azimuth.add(stamp, psi, omega)
-        if self.schedule is None:
+        psi = self.azimuth.add(stamp, psi, omega)
+        if self.next_ns is None:
             self.next_ns = stamp
-            step = psi + self.d['step_after_rad']
-            self.schedule = StirringSchedule(self.d['collective_rad'], self.d['amplitude_rad'],
-                                             self.d['omegadot'], step + self.d['t0'], step)
-            self.get_logger().info(f'azimuth locked: cyclic step at t = {step:.4g}, stirring '
-                                   f'({self.schedule.direction}) at t = {self.schedule.t0:.4g}')
+        if self.start_requested:
+            self._start(psi, omega)
 
     def tick(self):
         """
         Publish the commands due up to ``lead_s`` ahead, on a regular grid of stamps.
 
-        The grid starts at the first azimuth stamp, so a late start or a stalled process still
-        gives the rotor every command of the schedule (in a burst).
+        The grid starts at the first azimuth stamp; commands whose time is more than one period
+        in the past (a stalled process) are skipped and counted, never sent late.
         """
-        if self.schedule is None:
+        if self.next_ns is None:
             self.diagnostics.set_value('state', 'waiting for the azimuth')
             return
-        horizon = self.get_clock().now().nanoseconds + int(self.d['lead_s'] * 1e9)
+        now = self.get_clock().now().nanoseconds
+        horizon = now + int(self.d['lead_s'] * 1e9)
         period = int(1e9 / self.d['rate_hz'])
+        if self.next_ns < now - period:
+            late = (now - self.next_ns) // period
+            self.next_ns += late * period
+            self.skipped += late
+            self.diagnostics.set_value('commands_skipped_late', self.skipped)
         for _ in range(1000):
             if self.next_ns > horizon:
                 break
@@ -118,26 +240,44 @@ class StirringInput(Node):
     def command(self, applies):
         """Publish the pitch command, and every n-th StirringCommand, for time ``applies``."""
         t = float(self.azimuth.t_at([applies])[0])
-        omega = self.azimuth.omega
-        u = self.schedule.inputs([t])
+        point = self.test_point
+        if point is None:              # waiting for ~/start: hold trim
+            u = [[self.d['collective_rad'], 0.0, 0.0]]
+            phase, phi, rate = PHASE_DONE, 0.0, 0.0
+        else:
+            u = point.inputs([t])
+            phase, phi, rate = point.phase(t), point.stirring_phase(t), point.stirring_rate(t)
         pitch = blade_pitch_from_multiblade([t], u, len(self.joints))[0]
         self.pub_command.publish(joint_state(applies, self.joints, pitch,
                                              frame_id=self.d['frame_id']))
         self.published += 1
-        if (self.published - 1) % self.d['stirring_every']:
+        changed = phase != self.last_phase
+        self.last_phase = phase
+        if changed:
+            self._phase_changed(phase, t)
+        if (self.published - 1) % self.d['stirring_every'] and not changed:
             return
         cmd = StirringCommand()
         cmd.header.stamp = time_msg(applies)
         cmd.header.frame_id = self.d['frame_id']
         cmd.collective, cmd.cyclic_forward, cmd.cyclic_left = (float(v) for v in u[0])
-        cmd.stirring_phase = float(self.schedule.phase(t))
-        cmd.stirring_rate = float(self.schedule.stirring_rate(t) * omega)
-        cmd.phase = (StirringCommand.PHASE_TRIM if t < self.schedule.t_step
-                     else StirringCommand.PHASE_CYCLIC_STEP if t <= self.schedule.t0
-                     else StirringCommand.PHASE_STIRRING)
+        cmd.stirring_phase = phi
+        cmd.stirring_rate = rate
+        cmd.phase = phase
         self.pub_stirring.publish(cmd)
-        self.diagnostics.set_value('state', ('trim', 'cyclic step', 'stirring')[cmd.phase])
         self.diagnostics.set_value('t', f'{t:.4f}')
+
+    def _phase_changed(self, phase, t):
+        self.diagnostics.set_value('state', PHASE_NAMES[phase])
+        self.diagnostics.set_value('test_point', self.test_points)
+        point = self.test_point
+        if point is None or phase != PHASE_DONE:
+            return
+        why = f'aborted ({point.aborted})' if point.aborted else point.end_reason
+        self.diagnostics.set_value('last_end', why)
+        self.diagnostics.idle = True
+        self.get_logger().info(f'test point {self.test_points} done at t = {t:.4g}: {why}; '
+                               'holding trim')
 
     def close(self):
         """Let reliable readers take what is in flight; print how many commands were sent."""

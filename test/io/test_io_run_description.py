@@ -117,8 +117,10 @@ def test_unknown_keys_warn_but_load():
     (('  advance_ratio: 0.0', '  advance_ratio: -0.4'), ['rotor.advance_ratio', 'negative'], 3),
     (('  tip_loss: 0.97', '  tip_loss: 1.5'), ['tip_loss must be in (0, 1]'], 5),
     (('  flap_frequency: 1.2\n', ''), ["missing required key 'rotor.flap_frequency'"], 1),
-    (('blade_flap: /rotor/blade_flap', 'blade_flap: rotor/flap'),
-     ['topics.blade_flap must be an absolute topic name'], 6),
+    (('blade_flap: /rotor/blade_flap', 'blade_flap: rotor//flap'),
+     ['topics.blade_flap must be a ROS topic name', 'relative'], 6),
+    (('blade_flap: /rotor/blade_flap', 'blade_flap: 2rotor'),
+     ['topics.blade_flap must be a ROS topic name'], 6),
 ])
 def test_errors_name_file_line_and_fix(edit, words, line):
     text = BASE.replace(*edit)
