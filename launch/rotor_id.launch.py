@@ -5,9 +5,11 @@ Launch the five rotor_id nodes on the simulated rotor (for a full ROS 2 Jazzy in
     ros2 launch rotor_id rotor_id.launch.py case:=multiblade      # or single_blade
     ros2 launch rotor_id rotor_id.launch.py params_file:=/path/my_stand.yaml bag:=run_42
 
-On a test stand that publishes /rotor/blade_pitch, /rotor/blade_flap and /rotor/azimuth itself,
-give ``plant:=false stirring:=false`` and a params_file whose identifier.run_description names
-your run description. The parameter files are config/nodes_<case>.yaml (installed to
+On a test stand whose sensors publish themselves, give ``plant:=false`` (and ``stirring:=false``
+if the rig has its own excitation) and a params_file whose sections all name your run
+description (``run_description``: the rig's topics, joint names, blade count and azimuth
+convention; README "On your own test stand"). Topic names are relative: pushing the nodes into
+a namespace moves the whole rig. The parameter files are config/nodes_<case>.yaml (installed to
 share/rotor_id/config); ``rotor-id demo`` runs the same nodes without ros2 launch.
 """
 

@@ -90,7 +90,7 @@ def test_abort_after_done_is_refused():
 
 @pytest.mark.parametrize('values, words', [
     ((4 * DEG, 3 * DEG, 10.0, 100.0, 0.5), ['amplitude_rad', 'max_amplitude_rad']),
-    ((1.5, 0.5, 10.0, 100.0, 0.5), ["amplitude_rad = 1.5", "degrees"]),
+    ((1.5, 0.5, 10.0, 100.0, 0.5), ['amplitude_rad = 1.5', 'degrees']),
     ((DEG, 3 * DEG, 0.0, 100.0, 0.5), ['duration_rad', 'positive']),
     ((DEG, 3 * DEG, 10.0, -1.0, 0.5), ['max_stirring_rate_rad_s', 'positive']),
     ((DEG, 3 * DEG, 10.0, 100.0, -0.1), ['ramp_s']),

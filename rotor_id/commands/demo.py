@@ -44,7 +44,7 @@ def case_files(case):
     params_file = resolve_config(f'nodes_{case}.yaml')
     params = yaml.safe_load(params_file.read_text())
     plant = params['/**/rotor_plant']['ros__parameters']
-    description = resolve_config(params['/**']['ros__parameters']['run_description'])
+    description = resolve_config(params['/**/identifier']['ros__parameters']['run_description'])
     if plant['model'] == 'multiblade_wake':
         truth = {k: plant[k] for k in ('A', 'AL_over_tau', 'inv_tau')}
     else:

@@ -64,5 +64,5 @@ def test_ctrl_c_stops_every_node(tmp_path):
     left = _processes_on_domain(domain)
     assert not left, f'node processes left running: {left}\n{report}'
     from rotor_id.io.bag import read_record
-    record = read_record(next(out.glob('bag_*')))
+    record = read_record(next(p for p in out.glob('bag_*') if p.is_dir()))
     assert len(record) > 100          # stirring starts 0.81 s (810 samples) after the first

@@ -107,9 +107,11 @@ def test_launch_file_names_existing_executables_and_parameter_files(monkeypatch)
         params = yaml.safe_load(params_file.read_text())
         for node in nodes:
             assert f'/**/{node.kwargs["name"]}' in params, (params_file, node.kwargs['name'])
-        for section in ('/**/identifier', '/**/state_estimator'):
-            run = params[section]['ros__parameters']['run_description']
-            load_run_description(params_file.parent / run)
+        # one rig description for every node, the same file
+        runs = {params[f'/**/{node.kwargs["name"]}']['ros__parameters']['run_description']
+                for node in nodes}
+        assert len(runs) == 1, runs
+        load_run_description(params_file.parent / runs.pop())
     # installed where the launch file looks: setup.py puts config/*.yaml into share/rotor_id
     setup = (REPO / 'setup.py').read_text()
     assert "'/config', sorted(glob('config/*.yaml'))" in setup

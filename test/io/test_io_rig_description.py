@@ -75,8 +75,9 @@ def test_rig_errors(edit, words):
 
 
 def test_recorded_topic_resolution():
-    available = {'/rig2/stand/shaft': 'x', '/stand/flap_angles': 'x', '/rig2/stand/flap_angles': 'x',
-                 '/a/stand/pitch_angles': 'x', '/b/stand/pitch_angles': 'x'}
+    available = {'/rig2/stand/shaft': 'x', '/stand/flap_angles': 'x',
+                 '/rig2/stand/flap_angles': 'x', '/a/stand/pitch_angles': 'x',
+                 '/b/stand/pitch_angles': 'x'}
     assert recorded_topic('stand/shaft', available) == '/rig2/stand/shaft'     # one namespace
     assert recorded_topic('stand/flap_angles', available) == '/stand/flap_angles'   # root first
     assert recorded_topic('stand/pitch_angles', available) is None             # ambiguous
@@ -85,7 +86,7 @@ def test_recorded_topic_resolution():
 
 
 def _rig_bag(path, record, namespace='/rig2'):
-    """The rig's bag of ``record``: own names, hub joint, unwrapped azimuth far from 0."""
+    """Write the rig's bag of ``record``: own names, hub joint, unwrapped azimuth far from 0."""
     stamps = STAMP0 + np.round(record.time_s * 1e9).astype(np.int64)
     unwrapped = (record.t + 2 * np.pi * 1000)[:, None]      # an encoder after 1000 turns
     pitch_joints = ['pitch_a', 'pitch_b', 'pitch_c', 'pitch_d']
@@ -125,7 +126,7 @@ def test_offline_wrong_azimuth_joint_is_one_clear_error(tmp_path):
 
 
 def test_unwrapped_read_as_wrapped_is_refused(tmp_path):
-    """An encoder's continuous azimuth declared wrapped: the live nodes reject it, so offline too."""
+    """Refuse an encoder's continuous azimuth declared wrapped, as the live nodes do."""
     bag = _rig_bag(tmp_path / 'rig', make_record(n=200))
     options = parse(RIG.replace('azimuth_convention: unwrapped',
                                 'azimuth_convention: wrapped')).record_options()
