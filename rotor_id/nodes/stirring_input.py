@@ -15,10 +15,11 @@ holds trim (collective only), so that an actuator driver never sees its command 
 Time is the report's nondimensional time: the unwrapped azimuth of blade 1 from the rig's
 azimuth topic, extrapolated with Ω to each command's stamp: the time the command applies from,
 on a regular grid that runs ``lead_s`` ahead of the clock (the plant interpolates between
-commands). Commands whose time has already passed (the node was stalled) are skipped, never
-sent late. The rig (topics, joint names, blade count, azimuth convention) is the run
-description's (parameter ``run_description``). Publishes JointState (the blade_pitch joints,
-rad) on ``pitch_command`` and rotor_id_msgs/StirringCommand on ``stirring``.
+commands). Commands whose time passed more than ``max_command_age_s`` ago (the node was
+stalled) are skipped, never sent late. The rig (topics, joint names, blade count, azimuth
+convention) is the run description's (parameter ``run_description``). Publishes JointState
+(the blade_pitch joints, rad) on ``pitch_command`` and rotor_id_msgs/StirringCommand on
+``stirring``.
 """
 
 import math
@@ -80,21 +81,23 @@ class StirringInput(Node):
              'at mu = 0, 12 at mu = 0.4)', 0.0, 1e6, False),
             ('step_after_rad', TWO_PI, 'lateral cyclic step after the test point starts '
              '(rad of azimuth)', 0.0, 1e6, False),
-            ('duration_rad', 100.0, 'longest stirring, after t0 (rad of azimuth)', 1e-3, 1e7,
-             False),
+            ('duration_rad', 30.0, "longest stirring, after t0 (rad of azimuth; the report's "
+             'windows need 12)', 1e-3, 1e7, False),
             ('ramp_s', 0.5, 'ramp of the cyclic back to trim at the end of the stirring or on '
              'abort (s)', 0.0, 60.0, False),
             # safety limits and structure: read-only
             ('max_amplitude_rad', math.radians(3.0), 'largest cyclic amplitude accepted (rad)',
              0.0, 0.5),
-            ('max_stirring_rate_rad_s', 2.0 * math.pi * 15.0, 'the stirring ends when its rate '
-             '|d phi/dt| reaches this (rad/s; default: 15 Hz)', 1e-3, 1e5),
+            ('max_stirring_rate_rad_s', 2.0 * math.pi * 30.0, 'the stirring ends when its rate '
+             '|d phi/dt| reaches this (rad/s; default: 30 Hz, 2/rev at 900 rpm)', 1e-3, 1e5),
             ('autostart', True, 'start the first test point with the first azimuth sample '
              '(false: wait for ~/start)'),
             ('rate_hz', 200.0, 'pitch command rate (Hz); the plant interpolates between '
              'commands', 1.0, 10000.0),
             ('lead_s', 0.1, 'commands are published up to this far ahead of the clock, each '
              'stamped with the time it applies from (s)', 0.0, 5.0),
+            ('max_command_age_s', COMMAND_LIFETIME_S, 'commands that would apply more than this '
+             'long ago (the node was stalled) are skipped, never sent late (s)', 0.0, 1.0),
             ('stirring_every', 10, 'publish the StirringCommand every this many commands',
              1, 100000),
             ('frame_id', 'rotor', 'header.frame_id of the published messages'),
@@ -139,16 +142,12 @@ class StirringInput(Node):
             response.success = False
             response.message = (f'test point {self.test_points} is still running '
                                 f'({self._phase_name()}); abort it first')
-        elif not self.azimuth.ready:
+        else:
             self.start_requested = True
             response.success = True
-            response.message = 'test point starts with the first azimuth sample'
-        else:
-            self._start(self.azimuth.t_at([self.next_ns])[0], self.azimuth.omega)
-            response.success = True
-            response.message = (f'test point {self.test_points} started: cyclic step at t = '
-                                f'{self.test_point.schedule.t_step:.4g}, stirring ends by t = '
-                                f'{self.test_point.t_end:.4g}')
+            response.message = (f'test point {self.test_points + 1} starts with the next pitch '
+                                'command' + ('' if self.azimuth.ready else
+                                             ' (once the azimuth arrives)'))
         return response
 
     def on_abort(self, _request, response):
@@ -206,18 +205,18 @@ class StirringInput(Node):
         except BadSample as bad:
             self.diagnostics.count(bad.kind, str(bad))
             return
-        psi = self.azimuth.add(stamp, psi, omega)
+        self.azimuth.add(stamp, psi, omega)
         if self.next_ns is None:
             self.next_ns = stamp
-        if self.start_requested:
-            self._start(psi, omega)
 
     def tick(self):
         """
         Publish the commands due up to ``lead_s`` ahead, on a regular grid of stamps.
 
-        The grid starts at the first azimuth stamp; commands whose time is more than one period
-        in the past (a stalled process) are skipped and counted, never sent late.
+        The grid starts at the first azimuth stamp; commands whose time is more than
+        ``max_command_age_s`` in the past (a stalled process) are skipped and counted, never sent
+        late. A test point starts with the first command sent after it was asked for, so its
+        first StirringCommand (PHASE_TRIM) is stamped with the schedule's start.
         """
         if self.next_ns is None:
             self.diagnostics.set_value('state', 'waiting for the azimuth')
@@ -225,11 +224,14 @@ class StirringInput(Node):
         now = self.get_clock().now().nanoseconds
         horizon = now + int(self.d['lead_s'] * 1e9)
         period = int(1e9 / self.d['rate_hz'])
-        if self.next_ns < now - period:
-            late = (now - self.next_ns) // period
+        oldest = now - int(self.d['max_command_age_s'] * 1e9)
+        if self.next_ns < oldest:
+            late = (oldest - self.next_ns) // period + 1
             self.next_ns += late * period
             self.skipped += late
             self.diagnostics.set_value('commands_skipped_late', self.skipped)
+        if self.start_requested:
+            self._start(float(self.azimuth.t_at([self.next_ns])[0]), self.azimuth.omega)
         for _ in range(1000):
             if self.next_ns > horizon:
                 break
