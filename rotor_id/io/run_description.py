@@ -394,7 +394,7 @@ class _Parser:
         if key not in mapping:
             name = '.'.join(str(p) for p in path + (key,))
             self.fail(f'missing required key {name!r}; see the run-description schema in '
-                      'recordings/README.md', *path)
+                      'docs/run_description.md', *path)
         return mapping[key]
 
     def number(self, value, *path, minimum=None, positive=False, integer=False):

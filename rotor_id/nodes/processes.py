@@ -102,9 +102,16 @@ class NodeProcesses:
         self.procs = {}
         self.logs = {}
 
-    def start(self, name, params_file=None, params=None, node=None):
-        """Start executable ``name`` with a parameter file and ``-p`` overrides."""
+    def start(self, name, params_file=None, params=None, node=None, namespace=None):
+        """
+        Start executable ``node`` (default ``name``) with a parameter file and ``-p`` overrides.
+
+        ``namespace`` (e.g. '/rig2') is given as ``-r __ns:=``: with the rig's relative topic
+        names it moves the whole rig.
+        """
         cmd = self.prefix + [str(executable(node or name)), '--ros-args']
+        if namespace:
+            cmd += ['-r', f'__ns:={namespace}']
         if params_file:
             cmd += ['--params-file', str(params_file)]
         for key, value in (params or {}).items():

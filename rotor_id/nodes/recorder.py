@@ -94,8 +94,8 @@ def typestore_with_custom_types(msg_dirs=()):
 class Recorder(Node):
     """Raw subscriptions to the run's topics, written to a bag as they arrive."""
 
-    def __init__(self):
-        super().__init__('recorder')
+    def __init__(self, **node_options):
+        super().__init__('recorder', **node_options)
         spec = [
             ('run_description', '', RUN_DESCRIPTION_HELP + ' (empty: record every topic)'),
             ('output', '', 'bag directory to create (empty: rotor_id_<date>-<time> here)'),

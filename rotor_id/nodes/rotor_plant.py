@@ -27,8 +27,8 @@ TWO_PI = 2.0 * math.pi
 class RotorPlant(Node):
     """Simulated rotor: pitch commands in, measured pitch, flap and azimuth out."""
 
-    def __init__(self):
-        super().__init__('rotor_plant')
+    def __init__(self, **node_options):
+        super().__init__('rotor_plant', **node_options)
         self.rig = rig = declare_rig(self)
         d = self._declare_all()
         spec = rig.description.rotor

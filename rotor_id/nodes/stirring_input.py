@@ -65,8 +65,8 @@ def pitch_command_qos(lead_s, rate_hz):
 class StirringInput(Node):
     """Publishes bounded stirring test points, locked to the measured rotor azimuth."""
 
-    def __init__(self):
-        super().__init__('stirring_input')
+    def __init__(self, **node_options):
+        super().__init__('stirring_input', **node_options)
         self.rig = rig = declare_rig(self)
         spec = [
             # test-point settings: settable at run time, used by the next test point
@@ -138,7 +138,10 @@ class StirringInput(Node):
     # -------------------------------------------------------------------------- services
     def on_start(self, _request, response):
         """Start a new test point (refused while one is running)."""
-        if self.test_point is not None and not self._done():
+        if self.start_requested:
+            response.success = False
+            response.message = f'test point {self.test_points + 1} is about to start'
+        elif self.test_point is not None and not self._done():
             response.success = False
             response.message = (f'test point {self.test_points} is still running '
                                 f'({self._phase_name()}); abort it first')

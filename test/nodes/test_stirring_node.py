@@ -1,0 +1,196 @@
+"""
+The stirring_input node itself, in this process, on a rig unlike the built-in plant.
+
+What it proves, on a rig with its own topic and joint names, hub joint ``hub`` and an unwrapped
+azimuth, fed through DDS by a test publisher at the clock's pace: a test point runs trim, cyclic
+step, stirring, then ends by itself (its duration) with a ramp back to trim and PHASE_DONE, and
+holds trim after; ``~/start`` runs a second one and ``~/abort`` ends it the same way, the answer
+naming the test point; after either the pitch commands are collective only. Settings are
+checked at run time (an amplitude above the limit is refused with the reason, a read-only
+limit cannot be changed), and the pitch commands are offered keep-last with a small depth and
+a lifespan: no stale backlog.
+"""
+
+import math
+import os
+
+import numpy as np
+import pytest
+
+rclpy = pytest.importorskip('rclpy', reason='rclpy not importable')
+msgs = pytest.importorskip('rotor_id_msgs.msg', reason='rotor_id_msgs not built')
+
+OMEGA = 2 * math.pi * 15
+COLLECTIVE = math.radians(2.0)
+RIG = """\
+rotor: {blades: 4, advance_ratio: 0.0, flap_frequency: 1.2, tip_loss: 0.97}
+topics: {blade_pitch: stand/pitch, blade_flap: stand/flap, azimuth: stand/shaft,
+         pitch_command: stand/pitch_setpoint, stirring: stand/excitation}
+joint_names: {azimuth: hub, blade_pitch: [p1, p2, p3, p4], blade_flap: [f1, f2, f3, f4]}
+azimuth_convention: unwrapped
+model: multiblade_wake
+unknowns: [A, AL_over_tau, inv_tau]
+window_s: [0.8, 0.9]
+"""
+
+
+@pytest.fixture(scope='module')
+def run(tmp_path_factory):
+    """Two test points (one ends by itself, one is aborted); return what the node did."""
+    from rclpy.executors import SingleThreadedExecutor
+    from rclpy.parameter import Parameter
+    from rclpy.signals import SignalHandlerOptions
+    from rcl_interfaces.srv import SetParameters
+    from rotor_id.nodes.common import joint_state, RESULT_QOS, SENSOR_OFFER_QOS, SENSOR_QOS
+    from rotor_id.nodes.stirring_input import StirringInput
+    from rotor_id_msgs.msg import StirringCommand
+    from sensor_msgs.msg import JointState
+    from std_srvs.srv import Trigger
+
+    description = tmp_path_factory.mktemp('rig') / 'rig.yaml'
+    description.write_text(RIG)
+    domain = 201 + (os.getpid() + 15) % 30      # away from the identifier node test's
+    os.environ['ROS_AUTOMATIC_DISCOVERY_RANGE'] = 'LOCALHOST'
+    context = rclpy.context.Context()
+    rclpy.init(context=context, domain_id=domain, signal_handler_options=SignalHandlerOptions.NO)
+    params = [Parameter('run_description', value=str(description)),
+              Parameter('t0', value=10.0), Parameter('step_after_rad', value=2.0),
+              Parameter('duration_rad', value=8.0), Parameter('ramp_s', value=0.05),
+              Parameter('omegadot', value=-1.0),
+              Parameter('max_stirring_rate_rad_s', value=1e4)]
+    node = StirringInput(parameter_overrides=params, context=context, namespace='/rig7')
+    test = rclpy.create_node('test_stirring_node', context=context)
+    executor = SingleThreadedExecutor(context=context)
+    executor.add_node(node)
+    executor.add_node(test)
+    shaft = test.create_publisher(JointState, '/rig7/stand/shaft', SENSOR_OFFER_QOS)
+    phases, commands = [], []
+    test.create_subscription(StirringCommand, '/rig7/stand/excitation',
+                             lambda m: phases.append((m.phase, m.header.stamp)), RESULT_QOS)
+    test.create_subscription(JointState, '/rig7/stand/pitch_setpoint', commands.append,
+                             SENSOR_QOS)
+    clients = {name: test.create_client(Trigger, f'/rig7/stirring_input/{name}')
+               for name in ('start', 'abort')}
+    set_params = test.create_client(SetParameters, '/rig7/stirring_input/set_parameters')
+    start_ns = test.get_clock().now().nanoseconds
+    turns = 1000 * 2 * math.pi                           # an encoder that has run for a while
+
+    def publish_shaft():
+        now = test.get_clock().now().nanoseconds
+        psi = turns + OMEGA * (now - start_ns) / 1e9
+        shaft.publish(joint_state(now, ['hub'], [psi], [OMEGA]))
+    test.create_timer(0.002, publish_shaft)
+
+    def spin(seconds, until=None):
+        end = test.get_clock().now().nanoseconds + seconds * 1e9
+        while test.get_clock().now().nanoseconds < end:
+            executor.spin_once(timeout_sec=0.01)
+            if until is not None and until():
+                return True
+        return False
+
+    def call(client, request):
+        assert client.wait_for_service(timeout_sec=10.0)
+        future = client.call_async(request)
+        executor.spin_until_future_complete(future, timeout_sec=10.0)
+        return future.result()
+
+    def done_count():
+        return sum(1 for p, _ in phases if p == StirringCommand.PHASE_DONE)
+
+    out = {'phases': phases, 'commands': commands, 'answers': {}}
+    try:
+        # test point 1: t0 + duration = 2 + 10 + 8 = 20 rad after the start: 0.21 s, ramp 0.05 s
+        out['first_done'] = spin(10.0, lambda: done_count() > 0)
+        spin(0.2)
+        out['n_first'] = len(phases)
+        out['commands_first'] = len(commands)
+        # run-time settings: refused with a reason, or accepted for the next test point
+        out['too_big'] = call(set_params, SetParameters.Request(parameters=[
+            Parameter('amplitude_rad', value=0.2).to_parameter_msg()])).results[0]
+        out['read_only'] = call(set_params, SetParameters.Request(parameters=[
+            Parameter('max_amplitude_rad', value=0.5).to_parameter_msg()])).results[0]
+        out['accepted'] = call(set_params, SetParameters.Request(parameters=[
+            Parameter('duration_rad', value=500.0).to_parameter_msg()])).results[0]
+        out['answers']['abort_idle'] = call(clients['abort'], Trigger.Request())
+        out['answers']['start'] = call(clients['start'], Trigger.Request())
+        out['answers']['start_again'] = call(clients['start'], Trigger.Request())
+        spin(10.0, lambda: any(p == StirringCommand.PHASE_STIRRING
+                               for p, _ in phases[out['n_first']:]))
+        spin(0.1)
+        out['answers']['abort'] = call(clients['abort'], Trigger.Request())
+        out['second_done'] = spin(10.0, lambda: done_count() > 1)
+        spin(0.2)
+        out['offers'] = test.get_publishers_info_by_topic('/rig7/stand/pitch_setpoint')
+        out['qos'] = node.pub_command.qos_profile
+    finally:
+        executor.shutdown()
+        node.destroy_node()
+        test.destroy_node()
+        rclpy.try_shutdown(context=context)
+    return out
+
+
+def _sequence(phases):
+    seq = []
+    for phase, _ in phases:
+        if not seq or seq[-1] != phase:
+            seq.append(phase)
+    return seq
+
+
+def test_a_test_point_ends_by_itself_and_holds_trim(run):
+    from rotor_id_msgs.msg import StirringCommand as S
+    assert run['first_done']
+    first = run['phases'][:run['n_first']]
+    assert _sequence(first) == [S.PHASE_TRIM, S.PHASE_CYCLIC_STEP, S.PHASE_STIRRING,
+                                S.PHASE_RAMP_DOWN, S.PHASE_DONE]
+    stamp = {p: s.sec + s.nanosec * 1e-9 for p, s in reversed(first)}   # first stamp of each
+    # the schedule in azimuth: step 2 rad after the start, stirring 10 later, 8 of stirring,
+    # then a 0.05 s ramp (the first StirringCommand of a phase is sent at its first command,
+    # 5 ms grid)
+    grid = 1 / 200
+    assert stamp[S.PHASE_CYCLIC_STEP] - stamp[S.PHASE_TRIM] == pytest.approx(2 / OMEGA, abs=grid)
+    assert stamp[S.PHASE_RAMP_DOWN] - stamp[S.PHASE_TRIM] == pytest.approx(20 / OMEGA, abs=grid)
+    assert stamp[S.PHASE_DONE] - stamp[S.PHASE_RAMP_DOWN] == pytest.approx(0.05, abs=grid)
+    # after the end: collective only on every blade, on the rig's joints
+    after = run['commands'][:run['commands_first']][-10:]
+    assert all(list(c.name) == ['p1', 'p2', 'p3', 'p4'] for c in after)
+    np.testing.assert_allclose([c.position for c in after], COLLECTIVE, atol=1e-12)
+
+
+def test_abort_ramps_back_to_trim_and_names_the_test_point(run):
+    from rotor_id_msgs.msg import StirringCommand as S
+    answers = run['answers']
+    assert not answers['abort_idle'].success and 'nothing to abort' in answers['abort_idle'].message
+    assert answers['start'].success and 'test point 2' in answers['start'].message
+    assert not answers['start_again'].success and 'test point 2 is' in \
+        answers['start_again'].message
+    assert answers['abort'].success and answers['abort'].message.startswith('test point 2: ')
+    assert 'aborted' in answers['abort'].message
+    assert run['second_done']
+    second = run['phases'][run['n_first']:]
+    # duration_rad 500 would have stirred for 5 s: the abort ended it, through the ramp
+    assert _sequence(second) == [S.PHASE_TRIM, S.PHASE_CYCLIC_STEP, S.PHASE_STIRRING,
+                                 S.PHASE_RAMP_DOWN, S.PHASE_DONE]
+    stamp = {p: s.sec + s.nanosec * 1e-9 for p, s in reversed(second)}
+    assert stamp[S.PHASE_DONE] - stamp[S.PHASE_RAMP_DOWN] == pytest.approx(0.05, abs=1 / 200)
+    assert stamp[S.PHASE_RAMP_DOWN] - stamp[S.PHASE_STIRRING] < 1.0
+    last = run['commands'][-10:]
+    np.testing.assert_allclose([c.position for c in last], COLLECTIVE, atol=1e-12)
+
+
+def test_settings_are_checked_at_run_time(run):
+    assert not run['too_big'].successful
+    assert 'amplitude_rad' in run['too_big'].reason and 'max_amplitude_rad' in \
+        run['too_big'].reason
+    assert not run['read_only'].successful and 'read-only' in run['read_only'].reason
+    assert run['accepted'].successful
+
+
+def test_pitch_commands_cannot_queue_a_stale_backlog(run):
+    from rclpy.qos import HistoryPolicy
+    qos = run['qos']
+    assert qos.history == HistoryPolicy.KEEP_LAST and qos.depth <= 21       # 0.1 s at 200 Hz
+    (offer,) = run['offers']                                 # what readers see, through DDS
+    assert 0 < offer.qos_profile.lifespan.nanoseconds <= 0.2e9             # lead_s + 0.1 s
