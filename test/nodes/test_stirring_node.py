@@ -162,7 +162,8 @@ def test_a_test_point_ends_by_itself_and_holds_trim(run):
 def test_abort_ramps_back_to_trim_and_names_the_test_point(run):
     from rotor_id_msgs.msg import StirringCommand as S
     answers = run['answers']
-    assert not answers['abort_idle'].success and 'nothing to abort' in answers['abort_idle'].message
+    idle = answers['abort_idle']
+    assert not idle.success and 'nothing to abort' in idle.message
     assert answers['start'].success and 'test point 2' in answers['start'].message
     assert not answers['start_again'].success and 'test point 2 is' in \
         answers['start_again'].message
