@@ -1062,7 +1062,8 @@ def read_run(description, bag_path=None):
 
     """
     bag_path = description.bag_path() if bag_path is None else bag_path
-    record = read_record(bag_path, **description.record_options())
+    record = read_record(bag_path, n_blades=description.rotor.blades,
+                         **description.record_options())
     validate_window(description, record)
     return record
 

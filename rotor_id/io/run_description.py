@@ -220,9 +220,14 @@ class RunDescription:
         return MODEL_PARAMETERS[self.model]
 
     def record_options(self):
-        """Keyword arguments of :func:`rotor_id.io.bag.read_record` for this rig."""
+        """
+        Keyword arguments of :func:`rotor_id.io.bag.read_record` for this rig.
+
+        The blade count is not among them: :func:`check_against_record` compares it with the
+        bag's joints afterwards, naming the line of ``rotor.blades``.
+        """
         return {'topics': dict(self.topics), 'joint_names': self.joint_names,
-                'n_blades': self.rotor.blades, 'run': self.run, 'window_s': self.window_s,
+                'run': self.run, 'window_s': self.window_s,
                 'azimuth_joint': self.azimuth_joint,
                 'azimuth_convention': self.azimuth_convention}
 
