@@ -171,14 +171,15 @@ def declare_rig(node):
 
 
 # ------------------------------------------------------------------------------ parameters
-def allow_runtime_changes(node, check=None):
+def allow_runtime_changes(node, check=None, apply=None):
     """
     Let ``ros2 param set`` change the node's parameters declared with ``read_only=False``.
 
     rclpy itself rejects read-only (structural) parameters, values of another type and values
     outside a descriptor's range, each with a reason. ``check(name, value, values)`` may
     reject more (return the reason, or None): ``values`` is the node's ``d`` with the proposed
-    changes applied, for checks across parameters. Accepted values go into ``node.d``.
+    changes applied, for checks across parameters. Accepted values go into ``node.d``, then
+    ``apply(names)`` runs with the names changed.
     """
     def on_set(parameters):
         proposed = dict(node.d)
@@ -188,7 +189,10 @@ def allow_runtime_changes(node, check=None):
             if reason:
                 return SetParametersResult(successful=False,
                                            reason=f'{parameter.name}: {reason}')
-        node.d.update({p.name: p.value for p in parameters if p.name in node.d})
+        changed = {p.name: p.value for p in parameters if p.name in node.d}
+        node.d.update(changed)
+        if apply is not None and changed:
+            apply(set(changed))
         return SetParametersResult(successful=True)
     node.add_on_set_parameters_callback(on_set)
 

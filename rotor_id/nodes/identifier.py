@@ -44,7 +44,8 @@ from rclpy.node import Node
 from rclpy.qos import QoSProfile, ReliabilityPolicy
 from rclpy.task import Future
 from rotor_id.estimation.output_error import STOP
-from rotor_id.nodes.common import (declare, Diagnostics, estimate_message, node_run_description,
+from rotor_id.nodes.common import (allow_runtime_changes, declare, Diagnostics,
+                                   estimate_message, node_run_description,
                                    NS, progress_message, RESULT_QOS, Rig, SENSOR_BUFFER_QOS,
                                    spin_node, stamp_ns, STATE_QOS, time_msg, wait_for_acks)
 from rotor_id.nodes.fit_process import (Abandoned, fit_window, FitOptions, FitProcess,
@@ -116,17 +117,21 @@ class Identifier(Node):
              1, 1000000),
             ('frame_id', 'rotor', 'header.frame_id of the published messages'),
         ]
-        self.d = {s[0]: declare(self, s[0], s[1], s[2], *s[3:]) for s in spec}
+        # settable at run time (checked; used by the next fit): targets and fit tolerances
+        tunable = ('target_std', 'max_iter', 'step_tol', 'max_iter_provisional')
+        self.d = {s[0]: declare(self, s[0], s[1], s[2], *s[3:], read_only=s[0] not in tunable)
+                  for s in spec}
         self.rig = Rig(node_run_description(self.d['run_description']))
         self.description = desc = self.rig.description
         self.unknowns = list(desc.unknowns)
-        targets = list(self.d['target_std'])
-        if targets == [0.0]:
-            targets = [0.0] * len(self.unknowns)
-        if len(targets) != len(self.unknowns):
-            raise ValueError(f'target_std has {len(targets)} values for the unknowns '
-                             f'{self.unknowns}; give one per unknown (0 = no target)')
-        self.targets = np.array(targets, dtype=float)
+        reason = self._targets_reason(self.d['target_std'])
+        if reason:
+            raise ValueError(reason)
+        self._set_targets()
+        allow_runtime_changes(
+            self, lambda name, value, _values: (self._targets_reason(value)
+                                                if name == 'target_std' else None),
+            lambda names: self._set_targets() if 'target_std' in names else None)
         n = desc.rotor.blades
         self.flap_joints, self.pitch_joints = self.rig.flap_joints, self.rig.pitch_joints
         self.points = TestPointSequence(
@@ -203,6 +208,20 @@ class Identifier(Node):
                 f"sensor_reliability '{self.d['sensor_reliability']}' no sample of it arrives; "
                 'set sensor_reliability: best_effort for a best-effort publisher')
         return callback
+
+    def _targets_reason(self, targets):
+        targets = list(targets)
+        if targets != [0.0] and len(targets) != len(self.unknowns):
+            return (f'target_std has {len(targets)} values for the unknowns {self.unknowns}; '
+                    'give one per unknown (0 = no target)')
+        if not all(math.isfinite(v) and v >= 0 for v in targets):
+            return f'target_std {targets}: every target must be a finite sigma >= 0'
+        return None
+
+    def _set_targets(self):
+        targets = list(self.d['target_std'])
+        self.targets = np.array([0.0] * len(self.unknowns) if targets == [0.0] else targets,
+                                dtype=float)
 
     # -------------------------------------------------------------------------- buffering
     def _accept(self, msg, joints, last_stamp):

@@ -102,12 +102,14 @@ class NodeProcesses:
         self.procs = {}
         self.logs = {}
 
-    def start(self, name, params_file=None, params=None, node=None, namespace=None):
+    def start(self, name, params_file=None, params=None, node=None, namespace=None,
+              ros_args=(), cwd=None):
         """
         Start executable ``node`` (default ``name``) with a parameter file and ``-p`` overrides.
 
         ``namespace`` (e.g. '/rig2') is given as ``-r __ns:=``: with the rig's relative topic
-        names it moves the whole rig.
+        names it moves the whole rig. ``ros_args`` are appended as given (a command line's
+        ``--ros-args`` part); ``cwd`` is the working directory (relative paths in parameters).
         """
         cmd = self.prefix + [str(executable(node or name)), '--ros-args']
         if namespace:
@@ -116,9 +118,10 @@ class NodeProcesses:
             cmd += ['--params-file', str(params_file)]
         for key, value in (params or {}).items():
             cmd += ['-p', f'{key}:={ros_argument(value)}']
+        cmd += list(ros_args)
         log = open(self.log_dir / f'{name}.log', 'w')
         self.logs[name] = log
-        self.procs[name] = subprocess.Popen(cmd, env=self.env, stdout=log,
+        self.procs[name] = subprocess.Popen(cmd, env=self.env, stdout=log, cwd=cwd,
                                             stderr=subprocess.STDOUT, start_new_session=True)
         return self.procs[name]
 

@@ -459,8 +459,10 @@ class TestPointSequence:
             point = self.current
             if point is None:
                 return ended
-            end = (None if point.stamp0_ns is None
-                   else point.stamp0_ns + int(self.window_s[1] * NS))
+            # not started yet (its first flap sample still queued on a busy machine): it starts
+            # at or after the stamp it was armed from, so its window ends no earlier than this
+            start = point.stamp0_ns if point.stamp0_ns is not None else point.armed_from_ns
+            end = None if start is None else start + int(self.window_s[1] * NS)
             if end is None or stamp_ns < end:
                 ended.append(self.abort(Reason.EXCITATION_ENDED,
                                         "the excitation ended before the window's end"))

@@ -1,0 +1,152 @@
+"""
+Follow README "On your own test stand" as a rig engineer would: its file, its commands, its calls.
+
+The run description is the README's YAML block, written to ``my_stand.yaml`` in a fresh working
+directory; the nodes are started with the README's ``ros2 run`` lines, exactly (the executables
+``ros2 run`` would find, the same arguments, that directory as working directory); the test
+point is started with the README's ``ros2 service call`` and the settings changed with its
+``ros2 param set`` lines (through the same services the ros2 CLI calls). What the README
+promises is then checked: a converged estimate on the topic it names, within 3σ of the
+simulated rotor's truth, on a stand whose names and azimuth convention are not the built-in
+plant's; the health statuses named and identified as it says; the bag and its description
+beside it.
+"""
+
+import re
+import shlex
+
+from live_helpers import domain_id, REPO_ROOT, require_workspace, RosSession, within_sigma
+import pytest
+
+TRUTH = {'A': 0.5, 'AL_over_tau': 0.25, 'inv_tau': 0.125}    # rotor_plant's defaults
+
+
+def readme_section():
+    """Return the text of README "On your own test stand"."""
+    text = (REPO_ROOT / 'README.md').read_text(encoding='utf-8')
+    start = text.index('### On your own test stand')
+    return text[start:text.index('\n### ', start + 10)]
+
+
+def blocks(section):
+    """Return {label: code} of the blocks the README marks ``<!-- stand: label -->``."""
+    return dict(re.findall(r'<!-- stand: (\S+) -->\n```\w*\n(.*?)```', section, re.S))
+
+
+def _parameter_value(text):
+    import yaml
+    return yaml.safe_load(text)
+
+
+@pytest.fixture(scope='module')
+def stand(tmp_path_factory):
+    """Do what the README says; return what came back."""
+    require_workspace()
+    from rcl_interfaces.srv import SetParameters
+    from rclpy.parameter import Parameter
+    from rotor_id.nodes.common import DIAGNOSTICS_QOS, RESULT_QOS
+    from rotor_id.nodes.processes import isolated_env, NodeProcesses
+    from rotor_id_msgs.msg import ParameterEstimate
+    from diagnostic_msgs.msg import DiagnosticArray
+    from std_srvs.srv import Trigger
+
+    section = readme_section()
+    code = blocks(section)
+    work = tmp_path_factory.mktemp('stand')
+    (work / 'my_stand.yaml').write_text(code['my_stand.yaml'])
+    domain = domain_id()
+    session = RosSession(domain)
+    node = session.node
+    env = isolated_env(domain, work / 'ros_log')
+    procs = NodeProcesses(env, work / 'logs')
+    out = {'work': work, 'section': section, 'estimates': [], 'diagnostics': []}
+    topic = re.search(r'`(/stand1/rotor_id/estimate)`', section).group(1)
+    node.create_subscription(ParameterEstimate, topic, out['estimates'].append, RESULT_QOS)
+    node.create_subscription(DiagnosticArray, '/diagnostics',
+                             lambda m: out['diagnostics'].extend(m.status), DIAGNOSTICS_QOS)
+
+    def spin_until(condition, timeout):
+        import time
+        import rclpy
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline:
+            rclpy.spin_once(node, timeout_sec=0.05)
+            if condition():
+                return True
+            if procs.dead():
+                return False
+        return False
+
+    def call(service, srv_type, request):
+        client = node.create_client(srv_type, service)
+        assert client.wait_for_service(timeout_sec=30.0), f'no service {service}'
+        future = client.call_async(request)
+        spin_until(future.done, 30.0)
+        return future.result()
+
+    try:
+        for line in code['commands'].splitlines():
+            words = shlex.split(line)
+            assert words[:3] == ['ros2', 'run', 'rotor_id'] and words[4] == '--ros-args', line
+            procs.start(words[3], ros_args=words[5:], cwd=work)
+        # every node up: the five statuses on /diagnostics
+        names = ('identifier', 'state_estimator', 'recorder', 'stirring_input', 'rotor_plant')
+        assert spin_until(lambda: all(any(s.name.startswith(f'stand1/{n}:')
+                                          for s in out['diagnostics']) for n in names), 60.0), \
+            {n: procs.log(n)[-1500:] for n in names}
+        # step 3: the test point
+        (start,) = blocks(section)['start'].split('\n')[:1]
+        words = shlex.split(start)
+        assert words[:3] == ['ros2', 'service', 'call'] and words[4] == 'std_srvs/srv/Trigger'
+        out['start'] = call(words[3], Trigger, Trigger.Request())
+        out['final'] = spin_until(
+            lambda: any(e.kind == ParameterEstimate.KIND_FINAL for e in out['estimates']), 120.0)
+        out['logs'] = {n: procs.log(n) for n in names}
+        # "changing settings while running": the README's own examples
+        out['param_sets'] = []
+        for target, name, value in re.findall(r'ros2 param set (\S+) (\w+) "?([^`"]+)"?`',
+                                              section):
+            parameter = Parameter(name, value=_parameter_value(value))
+            result = call(f'{target}/set_parameters', SetParameters,
+                          SetParameters.Request(parameters=[parameter.to_parameter_msg()]))
+            out['param_sets'].append((target, name, result.results[0]))
+        too_big = Parameter('amplitude_rad', value=0.2)
+        out['too_big'] = call('/stand1/stirring_input/set_parameters', SetParameters,
+                              SetParameters.Request(parameters=[too_big.to_parameter_msg()])
+                              ).results[0]
+    finally:
+        out['codes'] = procs.stop_all()
+        session.close()
+    return out
+
+
+def test_the_test_point_is_identified_on_an_unlike_stand(stand):
+    from rotor_id_msgs.msg import ParameterEstimate
+    assert stand['start'].success and 'test point 1' in stand['start'].message
+    assert stand['final'], stand.get('logs', {}).get('identifier', '')[-3000:]
+    final = next(e for e in stand['estimates'] if e.kind == ParameterEstimate.KIND_FINAL)
+    assert final.status == ParameterEstimate.STATUS_CONVERGED, final.message
+    assert final.test_point == 1
+    ok, text = within_sigma(final.values, final.std, TRUTH, final.names)
+    assert ok, text
+
+
+def test_health_is_reported_as_the_readme_says(stand):
+    reported = {s.name.split(':')[0]: s.hardware_id for s in stand['diagnostics']}
+    for name in ('identifier', 'state_estimator', 'recorder', 'stirring_input', 'rotor_plant'):
+        assert reported.get(f'stand1/{name}') == f'/stand1/{name}', reported
+
+
+def test_settings_change_at_run_time_as_the_readme_says(stand):
+    assert len(stand['param_sets']) >= 2, stand['section']
+    for target, name, result in stand['param_sets']:
+        assert result.successful, (target, name, result.reason)
+    assert not stand['too_big'].successful and 'max_amplitude_rad' in stand['too_big'].reason
+
+
+def test_the_bag_and_its_description_are_written(stand):
+    assert set(stand['codes'].values()) == {0}, stand['codes']
+    bag = stand['work'] / 'run_001'
+    assert (bag / 'metadata.yaml').is_file()
+    assert (stand['work'] / 'run_001.yaml').read_text() == \
+        (stand['work'] / 'my_stand.yaml').read_text()
