@@ -322,7 +322,6 @@ class RotorModel(LinearModel):
             params += list(CYCLIC_INFLOW)
         if self.inflow == 'three_state':
             params += list(UNIFORM_INFLOW)
-        self._requested_collective = collective
         self.collective = None
         if collective is not None:
             if collective == 'delta' and self.damping_parameter:
