@@ -8,8 +8,9 @@ point is started with the README's ``ros2 service call`` and the settings change
 ``ros2 param set`` lines (through the same services the ros2 CLI calls). What the README
 promises is then checked: a converged estimate on the topic it names, within 3σ of the
 simulated rotor's truth, on a stand whose names and azimuth convention are not the built-in
-plant's; the health statuses named and identified as it says; the bag and its description
-beside it.
+plant's, while a second stand runs the same lines in /stand2 with another rotor (two rigs on
+one graph, each identifying its own); the health statuses named and identified as it says; the
+bag and its description beside it.
 """
 
 import re
@@ -19,6 +20,7 @@ from live_helpers import domain_id, REPO_ROOT, require_workspace, RosSession, wi
 import pytest
 
 TRUTH = {'A': 0.5, 'AL_over_tau': 0.25, 'inv_tau': 0.125}    # rotor_plant's defaults
+TRUTH2 = {'A': 0.6, 'AL_over_tau': 0.3, 'inv_tau': 0.15}     # the second stand's rotor
 
 
 def readme_section():
@@ -59,9 +61,12 @@ def stand(tmp_path_factory):
     node = session.node
     env = isolated_env(domain, work / 'ros_log')
     procs = NodeProcesses(env, work / 'logs')
-    out = {'work': work, 'section': section, 'estimates': [], 'diagnostics': []}
+    out = {'work': work, 'section': section, 'estimates': [], 'estimates2': [],
+           'diagnostics': []}
     topic = re.search(r'`(/stand1/rotor_id/estimate)`', section).group(1)
     node.create_subscription(ParameterEstimate, topic, out['estimates'].append, RESULT_QOS)
+    node.create_subscription(ParameterEstimate, topic.replace('/stand1/', '/stand2/'),
+                             out['estimates2'].append, RESULT_QOS)
     node.create_subscription(DiagnosticArray, '/diagnostics',
                              lambda m: out['diagnostics'].extend(m.status), DIAGNOSTICS_QOS)
 
@@ -89,6 +94,14 @@ def stand(tmp_path_factory):
             words = shlex.split(line)
             assert words[:3] == ['ros2', 'run', 'rotor_id'] and words[4] == '--ros-args', line
             procs.start(words[3], ros_args=words[5:], cwd=work)
+            # "a second stand on the same network gets /stand2 and shares nothing with it":
+            # the same lines in /stand2, its rotor with other true values
+            if words[3] in ('identifier', 'stirring_input', 'rotor_plant'):
+                other = [w.replace('__ns:=/stand1', '__ns:=/stand2') for w in words[5:]]
+                if words[3] == 'rotor_plant':
+                    other += [a for k, v in {**TRUTH2, 'seed': 5}.items()
+                              for a in ('-p', f'{k}:={v}')]
+                procs.start(f'{words[3]}_2', node=words[3], ros_args=other, cwd=work)
         # every node up: the five statuses on /diagnostics
         names = ('identifier', 'state_estimator', 'recorder', 'stirring_input', 'rotor_plant')
         assert spin_until(lambda: all(any(s.name.startswith(f'stand1/{n}:')
@@ -99,9 +112,11 @@ def stand(tmp_path_factory):
         words = shlex.split(start)
         assert words[:3] == ['ros2', 'service', 'call'] and words[4] == 'std_srvs/srv/Trigger'
         out['start'] = call(words[3], Trigger, Trigger.Request())
-        out['final'] = spin_until(
-            lambda: any(e.kind == ParameterEstimate.KIND_FINAL for e in out['estimates']), 120.0)
-        out['logs'] = {n: procs.log(n) for n in names}
+        out['start2'] = call(words[3].replace('/stand1/', '/stand2/'), Trigger, Trigger.Request())
+        finals = (out['estimates'], out['estimates2'])
+        out['final'] = spin_until(lambda: all(
+            any(e.kind == ParameterEstimate.KIND_FINAL for e in got) for got in finals), 120.0)
+        out['logs'] = {n: procs.log(n) for n in procs.procs}
         # "changing settings while running": the README's own examples
         out['param_sets'] = []
         for target, name, value in re.findall(r'ros2 param set (\S+) (\w+) "?([^`"]+)"?`',
@@ -129,6 +144,24 @@ def test_the_test_point_is_identified_on_an_unlike_stand(stand):
     assert final.test_point == 1
     ok, text = within_sigma(final.values, final.std, TRUTH, final.names)
     assert ok, text
+
+
+def test_two_stands_on_one_graph_share_nothing(stand):
+    """Each stand's identifier finds its own rotor: 0.1 apart in A is 6σ, no mixing passes."""
+    from rotor_id_msgs.msg import ParameterEstimate
+    assert stand['start2'].success and 'test point 1' in stand['start2'].message
+    final = next((e for e in stand['estimates2'] if e.kind == ParameterEstimate.KIND_FINAL),
+                 None)
+    assert final is not None, stand.get('logs', {}).get('identifier_2', '')[-3000:]
+    assert final.status == ParameterEstimate.STATUS_CONVERGED, final.message
+    first = next(e for e in stand['estimates'] if e.kind == ParameterEstimate.KIND_FINAL)
+    ok, text = within_sigma(final.values, final.std, TRUTH2, final.names)
+    other = within_sigma(first.values, first.std, TRUTH, first.names)[1]
+    assert ok, f'{text} | stand1: {other}'
+    a1, a2 = first.values[first.names.index('A')], final.values[final.names.index('A')]
+    assert abs(a2 - a1) > 3 * max(first.std[0], final.std[0])
+    reported = {s.hardware_id for s in stand['diagnostics']}
+    assert {'/stand2/identifier', '/stand2/stirring_input', '/stand2/rotor_plant'} <= reported
 
 
 def test_health_is_reported_as_the_readme_says(stand):
