@@ -15,9 +15,9 @@ import sys
 
 import numpy as np
 from rclpy.node import Node
-from rotor_id.nodes.common import (declare, Diagnostics, estimate_from_message,
-                                   node_run_description, RESULT_QOS, Rig, SENSOR_BUFFER_QOS,
-                                   spin_node, stamp_ns, wait_for_acks)
+from rotor_id.nodes.common import (allow_runtime_changes, declare, Diagnostics,
+                                   estimate_from_message, node_run_description, RESULT_QOS,
+                                   Rig, SENSOR_BUFFER_QOS, spin_node, stamp_ns, wait_for_acks)
 from rotor_id.nodes.live import (AzimuthTracker, BadSample,
                                  check_joint_sample, StampedSeries, StreamingKalman)
 from rotor_id.nodes.test_points import sampling_period_ns
@@ -47,12 +47,19 @@ class StateEstimator(Node):
             ('use_provisional', False, 'also adopt provisional (growing-window) estimates'),
             ('frame_id', 'rotor', 'header.frame_id of the published messages'),
         ]
-        self.d = {s[0]: declare(self, s[0], s[1], s[2], *s[3:]) for s in spec}
+        # settable at run time (ranges checked by their descriptors): used when the filter
+        # (re)starts, use_provisional at the next estimate
+        tunable = ('flap_noise_std_rad', 'process_noise_std', 'initial_std_rad',
+                   'use_provisional')
+        self.d = {s[0]: declare(self, s[0], s[1], s[2], *s[3:], read_only=s[0] not in tunable)
+                  for s in spec}
         self.rig = Rig(node_run_description(self.d['run_description']))
         desc = self.rig.description
         self.model = model_for(desc)
         self.p = self.model.nominal()
         self.noise = channel_noise(self.model, self.d['flap_noise_std_rad'])
+        allow_runtime_changes(self, apply=lambda names: setattr(
+            self, 'noise', channel_noise(self.model, self.d['flap_noise_std_rad'])))
         n = desc.rotor.blades
         self.flap_joints, self.pitch_joints = self.rig.flap_joints, self.rig.pitch_joints
         self.flap = StampedSeries(n)
