@@ -197,6 +197,7 @@ class Augmented(LinearModel):
         F[:, :nb, :nb] = Fb
         g = np.zeros((t.size, n))
         g[:, :nb] = gb
+        self._u_full = u                # for augmentations that call the base (_pitch_gain)
         self._extra(t, pb, pe, self.own_inputs(u), F, g)
         return F, g
 
@@ -211,6 +212,7 @@ class Augmented(LinearModel):
         dF[:, :Pb, :nb, :nb] = dFb
         dg = np.zeros((t.size, P, n))
         dg[:, :Pb, :nb] = dgb
+        self._u_full = u
         self._extra_jacobian(t, pb, pe, self.own_inputs(u), dF, dg)
         return dF, dg
 
@@ -455,13 +457,16 @@ class FlapFrequency(Augmented):
         super().__init__(base)
         self._cache = {}
 
+    #: the rotor constant this augmentation frees
+    constant = 'flap_frequency'
+
     def _with_P(self, P):
         P = float(P)
         if P not in self._cache:
             if len(self._cache) > 8:
                 self._cache.clear()
             model = copy.copy(self.base)
-            model.rotor = replace(self.base.rotor, flap_frequency=P)
+            model.rotor = replace(self.base.rotor, **{self.constant: P})
             self._cache[P] = model
         return self._cache[P]
 
@@ -838,3 +843,187 @@ class CubicStiffness(Augmented):
 
     def _extra_jacobian(self, t, pb, pe, u, dF, dg):
         dg[:, self.n_base_parameters, :self.n_base_states] = self._forcing(t, u)
+
+
+# ------------------------------------------------------------------------------------------------
+# Rig physics
+# ------------------------------------------------------------------------------------------------
+
+def _pitch_gain(model, t, pb):
+    """
+    Return G = ∂g/∂[θ0, θI, θII] of ``model.base`` (T, n_base, 3) and ∂G/∂p (T, P_b, n_base, 3).
+
+    The base model's own g is affine in the pitch, so G is the difference of its g at unit
+    and zero pitch: the augmentation reads the pitch forcing off the rotor model and never
+    re-derives a coefficient.
+    """
+    base = model.base
+    u = model._u_full
+    T = t.size
+    zero = np.zeros((T, 3))
+    _, g0 = base.system(t, pb, model.base_inputs(u, zero))
+    dF0, dg0 = base.system_jacobian(t, pb, model.base_inputs(u, zero))
+    G = np.zeros((T, base.n_states, 3))
+    dG = np.zeros((T, len(pb), base.n_states, 3))
+    for j in range(3):
+        unit = zero.copy()
+        unit[:, j] = 1.0
+        _, g1 = base.system(t, pb, model.base_inputs(u, unit))
+        _, dg1 = base.system_jacobian(t, pb, model.base_inputs(u, unit))
+        G[:, :, j] = g1 - g0
+        dG[:, :, :, j] = dg1 - dg0
+    return G, dG
+
+
+class PitchFlapCoupling(FlapFrequency):
+    """
+    Pitch-flap coupling δ3 identified: the rotor model's own ``pitch_flap_coupling`` freed.
+
+    K = tan δ3 (the blade pitch falls by K β_k as it flaps up) is a constant of the rotor model
+    (:class:`~rotor_id.physics.models.RotorConstants`); the candidate frees it, starting from
+    the run description's value, exactly as ``flap_frequency`` frees P: no coefficient is
+    derived here. F is linear in K, so the central difference is exact. At μ = 0 without a
+    wake the coupling is a flap-stiffness change of the tilt modes, the same physics as
+    ``flap_frequency``.
+    """
+
+    effect = 'pitch_flap_coupling'
+    constant = 'pitch_flap_coupling'
+
+    def __init__(self, base):
+        K = base.rotor.pitch_flap_coupling
+        self.extra_parameters = (Parameter('pitch_flap_coupling', 'K = tan δ3', 'rad/rad', K,
+                                           K - 1.5, K + 1.5,
+                                           'pitch change per unit flap (tan δ3)'),)
+        Augmented.__init__(self, base)
+        self._cache = {}
+
+
+class PitchActuatorLag(Augmented):
+    """
+    A first-order lag τ_a (``actuator_lag_rad``) between the measured and the blade's pitch.
+
+    The blade's pitch is the measured one plus the error e_k, τ_a e_k′ = −e_k − τ_a θ_k′
+    (zero in trim). In multiblade pitch (rotating frame → first harmonics):
+
+        e0′  = −e0/τ_a − θ0′,
+        eI′  = −eI/τ_a − eII − θI′ − θII,      eII′ = −eII/τ_a + eI − θII′ + θI
+
+    and the rotor sees θ + e through its own pitch forcing G (:func:`_pitch_gain`):
+    x′ += G e. To first order a lag is the delay d = τ_a (``time_delay``).
+    """
+
+    effect = 'pitch_actuator_lag'
+    extra_parameters = (Parameter('actuator_lag_rad', 'τ_a', 'rad', 0.1, 0.03, 3.0,
+                                  'pitch actuator first-order time constant, rad of azimuth'),)
+    extra_states = ('pitch_error_0', 'pitch_error_I', 'pitch_error_II')
+    extra_inputs = ('theta_0_rate', 'theta_I_rate', 'theta_II_rate')
+    SMALLEST_LAG = SensorLag.SMALLEST_LAG
+    STEP_PER_LAG = SensorLag.STEP_PER_LAG
+    widened = SensorLag.widened
+
+    def step(self):
+        """Return the longest stable RK4 step for the smallest admissible τ_a."""
+        return self.STEP_PER_LAG * self.parameter('actuator_lag_rad').lower
+
+    def _extra(self, t, pb, pe, u, F, g):
+        G, _ = _pitch_gain(self, t, pb)
+        nb = self.n_base_states
+        F[:, :nb, nb:] = G
+        F[:, nb:, nb:] = -np.eye(3) / pe[0]
+        F[:, nb + 1, nb + 2] = -1.0
+        F[:, nb + 2, nb + 1] = 1.0
+        g[:, nb] = -u[:, 3]
+        g[:, nb + 1] = -u[:, 4] - u[:, 2]
+        g[:, nb + 2] = -u[:, 5] + u[:, 1]
+
+    def _extra_jacobian(self, t, pb, pe, u, dF, dg):
+        _, dG = _pitch_gain(self, t, pb)
+        nb, kb = self.n_base_states, self.n_base_parameters
+        dF[:, :kb, :nb, nb:] = dG
+        dF[:, kb, nb:, nb:] = np.eye(3) / pe[0]**2
+
+
+class SensorGain(Augmented):
+    """
+    Flap-sensor calibration scale per blade: the sensor reads (1 + s_k) β_k.
+
+    The scaled part z_k = s_k (β_k − β_k(t_0)) is carried by extra states driven by the model's
+    own flap rate, z_k′ = s_k β_k′ = s_k Hbr_k x (exact, linear in the states, and no measured
+    signal multiplies s: a gain on the measured flap would scale its noise too and fit it),
+    and the part of the start, s_k β_k(t_0), is an output offset with β_k(t_0) the measured
+    flap there, smoothed over ±``SMOOTH`` samples: y += C(t) (z + diag(s) β(t_0)). Only the
+    gain patterns the channels can see are parameters (s = V c, V orthonormal, as
+    :class:`SensorBias`); the report gives s per blade.
+    """
+
+    effect = 'sensor_gain'
+    #: samples either side averaged for the flap at the start of a run
+    SMOOTH = 10
+
+    def __init__(self, base, t_record, blade_flap):
+        view = BladeView(base)
+        self._t = np.asarray(t_record, dtype=float)
+        self._flap = np.asarray(blade_flap, dtype=float)
+        self.extra_states = tuple(f'gain_flap_{k}' for k in view.blades)
+        C = view.channels(self._t)
+        patterns = C * self._flap[:, None, :]
+        gram = np.einsum('tmi,tmj->ij', patterns, patterns)
+        vals, vecs = np.linalg.eigh(gram)
+        keep = vals > 1e-8 * max(vals.max(), 1e-300)
+        self.basis = vecs[:, keep]
+        self.extra_parameters = tuple(
+            Parameter(f'gain_pattern_{i + 1}', f's{i + 1}', '-', 0.0, -0.5, 0.5,
+                      'flap-sensor scale error along an observable pattern')
+            for i in range(self.basis.shape[1]))
+        super().__init__(base)
+        self.blade_numbers = view.blades
+
+    def _start_flap(self, t0):
+        i = int(np.searchsorted(self._t, t0))
+        lo, hi = max(0, i - self.SMOOTH), min(self._t.size, i + self.SMOOTH + 1)
+        return np.mean(self._flap[lo:hi], axis=0)
+
+    def _extra(self, t, pb, pe, u, F, g):
+        nb = self.n_base_states
+        scale = self.basis @ pe
+        F[:, nb:, :nb] = scale[None, :, None] * self.view.flap_rate(t)
+
+    def _extra_jacobian(self, t, pb, pe, u, dF, dg):
+        nb, kb = self.n_base_states, self.n_base_parameters
+        rate = self.view.flap_rate(t)
+        for i in range(self.basis.shape[1]):
+            dF[:, kb + i, nb:, :nb] = self.basis[:, i][None, :, None] * rate
+
+    def output_matrix(self, t):
+        """Return H of y = H x + C z."""
+        H = super().output_matrix(t)
+        H[:, :, self.n_base_states:] = self.view.channels(t)
+        return H
+
+    def output_offset(self, t, p):
+        """Return the baseline's offset plus C(t) diag(s) β(t_0)."""
+        t = np.atleast_1d(np.asarray(t, dtype=float))
+        _, pe = self._split(p)
+        start = self._start_flap(t[0]) * (self.basis @ pe)
+        return super().output_offset(t, p) + np.einsum('tmn,n->tm', self.view.channels(t),
+                                                       start)
+
+    def output_offset_jacobian(self, t, p):
+        """∂d/∂c = C(t) diag(β(t_0)) V."""
+        t = np.atleast_1d(np.asarray(t, dtype=float))
+        out = super().output_offset_jacobian(t, p)
+        out[:, :, self.n_base_parameters:] = np.einsum(
+            'tmn,nk->tmk', self.view.channels(t) * self._start_flap(t[0])[None, None, :],
+            self.basis)
+        return out
+
+    def report_parameters(self, values, cov):
+        """Per-blade scale errors s = V c with their σ."""
+        k = self.n_base_parameters
+        c = np.asarray(values[k:k + self.basis.shape[1]], dtype=float)
+        cc = np.asarray(cov)[k:k + self.basis.shape[1], k:k + self.basis.shape[1]]
+        s = self.basis @ c
+        scov = self.basis @ cc @ self.basis.T
+        return {f'gain_{j}': (float(s[i]), float(math.sqrt(max(scov[i, i], 0.0))))
+                for i, j in enumerate(self.blade_numbers)}

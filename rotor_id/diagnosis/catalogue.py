@@ -27,14 +27,20 @@ from rotor_id.physics.aerodynamics import flap_damping
 #: Every effect of the catalogue, in the order they are tried (issue 4 ids first).
 EFFECTS = ('dynamic_inflow', 'periodic_coefficients', 'sensor_lag', 'time_delay',
            'sensor_bias', 'blade_dissimilarity', 'process_noise', 'flap_frequency',
-           'cubic_stiffness')
+           'cubic_stiffness', 'pitch_flap_coupling', 'pitch_actuator_lag', 'sensor_gain')
 
 #: Effects that a recording cannot tell apart at small size (the same physics to first
 #: order): a first-order sensor lag τ and a pure delay d = τ give the same flap to O(τ²); a
 #: cubic spring κβ³ about the steady coning β0 is a flap-frequency change ΔP² = 3κβ0² to
 #: first order in the flapping about trim.
-EQUIVALENT = {'sensor_lag': ('time_delay',), 'time_delay': ('sensor_lag',),
-              'flap_frequency': ('cubic_stiffness',), 'cubic_stiffness': ('flap_frequency',)}
+#: A pitch-actuator lag τ_a is the same delay of the flap behind the pitch to first order,
+#: and pitch-flap coupling (δ3) is a flap-stiffness change, exactly so at μ = 0 without a wake.
+EQUIVALENT = {'sensor_lag': ('time_delay', 'pitch_actuator_lag'),
+              'time_delay': ('sensor_lag', 'pitch_actuator_lag'),
+              'pitch_actuator_lag': ('time_delay', 'sensor_lag'),
+              'flap_frequency': ('cubic_stiffness', 'pitch_flap_coupling'),
+              'cubic_stiffness': ('flap_frequency', 'pitch_flap_coupling'),
+              'pitch_flap_coupling': ('flap_frequency', 'cubic_stiffness')}
 
 
 @dataclass
@@ -173,6 +179,8 @@ def applicable(effect, model_name, rotor, unknowns):
             return 'the baseline already has the periodic terms (or has none at this μ)'
         if rotor.advance_ratio == 0.0:
             return 'at μ = 0 the periodic terms vanish'
+    if effect == 'pitch_actuator_lag' and model_name == 'single_blade':
+        return 'needs the blades in one model (the pitch lag acts in multiblade pitch)'
     if effect in ('sensor_bias', 'blade_dissimilarity') and model_name == 'single_blade':
         return 'needs the blades in one model (multiblade with measurement: blades)'
     if effect == 'blade_dissimilarity' and model_name != 'multiblade_wake' and not has_gamma:
@@ -199,8 +207,9 @@ def n_choices(effect, n_blades):
 #: wake and the blade's dynamics add states to the rotor, the delay shifts the pitch seen by
 #: all of them, and the sensor effects act on what the rotor's flap becomes on the way to the
 #: recording.
-COMPOSE_ORDER = ('periodic_coefficients', 'flap_frequency', 'dynamic_inflow', 'cubic_stiffness',
-                 'blade_dissimilarity', 'time_delay', 'sensor_lag', 'sensor_bias')
+COMPOSE_ORDER = ('periodic_coefficients', 'flap_frequency', 'pitch_flap_coupling',
+                 'dynamic_inflow', 'cubic_stiffness', 'blade_dissimilarity',
+                 'pitch_actuator_lag', 'time_delay', 'sensor_lag', 'sensor_gain', 'sensor_bias')
 
 
 def _augment_one(effect, variant, record, experiments):
@@ -221,6 +230,15 @@ def _augment_one(effect, variant, record, experiments):
     if effect == 'blade_dissimilarity':
         blade = int((variant or 'blade_1').split('_')[1])
         return _augment_runs(experiments, lambda m: aug.BladeDissimilarity(m, blade), record)
+    if effect == 'pitch_flap_coupling':
+        return _augment_runs(experiments, aug.PitchFlapCoupling, record)
+    if effect == 'pitch_actuator_lag':
+        return _augment_runs(experiments, aug.PitchActuatorLag, record, _pitch_rates)
+    if effect == 'sensor_gain':
+        def gain(m):
+            blades = [b - 1 for b in aug.BladeView(m).blades]
+            return aug.SensorGain(m, record.t, record.blade_flap[:, blades])
+        return _augment_runs(experiments, gain, record)
     if effect == 'periodic_coefficients':
         if any(isinstance(e.model, aug.Augmented) for e in experiments):
             raise IdentificationError('periodic_coefficients replaces the rotor model and is '
@@ -274,8 +292,8 @@ def _build(job, baseline_model, experiments):
             extra = names
         for par in layer.extra_parameters:
             guess[par.name] = par.nominal
-        if layer.effect == 'sensor_lag':
-            max_step = layer.step()
+        if layer.effect in ('sensor_lag', 'pitch_actuator_lag'):
+            max_step = min(layer.step(), max_step or math.inf)
     unknowns = list(job.unknowns) + all_extra
     guess.update(job.start or {})
     return runs, model, unknowns, extra, guess, max_step
@@ -331,11 +349,15 @@ def _stop_at_bound(model, extra, show):
     return check
 
 
-def _lag_starts(model, guess):
-    """Yield starting τ_s from the smallest admissible up (the best by cost starts the fit)."""
-    lower = model.parameter('lag_rad').lower
+#: The time constant of each lag effect (not nested: τ > 0; started from several values).
+LAG_PARAMETER = {'sensor_lag': 'lag_rad', 'pitch_actuator_lag': 'actuator_lag_rad'}
+
+
+def _lag_starts(model, guess, name):
+    """Yield starting τ from the smallest admissible up (the best by cost starts the fit)."""
+    lower = model.parameter(name).lower
     for factor in (1.0, 2.0, 4.0, 10.0, 30.0):
-        yield {**guess, 'lag_rad': lower * factor}
+        yield {**guess, name: lower * factor}
 
 
 def _wake_starts(model, guess, unknowns):
@@ -465,8 +487,9 @@ def fit_candidate(job):
             starts = None
             if job.effect == 'dynamic_inflow':
                 starts = _wake_starts(model, guess, unknowns)
-            elif job.effect == 'sensor_lag' and not job.start:
-                starts = _lag_starts(model, guess)
+            elif job.effect in LAG_PARAMETER and LAG_PARAMETER[job.effect] not in (
+                    job.start or {}):
+                starts = _lag_starts(model, guess, LAG_PARAMETER[job.effect])
             if starts is not None:
                 guess = _best_start(runs, unknowns, starts, job.known, max_step) or guess
             fit_kw = dict(known=job.known, label=label, **kw,
@@ -521,7 +544,8 @@ def fit_candidate(job):
 #: from linear (its benefit comes at a wake gain where the local test says little), and
 #: ``process_noise`` is the explanation of last resort (fitted only when needed).
 SCREENED = ('sensor_lag', 'time_delay', 'sensor_bias', 'blade_dissimilarity',
-            'flap_frequency', 'cubic_stiffness')
+            'flap_frequency', 'cubic_stiffness', 'pitch_flap_coupling', 'pitch_actuator_lag',
+            'sensor_gain')
 
 
 def score_statistic(runs, unknowns, guess, known, noise_var, max_step=None):
@@ -560,7 +584,7 @@ def screen_candidate(job, noise_var):
     experiments = experiments_from_record(job.record, job.description, base_model,
                                           job.window_s)
     effect = job.effect
-    if effect == 'sensor_lag':
+    if effect in ('sensor_lag', 'pitch_actuator_lag'):
         job = _replace(job, effect='time_delay')
     blades = _blades_of(base_model, job.record) if effect == 'blade_dissimilarity' else [None]
     out = []

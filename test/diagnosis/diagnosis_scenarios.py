@@ -101,7 +101,7 @@ SCENARIOS = [
              original_truth=WAKE_TRUTH),
     # a cubic spring about the steady coning is a flap-frequency change to first order
     # (catalogue.EQUIVALENT): each accepts the other
-    Scenario('flap_frequency', 'flap_frequency', lambda s: wake_case(seed=s, flap_freq=1.22),
+    Scenario('flap_frequency', 'flap_frequency', lambda s: wake_case(seed=s, flap_freq_error=0.02),
              WAKE, accept=('cubic_stiffness',), extra_truth={'P': 1.22},
              original_truth=WAKE_TRUTH),
     Scenario('cubic_stiffness', 'cubic_stiffness',
@@ -112,8 +112,8 @@ SCENARIOS = [
              original_truth=WAKE_TRUTH),
 ]
 
-LAG = ('sensor_lag', 'time_delay')
-FREQ = ('flap_frequency', 'cubic_stiffness')
+LAG = ('sensor_lag', 'time_delay', 'pitch_actuator_lag')
+FREQ = ('flap_frequency', 'cubic_stiffness', 'pitch_flap_coupling')
 #: The blade dissimilarity's static part is a sensor bias of that blade at μ = 0 (see
 #: blade_pitch); its Lock-number part is what tells it apart.
 BLADE = ('blade_dissimilarity',)
@@ -127,16 +127,16 @@ PAIRS = [
              lambda s: wake_case(seed=s, sensor_lag=0.05, gamma_scale=[1.0, 1.0, 1.06, 1.0]),
              WAKE, together=(LAG, BLADE), original_truth=WAKE_TRUTH),
     Scenario('lag+flap_frequency', 'sensor_lag',
-             lambda s: wake_case(seed=s, sensor_lag=0.05, flap_freq=1.22), WAKE,
+             lambda s: wake_case(seed=s, sensor_lag=0.05, flap_freq_error=0.02), WAKE,
              together=(LAG, FREQ), original_truth=WAKE_TRUTH),
     Scenario('bias+blade', 'sensor_bias',
              lambda s: wake_case(seed=s, sensor_bias=BIAS, gamma_scale=[1.0, 1.0, 1.06, 1.0]),
              WAKE, together=(BIAS_IDS, BLADE), original_truth=WAKE_TRUTH),
     Scenario('bias+flap_frequency', 'sensor_bias',
-             lambda s: wake_case(seed=s, sensor_bias=BIAS, flap_freq=1.22), WAKE,
+             lambda s: wake_case(seed=s, sensor_bias=BIAS, flap_freq_error=0.02), WAKE,
              together=(BIAS_IDS, FREQ), original_truth=WAKE_TRUTH),
     Scenario('blade+flap_frequency', 'blade_dissimilarity',
-             lambda s: wake_case(seed=s, gamma_scale=[1.0, 1.0, 1.06, 1.0], flap_freq=1.22),
+             lambda s: wake_case(seed=s, gamma_scale=[1.0, 1.0, 1.06, 1.0], flap_freq_error=0.02),
              WAKE, together=(BLADE, FREQ), original_truth=WAKE_TRUTH),
     Scenario('inflow+bias', 'dynamic_inflow',
              lambda s: wake_case(seed=s, wake_L=0.85, wake_tau=0.6, sensor_bias=BIAS),
@@ -147,7 +147,31 @@ PAIRS = [
              MULTIBLADE, together=(('dynamic_inflow',), LAG),
              original_truth={'gamma': GAMMA_WAKE, 'theta0': THETA0}),
 ]
-SCENARIOS = SCENARIOS + PAIRS
+GAIN = [0.035, -0.03, 0.0, 0.02]
+#: Rig physics (issue 16, item 2), alone and with another effect.
+RIG = [
+    # ΔP² = (γB⁴/8) K = 0.5 K: K = 0.1 is the flap_frequency scenario's 1.2 → 1.22
+    Scenario('pitch_flap_coupling', 'pitch_flap_coupling',
+             lambda s: wake_case(seed=s, pitch_flap_coupling=0.1), WAKE, accept=FREQ,
+             extra_truth={'pitch_flap_coupling': 0.1}, original_truth=WAKE_TRUTH),
+    Scenario('pitch_actuator_lag', 'pitch_actuator_lag',
+             lambda s: wake_case(seed=s, actuator_lag=0.05), WAKE, accept=LAG,
+             extra_truth={'actuator_lag_rad': 0.05}, original_truth=WAKE_TRUTH),
+    Scenario('sensor_gain', 'sensor_gain', lambda s: wake_case(seed=s, sensor_gain=GAIN), WAKE,
+             extra_truth={f'gain_{k + 1}': g for k, g in enumerate(GAIN)},
+             original_truth=WAKE_TRUTH),
+    Scenario('gain+lag', 'sensor_gain',
+             lambda s: wake_case(seed=s, sensor_gain=GAIN, sensor_lag=0.05), WAKE,
+             together=(('sensor_gain',), LAG), original_truth=WAKE_TRUTH),
+    Scenario('actuator_lag+bias', 'pitch_actuator_lag',
+             lambda s: wake_case(seed=s, actuator_lag=0.05, sensor_bias=BIAS), WAKE,
+             together=(LAG + ('pitch_actuator_lag',), BIAS_IDS), original_truth=WAKE_TRUTH),
+    Scenario('coupling+blade', 'pitch_flap_coupling',
+             lambda s: wake_case(seed=s, pitch_flap_coupling=0.1,
+                                 gamma_scale=[1.0, 1.0, 1.06, 1.0]), WAKE,
+             together=(FREQ + ('pitch_flap_coupling',), BLADE), original_truth=WAKE_TRUTH),
+]
+SCENARIOS = SCENARIOS + PAIRS + RIG
 
 BY_NAME = {s.name: s for s in SCENARIOS}
 

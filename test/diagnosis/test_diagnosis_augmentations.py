@@ -35,10 +35,17 @@ def _base(name, mu):
 def _augmented(base):
     models = [aug.SensorLag(base), aug.TimeDelay(base), aug.SensorBias(base, T),
               aug.FlapFrequency(base), aug.CubicStiffness(base),
-              aug.BladeDissimilarity(base, 2)]
+              aug.BladeDissimilarity(base, 2), aug.PitchFlapCoupling(base),
+              aug.PitchActuatorLag(base),
+              aug.SensorGain(base, T, _flap(aug.BladeView(base).n_blades))]
     if base.name != 'multiblade_wake':
         models.append(aug.DynamicInflow(base))
     return models
+
+
+def _flap(n_blades):
+    """Return a flap record per blade to scale (sensor gain)."""
+    return 0.03 + 0.01 * np.column_stack([np.cos(T + k) for k in range(n_blades)])
 
 
 def _inputs():
@@ -82,7 +89,8 @@ def test_neutral_augmentation_is_the_baseline(name, mu):
     x0b = 0.01 * np.arange(1, base.n_states + 1)
     ref = simulate(base, base.nominal(), inputs, T, x0b).y
     for model in [aug.TimeDelay(base), aug.SensorBias(base, T), aug.FlapFrequency(base),
-                  aug.CubicStiffness(base), aug.BladeDissimilarity(base, 3)]:
+                  aug.CubicStiffness(base), aug.BladeDissimilarity(base, 3),
+                  aug.PitchFlapCoupling(base), aug.SensorGain(base, T, _flap(4))]:
         x0 = np.concatenate([x0b, np.zeros(model.n_states - base.n_states)])
         y = simulate(model, model.nominal(), inputs, T, x0).y
         np.testing.assert_allclose(y, ref, atol=1e-13, err_msg=model.name)
@@ -188,3 +196,23 @@ def test_stacked_effects_have_exact_sensitivities_and_nest(name, mu):
     x0 = 0.01 * rng.standard_normal(inner.n_states)
     assert np.allclose(simulate(outer, p_outer, inputs, T, x0).y,
                        simulate(inner, p_inner, inputs, T, x0).y, atol=1e-14)
+
+
+def test_pitch_flap_coupling_at_mu_0_is_a_flap_frequency_change():
+    # Δθ_k = −K β_k in β″ + (γB⁴/8) β′ + P² β = (γB⁴/8) θ (μ = 0, no wake) is the stiffness
+    # P² + (γB⁴/8) K: the coupling read off the rotor model's pitch forcing must say so
+    base = _base('multiblade', 0.0)
+    coupled = aug.PitchFlapCoupling(base)
+    freq = aug.FlapFrequency(base)
+    p0 = base.nominal()
+    gamma = p0[base.parameter_names.index('gamma')]
+    K = 0.1
+    P = base.rotor.flap_frequency
+    P_eq = math.sqrt(P**2 + gamma * base.rotor.tip_loss**4 / 8.0 * K)
+    x0 = 0.01 * np.arange(1, base.n_states + 1)
+    a = simulate(coupled, np.concatenate([p0, [K]]), SCHEDULE, T, x0)
+    b = simulate(freq, np.concatenate([p0, [P_eq]]), SCHEDULE, T, x0)
+    # the tilt modes (the collective is a constant parameter of the model: coning uncoupled)
+    names = ('beta_I', 'beta_II', 'beta_I_dot', 'beta_II_dot')
+    tilt = [base.state_names.index(n) for n in names]
+    np.testing.assert_allclose(a.x[:, tilt], b.x[:, tilt], atol=1e-10)

@@ -30,8 +30,11 @@ w_k = w_0 + w_c cos ψ_k + w_s sin ψ_k is a random pitch-like inflow angle (tur
 three components are independent Gauss-Markov processes (σ ``turbulence``, correlation time
 ``turbulence_corr`` in rad of azimuth). The sensors: each flap sensor lags (first order,
 time constant ``sensor_lag`` rad of azimuth), is read ``time_delay_s`` late with respect to
-the pitch, has a constant bias and white noise; pitch sensors have white noise and do not see
-a blade's aerodynamic pitch offset ``pitch_offset``.
+the pitch, has a constant bias, a scale error ``sensor_gain`` and white noise; pitch sensors
+have white noise and read the commanded pitch: they see neither a blade's aerodynamic pitch
+offset ``pitch_offset``, nor the first-order lag of the blade's pitch behind them
+(``actuator_lag``, rad of azimuth). ``pitch_flap_coupling`` is a coupling K_P the run
+description does not know (a concealed δ3), added to ``pitch_flap``.
 
 The record starts in trim at collective pitch only (settled over ``t_settle`` from rest), the
 lateral cyclic is stepped on at ``t_step``, and pitch stirring θI = a sin φ, θII = a cos φ,
@@ -77,8 +80,18 @@ class TruthConfig:
     turbulence: float = 0.0
     turbulence_corr: float = 2.0
     cubic_stiffness: float = 0.0
+    #: pitch-flap coupling K = tan δ3: a blade's pitch falls by K β_k as it flaps up (the pitch
+    #: sensors read the commanded pitch, before the pitch links)
+    pitch_flap_coupling: float = 0.0
+    #: first-order lag of each blade's pitch behind the measured pitch, rad of azimuth
+    actuator_lag: float = 0.0
+    #: flap-sensor scale errors per blade: the sensor reads (1 + s_k) β_k
+    sensor_gain: list = field(default_factory=lambda: [0.0, 0.0, 0.0, 0.0])
     n_blades: int = 4
     pitch_flap: float = 0.0
+    #: a flap frequency the run description does not know: the rotor's P is
+    #: ``flap_freq + flap_freq_error`` while the description states ``flap_freq``
+    flap_freq_error: float = 0.0
     uniform_inflow: bool = False
     wake_L0: float = 2.0
     wake_tau0: float = 4.0
@@ -142,18 +155,20 @@ class _GaussMarkov:
 
 def _rhs_factory(cfg, turbulence):
     n = cfg.n_blades
-    B, mu, P = cfg.tip_loss, cfg.mu, cfg.flap_freq
+    B, mu, P = cfg.tip_loss, cfg.mu, cfg.flap_freq + cfg.flap_freq_error
     offsets = 2.0 * math.pi * np.arange(n) / n
     gam = cfg.gamma * np.asarray(cfg.gamma_scale, dtype=float)
     dtheta = np.asarray(cfg.pitch_offset, dtype=float)
     kappa = cfg.cubic_stiffness
     lag = cfg.sensor_lag
+    coupling, act_lag = cfg.pitch_flap_coupling, cfg.actuator_lag
     wake = cfg.wake
     L, tau = cfg.wake_L, cfg.wake_tau
     kp = cfg.pitch_flap
     uniform = cfg.uniform_inflow
     L0, tau0 = cfg.wake_L0, cfg.wake_tau0
     nl = 3 * n + 2                                   # index of λ0 (after the sensor lags)
+    na = nl + (1 if uniform else 0)                  # the blades' pitch (actuator lag)
 
     def rhs(t, s):
         beta, rate = s[:n], s[n:2 * n]
@@ -167,7 +182,9 @@ def _rhs_factory(cfg, turbulence):
                    - (B**2 * mu**2 / 4) * c2)
         m_lambda = B**3 / 3 + (B**2 * mu / 2) * s1
         th_i, th_ii = _pitch_schedule(cfg, t)
-        theta = cfg.theta0 + dtheta - th_i * np.sin(psi) + th_ii * np.cos(psi) - kp * beta
+        measured = cfg.theta0 - th_i * np.sin(psi) + th_ii * np.cos(psi)
+        blade_pitch = s[na:na + n] if act_lag > 0 else measured
+        theta = blade_pitch + dtheta - (kp + coupling) * beta
         lam = lam_c * c1 + lam_s * s1 if wake else 0.0 * c1
         if turbulence is not None:
             w = turbulence(t)
@@ -193,6 +210,8 @@ def _rhs_factory(cfg, turbulence):
             lift = 0.5 * gam * (f_theta * theta + f_rate * (lam - rate) - f_beta * beta
                                 + f_lambda * lam0)
             out[nl] = (-lam0 - L0 * np.mean(lift)) / tau0
+        if act_lag > 0:
+            out[na:na + n] = (measured - s[na:na + n]) / act_lag
         return out
 
     return rhs
@@ -214,7 +233,9 @@ def generate(cfg):
         turbulence = _GaussMarkov(cfg.turbulence, cfg.turbulence_corr, t_start - 1.0,
                                   cfg.t_end + 1.0, rng)
     rhs = _rhs_factory(cfg, turbulence)
-    s0 = np.zeros(3 * n + 2 + (1 if cfg.uniform_inflow else 0))
+    na = 3 * n + 2 + (1 if cfg.uniform_inflow else 0)
+    s0 = np.zeros(na + n)
+    s0[na:] = cfg.theta0                     # the blades' pitch in trim
     t_read = t - delay                       # flap read late: it shows the rotor at t − delay
     sol = solve_ivp(rhs, (t_start, float(max(t[-1], t_read[-1]))), s0, method='DOP853',
                     t_eval=t_read, rtol=1e-9, atol=1e-12,
@@ -223,6 +244,8 @@ def generate(cfg):
         raise RuntimeError(f'truth simulation failed: {sol.message}')
     states = sol.y.T
     flap_true = states[:, 2 * n + 2:3 * n + 2] if cfg.sensor_lag > 0 else states[:, :n]
+    if any(cfg.sensor_gain):                 # the all-zero default serves any blade count
+        flap_true = flap_true * (1.0 + np.asarray(cfg.sensor_gain, dtype=float)[None, :])
     flap = (flap_true + np.asarray(cfg.sensor_bias, dtype=float)[None, :]
             + cfg.flap_noise * rng.standard_normal((n_samples, n)))
     psi = t[:, None] + 2.0 * math.pi * np.arange(n)[None, :] / n
