@@ -2,9 +2,9 @@
 Live benchmark of the five nodes: estimate latency against the offline fit, and message loss.
 
 Runs plant (4 blades x 1 kHz), stirring input, identifier, state estimator and recorder as
-separate processes on the wake case. The stirring input is started once per test point (each
-start is a new schedule: the identifier arms a test point on it) for ``--test-points`` test
-points, with the identifier's fits in a separate process or in its own thread (``--fit-mode``;
+separate processes on the wake case. The stirring input runs ``--test-points`` bounded schedules
+(the next one on its ``~/start`` once the last is done; the identifier arms a test point on
+each), with the identifier's fits in a separate process or in its own thread (``--fit-mode``;
 ``both`` runs the two one after the other on the same machine, for a ratio). It measures
 
 * latency: from the moment the identifier takes the newest sample of each window it fits
@@ -107,8 +107,22 @@ class LiveRun:
                                .splitlines()[0].split()]}
 
 
+def _start_next(watcher, client, timeout=60.0):
+    """Call the stirring input's ~/start until it accepts (it refuses while a schedule runs)."""
+    from std_srvs.srv import Trigger
+    clock = time.monotonic()
+    while time.monotonic() - clock < timeout:
+        if client.wait_for_service(timeout_sec=1.0):
+            future = client.call_async(Trigger.Request())
+            if watcher.spin_until(future.done, 10.0) and future.result().success:
+                return True
+        watcher.spin_until(lambda: False, 0.3)
+    return False
+
+
 def run(mode, test_points, out):
     """Run the nodes with the fits in ``mode`` ('process' | 'thread'); return measurements."""
+    from std_srvs.srv import Trigger
     live = LiveRun(out)
     procs, watcher, params_file = live.procs, live.watcher, live.params_file
     finals = []
@@ -116,21 +130,26 @@ def run(mode, test_points, out):
         procs.start('identifier', params_file, {'fit_process': mode == 'process'})
         procs.start('state_estimator', params_file)
         procs.start('recorder', params_file, {'output': str(live.bag)})
-        # the rotor runs on, holding the last command, while the stirring input restarts
-        procs.start('rotor_plant', params_file, {'duration_s': 600.0, 'wait_for_commands': False,
-                                                 'wait_for_subscribers': 4})
+        procs.start('stirring_input', params_file)
+        start = live.node.create_client(Trigger, '/stirring_input/start')
+        # a stirring input without ~/start runs one endless schedule: it is restarted for each
+        # test point instead, and the rotor holds the last command meanwhile
+        restart = not start.wait_for_service(timeout_sec=10.0)
+        procs.start('rotor_plant', params_file, {'duration_s': 600.0, 'wait_for_subscribers': 5,
+                                                 'wait_for_commands': not restart})
         for k in range(1, test_points + 1):
-            name = f'stirring_input_{k}'
-            procs.start(name, params_file, node='stirring_input')
             say(f'{mode}: test point {k} (domain {live.domain})')
+            if k > 1 and restart:
+                procs.stop('stirring_input')
+                procs.start('stirring_input', params_file)
+            elif k > 1 and not _start_next(watcher, start):
+                raise RuntimeError('the stirring input never started the next schedule')
             done = watcher.spin_until(lambda: watcher.final_estimate(k) is not None, 120.0,
-                                      alive=lambda: not set(procs.dead()) - {
-                                          f'stirring_input_{j}' for j in range(1, k)})
+                                      alive=lambda: not procs.dead())
             if not done:
                 raise RuntimeError(f'no final estimate of test point {k}: {procs.dead()}\n'
                                    + procs.log('identifier')[-3000:])
             finals.append(watcher.final_estimate(k))
-            procs.stop(name)
         procs.stop('rotor_plant')
         live.settle(60.0)
     finally:
@@ -174,8 +193,14 @@ def offline_fits(result, repeat=7):
     from rotor_id.io.bag import read_record
     from rotor_id.io.run_description import load_run_description
     from rotor_id.pipeline import identify
+    from rotor_id.io.errors import BagError
     description = load_run_description(result['description'])
-    record = read_record(result['bag'])
+    try:
+        record = read_record(result['bag'])
+    except BagError as exc:         # said in the results, not hidden
+        return [{'test_point': f.test_point, 'status': f.status, 'cold_ms': np.nan,
+                 'cold_cpu_ms': np.nan, 'warm_ms': np.nan, 'warm_cpu_ms': np.nan,
+                 'live_vs_offline_sigma': np.nan, 'error': str(exc)} for f in result['finals']]
     rows = []
     for final in result['finals']:
         shift = (_ns(final.test_point_start) - record.stamp0_ns) / NS
@@ -230,6 +255,8 @@ def _section(result, offline):
         f'{cold:.1f} ms cold (offline tolerance), {warm:.1f} ms warm from the live estimate '
         f'with the live tolerance ({warm_cpu:.1f} ms CPU); latency / warm offline fit = '
         f'**{np.median(final) / warm:.1f}**\n'
+        + ''.join(f'* the bag could not be read offline: {r["error"]}\n'
+                  for r in offline[:1] if 'error' in r) +
         '* final estimates: ' + '; '.join(
             f'test point {r["test_point"]} status {r["status"]}, live - offline '
             f'{r["live_vs_offline_sigma"]:.2g} sigma' for r in offline) + '\n'

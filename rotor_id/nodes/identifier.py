@@ -95,8 +95,10 @@ class Identifier(Node):
              'fits (each starts from the latest iterate of the previous one)', 1, 1000),
             ('max_abs_angle_rad', 0.7, 'larger |pitch| or |flap| is rejected as degrees (rad)',
              0.01, 3.2),
-            ('pre_trigger_s', 1.0, 'samples kept before a test point is armed, beyond its '
-             'window: a start command may refer to samples this old (s)', 0.0, 60.0),
+            ('pre_trigger_s', 5.0, 'samples kept before a test point is armed, beyond its '
+             'window: a start command may refer to samples this old (s; a stirring node '
+             'starved of CPU sends its first command, stamped with the sample it locked on, '
+             'late)', 0.0, 60.0),
             ('gap_tolerance_periods', 1.5, 'a step between samples longer than this many '
              'sampling periods is a gap (the window is then incomplete)', 1.01, 100.0),
             ('azimuth_slip_tolerance_rad', 0.1, 'an azimuth step that differs from rotor speed '

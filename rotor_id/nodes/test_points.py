@@ -342,7 +342,7 @@ class TestPointSequence:
     __test__ = False                 # not a pytest class
 
     def __init__(self, n_blades, window_s, blade_names, schedule=None, margin_rad=3.0 * math.pi,
-                 pre_trigger_s=1.0, gap_factor=1.5, slip_tolerance_rad=0.1,
+                 pre_trigger_s=5.0, gap_factor=1.5, slip_tolerance_rad=0.1,
                  auto_start='excitation'):
         if auto_start not in ('excitation', 'data', 'none'):
             raise ValueError(f"auto_start must be 'excitation', 'data' or 'none', got "

@@ -1,9 +1,11 @@
 """
 Three test points in a row through the running nodes, without restarting the identifier.
 
-Plant, identifier (its fits in a separate process), state estimator and recorder run as separate
-processes on the wake case; the stirring input is started once per test point (each start is a
-new stirring schedule, on which the identifier arms a test point) while the rotor runs on. What
+Plant, stirring input, identifier (its fits in a separate process), state estimator and recorder
+run as separate processes on the wake case; the stirring input runs three schedules (the first on
+its own, the next two on its ``~/start`` once the last one is done, or by a restart of a stirring
+input without that service), and the identifier arms a test point on each (StirringCommand phase
+TRIM). What
 it proves: each test point gets exactly one final estimate, tagged with its number; it is
 converged exactly when its window is complete (every sample of every channel received: the
 identifier's sensor subscriptions are best effort, and a machine starved of CPU drops samples in
@@ -15,12 +17,28 @@ point); the state estimator adopted every converged result and nothing else; eve
 with 0.
 """
 
+import time
+
 from live_helpers import domain_id, require_workspace, RosSession, within_sigma
 import pytest
 
 TRUTH = {'A': 0.5, 'AL_over_tau': 0.25, 'inv_tau': 0.125}
 NS = 1_000_000_000
 POINTS = 3
+
+
+def _call_until_accepted(watcher, client, timeout=60.0):
+    """Call a Trigger service until it succeeds (the stirring refuses while a schedule runs)."""
+    from std_srvs.srv import Trigger
+    clock = time.monotonic()
+    while time.monotonic() - clock < timeout:
+        if not client.wait_for_service(timeout_sec=1.0):
+            continue
+        future = client.call_async(Trigger.Request())
+        if watcher.spin_until(future.done, 10.0) and future.result().success:
+            return True
+        watcher.spin_until(lambda: False, 0.3)
+    return False
 
 
 def _ns(stamp):
@@ -35,6 +53,7 @@ def three_points(tmp_path_factory):
     from rotor_id.io.run_description import load_run_description
     from rotor_id.nodes.processes import isolated_env, NodeProcesses
     from rotor_id.nodes.watch import RunWatcher
+    from std_srvs.srv import Trigger
 
     params_file, description_path, _ = case_files('wake')
     tmp = tmp_path_factory.mktemp('points')
@@ -48,19 +67,24 @@ def three_points(tmp_path_factory):
         procs.start('identifier', params_file, {'target_std': [0.02, 0.02, 0.01]})
         procs.start('state_estimator', params_file)
         procs.start('recorder', params_file, {'output': str(run['bag'])})
-        # the rotor runs on, holding the last pitch command, between the stirring schedules
+        procs.start('stirring_input', params_file)
+        start = session.node.create_client(Trigger, '/stirring_input/start')
+        # a stirring input without ~/start runs one endless schedule: it is restarted for each
+        # test point instead, and the rotor holds the last command meanwhile
+        restart = not start.wait_for_service(timeout_sec=10.0)
         procs.start('rotor_plant', params_file, {'duration_s': 300.0, 'seed': 11,
-                                                 'wait_for_commands': False,
-                                                 'wait_for_subscribers': 3})
+                                                 'wait_for_subscribers': 4,
+                                                 'wait_for_commands': not restart})
         for k in range(1, POINTS + 1):
-            name = f'stirring_input_{k}'
-            procs.start(name, params_file, node='stirring_input')
+            if k > 1 and restart:
+                procs.stop('stirring_input')
+                procs.start('stirring_input', params_file)
+            elif k > 1:     # the stirring node's next schedule, once the last one is done
+                assert _call_until_accepted(watcher, start), 'the stirring never restarted'
             done = watcher.spin_until(lambda: watcher.final_estimate(k) is not None, 150.0,
-                                      alive=lambda: not {'identifier', 'rotor_plant'} &
-                                      set(procs.dead()))
+                                      alive=lambda: not procs.dead())
             assert done, (f'no final estimate of test point {k}; exited: {procs.dead()}\n'
                           + procs.log('identifier')[-4000:])
-            procs.stop(name)
         converged = sum(watcher.final_estimate(k).status == 1 for k in range(1, POINTS + 1))
         watcher.spin_until(lambda: any(v.key == 'parameter_updates' and
                                        v.value == str(converged)

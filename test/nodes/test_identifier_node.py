@@ -206,7 +206,7 @@ def test_aborted_test_point_is_published_as_aborted(run):
 
 
 def test_buffers_are_bounded(run):
-    need = (WINDOW[1] - WINDOW[0] + 2 * 3 * math.pi / OMEGA + 1.0) * 1000
+    need = (WINDOW[1] - WINDOW[0] + 2 * 3 * math.pi / OMEGA + 5.0) * 1000
     assert all(capacity <= 4 * need for capacity in run['limits'].values())
     assert np.all(np.isfinite(list(run['limits'].values())))
 

@@ -311,7 +311,7 @@ def test_buffers_stay_bounded_by_the_window():
         machine.add_flap(stamp, np.zeros(4))
         machine.add_pitch(stamp, np.zeros(4))
         machine.add_azimuth(stamp, (OMEGA * i / RATE) % TWO_PI, OMEGA)
-    need = ((WINDOW[1] - WINDOW[0]) + 2 * 3 * math.pi / OMEGA + 1.0) * RATE
+    need = ((WINDOW[1] - WINDOW[0]) + 2 * 3 * math.pi / OMEGA + 5.0) * RATE
     for series in (machine.flap, machine.pitch, machine.azimuth.series):
         # what a window needs is kept; the arrays are trimmed, not grown (2.7x at most)
         assert need - 2 <= series.size <= series.capacity <= 4 * need
