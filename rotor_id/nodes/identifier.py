@@ -32,7 +32,6 @@ published on ``/rotor_id/progress``. Fits run in a worker thread so the subscrip
 from dataclasses import replace
 import json
 import math
-import os
 import sys
 import threading
 import time
@@ -111,9 +110,6 @@ class Identifier(Node):
              'loses no sample; the publisher must offer reliable, as rotor_plant does) or '
              "'best_effort' (matches any publisher; a starved node loses samples, and the "
              'window says so)'),
-            ('subscription_niceness', 5, 'the thread running the subscription callbacks runs '
-             'this much nicer (lower priority) than the fit and the publishing of its result '
-             '(0: same priority)', 0, 19),
             ('sensor_queue_depth', 10000, 'samples each sensor subscription queues while the '
              'node is busy (10 s at 1 kHz); older ones are lost, and the window says so',
              1, 1000000),
@@ -192,10 +188,6 @@ class Identifier(Node):
         self.running = True
         self.worker = threading.Thread(target=self.work, name='identifier-fit', daemon=True)
         self.worker.start()
-        # from here on this thread runs the executor: nicer than the worker and the fit process
-        # (created above, they keep the process's priority), so that a finished fit is published
-        # before the next burst of callbacks (raising one's niceness needs no privilege)
-        self.executor_niceness = _renice_this_thread(self.d['subscription_niceness'])
         self._report_state()
         self.get_logger().info(f'{desc.model}: identifying {", ".join(self.unknowns)} over '
                                f'window_s {desc.window_s} of each test point from '
@@ -636,19 +628,6 @@ class Identifier(Node):
                                      ('worker', self.worker_times)):
             threads[f'{name}_cpu_s'], threads[f'{name}_cpu_wait_s'] = cpu, waiting
         print(f'identifier: thread times: {json.dumps(threads)}', file=sys.stderr, flush=True)
-
-
-def _renice_this_thread(increment):
-    """Lower the calling thread's priority by ``increment`` (Linux: per thread); return it."""
-    if not increment or not hasattr(os, 'setpriority'):
-        return 0
-    tid = threading.get_native_id()
-    try:
-        current = os.getpriority(os.PRIO_PROCESS, tid)
-        os.setpriority(os.PRIO_PROCESS, tid, min(19, current + increment))
-        return os.getpriority(os.PRIO_PROCESS, tid) - current
-    except OSError:
-        return 0
 
 
 #: The test point's outcome a final estimate's status stands for.

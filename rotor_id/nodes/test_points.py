@@ -30,6 +30,8 @@ import enum
 import math
 
 import numpy as np
+from rotor_id.excitation import (PHASE_CYCLIC_STEP, PHASE_DONE, PHASE_RAMP_DOWN, PHASE_STIRRING,
+                                 PHASE_TRIM)
 from rotor_id.io.timebase import azimuth_step, predicted_azimuth_step
 from rotor_id.nodes.live import AzimuthTracker, record_from_series, StampedSeries
 
@@ -61,13 +63,13 @@ class Reason(enum.IntEnum):
 
 
 class Excitation(enum.IntEnum):
-    """Phases of the excitation (the values of rotor_id_msgs/StirringCommand PHASE_*)."""
+    """Phases of the excitation: :mod:`rotor_id.excitation`'s (StirringCommand's PHASE_*)."""
 
-    TRIM = 0
-    CYCLIC_STEP = 1
-    STIRRING = 2
-    DONE = 3
-    RAMP_DOWN = 4       # the cyclic ramps back to trim (end of the stirring, or its abort)
+    TRIM = PHASE_TRIM
+    CYCLIC_STEP = PHASE_CYCLIC_STEP
+    STIRRING = PHASE_STIRRING
+    DONE = PHASE_DONE
+    RAMP_DOWN = PHASE_RAMP_DOWN   # the cyclic ramps back to trim (end of the stirring, or abort)
 
 
 #: What the final fit's outcome makes of a test point.
@@ -558,8 +560,8 @@ class TestPointSequence:
         period = sampling_period_ns(self.flap.stamps)
         if point.origin_late_ns > self.gap_factor * period:
             note = (f'the first flap sample of the test point was not received (the first one '
-                    f'is {point.origin_late_ns / 1e6:.1f} ms after the start command): its '
-                    'window is shifted by an unknown amount')
+                    f'is {point.origin_late_ns / 1e6:.1f} ms after the start command, stamped '
+                    f'{point.armed_from_ns} ns): its window is shifted by an unknown amount')
         return self.window_request(point.number, point.stamp0_ns, window_s, final, note)
 
     def window_request(self, number, stamp0_ns, window_s, final, note=''):

@@ -1,8 +1,8 @@
 """
 Three test points in a row through the running nodes, without restarting the identifier.
 
-Plant, stirring input, identifier (its fits in a separate process), state estimator and recorder
-run as separate processes on the wake case; the stirring input runs three schedules (the first on
+Plant, stirring input, identifier (its fits in a separate process) and recorder run as separate
+processes on the wake case; the stirring input runs three schedules (the first on
 its own, the next two on its ``~/start`` once the last one is done, or by a restart of a stirring
 input without that service), and the identifier arms a test point on each (StirringCommand phase
 TRIM). What
@@ -13,8 +13,10 @@ DDS, bench/results/live_latency.md) and then within 3σ of the plant's truth, an
 the three are; its window lies inside its own test point and the windows do not overlap;
 identified offline from the recorded bag over the same stamps, each converged one agrees with
 the live result to 0.2σ (the live fit used exactly that window's data, nothing of another test
-point); the state estimator adopted every converged result and nothing else; every node exits
-with 0.
+point); every node exits with 0. (The state estimator adopting results: test_live_system.py.)
+On a machine loaded far beyond its two cores (load 17-25 while this was written) the identifier
+falls tens of seconds behind, the publishers' history no longer holds what it missed, and test
+points 2 and 3 come out STATUS_INCOMPLETE, as they must; the test then fails on "at least two".
 """
 
 import time
@@ -22,6 +24,7 @@ import time
 from live_helpers import domain_id, require_workspace, RosSession, within_sigma
 import pytest
 
+pytestmark = pytest.mark.slow
 TRUTH = {'A': 0.5, 'AL_over_tau': 0.25, 'inv_tau': 0.125}
 NS = 1_000_000_000
 POINTS = 3
@@ -65,7 +68,6 @@ def three_points(tmp_path_factory):
            'description': load_run_description(description_path)}
     try:
         procs.start('identifier', params_file, {'target_std': [0.02, 0.02, 0.01]})
-        procs.start('state_estimator', params_file)
         procs.start('recorder', params_file, {'output': str(run['bag'])})
         procs.start('stirring_input', params_file)
         start = session.node.create_client(Trigger, '/stirring_input/start')
@@ -73,7 +75,7 @@ def three_points(tmp_path_factory):
         # test point instead, and the rotor holds the last command meanwhile
         restart = not start.wait_for_service(timeout_sec=10.0)
         procs.start('rotor_plant', params_file, {'duration_s': 300.0, 'seed': 11,
-                                                 'wait_for_subscribers': 4,
+                                                 'wait_for_subscribers': 3,
                                                  'wait_for_commands': not restart})
         for k in range(1, POINTS + 1):
             if k > 1 and restart:
@@ -85,11 +87,6 @@ def three_points(tmp_path_factory):
                                       alive=lambda: not procs.dead())
             assert done, (f'no final estimate of test point {k}; exited: {procs.dead()}\n'
                           + procs.log('identifier')[-4000:])
-        converged = sum(watcher.final_estimate(k).status == 1 for k in range(1, POINTS + 1))
-        watcher.spin_until(lambda: any(v.key == 'parameter_updates' and
-                                       v.value == str(converged)
-                                       for s in watcher.diagnostics('state_estimator')
-                                       for v in s.values), 10.0)
     finally:
         run['codes'] = procs.stop_all()
         run['logs'] = {name: procs.log(name) for name in procs.procs}
@@ -149,16 +146,6 @@ def test_offline_identification_of_each_window_agrees(three_points):
         offline = identify(record, replace(description, window_s=window)).as_json()
         for name, value, std in zip(final.names, final.values, final.std):
             assert abs(value - offline['parameters'][name]['value']) < 0.2 * std, (k, name)
-
-
-def test_state_estimator_adopted_every_converged_result(three_points):
-    from rotor_id_msgs.msg import ParameterEstimate
-    values = {v.key: v.value for s in three_points['watcher'].diagnostics('state_estimator')
-              for v in s.values}
-    finals = [three_points['watcher'].final_estimate(k) for k in range(1, POINTS + 1)]
-    converged = [m for m in finals if m.status == ParameterEstimate.STATUS_CONVERGED]
-    assert values.get('parameter_updates') == str(len(converged)), values
-    assert f'A={converged[-1].values[0]:.4g}' in values['parameters']
 
 
 def test_every_node_exits_cleanly(three_points):
