@@ -304,7 +304,8 @@ def starting_values(record, description, model, experiments, known, multi_start=
 
 
 def identify(record, description, method=None, progress=None, window_s=None,
-             multi_start=True, max_iter=50, filter_bounds='marginal', step_tol=None):
+             multi_start=True, max_iter=50, filter_bounds='marginal', step_tol=None,
+             check_adequacy=True):
     """
     Identify the run description's unknowns from a record.
 
@@ -331,6 +332,9 @@ def identify(record, description, method=None, progress=None, window_s=None,
     step_tol : float, optional
         Output error only: converged when every step is below this many Cramér-Rao σ
         (default: :func:`~rotor_id.estimation.output_error.fit_output_error`'s 1e-6).
+    check_adequacy : bool
+        Test the residuals (:mod:`rotor_id.adequacy`, a few ms to tens of ms). Only a caller
+        that fits the same data again at once (a live growing window) may skip it.
 
     Returns
     -------
@@ -363,7 +367,8 @@ def identify(record, description, method=None, progress=None, window_s=None,
                           defaults_used=defaults, notes=notes,
                           adequacy=adequacy_check.check(
                               estimate, experiments,
-                              [(part.blade_flap, part.time_s)] * len(experiments)))
+                              [(part.blade_flap, part.time_s)] * len(experiments))
+                          if check_adequacy else None)
 
 
 def _fit_guarded(method, experiments, unknowns, guess, known, description, model, progress,
