@@ -213,6 +213,19 @@ def _known_values(description, model, record):
     return {**given_values(description, model), **defaults}, defaults, sources
 
 
+def defaults_for(record, description, window_s=None):
+    """
+    Return the defaults (name -> value, name -> source) an identification of ``record`` takes.
+
+    The same values :func:`identify` fits with (θ0 from the mean pitch over the window ± one
+    revolution), for commands that report them without running identify themselves (diagnose).
+    """
+    window_s = tuple(window_s or description.window_s)
+    model = model_for(description)
+    _, defaults, sources = _known_values(description, model, _near_window(record, window_s))
+    return defaults, sources
+
+
 def check_values(description, model, values, what):
     """
     Check parameter values against the model's physical ranges before any fitting.

@@ -14,6 +14,7 @@ import json
 from pathlib import Path
 import sys
 
+from rotor_id import pipeline
 from rotor_id.commands.common import check_output_paths, print_warnings
 from rotor_id.commands.identify import load_inputs
 from rotor_id.diagnosis.catalogue import EFFECTS
@@ -109,6 +110,8 @@ def run(args):
     check_output_paths(json=args.json_out, report_dir=args.report)
     description, record = load_inputs(args.bag, args.config)
     print_warnings(list(description.warnings) + list(record.warnings))
+    defaults, sources = pipeline.defaults_for(record, description)
+    print_warnings(w for w in [pipeline.defaults_warning(defaults, sources)] if w)
 
     def progress(text):
         print(f'  {text}', file=sys.stderr, flush=True)
@@ -119,6 +122,7 @@ def run(args):
     print(format_summary(result))
     data = result.as_json()
     data['bag'] = str(args.bag)
+    data['defaults_used'] = {k: float(v) for k, v in defaults.items()}
     if args.json_out:
         Path(args.json_out).parent.mkdir(parents=True, exist_ok=True)
         Path(args.json_out).write_text(json.dumps(data, indent=1, default=float))

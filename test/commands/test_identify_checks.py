@@ -152,6 +152,18 @@ def test_parameter_neither_identified_nor_known_is_named(point, tmp_path, capsys
     assert rc == 0 and json.loads(out.read_text())['defaults_used'] == {}
 
 
+def test_diagnose_names_the_same_defaults(point, tmp_path, capsys):
+    bag, config = point
+    partial = _edit(config, tmp_path, unknowns=['AL_over_tau', 'inv_tau'],
+                    initial_guess={'AL_over_tau': 0.25, 'inv_tau': 0.125})
+    out = tmp_path / 'd.json'
+    rc, _, err = _run(['diagnose', str(bag), '--config', str(partial), '--json', str(out),
+                       '--quiet', '--workers', '1', '--effects', 'sensor_bias'], capsys)
+    assert rc == 0, err
+    assert json.loads(out.read_text())['defaults_used'] == {'A': 0.5}
+    assert len([line for line in err if 'A = 0.5' in line]) == 1
+
+
 def test_measured_collective_is_a_named_default(point):
     """θ0 taken from the mean measured pitch is a default too (multiblade model, γ unknown)."""
     from rotor_id.io.bag import read_record
