@@ -59,7 +59,8 @@ SOURCES = {
     'truth:dynamic_inflow': ('truth', 'dynamic_inflow', True, 'output-error'),
     'truth:periodic_coefficients': ('truth', 'periodic_coefficients', True, 'output-error'),
     'truth:blade_lock_number': ('truth', 'blade_lock_number', True, 'output-error'),
-    'truth:flap_frequency': ('truth', 'flap_frequency', True, 'output-error'),
+    # the generator's run description now states the true flap frequency (1.22): no misfit
+    'truth:flap_frequency': ('truth', 'flap_frequency', False, 'output-error'),
 }
 #: at most this many seeds for the slow sources (filter error takes ~30 s a fit under load,
 #: the truth integrator with turbulence ~150 s a record)
@@ -140,8 +141,8 @@ def clopper_pearson(k, n, level=0.95):
     return lo, hi
 
 
-def summarize(runs):
-    """Markdown table of the rates per source."""
+def summarize(runs, machine=None):
+    """Markdown table of the rates per source (``machine``: the run's machine section)."""
     from bench.common import machine_markdown
     by = {}
     for r in runs:
@@ -165,7 +166,7 @@ def summarize(runs):
         lo, hi = clopper_pearson(clean_k, clean_n)
         lines += ['', f'All effect-free fits: {clean_k} of {clean_n} flagged, '
                       f'{clean_k / clean_n:.2%} (95 % interval {lo:.2%}-{hi:.2%}); target ≤ 5 %.']
-    lines += ['', machine_markdown()]
+    lines += ['', machine or machine_markdown()]
     return '\n'.join(lines) + '\n'
 
 
@@ -180,7 +181,21 @@ def main(argv=None):
     parser.add_argument('--sources', nargs='*', default=list(SOURCES))
     parser.add_argument('--workers', type=int, default=2)
     parser.add_argument('--out', default=str(RESULTS / 'adequacy'))
+    parser.add_argument('--rewrite', action='store_true',
+                        help='only rewrite the table from the JSON of an earlier run')
     args = parser.parse_args(argv)
+    if args.rewrite:
+        out = Path(args.out)
+        runs = json.loads(out.with_suffix('.json').read_text())
+        for run in runs:          # labels as SOURCES has them now
+            if run['source'] in SOURCES:
+                run['effect'] = SOURCES[run['source']][2]
+        text = out.with_suffix('.md').read_text()
+        head = text.split('Family-wise level')[0]
+        machine = '* date' + text.split('\n* date', 1)[1].rstrip('\n')
+        out.with_suffix('.md').write_text(head + summarize(runs, machine))
+        print(out.with_suffix('.md').read_text())
+        return 0
     unknown = [s for s in args.sources if s not in SOURCES]
     if unknown:
         parser.error(f'unknown source(s) {unknown}; choose from {list(SOURCES)}')

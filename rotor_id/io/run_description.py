@@ -746,12 +746,23 @@ def check_against_record(description, record):
 
     """
     blades = description.rotor.blades
+    line = description.lines.get(('rotor', 'blades'))
+    where = f'{description.path}:{line}' if line else description.path
+    topic = description.topics['blade_flap']
+    in_bag = getattr(record, 'bag_blade_count', None)       # every joint the bag carries
     if record.n_blades != blades:
-        line = description.lines.get(('rotor', 'blades'))
-        where = f'{description.path}:{line}' if line else description.path
         seen = ', '.join(record.blade_names)
         raise RunDescriptionError(
-            f'{where}: rotor.blades = {blades}, but {description.topics["blade_flap"]} carries '
-            f'{record.n_blades} blade joints ({seen}); set rotor.blades: {record.n_blades}, '
-            'or name the joints of your blades in joint_names', description.path, line)
+            f'{where}: rotor.blades = {blades}, but {topic} carries {record.n_blades} blade '
+            f'joints ({seen}); set rotor.blades: {record.n_blades}, or name the joints of your '
+            'blades in joint_names', description.path, line)
+    if in_bag is not None and in_bag != blades:
+        seen = ', '.join(record.flap_joints)
+        message = (f'{where}: rotor.blades = {blades}, but {topic} carries {in_bag} joints '
+                   f'({seen})')
+        if description.joint_names is None:
+            raise RunDescriptionError(f'{message}; set rotor.blades: {in_bag}',
+                                      description.path, line)
+        record.warnings.append(f'{message}; joint_names selects {blades} of them: check that '
+                               'the others are not blades')
     validate_window(description, record)

@@ -85,6 +85,23 @@ def test_blade_count_against_the_joints_in_the_bag(point, tmp_path, capsys):
     assert 'rotor.blades = 3' in line
 
 
+def test_three_of_four_joints_selected_is_said(point, tmp_path, capsys):
+    """joint_names picking 3 of the 4 joints in the bag: allowed, with a warning that says so."""
+    bag, config = point
+    data = yaml.safe_load(config.read_text())
+    data['rotor']['blades'] = 3
+    data['model'] = 'multiblade'
+    data['unknowns'] = ['gamma', 'theta0']
+    data.pop('initial_guess')
+    data['joint_names'] = ['blade_1', 'blade_2', 'blade_3']
+    chosen = tmp_path / 'chosen.yaml'
+    chosen.write_text(yaml.safe_dump(data, sort_keys=False))
+    from rotor_id.commands.identify import load_inputs
+    description, record = load_inputs(bag, chosen)
+    said = [w for w in record.warnings if 'joint_names selects 3' in w]
+    assert len(said) == 1 and '4 joints' in said[0] and 'rotor.blades = 3' in said[0]
+
+
 def test_four_blade_description_of_a_three_blade_recording(point, tmp_path, capsys):
     n = 400
     time_s = np.arange(n) / 1000.0
