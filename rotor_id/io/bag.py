@@ -210,6 +210,26 @@ def _read_raw(open_path, storage, storage_file, wanted, omega_rad_s):
     return raw
 
 
+#: rosbag2 receive times are signed 64-bit nanoseconds; a larger one is a damaged record.
+_LAST_RECEIVE_NS = 2**63 - 1
+
+
+def _drop_impossible_receive_times(raw, storage_file):
+    """Drop messages whose receive time cannot be a time (damaged records), with a note."""
+    for topic, times in raw.log_ns.items():
+        if isinstance(times, np.ndarray):
+            continue                # read from an index as int64: in range by construction
+        bad = [k for k, ns in enumerate(times) if not 0 <= ns <= _LAST_RECEIVE_NS]
+        if not bad:
+            continue
+        keep = sorted(set(range(len(times))) - set(bad))
+        raw.log_ns[topic] = [times[k] for k in keep]
+        raw.data[topic] = [raw.data[topic][k] for k in keep]
+        raw.notes.append(
+            f'{storage_file}: {len(bad)} message(s) on {topic} carry a receive time outside '
+            f'the 64-bit range (first at message {bad[0]}): damaged records, dropped')
+
+
 def _recover_mcap(storage_file, wanted, error, omega_rad_s):
     """Read what a damaged MCAP still holds (see :mod:`rotor_id.io.mcap_recover`)."""
     try:
@@ -626,6 +646,7 @@ def read_record(bag_path, topics=None, joint_names=None, *, n_blades=None, omega
     if raw is None:
         raw = _read_raw(open_path, storage, storage_file, wanted, omega_rad_s)
         _decompress_messages(raw)
+    _drop_impossible_receive_times(raw, storage_file)
     ctx = _Context(raw=raw, issues=list(raw.notes), run=run,
                    publishers=facts.get('publishers', {}), origin_ns=origin_ns)
     for topic, expected in ({} if origin_ns is not None else counts).items():
