@@ -45,6 +45,9 @@ CONFIDENCE_GAP = 10.0
 MAX_VALIDATED = 3
 #: Most effects named together.
 MAX_EFFECTS = 3
+#: Rig physics added to the catalogue after the others (issue 16); each has a first-order
+#: equivalent among them (:data:`rotor_id.diagnosis.catalogue.EQUIVALENT`).
+RIG_EFFECTS = ('pitch_flap_coupling', 'pitch_actuator_lag')
 #: A score test's LM may underpredict the full fit's 2Δlog L where the effect is not small;
 #: screening credits the fit with this multiple of LM before ruling it out.
 SCREEN_SAFETY = 2.0
@@ -619,6 +622,37 @@ def _say_t(ctx, text):
     _say(ctx['progress'], f'{text} ({time.perf_counter() - ctx["t_start"]:.1f} s)')
 
 
+def _residuals_are_noise(fit, ctx):
+    """Return whether a fit leaves white residuals at the floor with a mean within noise."""
+    if not _adequate(fit, ctx['floors'], ctx['u'], ctx['t']):
+        return False
+    res = _residual_matrix(fit.estimate)
+    for j, floor in enumerate(ctx['floors']):
+        n_eff = res.shape[0] * rs.effective_fraction(res[:, j])
+        if abs(float(np.mean(res[:, j]))) > 3.0 * floor / math.sqrt(n_eff):
+            return False
+    return True
+
+
+def _prefer_established(near):
+    """
+    Drop rig effects from near-tied candidates that tie with their first-order equivalent.
+
+    A pitch actuator lag and a sensor lag (or δ3 and a flap-frequency change) fit alike at
+    these sizes; the effect that is the same physics and was in the catalogue first is named,
+    and the note names both.
+    """
+    names = {t[2].effect if isinstance(t, tuple) else t['effect'] for t in near}
+    keep = []
+    for t in near:
+        effect = t[2].effect if isinstance(t, tuple) else t['effect']
+        if effect in RIG_EFFECTS and any(e in names for e in EQUIVALENT.get(effect, ())
+                                         if e not in RIG_EFFECTS):
+            continue
+        keep.append(t)
+    return keep or near
+
+
 def _candidate_jobs(current, kept, ctx):
     """Jobs of every effect that can still be added to the kept ones (screened first)."""
     est = current.estimate
@@ -692,7 +726,8 @@ def _forward_step(current, cur_val, kept, ctx):
     if not ok:
         return None
     best = ok[0]
-    near = [c for c in ok if best[0] - c[0] <= CONFIDENCE_GAP]
+    near = _prefer_established([c for c in ok if best[0] - c[0] <= CONFIDENCE_GAP])
+    best = near[0]
     if len(near) > 1:
         best = min(near, key=lambda c: vals[c[2].effect])
     crit, dll, fit = best
@@ -723,9 +758,9 @@ def _forward_selection(first, steps, ctx):
     """
     current, kept, dropped = first, [(first.effect, first.variant)], []
     cur_val = steps[0]['validation_rms']
-    # not stopped by white residuals at the floor alone: the whiteness test removes the mean,
-    # so a small sensor offset on top of an explained effect would pass it unseen
-    while len(kept) < MAX_EFFECTS:
+    # stopped when the residuals are noise: white, at the floor and with no mean (the
+    # whiteness test removes the mean, so a small sensor offset would pass it unseen)
+    while len(kept) < MAX_EFFECTS and not _residuals_are_noise(current, ctx):
         found = _forward_step(current, cur_val, kept, ctx)
         if found is None:
             break
@@ -795,7 +830,9 @@ def _choose(eligible):
     deterministic = [t for t in eligible if t['effect'] != 'process_noise' and t['adequate']]
     pool = deterministic or eligible
     best = pool[0]
-    near = [t for t in pool if best['criterion'] - t['criterion'] <= CONFIDENCE_GAP]
+    near = _prefer_established([t for t in pool
+                                if best['criterion'] - t['criterion'] <= CONFIDENCE_GAP])
+    best = near[0]
     if len(near) > 1 and all(t['validation_rms'] is not None for t in near):
         best = min(near, key=lambda t: t['validation_rms'])
     passed_over = bool(deterministic) and any(
