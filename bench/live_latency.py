@@ -205,7 +205,8 @@ def offline_fits(result, repeat=7):
     for final in result['finals']:
         shift = (_ns(final.test_point_start) - record.stamp0_ns) / NS
         window = (final.window_requested_start_s + shift, final.window_requested_end_s + shift)
-        warm = replace(description, initial_guess=dict(zip(final.names, final.values)))
+        warm = replace(description, initial_guess={**description.initial_guess,
+                                                   **dict(zip(final.names, final.values))})
         times = {'cold': [], 'warm': []}
         for _ in range(repeat):                      # interleaved
             for key, desc, tol in (('cold', description, None), ('warm', warm, 1e-3)):
@@ -214,8 +215,8 @@ def offline_fits(result, repeat=7):
                 times[key].append(((time.perf_counter() - clock) * 1e3,
                                    (time.thread_time() - cpu) * 1e3))
         est = ident.estimate
-        z = max(abs(v - est.values[est.names.index(n)]) / s
-                for n, v, s in zip(final.names, final.values, final.std))
+        z = max((abs(v - est.values[est.names.index(n)]) / s
+                 for n, v, s in zip(final.names, final.values, final.std)), default=np.nan)
         rows.append({'test_point': final.test_point, 'status': final.status,
                      'cold_ms': np.median([t[0] for t in times['cold']]),
                      'cold_cpu_ms': np.median([t[1] for t in times['cold']]),
