@@ -149,7 +149,7 @@ class Identifier(Node):
         self.taken = 0                    # sensor samples accepted (all three topics)
         self.busy = False                 # the worker is fitting
         self.worker_times = (float('nan'), float('nan'))   # its CPU and CPU-wait s, at exit
-        self.provisional_published = 0
+        self.provisional_points = set()   # test points with a growing-window estimate out
         self.guess = {}                   # warm start: the latest sane iterate of a window fit
         self.bounds = None                # (lower, upper) of each unknown, for that check
         self.last_fit_s = float('nan')
@@ -185,6 +185,7 @@ class Identifier(Node):
         self.create_timer(0.05, self.schedule)        # also checked on every azimuth sample
         self.fitter = FitProcess() if self.d['fit_process'] else None
         self.running_kind = None          # kind of the fit in progress (None: idle)
+        self.running_point = None         # and its test point
         self.running = True
         self.worker = threading.Thread(target=self.work, name='identifier-fit', daemon=True)
         self.worker.start()
@@ -343,13 +344,14 @@ class Identifier(Node):
 
         A newer request replaces the provisional ones still waiting, and a final one (or a
         service call) also stops a provisional fit in progress after its current iteration.
-        Until a growing-window estimate was published, a final request leaves the waiting one
-        in place (it stops after its first iteration and is published), so that one always
-        precedes the final estimate, however late the worker thread gets a CPU.
+        Until a growing-window estimate of its test point was published, a final request
+        leaves the waiting one in place (it stops after its first iteration and is published),
+        so that one always precedes each test point's final estimate, however late the worker
+        thread gets a CPU.
         """
         final = kind != ParameterEstimate.KIND_PROVISIONAL
         with self.wake:
-            keep = final and not self.provisional_published
+            keep = final and request.test_point not in self.provisional_points
             self.requests = [r for r in self.requests
                              if r[1] != ParameterEstimate.KIND_PROVISIONAL or keep]
             self.requests.append((request, kind, self.arrival or time.monotonic(), future))
@@ -360,7 +362,8 @@ class Identifier(Node):
     def _give_way(self):
         """Stop (or abandon) a growing-window fit in the fit process: a final fit waits."""
         if self.fitter is not None and self.running_kind == ParameterEstimate.KIND_PROVISIONAL:
-            (self.fitter.abandon if self.provisional_published else self.fitter.stop)()
+            (self.fitter.abandon if self.running_point in self.provisional_points
+             else self.fitter.stop)()
 
     def work(self):
         """Worker thread: run the queued fits in order, publish them (or answer the service)."""
@@ -372,6 +375,7 @@ class Identifier(Node):
                     break
                 request, kind, requested, future = self.requests.pop(0)
                 self.busy, self.running_kind = True, kind
+                self.running_point = request.test_point
             try:
                 self._run(request, kind, requested, future)
             finally:
@@ -400,7 +404,9 @@ class Identifier(Node):
         self.pub_estimate.publish(msg)
         done = time.monotonic()
         cpu1, waiting1 = thread_times()
-        self.provisional_published += kind == ParameterEstimate.KIND_PROVISIONAL
+        if kind == ParameterEstimate.KIND_PROVISIONAL:
+            self.provisional_points = {n for n in self.provisional_points
+                                       if n > request.test_point - 16} | {request.test_point}
         # latency: newest sample of the window taken -> its estimate published
         self.latencies_ms.append((done - requested) * 1e3)
         cpu, waiting = (cpu1 - cpu0) * 1e3, (waiting1 - waiting0) * 1e3
@@ -500,7 +506,7 @@ class Identifier(Node):
             if not final and self._final_waiting():
                 if self.fitter is not None:
                     self._give_way()
-                elif self.provisional_published:
+                elif request.test_point in self.provisional_points:
                     raise Abandoned
                 else:
                     return STOP           # the first growing-window estimate: publish it now
@@ -534,7 +540,8 @@ class Identifier(Node):
         clock = time.perf_counter()
         if remember:
             self._remember(est.names, est.values)
-        if not final and self._final_waiting() and self.provisional_published:
+        if (not final and self._final_waiting()
+                and request.test_point in self.provisional_points):
             return None                   # the final fit is waiting: give way to it now
         result = outcome(check, True, est.converged)
         if result == 'incomplete':
