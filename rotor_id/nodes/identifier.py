@@ -105,11 +105,13 @@ class Identifier(Node):
             ('fit_process', True, 'fit in a separate process, so that a fit never waits for '
              "the interpreter lock behind the subscriptions (false: in a thread of the node's "
              'process)'),
-            ('sensor_reliability', 'reliable', 'QoS reliability of the sensor subscriptions: '
-             "'reliable' (what a publisher still holds is re-sent, so a node that falls behind "
-             'loses no sample; the publisher must offer reliable, as rotor_plant does) or '
-             "'best_effort' (matches any publisher; a starved node loses samples, and the "
-             'window says so)'),
+            # best effort by default: it receives from every publisher, while a reliable
+            # subscription receives nothing from a best-effort (sensor-data QoS) publisher
+            ('sensor_reliability', 'best_effort', 'QoS reliability of the sensor '
+             "subscriptions: 'best_effort' (matches any publisher; a starved node loses "
+             "samples, and the window says so) or 'reliable' (what a publisher still holds is "
+             're-sent, so a node that falls behind loses no sample; every publisher must offer '
+             'reliable, as rotor_plant does)'),
             ('sensor_queue_depth', 10000, 'samples each sensor subscription queues while the '
              'node is busy (10 s at 1 kHz); older ones are lost, and the window says so',
              1, 1000000),

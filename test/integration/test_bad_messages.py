@@ -52,7 +52,7 @@ def bad_run(tmp_path_factory):
     """Bad messages first, then a normal run; return what happened."""
     require_workspace()
     from rotor_id.commands.demo import case_files
-    from rotor_id.nodes.common import joint_state, SENSOR_OFFER_QOS, SENSOR_QOS
+    from rotor_id.nodes.common import joint_state, SENSOR_QOS
     from rotor_id.nodes.processes import isolated_env, NodeProcesses
     from rotor_id.nodes.watch import RunWatcher
     from sensor_msgs.msg import JointState
@@ -66,14 +66,14 @@ def bad_run(tmp_path_factory):
     procs = NodeProcesses(isolated_env(domain, tmp / 'ros_log'), tmp / 'logs')
     run = {'watcher': watcher}
     try:
-        procs.start('identifier', params_file)
+        # best effort, the default: the bad messages come from sensor-data (best-effort)
+        # publishers, as a rig's drivers publish them
+        procs.start('identifier', params_file, {'sensor_reliability': 'best_effort'})
         procs.start('state_estimator', params_file)
         procs.start('stirring_input', params_file)
         # the rotor starts only when this test subscribes to the azimuth (4th subscriber)
         procs.start('rotor_plant', params_file, {'duration_s': 0.99, 'wait_for_subscribers': 4})
-        # offered reliable, as the plant does: the identifier's sensor subscriptions are
-        # reliable by default and would not match a best-effort publisher
-        pubs = {topic: node.create_publisher(JointState, topic, SENSOR_OFFER_QOS)
+        pubs = {topic: node.create_publisher(JointState, topic, SENSOR_QOS)
                 for topic in READERS}
         ready = watcher.spin_until(lambda: all(
             pubs[t].get_subscription_count() >= len(r) for t, r in READERS.items()), 60.0,

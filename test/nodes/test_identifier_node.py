@@ -44,6 +44,8 @@ def run():
     params = [Parameter('run_description', value='demo_wake.yaml'),
               Parameter('auto_start', value='none'), Parameter('sensor_queue_depth', value=100),
               Parameter('update_every_rad', value=0.0),
+              # the test publishes bursts faster than it spins: reliable, so none is lost
+              Parameter('sensor_reliability', value='reliable'),
               # fits in the node's thread here (no child process to start); the multi-process
               # tests run the default, a separate fit process
               Parameter('fit_process', value=False)]
