@@ -29,8 +29,6 @@ COMMANDS = {
              'predict the accuracy of candidate stirring transients before a run'),
     'reproduce-report': ('rotor_id.commands.reproduce_report',
                          "run the report's cases and print our numbers beside the report's"),
-    'simulate': ('rotor_id.commands.simulate',
-                 'write a simulated test-stand bag (the built-in rotor) for a run description'),
 }
 
 
