@@ -303,7 +303,7 @@ def interleaved_streams(stamps_ns, values):
     # streams; its (−1)^i block mean is N(0, 3.5σ²/B) for one stream of white noise.
     signs = np.where(np.arange(BLOCK) % 2 == 0, 1.0, -1.0)
     means = np.einsum('kbm,b->km', -0.5 * curvature, signs) / BLOCK
-    z2 = means ** 2 / (noise ** 2 * 3.5 / BLOCK)
+    z2 = (means / noise) ** 2 * (BLOCK / 3.5)      # noise >= tiny: squaring it would underflow
     median_z2 = np.median(z2, axis=0)
     offset = np.sqrt(np.median(means ** 2, axis=0))
     by_offset = (median_z2 > OFFSET_MEDIAN_Z2) & (offset > MIN_OFFSET_NOISE_RATIO * noise)
