@@ -2,7 +2,7 @@
 Test planning: the accuracy candidate stirring transients can reach, before the run (issue 8).
 
 For each candidate transient the planned run is simulated with the library's one simulator in
-the test-stand convention (shared/recordings/README.md): the rotor in trim at collective pitch,
+the test-stand convention (docs/run_description.md): the rotor in trim at collective pitch,
 the lateral cyclic stepped on one revolution after the record starts (t = 2π), pitch stirring
 ``t0`` later, and the identification window from the stirring start for ``duration_rev``
 revolutions. The noise-free record goes through the same path as ``rotor-id identify``

@@ -25,7 +25,7 @@ def add_arguments(parser):
     """Arguments of ``rotor-id diagnose``."""
     parser.add_argument('bag', help='rosbag2 directory (or its .mcap/.db3 file)')
     parser.add_argument('--config', required=True,
-                        help='run description YAML (see shared/recordings/README.md)')
+                        help='run description YAML (see docs/run_description.md)')
     parser.add_argument('--json', dest='json_out', help='write the diagnosis as JSON here')
     parser.add_argument('--report', help='write the figures (fits, residual spectra, residual '
                                          'energy over time) into this directory')

@@ -33,7 +33,7 @@ def add_arguments(parser):
                         'identified together (shared parameters, per-run initial states '
                         'and noise)')
     parser.add_argument('--config', required=True, action='append',
-                        help='run description YAML (see shared/recordings/README.md): one for '
+                        help='run description YAML (see docs/run_description.md): one for '
                         'all bags, or one per bag in the same order')
     parser.add_argument('--json', dest='json_out', help='write the result as JSON here')
     parser.add_argument('--figure', help='write measured vs fitted flapping (PNG) here')
