@@ -97,6 +97,7 @@ class Adequacy:
     residuals: str                  # 'output error' | 'innovations'
     location: dict = None           # channels, tests, band_per_rev, window_s of the misfit
     note: str = ''
+    timing: dict = None             # :func:`timing_sensitivity` (output and equation error)
 
     @property
     def per_test_alpha(self):
@@ -120,7 +121,7 @@ class Adequacy:
                 'per_test_alpha': limit, 'n_tests': len(self.tests),
                 'residuals': self.residuals,
                 'tests': [t.as_json(limit) for t in self.tests],
-                'misfit': self.location, 'note': self.note,
+                'misfit': self.location, 'note': self.note, 'timing': self.timing,
                 'suggestion': ('rotor-id diagnose' if self.verdict is Verdict.INADEQUATE
                                else None)}
 
@@ -166,21 +167,22 @@ def channel_matrix(model, t, n_blades):
     return np.stack(columns, axis=-1)
 
 
-def whiteness_null(estimate, experiments, n_draws=NULL_DRAWS, seed=0):
+@dataclass
+class FittedDirections:
+    """The output sensitivities of every fitted value at the estimate, per run and weighted."""
+
+    names: list                 # the fitted values: unknowns and free initial states
+    sensitivities: list         # per run, ∂ŷ/∂θ of shape (T, m, P)
+    noise_std: list             # per run, σ of each channel (m,)
+    weighted: np.ndarray        # all runs stacked, ∂ŷ/∂θ / σ of shape (Σ T·m, P)
+
+
+def fitted_directions(estimate, experiments):
     """
-    Null distribution of each channel's Ljung-Box Q for the residuals of this very fit.
+    Return the :class:`FittedDirections` of a fit, or None when they cannot be formed.
 
-    Under the model the residual is (I − P) e: the noise e (σ per channel) with the weighted
-    projection P onto the output sensitivities ∂ŷ/∂θ of every fitted value (the unknowns and
-    the free initial states) removed. ``n_draws`` such residuals are drawn, Q computed on each,
-    and a·χ²(b) matched to Q's mean and variance.
-
-    Returns
-    -------
-    list (per run) of list (per channel) of (a, b), or None when the sensitivities cannot be
-    formed (e.g. a filter-error fit's noise parameters are not model parameters: then the
-    unknowns and initial states it shares with output error are used).
-
+    A filter-error fit's noise parameters are not model parameters: then the unknowns and
+    initial states it shares with output error are used.
     """
     from rotor_id.estimation.output_error import _Problem, evaluate
     model = experiments[0].model
@@ -196,13 +198,74 @@ def whiteness_null(estimate, experiments, n_draws=NULL_DRAWS, seed=0):
         return None
     sigmas = (estimate.run_noise_std if getattr(estimate, 'run_noise_std', None)
               else [estimate.noise_std] * len(experiments))
-    blocks = []
-    for dy, sigma in zip(dys, sigmas):
-        sigma = np.broadcast_to(np.asarray(sigma, dtype=float), (dy.shape[1],))
-        blocks.append((dy / sigma[None, :, None]).reshape(-1, dy.shape[-1]))
-    J = np.concatenate(blocks, axis=0)
+    sigmas = [np.broadcast_to(np.asarray(sigma, dtype=float), (dy.shape[1],))
+              for dy, sigma in zip(dys, sigmas)]
+    J = np.concatenate([(dy / sigma[None, :, None]).reshape(-1, dy.shape[-1])
+                        for dy, sigma in zip(dys, sigmas)], axis=0)
     if not np.all(np.isfinite(J)):
         return None
+    return FittedDirections(list(problem.names), dys, sigmas, J)
+
+
+def timing_sensitivity(estimate, experiments, directions, sample_period_s):
+    """
+    How far one sample of flap-sensor delay would move each unknown, in its own σ.
+
+    A sensor read d late measures y(t − d) ≈ y(t) − d·ẏ(t). Over a short window the direction
+    −ẏ lies almost in the span of the fitted directions (a delay is a phase lag, and so is a
+    change of damping or inflow lag), so the fit absorbs the delay into the parameters and its
+    residuals stay white: no residual test can see it. The least-squares projection of −ẏ on
+    the fitted directions gives the shift of every fitted value per unit delay; per sample
+    period and divided by the Cramér-Rao σ it says how much the estimate depends on the
+    sensor timing being right. ``delay_score_z`` is the score (Lagrange-multiplier) test of a
+    common delay, N(0, 1) when there is none: what the residuals do show of it.
+    """
+    unknowns = [n for n in directions.names if n in estimate.names
+                and '(t0)' not in n and n in experiments[0].model.parameter_names]
+    rates = [-np.gradient(np.asarray(fitted, dtype=float), np.asarray(exp.t, dtype=float),
+                          axis=0) / sigma
+             for fitted, exp, sigma in zip(estimate.fitted, experiments, directions.noise_std)]
+    delay = np.concatenate([rate.reshape(-1) for rate in rates])
+    residual = np.concatenate([(np.asarray(res, dtype=float) / sigma).reshape(-1)
+                               for res, sigma in zip(estimate.residuals, directions.noise_std)])
+    J = directions.weighted
+    if delay.size != J.shape[0] or residual.size != J.shape[0]:
+        return None
+    coefficients, *_ = np.linalg.lstsq(J, delay, rcond=None)
+    unseen = delay - J @ coefficients                  # the part of a delay the fit cannot take
+    size = float(np.linalg.norm(unseen))
+    dt = float(np.median(np.diff(experiments[0].t)))   # one sample, nondimensional time
+    shifts = {}
+    for name in unknowns:
+        k = directions.names.index(name)
+        std = float(estimate.std[list(estimate.names).index(name)])
+        if std > 0:
+            shifts[name] = float(coefficients[k] * dt / std)
+    return {'sample_period_s': float(sample_period_s),
+            'shift_sigma_per_sample': shifts,
+            'delay_score_z': float(unseen @ residual / size) if size > 0 else 0.0}
+
+
+def whiteness_null(estimate, experiments, n_draws=NULL_DRAWS, seed=0, directions=None):
+    """
+    Null distribution of each channel's Ljung-Box Q for the residuals of this very fit.
+
+    Under the model the residual is (I − P) e: the noise e (σ per channel) with the weighted
+    projection P onto the output sensitivities ∂ŷ/∂θ of every fitted value (the unknowns and
+    the free initial states) removed. ``n_draws`` such residuals are drawn, Q computed on each,
+    and a·χ²(b) matched to Q's mean and variance.
+
+    Returns
+    -------
+    list (per run) of list (per channel) of (a, b), or None when the sensitivities cannot be
+    formed (e.g. a filter-error fit's noise parameters are not model parameters: then the
+    unknowns and initial states it shares with output error are used).
+
+    """
+    directions = directions or fitted_directions(estimate, experiments)
+    if directions is None:
+        return None
+    dys, J = directions.sensitivities, directions.weighted
     # orthonormal basis of the fitted directions from the small Gram matrix (einsum and a
     # k×k eigh: a threaded SVD of the tall J waits for its threads on a loaded machine)
     gram = np.einsum('ik,il->kl', J, J)
@@ -267,7 +330,12 @@ def check(estimate, experiments, measured, family_alpha=FAMILY_ALPHA):
                              f'{MIN_SAMPLES}; the fit was not checked')
     tests, series = [], {}
     floors_of = {}
-    null = whiteness_null(estimate, experiments)
+    directions = fitted_directions(estimate, experiments)
+    null = whiteness_null(estimate, experiments, directions=directions)
+    timing = None
+    if directions is not None and not innovations:
+        timing = timing_sensitivity(estimate, experiments, directions,
+                                    float(np.median(np.diff(measured[0][1]))))
     for r, exp in enumerate(experiments):
         blade_flap, time_s = measured[r]
         blade_flap = np.asarray(blade_flap, dtype=float)
@@ -316,7 +384,7 @@ def check(estimate, experiments, measured, family_alpha=FAMILY_ALPHA):
                                           float(norm.sf(stats.z_excess)),
                                           {'rms': stats.rms, 'floor': stats.floor,
                                            'excess': stats.excess}))
-    result = Adequacy(Verdict.ADEQUATE, family_alpha, tests, kind)
+    result = Adequacy(Verdict.ADEQUATE, family_alpha, tests, kind, timing=timing)
     failed = result.failed
     if not failed:
         return result

@@ -100,6 +100,14 @@ def format_table(result):
     if 'runs' in data:
         noise += ' (pooled over the runs)'
     lines.append(f'noise σ (rad): {noise}')
+    timing = (data.get('adequacy') or {}).get('timing')
+    if timing and timing['shift_sigma_per_sample']:
+        shifts = ', '.join(f'{n} {v:+.1f}σ' for n, v in timing['shift_sigma_per_sample'].items())
+        lines.append(f'timing: a flap-sensor delay of one sample '
+                     f'({timing["sample_period_s"] * 1e3:.3g} ms) would move {shifts} and '
+                     'leave the residuals nearly white (delay score here z = '
+                     f'{timing["delay_score_z"]:+.1f}); these bounds assume sensors read on '
+                     'time')
     return '\n'.join(lines)
 
 
