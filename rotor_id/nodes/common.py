@@ -487,7 +487,7 @@ def spin_node(node_factory, args=None, executor_factory=None, after_stop=None,
     stop = []
     for signum in (signal.SIGINT, signal.SIGTERM):
         signal.signal(signum, lambda number, _frame: stop.append(number))
-    node = None
+    node = executor = None
     code = 0
     try:
         try:
@@ -515,5 +515,10 @@ def spin_node(node_factory, args=None, executor_factory=None, after_stop=None,
             if close is not None:
                 close()
             node.destroy_node()
+        if executor is not None:
+            # shut down here, while the context lives: an executor left to the garbage
+            # collector after rclpy's shutdown prints a traceback from its __del__
+            executor.shutdown(timeout_sec=1.0)
+            del executor
         rclpy.try_shutdown()
     return code
