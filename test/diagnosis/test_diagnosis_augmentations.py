@@ -61,25 +61,30 @@ def _away_from_neutral(model):
     return p
 
 
+def check_sensitivities(model, inputs, rng):
+    """Analytic sensitivities of ``model`` equal central finite differences (1e-5 relative)."""
+    p = _away_from_neutral(model)
+    x0 = 0.01 * rng.standard_normal(model.n_states)
+    idx = list(range(len(p)))
+    sim = simulate(model, p, inputs, T, x0, param_index=idx)
+    for i in idx:
+        h = 1e-6 * max(1.0, abs(p[i]))
+        up, down = p.copy(), p.copy()
+        up[i] += h
+        down[i] -= h
+        fd = (simulate(model, up, inputs, T, x0).y
+              - simulate(model, down, inputs, T, x0).y) / (2 * h)
+        scale = np.max(np.abs(fd)) + 1e-12
+        assert np.max(np.abs(fd - sim.dy[:, :, i])) / scale < 1e-5, \
+            (model.name, model.parameter_names[i])
+
+
 @pytest.mark.parametrize('name,mu', BASES)
 def test_sensitivities_equal_finite_differences(name, mu):
     rng = np.random.default_rng(3)
     inputs = _inputs()
     for model in _augmented(_base(name, mu)):
-        p = _away_from_neutral(model)
-        x0 = 0.01 * rng.standard_normal(model.n_states)
-        idx = list(range(len(p)))
-        sim = simulate(model, p, inputs, T, x0, param_index=idx)
-        for i in idx:
-            h = 1e-6 * max(1.0, abs(p[i]))
-            up, down = p.copy(), p.copy()
-            up[i] += h
-            down[i] -= h
-            fd = (simulate(model, up, inputs, T, x0).y
-                  - simulate(model, down, inputs, T, x0).y) / (2 * h)
-            scale = np.max(np.abs(fd)) + 1e-12
-            assert np.max(np.abs(fd - sim.dy[:, :, i])) / scale < 1e-5, \
-                (model.name, model.parameter_names[i])
+        check_sensitivities(model, inputs, rng)
 
 
 @pytest.mark.parametrize('name,mu', BASES)
@@ -173,20 +178,7 @@ def test_stacked_effects_have_exact_sensitivities_and_nest(name, mu):
     rng = np.random.default_rng(4)
     base = _base(name, mu)
     for model, inputs in _stacked(base):
-        p = _away_from_neutral(model)
-        x0 = 0.01 * rng.standard_normal(model.n_states)
-        idx = list(range(len(p)))
-        sim = simulate(model, p, inputs, T, x0, param_index=idx)
-        for i in idx:
-            h = 1e-6 * max(1.0, abs(p[i]))
-            up, down = p.copy(), p.copy()
-            up[i] += h
-            down[i] -= h
-            fd = (simulate(model, up, inputs, T, x0).y
-                  - simulate(model, down, inputs, T, x0).y) / (2 * h)
-            scale = np.max(np.abs(fd)) + 1e-12
-            assert np.max(np.abs(fd - sim.dy[:, :, i])) / scale < 1e-5, \
-                (model.name, model.parameter_names[i])
+        check_sensitivities(model, inputs, rng)
     inner = aug.TimeDelay(base)
     outer = aug.SensorBias(inner, T)
     inputs = ExtendedInput(SCHEDULE, T, 0.01 * np.column_stack(
