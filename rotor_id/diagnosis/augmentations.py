@@ -388,6 +388,12 @@ class TimeDelay(Augmented):
         return dF, dg
 
 
+def observable_basis(gram):
+    """Orthonormal directions of a Gram matrix the record can see (eigenvalues above 1e-8)."""
+    vals, vecs = np.linalg.eigh(gram)
+    return vecs[:, vals > 1e-8 * max(vals.max(), 1e-300)]
+
+
 class SensorBias(Augmented):
     """
     Constant flap-sensor offsets b_k per blade: y = H x + C(t) b.
@@ -408,9 +414,7 @@ class SensorBias(Augmented):
             ones = np.ones((N, 1)) / math.sqrt(N)
             proj = np.eye(N) - ones @ ones.T
             gram = proj @ gram @ proj
-        vals, vecs = np.linalg.eigh(gram)
-        keep = vals > 1e-8 * max(vals.max(), 1e-300)
-        self.basis = vecs[:, keep]
+        self.basis = observable_basis(gram)
         self.extra_parameters = tuple(
             Parameter(f'bias_pattern_{i + 1}', f'c{i + 1}', 'rad', 0.0, -0.5, 0.5,
                       'flap-sensor bias along an observable pattern')
@@ -969,9 +973,7 @@ class SensorGain(Augmented):
         C = view.channels(self._t)
         patterns = C * self._flap[:, None, :]
         gram = np.einsum('tmi,tmj->ij', patterns, patterns)
-        vals, vecs = np.linalg.eigh(gram)
-        keep = vals > 1e-8 * max(vals.max(), 1e-300)
-        self.basis = vecs[:, keep]
+        self.basis = observable_basis(gram)
         self.extra_parameters = tuple(
             Parameter(f'gain_pattern_{i + 1}', f's{i + 1}', '-', 0.0, -0.5, 0.5,
                       'flap-sensor scale error along an observable pattern')
