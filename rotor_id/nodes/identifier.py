@@ -12,7 +12,9 @@ docs/run_description.md), as for every node and ``rotor-id identify``.
   flap sample; the answer names the test point) or, with ``auto_start: excitation``, when a
   stirring schedule starts (rotor_id_msgs/StirringCommand PHASE_TRIM after any other phase:
   from that command's stamp). ``~/abort`` (Trigger) aborts the test point in progress.
-  ``window_s`` of the run description counts from the test point's first flap sample.
+  ``window_s`` (the run description's unless the parameter is given) counts from the test
+  point's first flap sample; set at run time (``ros2 param set``), it applies from the next test
+  point armed: a window in progress is never changed (the answer and /diagnostics say so).
 * While its window fills, growing-window fits every ``update_every_rad`` of azimuth and back to
   back in its last ``refit_tail_rad`` (KIND_PROVISIONAL, STATUS_ITERATING); once every stream
   covers the window, the final fit (KIND_FINAL: CONVERGED / MAX_ITERATIONS / FAILED) starting
@@ -50,7 +52,8 @@ from rotor_id.nodes.common import (allow_runtime_changes, declare, Diagnostics,
 from rotor_id.nodes.fit_process import (Abandoned, fit_window, FitOptions, FitProcess,
                                         thread_times)
 from rotor_id.nodes.live import BadSample, check_joint_sample
-from rotor_id.nodes.test_points import FitSchedule, outcome, Phase, TestPointSequence
+from rotor_id.nodes.test_points import (FitSchedule, outcome, Phase, sampling_period_ns,
+                                        TestPointSequence, window_bounds)
 from rotor_id.pipeline import model_for
 from rotor_id_msgs.msg import IdentificationProgress, ParameterEstimate, StirringCommand
 from rotor_id_msgs.srv import Identify
@@ -116,6 +119,10 @@ class Identifier(Node):
              'node is busy (10 s at 1 kHz); older ones are lost, and the window says so',
              1, 1000000),
             ('frame_id', 'rotor', 'header.frame_id of the published messages'),
+            ('max_window_s', 60.0, 'longest window_s (end - start) the buffers are sized for '
+             '(s; window_s is refused beyond it)', 0.01, 3600.0),
+            ('min_window_samples', 50, 'fewest flap samples a window_s must span at the '
+             'measured sample rate (shorter windows are refused)', 3, 10_000_000),
         ]
         # settable at run time (checked; used by the next fit): targets and fit tolerances
         tunable = ('target_std', 'max_iter', 'step_tol', 'max_iter_provisional')
@@ -124,18 +131,21 @@ class Identifier(Node):
         self.rig = Rig(node_run_description(self.d['run_description']))
         self.description = desc = self.rig.description
         self.unknowns = list(desc.unknowns)
-        reason = self._targets_reason(self.d['target_std'])
-        if reason:
-            raise ValueError(reason)
+        self.d['window_s'] = declare(
+            self, 'window_s', [float(v) for v in desc.window_s],
+            "identification window [start, end], s after a test point's first flap sample "
+            "(default: the run description's); a change applies from the next test point",
+            read_only=False)
+        self.points = None
+        for name, reason in (('target_std', self._targets_reason(self.d['target_std'])),
+                             ('window_s', self._window_reason(self.d['window_s']))):
+            if reason:
+                raise ValueError(f'{name}: {reason}')
         self._set_targets()
-        allow_runtime_changes(
-            self, lambda name, value, _values: (self._targets_reason(value)
-                                                if name == 'target_std' else None),
-            lambda names: self._set_targets() if 'target_std' in names else None)
         n = desc.rotor.blades
         self.flap_joints, self.pitch_joints = self.rig.flap_joints, self.rig.pitch_joints
         self.points = TestPointSequence(
-            n, desc.window_s, self.flap_joints,
+            n, self.d['window_s'], self.flap_joints,
             FitSchedule(self.d['update_every_rad'], self.d['min_window_rad'],
                         self.d['refit_tail_rad']),
             pre_trigger_s=self.d['pre_trigger_s'],
@@ -169,6 +179,8 @@ class Identifier(Node):
                                 depth=self.d['sensor_queue_depth'],
                                 durability=SENSOR_BUFFER_QOS.durability)
         self.diagnostics = Diagnostics(self, 'identification')
+        # after the Diagnostics' own check, so that nothing is applied when that one refuses
+        allow_runtime_changes(self, self._check_parameter, self._apply_parameters)
         for role, callback in (('blade_flap', self.on_flap), ('blade_pitch', self.on_pitch),
                                ('azimuth', self.on_azimuth)):
             self.diagnostics.subscribe(
@@ -192,8 +204,9 @@ class Identifier(Node):
         self.worker = threading.Thread(target=self.work, name='identifier-fit', daemon=True)
         self.worker.start()
         self._report_state()
+        self._report_window()
         self.get_logger().info(f'{desc.model}: identifying {", ".join(self.unknowns)} over '
-                               f'window_s {desc.window_s} of each test point from '
+                               f'window_s {self.points.window_s} of each test point from '
                                f'{desc.topics["blade_flap"]} (auto_start: '
                                f'{self.d["auto_start"]})')
 
@@ -214,6 +227,53 @@ class Identifier(Node):
         if not all(math.isfinite(v) and v >= 0 for v in targets):
             return f'target_std {targets}: every target must be a finite sigma >= 0'
         return None
+
+    def _window_reason(self, window_s):
+        """Why ``window_s`` cannot be used (None: it can), before any test point uses it."""
+        try:
+            t0, t1 = window_bounds(window_s)
+        except ValueError as exc:
+            return str(exc)
+        if t1 - t0 > self.d['max_window_s']:
+            return (f'window_s {t0:g}-{t1:g} s is {t1 - t0:g} s long, more than max_window_s '
+                    f"{self.d['max_window_s']:g} s (the buffers' bound; a read-only parameter "
+                    'set at start)')
+        period_ns = (sampling_period_ns(self.points.flap.stamps)
+                     if self.points is not None else math.nan)
+        samples = (t1 - t0) * NS / period_ns if period_ns > 0 else math.inf
+        if samples < self.d['min_window_samples']:
+            return (f'window_s {t0:g}-{t1:g} s spans {samples:.0f} flap samples at the '
+                    f'measured {NS / period_ns:.0f} Hz, fewer than min_window_samples '
+                    f"{self.d['min_window_samples']}; give a longer window")
+        return None
+
+    def _check_parameter(self, name, value, _values):
+        if name == 'target_std':
+            return self._targets_reason(value)
+        if name == 'window_s':
+            return self._window_reason(value)
+        return None
+
+    def _apply_parameters(self, names):
+        if 'target_std' in names:
+            self._set_targets()
+        if 'window_s' in names:
+            # rclpy answers a successful set without a reason: the log and /diagnostics say
+            # when the new window applies
+            with self.lock:
+                note = self.points.set_window(self.d['window_s'])
+                if self.points.flap.size < 2:
+                    note += (' (no flap sample yet: its length in samples is checked against '
+                             f"min_window_samples {self.d['min_window_samples']} by the fit "
+                             'only)')
+            self.get_logger().info(note)
+            self._report_window(note)
+
+    def _report_window(self, note=''):
+        t0, t1 = self.points.window_s
+        self.diagnostics.set_value('window_s_next', f'{t0:.4f}-{t1:.4f} s')
+        if note:
+            self.diagnostics.set_value('window_s_change', note)
 
     def _set_targets(self):
         targets = list(self.d['target_std'])
@@ -313,7 +373,7 @@ class Identifier(Node):
         msg.model = self.description.model
         if point.stamp0_ns is not None:
             msg.test_point_start = time_msg(point.stamp0_ns)
-        msg.window_requested_start_s, msg.window_requested_end_s = self.description.window_s
+        msg.window_requested_start_s, msg.window_requested_end_s = point.window_s
         self.pub_estimate.publish(msg)
         self.get_logger().warning(msg.message)
 

@@ -16,6 +16,9 @@ growing-window fits are asked for (provisional); once every stream covers the wi
 fit is asked for and the test point is FITTING until the node reports its outcome. The next
 test point can be armed meanwhile: every fit request carries a copy of its own window's data.
 
+``window_s`` may change between test points (:meth:`TestPointSequence.set_window`): each test
+point keeps the window it was armed with, so a change never moves a window in progress.
+
 The buffers keep what a window needs: the window, 1.5 revolutions either side (the fit's
 margin) and ``pre_trigger_s`` for an arming command that arrives after the samples it refers to.
 
@@ -282,6 +285,7 @@ class TestPoint:
 
     number: int
     source: str                      # 'service' | 'excitation' | 'data'
+    window_s: tuple = None           # (start, end) s after stamp0_ns, fixed when armed
     armed_from_ns: int = None        # first flap sample at or after this stamp (None: next)
     phase: Phase = Phase.ARMED
     reason: Reason = Reason.NONE
@@ -312,6 +316,19 @@ class FitRequest:
     record: object                   # rotor_id.io.record.Record (None: could not be formed)
     check: WindowCheck
     error: str = ''                  # why the record could not be formed
+
+
+def window_bounds(window_s):
+    """(start, end) s of a window as floats; ValueError unless finite and 0 <= start < end."""
+    try:
+        t0, t1 = (float(v) for v in window_s)
+    except (TypeError, ValueError):
+        raise ValueError(f'window_s {window_s!r} must be two numbers [start, end] (s after '
+                         "the test point's first flap sample)") from None
+    if not (math.isfinite(t0) and math.isfinite(t1) and 0.0 <= t0 < t1):
+        raise ValueError(f'window_s {list(window_s)} must be 0 <= start < end (s after the '
+                         "test point's first flap sample)")
+    return t0, t1
 
 
 class TestPointSequence:
@@ -349,10 +366,7 @@ class TestPointSequence:
         if auto_start not in ('excitation', 'data', 'none'):
             raise ValueError(f"auto_start must be 'excitation', 'data' or 'none', got "
                              f'{auto_start!r}')
-        t0, t1 = (float(v) for v in window_s)
-        if not 0.0 <= t0 < t1:
-            raise ValueError(f'window_s {window_s} must be 0 <= start < end')
-        self.window_s = (t0, t1)
+        self.window_s = window_bounds(window_s)    # of the next test point armed
         self.blade_names = list(blade_names)
         self.schedule = schedule or FitSchedule()
         self.margin_rad = float(margin_rad)
@@ -392,16 +406,33 @@ class TestPointSequence:
             return None, (f'{self.current.describe()} is in progress: abort it first '
                           '(~/abort)')
         self.count += 1
-        point = TestPoint(self.count, source, from_stamp_ns)
+        point = TestPoint(self.count, source, self.window_s, from_stamp_ns)
         self.points[point.number] = point
         for old in [n for n in self.points if n <= self.count - 16]:
             del self.points[old]
         self.current = point
         if from_stamp_ns is not None and self.flap.size:
             self._start(point)
-        t0, t1 = self.window_s
+        t0, t1 = point.window_s
         return point, (f'test point {point.number} armed ({source}): window {t0:.4f}-{t1:.4f} s '
                        'from its first flap sample')
+
+    def set_window(self, window_s):
+        """
+        Set the window of the test points armed from now on; return a text saying so.
+
+        A test point armed, recording or fitting keeps the window it was armed with: a change
+        never moves (or cuts short) a window in progress. Raises ValueError for a window that
+        is not 0 <= start < end.
+        """
+        self.window_s = window_bounds(window_s)
+        t0, t1 = self.window_s
+        text = f'window_s {t0:.4f}-{t1:.4f} s applies from the next test point armed'
+        point = self.current
+        if point is not None and point.window_s != self.window_s:
+            p0, p1 = point.window_s
+            text += f'; {point.describe()} keeps its window {p0:.4f}-{p1:.4f} s'
+        return text
 
     def abort(self, reason=Reason.ABORT_REQUESTED, detail=''):
         """Abort the test point armed or recording, else the one fitting; return it (or None)."""
@@ -464,7 +495,7 @@ class TestPointSequence:
             # not started yet (its first flap sample still queued on a busy machine): it starts
             # at or after the stamp it was armed from, so its window ends no earlier than this
             start = point.stamp0_ns if point.stamp0_ns is not None else point.armed_from_ns
-            end = None if start is None else start + int(self.window_s[1] * NS)
+            end = None if start is None else start + int(point.window_s[1] * NS)
             if end is None or stamp_ns < end:
                 ended.append(self.abort(Reason.EXCITATION_ENDED,
                                         "the excitation ended before the window's end"))
@@ -473,9 +504,10 @@ class TestPointSequence:
     # -------------------------------------------------------------------------- samples
     def _keep_from(self, newest_ns):
         """Oldest stamp still needed: the window and its margins, or the pre-trigger span."""
-        t0, t1 = self.window_s
+        spans = [self.window_s] + ([self.current.window_s] if self.current is not None else [])
+        length = max(t1 - t0 for t0, t1 in spans)   # the next window's, or the current one's
         margin = self.margin_rad / self.azimuth.omega if self.azimuth.ready else 0.0
-        keep = (t1 - t0 + 2.0 * margin) * NS + self.pre_trigger_ns
+        keep = (length + 2.0 * margin) * NS + self.pre_trigger_ns
         return newest_ns - int(keep)
 
     def add_flap(self, stamp_ns, values):
@@ -531,12 +563,15 @@ class TestPointSequence:
         covered = self.covered_s(point)
         if covered is None or point.phase != Phase.RECORDING:
             return None
-        t0, t1 = self.window_s
+        t0, t1 = point.window_s
         s = self.schedule
         omega = self.azimuth.omega
         stamps = self.flap.stamps
-        period = (stamps[-1] - stamps[-2]) / NS if stamps.size > 1 else 0.0
-        if covered >= t1 - period:
+        period_ns = int(stamps[-1] - stamps[-2]) if stamps.size > 1 else 0
+        reached_ns = point.stamp0_ns + int(round(covered * NS))
+        # final once the next sample is due past the window's end: every sample up to the end
+        # (one exactly on it included, as offline) is in
+        if reached_ns + period_ns > point.stamp0_ns + int(round(t1 * NS)):
             request = self.request(point, (t0, t1), True)
             point.phase, point.final_requested = Phase.FITTING, True
             self.current = None

@@ -394,3 +394,47 @@ def test_no_sample_of_the_window_is_lost_unnoticed(data):
                       for c in drops for i in drops[c] if c != 'flap' or i != 100 + offset)
     assert check.complete == (not lost_inside), (drops, check.describe())
     assert (outcome(check, True, True) == 'converged') == (not lost_inside)
+
+
+def test_a_new_window_applies_from_the_next_test_point_never_to_one_in_progress(stream):
+    machine = _machine(auto_start='none', schedule=FitSchedule(update_every_rad=0.0))
+    machine.arm()
+    half = {k: v[:400] for k, v in stream.items()}
+    assert not _feed(machine, half)
+    shorter = (0.5, 0.6)
+    text = machine.set_window(shorter)
+    assert 'applies from the next test point' in text
+    assert 'test point 1 (recording) keeps its window 0.8094-0.9367 s' in text
+    assert machine.points[1].window_s == WINDOW and machine.window_s == shorter
+    # test point 1 still ends at its own window's end (not at 0.6 s, which it has passed)
+    rest = {k: v[400:LENGTH] for k, v in stream.items()}
+    finals = _finals(_feed(machine, rest))
+    assert [(r.test_point, r.window_s) for r in finals] == [(1, WINDOW)]
+    assert finals[0].check.complete, finals[0].check.describe()
+    machine.finish(1, 'converged')
+    point, text = machine.arm()
+    assert point.window_s == shorter and '0.5000-0.6000 s' in text
+    finals = _finals(_feed(machine, {k: v[LENGTH:2 * LENGTH] for k, v in stream.items()}))
+    assert [(r.test_point, r.window_s) for r in finals] == [(2, shorter)]
+    assert finals[0].stamp0_ns == stream['stamps'][LENGTH]
+    first, last = math.ceil(0.5 * RATE), math.floor(0.6 * RATE)
+    assert finals[0].check.used_ns() == (stream['stamps'][LENGTH + first],
+                                         stream['stamps'][LENGTH + last])
+    for bad in ((0.6, 0.5), (-0.1, 0.2), (0.1, math.inf), (0.1,), 'ab'):
+        with pytest.raises(ValueError, match='window_s'):
+            machine.set_window(bad)
+    assert machine.window_s == shorter
+
+
+def test_buffers_keep_the_longer_of_the_current_and_the_next_window():
+    machine = _machine(auto_start='none', schedule=FitSchedule(update_every_rad=0.0),
+                       pre_trigger_s=0.0)
+    machine.arm()
+    machine.set_window((0.0, 0.05))         # the next one is short: the current one's data stay
+    for i in range(1200):
+        stamp = BASE + i * MS
+        machine.add_flap(stamp, np.zeros(4))
+        machine.add_pitch(stamp, np.zeros(4))
+        machine.add_azimuth(stamp, (OMEGA * i / RATE) % TWO_PI, OMEGA)
+        if i == 600:
+            assert machine.flap.first_stamp == BASE     # the whole recording window so far

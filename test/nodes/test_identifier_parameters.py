@@ -1,0 +1,174 @@
+"""
+The identifier's ``window_s`` set at run time, as ``ros2 param set`` does it (SetParameters).
+
+What it proves, through a parameter client of another node on DDS: a window that is not
+0 <= start < end, longer than ``max_window_s`` or spanning fewer than ``min_window_samples``
+at the measured rate is refused with the reason, and the node's window is unchanged; a valid
+window set while test point 1 records is accepted, with a note (its log and a /diagnostics
+value) saying that it applies from the next test point and that test point 1 keeps its own;
+test point 1's final estimate is of its original window, test point 2's of the new one, with
+the samples of that window (first and last flap stamps) used.
+"""
+
+import math
+import os
+
+import pytest
+
+rclpy = pytest.importorskip('rclpy', reason='rclpy not importable')
+msgs = pytest.importorskip('rotor_id_msgs.msg', reason='rotor_id_msgs not built')
+
+from test_test_points import _stream, LENGTH, OMEGA, RATE, WINDOW  # noqa: E402
+
+BLADES = [f'blade_{k}' for k in range(1, 5)]
+NEW_WINDOW = [0.78, 0.95]     # also during the stirring: identifiable
+
+
+@pytest.fixture(scope='module')
+def run():
+    """Two test points; window_s set while the first records; return answers and estimates."""
+    from rclpy.executors import SingleThreadedExecutor
+    from rclpy.parameter import Parameter
+    from rclpy.parameter_client import AsyncParameterClient
+    from rclpy.signals import SignalHandlerOptions
+    from rotor_id.nodes.common import joint_state, RESULT_QOS, SENSOR_OFFER_QOS
+    from rotor_id.nodes.identifier import Identifier
+    from rotor_id_msgs.msg import ParameterEstimate
+    from sensor_msgs.msg import JointState
+    from std_srvs.srv import Trigger
+
+    data = _stream(points=2)
+    domain = 171 + os.getpid() % 29
+    os.environ['ROS_AUTOMATIC_DISCOVERY_RANGE'] = 'LOCALHOST'
+    context = rclpy.context.Context()
+    rclpy.init(context=context, domain_id=domain, signal_handler_options=SignalHandlerOptions.NO)
+    params = [Parameter('run_description', value='demo_wake.yaml'),
+              Parameter('auto_start', value='none'), Parameter('update_every_rad', value=0.0),
+              Parameter('sensor_reliability', value='reliable'),
+              Parameter('max_window_s', value=10.0),
+              Parameter('fit_process', value=False)]
+    node = Identifier(parameter_overrides=params, context=context)
+    test = rclpy.create_node('test_identifier_parameters', context=context)
+    executor = SingleThreadedExecutor(context=context)
+    executor.add_node(node)
+    executor.add_node(test)
+    pubs = {topic: test.create_publisher(JointState, f'/rotor/{topic}', SENSOR_OFFER_QOS)
+            for topic in ('blade_flap', 'blade_pitch', 'azimuth')}
+    estimates = []
+    test.create_subscription(ParameterEstimate, '/rotor_id/estimate', estimates.append,
+                             RESULT_QOS)
+    start = test.create_client(Trigger, '/identifier/start_test_point')
+    parameters = AsyncParameterClient(test, 'identifier')
+    out = {'estimates': estimates, 'data': data, 'answers': {}}
+
+    def spin_until(condition, timeout=60.0):
+        clock = rclpy.clock.Clock(clock_type=rclpy.clock.ClockType.STEADY_TIME)
+        end = clock.now().nanoseconds + timeout * 1e9
+        while not condition():
+            if clock.now().nanoseconds > end:
+                return False
+            executor.spin_once(timeout_sec=0.01)
+        return True
+
+    def drain():
+        idle = 0
+        while idle < 3:
+            before = node.taken
+            executor.spin_once(timeout_sec=0.002)
+            idle = idle + 1 if node.taken == before else 0
+
+    def set_window(label, value):
+        future = parameters.set_parameters([Parameter('window_s', value=value)])
+        assert spin_until(future.done, 20.0), f'no answer to setting window_s {value}'
+        result = future.result().results[0]
+        out['answers'][label] = (result.successful, result.reason,
+                                 list(node.get_parameter('window_s').value))
+
+    def send(lo, hi):
+        for i in range(lo, hi):
+            stamp = int(data['stamps'][i])
+            pubs['blade_flap'].publish(joint_state(stamp, BLADES, data['flap'][i]))
+            pubs['blade_pitch'].publish(joint_state(stamp, BLADES, data['pitch'][i]))
+            pubs['azimuth'].publish(joint_state(stamp, ['rotor'], [data['psi'][i]], [OMEGA]))
+            if i % 20 == 0:
+                drain()
+        drain()
+
+    def start_test_point():
+        drain()
+        future = start.call_async(Trigger.Request())
+        assert spin_until(future.done), 'no answer from ~/start_test_point'
+        return future.result().message
+
+    def final(k):
+        return spin_until(lambda: any(m.test_point == k and m.kind == 1 for m in estimates))
+
+    try:
+        assert spin_until(lambda: all(p.get_subscription_count() for p in pubs.values())
+                          and start.service_is_ready() and parameters.services_are_ready())
+        set_window('reversed', [0.6, 0.5])
+        set_window('too long', [0.0, 20.0])
+        out['started_1'] = start_test_point()
+        send(0, 400)                             # test point 1 records
+        set_window('too few samples', [0.5, 0.52])
+        set_window('during test point 1', NEW_WINDOW)
+        out['diagnostics'] = dict(node.diagnostics.values)
+        send(400, LENGTH)
+        assert final(1), 'no final estimate of test point 1'
+        out['started_2'] = start_test_point()
+        send(LENGTH, 2 * LENGTH)
+        assert final(2), 'no final estimate of test point 2'
+    finally:
+        node.close()
+        executor.shutdown()
+        node.destroy_node()
+        test.destroy_node()
+        rclpy.try_shutdown(context=context)
+    return out
+
+
+def _final(run, number):
+    finals = [m for m in run['estimates'] if m.test_point == number and m.kind == 1]
+    assert len(finals) == 1, [(m.test_point, m.kind, m.status) for m in run['estimates']]
+    return finals[0]
+
+
+def _ns(t):
+    return t.sec * 1_000_000_000 + t.nanosec
+
+
+@pytest.mark.parametrize('label, words', [
+    ('reversed', '0 <= start < end'),
+    ('too long', 'max_window_s 10'),
+    ('too few samples', 'spans 20 flap samples at the measured 1000 Hz, fewer than '
+                        'min_window_samples 50'),
+])
+def test_an_invalid_window_is_refused_with_the_reason(run, label, words):
+    successful, reason, value = run['answers'][label]
+    assert not successful and reason.startswith('window_s: ') and words in reason, reason
+    assert value == list(WINDOW)                  # unchanged
+
+
+def test_a_window_set_while_recording_applies_from_the_next_test_point(run):
+    successful, reason, value = run['answers']['during test point 1']
+    assert successful and value == NEW_WINDOW
+    # (rclpy answers a successful set without a reason: the node logs this and reports it)
+    assert run['diagnostics']['window_s_change'] == (
+        'window_s 0.7800-0.9500 s applies from the next test point armed; test point 1 '
+        '(recording) keeps its window 0.8094-0.9367 s')
+    assert run['diagnostics']['window_s_next'] == '0.7800-0.9500 s'
+    assert '0.7800-0.9500 s' in run['started_2']
+    assert '0.8094-0.9367 s' in run['started_1']
+
+
+def test_each_test_point_is_fitted_over_its_own_window(run):
+    from rotor_id_msgs.msg import ParameterEstimate
+    stamps = run['data']['stamps']
+    for k, window in ((1, WINDOW), (2, NEW_WINDOW)):
+        final = _final(run, k)
+        assert final.status == ParameterEstimate.STATUS_CONVERGED, final.message
+        assert (final.window_requested_start_s, final.window_requested_end_s) == tuple(window)
+        origin = (k - 1) * LENGTH
+        assert _ns(final.test_point_start) == stamps[origin]
+        assert _ns(final.window_start) == stamps[origin + math.ceil(window[0] * RATE - 1e-9)]
+        assert _ns(final.window_end) == stamps[origin + math.floor(window[1] * RATE + 1e-9)]
