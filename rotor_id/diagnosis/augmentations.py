@@ -24,6 +24,8 @@ from rotor_id.physics.aerodynamics import (blade_aerodynamics, flap_damping,
                                            lock_number_from_damping)
 from rotor_id.physics.models import (CYCLIC_INFLOW, LinearModel, Multiblade, Parameter,
                                      RotorModel)
+from rotor_id.physics.multiblade import azimuth_offset_matrix, coordinate_names
+from rotor_id.physics.stirring import blade_pitch_from_multiblade, multiblade_from_blade_pitch
 
 
 # ------------------------------------------------------------------------------------------------
@@ -1029,3 +1031,114 @@ class SensorGain(Augmented):
         scov = self.basis @ cc @ self.basis.T
         return {f'gain_{j}': (float(s[i]), float(math.sqrt(max(scov[i, i], 0.0))))
                 for i, j in enumerate(self.blade_numbers)}
+
+
+class AzimuthOffset(Augmented):
+    """
+    The rig's azimuth reads Δψ (``azimuth_offset_rad``) ahead of blade 1's true azimuth.
+
+    An encoder index mounted off the reference blade (or a wrong zero in the run description)
+    makes the recording's time t = ψ + Δψ. The blades' flap and pitch are measured right, but
+    every quantity referred to the azimuth is formed with the wrong ψ_k: the multiblade pitch
+    and flap turn by Δψ (:func:`~rotor_id.physics.multiblade.azimuth_offset_matrix`, S) and the
+    periodic aerodynamics run Δψ early. With the states in the recording's frame
+    (x_read = S x, S on every cyclic pair: flap, flap rate, wake inflow, pitch error):
+
+        x_read′ = S F(t − Δψ) S⁻¹ x_read + S g(t − Δψ, u_true),   y = H(t) x_read
+
+    where u_true is the measured blade pitch (eq. 3 at the recorded azimuth) turned back to the
+    true one. At μ = 0 the rotor is axisymmetric, S commutes with F and the offset is exactly
+    invisible (and harmless to every estimate): the candidate is tried in forward flight only.
+    ∂/∂Δψ is a five-point central difference (step 1e-3 rad) of F and g, which are
+    trigonometric polynomials of the azimuth of low order: error ~ (h·n)⁴/30 < 1e-10 relative.
+    """
+
+    effect = 'azimuth_offset'
+    extra_parameters = (Parameter('azimuth_offset_rad', 'Δψ', 'rad', 0.0, -0.5, 0.5,
+                                  'recorded azimuth minus the true azimuth of blade 1'),)
+    #: fixed-frame cyclic states (cos, sin) of inner layers, turned like (β_I, β_II)
+    CYCLIC_PAIRS = (('lambda_I', 'lambda_II'), ('pitch_error_II', 'pitch_error_I'))
+    #: extra-input triples [θ0, θI, θII]-like (pitch rates) turned like the pitch
+    PITCH_INPUTS = ('theta_0_rate', 'theta_I_rate', 'theta_II_rate')
+    STEP = 1e-3
+
+    def __init__(self, base):
+        super().__init__(base)
+        self._n = int(self.view.model.rotor.n_blades)
+        coords = list(coordinate_names(self._n)) if self.view.model.blade is None else []
+        self._index = []                  # (state index, coordinate index, sign) of turned states
+        for i, name in enumerate(self.state_names):
+            stem = name[:-4] if name.endswith('_dot') else name
+            for cos_name, sin_name in self.CYCLIC_PAIRS:
+                if stem in (cos_name, sin_name) and 'beta_I' in coords:
+                    # (θII, −θI) of the pitch error is the (cos, sin) pair of eq. 3
+                    sign = -1.0 if stem == 'pitch_error_I' else 1.0
+                    stem = 'beta_I' if stem == cos_name else 'beta_II'
+                    self._index.append((i, coords.index(stem), sign, name.endswith('_dot'),
+                                        name))
+                    break
+            else:
+                if stem in coords:
+                    self._index.append((i, coords.index(stem), 1.0, name.endswith('_dot'),
+                                        stem))
+        extra = list(self.all_extra_inputs)
+        self._pitch_columns = [3 + extra.index(n) for n in self.PITCH_INPUTS] \
+            if all(n in extra for n in self.PITCH_INPUTS) else []
+        self.rotation(0.1)                # raises now for a state set S does not map onto itself
+
+    def rotation(self, offset):
+        """S over the state vector: the cyclic pairs turned by hΔψ, everything else kept."""
+        S = azimuth_offset_matrix(self._n, offset) if self._index else None
+        out = np.eye(self.n_states)
+        groups = {}
+        for i, c, sign, rate, key in self._index:
+            groups.setdefault((rate, key in ('lambda_I', 'lambda_II'),
+                               key.startswith('pitch_error')), []).append((i, c, sign))
+        for members in groups.values():
+            for i, ci, si in members:
+                for j, cj, sj in members:
+                    out[i, j] = si * sj * S[ci, cj]
+        if not np.allclose(out @ out.T, np.eye(self.n_states), atol=1e-12):
+            raise ValueError(f'the azimuth offset turns cyclic pairs, and {self.base.name} '
+                             'carries one half of a pair')
+        return out
+
+    def true_inputs(self, t, u, offset):
+        """Return u with [θ0, θI, θII] (and pitch rates) turned to the true azimuth t − Δψ."""
+        u = np.array(u, dtype=float)
+        for first in [0] + self._pitch_columns[:1]:
+            cols = slice(first, first + 3)
+            blades = blade_pitch_from_multiblade(t, u[:, cols], self._n)
+            u[:, cols] = multiblade_from_blade_pitch(t - offset, blades)
+        return u
+
+    def _at(self, t, pb, u, offset, jacobian=False):
+        S = self.rotation(offset)
+        tt, ut = t - offset, self.base_inputs(self.true_inputs(t, u, offset))
+        if jacobian:
+            dF, dg = self.base.system_jacobian(tt, pb, ut)
+            return S @ dF @ S.T, np.einsum('ij,tpj->tpi', S, dg)
+        F, g = self.base.system(tt, pb, ut)
+        return S @ F @ S.T, np.einsum('ij,tj->ti', S, g)
+
+    def system(self, t, p, u):
+        """F and g of the base at the true azimuth, in the recording's frame."""
+        t = np.atleast_1d(np.asarray(t, dtype=float))
+        pb, pe = self._split(p)
+        return self._at(t, pb, u, pe[0])
+
+    def system_jacobian(self, t, p, u):
+        """Return the base's derivatives turned by S, and ∂/∂Δψ by a five-point difference."""
+        t = np.atleast_1d(np.asarray(t, dtype=float))
+        pb, pe = self._split(p)
+        dFb, dgb = self._at(t, pb, u, pe[0], jacobian=True)
+        T, Pb, n = dgb.shape
+        dF = np.zeros((T, Pb + 1, n, n))
+        dg = np.zeros((T, Pb + 1, n))
+        dF[:, :Pb], dg[:, :Pb] = dFb, dgb
+        h = self.STEP
+        for k, w in ((-2, 1.0), (-1, -8.0), (1, 8.0), (2, -1.0)):
+            F, g = self._at(t, pb, u, pe[0] + k * h)
+            dF[:, Pb] += w * F / (12.0 * h)
+            dg[:, Pb] += w * g / (12.0 * h)
+        return dF, dg

@@ -27,7 +27,8 @@ from rotor_id.physics.aerodynamics import flap_damping
 #: Every effect of the catalogue, in the order they are tried (issue 4 ids first).
 EFFECTS = ('dynamic_inflow', 'periodic_coefficients', 'sensor_lag', 'time_delay',
            'sensor_bias', 'blade_dissimilarity', 'process_noise', 'flap_frequency',
-           'cubic_stiffness', 'pitch_flap_coupling', 'pitch_actuator_lag', 'sensor_gain')
+           'cubic_stiffness', 'pitch_flap_coupling', 'pitch_actuator_lag', 'sensor_gain',
+           'azimuth_offset')
 
 #: Effects that a recording cannot tell apart at small size (the same physics to first
 #: order): a first-order sensor lag τ and a pure delay d = τ give the same flap to O(τ²); a
@@ -179,6 +180,9 @@ def applicable(effect, model_name, rotor, unknowns):
             return 'the baseline already has the periodic terms (or has none at this μ)'
         if rotor.advance_ratio == 0.0:
             return 'at μ = 0 the periodic terms vanish'
+    if effect == 'azimuth_offset' and rotor.advance_ratio == 0.0:
+        return ('at μ = 0 the rotor is axisymmetric: an azimuth offset turns flap and pitch '
+                'alike and neither the fit nor the estimates can see it')
     if effect == 'pitch_actuator_lag' and model_name == 'single_blade':
         return 'needs the blades in one model (the pitch lag acts in multiblade pitch)'
     if effect in ('sensor_bias', 'blade_dissimilarity') and model_name == 'single_blade':
@@ -209,7 +213,8 @@ def n_choices(effect, n_blades):
 #: recording.
 COMPOSE_ORDER = ('periodic_coefficients', 'flap_frequency', 'pitch_flap_coupling',
                  'dynamic_inflow', 'cubic_stiffness', 'blade_dissimilarity',
-                 'pitch_actuator_lag', 'time_delay', 'sensor_lag', 'sensor_gain', 'sensor_bias')
+                 'pitch_actuator_lag', 'time_delay', 'sensor_lag', 'sensor_gain', 'sensor_bias',
+                 'azimuth_offset')
 
 
 def _augment_one(effect, variant, record, experiments):
@@ -239,6 +244,8 @@ def _augment_one(effect, variant, record, experiments):
             blades = [b - 1 for b in aug.BladeView(m).blades]
             return aug.SensorGain(m, record.t, record.blade_flap[:, blades])
         return _augment_runs(experiments, gain, record)
+    if effect == 'azimuth_offset':
+        return _augment_runs(experiments, aug.AzimuthOffset, record)
     if effect == 'periodic_coefficients':
         if any(isinstance(e.model, aug.Augmented) for e in experiments):
             raise IdentificationError('periodic_coefficients replaces the rotor model and is '
@@ -545,7 +552,7 @@ def fit_candidate(job):
 #: ``process_noise`` is the explanation of last resort (fitted only when needed).
 SCREENED = ('sensor_lag', 'time_delay', 'sensor_bias', 'blade_dissimilarity',
             'flap_frequency', 'cubic_stiffness', 'pitch_flap_coupling', 'pitch_actuator_lag',
-            'sensor_gain')
+            'sensor_gain', 'azimuth_offset')
 
 
 def score_statistic(runs, unknowns, guess, known, noise_var, max_step=None):

@@ -174,3 +174,19 @@ def blade_values(coords, psi, n_blades=4):
             value = np.asarray(coords[key], dtype=float).reshape(-1)
             values = values + value[:, None] * T[:, :, i]
     return values
+
+
+def azimuth_offset_matrix(n_blades, offset):
+    """
+    Return S (N, N): multiblade coordinates referred to an azimuth read ``offset`` ahead.
+
+    A rig whose azimuth reads ψ + Δψ (encoder index off the reference blade) forms the
+    coordinates with the wrong ψ_k: q_read = T⁻¹(ψ + Δψ) T(ψ) q = S q. S is constant (the
+    transforms above, evaluated at ψ = 0): the collective and differential are unchanged and
+    every cyclic pair of harmonic h turns by hΔψ,
+
+        β_hc,read = β_hc cos hΔψ − β_hs sin hΔψ,   β_hs,read = β_hs cos hΔψ + β_hc sin hΔψ.
+    """
+    zero = np.zeros(1)
+    return (multiblade_from_blade_matrix(zero + float(offset), n_blades)[0]
+            @ blade_from_multiblade_matrix(zero, n_blades)[0])

@@ -208,3 +208,63 @@ def test_pitch_flap_coupling_at_mu_0_is_a_flap_frequency_change():
     names = ('beta_I', 'beta_II', 'beta_I_dot', 'beta_II_dot')
     tilt = [base.state_names.index(n) for n in names]
     np.testing.assert_allclose(a.x[:, tilt], b.x[:, tilt], atol=1e-10)
+
+
+@pytest.mark.parametrize('name', ['multiblade', 'multiblade_constant', 'multiblade_wake',
+                                  'single_blade'])
+def test_azimuth_offset_sensitivity_in_forward_flight(name):
+    # the offset alone and outermost on effects with fixed-frame cyclic states and inputs
+    # (wake inflow, pitch error, pitch rates): analytic ∂y/∂Δψ equals finite differences
+    rng = np.random.default_rng(5)
+    base = _base(name, 0.4)
+    check_sensitivities(aug.AzimuthOffset(base), _inputs(), rng)
+    if name == 'multiblade':
+        for inner in (aug.DynamicInflow(base), aug.PitchActuatorLag(base), aug.TimeDelay(base)):
+            check_sensitivities(aug.AzimuthOffset(inner), _inputs(), rng)
+
+
+@pytest.mark.parametrize('name', ['multiblade', 'multiblade_wake'])
+def test_azimuth_offset_is_invisible_in_hover(name):
+    # at μ = 0 the rotor is axisymmetric: turning every cyclic quantity by Δψ (S of
+    # physics.multiblade) commutes with the dynamics, so the recording cannot depend on Δψ.
+    # That holds only if every cyclic state and input is turned alike, so it checks the
+    # rotation of each inner effect's states; and the neutral offset is the model itself.
+    rng = np.random.default_rng(6)
+    base = _base(name, 0.0)
+    inners = [base, aug.PitchActuatorLag(base), aug.TimeDelay(base), aug.SensorLag(base),
+              aug.BladeDissimilarity(base, 2)]
+    if name == 'multiblade':
+        inners.append(aug.DynamicInflow(base))
+    inputs = _inputs()
+    for inner in inners:
+        model = aug.AzimuthOffset(inner)
+        p = _away_from_neutral(model)
+        x0 = 0.01 * rng.standard_normal(model.n_states)
+        sim = simulate(model, p, inputs, T, x0, param_index=list(range(len(p))),
+                       max_step=0.01)
+        assert np.max(np.abs(sim.dy[:, :, -1])) < 1e-9 * np.max(np.abs(sim.dy[:, :, 0])), \
+            model.name
+        neutral = np.concatenate([p[:-1], [0.0]])
+        np.testing.assert_allclose(simulate(model, neutral, inputs, T, x0).y,
+                                   simulate(inner, p[:-1], inputs, T, x0).y, atol=1e-14)
+
+
+def test_azimuth_offset_turns_the_cyclic_coordinates():
+    # S of physics.multiblade: collective and differential kept, each cyclic pair of harmonic
+    # h turned by hΔψ (the measured cos/sin coordinates of the blades with ψ read Δψ ahead)
+    from rotor_id.physics.multiblade import azimuth_offset_matrix, multiblade_coordinates
+    psi = np.linspace(0.0, 7.0, 50)
+    coords = {'collective': 0.02, 'cos': 0.01 * np.cos(psi), 'sin': 0.004, 'cos2': 0.003,
+              'sin2': -0.002}
+    from rotor_id.physics.multiblade import blade_values
+    blades = blade_values(coords, psi, 5)
+    offset = 0.3
+    read = multiblade_coordinates(blades, psi + offset)
+    S = azimuth_offset_matrix(5, offset)
+    true = np.column_stack([np.broadcast_to(coords[k], psi.shape)
+                            for k in ('collective', 'cos', 'sin', 'cos2', 'sin2')])
+    np.testing.assert_allclose(np.column_stack(list(read.values())), true @ S.T, atol=1e-15)
+    c, s = math.cos(offset), math.sin(offset)
+    np.testing.assert_allclose(S[1:3, 1:3], [[c, -s], [s, c]], atol=1e-15)
+    c2, s2 = math.cos(2 * offset), math.sin(2 * offset)
+    np.testing.assert_allclose(S[3:5, 3:5], [[c2, -s2], [s2, c2]], atol=1e-15)
