@@ -48,7 +48,8 @@ def test_two_concealed_effects_are_both_named():
     assert out['original_within_3sigma']
 
 
-@pytest.mark.parametrize('name', ['blade_lock_number', 'time_delay', 'sensor_gain'])
+@pytest.mark.parametrize('name', ['blade_lock_number', 'time_delay', 'sensor_gain',
+                                  'azimuth_offset'])
 def test_concealed_effect_named_with_bounds(name):
     scenario = BY_NAME[name]
     record, description = scenario.record_and_description(1)
@@ -61,6 +62,20 @@ def test_concealed_effect_named_with_bounds(name):
         assert out['within_3sigma'], out.get('extra_z')
     assert out['original_within_3sigma']
     assert out['original_bias_after'] < out['original_bias_before']
+
+
+def test_azimuth_offset_in_hover_is_invisible_and_harmless():
+    # μ = 0: an encoder zero 0.3 rad off turns flap and pitch alike (axisymmetric rotor), so
+    # no effect is named and the estimates stay within 3σ of the truth
+    scenario = BY_NAME['azimuth_offset_hover']
+    record, description = scenario.record_and_description(1)
+    result = diagnose(record, description, workers=2).as_json()
+    out = evaluate(scenario, result)
+    assert out['effect'] == 'none', out['named']
+    assert out['original_within_3sigma']
+    # and the candidate list says why it was not tried
+    candidate = next(c for c in result['candidates'] if c['effect'] == 'azimuth_offset')
+    assert not candidate['available'] and 'axisymmetric' in candidate['reason']
 
 
 def _filter_error_available():

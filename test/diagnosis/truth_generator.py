@@ -34,7 +34,9 @@ the pitch, has a constant bias, a scale error ``sensor_gain`` and white noise; p
 have white noise and read the commanded pitch: they see neither a blade's aerodynamic pitch
 offset ``pitch_offset``, nor the first-order lag of the blade's pitch behind them
 (``actuator_lag``, rad of azimuth). ``pitch_flap_coupling`` is a coupling K_P the run
-description does not know (a concealed δ3), added to ``pitch_flap``.
+description does not know (a concealed δ3), added to ``pitch_flap``. The azimuth encoder's
+zero may be off: the recording's azimuth of blade 1 reads ``azimuth_offset`` (rad) more than
+the blade's true azimuth, on which the rotor, its swashplate and its aerodynamics run.
 
 The record starts in trim at collective pitch only (settled over ``t_settle`` from rest), the
 lateral cyclic is stepped on at ``t_step``, and pitch stirring θI = a sin φ, θII = a cos φ,
@@ -87,6 +89,8 @@ class TruthConfig:
     actuator_lag: float = 0.0
     #: flap-sensor scale errors per blade: the sensor reads (1 + s_k) β_k
     sensor_gain: list = field(default_factory=lambda: [0.0, 0.0, 0.0, 0.0])
+    #: the recorded azimuth of blade 1 minus its true azimuth (encoder index off blade 1), rad
+    azimuth_offset: float = 0.0
     n_blades: int = 4
     pitch_flap: float = 0.0
     #: a flap frequency the run description does not know: the rotor's P is
@@ -252,7 +256,9 @@ def generate(cfg):
     th_i, th_ii = _pitch_schedule(cfg, t)
     pitch = (cfg.theta0 - th_i[:, None] * np.sin(psi) + th_ii[:, None] * np.cos(psi)
              + cfg.pitch_noise * rng.standard_normal((n_samples, n)))
-    return Record(time_s=time_s, t=t, rotor_speed_rad_s=np.full(n_samples, omega),
+    # the encoder reads the true azimuth plus its offset; everything above ran on the true one
+    return Record(time_s=time_s, t=t + cfg.azimuth_offset,
+                  rotor_speed_rad_s=np.full(n_samples, omega),
                   blade_flap=flap, blade_pitch=pitch,
                   blade_names=[f'blade_{k + 1}' for k in range(n)],
                   source=f'truth_generator seed {cfg.seed}')
