@@ -15,15 +15,16 @@ import subprocess
 import sys
 import time
 
-import numpy as np
-import scipy
-
 BENCH_DIR = Path(__file__).resolve().parent
 REPO_ROOT = BENCH_DIR.parent
 RESULTS_DIR = BENCH_DIR / 'results'
 
 if str(REPO_ROOT) not in sys.path:          # `python bench/x.py` from anywhere
     sys.path.insert(0, str(REPO_ROOT))
+
+import rotor_id  # noqa: E402,F401,I100 - before numpy: one BLAS thread, as the CLI has
+import numpy as np  # noqa: E402,I100
+import scipy  # noqa: E402
 
 _T_START = time.perf_counter()
 
@@ -75,6 +76,7 @@ def machine_description():
         'python': platform.python_version(),
         'numpy': np.__version__,
         'scipy': scipy.__version__,
+        'BLAS threads (OPENBLAS_NUM_THREADS)': os.environ.get('OPENBLAS_NUM_THREADS', 'default'),
         'rotor_id commit': _git_commit(),
     }
 

@@ -7,6 +7,8 @@ import sys
 
 import pytest
 
+import rotor_id  # noqa: F401 - before the tests import numpy: one BLAS thread (see there)
+
 try:
     from hypothesis import settings
 except ImportError:  # the pure tests still run without hypothesis
