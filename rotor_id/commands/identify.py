@@ -9,6 +9,13 @@ prints a table (value, Cramér-Rao σ, correlation) and writes the stable JSON o
 Several bags are identified together (issue 17): one estimate of the shared parameters, each
 run with its own window (one ``--config`` per bag, or one for all), initial states and noise;
 the JSON adds a ``runs`` section and the figure a column per run.
+
+A session bag (several test points recorded straight through) is identified per test point
+with ``--test-point K`` or ``--test-point all``: ``window_s`` then counts from test point K's
+first flap sample, as in the live identifier. The test points are found in the bag from what
+the live identifier follows, by the same code (:func:`rotor_id.nodes.test_points.
+replay_excitation`): the stirring node's phases (topic ``stirring``), else the identifier's
+estimates tagged with their test point (topic ``estimate``, their ``test_point_start``).
 """
 
 import json
@@ -20,7 +27,7 @@ import numpy as np
 
 from rotor_id import pipeline
 from rotor_id.commands.common import check_output_paths, print_warnings
-from rotor_id.io.bag import read_record
+from rotor_id.io.bag import read_messages, read_record
 from rotor_id.io.run_description import check_against_record, load_run_description
 
 METHODS = ('output-error', 'filter-error', 'equation-error')
@@ -45,6 +52,13 @@ def add_arguments(parser):
                         'process-noise sigmas (default) or the Cramer-Rao bound at the joint '
                         'maximum-likelihood optimum')
     parser.add_argument('--quiet', action='store_true', help='no progress lines')
+    parser.add_argument('--test-point', dest='test_point', default=None, metavar='K|all',
+                        help='a session bag of several test points: identify test point K '
+                        '(1, 2, ... as the live identifier numbers them) or all of them, '
+                        "window_s counting from the test point's first flap sample; the test "
+                        "points are found from the bag's stirring phases, else its estimates")
+    parser.add_argument('--csv', dest='csv_out', default=None,
+                        help='with --test-point: write one row per test point here (CSV)')
 
 
 def progress_printer(label, stream=sys.stderr):
@@ -135,6 +149,8 @@ def configs_for(bags, configs):
 def run(args):
     """Identify and report; exit 0 when converged, 1 when not."""
     configs = configs_for(args.bag, args.config)
+    if args.test_point is not None or args.csv_out:
+        return run_test_points(args, configs)
     if len(args.bag) > 1:
         return run_several(args, configs)
     args.bag, args.config = args.bag[0], configs[0]
@@ -278,3 +294,214 @@ def plot_runs(result, records, path, title=''):
     Path(path).parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(path, dpi=110)
     plt.close(fig)
+
+
+# ------------------------------------------------------------------------------ session bags
+NS = 1_000_000_000
+CSV_FIXED = ('test_point', 'found_from', 'test_point_start_s', 'window_start_s', 'window_end_s',
+             'status', 'converged', 'n_samples')
+
+
+def parse_test_point(text):
+    """``--test-point``: a positive integer, or 'all' (None)."""
+    if str(text).strip().lower() == 'all':
+        return None
+    try:
+        number = int(text)
+    except ValueError:
+        number = 0
+    if number < 1:
+        raise ValueError(f"--test-point {text!r}: give a test point number (1, 2, ...) or 'all'")
+    return number
+
+
+def _stamp_ns(stamp):
+    return int(stamp.sec) * NS + int(stamp.nanosec)
+
+
+def find_test_points(bag, description, record):
+    """
+    Find the test points of a session bag; return (RecordedTestPoints, found from, notes).
+
+    From the stirring phases (``topics.stirring``) by the live identifier's own state machine;
+    else from the estimates (``topics.estimate``) tagged with a test point. Where both are in
+    the bag, each test point found from the phases takes the live identifier's number (the
+    estimates' ``test_point`` with the same first flap sample). Raises ValueError when the bag
+    holds neither, saying how to select a time window instead.
+    """
+    from rotor_id.nodes.test_points import Phase, RecordedTestPoint, replay_excitation
+    stirring, estimate = description.node_topics['stirring'], description.node_topics['estimate']
+    found = read_messages(bag, [stirring, estimate])
+    stirring_topic, commands = found[stirring]
+    estimate_topic, estimates = found[estimate]
+    tagged = {}                                      # live number -> its estimates
+    for _, msg in estimates:
+        if msg.test_point > 0:
+            tagged.setdefault(int(msg.test_point), []).append(msg)
+    notes = []
+    if commands:
+        excitation = [(_stamp_ns(m.header.stamp), int(m.phase)) for _, m in commands]
+        points = replay_excitation(record, excitation, description.window_s)
+        live = {_stamp_ns(ms[0].test_point_start): n for n, ms in tagged.items()}
+        for point in points:
+            number = live.get(point.stamp0_ns)
+            if number is not None and number != point.number:
+                notes.append(f'the schedule that started test point {point.number} in this bag '
+                             f"is the live identifier's test point {number} (it also started "
+                             'test points by its service, or was restarted): numbered '
+                             f'{number} here')
+                point.number = number
+        return points, f'{stirring_topic} (stirring phases)', notes
+    if tagged:
+        points = []
+        for number, msgs in sorted(tagged.items()):
+            finals = [m for m in msgs if m.kind == 1]          # KIND_FINAL
+            window = tuple(description.window_s)
+            point = RecordedTestPoint(number, _stamp_ns(msgs[0].test_point_start), window,
+                                      Phase.FITTING, source='estimates')
+            if finals and finals[-1].status == 5:             # STATUS_ABORTED
+                point.phase, point.detail = Phase.ABORTED, finals[-1].message
+            points.append(point)
+        return points, f'{estimate_topic} (estimates tagged with their test point)', notes
+    raise ValueError(
+        f'{bag} holds no test points: no stirring phases on {stirring_topic or stirring} and no '
+        f'estimate tagged with a test point on {estimate_topic or estimate} (topics.stirring '
+        'and topics.estimate of the run description); identify a time window instead: drop '
+        "--test-point and set window_s to seconds after the bag's first flap sample")
+
+
+def _live_windows(bag, description):
+    """{test point: (requested start, end) s of the live final estimate} where the bag has it."""
+    topic = description.node_topics['estimate']
+    return {int(m.test_point): (m.window_requested_start_s, m.window_requested_end_s)
+            for _, m in read_messages(bag, [topic])[topic][1]
+            if m.test_point > 0 and m.kind == 1 and m.window_requested_end_s > 0}
+
+
+def run_test_points(args, configs):
+    """Identify test point K (or all) of a session bag; exit 0 when all converged, else 1."""
+    from dataclasses import replace
+    from rotor_id.nodes.test_points import Phase
+    if args.test_point is None:
+        raise ValueError('--csv is written with --test-point (one row per test point); give '
+                         '--test-point K or --test-point all')
+    wanted = parse_test_point(args.test_point)
+    if len(args.bag) > 1:
+        raise ValueError('--test-point identifies the test points of one session bag; give one '
+                         'bag')
+    check_output_paths(json=args.json_out, figure=args.figure, csv=args.csv_out)
+    bag, config = args.bag[0], configs[0]
+    started = time.perf_counter()
+    description = load_run_description(config)
+    # the whole session: its test points' windows are found in it first
+    record = read_record(bag, **{**description.record_options(), 'window_s': None})
+    print_warnings(list(description.warnings) + list(record.warnings))
+    points, source, notes = find_test_points(bag, description, record)
+    print_warnings(notes)
+    numbers = [p.number for p in points]
+    if not args.quiet:
+        print(f'{bag}: {len(points)} test point(s) found from {source}: '
+              + ', '.join(p.describe() for p in points), file=sys.stderr, flush=True)
+    if wanted is not None:
+        if wanted not in numbers:
+            raise ValueError(f'{bag} has no test point {wanted}: found {numbers or "none"} '
+                             f'from {source}')
+        points = [p for p in points if p.number == wanted]
+    live = _live_windows(bag, description)
+    method = args.method or description.method
+    results, rows, all_converged = [], [], True
+    for point in points:
+        shift = (point.stamp0_ns - record.stamp0_ns) / NS
+        head = {'test_point': point.number, 'found_from': source,
+                'test_point_start_ns': int(point.stamp0_ns), 'test_point_start_s': shift,
+                'window_s_test_point': list(point.window_s)}
+        if point.number in live and tuple(live[point.number]) != tuple(point.window_s):
+            print_warnings([f'test point {point.number}: the live identifier used window_s '
+                            f'{list(live[point.number])}, this run description '
+                            f'{list(point.window_s)}: the results differ by that'])
+        if point.phase != Phase.FITTING:
+            reason = (point.detail or point.describe())
+            if wanted is not None:
+                raise ValueError(f'{point.describe()}: {reason}; its window does not hold the '
+                                 'excitation it was planned on. To fit it anyway, drop '
+                                 "--test-point and set window_s to seconds after the bag's "
+                                 f'first flap sample (this test point starts at {shift:.4f} s)')
+            all_converged = False
+            results.append({**head, 'status': 'not identified', 'reason': reason})
+            rows.append({**head, 'status': 'not identified', 'converged': False})
+            print(f'test point {point.number}: not identified ({reason})')
+            continue
+        window = (point.window_s[0] + shift, point.window_s[1] + shift)
+        desc_k = replace(description, window_s=window)
+        check_against_record(desc_k, record)
+        if point.check is not None and not point.check.complete:
+            print_warnings([f'test point {point.number}: the bag misses samples in its window '
+                            f'({point.check.describe()}); the live identifier reported it '
+                            'incomplete'])
+        if not args.quiet:
+            print(f'test point {point.number}: fitting {method} {description.model} over '
+                  f'{point.window_s[0]:.4f}-{point.window_s[1]:.4f} s after its first flap '
+                  f'sample ({window[0]:.4f}-{window[1]:.4f} s into the bag)',
+                  file=sys.stderr, flush=True)
+        result = pipeline.identify(record, desc_k, method=method,
+                                   progress=None if args.quiet else progress_printer(method),
+                                   filter_bounds=args.filter_bounds)
+        print(f'-- test point {point.number} --')
+        print(format_table(result))
+        print_warnings(result.warnings)
+        data = {**head, **result.as_json(), 'bag': str(bag)}
+        if point.check is not None:
+            data['window_complete_in_bag'] = point.check.complete
+        all_converged &= bool(result.estimate.converged)
+        results.append(data)
+        rows.append({**head, 'status': 'converged' if result.estimate.converged
+                     else 'not converged', 'converged': bool(result.estimate.converged),
+                     'n_samples': data['n_samples'], 'window_start_s': window[0],
+                     'window_end_s': window[1],
+                     **{k: v for name, p in data['parameters'].items()
+                        for k, v in ((name, p['value']), (f'{name}_std', p['std']))}})
+        if args.figure:
+            stem = Path(args.figure)           # with 'all': one figure per test point
+            path = (stem if wanted is not None
+                    else stem.with_name(f'{stem.stem}_tp{point.number}{stem.suffix}'))
+            plot_runs(result, [record], path, title=f'{Path(bag).name}: test point '
+                      f'{point.number}, {method} {description.model}')
+            print(f'figure: {path}')
+    if wanted is None:
+        print(format_test_points(rows, description.unknowns))
+    elapsed = time.perf_counter() - started
+    if args.json_out:
+        out = results[0] if wanted is not None else results
+        if wanted is not None:
+            out['elapsed_s'] = elapsed
+        Path(args.json_out).parent.mkdir(parents=True, exist_ok=True)
+        Path(args.json_out).write_text(json.dumps(out, indent=1))
+        print(f'JSON: {args.json_out}')
+    if args.csv_out:
+        write_csv(args.csv_out, rows, description.unknowns)
+        print(f'CSV: {args.csv_out}')
+    return 0 if all_converged else 1
+
+
+def format_test_points(rows, unknowns):
+    """Plain-text summary of the test points of a session: start, status, value ± σ."""
+    lines = [f'{"test point":>10} {"start [s]":>10}  {"status":<15} '
+             + ' '.join(f'{n:>20}' for n in unknowns)]
+    for row in rows:
+        values = ' '.join(f'{row[n]:>11.5g} ± {row[n + "_std"]:<6.2g}' if n in row
+                          else f'{"-":>20}' for n in unknowns)
+        lines.append(f'{row["test_point"]:>10} {row["test_point_start_s"]:>10.4f}  '
+                     f'{row["status"]:<15} {values}')
+    return '\n'.join(lines)
+
+
+def write_csv(path, rows, unknowns):
+    """One row per test point: CSV_FIXED columns, then each unknown and its σ."""
+    import csv
+    columns = list(CSV_FIXED) + [c for n in unknowns for c in (n, f'{n}_std')]
+    Path(path).parent.mkdir(parents=True, exist_ok=True)
+    with open(path, 'w', newline='') as stream:
+        writer = csv.DictWriter(stream, columns, extrasaction='ignore')
+        writer.writeheader()
+        for row in rows:
+            writer.writerow(row)

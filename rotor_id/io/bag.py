@@ -40,8 +40,9 @@ from rotor_id.io.timebase import interpolate_columns, nondimensional_time, TWO_P
 import yaml
 
 __all__ = [
-    'BagError', 'BagWarning', 'BagWriter', 'DEFAULT_TOPICS', 'open_writer', 'read_record',
-    'read_run', 'register_msg_dir', 'write_record_bag',
+    'BagError', 'BagWarning', 'BagWriter', 'DEFAULT_TOPICS', 'open_writer', 'read_messages',
+    'read_record', 'read_run', 'register_msg_dir', 'typestore_with_custom_types',
+    'write_record_bag',
 ]
 
 MAX_ANGLE_RAD = 1.0     # |flap| or |pitch| above this: the recording is taken to be in degrees
@@ -1087,6 +1088,72 @@ def read_run(description, bag_path=None):
                          **description.record_options())
     validate_window(description, record)
     return record
+
+
+def typestore_with_custom_types(msg_dirs=()):
+    """
+    Jazzy's rosbags typestore plus rotor_id_msgs and the .msg files of ``msg_dirs``.
+
+    rotor_id_msgs from its installed share when ament_index finds it, else the source tree's
+    msg_defs/msg (so that a clone reads its bags without ROS).
+    """
+    store = get_typestore(Stores.ROS2_JAZZY)
+    dirs = list(msg_dirs)
+    try:
+        from ament_index_python.packages import get_package_share_directory
+        dirs.insert(0, Path(get_package_share_directory('rotor_id_msgs')) / 'msg')
+    except (ImportError, LookupError, ValueError):
+        dirs.insert(0, Path(__file__).resolve().parents[2] / 'msg_defs' / 'msg')
+    for directory in dirs:
+        register_msg_dir(store, directory)
+    return store
+
+
+def read_messages(bag_path, topics):
+    """
+    Decode every message of some topics of a bag (any type rotor_id's typestore knows).
+
+    Parameters
+    ----------
+    bag_path
+        As for :func:`read_record`.
+    topics
+        Topic names; a relative one is matched as :func:`recorded_topic` says (the root
+        namespace, else the one namespace that has it).
+
+    Returns
+    -------
+    {name as given: (topic in the bag or None, [(receive ns, message), ...] in recording
+    order)}; a topic not in the bag has None and an empty list.
+
+    """
+    open_path, _storage, storage_file, _counts, _facts = _resolve(bag_path)
+    store = typestore_with_custom_types()
+    out = {}
+    try:
+        reader = Reader(open_path)
+        reader.open()
+    except Exception as err:  # noqa: B902 - rosbags/apsw raise many types for bad files
+        raise BagError(f'{storage_file} cannot be opened ({type(err).__name__}: {err})'
+                       ) from None
+    try:
+        available = {c.topic: c.msgtype for c in reader.connections}
+        found = {name: recorded_topic(name, available) for name in topics}
+        wanted = [c for c in reader.connections if c.topic in found.values()]
+        messages = {topic: [] for topic in found.values() if topic}
+        try:
+            for connection, log_ns, data in (reader.messages(wanted) if wanted else ()):
+                messages[connection.topic].append(
+                    (int(log_ns), store.deserialize_cdr(data, connection.msgtype)))
+        except Exception as err:  # noqa: B902 - damaged storage or unknown type
+            raise BagError(f'{storage_file}: {", ".join(m for m in found.values() if m)} '
+                           f'cannot be read ({type(err).__name__}: {err})') from None
+        for name, topic in found.items():
+            out[name] = (topic, messages.get(topic, []))
+    finally:
+        with suppress(Exception):
+            reader.close()
+    return out
 
 
 # --------------------------------------------------------------------------- writing

@@ -34,8 +34,7 @@ from rclpy.node import Node
 from rclpy.qos import (DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy)
 from rosbags.interfaces import (Qos, QosDurability, QosHistory, QosLiveliness, QosReliability,
                                 QosTime)
-from rosbags.typesys import get_typestore, Stores
-from rotor_id.io.bag import open_writer, register_msg_dir
+from rotor_id.io.bag import open_writer, typestore_with_custom_types
 from rotor_id.nodes.common import (declare, Diagnostics, node_run_description, resolve_config,
                                    RUN_DESCRIPTION_HELP, spin_node)
 
@@ -75,20 +74,6 @@ def bag_qos(profile):
                liveliness=QosLiveliness(int(profile.liveliness)),
                liveliness_lease_duration=_qos_time(profile.liveliness_lease_duration),
                avoid_ros_namespace_conventions=bool(profile.avoid_ros_namespace_conventions))
-
-
-def typestore_with_custom_types(msg_dirs=()):
-    """Jazzy's typestore plus rotor_id_msgs (installed share, else msg_defs/) and ``msg_dirs``."""
-    store = get_typestore(Stores.ROS2_JAZZY)
-    dirs = list(msg_dirs)
-    try:
-        from ament_index_python.packages import get_package_share_directory
-        dirs.insert(0, Path(get_package_share_directory('rotor_id_msgs')) / 'msg')
-    except (ImportError, LookupError, ValueError):
-        dirs.insert(0, Path(__file__).resolve().parents[2] / 'msg_defs' / 'msg')
-    for directory in dirs:
-        register_msg_dir(store, directory)
-    return store
 
 
 class Recorder(Node):

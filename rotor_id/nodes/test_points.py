@@ -629,3 +629,92 @@ class TestPointSequence:
         last = min(self.flap.last_stamp, self.pitch.last_stamp,
                    self.azimuth.series.last_stamp)
         return origin, (first - origin) / NS, (last - origin) / NS
+
+
+# ------------------------------------------------------------------------------ recorded sessions
+@dataclass
+class RecordedTestPoint:
+    """A test point of a recorded session: where the live identifier's would have started."""
+
+    __test__ = False                 # not a pytest class
+
+    number: int
+    stamp0_ns: int                   # its first flap sample (the origin of its window_s)
+    window_s: tuple                  # s after stamp0_ns
+    phase: Phase                     # FITTING: its window is in the record (see ``check``);
+    reason: Reason = Reason.NONE     # ABORTED (with the reason); RECORDING: the record ends
+    detail: str = ''                 # before its window's end
+    check: WindowCheck = None        # the record's samples over the window (FITTING only)
+    source: str = 'excitation'       # 'excitation' | 'estimates'
+
+    def describe(self):
+        """E.g. 'test point 2 (aborted: excitation ended)' or 'test point 1 (in the record)'."""
+        if self.phase == Phase.ABORTED:
+            reason = self.reason.name.lower().replace('_', ' ')
+            return f'test point {self.number} (aborted: {reason})'
+        if self.phase == Phase.RECORDING:
+            return f"test point {self.number} (the record ends before its window's end)"
+        return f'test point {self.number} (in the record)'
+
+
+def replay_excitation(record, excitation, window_s, gap_factor=1.5, slip_tolerance_rad=0.1):
+    """
+    Find the test points that excitation phases arm in a recorded session, as the live node.
+
+    The record's samples (flap, pitch and azimuth on the flap stamps) and the excitation's
+    phases are fed, in stamp order, to a :class:`TestPointSequence` with ``auto_start``
+    'excitation', which arms, starts, supersedes and aborts test points as in the live node
+    (the same code): a schedule's TRIM arms one from its stamp, its first flap sample at or after
+    it is the origin of ``window_s``, and a schedule that ends before the window's end aborts it.
+
+    Parameters
+    ----------
+    record : rotor_id.io.record.Record
+        The whole session (``stamp0_ns`` + ``time_s`` are the flap stamps).
+    excitation : iterable of (stamp_ns, phase)
+        The excitation's phases (StirringCommand's ``header.stamp`` and ``phase``).
+    window_s : (float, float)
+        The identification window of every test point, s after its first flap sample.
+    gap_factor, slip_tolerance_rad : float
+        The window checks' tolerances (:class:`TestPointSequence`).
+
+    Returns
+    -------
+    list of :class:`RecordedTestPoint`, numbered 1, 2, ... in order.
+
+    """
+    sequence = TestPointSequence(record.n_blades, window_s, record.blade_names,
+                                 FitSchedule(update_every_rad=0.0), gap_factor=gap_factor,
+                                 slip_tolerance_rad=slip_tolerance_rad, auto_start='excitation')
+    stamps = int(record.stamp0_ns) + np.round(record.time_s * NS).astype(np.int64)
+    psi = np.mod(record.t, 2.0 * math.pi)
+    events = sorted(((int(s), int(p)) for s, p in excitation), key=lambda e: e[0])
+    # an event goes in before the first flap sample stamped at or after it
+    at = np.searchsorted(stamps, [s for s, _ in events], side='left')
+    points, checks, e = [], {}, 0
+    for i, stamp in enumerate(stamps.tolist()):
+        while e < len(events) and at[e] <= i:
+            before = sequence.count
+            sequence.on_excitation(events[e][1], events[e][0])
+            if sequence.count != before:
+                points.append(sequence.latest)
+            e += 1
+        sequence.add_flap(stamp, record.blade_flap[i])
+        sequence.add_pitch(stamp, record.blade_pitch[i])
+        sequence.add_azimuth(stamp, psi[i], record.rotor_speed_rad_s[i])
+        request = sequence.due()
+        if request is not None:
+            checks[request.test_point] = request.check
+    for stamp, phase in events[e:]:                      # stamped after the last flap sample
+        sequence.on_excitation(phase, stamp)
+    found = []
+    for p in points:
+        if p.stamp0_ns is None:       # armed after the last flap sample: nothing recorded
+            continue
+        if p.phase == Phase.ABORTED:
+            phase = Phase.ABORTED
+        else:                         # FITTING once its window was in the record
+            phase = Phase.FITTING if p.number in checks else Phase.RECORDING
+        found.append(RecordedTestPoint(p.number, p.stamp0_ns, p.window_s, phase, p.reason,
+                                       p.detail, checks.get(p.number)))
+    return found

@@ -1,0 +1,230 @@
+"""
+``rotor-id identify BAG --test-point K|all``: the test points of a session bag, offline.
+
+What it proves, on a bag of three test points of the wake plant recorded straight through (the
+plant's own stepper at 1 kHz, the stirring node's phases on ``rotor/stirring`` received 20 ms
+after the samples they refer to, as the live recorder writes them): the test points are found
+where the live identifier's state machine starts them (each at its schedule's first flap sample),
+and each test point's offline estimate is the estimate of exactly the window the live identifier
+fits (its FitRequest from the same TestPointSequence) to 0.05σ, with ``window_s`` counted from
+that test point's start, not the bag's; ``all`` gives a JSON list and CSV rows in order; without
+phases the estimates' test_point tags are used; a schedule cut short is reported as not
+identified (an error when asked for by number); a bag with neither signal, an unknown number and
+a bad ``--test-point`` are one line and exit 2.
+"""
+
+import csv
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+from rotor_id.cli import main
+from rotor_id.io.bag import typestore_with_custom_types, write_record_bag
+from rotor_id.io.record import Record
+from rotor_id.io.run_description import load_run_description
+from rotor_id.nodes.test_points import Excitation, FitSchedule, TestPointSequence
+from rotor_id.pipeline import identify
+from test_test_points import _stream, BASE, BLADES, LENGTH, MS, OMEGA, WAKE
+
+CONFIG = Path(__file__).resolve().parents[2] / 'config' / 'demo_wake.yaml'
+LATE = 20                                   # samples a phase arrives after its stamp
+
+
+def _schedules(points, done_at=960):
+    phases = []
+    for k in range(points):
+        phases += [(k * LENGTH, Excitation.TRIM), (k * LENGTH + 67, Excitation.CYCLIC_STEP),
+                   (k * LENGTH + 810, Excitation.STIRRING), (k * LENGTH + done_at,
+                                                             Excitation.DONE)]
+    return phases
+
+
+def _message(store, name, **values):
+    """Build a rosbags message of ``name``, every field not given at its zero value."""
+    numpy_types = {'float64': float, 'float32': np.float32, 'uint32': np.uint32,
+                   'uint8': np.uint8, 'int32': np.int32}
+    fields = {}
+    for field, (kind, detail) in store.fielddefs[name][1]:
+        if field in values:
+            continue
+        if kind == 2:                                   # a nested message
+            fields[field] = _message(store, detail)
+        elif kind == 1:                                 # a base type
+            fields[field] = {'string': '', 'bool': False}.get(
+                detail[0], 0.0 if detail[0].startswith('float') else 0)
+        else:                                           # a sequence or an array
+            base = detail[0][1][0]
+            fields[field] = ([] if base == 'string'
+                             else np.array([], dtype=numpy_types.get(base, float)))
+    return store.types[name](**fields, **values)
+
+
+def _time(store, ns):
+    return store.types['builtin_interfaces/msg/Time'](sec=int(ns) // 10**9,
+                                                      nanosec=int(ns) % 10**9)
+
+
+@pytest.fixture(scope='module')
+def session(tmp_path_factory):
+    """Return the stream of three test points as a Record, and a bag writer for it."""
+    data = _stream(points=3)
+    record = Record(time_s=(data['stamps'] - BASE) / 1e9, t=data['t'],
+                    rotor_speed_rad_s=np.full(data['t'].size, OMEGA),
+                    blade_flap=data['flap'], blade_pitch=data['pitch'], blade_names=BLADES,
+                    stamp0_ns=BASE)
+    store = typestore_with_custom_types()
+    tmp = tmp_path_factory.mktemp('session')
+
+    def bag(name, phases=(), estimates=()):
+        extra = []
+        for index, phase in phases:
+            stamp = int(data['stamps'][index])
+            header = store.types['std_msgs/msg/Header'](stamp=_time(store, stamp),
+                                                        frame_id='rotor')
+            extra.append(('/rotor/stirring', stamp + LATE * MS, _message(
+                store, 'rotor_id_msgs/msg/StirringCommand', header=header, phase=int(phase))))
+        for number, start_index, status in estimates:
+            start = int(data['stamps'][start_index])
+            extra.append(('/rotor_id/estimate', start + LENGTH * MS, _message(
+                store, 'rotor_id_msgs/msg/ParameterEstimate', test_point=number, kind=1,
+                status=status, test_point_start=_time(store, start))))
+        extra.sort(key=lambda e: e[1])
+        topics = {e[0] for e in extra}
+        path = tmp / name
+        if not path.exists():
+            write_record_bag(path, record, extra=extra, typestore=store)
+        return path, topics
+
+    return {'data': data, 'record': record, 'bag': bag, 'tmp': tmp}
+
+
+def _live_fits(data, phases):
+    """Identify what the live identifier fits: the final FitRequest of each test point."""
+    machine = TestPointSequence(4, load_run_description(CONFIG).window_s, BLADES,
+                                FitSchedule(update_every_rad=0.0))
+    events = {index + LATE: (phase, int(data['stamps'][index])) for index, phase in phases}
+    fits = {}
+    description = load_run_description(CONFIG)
+    for i, stamp in enumerate(data['stamps']):
+        machine.add_flap(int(stamp), data['flap'][i])
+        machine.add_pitch(int(stamp), data['pitch'][i])
+        machine.add_azimuth(int(stamp), data['psi'][i], OMEGA)
+        if i in events:
+            machine.on_excitation(*events[i])
+        request = machine.due()
+        if request is not None:
+            estimate = identify(request.record, description, window_s=request.window_s).estimate
+            fits[request.test_point] = (request.stamp0_ns, {
+                n: (estimate.values[estimate.names.index(n)], estimate.std_of(n))
+                for n in WAKE})
+    return fits
+
+
+def _cli(*argv):
+    return main(['identify', *map(str, argv), '--quiet'])
+
+
+def test_each_test_point_of_a_session_agrees_with_the_live_fit_of_its_window(session, capsys):
+    phases = _schedules(3)
+    bag, _ = session['bag']('phases', phases)
+    out = session['tmp'] / 'all.json'
+    table = session['tmp'] / 'all.csv'
+    assert _cli(bag, '--config', CONFIG, '--test-point', 'all', '--json', out,
+                '--csv', table) == 0, capsys.readouterr().err
+    results = json.loads(out.read_text())
+    live = _live_fits(session['data'], phases)
+    assert [r['test_point'] for r in results] == [1, 2, 3] == sorted(live)
+    rows = list(csv.DictReader(table.open()))
+    assert [int(r['test_point']) for r in rows] == [1, 2, 3]
+    for result, row in zip(results, rows):
+        k = result['test_point']
+        stamp0, live_values = live[k]
+        # its start is its schedule's first flap sample, as live
+        assert result['test_point_start_ns'] == stamp0 == session['data']['stamps'][
+            (k - 1) * LENGTH]
+        assert result['window_s_test_point'] == [0.80939, 0.93671]
+        shift = (k - 1) * LENGTH * MS / 1e9
+        assert result['window_s'] == pytest.approx([0.80939 + shift, 0.93671 + shift],
+                                                   abs=1e-9)
+        assert result['converged'] and result['window_complete_in_bag']
+        for name, (value, std) in live_values.items():
+            offline = result['parameters'][name]
+            assert abs(offline['value'] - value) < 0.05 * std, (k, name, offline, value, std)
+            assert abs(offline['value'] - WAKE[name]) < 3 * offline['std']
+            assert float(row[name]) == pytest.approx(offline['value'])
+            assert float(row[f'{name}_std']) == pytest.approx(offline['std'])
+        assert row['status'] == 'converged' and row['found_from'].startswith('/rotor/stirring')
+
+
+def test_one_test_point_by_number(session, capsys):
+    bag, _ = session['bag']('phases', _schedules(3))
+    out = session['tmp'] / 'two.json'
+    assert _cli(bag, '--config', CONFIG, '--test-point', '2', '--json', out) == 0
+    result = json.loads(out.read_text())
+    assert result['test_point'] == 2 and result['converged']
+    assert result['test_point_start_s'] == pytest.approx(LENGTH * MS / 1e9)
+    assert '-- test point 2 --' in capsys.readouterr().out
+
+
+def test_without_phases_the_estimates_tags_give_the_test_points(session):
+    # the identifier numbered them 4, 5, 6 (it ran three before this recording started)
+    bag, _ = session['bag']('estimates', estimates=[(4 + k, k * LENGTH, 1) for k in range(3)])
+    out = session['tmp'] / 'tags.json'
+    assert _cli(bag, '--config', CONFIG, '--test-point', 'all', '--json', out) == 0
+    results = json.loads(out.read_text())
+    assert [r['test_point'] for r in results] == [4, 5, 6]
+    assert all(r['found_from'].startswith('/rotor_id/estimate') for r in results)
+    assert [r['test_point_start_ns'] for r in results] == [
+        session['data']['stamps'][k * LENGTH] for k in range(3)]
+
+
+def test_phases_take_the_live_numbers_where_the_estimates_give_them(session, capsys):
+    bag, _ = session['bag']('both', _schedules(3),
+                            estimates=[(7 + k, k * LENGTH, 1) for k in range(3)])
+    out = session['tmp'] / 'both.json'
+    assert _cli(bag, '--config', CONFIG, '--test-point', '8', '--json', out) == 0
+    assert json.loads(out.read_text())['test_point_start_ns'] == session['data']['stamps'][
+        LENGTH]
+    assert "the live identifier's test point 8" in capsys.readouterr().err
+
+
+def test_a_schedule_cut_short_is_not_identified(session, capsys):
+    # test point 2's schedule is done at 0.85 s, before its window's end (0.937 s)
+    phases = [p for p in _schedules(3) if p[0] != LENGTH + 960] + [(LENGTH + 850,
+                                                                   Excitation.DONE)]
+    bag, _ = session['bag']('cut', sorted(phases, key=lambda p: p[0]))
+    table = session['tmp'] / 'cut.csv'
+    assert _cli(bag, '--config', CONFIG, '--test-point', 'all', '--csv', table) == 1
+    rows = list(csv.DictReader(table.open()))
+    assert [(r['test_point'], r['status']) for r in rows] == [
+        ('1', 'converged'), ('2', 'not identified'), ('3', 'converged')]
+    assert rows[1]['A'] == ''
+    capsys.readouterr()
+    assert _cli(bag, '--config', CONFIG, '--test-point', '2') == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and 'test point 2 (aborted: excitation ended)' in err[0], err
+    assert 'this test point starts at 1.0000 s' in err[0]
+
+
+@pytest.mark.parametrize('argv, words', [
+    (('--test-point', '9'), 'has no test point 9: found [1, 2, 3]'),
+    (('--test-point', '0'), "give a test point number (1, 2, ...) or 'all'"),
+    (('--test-point', 'first'), "give a test point number (1, 2, ...) or 'all'"),
+    (('--csv', 'x.csv'), '--csv is written with --test-point'),
+])
+def test_bad_selections_are_one_line(session, capsys, argv, words):
+    bag, _ = session['bag']('phases', _schedules(3))
+    assert _cli(bag, '--config', CONFIG, *argv) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and words in err[0], err
+
+
+def test_a_bag_without_test_points_says_how_to_select_a_window(session, capsys):
+    bag, _ = session['bag']('plain')
+    assert _cli(bag, '--config', CONFIG, '--test-point', '1') == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and 'holds no test points' in err[0], err
+    assert 'drop --test-point and set window_s' in err[0]
+    assert math.isfinite(len(err))
