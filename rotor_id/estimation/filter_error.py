@@ -21,14 +21,27 @@ whose inverse is the Cramér-Rao bound. The process noise is optimised as its va
 ∂J/∂σ vanishes at σ = 0 for any data (Q ∝ σ²), so σ = 0 would be a false stationary point,
 while ∂J/∂q is not; σ and its bound are reported (M_σ = (2σ)² M_q). The sensitivities:
 
-* free initial states: exact. ν is linear in x(t0) at fixed gains, ∂ν_j/∂x0 = −H_j Ψ_j with
-  Ψ_{j+1} = Φ_j (I − K_j H_j) Ψ_j, Ψ_0 = the selection of the free states.
-* model parameters and noise parameters: central finite differences of the whole filter
-  (ν_j and B_j), step 1e-5 relative. The filter is a smooth deterministic function of θ
-  (matrix products, solves and an inverse of a positive definite B), so the truncation error is
-  O(h²) ≈ 1e-10 relative and the rounding error ≈ 1e-16/h ≈ 1e-11: far below any statistical
-  spread. ``test_filter_error`` checks them against the analytic output-error sensitivities,
-  which they must equal when the process noise is zero.
+* analytic (``gradients='analytic'``, the default) where the system matrix F is constant
+  (time-invariant dynamics; H may rotate, as the wake model's eq.-30 measurement does): the
+  filter is differentiated through (Jategaonkar's filter-error method),
+
+      ∂ν = −H ∂x − ∂d,   ∂B = H ∂P Hᵀ + ∂R,   ∂K = (∂P Hᵀ − K ∂B) B⁻¹,
+      ∂x⁺ = ∂x + ∂K ν + K ∂ν,   ∂P⁺ = ∂P − ∂K B Kᵀ − K ∂B Kᵀ − K B ∂Kᵀ,
+      ∂P′ = ∂Φ P⁺ Φᵀ + Φ P⁺ ∂Φᵀ + Φ ∂P⁺ Φᵀ + ∂Q,
+
+  with ∂x carried through the same RK4 steps as x (their variational equations, the exact
+  derivative of the step map), ∂Φ exact, ∂Q = ∂Q/∂F along ∂F/∂p by a central difference of
+  that n×n function (≈1e-12 relative), ∂x(t0) from the initial-state model. With the
+  steady-state gain, ∂P comes from the Riccati equation's derivative, a discrete Lyapunov
+  equation (:func:`steady_gain_sensitivities`). The recursion is compiled
+  (``_filter_kernels_numba``) with a numpy twin; test_filter_error_gradient checks the gradient
+  against differences of the likelihood.
+* otherwise (periodic F, or ``gradients='finite-difference'``): free initial states exactly
+  (ν is linear in x(t0) at fixed gains, ∂ν_j/∂x0 = −H_j Ψ_j with Ψ_{j+1} = Φ_j (I − K_j H_j)
+  Ψ_j), model and noise parameters by central finite differences of the whole filter (ν_j
+  and B_j), step 1e-5 relative: truncation O(h²) ≈ 1e-10 relative, rounding ≈ 1e-11, far
+  below any statistical spread. ``test_filter_error`` checks them against the analytic
+  output-error sensitivities, which they must equal when the process noise is zero.
 
 The time-varying gain is used for periodic models (and for the wake model's rotating eq.-30
 measurement); the steady-state gain of the algebraic Riccati equation when Φ, Q and H are
@@ -55,10 +68,13 @@ from rotor_id.estimation import kalman, kernels
 from rotor_id.estimation.output_error import (_fit_initial_states, _Problem,
                                               damped_gauss_newton_step, dependence_warnings,
                                               Estimate, IdentificationError)
-from rotor_id.estimation.simulate import DEFAULT_MAX_STEP
+from rotor_id.estimation.simulate import (_fine_grid, _rk4_step_derivative, _rk4_transition,
+                                          _time_invariant, DEFAULT_MAX_STEP, substeps_for)
 
 PROCESS_NOISE = 'process_noise_std'
 _FD_STEP = 1e-5
+#: How the sensitivities of ν and B are computed (see the module docstring).
+GRADIENTS = ('analytic', 'finite-difference')
 
 
 def measurement_noise_name(channel):
@@ -82,8 +98,10 @@ class _FilterProblem:
     """θ = [model unknowns, free initial states (per run), process σ?, measurement σ's?]."""
 
     def __init__(self, experiments, unknowns, guess, known, noise_std, process_noise_std,
-                 estimate_process_noise, rows, noise_model, gain, max_step):
+                 estimate_process_noise, rows, noise_model, gain, max_step,
+                 gradients='analytic'):
         self.base = _Problem(experiments, unknowns, guess, known)
+        self.gradients = gradients
         self.experiments = experiments
         model = experiments[0].model
         self.model = model
@@ -161,6 +179,11 @@ class _FilterProblem:
         out = []
         k = len(theta)
         for r, exp in enumerate(self.experiments):
+            if sensitivities and self.gradients == 'analytic':
+                analytic = self.analytic_sensitivities(r, theta)
+                if analytic is not None:
+                    out.append(analytic)
+                    continue
             # θ and, for the sensitivities, θ ± h_i e_i: one batched filter pass for all
             thetas = [theta]
             spans = []
@@ -207,6 +230,199 @@ class _FilterProblem:
                         Psi = dm.Phi[j] @ (eye - gains[0, j] @ dm.H[j]) @ Psi
             out.append((nu[0], B[0], dnu, dB, cost[0]))
         return out
+
+    def analytic_sensitivities(self, r, theta):
+        """
+        Return (ν, B, ∂ν, ∂B, cost) of run r from the filter's analytic sensitivities.
+
+        For a model whose system matrix F is constant (equal steps; H may rotate, as the wake
+        model's eq.-30 measurement does). None otherwise (a periodic model: finite
+        differences then). The module docstring has the equations.
+        """
+        exp = self.experiments[r]
+        model = exp.model
+        base, sig_p, sig_m = self.split(theta)
+        p = self.base.full_parameters(base)
+        t = exp.t
+        substeps = substeps_for(t, self.max_step)
+        tf = _fine_grid(t, substeps)
+        u = exp.inputs(tf)
+        F, g = model.system(tf, p, u)
+        h = np.repeat(np.diff(t) / substeps, substeps)
+        if not _time_invariant(F, h, t):
+            return None
+        dm, x0, R = self.discretized(r, theta)
+        steady = self.gain_mode(dm) == 'steady'
+        n, m, k = model.n_states, self.m, len(theta)
+        kp = len(self.base.param_index)
+        dF, dg = model.system_jacobian(tf, p, u)
+        dF = np.ascontiguousarray(dF[0][self.base.param_index])            # (kp, n, n)
+        dg = np.ascontiguousarray(dg[:, self.base.param_index])            # (2M+1, kp, n)
+        F0 = np.ascontiguousarray(F[0])
+        dt = float(t[1] - t[0])
+        # ∂Φ of one interval (its RK4 steps composed) and ∂Q (Q = σ_V² Q₁(F))
+        step = h[:1]
+        Phi_s = _rk4_transition(F[:1], step)[0]
+        dPhi_s = np.moveaxis(_rk4_step_derivative(
+            F[:1], np.zeros((1, n)), np.full(n, step[0]), dF[None], np.zeros((1, kp, n)),
+            np.eye(n)), 0, -1)                                             # (kp, n, n)
+        Phi = np.eye(n)
+        dPhi = np.zeros((k, n, n))
+        for _ in range(substeps):
+            dPhi[:kp] = dPhi_s @ Phi + Phi_s @ dPhi[:kp]
+            Phi = Phi_s @ Phi
+        dQ = np.zeros((k, n, n))
+        if self.i_process is not None:          # θ holds q = σ_V²: ∂Q/∂q = Q₁
+            dQ[self.i_process] = kalman.constant_noise_covariance(
+                F0, dt, substeps, self.rows, 1.0, self.noise_model)
+        if sig_p > 0.0:
+            # ∂Q/∂p = ∂Q/∂F along ∂F/∂p: central difference of this small matrix function
+            # (step 1e-6 of F, truncation ~1e-12 relative)
+            for i in range(kp):
+                eps = 1e-6 * max(float(np.max(np.abs(F0))), 1e-300) / \
+                    max(float(np.max(np.abs(dF[i]))), 1e-300)
+                up = kalman.constant_noise_covariance(F0 + eps * dF[i], dt, substeps, self.rows,
+                                                      sig_p, self.noise_model)
+                down = kalman.constant_noise_covariance(F0 - eps * dF[i], dt, substeps,
+                                                        self.rows, sig_p, self.noise_model)
+                dQ[i] = (up - down) / (2.0 * eps)
+        dR = np.zeros((k, m, m))
+        if self.i_meas is not None:
+            for a, i in enumerate(range(self.i_meas.start, self.i_meas.stop)):
+                dR[i, a, a] = 2.0 * sig_m[a]
+        H = np.ascontiguousarray(dm.H, dtype=float)
+        Phi0 = np.ascontiguousarray(dm.Phi[0])
+        Q0 = np.ascontiguousarray(dm.Q[0])
+        if steady:
+            _, B_ss, K_ss, dB_ss, dK_ss = steady_gain_sensitivities(Phi0, Q0, H[0], R, dPhi,
+                                                                    dQ, dR)
+        else:
+            B_ss, K_ss = np.zeros((m, m)), np.zeros((n, m))
+            dB_ss, dK_ss = np.zeros((k, m, m)), np.zeros((k, n, m))
+        T = t.size
+        dd = np.zeros((T, m, k))
+        dd[:, :, :kp] = model.output_offset_jacobian(t, p)[:, :, self.base.param_index]
+        x0, jac = self.base.initial_state(r, base, p)
+        dx0 = np.zeros((n, k))
+        dx0[:, :kp] = jac[:, :kp]
+        dx0[:, self.base.state_slices[r]] = jac[:, kp:]
+        nu, dnu = np.empty((T, m)), np.empty((T, m, k))
+        B, dB = np.empty((T, m, m)), np.empty((T, m, m, k))
+        args = (F0, np.ascontiguousarray(g), dF, dg, float(step[0]), substeps, Phi0, dPhi, Q0,
+                dQ, np.ascontiguousarray(R), dR, H, np.ascontiguousarray(dm.d, dtype=float),
+                dd, np.ascontiguousarray(exp.y, dtype=float), np.asarray(x0, dtype=float),
+                dx0, steady, B_ss, K_ss, dB_ss, np.ascontiguousarray(dK_ss), nu, dnu, B, dB)
+        compiled = kernels.filter_sensitivity_kernel()
+        if compiled is not None:
+            cost = compiled(*args)
+        else:
+            clock = time.process_time()
+            cost = sensitivity_scan_numpy(*args)
+            kernels.note_numpy_seconds(time.process_time() - clock)
+        return nu, B, dnu, dB, float(cost)
+
+
+def steady_gain_sensitivities(Phi, Q, H, R, dPhi, dQ, dR):
+    """
+    Steady-state filter (P, B, K) and the derivatives ∂B, ∂K along k directions.
+
+    P solves the discrete algebraic Riccati equation P = Φ (I − KH) P Φᵀ + Q with
+    B = H P Hᵀ + R and K = P Hᵀ B⁻¹ (eqs 31-32 at their fixed point). Differentiating it gives
+    a discrete Lyapunov (Stein) equation for each direction,
+
+        ∂P = Ā ∂P Āᵀ + ∂Φ M Φᵀ + Φ M ∂Φᵀ + Φ K ∂R Kᵀ Φᵀ + ∂Q,   Ā = Φ (I − KH), M = (I − KH) P
+
+    solved for all directions at once through (I − Ā⊗Ā) vec ∂P = vec W; then
+    ∂B = H ∂P Hᵀ + ∂R and ∂K = (∂P Hᵀ − K ∂B) B⁻¹. dPhi, dQ (k, n, n), dR (k, m, m).
+    Returns P (n, n), B (m, m), K (n, m), dB (k, m, m), dK (k, n, m).
+    """
+    n = Phi.shape[0]
+    k = dPhi.shape[0]
+    P = kalman.steady_state_covariance(
+        kalman.DiscreteModel(t=None, Phi=Phi[None], c=None, Q=Q[None], H=H[None], d=None), R)
+    B = H @ P @ H.T + R
+    B = 0.5 * (B + B.T)
+    Binv = np.linalg.inv(B)
+    K = P @ H.T @ Binv
+    IKH = np.eye(n) - K @ H
+    A = Phi @ IKH
+    M = IKH @ P
+    PhiK = Phi @ K
+    W = (dPhi @ M @ Phi.T + Phi @ M @ np.swapaxes(dPhi, -1, -2) + PhiK @ dR @ PhiK.T + dQ)
+    system = np.eye(n * n) - np.kron(A, A)
+    dP = np.linalg.solve(system, W.reshape(k, n * n).T).T.reshape(k, n, n)
+    dP = 0.5 * (dP + np.swapaxes(dP, -1, -2))
+    dB = H @ dP @ H.T + dR
+    dK = (dP @ H.T - K @ dB) @ Binv
+    return P, B, K, dB, dK
+
+
+def sensitivity_scan_numpy(F, g, dF, dg, h, substeps, Phi, dPhi, Q, dQ, R, dR, H, d, dd, y,
+                           x0, dx0, steady, B_ss, K_ss, dB_ss, dK_ss, nu, dnu, B, dB):
+    """Numpy twin of ``_filter_kernels_numba.sensitivity_scan`` (same arguments and result)."""
+    T = y.shape[0]
+    n, kp = F.shape[0], dF.shape[0]
+    x = x0.copy()
+    S = dx0.copy()
+    P = np.zeros((n, n))
+    dP = np.zeros((dx0.shape[1], n, n))
+    half = 0.5 * h
+    total = 0.0
+    for t in range(T):
+        Ht = H[t]
+        if steady:
+            Bj, Kj, dBj, dKj = B_ss, K_ss, dB_ss, dK_ss
+            Binv = np.linalg.inv(Bj)
+        else:
+            PHT = P @ Ht.T
+            Bj = Ht @ PHT + R
+            Bj = 0.5 * (Bj + Bj.T)
+            Binv = np.linalg.inv(Bj)
+            Kj = PHT @ Binv
+            dPHT = dP @ Ht.T
+            dBj = Ht @ dPHT + dR
+            dKj = (dPHT - Kj @ dBj) @ Binv
+        B[t] = Bj
+        dB[t] = np.moveaxis(dBj, 0, -1)
+        v = y[t] - d[t] - Ht @ x
+        dv = -dd[t] - Ht @ S
+        nu[t] = v
+        dnu[t] = dv
+        total += float(v @ Binv @ v) + np.linalg.slogdet(Bj)[1]
+        x = x + Kj @ v
+        S = S + Kj @ dv + np.einsum('cia,a->ic', dKj, v)
+        if t == T - 1:
+            break
+        if not steady:
+            KB = Kj @ Bj
+            dP = (dP - dKj @ KB.T - np.swapaxes(dKj @ KB.T, -1, -2)
+                  - Kj @ dBj @ Kj.T)
+            P = P - KB @ Kj.T
+            W = P @ Phi.T
+            dPn = dQ + 2.0 * dPhi @ W + Phi @ (dP @ Phi.T)     # symmetric part: see the kernel
+            dP = 0.5 * (dPn + np.swapaxes(dPn, -1, -2))
+            Pn = Q + Phi @ W
+            P = 0.5 * (Pn + Pn.T)
+        for s in range(substeps):
+            st = 2 * (t * substeps + s)
+            k1 = F @ x + g[st]
+            x2 = x + half * k1
+            k2 = F @ x2 + g[st + 1]
+            x3 = x + half * k2
+            k3 = F @ x3 + g[st + 1]
+            x4 = x + h * k3
+            k4 = F @ x4 + g[st + 2]
+            s1 = F @ S
+            s1[:, :kp] += (dF @ x).T + dg[st].T
+            s2 = F @ (S + half * s1)
+            s2[:, :kp] += (dF @ x2).T + dg[st + 1].T
+            s3 = F @ (S + half * s2)
+            s3[:, :kp] += (dF @ x3).T + dg[st + 1].T
+            s4 = F @ (S + h * s3)
+            s4[:, :kp] += (dF @ x4).T + dg[st + 2].T
+            x = x + h / 6.0 * (k1 + 2.0 * k2 + 2.0 * k3 + k4)
+            S = S + h / 6.0 * (s1 + 2.0 * s2 + 2.0 * s3 + s4)
+    return total
 
 
 def filter_batch(dms, y, x0, R, gain='time-varying'):
@@ -321,7 +537,7 @@ def fit_filter_error_ml(experiments, unknowns, guess=None, known=None, noise_std
                         progress=None, max_iter=50, process_noise_std=None,
                         estimate_process_noise=True, rows=None, noise_model='white',
                         gain='auto', step_tol=1e-3, max_step=DEFAULT_MAX_STEP,
-                        label='filter-error ML'):
+                        label='filter-error ML', gradients='analytic'):
     """
     Filter-error maximum likelihood over one or more runs; Cramér-Rao bound at the optimum.
 
@@ -362,6 +578,10 @@ def fit_filter_error_ml(experiments, unknowns, guess=None, known=None, noise_std
         Longest RK4 step of the discretisation.
     label : str
         Name shown by progress reports.
+    gradients : {'analytic', 'finite-difference'}
+        Sensitivities of ν and B: analytic where the model is time-invariant with a
+        steady-state gain (finite differences elsewhere), or finite differences throughout
+        (the reference).
 
     Returns
     -------
@@ -369,6 +589,9 @@ def fit_filter_error_ml(experiments, unknowns, guess=None, known=None, noise_std
         ``method='filter-error'``; names include ``process_noise_std``.
 
     """
+    if gradients not in GRADIENTS:
+        raise IdentificationError(f"gradients must be one of {', '.join(GRADIENTS)}, "
+                                  f'not {gradients!r}')
     if gain not in ('auto', 'time-varying', 'steady'):
         raise IdentificationError(f"gain must be 'auto', 'time-varying' or 'steady', not {gain!r}")
     for exp in experiments:
@@ -383,7 +606,8 @@ def fit_filter_error_ml(experiments, unknowns, guess=None, known=None, noise_std
     if process_noise_std is not None and process_noise_std < 0:
         raise IdentificationError('process_noise_std must be ≥ 0')
     prob = _FilterProblem(experiments, unknowns, guess, known, noise_std, process_noise_std,
-                          estimate_process_noise, rows, noise_model, gain, max_step)
+                          estimate_process_noise, rows, noise_model, gain, max_step,
+                          gradients)
     names = prob.names
     k = len(names)
     base = prob.base
@@ -534,7 +758,7 @@ def fit_filter_error(experiments, unknowns, guess=None, known=None, noise_std=No
                      progress=None, max_iter=50, process_noise_std=None,
                      estimate_process_noise=True, rows=None, noise_model='white', gain='auto',
                      step_tol=1e-3, max_step=DEFAULT_MAX_STEP, label='filter-error ML',
-                     bounds='marginal'):
+                     bounds='marginal', gradients='analytic'):
     """
     Filter-error identification with bounds that include the uncertainty of the process noise.
 
@@ -577,7 +801,7 @@ def fit_filter_error(experiments, unknowns, guess=None, known=None, noise_std=No
         raise IdentificationError(f"bounds must be 'marginal' or 'conditional', not {bounds!r}")
     options = {'known': known, 'noise_std': noise_std, 'max_iter': max_iter, 'rows': rows,
                'noise_model': noise_model, 'gain': gain, 'step_tol': step_tol,
-               'max_step': max_step}
+               'max_step': max_step, 'gradients': gradients}
     joint = fit_filter_error_ml(experiments, unknowns, guess=guess, progress=progress,
                                 process_noise_std=process_noise_std,
                                 estimate_process_noise=estimate_process_noise, label=label,

@@ -158,7 +158,7 @@ def discretize(model, p, inputs, t, rows=(), noise_std=0.0, noise_model='white',
     c_s = c_s.reshape(T - 1, m, n)
     # response of each step to a unit input held on each noise row
     G_s = np.zeros((T - 1, m, n, len(rows)))
-    if noise_model == 'held':
+    if noise_model == 'held' and not constant:
         for k, row in enumerate(rows):
             w = np.zeros((h.size, n))
             w[:, row] = 1.0
@@ -171,27 +171,71 @@ def discretize(model, p, inputs, t, rows=(), noise_std=0.0, noise_model='white',
         Phi = Phi_s[:Phi.shape[0], s] @ Phi
         if constant:                    # one matrix for all intervals: a single product
             c = c @ Phi_s[0, s].T + c_s[:, s]
-            G = Phi_s[0, s] @ G + G_s[:, s]
         else:
             c = np.einsum('jab,jb->ja', Phi_s[:, s], c) + c_s[:, s]
             G = Phi_s[:, s] @ G + G_s[:, s]
-    if noise_model == 'held':
+    if constant:
+        Q = np.broadcast_to(constant_noise_covariance(F[0], np.diff(t)[0], m, rows, sigma,
+                                                      noise_model), (T - 1, n, n))
+        G = np.broadcast_to(held_noise_response(F[0], np.diff(t)[0], m, rows),
+                            (T - 1, n, len(rows))) if noise_model == 'held' else None
+    elif noise_model == 'held':
         Q = np.einsum('jak,k,jbk->jab', G, sigma**2, G)
     else:
         mid = 0.5 * (t[:-1] + t[1:])
         Fmid = model.system(mid, p, inputs(mid))[0]
         Qc = np.zeros((n, n))
         Qc[rows, rows] = sigma**2
-        if constant:                    # the same F and Δt: one matrix exponential
-            Q = np.broadcast_to(van_loan(Fmid[:1], Qc, np.diff(t)[:1])[1], (T - 1, n, n))
-        else:
-            Q = van_loan(Fmid, Qc, np.diff(t))[1]
+        Q = van_loan(Fmid, Qc, np.diff(t))[1]
         G = None
     if constant:
         Phi = np.broadcast_to(Phi, (T - 1, n, n))
     H = model.output_matrix(t)
     d = model.output_offset(t, p)
     return DiscreteModel(t=t, Phi=Phi, c=c, Q=Q, H=H, d=d, G=G)
+
+
+def held_noise_response(F, dt, substeps, rows):
+    """
+    Return G (n, q) of one sample interval of a time-invariant model (``'held'`` noise).
+
+    G is the RK4 response of the state to a unit input held on each noise row over the
+    interval. F (n, n) is the constant system matrix, ``substeps`` RK4 steps of dt/substeps each.
+    """
+    n = F.shape[0]
+    h = np.array([dt / substeps])
+    F1 = F[None]
+    step = _rk4_maps(F1, np.zeros((1, n)), h)[0][0]
+    G = np.zeros((n, len(rows)))
+    for k, row in enumerate(rows):
+        w = np.zeros((1, n))
+        w[0, row] = 1.0
+        G_s = _rk4_constant_forcing(F1, w, h)[0]
+        g = np.zeros(n)
+        for _ in range(substeps):
+            g = step @ g + G_s
+        G[:, k] = g
+    return G
+
+
+def constant_noise_covariance(F, dt, substeps, rows, sigma, noise_model):
+    """
+    Return Q (n, n) of one sample interval of a time-invariant model.
+
+    The constant branch of :func:`discretize`: σ² G Gᵀ for ``'held'``, Van Loan's integral
+    for ``'white'``.
+
+    Q is linear in σ² and depends on the parameters through F only, so a filter's sensitivity
+    needs this function alone (not the whole discretisation) to differentiate Q.
+    """
+    n = F.shape[0]
+    sigma = np.broadcast_to(np.asarray(sigma, dtype=float), (len(rows),))
+    if noise_model == 'held':
+        G = held_noise_response(F, dt, substeps, rows)
+        return np.einsum('ak,k,bk->ab', G, sigma**2, G)
+    Qc = np.zeros((n, n))
+    Qc[rows, rows] = sigma**2
+    return van_loan(F[None], Qc, np.array([dt]))[1][0]
 
 
 def expm_batch(A):

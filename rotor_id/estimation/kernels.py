@@ -82,6 +82,25 @@ def initial_state_kernel():
     return _state['module'].initial_state_innovations
 
 
+def filter_sensitivity_kernel():
+    """
+    Return the compiled filter with analytic sensitivities (filter error), or None (numpy).
+
+    Loaded with the RK4 kernel (same switch); a failure here leaves the other kernels in use.
+    """
+    if rk4_kernel() is None:
+        return None
+    if 'sensitivity' not in _state:
+        try:
+            from rotor_id.estimation import _filter_kernels_numba
+            _filter_kernels_numba.warm_up()
+            _state['sensitivity'] = _filter_kernels_numba.sensitivity_scan
+        except Exception as err:  # noqa: B902 - numba's compile errors: use numpy
+            _state['sensitivity'] = None
+            _state['error'] = f'filter sensitivities: {type(err).__name__}: {err}'
+    return _state['sensitivity']
+
+
 def load():
     """Import numba and compile (or load from the cache) the kernel; None if that fails."""
     if _state['kernel'] is not None or _state['tried']:
@@ -122,6 +141,8 @@ def main():
     Exits 0 either way (``make build`` calls it): without the kernel everything runs on numpy.
     """
     kernel = prefer()
+    if kernel is not None:
+        filter_sensitivity_kernel()            # compile it into the cache as well
     state = status()
     if kernel is None:
         print(f'rotor_id kernels: numpy only ({state["error"] or "ROTOR_ID_KERNELS=numpy"})')

@@ -1,0 +1,359 @@
+"""
+Compiled (numba) Kalman filter with the analytic sensitivities of filter error's likelihood.
+
+Loaded through :func:`rotor_id.estimation.kernels.filter_sensitivity_kernel` only; the numpy
+twin is :func:`rotor_id.estimation.filter_error.sensitivity_scan_numpy`, with the same
+equations in the same order (test/estimation/test_filter_error_gradient.py checks agreement).
+"""
+
+from numba import njit
+import numpy as np
+
+
+@njit(cache=True, nogil=True)
+def _inverse(A, out):
+    """Set out = A⁻¹ (Gauss-Jordan, partial pivoting); return log|det A| (-inf: singular)."""
+    m = A.shape[0]
+    work = A.copy()
+    for i in range(m):
+        for j in range(m):
+            out[i, j] = 1.0 if i == j else 0.0
+    logdet = 0.0
+    for col in range(m):
+        pivot = col
+        for r in range(col + 1, m):
+            if abs(work[r, col]) > abs(work[pivot, col]):
+                pivot = r
+        if work[pivot, col] == 0.0:
+            return -np.inf
+        if pivot != col:
+            for j in range(m):
+                tmp = work[col, j]
+                work[col, j] = work[pivot, j]
+                work[pivot, j] = tmp
+                tmp = out[col, j]
+                out[col, j] = out[pivot, j]
+                out[pivot, j] = tmp
+        p = work[col, col]
+        logdet += np.log(abs(p))
+        for j in range(m):
+            work[col, j] /= p
+            out[col, j] /= p
+        for r in range(m):
+            if r != col:
+                f = work[r, col]
+                if f != 0.0:
+                    for j in range(m):
+                        work[r, j] -= f * work[col, j]
+                        out[r, j] -= f * out[col, j]
+    return logdet
+
+
+@njit(cache=True, nogil=True)
+def sensitivity_scan(F, g, dF, dg, h, substeps, Phi, dPhi, Q, dQ, R, dR, H, d, dd, y, x0, dx0,
+                     steady, B_ss, K_ss, dB_ss, dK_ss, nu, dnu, B, dB):
+    """
+    Innovations ν_j, B_j and their derivatives ∂ν_j, ∂B_j along k directions of θ.
+
+    A model with a constant system matrix: F (n, n); g (2M+1, n) the forcing at the RK4 stage
+    times (M = (T-1)·substeps steps of length h); dF (kp, n, n), dg (2M+1, kp, n) their
+    derivatives along the first kp directions; Phi, Q (n, n) of one sample interval and
+    dPhi, dQ (k, n, n); R (m, m), dR (k, m, m); H (T, m, n); d (T, m), dd (T, m, k);
+    y (T, m); x0 (n,), dx0 (n, k). With ``steady`` the gain is B_ss (m, m), K_ss (n, m) with
+    derivatives dB_ss (k, m, m), dK_ss (k, n, m) throughout; else P(t0) = 0 and the covariance
+    and its derivative are propagated. Fills nu (T, m), dnu (T, m, k), B (T, m, m),
+    dB (T, m, m, k); returns Σ_j νᵀB⁻¹ν + log|B_j|.
+
+        ν = y − H x − d                       ∂ν = −H ∂x − ∂d
+        B = H P Hᵀ + R                         ∂B = H ∂P Hᵀ + ∂R
+        K = P Hᵀ B⁻¹                           ∂K = (∂P Hᵀ − K ∂B) B⁻¹
+        x⁺ = x + K ν                           ∂x⁺ = ∂x + ∂K ν + K ∂ν
+        P⁺ = P − K B Kᵀ                        ∂P⁺ = ∂P − ∂K B Kᵀ − K ∂B Kᵀ − K B ∂Kᵀ
+        x' = RK4 steps from x⁺                 ∂x' = the RK4 variational steps from ∂x⁺
+        P' = Φ P⁺ Φᵀ + Q                       ∂P' = ∂Φ P⁺ Φᵀ + Φ ∂P⁺ Φᵀ + Φ P⁺ ∂Φᵀ + ∂Q
+    """
+    T = y.shape[0]
+    m = y.shape[1]
+    n = F.shape[0]
+    k = dx0.shape[1]
+    kp = dF.shape[0]
+    x = x0.copy()
+    S = dx0.copy()
+    P = np.zeros((n, n))
+    dP = np.zeros((k, n, n))
+    Pn = np.empty((n, n))
+    dPn = np.empty((n, n))
+    Kj = np.empty((n, m))
+    dKj = np.empty((k, n, m))
+    Bj = np.empty((m, m))
+    dBj = np.empty((k, m, m))
+    Binv = np.empty((m, m))
+    PHT = np.empty((n, m))
+    dPHT = np.empty((n, m))
+    KB = np.empty((n, m))
+    W = np.empty((n, n))
+    W2 = np.empty((n, n))
+    v = np.empty(m)
+    dv = np.empty((m, k))
+    k1 = np.empty(n)
+    k2 = np.empty(n)
+    k3 = np.empty(n)
+    k4 = np.empty(n)
+    x2 = np.empty(n)
+    x3 = np.empty(n)
+    x4 = np.empty(n)
+    s1 = np.empty((n, k))
+    s2 = np.empty((n, k))
+    s3 = np.empty((n, k))
+    s4 = np.empty((n, k))
+    half = 0.5 * h
+    total = 0.0
+    for t in range(T):
+        Ht = H[t]
+        # innovation covariance, gain and their derivatives
+        if steady:
+            for a in range(m):
+                for b in range(m):
+                    Bj[a, b] = B_ss[a, b]
+                    for c in range(k):
+                        dBj[c, a, b] = dB_ss[c, a, b]
+                for i in range(n):
+                    Kj[i, a] = K_ss[i, a]
+                    for c in range(k):
+                        dKj[c, i, a] = dK_ss[c, i, a]
+            logdet = _inverse(Bj, Binv)
+        else:
+            for i in range(n):
+                for a in range(m):
+                    acc = 0.0
+                    for j in range(n):
+                        acc += P[i, j] * Ht[a, j]
+                    PHT[i, a] = acc
+            for a in range(m):
+                for b in range(m):
+                    acc = R[a, b]
+                    for i in range(n):
+                        acc += Ht[a, i] * PHT[i, b]
+                    Bj[a, b] = acc
+            for a in range(m):
+                for b in range(a + 1, m):
+                    sym = 0.5 * (Bj[a, b] + Bj[b, a])
+                    Bj[a, b] = sym
+                    Bj[b, a] = sym
+            logdet = _inverse(Bj, Binv)
+            for i in range(n):
+                for b in range(m):
+                    acc = 0.0
+                    for a in range(m):
+                        acc += PHT[i, a] * Binv[a, b]
+                    Kj[i, b] = acc
+            for c in range(k):
+                for i in range(n):
+                    for a in range(m):
+                        acc = 0.0
+                        for j in range(n):
+                            acc += dP[c, i, j] * Ht[a, j]
+                        dPHT[i, a] = acc
+                for a in range(m):
+                    for b in range(m):
+                        acc = dR[c, a, b]
+                        for i in range(n):
+                            acc += Ht[a, i] * dPHT[i, b]
+                        dBj[c, a, b] = acc
+                # ∂K = (∂P Hᵀ − K ∂B) B⁻¹
+                for i in range(n):
+                    for a in range(m):
+                        acc = dPHT[i, a]
+                        for b in range(m):
+                            acc -= Kj[i, b] * dBj[c, b, a]
+                        KB[i, a] = acc
+                for i in range(n):
+                    for b in range(m):
+                        acc = 0.0
+                        for a in range(m):
+                            acc += KB[i, a] * Binv[a, b]
+                        dKj[c, i, b] = acc
+        for a in range(m):
+            for b in range(m):
+                B[t, a, b] = Bj[a, b]
+                for c in range(k):
+                    dB[t, a, b, c] = dBj[c, a, b]
+        # innovation and its derivative
+        for a in range(m):
+            acc = y[t, a] - d[t, a]
+            for i in range(n):
+                acc -= Ht[a, i] * x[i]
+            v[a] = acc
+            nu[t, a] = acc
+            for c in range(k):
+                acc = -dd[t, a, c]
+                for i in range(n):
+                    acc -= Ht[a, i] * S[i, c]
+                dv[a, c] = acc
+                dnu[t, a, c] = acc
+        quad = 0.0
+        for a in range(m):
+            for b in range(m):
+                quad += v[a] * Binv[a, b] * v[b]
+        total += quad + logdet
+        # measurement update of the state and its derivative
+        for i in range(n):
+            acc = x[i]
+            for a in range(m):
+                acc += Kj[i, a] * v[a]
+            x[i] = acc
+            for c in range(k):
+                acc = S[i, c]
+                for a in range(m):
+                    acc += Kj[i, a] * dv[a, c] + dKj[c, i, a] * v[a]
+                S[i, c] = acc
+        if t == T - 1:
+            break
+        if not steady:
+            # P⁺ = P − K B Kᵀ and its derivative (KB = K B)
+            for i in range(n):
+                for b in range(m):
+                    acc = 0.0
+                    for a in range(m):
+                        acc += Kj[i, a] * Bj[a, b]
+                    KB[i, b] = acc
+            for c in range(k):
+                for i in range(n):
+                    for j in range(n):
+                        acc = dP[c, i, j]
+                        for a in range(m):
+                            # ∂K B Kᵀ + K B ∂Kᵀ (symmetric pair) + K ∂B Kᵀ
+                            acc -= dKj[c, i, a] * KB[j, a] + KB[i, a] * dKj[c, j, a]
+                            for b in range(m):
+                                acc -= Kj[i, a] * dBj[c, a, b] * Kj[j, b]
+                        dP[c, i, j] = acc
+            for i in range(n):
+                for j in range(n):
+                    acc = P[i, j]
+                    for a in range(m):
+                        acc -= KB[i, a] * Kj[j, a]
+                    P[i, j] = acc
+            # predict: P' = Φ P⁺ Φᵀ + Q, ∂P' = ∂Φ P⁺ Φᵀ + Φ P⁺ ∂Φᵀ + Φ ∂P⁺ Φᵀ + ∂Q
+            for i in range(n):
+                for j in range(n):
+                    acc = 0.0
+                    for q in range(n):
+                        acc += P[i, q] * Phi[j, q]
+                    W[i, j] = acc                       # P⁺ Φᵀ
+            for c in range(k):
+                for i in range(n):
+                    for j in range(n):
+                        acc = 0.0
+                        for q in range(n):
+                            acc += dP[c, i, q] * Phi[j, q]
+                        W2[i, j] = acc                  # ∂P⁺ Φᵀ
+                for i in range(n):
+                    for j in range(n):
+                        acc = dQ[c, i, j]
+                        for q in range(n):
+                            # ∂Φ P⁺ Φᵀ twice: the symmetric part below halves it into
+                            # ∂Φ P⁺ Φᵀ + Φ P⁺ ∂Φᵀ
+                            acc += 2.0 * dPhi[c, i, q] * W[q, j] + Phi[i, q] * W2[q, j]
+                        dPn[i, j] = acc
+                for i in range(n):
+                    for j in range(n):
+                        dP[c, i, j] = 0.5 * (dPn[i, j] + dPn[j, i])
+            for i in range(n):
+                for j in range(n):
+                    acc = Q[i, j]
+                    for q in range(n):
+                        acc += Phi[i, q] * W[q, j]
+                    Pn[i, j] = acc
+            for i in range(n):
+                for j in range(n):
+                    P[i, j] = 0.5 * (Pn[i, j] + Pn[j, i])
+        for s in range(substeps):
+            st = 2 * (t * substeps + s)
+            # state stages k_i = F x_i + g and sensitivity stages (F ∂x + ∂F x + ∂g)
+            for i in range(n):
+                acc = g[st, i]
+                for j in range(n):
+                    acc += F[i, j] * x[j]
+                k1[i] = acc
+            for i in range(n):
+                x2[i] = x[i] + half * k1[i]
+            for i in range(n):
+                acc = g[st + 1, i]
+                for j in range(n):
+                    acc += F[i, j] * x2[j]
+                k2[i] = acc
+            for i in range(n):
+                x3[i] = x[i] + half * k2[i]
+            for i in range(n):
+                acc = g[st + 1, i]
+                for j in range(n):
+                    acc += F[i, j] * x3[j]
+                k3[i] = acc
+            for i in range(n):
+                x4[i] = x[i] + h * k3[i]
+            for i in range(n):
+                acc = g[st + 2, i]
+                for j in range(n):
+                    acc += F[i, j] * x4[j]
+                k4[i] = acc
+            # ∂k₁ = F ∂x + ∂F x + ∂g, ∂k₂ = F (∂x + h/2 ∂k₁) + ∂F x₂ + ∂g, ...
+            for i in range(n):
+                for c in range(k):
+                    acc = 0.0
+                    for j in range(n):
+                        acc += F[i, j] * S[j, c]
+                    if c < kp:
+                        acc += dg[st, c, i]
+                        for j in range(n):
+                            acc += dF[c, i, j] * x[j]
+                    s1[i, c] = acc
+            for i in range(n):
+                for c in range(k):
+                    acc = 0.0
+                    for j in range(n):
+                        acc += F[i, j] * (S[j, c] + half * s1[j, c])
+                    if c < kp:
+                        acc += dg[st + 1, c, i]
+                        for j in range(n):
+                            acc += dF[c, i, j] * x2[j]
+                    s2[i, c] = acc
+            for i in range(n):
+                for c in range(k):
+                    acc = 0.0
+                    for j in range(n):
+                        acc += F[i, j] * (S[j, c] + half * s2[j, c])
+                    if c < kp:
+                        acc += dg[st + 1, c, i]
+                        for j in range(n):
+                            acc += dF[c, i, j] * x3[j]
+                    s3[i, c] = acc
+            for i in range(n):
+                for c in range(k):
+                    acc = 0.0
+                    for j in range(n):
+                        acc += F[i, j] * (S[j, c] + h * s3[j, c])
+                    if c < kp:
+                        acc += dg[st + 2, c, i]
+                        for j in range(n):
+                            acc += dF[c, i, j] * x4[j]
+                    s4[i, c] = acc
+            for i in range(n):
+                x[i] += h / 6.0 * (k1[i] + 2.0 * k2[i] + 2.0 * k3[i] + k4[i])
+                for c in range(k):
+                    S[i, c] += h / 6.0 * (s1[i, c] + 2.0 * s2[i, c] + 2.0 * s3[i, c] + s4[i, c])
+    return total
+
+
+def warm_up():
+    """Compile (or load from the cache) the scan for the argument types filter_error passes."""
+    T, n, m, k, kp, sub = 2, 2, 1, 2, 1, 1
+    M = (T - 1) * sub
+    for steady in (True, False):
+        sensitivity_scan(np.zeros((n, n)), np.zeros((2 * M + 1, n)), np.zeros((kp, n, n)),
+                         np.zeros((2 * M + 1, kp, n)), 0.1, sub, np.eye(n), np.zeros((k, n, n)),
+                         np.zeros((n, n)), np.zeros((k, n, n)), np.eye(m), np.zeros((k, m, m)),
+                         np.ones((T, m, n)), np.zeros((T, m)), np.zeros((T, m, k)),
+                         np.zeros((T, m)), np.zeros(n), np.zeros((n, k)), steady, np.eye(m),
+                         np.zeros((n, m)), np.zeros((k, m, m)), np.zeros((k, n, m)),
+                         np.empty((T, m)), np.empty((T, m, k)), np.empty((T, m, m)),
+                         np.empty((T, m, m, k)))

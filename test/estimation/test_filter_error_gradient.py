@@ -1,0 +1,136 @@
+"""
+Filter error's analytic sensitivities (issue 15 item 2) against finite differences.
+
+* the gradient of the likelihood J(θ) from the analytic ∂ν, ∂B equals central differences of J
+  itself (the filter run at θ ± h e_i) for every kind of unknown: model parameters (through
+  Φ, Q, the forcing and the equilibrium initial state), the process-noise variance, the
+  measurement σ's and free initial states; with the rotating measurement and the time-varying
+  gain (wake model), and with the steady-state gain (constant-coefficient model);
+* the compiled scan and its numpy twin give the same numbers;
+* the fit with analytic gradients lands on the finite-difference fit's optimum.
+"""
+
+import numpy as np
+import pytest
+from rotor_id.estimation import filter_error as fe
+from rotor_id.estimation import kernels
+from rotor_id.estimation.output_error import Experiment
+from rotor_id.estimation.simulate import simulate
+from rotor_id.physics.models import MultibladeConstant, RotorConstants
+from rotor_id.physics.stirring import StirringSchedule
+from test_filter_error import GUESS, PROGRESSING, T_WAKE, UNKNOWNS, WAKE, wake_data
+
+
+def _wake_problem(noise_model, initial_state, noise_std=None):
+    exp = Experiment(WAKE, PROGRESSING, T_WAKE, wake_data(3, 0.1, 0.05),
+                     initial_state=initial_state)
+    prob = fe._FilterProblem([exp], UNKNOWNS, GUESS, None, noise_std, None, True, None,
+                             noise_model, 'auto', 0.05)
+    theta = np.zeros(len(prob.names))
+    theta[:3] = [0.45, 0.22, 0.2]
+    if initial_state == 'positions':
+        theta[3:prob.n_base] = [0.1, -0.05, 0.02, 0.03]
+    theta[prob.i_process] = 0.07**2
+    if prob.i_meas is not None:
+        theta[prob.i_meas] = [0.05, 0.06]
+    prob.scale = np.maximum(np.abs(theta), 1e-3)
+    return prob, theta
+
+
+def _constant_problem():
+    model = MultibladeConstant(RotorConstants(), collective='delta', angle_unit='deg')
+    sched = StirringSchedule(t0=12.0)
+    t = 12.0 + 0.1 * np.arange(121)
+    p = np.array([5.0, 10.0])
+    rng = np.random.default_rng(1)
+    forcing = np.zeros((120, 6))
+    forcing[:, 3:] = 0.3 * rng.standard_normal((120, 3))
+    x0 = model.equilibrium(t[:1], p, sched(t[:1]))
+    y = simulate(model, p, sched, t, x0, forcing=forcing).y + 0.05 * rng.standard_normal((121, 3))
+    exp = Experiment(model, sched, t, y, initial_state='equilibrium')
+    prob = fe._FilterProblem([exp], ['gamma', 'delta'], {'gamma': 4.5, 'delta': 9.0}, None,
+                             None, None, True, None, 'held', 'auto', 0.05)
+    theta = np.array([4.5, 9.0, 0.25**2, 0.05, 0.04, 0.06])
+    prob.scale = np.maximum(np.abs(theta), 1e-3)
+    return prob, theta
+
+
+def _gradient_check(prob, theta):
+    """Largest |analytic − central difference| of ∂J/∂θ_i, relative to |∂J/∂θ_i|."""
+    results = prob.evaluate(theta)
+    grad, M = fe._gradient_information(results, len(theta))
+    worst = 0.0
+    for i in range(len(theta)):
+        h = 1e-5 * max(abs(theta[i]), prob.scale[i])
+        up, down = theta.copy(), theta.copy()
+        up[i] += h
+        down[i] -= h
+        fd = (fe._cost(prob.evaluate(up, sensitivities=False))
+              - fe._cost(prob.evaluate(down, sensitivities=False))) / (2 * h)
+        worst = max(worst, abs(grad[i] - fd) / max(abs(fd), 1e-3 * np.sqrt(M[i, i])))
+    return worst, results
+
+
+@pytest.mark.parametrize('noise_model, initial_state',
+                         [('held', 'equilibrium'), ('white', 'positions')])
+def test_analytic_gradient_matches_differences_of_the_likelihood(noise_model, initial_state):
+    """Wake model: rotating H, time-varying gain; every kind of unknown."""
+    prob, theta = _wake_problem(noise_model, initial_state)
+    assert prob.analytic_sensitivities(0, theta) is not None        # the analytic path runs
+    worst, _ = _gradient_check(prob, theta)
+    assert worst < 1e-5
+
+
+def test_analytic_gradient_with_the_steady_state_gain():
+    prob, theta = _constant_problem()
+    dm, _, _ = prob.discretized(0, theta)
+    assert prob.gain_mode(dm) == 'steady'
+    worst, _ = _gradient_check(prob, theta)
+    assert worst < 1e-5
+
+
+def test_analytic_sensitivities_match_the_finite_difference_ones():
+    """∂ν and ∂B themselves, against the filter differenced at θ ± h (the old method)."""
+    for prob, theta in (_wake_problem('held', 'equilibrium'), _constant_problem()):
+        (nu, B, dnu, dB, cost), = prob.evaluate(theta)
+        prob.gradients = 'finite-difference'
+        (nu_fd, B_fd, dnu_fd, dB_fd, cost_fd), = prob.evaluate(theta)
+        assert np.max(np.abs(nu - nu_fd)) < 1e-12 * np.max(np.abs(nu_fd)) + 1e-15
+        assert np.max(np.abs(B - B_fd)) < 1e-12 * np.max(np.abs(B_fd))
+        assert cost == pytest.approx(cost_fd, rel=1e-12, abs=1e-9)
+        scale_nu = np.max(np.abs(dnu_fd), axis=(0, 1))
+        scale_B = np.max(np.abs(dB_fd), axis=(0, 1, 2))
+        assert np.all(np.max(np.abs(dnu - dnu_fd), axis=(0, 1)) < 1e-7 * scale_nu)
+        assert np.all(np.max(np.abs(dB - dB_fd), axis=(0, 1, 2)) < 1e-7 * scale_B + 1e-300)
+
+
+def test_compiled_scan_equals_numpy(monkeypatch):
+    loaded = kernels.mode() != 'numpy' and kernels.prefer() is not None
+    if not loaded or kernels.filter_sensitivity_kernel() is None:
+        pytest.skip(f'no compiled kernel here ({kernels.status()["error"]})')
+    for prob, theta in (_wake_problem('white', 'positions'), _constant_problem()):
+        compiled, = prob.evaluate(theta)
+        monkeypatch.setattr(kernels, 'filter_sensitivity_kernel', lambda: None)
+        reference, = prob.evaluate(theta)
+        monkeypatch.undo()
+        for a, b in zip(compiled[:4], reference[:4]):
+            assert np.max(np.abs(a - b)) <= 1e-11 * np.max(np.abs(b))
+        assert compiled[4] == pytest.approx(reference[4], rel=1e-12)
+
+
+def test_fit_with_analytic_gradients_lands_on_the_same_optimum():
+    """Same joint optimum as finite differences, to well below 1 % of a σ."""
+    exp = Experiment(WAKE, PROGRESSING, T_WAKE, wake_data(5, 0.1, 0.05),
+                     initial_state='equilibrium')
+    kw = {'guess': GUESS, 'noise_std': 0.05, 'noise_model': 'held'}
+    analytic = fe.fit_filter_error_ml([exp], UNKNOWNS, **kw)
+    reference = fe.fit_filter_error_ml([exp], UNKNOWNS, gradients='finite-difference', **kw)
+    assert analytic.converged and reference.converged
+    assert np.all(np.abs(analytic.values - reference.values) < 0.01 * reference.std)
+    assert np.allclose(analytic.std, reference.std, rtol=1e-3)
+
+
+def test_unknown_gradient_method_is_a_clear_error():
+    exp = Experiment(WAKE, PROGRESSING, T_WAKE, wake_data(3, 0.1, 0.05))
+    with pytest.raises(fe.IdentificationError, match='gradients must be one of'):
+        fe.fit_filter_error([exp], UNKNOWNS, gradients='exact')
