@@ -543,6 +543,21 @@ def periodic_coefficients(base):
     return ChannelSubset(inner, rows, 'periodic_coefficients')
 
 
+def _as_index(indices):
+    """A slice when ``indices`` run contiguously upward (basic indexing is fast), else an array."""
+    a = np.asarray(indices, dtype=np.intp)
+    if a.size and np.array_equal(a, np.arange(a[0], a[0] + a.size)):
+        return slice(int(a[0]), int(a[0]) + a.size)
+    return a
+
+
+def _grid(states):
+    """Index of the (states x states) block of a square matrix (last two axes)."""
+    if isinstance(states, slice):
+        return states, states
+    return states[:, None], states[None, :]
+
+
 class DynamicInflow(Augmented):
     """
     The report's two-parameter cyclic wake (Ch.2 eq. 29) added to a multiblade γ-model.
@@ -585,6 +600,15 @@ class DynamicInflow(Augmented):
         names = self.parameter_names
         self._params = [(names.index(n), i) for i, n in enumerate(self.inner.parameter_names)]
         self._root_params = [(names.index(n), i) for i, n in enumerate(root.parameter_names)]
+        # where the inner model's and the root's blocks go (see _extra_jacobian): slices
+        # where the indices run contiguously (the usual case), index arrays otherwise
+        root_of = dict(self._root_params)
+        pairs = sorted(self._params)                # by my parameter order: a slice of mine
+        self._inner_at = (_as_index([mine for mine, _ in pairs]), _as_index(self._states),
+                          _as_index([theirs for _, theirs in pairs]))
+        self._root_at = (_as_index([mine for mine, _ in pairs if mine in root_of]),
+                         _as_index(self._states[self._root_in_inner]),
+                         _as_index([root_of[mine] for mine, _ in pairs if mine in root_of]))
 
     def _inner_p(self, pb, pe):
         p = np.concatenate([pb, pe])
@@ -593,39 +617,34 @@ class DynamicInflow(Augmented):
             q[theirs] = p[mine]
         return q, p[:len(self.root.parameters)]
 
-    def _embed(self, A, axes):
-        """Place the root model's blocks (F: axes 2, g: axes 1) into the inner state space."""
-        n, r = self.inner.n_states, self._root_in_inner
-        if axes == 2:
-            out = np.zeros(A.shape[:-2] + (n, n))
-            out[..., r[:, None], r[None, :]] = A
-        else:
-            out = np.zeros(A.shape[:-1] + (n,))
-            out[..., r] = A
-        return out
-
     def _extra(self, t, pb, pe, u, F, g):
         """Add the wake: the inner model's F, g minus the root's (which the baseline has)."""
         q, pr = self._inner_p(pb, pe)
         Fi, gi = self.inner.system(t, q, u[:, :3])
         Fr, gr = self.root.system(t, pr, u[:, :3])
-        idx = self._states
-        F[:, idx[:, None], idx[None, :]] += Fi - self._embed(Fr, 2)
-        g[:, idx] += gi - self._embed(gr, 1)
+        for sign, (_, states, _), Fx, gx in ((1.0, self._inner_at, Fi, gi),
+                                            (-1.0, self._root_at, Fr, gr)):
+            F[(slice(None),) + _grid(states)] += sign * Fx
+            g[:, states] += sign * gx
 
     def _extra_jacobian(self, t, pb, pe, u, dF, dg):
+        # the same difference as _extra for every parameter: one block add per model when
+        # the indices are slices (a loop over parameters with fancy-indexed adds and a copy
+        # of the root's derivatives embedded in the inner states was a quarter of diagnose)
         q, pr = self._inner_p(pb, pe)
         dFi, dgi = self.inner.system_jacobian(t, q, u[:, :3])
         dFr, dgr = self.root.system_jacobian(t, pr, u[:, :3])
-        dFr, dgr = self._embed(dFr, 2), self._embed(dgr, 1)
-        root_of = dict(self._root_params)
-        idx = self._states
-        for mine, theirs in self._params:
-            dFm, dgm = dFi[:, theirs], dgi[:, theirs]
-            if mine in root_of:
-                dFm, dgm = dFm - dFr[:, root_of[mine]], dgm - dgr[:, root_of[mine]]
-            dF[:, mine][:, idx[:, None], idx[None, :]] += dFm
-            dg[:, mine][:, idx] += dgm
+        for sign, (mine, states, theirs), dFx, dgx in ((1.0, self._inner_at, dFi, dgi),
+                                                       (-1.0, self._root_at, dFr, dgr)):
+            dFx, dgx = sign * dFx[:, theirs], sign * dgx[:, theirs]
+            if isinstance(mine, slice) and isinstance(states, slice):
+                dF[:, mine, states, states] += dFx
+                dg[:, mine, states] += dgx
+                continue
+            rows = np.arange(dF.shape[1])[mine]
+            for k, row in enumerate(np.atleast_1d(rows)):
+                dF[:, row][(slice(None),) + _grid(states)] += dFx[:, k]
+                dg[:, row][:, states] += dgx[:, k]
 
     def report_parameters(self, values, cov):
         """Return A = γB⁴/8 with its σ, AL/τ and 1/τ (the answers' names)."""
