@@ -544,7 +544,7 @@ def periodic_coefficients(base):
 
 
 def _as_index(indices):
-    """A slice when ``indices`` run contiguously upward (basic indexing is fast), else an array."""
+    """Return a slice when ``indices`` run contiguously upward (fast), else an index array."""
     a = np.asarray(indices, dtype=np.intp)
     if a.size and np.array_equal(a, np.arange(a[0], a[0] + a.size)):
         return slice(int(a[0]), int(a[0]) + a.size)
@@ -552,7 +552,7 @@ def _as_index(indices):
 
 
 def _grid(states):
-    """Index of the (states x states) block of a square matrix (last two axes)."""
+    """Return the index of the (states x states) block of a square matrix (last two axes)."""
     if isinstance(states, slice):
         return states, states
     return states[:, None], states[None, :]
@@ -623,7 +623,7 @@ class DynamicInflow(Augmented):
         Fi, gi = self.inner.system(t, q, u[:, :3])
         Fr, gr = self.root.system(t, pr, u[:, :3])
         for sign, (_, states, _), Fx, gx in ((1.0, self._inner_at, Fi, gi),
-                                            (-1.0, self._root_at, Fr, gr)):
+                                             (-1.0, self._root_at, Fr, gr)):
             F[(slice(None),) + _grid(states)] += sign * Fx
             g[:, states] += sign * gx
 

@@ -409,7 +409,7 @@ def _start_cost(runs, unknowns, start, known, max_step):
 
 
 def _best_start(runs, unknowns, starts, known, max_step):
-    """The start of lowest −log L (:func:`_start_cost`), or None when none evaluates."""
+    """Return the start of lowest −log L (:func:`_start_cost`), or None if none evaluates."""
     best, best_cost = None, math.inf
     for start in starts:
         cost = _start_cost(runs, unknowns, start, known, max_step or DEFAULT_MAX_STEP)
