@@ -15,6 +15,7 @@ bench/results/diagnosis.md (table) and bench/results/diagnosis.json (every run).
 
 import argparse
 import json
+import math
 import multiprocessing
 from pathlib import Path
 import sys
@@ -24,7 +25,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / 'test' / 'diagnosis'))
 
-from diagnosis_scenarios import BY_NAME, evaluate, SCENARIOS  # noqa: E402
+from diagnosis_scenarios import BY_NAME, evaluate, PAIR_STUDY, SCENARIOS  # noqa: E402
 import numpy as np  # noqa: E402
 from rotor_id.diagnosis.diagnose import diagnose  # noqa: E402
 
@@ -35,7 +36,7 @@ def run_one(args):
     """Diagnose one (scenario, seed); return the evaluation dict."""
     name, seed = args
     scenario = BY_NAME[name]
-    t0 = time.perf_counter()
+    t0, c0 = time.perf_counter(), time.process_time()
     record, description = scenario.record_and_description(seed)
     try:
         result = diagnose(record, description, workers=1).as_json()
@@ -43,7 +44,7 @@ def run_one(args):
         return {'scenario': name, 'seed': seed, 'effect': f'error: {exc}', 'right': False,
                 'elapsed_s': time.perf_counter() - t0}
     out = evaluate(scenario, result)
-    out.update(seed=seed, elapsed_s=time.perf_counter() - t0,
+    out.update(seed=seed, elapsed_s=time.perf_counter() - t0, cpu_s=time.process_time() - c0,
                parameters=result['explanation']['parameters'],
                candidates=[{k: c.get(k) for k in ('effect', 'variant', 'delta_loglik',
                                                   'criterion', 'validation_rms', 'eligible')}
@@ -62,12 +63,16 @@ def summarize(runs, seeds):
              '(independent blade-by-blade simulation), diagnosis by rotor_id.diagnosis. '
              '`excess` = baseline residual RMS / noise floor − 1, `aug excess` the same for the '
              'chosen model; `3σ` = extra parameters within 3σ of the truth; `orig z` = worst '
-             '|estimate − truth|/σ of the original parameters, baseline → corrected.', '',
-             '| scenario | truth effect | named right | names given | wrong names (high conf.) | '
+             '|estimate − truth|/σ of the original parameters, baseline → corrected. Pairs: '
+             '`named right` counts an effect reported as confounded with a named one (the '
+             'same physics to first order in that record, issue 16), `both named` does not; '
+             '`confounded` lists what was reported so. `s/run` wall (CPU) per run.', '',
+             '| scenario | truth effect | named right | both named | confounded | names given | '
+             'wrong names (high conf.) | '
              'runs with an effect added beyond the truth | '
              'excess mean (max) | aug excess mean (max) | extra within 3σ | orig z before → '
              'after | s/run |',
-             '|---|---|---|---|---|---|---|---|---|---|---|']
+             '|---|---|---|---|---|---|---|---|---|---|---|---|---|']
     for sc in SCENARIOS:
         rs = [r for r in runs if r['scenario'] == sc.name]
         if not rs:
@@ -84,6 +89,13 @@ def summarize(runs, seeds):
             key = ' + '.join(r.get('named') or [r['effect']])
             given[key] = given.get(key, 0) + 1
         added = sum(bool(r.get('extra_names')) for r in rs)
+        strict = f'{sum(r.get("right_named", r["right"]) for r in rs)}/{len(rs)}' \
+            if sc.together else '–'
+        conf = {}
+        for r in rs:
+            for c in r.get('confounded', []):
+                conf[c] = conf.get(c, 0) + 1
+        conf_txt = ', '.join(f'{k}×{v}' for k, v in sorted(conf.items())) or '–'
         given_txt = ', '.join(f'{k}×{v}' for k, v in sorted(given.items()))
         exc = [r['excess'] for r in rs if 'excess' in r]
         aug = [r['augmented_excess'] for r in rs if 'augmented_excess' in r]
@@ -92,12 +104,14 @@ def summarize(runs, seeds):
         oa = [r['original_bias_after'] for r in rs if r.get('original_bias_after') is not None]
         lines.append(
             f'| {sc.name} | {" + ".join(g[0] for g in sc.together) or sc.effect} | '
-            f'{right}/{len(rs)} | {given_txt} | {wrong_txt} | {added}/{len(rs)} | '
+            f'{right}/{len(rs)} | {strict} | {conf_txt} | {given_txt} | {wrong_txt} | '
+            f'{added}/{len(rs)} | '
             f'{_fmt(np.mean(exc) if exc else None)} ({_fmt(max(exc) if exc else None)}) | '
             f'{_fmt(np.mean(aug) if aug else None)} ({_fmt(max(aug) if aug else None)}) | '
             f'{sum(w3)}/{len(w3)} | {_fmt(np.mean(ob) if ob else None, ".1f")} → '
             f'{_fmt(np.mean(oa) if oa else None, ".1f")} | '
-            f'{np.mean([r["elapsed_s"] for r in rs]):.0f} |')
+            f'{np.mean([r["elapsed_s"] for r in rs]):.0f} '
+            f'({np.mean([r.get("cpu_s", math.nan) for r in rs]):.0f}) |')
     return '\n'.join(lines) + '\n'
 
 
@@ -115,14 +129,24 @@ def main(argv=None):
     parser.add_argument('--seeds', type=int, default=10)
     parser.add_argument('--first-seed', type=int, default=1000)
     parser.add_argument('--scenarios', nargs='*', default=[s.name for s in SCENARIOS])
+    parser.add_argument('--pairs', action='store_true',
+                        help='the catalogue pair study (every pair of effect groups a rig can '
+                             'produce together, issue 16) instead of --scenarios')
+    parser.add_argument('--scenario-major', action='store_true',
+                        help='all seeds of a scenario before the next (default: seed-major, '
+                             'every scenario gets its first seed early)')
     parser.add_argument('--workers', type=int, default=2)
     parser.add_argument('--out', default=str(RESULTS / 'diagnosis'))
     args = parser.parse_args(argv)
     unknown = [n for n in args.scenarios if n not in BY_NAME]
     if unknown:
         parser.error(f'unknown scenario(s) {unknown}; choose from {list(BY_NAME)}')
-    # seed-major order: every scenario gets its first seed early
-    tasks = [(n, args.first_seed + k) for k in range(args.seeds) for n in args.scenarios]
+    if args.pairs:
+        args.scenarios = [s.name for s in PAIR_STUDY]
+    if args.scenario_major:
+        tasks = [(n, args.first_seed + k) for n in args.scenarios for k in range(args.seeds)]
+    else:
+        tasks = [(n, args.first_seed + k) for k in range(args.seeds) for n in args.scenarios]
     runs = []
     t0 = time.perf_counter()
     out = Path(args.out)

@@ -127,7 +127,9 @@ def _effect_json(step):
             'delta_loglik': step['delta_loglik'], 'criterion': step['criterion'],
             'validation_rms': step['validation_rms'], 'residual_rms': step['residual_rms'],
             'excess_over_floor': step['excess_over_floor'],
-            'residuals_are_noise': bool(step['adequate'])}
+            'residuals_are_noise': bool(step['adequate']),
+            'confounded_with': [c['effect'] for c in step.get('confounds', [])],
+            'confounds': [dict(c) for c in step.get('confounds', [])]}
 
 
 def _say(progress, text):
@@ -491,8 +493,12 @@ def diagnose(record, description, progress=None, workers=2, effects=EFFECTS, win
                        't': exp0.t, 'workers': workers, 'screen': screen,
                        'effects': deterministic, 'model_name': ident.model.name,
                        'rotor': ident.model.rotor, 'progress': progress, 't_start': t_start,
-                       'verbose': verbose_fits}
+                       'verbose': verbose_fits,
+                       'trace': [_standalone_gains(scored, screened_out, n_obs, n_blades)]}
             chosen_fit, steps, dropped = _forward_selection(chosen['fit'], steps, context)
+            for effect_row in steps:
+                for c in effect_row.get('confounds', []):
+                    notes.append(_confound_text(effect_row['effect'], c))
             for old in dropped:
                 notes.append(f'{old} was dropped by the backward check: with the effects added '
                              'after it, it no longer earns its place')
@@ -653,8 +659,13 @@ def _prefer_established(near):
     return keep or near
 
 
-def _candidate_jobs(current, kept, ctx):
-    """Jobs of every effect that can still be added to the kept ones (screened first)."""
+def _candidate_jobs(current, kept, ctx, residuals_noise=False):
+    """
+    Jobs of every effect that can still be added to the kept ones (screened first).
+
+    Every score test is recorded in the step's trace (``ctx['trace'][-1]``). When the
+    current residuals are already noise, effects that have no score test are not fitted.
+    """
     est = current.estimate
     start = {n: est.model_parameters[n] for n in current.unknowns}
     names = {e for e, _ in kept}
@@ -669,6 +680,10 @@ def _candidate_jobs(current, kept, ctx):
             continue
         if effect == 'periodic_coefficients' and names:
             continue            # replaces the rotor model: only as the first effect
+        if residuals_noise and effect not in SCREENED:
+            _say_t(ctx, f'  + {effect}: not fitted (no score test, and the residuals are '
+                        'already white at the floor)')
+            continue
         job = Job(effect, '', ctx['record'], ctx['description'], ctx['values'],
                   ctx['unknowns'], ctx['known'], ctx['window_s'], verbose=ctx['verbose'],
                   baseline_nll=est.neg_log_likelihood, start=start, prior=tuple(kept))
@@ -677,20 +692,98 @@ def _candidate_jobs(current, kept, ctx):
             if not verdict['fit']:
                 _say_t(ctx, f'  + {effect}: screened out, score test 2Δlog L ≈ '
                             f'{verdict["lm"]:.1f}')
+                ctx['trace'][-1]['gains'][effect] = _score_test_gain(
+                    verdict, ctx['n_obs'], ctx['n_blades'])
                 continue
             job = _replace(job, variant=verdict['variant'])
         jobs.append(job)
     return jobs
 
 
-def _forward_step(current, cur_val, kept, ctx):
+def _score_test_gain(verdict, n_obs, n_blades):
+    """Return what a screened-out effect would gain: 2Δlog L ≈ LM, criterion with ρ = 1."""
+    lm = float(verdict['lm'])
+    crit = lm - verdict['k'] * math.log(n_obs)
+    if n_choices(verdict['effect'], n_blades) > 1:
+        crit -= 2.0 * math.log(n_choices(verdict['effect'], n_blades))
+    return {'two_delta_loglik': lm, 'criterion': crit, 'how': 'score test'}
+
+
+def _standalone_gains(scored, screened_out, n_obs, n_blades):
+    """Return the first row of the trace: what each effect gains alone at the baseline."""
+    gains = {e: {'two_delta_loglik': 2.0 * s['delta_loglik'], 'criterion': s['criterion'],
+                 'how': 'fit'} for e, s in scored.items() if e != 'process_noise'}
+    for v in screened_out:
+        if math.isfinite(v['lm']):
+            gains[v['effect']] = _score_test_gain(v, n_obs, n_blades)
+    return {'after': (), 'gains': gains}
+
+
+def _confounds(kept_names, ctx):
+    """
+    Return {kept effect: [confound]}: effects the kept ones reproduce in this record.
+
+    An effect C is confounded with a kept effect K when C alone would pass the criterion
+    (its fit at the baseline, first row of ``ctx['trace']``) but, with the kept effects in
+    the model, gains less than the criterion's threshold (last row, the selection's final
+    step): in this record K does what C would do, to within the noise, so the data can
+    neither confirm nor exclude C beside K. K is the kept effect whose addition took the
+    most of C's likelihood gain away. First-order equivalents of kept effects are said apart
+    (:data:`rotor_id.diagnosis.catalogue.EQUIVALENT`).
+    """
+    trace = ctx['trace']
+    out = {k: [] for k in kept_names}
+    if len(trace) < 2 or tuple(trace[-1]['after']) != tuple(kept_names):
+        return out              # the final model's step was not run (MAX_EFFECTS reached)
+    covered = set(kept_names)
+    for k in kept_names:
+        covered.update(EQUIVALENT.get(k, ()))
+    for effect, alone in trace[0]['gains'].items():
+        given = trace[-1]['gains'].get(effect)
+        if effect in covered or given is None or alone['criterion'] <= CRITERION_THRESHOLD \
+                or given['criterion'] > CRITERION_THRESHOLD:
+            continue
+        culprit, largest, previous = kept_names[0], -math.inf, alone
+        for row in trace[1:]:
+            now = row['gains'].get(effect)
+            if now is None:
+                continue
+            drop = previous['two_delta_loglik'] - now['two_delta_loglik']
+            if row['after'][-1] in kept_names and drop > largest:
+                culprit, largest = row['after'][-1], drop
+            previous = now
+        out[culprit].append({
+            'effect': effect, 'given': list(kept_names),
+            'two_delta_loglik_alone': float(alone['two_delta_loglik']),
+            'criterion_alone': float(alone['criterion']),
+            'two_delta_loglik_given': float(given['two_delta_loglik']),
+            'criterion_given': float(given['criterion']), 'how_given': given['how'],
+            'reproduced_fraction': float(1.0 - max(given['two_delta_loglik'], 0.0)
+                                         / alone['two_delta_loglik'])})
+    return out
+
+
+def _confound_text(kept, c):
+    """One note of a confounded pair, with the figures behind it."""
+    return (f'{c["effect"]} cannot be told apart from {kept} in this record: alone it gains '
+            f'2Δlog L = {c["two_delta_loglik_alone"]:.1f} (criterion '
+            f'{c["criterion_alone"]:.1f}), with {" + ".join(c["given"])} in the model '
+            f'{c["two_delta_loglik_given"]:.1f} (criterion {c["criterion_given"]:.1f}, '
+            f'{c["how_given"]}; threshold {CRITERION_THRESHOLD:g}): {kept} reproduces '
+            f'{c["reproduced_fraction"]:.0%} of what {c["effect"]} does here, so '
+            f'{c["effect"]} may be present too; both are named')
+
+
+def _forward_step(current, cur_val, kept, ctx, residuals_noise=False):
     """
     Return the best effect to add to ``current`` as (row, fit), or None.
 
     The same tests as for the first effect, relative to the current model: criterion above
     :data:`CRITERION_THRESHOLD` and a better prediction of the unfitted half of the window.
+    What every candidate gains is recorded in a new row of ``ctx['trace']``.
     """
-    jobs = _candidate_jobs(current, kept, ctx)
+    ctx['trace'].append({'after': tuple(e for e, _ in kept), 'gains': {}})
+    jobs = _candidate_jobs(current, kept, ctx, residuals_noise)
     if not jobs:
         return None
     _say_t(ctx, f'step {len(kept) + 1}: fitting {len(jobs)} effect(s) on top of '
@@ -709,6 +802,8 @@ def _forward_step(current, cur_val, kept, ctx):
         if n_choices(fit.effect, ctx['n_blades']) > 1:
             crit -= 2.0 * math.log(n_choices(fit.effect, ctx['n_blades']))
         _say_t(ctx, f'  + {fit.effect}: Δlog L = {dll:.1f}, criterion {crit:.1f}')
+        ctx['trace'][-1]['gains'][fit.effect] = {'two_delta_loglik': 2.0 * dll,
+                                                 'criterion': crit, 'how': 'fit'}
         if crit > CRITERION_THRESHOLD:
             scored.append((crit, dll, fit))
     scored.sort(key=lambda c: -c[0])
@@ -758,10 +853,13 @@ def _forward_selection(first, steps, ctx):
     """
     current, kept, dropped = first, [(first.effect, first.variant)], []
     cur_val = steps[0]['validation_rms']
-    # stopped when the residuals are noise: white, at the floor and with no mean (the
-    # whiteness test removes the mean, so a small sensor offset would pass it unseen)
-    while len(kept) < MAX_EFFECTS and not _residuals_are_noise(current, ctx):
-        found = _forward_step(current, cur_val, kept, ctx)
+    # Residuals that pass the omnibus tests (white, at the floor, no mean) do not stop the
+    # selection: a directed test (one effect's likelihood ratio) has far more power than the
+    # omnibus one; a lag hidden under a per-blade gain passes whiteness and RMS and still
+    # gains a criterion of ~100. They only spare the fits that have no score test.
+    while len(kept) < MAX_EFFECTS:
+        found = _forward_step(current, cur_val, kept, ctx,
+                              residuals_noise=_residuals_are_noise(current, ctx))
         if found is None:
             break
         row, fit = found
@@ -789,8 +887,10 @@ def _forward_selection(first, steps, ctx):
             steps = [st for st in steps if st['effect'] != old]
             current = without
             steps[-1]['fit'] = current
+    confounds = _confounds([e for e, _ in kept], ctx)
     for st in steps:
         st['parameters'] = current.effect_parameters.get(st['effect'], {})
+        st['confounds'] = confounds.get(st['effect'], [])
     return current, steps, dropped
 
 
