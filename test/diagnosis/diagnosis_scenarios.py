@@ -338,3 +338,12 @@ def evaluate(scenario, result):
         out['original_bias_after'] = max(after) if after else None
         out['original_within_3sigma'] = all(inside) if inside else None
     return out
+
+
+def diagnosed(name, seed, workers=2):
+    """Diagnose one seed of a scenario: (the diagnosis JSON, its evaluation)."""
+    from rotor_id.diagnosis.diagnose import diagnose
+    scenario = BY_NAME[name]
+    record, description = scenario.record_and_description(seed)
+    result = diagnose(record, description, workers=workers).as_json()
+    return result, evaluate(scenario, result)

@@ -20,7 +20,7 @@ parameters within 3σ in ≥ 90 % of right diagnoses, original parameters' bias 
 import importlib.util
 from pathlib import Path
 
-from diagnosis_scenarios import BY_NAME, evaluate, SCENARIOS
+from diagnosis_scenarios import BY_NAME, diagnosed, evaluate, SCENARIOS
 import numpy as np
 import pytest
 from rotor_id.diagnosis.diagnose import diagnose
@@ -31,10 +31,7 @@ ROOT = Path(__file__).resolve().parents[2]
 def test_two_concealed_effects_are_both_named():
     # a lagging flap sensor with offsets: forward selection names both, each with its
     # parameters, and the fit comes to the floor only with both
-    scenario = BY_NAME['lag+bias']
-    record, description = scenario.record_and_description(1)
-    result = diagnose(record, description, workers=2).as_json()
-    out = evaluate(scenario, result)
+    result, out = diagnosed('lag+bias', 1)
     assert out['right'], out['named']
     assert not out['extra_names']
     effects = result['explanation']['effects']
