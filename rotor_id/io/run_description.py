@@ -619,6 +619,7 @@ def _validate(parser, extra_keys=()):
             options['joint_names'] = normalize_joint_names(joint_names, spec.blades)
         except ValueError as err:
             parser.fail(str(err), 'joint_names')
+    _check_rig_names(parser, spec.blades, options, {**topics, **node_topics})
     for key in ('known', 'initial_guess'):
         if key in data:
             options[key] = parser.parameter_values(key, model)
@@ -671,6 +672,38 @@ def _validate(parser, extra_keys=()):
         path=parser.path, warnings=tuple(parser.warnings),
         extra={k: v for k, v in data.items() if k not in valid_keys},
         lines=dict(parser.lines.lines), **options)
+
+
+def _check_rig_names(parser, blades, options, topics):
+    """
+    Refuse a rig whose names cannot be told apart (one clear line each).
+
+    The azimuth joint must not also be a blade's joint (its samples would be taken for a
+    blade's, or a blade's for the azimuth), and no two topic roles may share a topic: a sensor
+    topic that is also the pitch-command topic would feed the commands back as measured pitch,
+    and the nodes read exactly one joint per blade (or the azimuth's) from each message.
+    """
+    azimuth = options.get('azimuth_joint', DEFAULT_AZIMUTH_JOINT)
+    joints = options.get('joint_names') or {
+        role: tuple(f'blade_{k}' for k in range(1, blades + 1)) for role in BLADE_JOINT_ROLES}
+    for role in ('blade_flap', 'blade_pitch'):
+        if azimuth in joints[role]:
+            parser.fail(f'joint_names.azimuth {azimuth!r} is also the {role} joint of blade '
+                        f'{joints[role].index(azimuth) + 1}: the azimuth joint is the rotor '
+                        "shaft's, on the azimuth topic; give it a name no blade has",
+                        'joint_names', 'azimuth')
+    seen = {}
+    given = parser.data.get('topics') or {}
+    for role, topic in topics.items():
+        if topic is None:
+            continue
+        key = topic.lstrip('/')
+        if key in seen:
+            parser.fail(f'topics.{role} and topics.{seen[key]} are both {topic!r}: every role '
+                        'needs its own topic (a node reads one joint per blade, or the '
+                        "azimuth's, from each message, and commands must not reach a sensor "
+                        'topic)', 'topics', role if role in given else seen[key])
+        seen[key] = role
 
 
 def _check_wake_gain(parser, rotor, unknowns, known, data):

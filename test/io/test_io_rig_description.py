@@ -66,6 +66,20 @@ def test_defaults_are_the_convention_relative():
     (('stand/shaft', 'stand shaft'), ['topics.azimuth must be a ROS topic name']),
     (('blade_flap: [flap_a, flap_b, flap_c, flap_d]', 'blade_flap: [flap_a, flap_b, flap_c]'),
      ['3 joint names for 4 blades']),
+    (('flap_b, flap_c, flap_d]', 'flap_b, flap_a, flap_d]'), ['blade_flap: joint names repeat']),
+    (('blade_pitch: [pitch_a, pitch_b, pitch_c, pitch_d]', 'blade_pitch: [pitch_a, pitch_b]'),
+     ['blade_pitch: 2 joint names for 4 blades']),
+    (('  azimuth: hub', '  azimuth: flap_c'),
+     ["rig.yaml:8: joint_names.azimuth 'flap_c' is also the blade_flap joint of blade 3"]),
+    (('  azimuth: hub', '  azimuth: pitch_a'),
+     ["joint_names.azimuth 'pitch_a' is also the blade_pitch joint of blade 1"]),
+    (('blade_flap: stand/flap_angles', 'blade_flap: stand/pitch_angles'),
+     ["rig.yaml:4: topics.blade_flap and topics.blade_pitch are both 'stand/pitch_angles'",
+      'every role needs its own topic']),
+    (('pitch_command: stand/pitch_setpoints', 'pitch_command: /stand/pitch_angles'),
+     ["topics.pitch_command and topics.blade_pitch are both '/stand/pitch_angles'"]),
+    (('pitch_command: stand/pitch_setpoints', 'estimate: stand/shaft'),
+     ["topics.estimate and topics.azimuth are both 'stand/shaft'"]),
 ])
 def test_rig_errors(edit, words):
     with pytest.raises(RunDescriptionError) as err:
