@@ -58,8 +58,8 @@ def sensitivity_scan(F, g, dF, dg, h, substeps, Phi, dPhi, Q, dQ, R, dR, H, d, d
     A model with a constant system matrix: F (n, n); g (2M+1, n) the forcing at the RK4 stage
     times (M = (T-1)·substeps steps of length h); dF (kp, n, n), dg (2M+1, kp, n) their
     derivatives along the first kp directions; Phi, Q (n, n) of one sample interval and
-    dPhi, dQ (k, n, n); R (m, m), dR (k, m, m); H (T, m, n); d (T, m), dd (T, m, k);
-    y (T, m); x0 (n,), dx0 (n, k). With ``steady`` the gain is B_ss (m, m), K_ss (n, m) with
+    dPhi (k, n, n) (zero beyond the first kp), dQ (k, n, n); R (m, m), dR (k, m, m);
+    H (T, m, n); d (T, m), dd (T, m, k); y (T, m); x0 (n,), dx0 (n, k). With ``steady`` the gain is B_ss (m, m), K_ss (n, m) with
     derivatives dB_ss (k, m, m), dK_ss (k, n, m) throughout; else P(t0) = 0 and the covariance
     and its derivative are propagated. Fills nu (T, m), dnu (T, m, k), B (T, m, m),
     dB (T, m, m, k); returns Σ_j νᵀB⁻¹ν + log|B_j|.
@@ -82,7 +82,7 @@ def sensitivity_scan(F, g, dF, dg, h, substeps, Phi, dPhi, Q, dQ, R, dR, H, d, d
     P = np.zeros((n, n))
     dP = np.zeros((k, n, n))
     Pn = np.empty((n, n))
-    dPn = np.empty((n, n))
+    KdB = np.empty((n, m))
     Kj = np.empty((n, m))
     dKj = np.empty((k, n, m))
     Bj = np.empty((m, m))
@@ -218,15 +218,22 @@ def sensitivity_scan(F, g, dF, dg, h, substeps, Phi, dPhi, Q, dQ, R, dR, H, d, d
                         acc += Kj[i, a] * Bj[a, b]
                     KB[i, b] = acc
             for c in range(k):
+                # K ∂B (n, m), for K ∂B Kᵀ
                 for i in range(n):
-                    for j in range(n):
+                    for b in range(m):
+                        acc = 0.0
+                        for a in range(m):
+                            acc += Kj[i, a] * dBj[c, a, b]
+                        KdB[i, b] = acc
+                # ∂P⁺ = ∂P − ∂K B Kᵀ − K B ∂Kᵀ − K ∂B Kᵀ (symmetric: upper triangle, mirrored)
+                for i in range(n):
+                    for j in range(i, n):
                         acc = dP[c, i, j]
                         for a in range(m):
-                            # ∂K B Kᵀ + K B ∂Kᵀ (symmetric pair) + K ∂B Kᵀ
-                            acc -= dKj[c, i, a] * KB[j, a] + KB[i, a] * dKj[c, j, a]
-                            for b in range(m):
-                                acc -= Kj[i, a] * dBj[c, a, b] * Kj[j, b]
+                            acc -= (dKj[c, i, a] * KB[j, a] + KB[i, a] * dKj[c, j, a]
+                                    + KdB[i, a] * Kj[j, a])
                         dP[c, i, j] = acc
+                        dP[c, j, i] = acc
             for i in range(n):
                 for j in range(n):
                     acc = P[i, j]
@@ -247,17 +254,18 @@ def sensitivity_scan(F, g, dF, dg, h, substeps, Phi, dPhi, Q, dQ, R, dR, H, d, d
                         for q in range(n):
                             acc += dP[c, i, q] * Phi[j, q]
                         W2[i, j] = acc                  # ∂P⁺ Φᵀ
+                # ∂P' = ∂Q + ∂Φ P⁺ Φᵀ + (∂Φ P⁺ Φᵀ)ᵀ + Φ ∂P⁺ Φᵀ (upper triangle, mirrored);
+                # ∂Φ = 0 beyond the first kp directions
                 for i in range(n):
-                    for j in range(n):
+                    for j in range(i, n):
                         acc = dQ[c, i, j]
                         for q in range(n):
-                            # ∂Φ P⁺ Φᵀ twice: the symmetric part below halves it into
-                            # ∂Φ P⁺ Φᵀ + Φ P⁺ ∂Φᵀ
-                            acc += 2.0 * dPhi[c, i, q] * W[q, j] + Phi[i, q] * W2[q, j]
-                        dPn[i, j] = acc
-                for i in range(n):
-                    for j in range(n):
-                        dP[c, i, j] = 0.5 * (dPn[i, j] + dPn[j, i])
+                            acc += Phi[i, q] * W2[q, j]
+                        if c < kp:
+                            for q in range(n):
+                                acc += dPhi[c, i, q] * W[q, j] + dPhi[c, j, q] * W[q, i]
+                        dP[c, i, j] = acc
+                        dP[c, j, i] = acc
             for i in range(n):
                 for j in range(n):
                     acc = Q[i, j]

@@ -102,6 +102,7 @@ class _FilterProblem:
                  gradients='analytic'):
         self.base = _Problem(experiments, unknowns, guess, known)
         self.gradients = gradients
+        self.cheap_sensitivities = False        # set by evaluate: all runs analytic
         self.experiments = experiments
         model = experiments[0].model
         self.model = model
@@ -178,12 +179,14 @@ class _FilterProblem:
         """Per run: (ν (T,m), B (T,m,m), ∂ν (T,m,k) or None, ∂B (T,m,m,k) or None, cost)."""
         out = []
         k = len(theta)
+        self.cheap_sensitivities = True
         for r, exp in enumerate(self.experiments):
-            if sensitivities and self.gradients == 'analytic':
-                analytic = self.analytic_sensitivities(r, theta)
+            if self.gradients == 'analytic':
+                analytic = self.analytic_sensitivities(r, theta, sensitivities)
                 if analytic is not None:
                     out.append(analytic)
                     continue
+            self.cheap_sensitivities = False    # finite differences: 2k+1 filter passes
             # θ and, for the sensitivities, θ ± h_i e_i: one batched filter pass for all
             thetas = [theta]
             spans = []
@@ -231,13 +234,17 @@ class _FilterProblem:
             out.append((nu[0], B[0], dnu, dB, cost[0]))
         return out
 
-    def analytic_sensitivities(self, r, theta):
+    def analytic_sensitivities(self, r, theta, sensitivities=True):
         """
         Return (ν, B, ∂ν, ∂B, cost) of run r from the filter's analytic sensitivities.
 
         For a model whose system matrix F is constant (equal steps; H may rotate, as the wake
-        model's eq.-30 measurement does). None otherwise (a periodic model: finite
-        differences then). The module docstring has the equations.
+        model's eq.-30 measurement does); None otherwise (a periodic model: finite
+        differences then). Without ``sensitivities``, ∂ν and ∂B are None and only the filter
+        runs. The module docstring has the equations. Φ and Q are those of
+        :func:`~rotor_id.estimation.kalman.discretize` (the same RK4 steps composed and
+        :func:`~rotor_id.estimation.kalman.constant_noise_covariance`); the state is carried
+        through the RK4 steps themselves, so the per-interval forcing c_j is never formed.
         """
         exp = self.experiments[r]
         model = exp.model
@@ -251,28 +258,32 @@ class _FilterProblem:
         h = np.repeat(np.diff(t) / substeps, substeps)
         if not _time_invariant(F, h, t):
             return None
-        dm, x0, R = self.discretized(r, theta)
-        steady = self.gain_mode(dm) == 'steady'
-        n, m, k = model.n_states, self.m, len(theta)
-        kp = len(self.base.param_index)
-        dF, dg = model.system_jacobian(tf, p, u)
-        dF = np.ascontiguousarray(dF[0][self.base.param_index])            # (kp, n, n)
-        dg = np.ascontiguousarray(dg[:, self.base.param_index])            # (2M+1, kp, n)
+        n, m, T = model.n_states, self.m, t.size
+        k = len(theta) if sensitivities else 0
+        kp = len(self.base.param_index) if sensitivities else 0
+        if kp:
+            dF, dg = model.system_jacobian(tf, p, u)
+            dF = np.ascontiguousarray(dF[0][self.base.param_index])        # (kp, n, n)
+            dg = np.ascontiguousarray(dg[:, self.base.param_index])        # (2M+1, kp, n)
+        else:
+            dF, dg = np.zeros((0, n, n)), np.zeros((g.shape[0], 0, n))
         F0 = np.ascontiguousarray(F[0])
         dt = float(t[1] - t[0])
-        # ∂Φ of one interval (its RK4 steps composed) and ∂Q (Q = σ_V² Q₁(F))
+        # Φ and ∂Φ of one interval (its RK4 steps composed), Q = σ_V² Q₁(F) and ∂Q
         step = h[:1]
         Phi_s = _rk4_transition(F[:1], step)[0]
         dPhi_s = np.moveaxis(_rk4_step_derivative(
             F[:1], np.zeros((1, n)), np.full(n, step[0]), dF[None], np.zeros((1, kp, n)),
-            np.eye(n)), 0, -1)                                             # (kp, n, n)
+            np.eye(n)), 0, -1) if kp else np.zeros((0, n, n))             # (kp, n, n)
         Phi = np.eye(n)
         dPhi = np.zeros((k, n, n))
         for _ in range(substeps):
             dPhi[:kp] = dPhi_s @ Phi + Phi_s @ dPhi[:kp]
             Phi = Phi_s @ Phi
+        Q = kalman.constant_noise_covariance(F0, dt, substeps, self.rows, sig_p,
+                                             self.noise_model)
         dQ = np.zeros((k, n, n))
-        if self.i_process is not None:          # θ holds q = σ_V²: ∂Q/∂q = Q₁
+        if k and self.i_process is not None:    # θ holds q = σ_V²: ∂Q/∂q = Q₁
             dQ[self.i_process] = kalman.constant_noise_covariance(
                 F0, dt, substeps, self.rows, 1.0, self.noise_model)
         if sig_p > 0.0:
@@ -286,32 +297,38 @@ class _FilterProblem:
                 down = kalman.constant_noise_covariance(F0 - eps * dF[i], dt, substeps,
                                                         self.rows, sig_p, self.noise_model)
                 dQ[i] = (up - down) / (2.0 * eps)
+        R = np.diag(np.maximum(sig_m, 1e-300)**2)
         dR = np.zeros((k, m, m))
-        if self.i_meas is not None:
+        if k and self.i_meas is not None:
             for a, i in enumerate(range(self.i_meas.start, self.i_meas.stop)):
                 dR[i, a, a] = 2.0 * sig_m[a]
-        H = np.ascontiguousarray(dm.H, dtype=float)
-        Phi0 = np.ascontiguousarray(dm.Phi[0])
-        Q0 = np.ascontiguousarray(dm.Q[0])
+        H = np.ascontiguousarray(model.output_matrix(t), dtype=float)
+        d = np.ascontiguousarray(model.output_offset(t, p), dtype=float)
+        dm = kalman.DiscreteModel(t=t, Phi=np.broadcast_to(Phi, (T - 1, n, n)), c=None,
+                                  Q=np.broadcast_to(Q, (T - 1, n, n)), H=H, d=d)
+        steady = self.gain_mode(dm) == 'steady'
         if steady:
-            _, B_ss, K_ss, dB_ss, dK_ss = steady_gain_sensitivities(Phi0, Q0, H[0], R, dPhi,
-                                                                    dQ, dR)
+            _, B_ss, K_ss, dB_ss, dK_ss = steady_gain_sensitivities(Phi, Q, H[0], R, dPhi, dQ,
+                                                                    dR)
         else:
             B_ss, K_ss = np.zeros((m, m)), np.zeros((n, m))
             dB_ss, dK_ss = np.zeros((k, m, m)), np.zeros((k, n, m))
-        T = t.size
         dd = np.zeros((T, m, k))
-        dd[:, :, :kp] = model.output_offset_jacobian(t, p)[:, :, self.base.param_index]
+        if kp:
+            dd[:, :, :kp] = model.output_offset_jacobian(t, p)[:, :, self.base.param_index]
         x0, jac = self.base.initial_state(r, base, p)
         dx0 = np.zeros((n, k))
-        dx0[:, :kp] = jac[:, :kp]
-        dx0[:, self.base.state_slices[r]] = jac[:, kp:]
+        if k:
+            n_par = len(self.base.param_index)
+            dx0[:, :n_par] = jac[:, :n_par]
+            dx0[:, self.base.state_slices[r]] = jac[:, n_par:]
         nu, dnu = np.empty((T, m)), np.empty((T, m, k))
         B, dB = np.empty((T, m, m)), np.empty((T, m, m, k))
-        args = (F0, np.ascontiguousarray(g), dF, dg, float(step[0]), substeps, Phi0, dPhi, Q0,
-                dQ, np.ascontiguousarray(R), dR, H, np.ascontiguousarray(dm.d, dtype=float),
-                dd, np.ascontiguousarray(exp.y, dtype=float), np.asarray(x0, dtype=float),
-                dx0, steady, B_ss, K_ss, dB_ss, np.ascontiguousarray(dK_ss), nu, dnu, B, dB)
+        args = (F0, np.ascontiguousarray(g), dF, dg, float(step[0]), substeps, Phi, dPhi,
+                np.ascontiguousarray(Q), dQ, R, dR, H, d, dd,
+                np.ascontiguousarray(exp.y, dtype=float), np.asarray(x0, dtype=float), dx0,
+                steady, B_ss, np.ascontiguousarray(K_ss), dB_ss, np.ascontiguousarray(dK_ss),
+                nu, dnu, B, dB)
         compiled = kernels.filter_sensitivity_kernel()
         if compiled is not None:
             cost = compiled(*args)
@@ -319,6 +336,8 @@ class _FilterProblem:
             clock = time.process_time()
             cost = sensitivity_scan_numpy(*args)
             kernels.note_numpy_seconds(time.process_time() - clock)
+        if not sensitivities:
+            return nu, B, None, None, float(cost)
         return nu, B, dnu, dB, float(cost)
 
 
@@ -522,14 +541,17 @@ def _gradient_information(results, k):
     g = np.zeros(k)
     M = np.zeros((k, k))
     for nu, B, dnu, dB, _ in results:
+        T, m = nu.shape
         Binv = np.linalg.inv(B)
         a = np.einsum('tab,tb->ta', Binv, nu)                       # B⁻¹ν
         g += np.einsum('ta,tak->k', a, dnu)
         g -= 0.5 * np.einsum('ta,tabk,tb->k', a, dB, a)
         BdB = np.einsum('tab,tbck->tack', Binv, dB)                  # B⁻¹∂B
         g += 0.5 * np.einsum('taak->k', BdB)
-        M += np.einsum('tai,tab,tbk->ik', dnu, Binv, dnu)
-        M += 0.5 * np.einsum('tabi,tbak->ik', BdB, BdB)
+        # Σ ∂νᵀB⁻¹∂ν and ½ Σ tr(B⁻¹∂B_i B⁻¹∂B_k) as matrix products over (t, a, b)
+        M += dnu.reshape(T * m, k).T @ (Binv @ dnu).reshape(T * m, k)
+        M += 0.5 * BdB.reshape(T * m * m, k).T @ \
+            np.swapaxes(BdB, 1, 2).reshape(T * m * m, k)
     return g, 0.5 * (M + M.T)
 
 
@@ -537,7 +559,7 @@ def fit_filter_error_ml(experiments, unknowns, guess=None, known=None, noise_std
                         progress=None, max_iter=50, process_noise_std=None,
                         estimate_process_noise=True, rows=None, noise_model='white',
                         gain='auto', step_tol=1e-3, max_step=DEFAULT_MAX_STEP,
-                        label='filter-error ML', gradients='analytic'):
+                        label='filter-error ML', gradients='analytic', _start=None):
     """
     Filter-error maximum likelihood over one or more runs; Cramér-Rao bound at the optimum.
 
@@ -582,6 +604,9 @@ def fit_filter_error_ml(experiments, unknowns, guess=None, known=None, noise_std
         Sensitivities of ν and B: analytic where the model is time-invariant with a
         steady-state gain (finite differences elsewhere), or finite differences throughout
         (the reference).
+    _start : dict, optional
+        Starting values by θ name (any of model unknowns, free initial states, measurement
+        σ's), over the defaults; :func:`fit_filter_error`'s σ_V profile warm-starts with it.
 
     Returns
     -------
@@ -633,6 +658,8 @@ def fit_filter_error_ml(experiments, unknowns, guess=None, known=None, noise_std
                 c = _cost(prob.evaluate(trial, sensitivities=False))
                 if c < best:
                     best, theta = c, trial
+    for name, value in (_start or {}).items():
+        theta[names.index(name)] = value
     t_start = time.perf_counter()
     history = []
     results = prob.evaluate(theta)
@@ -643,14 +670,21 @@ def fit_filter_error_ml(experiments, unknowns, guess=None, known=None, noise_std
     converged = False
     message = 'maximum iterations reached'
     lm = 0.0
+
+    def trial_cost(trial):
+        # the first trial is usually accepted: where sensitivities are cheap (analytic), take
+        # them with it, so the accepted point need not be filtered again
+        if prob.cheap_sensitivities:
+            results = prob.evaluate(trial)
+            return _cost(results), results
+        return _cost(prob.evaluate(trial, sensitivities=False)), None
     iteration = 0
     for iteration in range(1, max_iter + 1):
         grad, M = _gradient_information(results, k)
         # active set: a parameter on a bound that the gradient pushes outwards stays there
         free = ~(((theta <= prob.lo) & (grad > 0)) | ((theta >= prob.hi) & (grad < 0)))
-        accepted, trial, _, _, lm = damped_gauss_newton_step(
-            theta, grad, M, prob.lo, prob.hi, cost,
-            lambda trial: (_cost(prob.evaluate(trial, sensitivities=False)), None), lm,
+        accepted, trial, _, payload, lm = damped_gauss_newton_step(
+            theta, grad, M, prob.lo, prob.hi, cost, trial_cost, lm,
             free=np.flatnonzero(free), attempts=10, halvings=8)
         if not accepted:
             message = 'no step lowers the likelihood any more (a minimum or a bound)'
@@ -658,7 +692,7 @@ def fit_filter_error_ml(experiments, unknowns, guess=None, known=None, noise_std
             break
         applied = trial - theta
         theta = trial
-        results = prob.evaluate(theta)
+        results = payload if payload is not None else prob.evaluate(theta)
         cost = _cost(results)
         sigma = np.sqrt(np.clip(np.diag(np.linalg.pinv(M)), 0.0, None))
         rms = math.sqrt(np.mean(np.concatenate([r[0] for r in results])**2))
@@ -802,6 +836,9 @@ def fit_filter_error(experiments, unknowns, guess=None, known=None, noise_std=No
     options = {'known': known, 'noise_std': noise_std, 'max_iter': max_iter, 'rows': rows,
                'noise_model': noise_model, 'gain': gain, 'step_tol': step_tol,
                'max_step': max_step, 'gradients': gradients}
+    if bounds == 'marginal' and estimate_process_noise and gradients == 'analytic':
+        # a dozen fits follow: the compiled filter pays for its loading (kernels.prefer)
+        kernels.prefer()
     joint = fit_filter_error_ml(experiments, unknowns, guess=guess, progress=progress,
                                 process_noise_std=process_noise_std,
                                 estimate_process_noise=estimate_process_noise, label=label,
@@ -811,17 +848,34 @@ def fit_filter_error(experiments, unknowns, guess=None, known=None, noise_std=No
     t_start = time.perf_counter()
     fits = {}
 
+    def warm_start(sigma_v):
+        """
+        Start of the fit at σ_V: every other unknown, interpolated (or extrapolated by at
+        most twice their spacing) from the two nearest fits done, else the nearest one.
+        """
+        done = [(s, fits[s].values) for s in fits if fits[s] is not None]
+        if not any(s == s_hat for s, _ in done):
+            done.append((s_hat, np.delete(joint.values, at)))
+        done.sort(key=lambda item: abs(item[0] - sigma_v))
+        values = done[0][1]
+        if len(done) > 1 and done[1][0] != done[0][0]:
+            (s1, v1), (s2, v2) = done[0], done[1]
+            guess = v1 + (v2 - v1) * (sigma_v - s1) / (s2 - s1)
+            noise = [i for i, n in enumerate(others) if n.startswith('noise_std_')]
+            if abs(sigma_v - s1) <= 2.0 * abs(s2 - s1) and np.all(guess[noise] > 0):
+                values = guess
+        return dict(zip(others, values))
+
     def fit_at(sigma_v):
         if sigma_v in fits:
             return fits[sigma_v]
-        done = [s for s in fits if fits[s] is not None]
-        start = fits[min(done, key=lambda s: abs(s - sigma_v))] if done else joint
+        start = warm_start(sigma_v)
         try:
             est = fit_filter_error_ml(
-                experiments, unknowns, guess={n: start.value(n) for n in unknowns},
+                experiments, unknowns, guess={n: start[n] for n in unknowns},
                 process_noise_std=sigma_v, estimate_process_noise=False,
                 label=f'{label}: profile σ_V = {sigma_v:.4g} ({len(fits) + 1})',
-                progress=progress, **options)
+                progress=progress, _start=start, **options)
         except (IdentificationError, np.linalg.LinAlgError, FloatingPointError):
             est = None                 # no fit there: no weight (f = inf)
         fits[sigma_v] = est
@@ -830,6 +884,7 @@ def fit_filter_error(experiments, unknowns, guess=None, known=None, noise_std=No
     s_hat = joint.value(PROCESS_NOISE)
     s_std = joint.std_of(PROCESS_NOISE)
     at = joint.names.index(PROCESS_NOISE)       # the structural unknowns come first
+    others = [n for n in joint.names if n != PROCESS_NOISE]
 
     def on_branch(sigma):
         """
