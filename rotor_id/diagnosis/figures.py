@@ -172,8 +172,10 @@ def plot_effects(diagnosis, path):
     ax_bar.bar(range(len(series)), [100 * e for e in excess],
                color=['C0'] + [f'C{i + 1}' for i in range(len(series) - 1)])
     ax_bar.set_xticks(range(len(series)))
-    ax_bar.set_xticklabels(['baseline'] + [f'+ {st["effect"]}' for st in diagnosis.steps],
-                           rotation=20, fontsize=7)
+    # an effect a kept one reproduces in this record is named under it (confounded_with)
+    ax_bar.set_xticklabels(['baseline'] + [
+        f'+ {st["effect"]}' + ''.join(f'\n(or {c["effect"]})' for c in st.get('confounds', []))
+        for st in diagnosis.steps], rotation=20, fontsize=7)
     ax_bar.axhline(0.0, color='k', lw=0.8)
     ax_bar.set_ylabel('residual RMS above the floor [%]')
     for i, (name, res) in enumerate(series):

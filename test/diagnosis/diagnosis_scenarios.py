@@ -345,10 +345,14 @@ def evaluate(scenario, result):
     return out
 
 
-def diagnosed(name, seed, workers=2):
+def diagnosed(name, seed, workers=2, effects_figure=None):
     """Diagnose one seed of a scenario: (the diagnosis JSON, its evaluation)."""
     from rotor_id.diagnosis.diagnose import diagnose
     scenario = BY_NAME[name]
     record, description = scenario.record_and_description(seed)
-    result = diagnose(record, description, workers=workers).as_json()
+    diagnosis = diagnose(record, description, workers=workers)
+    if effects_figure is not None:
+        from rotor_id.diagnosis.figures import plot_effects
+        plot_effects(diagnosis, effects_figure)
+    result = diagnosis.as_json()
     return result, evaluate(scenario, result)

@@ -74,10 +74,12 @@ def test_a_lag_under_a_sensor_gain_is_still_named():
     assert out['original_within_3sigma']
 
 
-def test_offsets_and_an_odd_blade_are_named_as_confounded():
+def test_offsets_and_an_odd_blade_are_named_as_confounded(tmp_path):
     # at μ = 0 one blade's static Lock-number trim shift is that blade's sensor offset: the
     # diagnosis names both, with the figures that make them one effect in this record
-    result, out = diagnosed('bias+blade', 1)
+    figure = tmp_path / 'effects.png'
+    result, out = diagnosed('bias+blade', 1, effects_figure=figure)
+    assert figure.stat().st_size > 10_000
     assert out['right'], (out['named'], out['confounded'])
     effects = result['explanation']['effects']
     confounds = [c for e in effects for c in e['confounds']]
