@@ -298,7 +298,10 @@ def interleaved_streams(stamps_ns, values):
     # between updates) would otherwise drive to zero.
     noise = np.maximum(np.sqrt(np.median(curvature ** 2, axis=(0, 1)) / CHI2_1_MEDIAN / 6.0),
                        np.sqrt(np.mean(curvature ** 2, axis=(0, 1)) / 6.0))
-    noise = np.maximum(noise, tiny)
+    # ... nor below the values' floating-point resolution: a noiseless channel (a simulated or
+    # computed azimuth, unwrapped to hundreds of rad) has only rounding left, whose pattern can
+    # alternate with the sample's parity and is no second stream
+    noise = np.maximum(noise, np.maximum(np.spacing(np.max(np.abs(values), axis=0)), tiny))
     # Offset: the detrended x[i] − (x[i−1] + x[i+1])/2 is ±δ at alternate samples for two
     # streams; its (−1)^i block mean is N(0, 3.5σ²/B) for one stream of white noise.
     signs = np.where(np.arange(BLOCK) % 2 == 0, 1.0, -1.0)

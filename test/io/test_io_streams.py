@@ -68,6 +68,28 @@ def test_interleaving_false_alarm_rate_on_one_sensor():
     assert alarms == 0
 
 
+@pytest.mark.parametrize('batch', [10, 12])
+def test_a_noiseless_unwrapped_azimuth_is_one_stream(batch):
+    """
+    A simulated azimuth, unwrapped to hundreds of rad, computed batch by batch, is no alarm.
+
+    rotor_plant at 2 kHz publishes ψ = t0 + step·k in batches of 10 samples (its 5 ms tick):
+    the rounding left alternates with the parity of k (about 1e-14 rad), and was taken for
+    two streams, refusing the bag of a 5-blade rig with an unwrapped azimuth.
+    """
+    step = 2.0 * np.pi * 15 / 2000
+    t, out = 0.0, []
+    while len(out) < 18_000:
+        grid = t + step * np.arange(batch + 1)
+        out.extend(grid[1:])
+        t = float(grid[-1])
+    psi = np.array(out)
+    assert interleaved_streams(np.arange(psi.size) * MS // 2, psi[:, None]) is None
+    # a second stream offset by 1e-9 rad (far above the rounding) is still found
+    two = psi + np.where(np.arange(psi.size) % 2 == 0, 0.0, 1e-9)
+    assert interleaved_streams(np.arange(psi.size) * MS // 2, two[:, None]) is not None
+
+
 def test_quantised_sensor_and_held_command_are_one_stream():
     """A coarse ADC (most steps exactly 0) or a command held between updates is no alarm."""
     rng = np.random.default_rng(5)
