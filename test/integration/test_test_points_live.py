@@ -20,9 +20,11 @@ flap sample and agrees with its live final estimate to 0.2σ where the live wind
 On a machine loaded far beyond its cores (1-minute load above LOADED_PER_CORE per core during
 the run; 17-25 on two cores while this was written) the identifier falls tens of seconds behind,
 the publishers' history no longer holds what it missed, and test points 2 and 3 come out
-STATUS_INCOMPLETE, as they must. There every invariant above is still asserted (one final each,
-tagged, converged exactly when complete, no window of another test point, offline agreement of
-the complete ones), but not that two converge: that is asserted only below that load, and the
+STATUS_INCOMPLETE, as they must (a test point whose first flap sample was lost starts at a later
+one: offline, from the bag, it starts earlier). There every invariant above is still asserted
+(one final each, tagged, converged exactly when complete, no window of another test point, a
+growing-window estimate before each complete final, offline agreement of the complete ones),
+but not that two converge: that is asserted only below that load, and the
 load measured is in the failure text and in a warning when the requirement was not applied.
 """
 
@@ -113,7 +115,7 @@ def test_each_test_point_is_identified_once(three_points):
     finals = [m for m in watcher.messages['estimate'] if m.kind == ParameterEstimate.KIND_FINAL]
     assert [m.test_point for m in finals] == list(range(1, POINTS + 1))
     for final in finals:
-        complete = final.time_base_consistent and not list(final.missing_channels)
+        complete = _complete(final)
         assert (final.status == ParameterEstimate.STATUS_CONVERGED) == complete, final.message
         if complete:
             ok, text = within_sigma(final.values, final.std, TRUTH, final.names)
@@ -130,9 +132,15 @@ def test_each_test_point_is_identified_once(three_points):
                       f'{cores} cores (above {LOADED_PER_CORE:g} per core: not required); the '
                       'others were reported incomplete: '
                       + '; '.join(m.message for m in finals if m not in converged))
-    provisional = [m for m in watcher.messages['estimate']
-                   if m.kind == ParameterEstimate.KIND_PROVISIONAL]
-    assert {m.test_point for m in provisional} == set(range(1, POINTS + 1))
+    # a growing-window estimate precedes every final one whose window was received
+    provisional = {m.test_point for m in watcher.messages['estimate']
+                   if m.kind == ParameterEstimate.KIND_PROVISIONAL}
+    assert {m.test_point for m in finals if _complete(m)} <= provisional <= set(
+        range(1, POINTS + 1))
+
+
+def _complete(final):
+    return final.time_base_consistent and not list(final.missing_channels)
 
 
 def test_windows_are_their_own_test_points(three_points):
@@ -141,14 +149,21 @@ def test_windows_are_their_own_test_points(three_points):
     w0, w1 = three_points['description'].window_s
     for final in finals:
         start = _ns(final.test_point_start)
-        assert start + w0 * NS <= _ns(final.window_start) <= start + w0 * NS + 2e6
-        assert start + w1 * NS - 2e6 <= _ns(final.window_end) <= start + w1 * NS
         assert (final.window_requested_start_s, final.window_requested_end_s) == (w0, w1)
+        if _complete(final):          # the samples used are the whole window
+            assert start + w0 * NS <= _ns(final.window_start) <= start + w0 * NS + 2e6
+            assert start + w1 * NS - 2e6 <= _ns(final.window_end) <= start + w1 * NS
+        elif _ns(final.window_end) == 0:      # not one sample of the window was received
+            assert list(final.missing_channels) == ['flap', 'pitch', 'azimuth'], final.message
+        else:                         # fewer samples, all inside the window
+            assert start + w0 * NS <= _ns(final.window_start) <= _ns(final.window_end) <= (
+                start + w1 * NS)
     for before, after in zip(finals, finals[1:]):
-        assert _ns(before.window_end) < _ns(after.test_point_start)
+        end = _ns(before.test_point_start) + w1 * NS
+        assert max(end, _ns(before.window_end)) < _ns(after.test_point_start)
     # every estimate of a test point comes from a window inside that test point
     for msg in three_points['watcher'].messages['estimate']:
-        if msg.kind != ParameterEstimate.KIND_ON_DEMAND:
+        if msg.kind != ParameterEstimate.KIND_ON_DEMAND and _ns(msg.window_end):
             assert _ns(msg.window_start) >= _ns(msg.test_point_start) + w0 * NS
 
 
@@ -161,11 +176,13 @@ def test_offline_identification_of_each_test_point_agrees(three_points, tmp_path
     assert sorted(results) == list(range(1, POINTS + 1)), code
     for k, offline in results.items():
         final = three_points['watcher'].final_estimate(k)
-        # found from the recorded stirring phases where the live identifier started it
+        # found from the recorded stirring phases where the live identifier started it (a
+        # starved one may have missed the first flap sample and started later, incomplete)
         assert offline['found_from'].endswith('(stirring phases)')
-        assert offline['test_point_start_ns'] == _ns(final.test_point_start)
-        if list(final.missing_channels) or not final.time_base_consistent:
+        if not _complete(final):
+            assert offline['test_point_start_ns'] <= _ns(final.test_point_start)
             continue                  # the live fit had fewer samples than the bag
+        assert offline['test_point_start_ns'] == _ns(final.test_point_start)
         for name, value, std in zip(final.names, final.values, final.std):
             assert abs(value - offline['parameters'][name]['value']) < 0.2 * std, (k, name)
 
