@@ -23,13 +23,12 @@ of the rounds; the machine is shared, so read it beside the load average and the
 import argparse
 import json
 import os
+from pathlib import Path
 import resource
 import subprocess
 import sys
 import tempfile
 import time
-
-from pathlib import Path
 
 from common import machine_description, REPO_ROOT, RESULTS_DIR, say
 import numpy as np

@@ -44,8 +44,8 @@ import math
 
 import numpy as np
 from rotor_id.diagnosis import residuals as rs
+from rotor_id.estimation.validation import chi2_sf, normal_sf
 from scipy.fft import next_fast_len
-from scipy.stats import chi2, norm
 
 #: Family-wise false-alarm probability of the adequacy check on a recording the model explains.
 FAMILY_ALPHA = 0.01
@@ -359,7 +359,7 @@ def check(estimate, experiments, measured, family_alpha=FAMILY_ALPHA):
             scale = null[r][j] if null is not None else None
             if scale is not None:
                 a, b = scale
-                p_white = float(chi2.sf(stats.whiteness_q / a, b))
+                p_white = float(chi2_sf(stats.whiteness_q / a, b))
                 detail = {'lags': min(rs.LAGS, len(res) // 4), 'null_scale': a, 'null_dof': b}
             else:   # no sensitivities: the uncorrected χ²(L), which errs towards alarms
                 p_white = stats.whiteness_p
@@ -370,18 +370,18 @@ def check(estimate, experiments, measured, family_alpha=FAMILY_ALPHA):
             varying = sum(1 for i in (1, 2) if np.std(u[:, i]) > 1e-12)
             if varying:
                 count = lags * varying
-                p_x = min(1.0, count * 2.0 * norm.sf(abs(stats.xcorr) * math.sqrt(len(res))))
+                p_x = min(1.0, count * 2.0 * normal_sf(abs(stats.xcorr) * math.sqrt(len(res))))
                 tests.append(ResidualTest(INPUT_CORRELATION, run, label, abs(stats.xcorr), p_x,
                                           {'input': stats.xcorr_input,
                                            'lag_samples': int(stats.xcorr_lag),
                                            'correlations_tried': count}))
             z_mean = float(np.mean(res) * math.sqrt(len(res)) / max(np.std(res), 1e-300))
             tests.append(ResidualTest(ZERO_MEAN, run, label, z_mean,
-                                      float(2.0 * norm.sf(abs(z_mean))),
+                                      float(2.0 * normal_sf(abs(z_mean))),
                                       {'mean': float(np.mean(res))}))
             if not innovations:
                 tests.append(ResidualTest(NOISE_LEVEL, run, label, stats.z_excess,
-                                          float(norm.sf(stats.z_excess)),
+                                          float(normal_sf(stats.z_excess)),
                                           {'rms': stats.rms, 'floor': stats.floor,
                                            'excess': stats.excess}))
     result = Adequacy(Verdict.ADEQUATE, family_alpha, tests, kind, timing=timing)

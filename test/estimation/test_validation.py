@@ -173,3 +173,16 @@ def test_input_correlation_limit_null_rate():
     lagged = np.roll(u[:, 2], 4) + 0.1 * rng.standard_normal(t.size)
     caught = channel_statistics(lagged, np.zeros_like(lagged), inputs=u)
     assert not caught.uncorrelated_with_input()
+
+
+def test_tails_are_scipy_stats_own_numbers():
+    """χ² and normal tails from scipy.special (no scipy.stats import) equal scipy.stats'."""
+    from rotor_id.estimation.validation import chi2_sf, normal_isf, normal_sf
+    from scipy.stats import chi2, norm
+    q = np.linspace(0.0, 300.0, 3001)
+    for dof in (1, 2, 5, 20, 40):
+        assert np.array_equal(chi2_sf(q, dof), chi2.sf(q, dof))
+    z = np.linspace(-40.0, 40.0, 4001)
+    assert np.array_equal(normal_sf(z), norm.sf(z))
+    p = np.logspace(-300.0, -1e-3, 3001)
+    assert np.array_equal(normal_isf(p), norm.isf(p))

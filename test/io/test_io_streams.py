@@ -132,3 +132,16 @@ def test_spikes_finds_isolated_speed_readings():
     speed = 94.0 + 0.5 * np.sin(np.arange(2000) / 300) + 0.01 * rng.normal(size=2000)
     speed[[10, 1200, 1201]] = [0.0, 180.0, 180.0]
     assert spikes(speed, floor=0.05 * 94).tolist() == [10, 1200, 1201]
+
+
+def test_running_median_is_scipy_median_filter():
+    """The spike detector's running median equals scipy.ndimage's, blocks or not."""
+    from rotor_id.io.streams import _running_median, MEDIAN_SPAN
+    from scipy.ndimage import median_filter
+    rng = np.random.default_rng(4)
+    for n in (MEDIAN_SPAN, MEDIAN_SPAN + 1, 1000, 70001):
+        values = rng.standard_normal(n)
+        values[::13] += 20.0                       # spikes
+        want = median_filter(values, size=MEDIAN_SPAN, mode='nearest')
+        assert np.array_equal(_running_median(values, MEDIAN_SPAN), want)
+        assert np.array_equal(_running_median(values, MEDIAN_SPAN, block=997), want)
