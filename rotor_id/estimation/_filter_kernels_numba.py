@@ -59,10 +59,11 @@ def sensitivity_scan(F, g, dF, dg, h, substeps, Phi, dPhi, Q, dQ, R, dR, H, d, d
     times (M = (T-1)·substeps steps of length h); dF (kp, n, n), dg (2M+1, kp, n) their
     derivatives along the first kp directions; Phi, Q (n, n) of one sample interval and
     dPhi (k, n, n) (zero beyond the first kp), dQ (k, n, n); R (m, m), dR (k, m, m);
-    H (T, m, n); d (T, m), dd (T, m, k); y (T, m); x0 (n,), dx0 (n, k). With ``steady`` the gain is B_ss (m, m), K_ss (n, m) with
-    derivatives dB_ss (k, m, m), dK_ss (k, n, m) throughout; else P(t0) = 0 and the covariance
-    and its derivative are propagated. Fills nu (T, m), dnu (T, m, k), B (T, m, m),
-    dB (T, m, m, k); returns Σ_j νᵀB⁻¹ν + log|B_j|.
+    H (T, m, n); d (T, m), dd (T, m, k); y (T, m); x0 (n,), dx0 (n, k). With ``steady``
+    the gain is B_ss (m, m), K_ss (n, m) with derivatives dB_ss (k, m, m), dK_ss (k, n, m)
+    throughout; else P(t0) = 0 and the covariance and its derivative are propagated.
+    Fills nu (T, m), dnu (T, m, k), B (T, m, m), dB (T, m, m, k); returns
+    Σ_j νᵀB⁻¹ν + log|B_j|.
 
         ν = y − H x − d                       ∂ν = −H ∂x − ∂d
         B = H P Hᵀ + R                         ∂B = H ∂P Hᵀ + ∂R

@@ -850,8 +850,10 @@ def fit_filter_error(experiments, unknowns, guess=None, known=None, noise_std=No
 
     def warm_start(sigma_v):
         """
-        Start of the fit at σ_V: every other unknown, interpolated (or extrapolated by at
-        most twice their spacing) from the two nearest fits done, else the nearest one.
+        Return the start of the fit at σ_V.
+
+        Every other unknown, interpolated (or extrapolated by at most twice their spacing)
+        from the two nearest fits done, else the nearest one.
         """
         done = [(s, fits[s].values) for s in fits if fits[s] is not None]
         if not any(s == s_hat for s, _ in done):
