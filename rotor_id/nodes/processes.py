@@ -91,6 +91,24 @@ def ros_argument(value):
     return str(value)
 
 
+def _tree_cpu_s(pid):
+    """User + system CPU s of a process and its live descendants (nan without /proc)."""
+    tick = os.sysconf('SC_CLK_TCK')
+    total, todo, root = 0.0, [pid], pid
+    while todo:
+        pid = todo.pop()
+        try:
+            # the fields after the command name (which may hold spaces): utime, stime 14, 15
+            fields = Path(f'/proc/{pid}/stat').read_text().rsplit(')', 1)[1].split()
+            total += (int(fields[11]) + int(fields[12])) / tick
+            for task in Path(f'/proc/{pid}/task').iterdir():
+                todo += [int(c) for c in (task / 'children').read_text().split()]
+        except (OSError, ValueError, IndexError):
+            if pid == root:             # a descendant that just exited is no error
+                return float('nan')
+    return total
+
+
 class NodeProcesses:
     """The node processes of one run; a context manager that never leaves one running."""
 
@@ -130,6 +148,15 @@ class NodeProcesses:
         if not self.logs[name].closed:
             self.logs[name].flush()
         return (self.log_dir / f'{name}.log').read_text(errors='replace')
+
+    def cpu_s(self):
+        """
+        CPU seconds used so far by each running process and its descendants (Linux /proc).
+
+        Read before stopping: a process's CPU is gone with it. ``nan`` where /proc cannot say.
+        """
+        return {name: _tree_cpu_s(proc.pid) for name, proc in self.procs.items()
+                if proc.poll() is None}
 
     def dead(self):
         """Names of processes that exited, with their return codes."""
