@@ -46,9 +46,12 @@ def fit_window(request, description, options, progress=None):
     timing = {}
     started = time.perf_counter()
     cpu0, wait0 = thread_times()
+    # no residual-adequacy test: a live estimate does not carry one (ParameterEstimate has no
+    # field for it; it was 40 % of a fit's CPU, computed and dropped). `rotor-id identify` on
+    # the recorded bag gives it with the same window.
     ident = identify(request.record, description, progress=progress, window_s=request.window_s,
                      max_iter=options.max_iter, multi_start=options.multi_start,
-                     step_tol=options.step_tol)
+                     step_tol=options.step_tol, check_adequacy=False)
     ident.stamp0_ns = request.stamp0_ns
     est = ident.estimate
     timing['identify'] = (time.perf_counter() - started) * 1e3
@@ -84,8 +87,25 @@ def thread_times(tid=None):
         return (time.thread_time() if tid is None else float('nan')), 0.0
 
 
+def warm_up():
+    """
+    Load what a fit needs before the first one: the compiled kernels and the fitting modules.
+
+    Otherwise the first fits of a test point run the numpy path until the kernels' ``auto``
+    switch and then load them in the middle of a fit (the first final estimate came 3.9 s after
+    its window). Returns the seconds it took.
+    """
+    started = time.perf_counter()
+    from rotor_id.estimation import kernels
+    kernels.prefer()
+    import rotor_id.adequacy  # noqa: F401 - imported by identify at its first call
+    return time.perf_counter() - started
+
+
 def _serve(conn, stop, abandon):
     """Child process: fit what arrives until told to quit; report iterations as they come."""
+    conn.send(('ready', warm_up()))
+
     def progress(info):
         conn.send(('progress', info))
         if abandon.is_set():
@@ -130,6 +150,14 @@ class FitProcess:
                                        name='identifier-fit', daemon=True)
         self.process.start()
         child.close()
+        self.warm_s = None                # how long the child took to load what fits need
+
+    def wait_ready(self):
+        """Wait until the child has loaded what a fit needs; return the seconds it took."""
+        if self.warm_s is None:
+            kind, payload = self._conn.recv()
+            self.warm_s = payload if kind == 'ready' else float('nan')
+        return self.warm_s
 
     def stop(self):
         """Ask the fit in progress to end after its current iteration (it is published)."""
@@ -148,6 +176,7 @@ class FitProcess:
         """
         self._stop.clear()
         self._abandon.clear()
+        self.wait_ready()
         self._conn.send(('fit', request, description, options))
         while True:
             kind, payload = self._conn.recv()
