@@ -332,6 +332,72 @@ def check_azimuth_sample(names, position, velocity, joint, stamp_ns, last_stamp_
     return psi, float(velocity[0])
 
 
+def _batch_values(names, positions, expected, n, max_abs_rad=None):
+    """Positions (n, len(expected)) in the order of ``expected``, and which pass the checks."""
+    names = list(names)
+    positions = np.asarray(positions, dtype=float).reshape(n, -1)
+    if (len(names) != len(expected) or positions.shape[1] != len(names)
+            or not set(expected) <= set(names)):
+        return np.full((n, len(expected)), np.nan), np.zeros(n, dtype=bool)
+    values = positions[:, [names.index(j) for j in expected]]
+    passing = np.isfinite(values).all(axis=1)
+    if max_abs_rad is not None:
+        passing &= (np.abs(values) <= max_abs_rad).all(axis=1)
+    return values, passing
+
+
+def _in_stamp_order(stamps, passing, last_stamp_ns):
+    """
+    Which of the ``passing`` samples are stamped after the last accepted one, taken in order.
+
+    A passing sample refused for its stamp is not later than an accepted one, so it changes no
+    running maximum: the maximum over the passing samples is the one over the accepted ones.
+    """
+    floor = np.iinfo(np.int64).min if last_stamp_ns is None else int(last_stamp_ns)
+    running = np.maximum.accumulate(np.where(passing, stamps, floor))
+    before = np.concatenate([[floor], np.maximum(running[:-1], floor)])
+    return passing & (stamps > before)
+
+
+def check_joint_batch(names, positions, expected, stamps_ns, last_stamp_ns,
+                      max_abs_rad=None):
+    """
+    Validate many samples of one joint layout at once; return (values, accepted).
+
+    ``values`` (n, len(expected)) are the positions in the order of ``expected``; ``accepted``
+    (n,) says which samples :func:`check_joint_sample`, applied to them one after the other
+    (each accepted stamp becoming the last one), would accept. Why one is rejected is that
+    function's answer for it (call it on that sample).
+    """
+    stamps = np.asarray(stamps_ns, dtype=np.int64)
+    values, passing = _batch_values(names, positions, expected, stamps.size, max_abs_rad)
+    return values, _in_stamp_order(stamps, passing, last_stamp_ns)
+
+
+def check_azimuth_batch(names, positions, velocities, joint, stamps_ns, last_stamp_ns,
+                        convention='wrapped'):
+    """
+    :func:`check_azimuth_sample` of many samples of one layout; return (ψ, Ω, accepted).
+
+    ``velocities`` (n, k), NaN where a message sent none; ψ in [0, 2π) and Ω > 0 where
+    accepted. Why one is rejected is :func:`check_azimuth_sample`'s answer for it.
+    """
+    stamps = np.asarray(stamps_ns, dtype=np.int64)
+    psi, passing = _batch_values(names, positions, [joint], stamps.size)
+    psi = psi[:, 0]
+    velocities = np.asarray(velocities, dtype=float).reshape(stamps.size, -1)
+    if velocities.shape[1] != 1:
+        return psi, np.full(stamps.size, np.nan), np.zeros(stamps.size, dtype=bool)
+    omega = velocities[:, 0]
+    with np.errstate(invalid='ignore'):
+        if convention == 'unwrapped':
+            psi = wrap_azimuth(psi)
+        else:
+            passing &= (psi >= 0.0) & (psi < TWO_PI + 1e-9)
+        passing &= np.isfinite(omega) & (omega > 0)
+    return psi, omega, _in_stamp_order(stamps, passing, last_stamp_ns)
+
+
 # ------------------------------------------------------------------------------ buffers
 class StampedSeries:
     """

@@ -4,7 +4,7 @@ The identifier node itself, in this process, fed through DDS by a test publisher
 What it proves: test points run in a row without restart through ``~/start_test_point`` and
 ``~/abort`` (std_srvs/Trigger; the answers name the test point); the first is identified within
 3σ from exactly its window (the message's window fields are the samples used); a starved
-identifier (its executor not spun while 150 samples arrive; its sensor queues hold 100) loses the
+identifier (its sensor topics not taken while 150 samples arrive; its queues hold 100) loses the
 window's first samples and publishes the test point as STATUS_INCOMPLETE with the channels and
 counts missing, never as converged; two pitch samples not sent in the middle of a window do the
 same for that channel alone; an aborted test point ends with STATUS_ABORTED.
@@ -50,6 +50,9 @@ def run():
               # tests run the default, a separate fit process
               Parameter('fit_process', value=False)]
     node = Identifier(parameter_overrides=params, context=context)
+    # the sensor topics are taken here (drain), not by the node's poller thread: a starved
+    # identifier is one whose poll does not run
+    node.poller.stop()
     test = rclpy.create_node('test_identifier_node', context=context)
     executor = SingleThreadedExecutor(context=context)
     executor.add_node(node)
@@ -77,6 +80,7 @@ def run():
         idle = 0
         while idle < 3:
             before = node.taken
+            node.poller.poll()
             executor.spin_once(timeout_sec=0.002)
             idle = idle + 1 if node.taken == before else 0
 
