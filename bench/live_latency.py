@@ -75,6 +75,21 @@ class LiveRun:
         self.procs = NodeProcesses(env, out / 'logs')
         self.bag = out / 'bag'
         self.started = time.monotonic()
+        self.cpu_mark = self.cpu = None
+
+    def mark_cpu(self):
+        """Start the interval over which each node's CPU is reported (past start-up)."""
+        self.cpu_mark = (self.procs.cpu_s(), time.monotonic())
+
+    def read_cpu(self):
+        """CPU s of each node (with its children) since mark_cpu(); read before they exit."""
+        if self.cpu_mark is None:
+            return None
+        then, clock = self.cpu_mark
+        self.cpu = {'interval_s': time.monotonic() - clock,
+                    **{name: v - then.get(name, np.nan)
+                       for name, v in self.procs.cpu_s().items()}}
+        return self.cpu
 
     def settle(self, timeout):
         """Let the recorder catch up: its count then grows only by /diagnostics."""
@@ -93,12 +108,13 @@ class LiveRun:
         """Stop every node and rclpy; return the measurements every run has."""
         import rclpy
         wall = time.monotonic() - self.started
+        cpu = self.cpu if self.cpu is not None else self.read_cpu()
         codes = self.procs.stop_all()
         self.node.destroy_node()
         rclpy.try_shutdown()
         log = self.procs.log('identifier')
         plant = self.procs.log('rotor_plant')
-        return {'codes': codes, 'wall_s': wall, 'load_after': os.getloadavg(),
+        return {'codes': codes, 'wall_s': wall, 'load_after': os.getloadavg(), 'cpu_s': cpu,
                 'samples': (int(plant.split('run complete: ')[1].split()[0])
                             if 'run complete: ' in plant else None),
                 'breakdown': json.loads(log.split('latency breakdown (ms): ')[1].splitlines()[0]),
@@ -150,6 +166,9 @@ def run(mode, test_points, out):
                 raise RuntimeError(f'no final estimate of test point {k}: {procs.dead()}\n'
                                    + procs.log('identifier')[-3000:])
             finals.append(watcher.final_estimate(k))
+            if k == 1:                    # CPU of each node from here (start-up excluded)
+                live.mark_cpu()
+        live.read_cpu()
         procs.stop('rotor_plant')
         live.settle(60.0)
     finally:
@@ -228,7 +247,8 @@ def offline_fits(result, repeat=7):
 
 COLUMNS = ('total', 'record', 'queued', 'identify', 'gauss_newton', 'verdict', 'message',
            'publish', 'other', 'cpu', 'cpu_wait', 'gil_or_lock_wait', 'fit_cpu',
-           'fit_cpu_wait', 'in_fit_process')
+           'fit_cpu_wait', 'in_fit_process', 'sent_to_received', 'received_to_taken',
+           'end_to_end')
 
 
 def _section(result, offline):
@@ -239,7 +259,6 @@ def _section(result, offline):
     warm = np.median([r['warm_ms'] for r in offline])
     warm_cpu = np.median([r['warm_cpu_ms'] for r in offline])
     threads = result['threads']
-    per_sample = threads['executor_cpu_s'] / max(threads['samples_taken'], 1) * 1e6
     counts = result['counts']
     lost = (max(0, result['samples'] - counts.get('/rotor/blade_flap', 0))
             if result['samples'] else 'unknown')
@@ -263,9 +282,14 @@ def _section(result, offline):
             f'{r["live_vs_offline_sigma"]:.2g} sigma' for r in offline) + '\n'
         "* median of the finals' breakdown (ms): " + ', '.join(
             f'{c} {v:.1f}' for c, v in medians.items() if np.isfinite(v)) + '\n'
-        f'* identifier executor: {per_sample:.0f} µs of CPU per sensor sample '
-        f'({threads["samples_taken"]} samples, {threads["executor_cpu_s"]:.1f} s CPU, '
-        f'{threads["executor_cpu_wait_s"]:.1f} s waiting for a CPU)\n'
+        '* identifier threads over the whole run (start-up included): ' + ', '.join(
+            f'{name} {threads[f"{name}_cpu_s"]:.2f} s CPU ({threads[f"{name}_cpu_wait_s"]:.2f} '
+            's waiting for one)' for name in ('executor', 'poller', 'worker')
+            if f'{name}_cpu_s' in threads) +
+        f'; {threads["samples_taken"]} sensor samples taken in {threads.get("polls", "?")} '
+        'polls; growing-window fits not asked for (they would have run past the end of the '
+        f'window): {threads.get("provisional_skipped", "?")}\n'
+        + _cpu_line(result) +
         f'* samples not recorded: {lost}; exit codes {result["codes"]}; wall '
         f'{result["wall_s"]:.0f} s; load after '
         f'{" / ".join(f"{v:.1f}" for v in result["load_after"])}\n\n')
@@ -275,6 +299,18 @@ def _section(result, offline):
     text += markdown_table(['estimate', 'test point', 'window end (s)', 'iterations']
                            + list(COLUMNS) + ['samples'], rows) + '\n\n'
     return text, np.median(final), warm
+
+
+def _cpu_line(result):
+    """CPU of each node, in % of one core, from the first final estimate to the last."""
+    cpu = dict(result.get('cpu_s') or {})
+    interval = cpu.pop('interval_s', None)
+    if not interval or not cpu:
+        return ''
+    return (f'* CPU of each node (with its children; % of one core over the {interval:.0f} s '
+            'from the first final estimate to the last): ' + ', '.join(
+                f'{name} {v / interval * 100:.0f}' for name, v in cpu.items())
+            + f'; all {sum(cpu.values()) / interval * 100:.0f} (the machine has 200)\n')
 
 
 def main_duration(args):
