@@ -37,6 +37,9 @@ offset ``pitch_offset``, nor the first-order lag of the blade's pitch behind the
 description does not know (a concealed δ3), added to ``pitch_flap``. The azimuth encoder's
 zero may be off: the recording's azimuth of blade 1 reads ``azimuth_offset`` (rad) more than
 the blade's true azimuth, on which the rotor, its swashplate and its aerodynamics run.
+``flap_stiffness_1c`` is physics no catalogue candidate models (issue 16 item 4): a flap spring
+whose stiffness varies once per revolution in the shaft frame (a hub spring with a
+shaft-fixed asymmetry), β_k″ += −K_1c cos ψ_k β_k.
 
 The record starts in trim at collective pitch only (settled over ``t_settle`` from rest), the
 lateral cyclic is stepped on at ``t_step``, and pitch stirring θI = a sin φ, θII = a cos φ,
@@ -91,6 +94,8 @@ class TruthConfig:
     sensor_gain: list = field(default_factory=lambda: [0.0, 0.0, 0.0, 0.0])
     #: the recorded azimuth of blade 1 minus its true azimuth (encoder index off blade 1), rad
     azimuth_offset: float = 0.0
+    #: once-per-rev flap stiffness K_1c (per rev²): β_k″ += −K_1c cos ψ_k β_k (out of catalogue)
+    flap_stiffness_1c: float = 0.0
     n_blades: int = 4
     pitch_flap: float = 0.0
     #: a flap frequency the run description does not know: the rotor's P is
@@ -164,6 +169,7 @@ def _rhs_factory(cfg, turbulence):
     gam = cfg.gamma * np.asarray(cfg.gamma_scale, dtype=float)
     dtheta = np.asarray(cfg.pitch_offset, dtype=float)
     kappa = cfg.cubic_stiffness
+    k1c = cfg.flap_stiffness_1c
     lag = cfg.sensor_lag
     coupling, act_lag = cfg.pitch_flap_coupling, cfg.actuator_lag
     wake = cfg.wake
@@ -195,7 +201,7 @@ def _rhs_factory(cfg, turbulence):
             theta = theta + w[0] + w[1] * c1 + w[2] * s1
         aero = 0.5 * gam * (m_theta * theta + damping * (lam - rate) - stiffness * beta
                             + m_lambda * lam0)
-        accel = aero - P**2 * beta - kappa * beta**3
+        accel = aero - P**2 * beta - kappa * beta**3 - k1c * c1 * beta
         out = np.zeros_like(s)
         out[:n] = rate
         out[n:2 * n] = accel
