@@ -54,6 +54,9 @@ def format_summary(diagnosis):
         lines.append(f'location: channels {", ".join(loc["channels"]) or "(none singly)"}; '
                      f'band {loc["band_per_rev"][0]:.2f}-{loc["band_per_rev"][1]:.2f} per rev; '
                      f'time {loc["window_s"][0]:.3f}-{loc["window_s"][1]:.3f} s')
+    if 'proposal' in d['explanation']:
+        from rotor_id.diagnosis.proposal import summary_line
+        lines.append(summary_line(d['explanation']['proposal']))
     lines.append(f'residual RMS [rad]: baseline {fit["baseline_rms"]:.4g}, augmented '
                  f'{fit["augmented_rms"]:.4g}, noise floor {fit["noise_floor"]:.4g} '
                  f'(baseline {fit["baseline_rms"] / fit["noise_floor"] - 1:+.1%}, augmented '

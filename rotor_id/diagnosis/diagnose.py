@@ -93,6 +93,8 @@ class Diagnosis:
     fits: list = field(default_factory=list)
     #: the effects added one at a time (forward selection), each with what it adds
     steps: list = field(default_factory=list)
+    #: out of catalogue (verdict ``unexplained``): the proposal of rotor_id.diagnosis.proposal
+    proposal: dict = None
 
     def as_json(self):
         """JSON of ``rotor-id diagnose`` (issue 4 keys; more allowed)."""
@@ -101,7 +103,8 @@ class Diagnosis:
             'location': self.location,
             'explanation': {'effect': self.effect, 'confidence': self.confidence,
                             'parameters': self.explanation_parameters,
-                            'effects': [_effect_json(st) for st in self.steps]},
+                            'effects': [_effect_json(st) for st in self.steps],
+                            **({} if self.proposal is None else {'proposal': self.proposal})},
             'fit': self.fit,
             'candidates': self.candidates,
             'parameters': self.parameters,
@@ -543,6 +546,15 @@ def diagnose(record, description, progress=None, workers=2, effects=EFFECTS, win
         mismatch = residual_flag
         effect = 'unexplained' if mismatch else 'none'
         confidence = 'high' if not ranked or ranked[0]['criterion'] < 0 else 'low'
+    proposal = None
+    # out of catalogue: a term the data want, as a proposal. Random inflow is asked too: it is
+    # the explanation of last resort, and a Kalman filter tracks unmodelled dynamics as well
+    if effect in ('unexplained', 'process_noise'):
+        from rotor_id.diagnosis.proposal import propose
+        _say(progress, 'proposal: stepwise regression of the equation error on a library of '
+                       'flap-equation terms, validated on held-out time blocks')
+        proposal = propose(ident.experiments, unknowns, values, known)
+        _say(progress, proposal.text())
 
     # ---- show ----
     if chosen_fit is not None:
@@ -603,7 +615,8 @@ def diagnose(record, description, progress=None, workers=2, effects=EFFECTS, win
                      parameters=parameters, baseline=ident, chosen=chosen_fit,
                      channels=channels, stats_baseline=stats_base, stats_augmented=stats_aug,
                      blade_floor=blade_sigma, record_window=part, elapsed_s=elapsed,
-                     notes=notes, fits=fits, steps=steps)
+                     notes=notes, fits=fits, steps=steps,
+                     proposal=None if proposal is None else proposal.as_json())
 
 
 def _residual_matrix(est):
