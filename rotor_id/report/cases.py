@@ -32,6 +32,13 @@ SAMPLE_INTERVAL = 0.1
 RECORD_LENGTH = 12.0
 
 
+#: The models and noise-free truth runs of the scenarios, once per process: a Monte Carlo
+#: draws a thousand noisy records of one scenario, and rebuilding both for every draw was
+#: three quarters of its CPU time (bench/monte_carlo_speed.py).
+_BUILT = {}
+_TRUTH = {}
+
+
 @dataclass(frozen=True)
 class Scenario:
     """
@@ -80,7 +87,10 @@ class Scenario:
     def build(self, which='model'):
         """Return the identification model (``which='model'``) or the truth model, in degrees."""
         name = self.model if which == 'model' else self.truth_model
-        return build_model(name, self.rotor(), collective='delta', angle_unit='deg')
+        key = (name, self.advance_ratio)
+        if key not in _BUILT:
+            _BUILT[key] = build_model(name, self.rotor(), collective='delta', angle_unit='deg')
+        return _BUILT[key]
 
     def stirring(self):
         """Pitch input: θ0 = 2°, 1.5° lateral cyclic stepped at t = 0, stirring from t0."""
@@ -100,6 +110,17 @@ def sample_times(t0, t_end, dt=SAMPLE_INTERVAL):
 
 def truth_state(scenario, t):
     """Truth-model states at sample times ``t`` (all ≥ t0); shape (T, n_truth)."""
+    t = np.asarray(t, dtype=float)
+    key = (scenario.truth_model, scenario.advance_ratio, scenario.t0, scenario.omegadot,
+           tuple(sorted(scenario.truth.items())), scenario.truth_start, t.tobytes())
+    if key not in _TRUTH:
+        if len(_TRUTH) >= 64:
+            _TRUTH.clear()
+        _TRUTH[key] = _truth_state(scenario, t)
+    return _TRUTH[key].copy()
+
+
+def _truth_state(scenario, t):
     model = scenario.build('truth')
     p = scenario.truth_vector('truth')
     inputs = scenario.stirring()
