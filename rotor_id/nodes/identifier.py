@@ -524,7 +524,7 @@ class Identifier(Node):
 
     def _missed_provisional(self, request):
         """
-        The growing-window fit a final request skipped over, or None (call with the lock held).
+        Return the growing-window fit a final request skipped over, or None (lock held).
 
         Samples that arrive in a burst (a node starved of CPU catching up) can cross a test
         point's growing-window points and its window's end in one batch: its first growing

@@ -152,7 +152,9 @@ class SensorPoller:
 
 def incompatible_publishers(node, subscription, qos):
     """
-    Publishers of a subscription's topic whose offer it cannot match: [(gid, policy name)].
+    Return the publishers of a subscription's topic whose offer it cannot match.
+
+    A list of (endpoint gid, policy name).
 
     Reliability is the policy that can fail for a volatile, keep-last subscription with the
     default deadline and liveliness (which every offer matches): a reliable request receives
