@@ -12,7 +12,7 @@ window t0 … t0 + 12 near the end of the hour.
 
 The bag is written chunk by chunk from numpy arrays (CDR rows from
 :func:`rotor_id.io.jointstate_cdr.encode_rows`, MCAP records assembled as byte matrices), so
-making it takes well under a minute and little memory; it is kept in ``--workdir``.
+making it takes well under a minute and little memory; it is kept in ``--workdir`` if given.
 
 Measured, each in a child process (peak memory as ``ru_maxrss`` of that child alone):
 the complete ``rotor-id identify`` (target: within 500 MB), reading the window alone
@@ -256,15 +256,22 @@ def bag_size_mb(bag):
 def main(argv=None):
     """Make the bag if needed, measure, write bench/results/long_bag_memory.md."""
     parser = argparse.ArgumentParser(description=__doc__.split('\n')[1])
-    parser.add_argument('--workdir', default=str(Path(tempfile.gettempdir())
-                                                 / 'rotor_id_bench'),
-                        help='where the one-hour bag is made and kept')
+    parser.add_argument('--workdir', default=None,
+                        help='where the one-hour bag (1.7 GB) is made and kept for the next run '
+                             '(default: a fresh temporary directory, removed at the end)')
     parser.add_argument('--skip-whole', action='store_true',
                         help='do not measure reading the whole bag (needs several GB)')
     parser.add_argument('--no-write', action='store_true')
     args = parser.parse_args(argv)
-    bag, config = ensure_bag(args.workdir)
-    json_out = Path(args.workdir) / 'identify_1h.json'
+    if args.workdir is None:
+        with tempfile.TemporaryDirectory(prefix='rotor_id_long_bag_') as workdir:
+            return _measure(args, workdir)
+    return _measure(args, args.workdir)
+
+
+def _measure(args, workdir):
+    bag, config = ensure_bag(workdir)
+    json_out = Path(workdir) / 'identify_1h.json'
     say('rotor-id identify on the window at the end of the hour')
     wall, rss, cpu, code, _ = run_measured(
         [str(REPO_ROOT / 'rotor-id'), 'identify', str(bag), '--config', str(config),

@@ -1,90 +1,212 @@
 """
-Run every benchmark that writes bench/results (issues 6 and 15) and summarise the targets.
+Regenerate every results file and figure in bench/results (``make bench``).
 
-``make bench`` calls this. Each benchmark runs in its own process (so timings and peak memory
-do not leak between them), prints its tables and writes ``bench/results/<name>.md`` with the
-machine description and the date. Item 4 (live latency) is bench/live_latency.py, run
-separately with the nodes.
+Every ``bench/results/<name>.md`` says how it was made on its ``Reproduce:`` line; this script
+runs exactly that command for each (so a results file and its regeneration cannot drift
+apart), with the few corrections in :data:`KNOWN` (a command whose line leaves out an output
+path, and which runs are long). Each benchmark runs in its own process (timings and peak
+memory do not leak between them) and writes its results file with the machine, load, date and
+commit. A line per benchmark shows progress; the summary gives each one's verdict and time.
 
-Run: ``python bench/run_all.py [--quick] [--only NAME ...]``; ``--quick`` uses fewer repeats
-and seeds (a smoke run; its numbers are not the committed results).
+    python bench/run_all.py                    # everything (the long studies take hours)
+    python bench/run_all.py --skip-long        # the short benchmarks only (~10-20 min)
+    python bench/run_all.py --only diagnose_speed command_speed
+    python bench/run_all.py --list             # what would run, and how
+    python bench/run_all.py --quick            # smoke run: small sizes, nothing written
+
+Exit status 1 if a benchmark missed its target or failed.
 """
 
 import argparse
+from dataclasses import dataclass
+import os
 from pathlib import Path
+import re
+import shlex
 import subprocess
 import sys
+import tempfile
 import time
 
 BENCH_DIR = Path(__file__).resolve().parent
+REPO_ROOT = BENCH_DIR.parent
+RESULTS_DIR = BENCH_DIR / 'results'
 
-#: name -> (script, full arguments, quick arguments, what it measures)
-BENCHMARKS = {
-    'ml_vs_peers': ('ml_vs_peers.py', ['--repeat', '9'], ['--repeat', '1', '--no-write'],
-                    'ML vs least_squares peers (wake fit ≤ 1 ms, ≥ 500× (a), ≥ 3× (b))'),
-    'iteration_cost': ('iteration_cost.py', ['--repeat', '15'], ['--repeat', '2', '--no-write'],
-                       'GN iteration / (p+1) simulations (target ≤ 1.5)'),
-    'scaling': ('scaling.py', ['--repeat', '7'], ['--repeat', '1', '--no-write'],
-                'record length and parameter count (no numeric target)'),
-    'offline_throughput': ('offline_throughput.py', ['--repeat', '3'],
-                           ['--repeat', '1', '--no-write'],
-                           '10-minute 1 kHz bag (target ≥ 200× real time)'),
-    'command_speed': ('command_speed.py', ['--repeat', '3'], ['--repeat', '1', '--no-write'],
-                      'whole identify commands (127-sample OE ≤ 0.5 s, 1065-sample FE ≤ 2 s)'),
-    'process_noise': ('compare_process_noise.py', ['--seeds', '100'],
-                      ['--seeds', '4', '--workers', '1', '--out', '/tmp/rotor_id_pn_quick.md'],
-                      'OE / FE / EKF under system noise, σ_m .05 (coverage and RMS figures)'),
-    'process_noise_sigma_m_0.1': (
-        'compare_process_noise.py',
-        ['--seeds', '100', '--sigma-m', '0.1', '--out',
-         str(BENCH_DIR / 'results' / 'process_noise_sigma_m_0.1.md')],
-        ['--seeds', '4', '--workers', '1', '--sigma-m', '0.1', '--out',
-         '/tmp/rotor_id_pn01_quick.md'],
-        'the same at σ_m .1'),
-    'plan_vs_monte_carlo': ('plan_vs_monte_carlo.py', ['--seeds', '200'],
-                            ['--seeds', '20', '--json', '/tmp/rotor_id_pvm.json', '--figure',
-                             '/tmp/rotor_id_pvm.png', '--markdown', '/tmp/rotor_id_pvm.md'],
-                            'planned bounds vs Monte Carlo scatter (within 15 %)'),
-    'diagnose_speed': ('diagnose_speed.py', ['--repeat', '3'], ['--repeat', '1', '--no-write'],
-                       'rotor-id diagnose per 1-second 4-blade recording (target ≤ 3 s)'),
-    'campaign': ('campaign.py', ['--bags', '120', '--repeat', '2'],
-                 ['--bags', '12', '--repeat', '1', '--diagnose-bags', '2', '--no-write'],
-                 '100-bag campaign (no numeric target here)'),
-    'monte_carlo_speed': ('monte_carlo_speed.py', ['--seeds', '1000'],
-                          ['--seeds', '100', '--efficiency-seeds', '50', '--no-write'],
-                          '1000-seed wake Monte Carlo on 2 cores (target ≤ 5 s, issue 15)'),
+
+@dataclass
+class Benchmark:
+    """One results file and the command that regenerates it."""
+
+    name: str
+    args: list            # arguments after ``python``: bench/<script>.py ...
+    what: str = ''
+    long: bool = True     # hours or the live nodes: skipped by --skip-long
+    quick: list = None    # smoke-run arguments (``{tmp}`` is a scratch directory), None: skip
+    target: bool = True   # exit 1 means a missed target (else the script has no target)
+    source: str = 'results file'
+
+    def command(self, quick=False, tmp=''):
+        """Return the command line of a full (or smoke) run."""
+        args = self.quick if quick else self.args
+        return [sys.executable] + [a.replace('{tmp}', tmp) for a in args]
+
+
+#: What the results files' own Reproduce lines do not say. ``args`` overrides the line (None:
+#: use it); ``long`` marks runs of more than a few minutes on two idle cores.
+KNOWN = {
+    'ml_vs_peers': {
+        'long': False,
+        'what': 'wake fit vs least_squares peers (issue 15.3: ≤ 1 ms, ≥ 500×, ≥ 3×)',
+        'quick': ['bench/ml_vs_peers.py', '--repeat', '1', '--no-write']},
+    'iteration_cost': {
+        'long': False, 'what': 'GN iteration / (p+1) simulations',
+        'quick': ['bench/iteration_cost.py', '--repeat', '2', '--no-write']},
+    'scaling': {
+        'long': False, 'target': False,
+        'what': 'record length and parameter count (no numeric target)',
+        'quick': ['bench/scaling.py', '--repeat', '1', '--no-write']},
+    'offline_throughput': {
+        'long': False,
+        'what': '10-minute 1 kHz bag (≥ 200× real time; the bag made in a fresh tmp dir)',
+        'quick': ['bench/offline_throughput.py', '--repeat', '1', '--no-write',
+                  '--workdir', '{tmp}/offline']},
+    'command_speed': {
+        'long': False,
+        'what': 'whole identify commands (issue 15.4: 127-sample OE ≤ 0.5 s; 15.2)',
+        'quick': ['bench/command_speed.py', '--repeat', '1', '--no-write']},
+    'diagnose_speed': {
+        'long': False,
+        'what': 'rotor-id diagnose per 1-second 4-blade recording (issue 15.1: ≤ 3 s)',
+        'quick': ['bench/diagnose_speed.py', '--repeat', '1', '--no-write']},
+    'monte_carlo_speed': {
+        'long': False, 'what': '1000-seed wake Monte Carlo on 2 cores (issue 15.4: ≤ 5 s)',
+        'quick': ['bench/monte_carlo_speed.py', '--seeds', '100', '--efficiency-seeds', '50',
+                  '--no-write']},
+    'blas_threads': {
+        'long': False, 'target': False, 'what': 'one BLAS thread against one per core',
+        'quick': ['bench/blas_threads.py', '--repeat', '1', '--no-write']},
+    'campaign': {
+        'target': False, 'what': '120-bag campaign, 1 and 2 jobs (no numeric target)',
+        'quick': ['bench/campaign.py', '--bags', '12', '--repeat', '1', '--diagnose-bags', '2',
+                  '--no-write']},
+    'plan_vs_monte_carlo': {
+        'what': 'planned bounds vs Monte Carlo scatter (within 15 %)',
+        'quick': ['bench/plan_vs_monte_carlo.py', '--seeds', '20', '--json', '{tmp}/pvm.json',
+                  '--figure', '{tmp}/pvm.png', '--markdown', '{tmp}/pvm.md']},
+    'monte_carlo': {'target': False, 'what': "ML scatter vs Cramér-Rao bound, the report's cases"},
+    'process_noise': {
+        'target': False, 'what': 'OE / FE / EKF under system noise, σ_m .05 (coverage, RMS)',
+        'args': ['bench/compare_process_noise.py', '--seeds', '100', '--workers', '2',
+                 '--sigma-m', '0.05', '--out', str(RESULTS_DIR / 'process_noise.md')],
+        'quick': ['bench/compare_process_noise.py', '--seeds', '4', '--workers', '1',
+                  '--out', '{tmp}/pn.md']},
+    'process_noise_sigma_m_0.1': {
+        'target': False, 'what': 'the same at σ_m .1',
+        'args': ['bench/compare_process_noise.py', '--seeds', '100', '--workers', '2',
+                 '--sigma-m', '0.1', '--out', str(RESULTS_DIR / 'process_noise_sigma_m_0.1.md')]},
+    'adequacy': {'target': False, 'what': 'adequacy check: false alarms and detection'},
+    'long_bag_memory': {'what': 'one-hour 1 kHz bag: peak memory follows the window'},
+    'live': {'what': '10 minutes of the live nodes: nothing lost, latency'},
+    'live_60s': {'what': '60 s of the live nodes: latency'},
+    'live_latency': {'what': 'live test points: latency of the final estimate'},
 }
 
+_REPRODUCE = re.compile(r'Reproduce:\s*`([^`]*)`', re.S)
+#: Older results files name the command without ``Reproduce:``: the first one quoted.
+_QUOTED = re.compile(r'`((?:nice -n \d+ )?python bench/[^`]*)`', re.S)
 
-#: Benchmarks that measure without a pass/fail target.
-NO_TARGET = ('scaling', 'process_noise', 'process_noise_sigma_m_0.1', 'campaign')
+
+def reproduce_line(path):
+    """Return the arguments after ``python`` of a results file's Reproduce line, or None."""
+    text = Path(path).read_text()
+    match = _REPRODUCE.search(text) or _QUOTED.search(text)
+    if not match:
+        return None
+    words = shlex.split(' '.join(match.group(1).split()))
+    while words and words[0] == 'nice':                  # nice -n 10 python ...
+        words = words[3:] if len(words) > 2 and words[1] == '-n' else words[1:]
+    if len(words) < 2 or not words[0].startswith('python') or \
+            not words[1].startswith('bench/'):
+        return None
+    return words[1:]
+
+
+def registry():
+    """Return (benchmarks by name, results files that say no runnable command)."""
+    out, orphans = {}, []
+    for path in sorted(RESULTS_DIR.glob('*.md')):
+        name = path.stem
+        known = dict(KNOWN.get(name, {}))
+        args = known.pop('args', None)
+        source = 'run_all.KNOWN' if args else 'results file'
+        args = args or reproduce_line(path)
+        if args is None:
+            orphans.append(path.name)
+            continue
+        out[name] = Benchmark(name, args, source=source, **known)
+    # short ones first, each group in name order
+    return dict(sorted(out.items(), key=lambda kv: (kv[1].long, kv[0]))), orphans
 
 
 def main(argv=None):
-    """Run the benchmarks in turn; exit 1 if any missed its target or failed."""
+    """Run the selected benchmarks in turn and summarise."""
     parser = argparse.ArgumentParser(description=__doc__.split('\n')[1])
-    parser.add_argument('--quick', action='store_true', help='smoke run, nothing written')
-    parser.add_argument('--only', nargs='*', choices=sorted(BENCHMARKS), default=None)
+    parser.add_argument('--only', nargs='+', metavar='NAME', default=None,
+                        help='results names to regenerate (see --list)')
+    parser.add_argument('--skip-long', action='store_true',
+                        help='leave out the long studies and the live-node runs')
+    parser.add_argument('--quick', action='store_true',
+                        help='smoke run with small sizes; nothing in bench/results is written')
+    parser.add_argument('--list', action='store_true', help='show what would run and exit')
     args = parser.parse_args(argv)
-    names = args.only or list(BENCHMARKS)
+    benchmarks, orphans = registry()
+    for name in orphans:
+        print(f'warning: bench/results/{name} has no "Reproduce: `python bench/...`" line; '
+              'it cannot be regenerated', file=sys.stderr)
+    if args.only:
+        unknown = [n for n in args.only if n not in benchmarks]
+        if unknown:
+            print(f'run_all: unknown benchmark(s) {", ".join(unknown)}; choose from '
+                  f'{", ".join(benchmarks)}', file=sys.stderr)
+            return 2
+        selected = [benchmarks[n] for n in args.only]
+    else:
+        selected = [b for b in benchmarks.values() if not (args.skip_long and b.long)]
+    if args.quick:
+        skipped = [b.name for b in selected if b.quick is None]
+        selected = [b for b in selected if b.quick is not None]
+        if skipped:
+            print(f'--quick: no smoke variant of {", ".join(skipped)} (left out)')
+    if args.list:
+        for b in selected:
+            print(f'{b.name:28s} {"long " if b.long else "short"} '
+                  f'{" ".join(b.command(args.quick, "TMP")[1:])}   [{b.source}]')
+        return 1 if orphans else 0
     summary = []
-    for i, name in enumerate(names, 1):
-        script, full, quick, what = BENCHMARKS[name]
-        print(f'\n=== [{i}/{len(names)}] {name}: {what}', flush=True)
-        started = time.perf_counter()
-        code = subprocess.run([sys.executable, str(BENCH_DIR / script)]
-                              + (quick if args.quick else full)).returncode
-        elapsed = time.perf_counter() - started
-        verdict = {0: 'target met', 1: 'TARGET MISSED'}.get(code, f'FAILED (exit {code})')
-        if name in NO_TARGET and code == 0:
-            verdict = 'done'
-        summary.append((name, what, verdict, elapsed))
-    print('\n=== summary')
-    for name, what, verdict, elapsed in summary:
-        print(f'  {name:20s} {verdict:16s} {elapsed:6.0f} s   {what}')
+    started_all = time.perf_counter()
+    env = dict(os.environ, PYTHONUNBUFFERED='1')
+    with tempfile.TemporaryDirectory(prefix='rotor_id_bench_') as tmp:
+        for i, bench in enumerate(selected, 1):
+            command = bench.command(args.quick, tmp)
+            print(f'\n=== [{i}/{len(selected)}] {bench.name} ({"long" if bench.long else "short"}'
+                  f', {time.perf_counter() - started_all:.0f} s into the run): {bench.what}\n'
+                  f'    {" ".join(command[1:])}', flush=True)
+            started = time.perf_counter()
+            code = subprocess.run(command, cwd=REPO_ROOT, env=env).returncode
+            elapsed = time.perf_counter() - started
+            verdict = {0: 'target met' if bench.target else 'done',
+                       1: 'TARGET MISSED'}.get(code, f'FAILED (exit {code})')
+            if code == 1 and not bench.target:
+                verdict = 'FAILED (exit 1)'
+            print(f'=== {bench.name}: {verdict} in {elapsed:.0f} s', flush=True)
+            summary.append((bench.name, verdict, elapsed, bench.what))
+    print(f'\n=== summary ({time.perf_counter() - started_all:.0f} s)')
+    for name, verdict, elapsed, what in summary:
+        print(f'  {name:28s} {verdict:16s} {elapsed:6.0f} s   {what}')
     if not args.quick:
-        print(f'results: {BENCH_DIR / "results"}/*.md')
-    return 0 if all(v in ('target met', 'done') for _, _, v, _ in summary) else 1
+        print(f'results: {RESULTS_DIR}/*.md')
+    good = ('target met', 'done')
+    return 0 if all(v in good for _, v, _, _ in summary) and not orphans else 1
 
 
 if __name__ == '__main__':
