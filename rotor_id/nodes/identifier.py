@@ -325,7 +325,7 @@ class Identifier(Node):
                 values = check_joint_sample(
                     names, position, self.flap_joints if flap else self.pitch_joints, stamp,
                     (points.flap if flap else points.pitch).last_stamp,
-                    self.d['max_abs_angle_rad'])
+                    self.d['max_abs_angle_rad'], extra_joints=True)
                 (points.add_flap if flap else points.add_pitch)(stamp, values)
         except BadSample as bad:
             self.diagnostics.count(bad.kind, str(bad))
@@ -356,7 +356,7 @@ class Identifier(Node):
                 values, accepted = check_joint_batch(
                     batch.names, batch.position, self.flap_joints if flap else self.pitch_joints,
                     batch.stamps_ns, (points.flap if flap else points.pitch).last_stamp,
-                    self.d['max_abs_angle_rad'])
+                    self.d['max_abs_angle_rad'], extra_joints=True)
         if accepted is None or not accepted.all():
             for raw in raws:
                 try:

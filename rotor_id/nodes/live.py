@@ -266,7 +266,7 @@ BAD_KINDS = ('non_finite', 'wrong_names', 'wrong_count', 'degrees', 'out_of_orde
 
 
 def check_joint_sample(names, position, expected, stamp_ns, last_stamp_ns,
-                       max_abs_rad=None):
+                       max_abs_rad=None, extra_joints=False):
     """
     Validate one JointState sample and return its positions in the order of ``expected``.
 
@@ -275,7 +275,11 @@ def check_joint_sample(names, position, expected, stamp_ns, last_stamp_ns,
     names, position : sequence
         The message's joint names and positions.
     expected : sequence of str
-        The joints wanted (e.g. blade_1..blade_N); extra joints are a wrong count.
+        The joints wanted (e.g. blade_1..blade_N).
+    extra_joints : bool
+        Whether the message may carry other joints too (a sensor topic such as a rig's
+        joint_states: only the wanted ones are read); False: other joints are a wrong count
+        (a command must name exactly the joints it drives).
     stamp_ns, last_stamp_ns : int
         This message's header.stamp and the last accepted one (None for the first).
     max_abs_rad : float, optional
@@ -288,7 +292,8 @@ def check_joint_sample(names, position, expected, stamp_ns, last_stamp_ns,
     """
     names = list(names)
     position = np.asarray(position, dtype=float)
-    if len(names) != len(expected) or position.size != len(names):
+    if (position.size != len(names) or len(names) < len(expected)
+            or (not extra_joints and len(names) != len(expected))):
         raise BadSample('wrong_count', f'{len(names)} names and {position.size} positions, '
                         f'expected {len(expected)} ({", ".join(expected)})')
     try:
@@ -318,9 +323,15 @@ def check_azimuth_sample(names, position, velocity, joint, stamp_ns, last_stamp_
     ``convention`` is the run description's azimuth_convention: 'wrapped' positions must lie in
     [0, 2π) (else: degrees?), 'unwrapped' ones are wrapped here.
     """
-    psi = check_joint_sample(names, position, [joint], stamp_ns, last_stamp_ns)[0]
+    psi = check_joint_sample(names, position, [joint], stamp_ns, last_stamp_ns,
+                             extra_joints=True)[0]
     velocity = np.asarray(velocity, dtype=float)
-    if velocity.size != 1 or not np.isfinite(velocity[0]):
+    names = list(names)
+    if velocity.size != len(names):
+        raise BadSample('bad_speed', f'rotor speed (velocity) {velocity.tolist()} is not one '
+                        f'value per joint ({len(names)})')
+    velocity = velocity[names.index(joint):][:1]
+    if not np.isfinite(velocity[0]):
         raise BadSample('bad_speed', f'rotor speed (velocity) {velocity.tolist()} is not one '
                         'finite value')
     if convention == 'unwrapped':
@@ -332,11 +343,11 @@ def check_azimuth_sample(names, position, velocity, joint, stamp_ns, last_stamp_
     return psi, float(velocity[0])
 
 
-def _batch_values(names, positions, expected, n, max_abs_rad=None):
+def _batch_values(names, positions, expected, n, max_abs_rad=None, extra_joints=False):
     """Positions (n, len(expected)) in the order of ``expected``, and which pass the checks."""
     names = list(names)
     positions = np.asarray(positions, dtype=float).reshape(n, -1)
-    if (len(names) != len(expected) or positions.shape[1] != len(names)
+    if ((len(names) != len(expected) and not extra_joints) or positions.shape[1] != len(names)
             or not set(expected) <= set(names)):
         return np.full((n, len(expected)), np.nan), np.zeros(n, dtype=bool)
     values = positions[:, [names.index(j) for j in expected]]
@@ -360,7 +371,7 @@ def _in_stamp_order(stamps, passing, last_stamp_ns):
 
 
 def check_joint_batch(names, positions, expected, stamps_ns, last_stamp_ns,
-                      max_abs_rad=None):
+                      max_abs_rad=None, extra_joints=False):
     """
     Validate many samples of one joint layout at once; return (values, accepted).
 
@@ -370,7 +381,8 @@ def check_joint_batch(names, positions, expected, stamps_ns, last_stamp_ns,
     function's answer for it (call it on that sample).
     """
     stamps = np.asarray(stamps_ns, dtype=np.int64)
-    values, passing = _batch_values(names, positions, expected, stamps.size, max_abs_rad)
+    values, passing = _batch_values(names, positions, expected, stamps.size, max_abs_rad,
+                                    extra_joints)
     return values, _in_stamp_order(stamps, passing, last_stamp_ns)
 
 
@@ -383,12 +395,13 @@ def check_azimuth_batch(names, positions, velocities, joint, stamps_ns, last_sta
     accepted. Why one is rejected is :func:`check_azimuth_sample`'s answer for it.
     """
     stamps = np.asarray(stamps_ns, dtype=np.int64)
-    psi, passing = _batch_values(names, positions, [joint], stamps.size)
+    psi, passing = _batch_values(names, positions, [joint], stamps.size, extra_joints=True)
     psi = psi[:, 0]
     velocities = np.asarray(velocities, dtype=float).reshape(stamps.size, -1)
-    if velocities.shape[1] != 1:
+    names = list(names)
+    if velocities.shape[1] != len(names) or joint not in names:
         return psi, np.full(stamps.size, np.nan), np.zeros(stamps.size, dtype=bool)
-    omega = velocities[:, 0]
+    omega = velocities[:, names.index(joint)]
     with np.errstate(invalid='ignore'):
         if convention == 'unwrapped':
             psi = wrap_azimuth(psi)

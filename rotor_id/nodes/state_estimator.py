@@ -89,7 +89,7 @@ class StateEstimator(Node):
             stamp = stamp_ns(msg.header.stamp)
             try:
                 values = check_joint_sample(msg.name, msg.position, joints, stamp,
-                                            series.last_stamp, 0.7)
+                                            series.last_stamp, 0.7, extra_joints=True)
             except BadSample as bad:
                 self.diagnostics.count(bad.kind, str(bad))
                 return

@@ -16,7 +16,8 @@ from rotor_id.estimation.kalman import discretize, kalman_filter
 from rotor_id.estimation.simulate import simulate
 from rotor_id.io.bag import read_record, write_record_bag
 from rotor_id.io.timebase import nondimensional_time
-from rotor_id.nodes.live import (AzimuthTracker, BadSample, check_azimuth_sample,
+from rotor_id.nodes.live import (AzimuthTracker, BadSample, check_azimuth_batch,
+                                 check_azimuth_sample, check_joint_batch,
                                  check_joint_sample, data_length_verdict, PlantStepper,
                                  record_from_series, rotor_constants, StampedSeries,
                                  StreamingKalman)
@@ -111,6 +112,36 @@ def test_joint_sample_is_reordered_by_name():
     values = check_joint_sample(['blade_3', 'blade_1', 'blade_4', 'blade_2'], [3, 1, 4, 2],
                                 [f'blade_{k}' for k in range(1, 5)], 5, 4, max_abs_rad=10)
     assert values.tolist() == [1, 2, 3, 4]
+
+
+def test_a_sensor_topic_may_carry_other_joints_a_command_may_not():
+    # a rig's joint_states: every joint of the stand in one message (velocity one per joint)
+    names = ['hub', 'pitch_2', 'flap_2', 'pitch_1', 'flap_1', 'tail']
+    position = [5.0, 0.02, 0.05, 0.01, 0.04, 0.3]
+    velocity = [94.0, 0.0, 0.1, 0.0, 0.2, 7.0]
+    assert check_joint_sample(names, position, ['flap_1', 'flap_2'], 2, 1, max_abs_rad=0.7,
+                              extra_joints=True).tolist() == [0.04, 0.05]
+    assert check_azimuth_sample(names, position, velocity, 'hub', 2, 1) == (5.0, 94.0)
+    with pytest.raises(BadSample) as info:              # a command names exactly its joints
+        check_joint_sample(names, position, ['pitch_1', 'pitch_2'], 2, 1)
+    assert info.value.kind == 'wrong_count'
+    with pytest.raises(BadSample) as info:              # one velocity for six joints
+        check_azimuth_sample(names, position, [94.0], 'hub', 2, 1)
+    assert info.value.kind == 'bad_speed'
+    with pytest.raises(BadSample) as info:              # a wanted joint missing
+        check_joint_sample(names, position, ['flap_1', 'flap_3'], 2, 1, extra_joints=True)
+    assert info.value.kind == 'wrong_names'
+    # the batch checks of the identifier take the same samples
+    stamps = np.array([2, 3, 4])
+    values, accepted = check_joint_batch(names, np.tile(position, (3, 1)), ['flap_1', 'flap_2'],
+                                         stamps, 1, 0.7, extra_joints=True)
+    assert accepted.all() and values.tolist() == [[0.04, 0.05]] * 3
+    psi, omega, accepted = check_azimuth_batch(names, np.tile(position, (3, 1)),
+                                               np.tile(velocity, (3, 1)), 'hub', stamps, 1)
+    assert accepted.all() and psi.tolist() == [5.0] * 3 and omega.tolist() == [94.0] * 3
+    _, accepted = check_joint_batch(names, np.tile(position, (3, 1)), ['pitch_1', 'pitch_2'],
+                                    stamps, 1)
+    assert not accepted.any()
 
 
 @pytest.mark.parametrize('position, velocity, kind', [
