@@ -8,45 +8,42 @@ equations in the same order (test/estimation/test_filter_error_gradient.py check
 
 from numba import njit
 import numpy as np
+from rotor_id.estimation._kernels_numba import _invert
 
 
 @njit(cache=True, nogil=True)
-def _inverse(A, out):
-    """Set out = A⁻¹ (Gauss-Jordan, partial pivoting); return log|det A| (-inf: singular)."""
-    m = A.shape[0]
-    work = A.copy()
-    for i in range(m):
-        for j in range(m):
-            out[i, j] = 1.0 if i == j else 0.0
-    logdet = 0.0
-    for col in range(m):
-        pivot = col
-        for r in range(col + 1, m):
-            if abs(work[r, col]) > abs(work[pivot, col]):
-                pivot = r
-        if work[pivot, col] == 0.0:
-            return -np.inf
-        if pivot != col:
-            for j in range(m):
-                tmp = work[col, j]
-                work[col, j] = work[pivot, j]
-                work[pivot, j] = tmp
-                tmp = out[col, j]
-                out[col, j] = out[pivot, j]
-                out[pivot, j] = tmp
-        p = work[col, col]
-        logdet += np.log(abs(p))
-        for j in range(m):
-            work[col, j] /= p
-            out[col, j] /= p
-        for r in range(m):
-            if r != col:
-                f = work[r, col]
-                if f != 0.0:
-                    for j in range(m):
-                        work[r, j] -= f * work[col, j]
-                        out[r, j] -= f * out[col, j]
-    return logdet
+def _stage(F, g_row, x, prev, scale, xs, out):
+    """Set the RK4 stage xs = x + scale·prev and out = F xs + g_row."""
+    n = x.shape[0]
+    for i in range(n):
+        xs[i] = x[i] + scale * prev[i]
+    for i in range(n):
+        acc = g_row[i]
+        for j in range(n):
+            acc += F[i, j] * xs[j]
+        out[i] = acc
+
+
+@njit(cache=True, nogil=True)
+def _sensitivity_stage(F, S, prev, scale, dF, dg_row, xs, out):
+    """
+    Set out = F (S + scale·prev) + [∂F xs + ∂g] (bracket on the first kp columns only).
+
+    The derivative of the RK4 stage :func:`_stage` along each column of S (n, k); dF (kp, n, n),
+    dg_row (kp, n).
+    """
+    n, k = S.shape
+    kp = dF.shape[0]
+    for i in range(n):
+        for c in range(k):
+            acc = 0.0
+            for j in range(n):
+                acc += F[i, j] * (S[j, c] + scale * prev[j, c])
+            if c < kp:
+                acc += dg_row[c, i]
+                for j in range(n):
+                    acc += dF[c, i, j] * xs[j]
+            out[i, c] = acc
 
 
 @njit(cache=True, nogil=True)
@@ -100,6 +97,7 @@ def sensitivity_scan(F, g, dF, dg, h, substeps, Phi, dPhi, Q, dQ, R, dR, H, d, d
     k2 = np.empty(n)
     k3 = np.empty(n)
     k4 = np.empty(n)
+    x1 = np.empty(n)
     x2 = np.empty(n)
     x3 = np.empty(n)
     x4 = np.empty(n)
@@ -122,7 +120,7 @@ def sensitivity_scan(F, g, dF, dg, h, substeps, Phi, dPhi, Q, dQ, R, dR, H, d, d
                     Kj[i, a] = K_ss[i, a]
                     for c in range(k):
                         dKj[c, i, a] = dK_ss[c, i, a]
-            logdet = _inverse(Bj, Binv)
+            logdet = _invert(Bj, Binv)
         else:
             for i in range(n):
                 for a in range(m):
@@ -141,7 +139,7 @@ def sensitivity_scan(F, g, dF, dg, h, substeps, Phi, dPhi, Q, dQ, R, dR, H, d, d
                     sym = 0.5 * (Bj[a, b] + Bj[b, a])
                     Bj[a, b] = sym
                     Bj[b, a] = sym
-            logdet = _inverse(Bj, Binv)
+            logdet = _invert(Bj, Binv)
             for i in range(n):
                 for b in range(m):
                     acc = 0.0
@@ -278,74 +276,16 @@ def sensitivity_scan(F, g, dF, dg, h, substeps, Phi, dPhi, Q, dQ, R, dR, H, d, d
                     P[i, j] = 0.5 * (Pn[i, j] + Pn[j, i])
         for s in range(substeps):
             st = 2 * (t * substeps + s)
-            # state stages k_i = F x_i + g and sensitivity stages (F ∂x + ∂F x + ∂g)
-            for i in range(n):
-                acc = g[st, i]
-                for j in range(n):
-                    acc += F[i, j] * x[j]
-                k1[i] = acc
-            for i in range(n):
-                x2[i] = x[i] + half * k1[i]
-            for i in range(n):
-                acc = g[st + 1, i]
-                for j in range(n):
-                    acc += F[i, j] * x2[j]
-                k2[i] = acc
-            for i in range(n):
-                x3[i] = x[i] + half * k2[i]
-            for i in range(n):
-                acc = g[st + 1, i]
-                for j in range(n):
-                    acc += F[i, j] * x3[j]
-                k3[i] = acc
-            for i in range(n):
-                x4[i] = x[i] + h * k3[i]
-            for i in range(n):
-                acc = g[st + 2, i]
-                for j in range(n):
-                    acc += F[i, j] * x4[j]
-                k4[i] = acc
-            # ∂k₁ = F ∂x + ∂F x + ∂g, ∂k₂ = F (∂x + h/2 ∂k₁) + ∂F x₂ + ∂g, ...
-            for i in range(n):
-                for c in range(k):
-                    acc = 0.0
-                    for j in range(n):
-                        acc += F[i, j] * S[j, c]
-                    if c < kp:
-                        acc += dg[st, c, i]
-                        for j in range(n):
-                            acc += dF[c, i, j] * x[j]
-                    s1[i, c] = acc
-            for i in range(n):
-                for c in range(k):
-                    acc = 0.0
-                    for j in range(n):
-                        acc += F[i, j] * (S[j, c] + half * s1[j, c])
-                    if c < kp:
-                        acc += dg[st + 1, c, i]
-                        for j in range(n):
-                            acc += dF[c, i, j] * x2[j]
-                    s2[i, c] = acc
-            for i in range(n):
-                for c in range(k):
-                    acc = 0.0
-                    for j in range(n):
-                        acc += F[i, j] * (S[j, c] + half * s2[j, c])
-                    if c < kp:
-                        acc += dg[st + 1, c, i]
-                        for j in range(n):
-                            acc += dF[c, i, j] * x3[j]
-                    s3[i, c] = acc
-            for i in range(n):
-                for c in range(k):
-                    acc = 0.0
-                    for j in range(n):
-                        acc += F[i, j] * (S[j, c] + h * s3[j, c])
-                    if c < kp:
-                        acc += dg[st + 2, c, i]
-                        for j in range(n):
-                            acc += dF[c, i, j] * x4[j]
-                    s4[i, c] = acc
+            # RK4 stages k = F (x + a k_prev) + g and their sensitivities
+            # ∂k = F (∂x + a ∂k_prev) + ∂F (x + a k_prev) + ∂g (exact derivative of the step)
+            _stage(F, g[st], x, x, 0.0, x1, k1)
+            _sensitivity_stage(F, S, S, 0.0, dF, dg[st], x1, s1)
+            _stage(F, g[st + 1], x, k1, half, x2, k2)
+            _sensitivity_stage(F, S, s1, half, dF, dg[st + 1], x2, s2)
+            _stage(F, g[st + 1], x, k2, half, x3, k3)
+            _sensitivity_stage(F, S, s2, half, dF, dg[st + 1], x3, s3)
+            _stage(F, g[st + 2], x, k3, h, x4, k4)
+            _sensitivity_stage(F, S, s3, h, dF, dg[st + 2], x4, s4)
             for i in range(n):
                 x[i] += h / 6.0 * (k1[i] + 2.0 * k2[i] + 2.0 * k3[i] + k4[i])
                 for c in range(k):
