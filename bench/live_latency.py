@@ -169,7 +169,10 @@ def run(mode, test_points, out):
             if k == 1:                    # CPU of each node from here (start-up excluded)
                 live.mark_cpu()
         live.read_cpu()
-        procs.stop('rotor_plant')
+        # every publisher of a steady stream stopped, so the recorder's count settles
+        for name in ('rotor_plant', 'stirring_input', 'state_estimator'):
+            procs.stop(name)
+        say(f'{mode}: letting the recorder catch up')
         live.settle(60.0)
     finally:
         result = live.close()
@@ -247,8 +250,8 @@ def offline_fits(result, repeat=7):
 
 COLUMNS = ('total', 'record', 'queued', 'identify', 'gauss_newton', 'verdict', 'message',
            'publish', 'other', 'cpu', 'cpu_wait', 'gil_or_lock_wait', 'fit_cpu',
-           'fit_cpu_wait', 'in_fit_process', 'sent_to_received', 'received_to_taken',
-           'end_to_end')
+           'fit_cpu_wait', 'in_fit_process', 'sent_to_received',
+           'received_to_taken', 'end_to_end')
 
 
 def _section(result, offline):
@@ -294,10 +297,12 @@ def _section(result, offline):
         f'{result["wall_s"]:.0f} s; load after '
         f'{" / ".join(f"{v:.1f}" for v in result["load_after"])}\n\n')
     rows = [[b['kind'], b.get('test_point', ''), f'{b["window_end_s"]:.4f}',
-             b.get('iterations', '')] + [f'{b.get(c, float("nan")):.1f}' for c in COLUMNS]
-            + [b['samples_taken']] for b in breakdown if b['kind'] == 'final']
-    text += markdown_table(['estimate', 'test point', 'window end (s)', 'iterations']
-                           + list(COLUMNS) + ['samples'], rows) + '\n\n'
+             b.get('iterations', ''), 'yes' if b.get('worker_busy') else 'no']
+            + [f'{b.get(c, float("nan")):.1f}' for c in COLUMNS]
+            + [b['samples_taken']] for b in breakdown]
+    text += markdown_table(['estimate', 'test point', 'window end (s)', 'iterations',
+                            'a fit ran when asked'] + list(COLUMNS) + ['samples'], rows)
+    text += '\n\n'
     return text, np.median(final), warm
 
 

@@ -13,6 +13,7 @@ current iteration (publish what it has) or to be abandoned (a final fit waits).
 
 from dataclasses import dataclass
 import multiprocessing
+import threading
 import time
 
 import numpy as np
@@ -36,12 +37,14 @@ class FitOptions:
     full_verdict: bool = True  # extrapolate how much more data the targets need
 
 
-def fit_window(request, description, options, progress=None):
+def fit_window(request, description, options, progress=None, hurry=None):
     """
     Identify a FitRequest's window; return (Identification, verdict, timing ms).
 
     ``progress(info)`` is called after every Gauss-Newton iteration; it may return
-    :data:`rotor_id.estimation.output_error.STOP` or raise :class:`Abandoned`.
+    :data:`rotor_id.estimation.output_error.STOP` or raise :class:`Abandoned`. ``hurry()``,
+    when true after the fit, skips extrapolating how much more data the targets need (the
+    verdict then says -1: unknown).
     """
     timing = {}
     started = time.perf_counter()
@@ -60,7 +63,8 @@ def fit_window(request, description, options, progress=None):
     clock = time.perf_counter()
     std = np.array([est.std_of(n) for n in ident.unknowns])
     verdict = data_length_verdict(std, options.targets)
-    if not verdict[0] and options.full_verdict:  # how much more data: from the M⁻¹(t_f) trend
+    if not verdict[0] and options.full_verdict and not (hurry is not None and hurry()):
+        # how much more data: from the M⁻¹(t_f) trend
         t, hist = bound_history(ident)
         verdict = data_length_verdict(std, options.targets, t, hist, ident.omega_rad_s)
     timing['verdict'] = (time.perf_counter() - clock) * 1e3
@@ -121,7 +125,8 @@ def _serve(conn, stop, abandon):
             return
         _, request, description, options = message
         try:
-            conn.send(('done', fit_window(request, description, options, progress)))
+            conn.send(('done', fit_window(request, description, options, progress,
+                                          hurry=stop.is_set)))
         except Abandoned:
             conn.send(('abandoned', None))
         except KeyboardInterrupt:
@@ -151,12 +156,17 @@ class FitProcess:
         self.process.start()
         child.close()
         self.warm_s = None                # how long the child took to load what fits need
+        self._ready_lock = threading.Lock()
 
     def wait_ready(self):
         """Wait until the child has loaded what a fit needs; return the seconds it took."""
-        if self.warm_s is None:
-            kind, payload = self._conn.recv()
-            self.warm_s = payload if kind == 'ready' else float('nan')
+        with self._ready_lock:
+            if self.warm_s is None:
+                try:
+                    kind, payload = self._conn.recv()
+                except (EOFError, OSError):
+                    kind, payload = 'died', None
+                self.warm_s = payload if kind == 'ready' else float('nan')
         return self.warm_s
 
     def stop(self):

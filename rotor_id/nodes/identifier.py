@@ -590,6 +590,7 @@ class Identifier(Node):
             keep = final and request.test_point not in self.provisional_points
             self.requests = [r for r in self.requests
                              if r[1] != ParameterEstimate.KIND_PROVISIONAL or keep]
+            request.worker_busy = self.busy    # the final waits for a fit in progress
             self.requests.append((request, kind, self.arrival or time.monotonic(), future))
             self.wake.notify()
             if final:
@@ -667,6 +668,7 @@ class Identifier(Node):
             'gil_or_lock_wait': max(0.0, (done - started) * 1e3 - cpu - waiting
                                     - timing.get('in_fit_process', 0.0)),
             'samples_taken': self.taken - taken0,
+            'worker_busy': bool(getattr(request, 'worker_busy', False)),
             # the window's last sample: sent by its publisher -> received by DDS here -> taken
             # by the poller; end to end: sent -> this estimate published (system clock)
             **_sample_times(getattr(request, 'last_sample', None), done_ns)})
@@ -738,9 +740,7 @@ class Identifier(Node):
                       else ParameterEstimate.STATUS_FAILED)
             return self._failed(request, kind, status, request.error +
                                 (f'; {problems}' if problems else ''))
-        desc = self.description
-        if self.guess:
-            desc = replace(desc, initial_guess={**desc.initial_guess, **self.guess})
+        desc, options = self._fit_setup(request, kind, max_iter)
 
         def progress(info):
             self.pub_progress.publish(progress_message(
@@ -756,21 +756,15 @@ class Identifier(Node):
                     return STOP           # the first growing-window estimate: publish it now
             return None
 
-        # growing windows start from the latest iterate (or the description's guess) without
-        # the multi-start grid; the final fit uses the grid only if there is no iterate yet
-        # and the description does not give every starting value
-        options = FitOptions(max_iter=max_iter or self.d['max_iter' if final
-                                                         else 'max_iter_provisional'],
-                             multi_start=final, step_tol=self.d['step_tol'],
-                             targets=tuple(self.targets),
-                             full_verdict=final or not self._final_waiting())
         started = time.perf_counter()
         try:
             if self.fitter is not None:
                 ident, verdict, fit_timing = self.fitter.fit(request, desc, options, progress)
                 timing['in_fit_process'] = (time.perf_counter() - started) * 1e3
             else:
-                ident, verdict, fit_timing = fit_window(request, desc, options, progress)
+                ident, verdict, fit_timing = fit_window(
+                    request, desc, options, progress,
+                    hurry=None if final else self._final_waiting)
         except Abandoned:
             return None
         except (ValueError, np.linalg.LinAlgError, FloatingPointError) as exc:
@@ -814,6 +808,22 @@ class Identifier(Node):
                                    f'{self.diagnostics.values["last_estimate"]} ({note}); '
                                    f'target met: {verdict[0]}')
         return msg
+
+    def _fit_setup(self, request, kind, max_iter=None):
+        """Return the run description (warm start: the latest iterate) and FitOptions of a fit."""
+        final = kind != ParameterEstimate.KIND_PROVISIONAL
+        desc = self.description
+        if self.guess:
+            desc = replace(desc, initial_guess={**desc.initial_guess, **self.guess})
+        # growing windows start from the latest iterate (or the description's guess) without
+        # the multi-start grid; the final fit uses the grid only if there is no iterate yet
+        # and the description does not give every starting value
+        options = FitOptions(max_iter=max_iter or self.d['max_iter' if final
+                                                         else 'max_iter_provisional'],
+                             multi_start=final, step_tol=self.d['step_tol'],
+                             targets=tuple(self.targets),
+                             full_verdict=final or not self._final_waiting())
+        return desc, options
 
     def _failed(self, request, kind, status, reason):
         self.get_logger().warning(f'identification over {request.window_s} s: {reason}')
