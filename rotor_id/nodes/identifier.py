@@ -142,6 +142,7 @@ class Identifier(Node):
                   for s in spec}
         self.rig = Rig(node_run_description(self.d['run_description']))
         self.description = desc = self.rig.description
+        model_for(desc)        # a model this rotor cannot have (2 blades, no cyclic) fails here
         self.unknowns = list(desc.unknowns)
         self.d['window_s'] = declare(
             self, 'window_s', [float(v) for v in desc.window_s],
