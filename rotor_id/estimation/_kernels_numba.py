@@ -345,3 +345,363 @@ def initial_state_innovations(Phi, gains, H, Psi, out):
                     for j in range(n):
                         acc += Phi[t, i, j] * A[j, c]
                     Psi[i, c] = acc
+
+
+# -- time-invariant systems: one affine map per sample interval, prepared once per p ---------
+
+@njit(cache=True, nogil=True)
+def _mm(A, B, out):
+    """Set out = A @ B for small dense matrices (out must not alias A or B)."""
+    for i in range(A.shape[0]):
+        for j in range(B.shape[1]):
+            out[i, j] = 0.0
+        for r in range(A.shape[1]):
+            a = A[i, r]
+            for j in range(B.shape[1]):
+                out[i, j] += a * B[r, j]
+
+
+@njit(cache=True, nogil=True)
+def _mm_add(A, B, out):
+    """Add A @ B to out."""
+    for i in range(A.shape[0]):
+        for r in range(A.shape[1]):
+            a = A[i, r]
+            for j in range(B.shape[1]):
+                out[i, j] += a * B[r, j]
+
+
+@njit(cache=True, nogil=True)
+def _add_stage(P, dP, Sx, dSx, c0, C, dC, block):
+    """C[:, c0:c0+q] += P Sx and dC[p, :, c0:c0+q] += dP[p] Sx + P dSx[p] (one stage's inputs)."""
+    q = Sx.shape[1]
+    _mm(P, Sx, block)
+    for i in range(block.shape[0]):
+        for a in range(q):
+            C[i, c0 + a] += block[i, a]
+    for p in range(dP.shape[0]):
+        _mm(dP[p], Sx, block)
+        _mm_add(P, dSx[p], block)
+        for i in range(block.shape[0]):
+            for a in range(q):
+                dC[p, i, c0 + a] += block[i, a]
+
+
+@njit(cache=True, nogil=True)
+def interval_map(F, B, e, dF, dB, de, h, substeps, Phi, dPhi, C, dC, ce, dce):
+    """
+    Form the affine map of a sample interval of ``substeps`` equal RK4 steps and its derivatives.
+
+    For x′ = F x + B u + e with F, B, e constant, one RK4 step of length h with the input at
+    the step's start, middle and end (u₀, u_m, u₁) is x⁺ = Φ₁ x + Γ₀ g₀ + Γ_m g_m + Γ₁ g₁,
+    g = B u + e, with (expanding simulate._rk4_maps)
+
+        Φ₁ = I + h/6 (A₁ + 2A₂ + 2A₃ + A₄),  A₁ = F, A₂ = F + h/2 F A₁, A₃ = F + h/2 F A₂,
+        A₄ = F + h F A₃;
+        Γ₀ = h/6 (I + hF + h²/2 F² + h³/4 F³),  Γ_m = h/6 (4I + 2hF + h²/2 F²),  Γ₁ = h/6 I.
+
+    Composing the ``substeps`` steps gives x_{j+1} = Φ x_j + C U_j + c_e, U_j the inputs at
+    the interval's 2·substeps + 1 stage times (stage-major, input-minor), and the derivatives
+    of Φ, C, c_e with respect to the kp parameters whose ∂F, ∂B, ∂e are dF (kp, n, n),
+    dB (kp, n, q), de (kp, n). Outputs: Phi (n, n), dPhi (kp, n, n), C (n, L), dC (kp, n, L),
+    ce (n,), dce (kp, n), L = (2·substeps + 1)·q.
+    """
+    n = F.shape[0]
+    q = B.shape[1]
+    kp = dF.shape[0]
+    w = h / 6.0
+    h2 = 0.5 * h * h
+    h3 = 0.25 * h * h * h
+    A2 = np.empty((n, n))
+    A3 = np.empty((n, n))
+    A4 = np.empty((n, n))
+    F2 = np.empty((n, n))
+    F3 = np.empty((n, n))
+    _mm(F, F, F2)                       # F A₁
+    _mm(F, F2, F3)
+    Phi1 = np.empty((n, n))
+    G0 = np.empty((n, n))
+    Gm = np.empty((n, n))
+    Gsum = np.empty((n, n))
+    for i in range(n):
+        for j in range(n):
+            A2[i, j] = F[i, j] + 0.5 * h * F2[i, j]
+    _mm(F, A2, A3)
+    for i in range(n):
+        for j in range(n):
+            A3[i, j] = F[i, j] + 0.5 * h * A3[i, j]
+    _mm(F, A3, A4)
+    for i in range(n):
+        for j in range(n):
+            A4[i, j] = F[i, j] + h * A4[i, j]
+            d = 1.0 if i == j else 0.0
+            Phi1[i, j] = d + w * (F[i, j] + 2.0 * A2[i, j] + 2.0 * A3[i, j] + A4[i, j])
+            G0[i, j] = w * (d + h * F[i, j] + h2 * F2[i, j] + h3 * F3[i, j])
+            Gm[i, j] = w * (4.0 * d + 2.0 * h * F[i, j] + h2 * F2[i, j])
+            Gsum[i, j] = G0[i, j] + Gm[i, j] + w * d
+    # their derivatives, one parameter at a time
+    dPhi1 = np.empty((kp, n, n))
+    dG0 = np.empty((kp, n, n))
+    dGm = np.empty((kp, n, n))
+    tmp = np.empty((n, n))
+    dA2 = np.empty((n, n))
+    dA3 = np.empty((n, n))
+    dF2 = np.empty((n, n))
+    dF3 = np.empty((n, n))
+    for p in range(kp):
+        D = dF[p]
+        _mm(D, F, dF2)                  # ∂(F A₁) = ∂(F²)
+        _mm_add(F, D, dF2)
+        for i in range(n):
+            for j in range(n):
+                dA2[i, j] = D[i, j] + 0.5 * h * dF2[i, j]
+        _mm(D, A2, tmp)
+        _mm_add(F, dA2, tmp)
+        for i in range(n):
+            for j in range(n):
+                dA3[i, j] = D[i, j] + 0.5 * h * tmp[i, j]
+        _mm(D, A3, tmp)
+        _mm_add(F, dA3, tmp)
+        _mm(D, F2, dF3)
+        _mm_add(F, dF2, dF3)
+        for i in range(n):
+            for j in range(n):
+                dA4 = D[i, j] + h * tmp[i, j]
+                dPhi1[p, i, j] = w * (D[i, j] + 2.0 * dA2[i, j] + 2.0 * dA3[i, j] + dA4)
+                dG0[p, i, j] = w * (h * D[i, j] + h2 * dF2[i, j] + h3 * dF3[i, j])
+                dGm[p, i, j] = w * (2.0 * h * D[i, j] + h2 * dF2[i, j])
+    # per step: input coefficients of the three stages and the constant term
+    S0 = np.empty((n, q))
+    Sm = np.empty((n, q))
+    S1 = np.empty((n, q))
+    _mm(G0, B, S0)
+    _mm(Gm, B, Sm)
+    se = np.zeros(n)
+    for i in range(n):
+        for a in range(q):
+            S1[i, a] = w * B[i, a]
+        for j in range(n):
+            se[i] += Gsum[i, j] * e[j]
+    dS0 = np.empty((kp, n, q))
+    dSm = np.empty((kp, n, q))
+    dS1 = np.empty((kp, n, q))
+    dse = np.zeros((kp, n))
+    for p in range(kp):
+        _mm(dG0[p], B, dS0[p])
+        _mm_add(G0, dB[p], dS0[p])
+        _mm(dGm[p], B, dSm[p])
+        _mm_add(Gm, dB[p], dSm[p])
+        for i in range(n):
+            for a in range(q):
+                dS1[p, i, a] = w * dB[p, i, a]
+            acc = 0.0
+            for j in range(n):
+                acc += (dG0[p, i, j] + dGm[p, i, j]) * e[j] + Gsum[i, j] * de[p, j]
+            dse[p, i] = acc
+    # compose the steps: step s reaches the interval's end through P = Φ₁^(substeps-1-s)
+    C[:, :] = 0.0
+    dC[:, :, :] = 0.0
+    ce[:] = 0.0
+    dce[:, :] = 0.0
+    P = np.eye(n)
+    dP = np.zeros((kp, n, n))
+    Pnext = np.empty((n, n))
+    dPnext = np.empty((kp, n, n))
+    block = np.empty((n, q))
+    for s in range(substeps - 1, -1, -1):
+        _add_stage(P, dP, S0, dS0, 2 * s * q, C, dC, block)
+        _add_stage(P, dP, Sm, dSm, (2 * s + 1) * q, C, dC, block)
+        _add_stage(P, dP, S1, dS1, (2 * s + 2) * q, C, dC, block)
+        for i in range(n):
+            for j in range(n):
+                ce[i] += P[i, j] * se[j]
+                for p in range(kp):
+                    dce[p, i] += dP[p, i, j] * se[j] + P[i, j] * dse[p, j]
+        # P ← P Φ₁, dP ← dP Φ₁ + P dΦ₁
+        for p in range(kp):
+            _mm(dP[p], Phi1, dPnext[p])
+            _mm_add(P, dPhi1[p], dPnext[p])
+        _mm(P, Phi1, Pnext)
+        P[:, :] = Pnext
+        dP[:, :, :] = dPnext
+    Phi[:, :] = P
+    dPhi[:, :, :] = dP
+
+
+@njit(cache=True, nogil=True)
+def affine_scan(Phi, dPhi, W, dW, x0, S0, H, d, dd, y, xs, Ss, yhat, dyhat, res, sq, gc, Mc):
+    """
+    States, sensitivities and outputs of x_{j+1} = Φ x_j + W_j; residuals and their sums.
+
+    Φ (n, n) and its derivatives dPhi (kp, n, n) from :func:`interval_map`; W (T-1, n) and
+    dW (T-1, kp, n) the input forcing of every interval and its derivatives (C U_j + c_e).
+    S0 (n, k): the first kp columns are the parameters, the rest (e.g. initial states) have no
+    forcing. H (T or 1, m, n); output offset d (T, m) and its derivatives dd (T, m, kp), or
+    arrays with 0 rows when there is none. y (T, m) measured outputs, or 0 rows for a plain
+    simulation. Fills xs (T, n), Ss (T, n, k), yhat (T, m), dyhat (T, m, k) and, with y,
+    res = y − ŷ (T, m), sq = Σ res² (m,), gc = Σ ∂ŷᵀ res (m, k), Mc = Σ ∂ŷᵀ ∂ŷ (m, k, k),
+    per channel (so the caller can weight them by any R⁻¹).
+
+    The state and its sensitivities travel together as Z = [x S] (n, k+1), one row update
+    Z⁺ = Φ Z + [W  ∂Φ x + ∂W] per sample.
+    """
+    T = xs.shape[0]
+    n = x0.shape[0]
+    k = S0.shape[1]
+    k1 = k + 1
+    kp = dPhi.shape[0]
+    m = yhat.shape[1]
+    const_H = H.shape[0] == 1
+    has_d = d.shape[0] > 0
+    fit = y.shape[0] > 0
+    Z = np.empty((n, k1))
+    Zn = np.empty((n, k1))
+    for i in range(n):
+        Z[i, 0] = x0[i]
+        for c in range(k):
+            Z[i, 1 + c] = S0[i, c]
+    yz = np.empty(k1)
+    if fit:
+        sq[:] = 0.0
+        gc[:, :] = 0.0
+        Mc[:, :, :] = 0.0
+    for j in range(T):
+        if j > 0:
+            for i in range(n):
+                for c in range(k1):
+                    Zn[i, c] = 0.0
+                Zn[i, 0] = W[j - 1, i]
+                for p in range(kp):
+                    acc = dW[j - 1, p, i]
+                    for r in range(n):
+                        acc += dPhi[p, i, r] * Z[r, 0]
+                    Zn[i, 1 + p] = acc
+                for r in range(n):
+                    a = Phi[i, r]
+                    for c in range(k1):
+                        Zn[i, c] += a * Z[r, c]
+            for i in range(n):
+                for c in range(k1):
+                    Z[i, c] = Zn[i, c]
+        for i in range(n):
+            xs[j, i] = Z[i, 0]
+            for c in range(k):
+                Ss[j, i, c] = Z[i, 1 + c]
+        Hj = H[0] if const_H else H[j]
+        for a in range(m):
+            for c in range(k1):
+                yz[c] = 0.0
+            if has_d:
+                yz[0] = d[j, a]
+                for c in range(kp):
+                    yz[1 + c] = dd[j, a, c]
+            for i in range(n):
+                hv = Hj[a, i]
+                for c in range(k1):
+                    yz[c] += hv * Z[i, c]
+            yhat[j, a] = yz[0]
+            for c in range(k):
+                dyhat[j, a, c] = yz[1 + c]
+            if fit:
+                r_ = y[j, a] - yz[0]
+                res[j, a] = r_
+                sq[a] += r_ * r_
+                for c in range(k):
+                    v = yz[1 + c]
+                    gc[a, c] += v * r_
+                    for c2 in range(c, k):
+                        Mc[a, c, c2] += v * yz[1 + c2]
+    if fit:
+        for a in range(m):
+            for c in range(k):
+                for c2 in range(c):
+                    Mc[a, c, c2] = Mc[a, c2, c]
+
+
+@njit(cache=True, nogil=True)
+def affine_run(F_probe, g_probe, dF_probe, dg_probe, param_index, h, substeps, U, x0, S0, H,
+               d, dd, y):
+    """
+    One simulation of a time-invariant model from its values at unit inputs (one call).
+
+    F_probe (q+1, n, n), g_probe (q+1, n): F and g at input 0 and at every unit input (so
+    B = g(e_a) − g(0), e = g(0)); dF_probe (q+1, P, n, n), dg_probe (q+1, P, n) their
+    parameter derivatives (0 rows: no sensitivities), of which ``param_index`` are wanted. U
+    (T-1, L) the stage inputs of every interval; the rest as :func:`affine_scan`. Returns
+    (xs, Ss, yhat, dyhat, res, sq, gc, Mc).
+    """
+    q = g_probe.shape[0] - 1
+    n = g_probe.shape[1]
+    kp = param_index.shape[0]
+    L = U.shape[1]
+    T = U.shape[0] + 1
+    m = H.shape[1]
+    k = S0.shape[1]
+    F = np.ascontiguousarray(F_probe[0])
+    e = np.ascontiguousarray(g_probe[0])
+    B = np.empty((n, q))
+    dF = np.empty((kp, n, n))
+    dB = np.empty((kp, n, q))
+    de = np.empty((kp, n))
+    for i in range(n):
+        for a in range(q):
+            B[i, a] = g_probe[1 + a, i] - e[i]
+    for p in range(kp):
+        ip = param_index[p]
+        for i in range(n):
+            de[p, i] = dg_probe[0, ip, i]
+            for a in range(q):
+                dB[p, i, a] = dg_probe[1 + a, ip, i] - dg_probe[0, ip, i]
+            for j in range(n):
+                dF[p, i, j] = dF_probe[0, ip, i, j]
+    Phi = np.empty((n, n))
+    dPhi = np.empty((kp, n, n))
+    C = np.empty((n, L))
+    dC = np.empty((kp, n, L))
+    ce = np.empty(n)
+    dce = np.empty((kp, n))
+    interval_map(F, B, e, dF, dB, de, h, substeps, Phi, dPhi, C, dC, ce, dce)
+    # the input forcing of every interval: W_j = C U_j + c_e, dW_j = dC U_j + dc_e
+    W = np.empty((T - 1, n))
+    dW = np.empty((T - 1, kp, n))
+    active = np.zeros(L, dtype=np.bool_)
+    for col in range(L):
+        for i in range(n):
+            if C[i, col] != 0.0:
+                active[col] = True
+            for p in range(kp):
+                if dC[p, i, col] != 0.0:
+                    active[col] = True
+    cols = np.nonzero(active)[0]
+    for j in range(T - 1):
+        for i in range(n):
+            acc = ce[i]
+            for col in cols:
+                acc += C[i, col] * U[j, col]
+            W[j, i] = acc
+            for p in range(kp):
+                acc = dce[p, i]
+                for col in cols:
+                    acc += dC[p, i, col] * U[j, col]
+                dW[j, p, i] = acc
+    xs = np.empty((T, n))
+    Ss = np.empty((T, n, k))
+    yhat = np.empty((T, m))
+    dyhat = np.empty((T, m, k))
+    res = np.empty((y.shape[0], m))
+    sq = np.empty(m)
+    gc = np.empty((m, k))
+    Mc = np.empty((m, k, k))
+    affine_scan(Phi, dPhi, W, dW, x0, S0, H, d, dd, y, xs, Ss, yhat, dyhat, res, sq, gc, Mc)
+    return xs, Ss, yhat, dyhat, res, sq, gc, Mc
+
+
+def warm_up_affine():
+    """Compile (or load from the cache) the time-invariant kernel for the types simulate uses."""
+    n, q, P, k, m, T = 2, 1, 1, 2, 1, 2
+    L = 3 * q
+    for y in (np.zeros((T, m)), np.zeros((0, m))):
+        affine_run(np.zeros((q + 1, n, n)), np.zeros((q + 1, n)), np.zeros((q + 1, P, n, n)),
+                   np.zeros((q + 1, P, n)), np.zeros(1, dtype=np.int64), 0.1, 1,
+                   np.zeros((T - 1, L)), np.zeros(n), np.zeros((n, k)), np.ones((1, m, n)),
+                   np.zeros((0, m)), np.zeros((0, m, P)), y)

@@ -75,6 +75,13 @@ def filter_kernel():
     return _state['module'].filter_scan
 
 
+def affine_kernels():
+    """Return the module with the time-invariant kernels (interval_map, affine_scan), or None."""
+    if rk4_kernel() is None:
+        return None
+    return _state['module']
+
+
 def initial_state_kernel():
     """Return the compiled ∂ν/∂x(t0) recursion of filter error, or None."""
     if rk4_kernel() is None:
@@ -112,6 +119,7 @@ def load():
         kernel = _kernels_numba.rk4_scan
         _kernels_numba.warm_up()
         _kernels_numba.warm_up_filter()
+        _kernels_numba.warm_up_affine()
     except Exception as err:  # noqa: B902 - ImportError, numba's compile errors: use numpy
         _state['error'] = f'{type(err).__name__}: {err}'
         return None

@@ -26,7 +26,7 @@ import time
 
 import numpy as np
 
-from rotor_id.estimation.simulate import DEFAULT_MAX_STEP, simulate
+from rotor_id.estimation.simulate import DEFAULT_MAX_STEP, simulate, TimeInvariantPlan
 
 INITIAL_STATE_MODES = ('estimate', 'positions', 'equilibrium', 'zero')
 
@@ -208,6 +208,30 @@ class _Problem:
             self.state_slices.append(slice(start, len(self.names)))
         self.lo = np.array(self.bounds_lo)
         self.hi = np.array(self.bounds_hi)
+        #: per run: a TimeInvariantPlan (or None) once :meth:`prepare` ran; None before
+        self.plans = None
+        self.max_step = None
+
+    def prepare(self, max_step):
+        """
+        Prepare every run's record for repeated simulation (:class:`TimeInvariantPlan`).
+
+        Runs of models that do not qualify, or without the compiled kernels, keep None and are
+        simulated by :func:`simulate` as before.
+        """
+        p = self.p_base
+        self.plans = [TimeInvariantPlan.prepare(exp.model, exp.inputs, exp.t, max_step, p)
+                      for exp in self.experiments]
+        self.max_step = max_step
+        return self
+
+    def run_columns(self, r):
+        """Columns of θ of run r's sensitivities (None: all of θ, in order)."""
+        k_par = len(self.param_index)
+        sl = self.state_slices[r]
+        if k_par + (sl.stop - sl.start) == len(self.names):
+            return None
+        return np.concatenate([np.arange(k_par), np.arange(sl.start, sl.stop)])
 
     def full_parameters(self, theta):
         p = self.p_base.copy()
@@ -253,8 +277,12 @@ def _fit_initial_states(problem, theta, max_step):
         x0[free] = 0.0
         jac = np.zeros((exp.model.n_states, len(free)))
         jac[free, np.arange(len(free))] = 1.0
-        sim = simulate(exp.model, p, exp.inputs, exp.t, x0, param_index=(), x0_jacobian=jac,
-                       max_step=max_step)
+        plan = _plan(problem, r, max_step)
+        if plan is not None:
+            sim = plan.run(p, x0, (), jac)
+        else:
+            sim = simulate(exp.model, p, exp.inputs, exp.t, x0, param_index=(),
+                           x0_jacobian=jac, max_step=max_step)
         A = sim.dy.reshape(-1, len(free))
         b = (exp.y - sim.y).ravel()
         ok = np.isfinite(b)
@@ -262,29 +290,85 @@ def _fit_initial_states(problem, theta, max_step):
     return theta
 
 
+def _plan(problem, r, max_step):
+    """Run r's prepared plan, if the problem was prepared for this ``max_step``."""
+    if problem.plans is None or problem.max_step != max_step:
+        return None
+    return problem.plans[r]
+
+
 def evaluate(problem, theta, max_step=DEFAULT_MAX_STEP, sensitivities=True):
     """
     Residuals and output sensitivities of every run at θ.
 
     Returns a list of (residual (T, m), dy/dθ (T, m, len(θ)) or None, simulation) per run.
+    Runs with a prepared plan (:meth:`_Problem.prepare`) also carry the residuals' sums in
+    ``simulation.residual_sums`` (run-local columns, :meth:`_Problem.run_columns`).
     """
     p = problem.full_parameters(theta)
     k_par = len(problem.param_index)
     out = []
     for r, exp in enumerate(problem.experiments):
         x0, jac = problem.initial_state(r, theta, p)
-        if sensitivities:
+        plan = _plan(problem, r, max_step)
+        if plan is not None:
+            sim = plan.run(p, x0, problem.param_index if sensitivities else (),
+                           jac if sensitivities else None, exp.y)
+            res = sim.residual
+            if sensitivities and problem.run_columns(r) is None:
+                out.append((res, sim.dy, sim))
+                continue
+        elif sensitivities:
             sim = simulate(exp.model, p, exp.inputs, exp.t, x0,
                            param_index=problem.param_index, x0_jacobian=jac, max_step=max_step)
+        else:
+            sim = simulate(exp.model, p, exp.inputs, exp.t, x0, max_step=max_step)
+        if plan is None:
+            res = None if exp.y is None else exp.y - sim.y
+        if sensitivities:
             dy = np.zeros(sim.y.shape + (len(theta),))
             dy[:, :, :k_par] = sim.dy[:, :, :k_par]
             dy[:, :, problem.state_slices[r]] = sim.dy[:, :, k_par:]
         else:
-            sim = simulate(exp.model, p, exp.inputs, exp.t, x0, max_step=max_step)
             dy = None
-        res = None if exp.y is None else exp.y - sim.y
         out.append((res, dy, sim))
     return out
+
+
+def _squares(result):
+    """Σ residual² per channel of one run's (res, dy, sim)."""
+    res, _, sim = result
+    if sim.residual_sums is not None:
+        return sim.residual_sums[0]
+    return np.sum(res**2, axis=0)
+
+
+def _weighted_sums(problem, results, noise_var):
+    """
+    Return the information matrix M and the gradient of ½Σ νᵀR⁻¹ν over all runs (no prior).
+
+    From each run's per-channel sums where its plan formed them, else from its residuals and
+    sensitivities.
+    """
+    k = len(problem.names)
+    M = np.zeros((k, k))
+    grad = np.zeros(k)
+    for r, ((res, dy, sim), var) in enumerate(zip(results, noise_var)):
+        w = 1.0 / np.asarray(var, dtype=float)
+        sums = sim.residual_sums
+        if sums is None or sums[2].shape[-1] == 0:
+            M += np.einsum('tmi,m,tmj->ij', dy, w, dy)
+            grad -= np.einsum('tmi,m,tm->i', dy, w, res)
+            continue
+        _, gc, Mc = sums
+        cols = problem.run_columns(r)
+        if cols is None:
+            M += np.tensordot(w, Mc, axes=1)
+            grad -= w @ gc
+        else:
+            M[np.ix_(cols, cols)] += np.tensordot(w, Mc, axes=1)
+            grad[cols] -= w @ gc
+    return M, grad
 
 
 def information_matrix(dys, noise_var):
@@ -443,7 +527,6 @@ def fit_output_error(experiments, unknowns, guess=None, known=None, noise_std=No
     k = len(names)
     theta = np.concatenate([problem.p_base[problem.param_index],
                             np.zeros(k - len(problem.param_index))])
-    theta = _fit_initial_states(problem, theta, max_step)
     m = experiments[0].model.n_outputs
     for exp in experiments:
         if exp.y is None:
@@ -456,6 +539,8 @@ def fit_output_error(experiments, unknowns, guess=None, known=None, noise_std=No
         if not np.all(np.isfinite(exp.y)):
             raise IdentificationError(f'run {exp.name!r}: measurements contain NaN or inf; '
                                       'drop those samples before identifying')
+    problem.prepare(max_step)
+    theta = _fit_initial_states(problem, theta, max_step)
     n_total = sum(exp.t.size for exp in experiments)
     prior_mean = np.zeros(k)
     prior_info = np.zeros(k)
@@ -473,7 +558,7 @@ def fit_output_error(experiments, unknowns, guess=None, known=None, noise_std=No
     warnings = []
 
     def cost_of(results, var):
-        data = sum(0.5 * np.sum(res**2 / v) for (res, _, _), v in zip(results, var))
+        data = sum(0.5 * float(_squares(result) @ (1.0 / v)) for result, v in zip(results, var))
         return data + 0.5 * np.sum(prior_info * (theta_eval - prior_mean)**2)
 
     floor = 1e-24 * max(1.0, float(np.max(np.abs(np.concatenate(
@@ -483,7 +568,7 @@ def fit_output_error(experiments, unknowns, guess=None, known=None, noise_std=No
         # one R per noise group, from the residuals of its runs whose noise is not given
         var = list(noise_var)
         for members in estimated_runs:
-            sq = sum(np.sum(results[r][0]**2, axis=0) for r in members)
+            sq = sum(_squares(results[r]) for r in members)
             group_var = np.maximum(sq / sum(experiments[r].t.size for r in members), floor)
             for r in members:
                 var[r] = group_var
@@ -509,10 +594,8 @@ def fit_output_error(experiments, unknowns, guess=None, known=None, noise_std=No
         return cost_of(trial_results, noise_var), trial_results
 
     for iteration in range(1, max_iter + 1):
-        dys = [dy for _, dy, _ in results]
-        M = information_matrix(dys, noise_var) + np.diag(prior_info)
-        grad = -sum(np.einsum('tmi,m,tm->i', dy, 1.0 / var, res)
-                    for (res, dy, _), var in zip(results, noise_var))
+        M, grad = _weighted_sums(problem, results, noise_var)
+        M += np.diag(prior_info)
         grad = grad + prior_info * (theta - prior_mean)
 
         accepted, trial, _, trial_results, lm = damped_gauss_newton_step(
@@ -534,7 +617,7 @@ def fit_output_error(experiments, unknowns, guess=None, known=None, noise_std=No
         sigma = np.sqrt(np.clip(np.diag(np.linalg.pinv(M)), 0.0, None))
         small = np.abs(applied) <= np.maximum(step_tol * sigma, 1e-12 * np.abs(theta))
         n_res = sum(res.size for res, _, _ in results)
-        rms = math.sqrt(sum(float(np.sum(res**2)) for res, _, _ in results) / n_res)
+        rms = math.sqrt(sum(float(np.sum(_squares(result))) for result in results) / n_res)
         info = {'iteration': iteration, 'cost': float(cost), 'rms': rms, 'names': names,
                 'values': theta.copy(), 'elapsed': time.perf_counter() - t_start,
                 'label': label, 'noise_std': _pooled_std(noise_var, experiments)}
@@ -553,8 +636,8 @@ def fit_output_error(experiments, unknowns, guess=None, known=None, noise_std=No
                 message = 'stopped by the caller before convergence'
             break
     theta_eval = theta
-    dys = [dy for _, dy, _ in results]
-    M = information_matrix(dys, noise_var) + np.diag(prior_info)
+    M, _ = _weighted_sums(problem, results, noise_var)
+    M += np.diag(prior_info)
     dep, _ = dependence_warnings(names, M)
     warnings += dep
     try:

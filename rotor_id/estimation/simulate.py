@@ -27,6 +27,7 @@ Everything is vectorised over time (bench/iteration_cost.py measured the gain):
 from dataclasses import dataclass
 import math
 import time
+import weakref
 
 import numpy as np
 
@@ -62,6 +63,10 @@ class Simulation:
     y: np.ndarray
     dx: np.ndarray = None
     dy: np.ndarray = None
+    #: With measurements (:meth:`TimeInvariantPlan.run`): residuals y − ŷ (T, m) and their
+    #: per-channel sums (Σ r² (m,), Σ ∂ŷᵀ r (m, k), Σ ∂ŷᵀ ∂ŷ (m, k, k)); otherwise None.
+    residual: np.ndarray = None
+    residual_sums: tuple = None
 
 
 def substeps_for(t, max_step=DEFAULT_MAX_STEP):
@@ -209,6 +214,10 @@ def simulate(model, p, inputs, t, x0, param_index=(), x0_jacobian=None,
         S0 = np.zeros((n, k)) if x0_jacobian is None else np.asarray(x0_jacobian, dtype=float)
     else:
         k = 0
+    if forcing is None:
+        plan = TimeInvariantPlan.prepare(model, inputs, t, max_step, p)
+        if plan is not None:
+            return plan.run(p, x0, param_index, S0 if want_sens else None)
     T = t.size
     m = substeps_for(t, max_step)
     xs = np.empty((T, n))
@@ -278,6 +287,187 @@ def simulate(model, p, inputs, t, x0, param_index=(), x0_jacobian=None,
     dd = model.output_offset_jacobian(t, p)[:, :, param_index]
     dy[:, :, :len(param_index)] += dd
     return Simulation(t, xs, y, Ss, dy)
+
+
+#: Most stage-input values (samples × stages × inputs) a :class:`TimeInvariantPlan` holds;
+#: longer records run through the chunked RK4 kernel instead (bounded memory).
+PLAN_MAX_VALUES = 1 << 19
+#: Azimuths (rad) at which :func:`affine_time_invariant` probes a model: arbitrary, so that
+#: no periodic coefficient (period 2π/N) takes the same value at all three.
+_CHECK_TIMES = (0.5, 2.1, 3.9)
+_verdicts = weakref.WeakKeyDictionary()        # model -> {number of inputs: verdict}
+
+
+def affine_time_invariant(model, p, n_inputs):
+    """
+    Tell whether F is constant and g = B u + e (B, e constant), and so their derivatives.
+
+    That is the condition for :class:`TimeInvariantPlan`.
+
+    Checked numerically, once per model object and input width, at the parameters ``p`` of
+    the first call: F and ∂F/∂p equal at three azimuths, and g, ∂g/∂p at every unit input and
+    at a mixed one equal to the affine reconstruction, all to 1e-11 of their largest entry.
+    (Every model here is linear in its inputs; the check guards against a periodic or
+    input-scheduled model, whose ``time_invariant`` flag alone is not trusted.)
+    """
+    try:
+        cache = _verdicts.setdefault(model, {})
+    except TypeError:                           # not weakly referenceable: check every time
+        cache = {}
+    if n_inputs not in cache:
+        try:
+            cache[n_inputs] = _check_affine(model, np.asarray(p, dtype=float), n_inputs)
+        except Exception:  # noqa: B902 - a model that cannot be probed so takes the general path
+            cache[n_inputs] = False
+    return cache[n_inputs]
+
+
+def _unit_inputs(q, mixed=False):
+    """Input probes: zero, then every unit input (then, if ``mixed``, one mixed input)."""
+    u = np.zeros((q + 1 + int(mixed), q))
+    u[1:q + 1] = np.eye(q)
+    if mixed:
+        u[-1] = np.linspace(0.7, -1.3, q)
+    return u
+
+
+def _check_affine(model, p, q):
+    u1 = _unit_inputs(q, mixed=True)
+    probes = u1.shape[0]
+    t = np.repeat(np.asarray(_CHECK_TIMES), probes)
+    u = np.tile(u1, (len(_CHECK_TIMES), 1))
+    F, g = model.system(t, p, u)
+    dF, dg = model.system_jacobian(t, p, u)
+
+    def same(a, b):
+        scale = max(float(np.max(np.abs(a))), float(np.max(np.abs(b))), 1e-300)
+        return bool(np.max(np.abs(a - b)) <= 1e-11 * scale)
+
+    if not (same(F, np.broadcast_to(F[:1], F.shape)) and
+            same(dF, np.broadcast_to(dF[:1], dF.shape))):
+        return False
+    for values in (g, dg):                      # (3·probes, n) and (3·probes, P, n)
+        v = values.reshape((len(_CHECK_TIMES), probes) + values.shape[1:])
+        if not same(v, np.broadcast_to(v[:1], v.shape)):
+            return False
+        e = v[0, 0]
+        B = v[0, 1:q + 1] - e
+        mixed = e + np.tensordot(u1[-1], B, axes=1)
+        if not same(v[0, -1], mixed):
+            return False
+    return True
+
+
+class TimeInvariantPlan:
+    """
+    A record of a time-invariant model prepared for repeated simulation with sensitivities.
+
+    When F is constant, g = B u + e (:func:`affine_time_invariant`) and the RK4 steps are equal,
+    every sample interval is the same affine map x_{j+1} = Φ x_j + C U_j + c_e of the stage
+    inputs U_j, with Φ, C, c_e polynomials in F, B, e (the expansion of :func:`_rk4_maps`,
+    composed over the interval's steps). Per parameter vector, the model is evaluated once at
+    its unit inputs (not at every stage time), the interval map and its parameter derivatives
+    are formed once, and one compiled pass propagates the states and sensitivities, forms the
+    outputs and, given measurements, the residuals and their weighted sums. The result is the
+    same RK4 step map as :func:`simulate`'s chunked paths, up to rounding (test_kernels.py).
+
+    What is prepared here depends on the record only (sample times, stage inputs, H), so an
+    estimator builds one plan per run and calls :meth:`run` every iteration; the structural
+    check is cached per model object. Built only where the compiled kernels are loaded.
+    """
+
+    def __init__(self, model, t, substeps, u, module):
+        """Hold the record: times, stage inputs u (at _fine_grid), H; see :meth:`prepare`."""
+        T = t.size
+        self.model = model
+        self.t = t
+        self.substeps = substeps
+        self.step = float(t[1] - t[0]) / substeps      # as the numpy path: h of the first step
+        self.n_inputs = u.shape[1]
+        stages = 2 * substeps + 1
+        index = 2 * substeps * np.arange(T - 1)[:, None] + np.arange(stages)[None, :]
+        self.U = np.ascontiguousarray(u[index].reshape(T - 1, stages * self.n_inputs))
+        H = np.asarray(model.output_matrix(t), dtype=float)
+        self.H = np.ascontiguousarray(H[:1] if np.all(H == H[:1]) else H)
+        from rotor_id.physics.models import LinearModel
+        self.has_offset = (type(model).output_offset is not LinearModel.output_offset
+                           or type(model).output_offset_jacobian is not
+                           LinearModel.output_offset_jacobian)
+        self.kernels = module
+        self.probe_t = np.full(self.n_inputs + 1, float(t[0]))
+        self.probe_u = _unit_inputs(self.n_inputs)
+
+    @classmethod
+    def prepare(cls, model, inputs, t, max_step, p):
+        """Return a plan for this record, or None where it does not apply (then simulate)."""
+        module = kernels.affine_kernels()
+        t = np.asarray(t, dtype=float)
+        if module is None or t.size < 2:
+            return None
+        m = substeps_for(t, max_step)
+        if (2 * m * (t.size - 1) + 1) * 3 > PLAN_MAX_VALUES:
+            return None
+        if not _equal_steps(np.diff(t) / m, t):
+            return None
+        u = np.asarray(inputs(_fine_grid(t, m)), dtype=float)
+        if u.ndim != 2 or not affine_time_invariant(model, p, u.shape[1]):
+            return None
+        return cls(model, t, m, u, module)
+
+    def run(self, p, x0, param_index=(), S0=None, y=None):
+        """
+        Simulate from x0 with sensitivities to ``param_index`` and the columns of ``S0``.
+
+        ``S0`` (n, k), k ≥ len(param_index): ∂x0/∂θ, as ``x0_jacobian`` of :func:`simulate`
+        (None: no sensitivities). With measurements ``y`` (T, m) the returned
+        :class:`Simulation` also carries the residuals and their per-channel sums.
+        """
+        model = self.model
+        p = np.asarray(p, dtype=float)
+        x0 = np.asarray(x0, dtype=float)
+        n, m = model.n_states, model.n_outputs
+        index = np.asarray(param_index, dtype=np.int64).reshape(-1)
+        S0 = self.no_sensitivity(n) if S0 is None else np.ascontiguousarray(S0, dtype=float)
+        fit = y is not None
+        # the compiled code does not check indices: shapes are checked here
+        if (x0.shape != (n,) or S0.ndim != 2 or S0.shape[0] != n or S0.shape[1] < index.size
+                or p.shape != (len(model.parameters),)
+                or (index.size and (index.min() < 0 or index.max() >= p.size))
+                or (fit and np.shape(y) != (self.t.size, m))):
+            raise ValueError('TimeInvariantPlan.run: x0 needs shape (n,), S0 (n, k ≥ '
+                             'len(param_index)), p one value per model parameter, y (T, m)')
+        F, g = model.system(self.probe_t, p, self.probe_u)
+        if S0.shape[1]:
+            dF, dg = model.system_jacobian(self.probe_t, p, self.probe_u)
+        else:
+            dF, dg = self.no_derivatives(n, p.size)
+        if self.has_offset:
+            d = np.ascontiguousarray(model.output_offset(self.t, p), dtype=float)
+            dd = np.ascontiguousarray(model.output_offset_jacobian(self.t, p)[:, :, index])
+        else:
+            d, dd = np.zeros((0, m)), np.zeros((0, m, index.size))
+        y = np.ascontiguousarray(y, dtype=float) if fit else np.zeros((0, m))
+        xs, Ss, yhat, dyhat, res, sq, gc, Mc = self.kernels.affine_run(
+            np.ascontiguousarray(F, dtype=float), np.ascontiguousarray(g, dtype=float),
+            np.ascontiguousarray(dF, dtype=float), np.ascontiguousarray(dg, dtype=float),
+            index, self.step, self.substeps, self.U, np.ascontiguousarray(x0, dtype=float),
+            S0, self.H, d, dd, y)
+        sums = (sq, gc, Mc) if fit else None
+        if not S0.shape[1]:
+            return Simulation(self.t, xs, yhat, residual=res if fit else None,
+                              residual_sums=sums)
+        return Simulation(self.t, xs, yhat, Ss, dyhat, residual=res if fit else None,
+                          residual_sums=sums)
+
+    @staticmethod
+    def no_sensitivity(n):
+        """∂x0/∂θ with no columns."""
+        return np.zeros((n, 0))
+
+    def no_derivatives(self, n, P):
+        """∂F, ∂g probes with no parameters (a plain simulation)."""
+        q1 = self.n_inputs + 1
+        return np.zeros((q1, 0, n, n)), np.zeros((q1, 0, n))
 
 
 def _compiled_chunk(kernel, model, p, tf, u, F, g, h, m, param_index, x, S, xs, Ss):

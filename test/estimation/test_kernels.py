@@ -125,3 +125,122 @@ def test_filter_kernel_matches_numpy(gain, monkeypatch):
     compiled = filter_batch(dms, y, x0s, R, gain)
     for what, a, b in zip(('innovations', 'B', 'gains', 'cost'), reference, compiled):
         _assert_close(a, b, what)
+
+
+# -- the prepared time-invariant path (TimeInvariantPlan) ---------------------------------------
+
+def _plan_of(model, stirring, t, p):
+    return simulate_module.TimeInvariantPlan.prepare(model, stirring, t,
+                                                     simulate_module.DEFAULT_MAX_STEP, p)
+
+
+def test_plan_only_for_time_invariant_models():
+    """Constant-coefficient and wake models get a plan; periodic ones and jittered times do not."""
+    assert kernels.load() is not None, kernels.status()['error']
+    for name, expected in (('wake', True), ('multiblade_constant', True),
+                           ('multiblade_periodic', False), ('single_blade', False)):
+        model, stirring, t0 = CASES[name]
+        t = t0 + 0.1 * np.arange(121)
+        assert (_plan_of(model, stirring, t, model.nominal()) is not None) is expected, name
+        jittered = t + np.random.default_rng(1).uniform(-0.01, 0.01, t.size)
+        assert _plan_of(model, stirring, jittered, model.nominal()) is None, name
+
+
+def _augmented_cases():
+    from rotor_id.diagnosis import augmentations as aug
+    from rotor_id.diagnosis.catalogue import ExtendedInput
+    from rotor_id.physics.models import build_model
+    t = 8.0 + 0.1 * np.arange(161)
+    schedule = StirringSchedule(collective=0.035, amplitude=0.026, t0=8.0, t_step=1.0)
+    base = build_model('multiblade_wake', HOVER, collective='theta0', angle_unit='rad')
+    const = build_model('multiblade_constant', MU04, collective='theta0', angle_unit='rad')
+    rates = 0.01 * np.column_stack([np.zeros_like(t), np.cos(t), np.sin(t)])
+    return t, [(aug.SensorBias(base, t), schedule), (aug.SensorLag(const), schedule),
+               (aug.TimeDelay(const), ExtendedInput(schedule, t, rates)),
+               (aug.PitchFlapCoupling(base), schedule)]
+
+
+def test_plan_matches_numpy_on_augmented_models(monkeypatch):
+    """Offsets, extra states and extra inputs through the plan: the numpy results to 1e-12."""
+    t, cases = _augmented_cases()
+    planned = 0
+    for model, inputs in cases:
+        p = model.nominal().copy()
+        p[p == 0.0] = 0.05                       # away from the neutral extra parameters
+        n, P = model.n_states, len(p)
+        planned += _plan_of(model, inputs, t, p) is not None
+        jac = np.zeros((n, P + n))
+        jac[:, P:] = np.eye(n)
+        x0 = 0.01 * np.cos(np.arange(1, n + 1))
+        ref, new = _both(monkeypatch, model, p, inputs, t, x0, param_index=range(P),
+                         x0_jacobian=jac)
+        _assert_close(ref.y, new.y, f'{model.name} outputs')
+        for col in range(P + n):
+            if np.any(ref.dy[:, :, col]):
+                _assert_close(ref.dy[:, :, col], new.dy[:, :, col], f'{model.name} column {col}')
+            else:
+                assert np.max(np.abs(new.dy[:, :, col])) <= 1e-14
+    assert planned >= 3, 'the plan should take most time-invariant augmentations'
+
+
+@pytest.mark.parametrize('case_name', ['wake_7par', 'multiblade_c'])
+def test_fit_through_the_plan_matches_numpy(case_name, monkeypatch):
+    """
+    Output-error ML through the plan gives the numpy estimate, bound and cost to 1e-9.
+
+    The residual sums are formed in the kernel; the iterations must be the same.
+    """
+    from rotor_id.estimation.output_error import fit_output_error
+    from rotor_id.report import cases as C
+    from rotor_id.report.reproduce import case_data, iteration_experiment
+    case = next(c for c in C.ITERATION_CASES if c.name == case_name)
+    exp = iteration_experiment(case, case_data(case, 1))
+    sigma = C.SCENARIOS[case.scenario].noise_std
+
+    def fit():
+        return fit_output_error([exp], list(case.unknowns), guess=dict(case.start),
+                                noise_std=sigma)
+    kernel = kernels.load()
+    assert kernel is not None, kernels.status()['error']
+    assert _plan_of(exp.model, exp.inputs, exp.t, exp.model.nominal()) is not None
+    monkeypatch.setitem(kernels._state, 'kernel', None)
+    monkeypatch.setenv('ROTOR_ID_KERNELS', 'numpy')
+    reference = fit()
+    monkeypatch.setitem(kernels._state, 'kernel', kernel)
+    planned = fit()
+    assert planned.iterations == reference.iterations and planned.converged
+    np.testing.assert_allclose(planned.values, reference.values, rtol=1e-9, atol=0)
+    np.testing.assert_allclose(planned.std, reference.std, rtol=1e-9, atol=0)
+    np.testing.assert_allclose(planned.cost, reference.cost, rtol=1e-9)
+    np.testing.assert_allclose(planned.residuals[0], reference.residuals[0], rtol=0,
+                               atol=1e-9 * np.max(np.abs(reference.residuals[0])))
+
+
+def test_fit_of_two_runs_through_the_plan_matches_numpy(monkeypatch):
+    """Two runs, each with its own initial states and R: the plan's sums scattered into θ."""
+    from rotor_id.estimation.output_error import Experiment, fit_output_error
+    model, stirring, t0 = CASES['wake']
+    rng = np.random.default_rng(7)
+    p = model.nominal()
+    runs = []
+    for r in range(2):
+        t = t0 + 0.1 * np.arange(121) + 12.0 * r
+        x0 = 0.05 * rng.standard_normal(model.n_states)
+        y = simulate(model, p, stirring, t, x0).y
+        y = y + 0.01 * (1 + r) * rng.standard_normal(y.shape)
+        runs.append(Experiment(model, stirring, t, y, 'positions', name=f'run{r}',
+                               noise_group=r))
+    unknowns = ['A', 'AL_over_tau', 'inv_tau']
+    guess = {'A': 0.4, 'AL_over_tau': 0.2, 'inv_tau': 0.2}
+    kernel = kernels.load()
+    assert kernel is not None
+    monkeypatch.setitem(kernels._state, 'kernel', None)
+    monkeypatch.setenv('ROTOR_ID_KERNELS', 'numpy')
+    reference = fit_output_error(runs, unknowns, guess=guess)
+    monkeypatch.setitem(kernels._state, 'kernel', kernel)
+    planned = fit_output_error(runs, unknowns, guess=guess)
+    assert planned.iterations == reference.iterations
+    np.testing.assert_allclose(planned.values, reference.values, rtol=1e-9, atol=1e-12)
+    np.testing.assert_allclose(planned.covariance, reference.covariance, rtol=1e-8,
+                               atol=1e-12 * np.max(np.abs(reference.covariance)))
+    np.testing.assert_allclose(planned.noise_std, reference.noise_std, rtol=1e-9)
