@@ -619,16 +619,19 @@ def affine_scan(Phi, dPhi, W, dW, x0, S0, H, d, dd, y, xs, Ss, yhat, dyhat, res,
 
 
 @njit(cache=True, nogil=True)
-def affine_run(F_probe, g_probe, dF_probe, dg_probe, param_index, h, substeps, U, x0, S0, H,
-               d, dd, y):
+def affine_run(F_probe, g_probe, dF_probe, dg_probe, shift, param_index, h, substeps, U, x0,
+               S0, H, d, dd, y, xs, Ss, yhat, dyhat, res, sq, gc, Mc):
     """
-    One simulation of a time-invariant model from its values at unit inputs (one call).
+    Simulate a time-invariant model from its values at unit inputs (one call).
 
     F_probe (q+1, n, n), g_probe (q+1, n): F and g at input 0 and at every unit input (so
     B = g(e_a) − g(0), e = g(0)); dF_probe (q+1, P, n, n), dg_probe (q+1, P, n) their
-    parameter derivatives (0 rows: no sensitivities), of which ``param_index`` are wanted. U
-    (T-1, L) the stage inputs of every interval; the rest as :func:`affine_scan`. Returns
-    (xs, Ss, yhat, dyhat, res, sq, gc, Mc).
+    parameter derivatives (0 parameters: no sensitivities), of which ``param_index`` are
+    wanted. ``shift`` (P or 0,): parameter change from the probes' point along which F and g
+    are affine (F + Σ shift·∂F, likewise g; 0 entries: the probes are at the point itself).
+    U (T-1, L) the stage inputs of every interval; the rest, and the outputs xs … Mc that it
+    fills, as :func:`affine_scan` (outputs passed in: boxing returned arrays costs more than
+    this whole call's arithmetic).
     """
     q = g_probe.shape[0] - 1
     n = g_probe.shape[1]
@@ -637,15 +640,24 @@ def affine_run(F_probe, g_probe, dF_probe, dg_probe, param_index, h, substeps, U
     T = U.shape[0] + 1
     m = H.shape[1]
     k = S0.shape[1]
-    F = np.ascontiguousarray(F_probe[0])
-    e = np.ascontiguousarray(g_probe[0])
+    F = F_probe[0].copy()
+    g = g_probe.copy()
+    for ip in range(shift.shape[0]):
+        dp = shift[ip]
+        if dp != 0.0:
+            for i in range(n):
+                for j in range(n):
+                    F[i, j] += dp * dF_probe[0, ip, i, j]
+                for a in range(q + 1):
+                    g[a, i] += dp * dg_probe[a, ip, i]
+    e = g[0].copy()
     B = np.empty((n, q))
     dF = np.empty((kp, n, n))
     dB = np.empty((kp, n, q))
     de = np.empty((kp, n))
     for i in range(n):
         for a in range(q):
-            B[i, a] = g_probe[1 + a, i] - e[i]
+            B[i, a] = g[1 + a, i] - e[i]
     for p in range(kp):
         ip = param_index[p]
         for i in range(n):
@@ -684,16 +696,7 @@ def affine_run(F_probe, g_probe, dF_probe, dg_probe, param_index, h, substeps, U
                 for col in cols:
                     acc += dC[p, i, col] * U[j, col]
                 dW[j, p, i] = acc
-    xs = np.empty((T, n))
-    Ss = np.empty((T, n, k))
-    yhat = np.empty((T, m))
-    dyhat = np.empty((T, m, k))
-    res = np.empty((y.shape[0], m))
-    sq = np.empty(m)
-    gc = np.empty((m, k))
-    Mc = np.empty((m, k, k))
     affine_scan(Phi, dPhi, W, dW, x0, S0, H, d, dd, y, xs, Ss, yhat, dyhat, res, sq, gc, Mc)
-    return xs, Ss, yhat, dyhat, res, sq, gc, Mc
 
 
 def warm_up_affine():
@@ -702,6 +705,149 @@ def warm_up_affine():
     L = 3 * q
     for y in (np.zeros((T, m)), np.zeros((0, m))):
         affine_run(np.zeros((q + 1, n, n)), np.zeros((q + 1, n)), np.zeros((q + 1, P, n, n)),
-                   np.zeros((q + 1, P, n)), np.zeros(1, dtype=np.int64), 0.1, 1,
+                   np.zeros((q + 1, P, n)), np.zeros(P), np.zeros(1, dtype=np.int64), 0.1, 1,
                    np.zeros((T - 1, L)), np.zeros(n), np.zeros((n, k)), np.ones((1, m, n)),
-                   np.zeros((0, m)), np.zeros((0, m, P)), y)
+                   np.zeros((0, m)), np.zeros((0, m, P)), y, np.empty((T, n)),
+                   np.empty((T, n, k)), np.empty((T, m)), np.empty((T, m, k)),
+                   np.empty((y.shape[0], m)), np.empty(m), np.empty((m, k)), np.empty((m, k, k)))
+
+
+# -- the Gauss-Newton iteration of output error on one prepared record -----------------------
+
+@njit(cache=True, nogil=True)
+def _fit_point(theta, p_base, param_index, p_ref, x0_base, free_states, shift, x0):
+    """Parameter shift p(θ) − p_ref and initial state x0(θ) of one run."""
+    kp = param_index.shape[0]
+    for i in range(shift.shape[0]):
+        shift[i] = p_base[i] - p_ref[i]
+    for c in range(kp):
+        shift[param_index[c]] = theta[c] - p_ref[param_index[c]]
+    for i in range(x0.shape[0]):
+        x0[i] = x0_base[i]
+    for c in range(free_states.shape[0]):
+        x0[free_states[c]] = theta[kp + c]
+
+
+@njit(cache=True, nogil=True)
+def _fit_cost(sq, var, theta, prior_info, prior_mean):
+    """½ Σ_c sq_c / var_c + ½ Σ prior_info (θ − prior_mean)² (output_error's cost_of)."""
+    data = 0.0
+    for c in range(sq.shape[0]):
+        data += sq[c] * (1.0 / var[c])
+    prior = 0.0
+    for i in range(theta.shape[0]):
+        prior += prior_info[i] * (theta[i] - prior_mean[i]) ** 2
+    return 0.5 * data + 0.5 * prior
+
+
+@njit(cache=True, nogil=True)
+def gn_iteration(F_probe, g_probe, dF_probe, dg_probe, p_ref, p_base, param_index, h, substeps,
+                 U, x0_base, free_states, S0, H, y, theta, cost, lm, var, estimate_noise,
+                 floor, prior_info, prior_mean, lo, hi, step_tol, cur_sq, cur_gc, cur_Mc,
+                 xs, Ss, yhat, dyhat, res, sq, gc, Mc, out_theta, out_var, out_M, out_grad,
+                 out_sigma, out_scalars):
+    """
+    One iteration of output_error.fit_output_error for a single run with a prepared plan.
+
+    The same steps as the Python loop: M and the gradient from the current per-channel sums
+    (cur_sq, cur_gc, cur_Mc) weighted by 1/var plus the prior; the damped, scaled Gauss-Newton
+    step of output_error.damped_gauss_newton_step (λ, 12 dampings × 6 halvings, bounds), each
+    trial simulated by :func:`affine_run` into the trial buffers (xs … Mc); on acceptance the
+    noise variance re-estimated (``estimate_noise``), the cost at the new point, σ from
+    pinv(M) and the step-size convergence test. Writes out_theta, out_var, out_M, out_grad,
+    out_sigma and out_scalars = [cost, λ, all steps small (1/0), Σ res²]. Returns 1 when a step
+    was accepted, 0 when none lowers the cost, −1 when the step equations could not be solved
+    (the caller then takes this iteration in Python).
+    """
+    k = theta.shape[0]
+    m = var.shape[0]
+    T = y.shape[0]
+    # M = Σ_c Mc/var_c + diag(prior), gradient = −Σ_c gc/var_c + prior (θ − mean)
+    for a in range(k):
+        for b in range(k):
+            acc = 0.0
+            for c in range(m):
+                acc += (1.0 / var[c]) * cur_Mc[c, a, b]
+            out_M[a, b] = acc
+        out_M[a, a] += prior_info[a]
+        acc = 0.0
+        for c in range(m):
+            acc += (1.0 / var[c]) * cur_gc[c, a]
+        out_grad[a] = -acc + prior_info[a] * (theta[a] - prior_mean[a])
+    scale = np.empty(k)
+    for a in range(k):
+        scale[a] = np.sqrt(max(out_M[a, a], 1e-300))
+    Ms = np.empty((k, k))
+    for a in range(k):
+        for b in range(k):
+            Ms[a, b] = out_M[a, b] / (scale[a] * scale[b])
+    rhs = out_grad / scale
+    shift = np.empty(p_base.shape[0])
+    x0 = np.empty(x0_base.shape[0])
+    trial = np.empty(k)
+    d = np.zeros((0, yhat.shape[1]))
+    dd = np.zeros((0, yhat.shape[1], param_index.shape[0]))
+    accepted = False
+    new_cost = cost
+    for _attempt in range(12):
+        A = Ms + lm * np.eye(k)
+        solved = True
+        step = np.empty(k)
+        try:
+            step[:] = -np.linalg.solve(A, rhs) / scale
+        except Exception:  # noqa: B902 - singular: the caller's Python path takes over
+            solved = False
+        if not solved:
+            return -1
+        for _halving in range(6):
+            for a in range(k):
+                trial[a] = min(max(theta[a] + step[a], lo[a]), hi[a])
+            _fit_point(trial, p_base, param_index, p_ref, x0_base, free_states, shift, x0)
+            affine_run(F_probe, g_probe, dF_probe, dg_probe, shift, param_index, h, substeps,
+                       U, x0, S0, H, d, dd, y, xs, Ss, yhat, dyhat, res, sq, gc, Mc)
+            new_cost = _fit_cost(sq, var, trial, prior_info, prior_mean)
+            if np.isfinite(new_cost) and new_cost <= cost + 1e-12 * abs(cost):
+                accepted = True
+                break
+            step *= 0.5
+        if accepted:
+            lm = lm / 10.0 if lm > 1e-6 else 0.0
+            break
+        lm = max(1e-3, 10.0 * lm)
+    out_scalars[1] = lm
+    if not accepted:
+        out_scalars[0] = cost
+        return 0
+    for c in range(m):
+        out_var[c] = max(sq[c] / T, floor) if estimate_noise else var[c]
+    out_scalars[0] = _fit_cost(sq, out_var, trial, prior_info, prior_mean)
+    P = np.linalg.pinv(out_M)
+    small = 1.0
+    total = 0.0
+    for a in range(k):
+        out_sigma[a] = np.sqrt(max(P[a, a], 0.0))
+        applied = trial[a] - theta[a]
+        if abs(applied) > max(step_tol * out_sigma[a], 1e-12 * abs(trial[a])):
+            small = 0.0
+        out_theta[a] = trial[a]
+    for c in range(m):
+        total += sq[c]
+    out_scalars[2] = small
+    out_scalars[3] = total
+    return 1
+
+
+def warm_up_gn():
+    """Compile (or load from the cache) gn_iteration for the types output error passes."""
+    n, q, P, k, m, T = 2, 1, 1, 2, 1, 3
+    L = 3 * q
+    i64 = np.zeros(1, dtype=np.int64)
+    gn_iteration(np.zeros((q + 1, n, n)), np.zeros((q + 1, n)), np.zeros((q + 1, P, n, n)),
+                 np.zeros((q + 1, P, n)), np.zeros(P), np.zeros(P), i64, 0.1, 1,
+                 np.zeros((T - 1, L)), np.zeros(n), i64, np.eye(n, k), np.ones((1, m, n)),
+                 np.zeros((T, m)), np.zeros(k), 1.0, 0.0, np.ones(m), True, 1e-24, np.zeros(k),
+                 np.zeros(k), -np.ones(k), np.ones(k), 1e-6, np.zeros(m), np.zeros((m, k)),
+                 np.eye(k)[None], np.empty((T, n)), np.empty((T, n, k)), np.empty((T, m)),
+                 np.empty((T, m, k)), np.empty((T, m)), np.empty(m), np.empty((m, k)),
+                 np.empty((m, k, k)), np.empty(k), np.empty(m), np.empty((k, k)), np.empty(k),
+                 np.empty(k), np.empty(4))

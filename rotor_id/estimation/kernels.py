@@ -120,6 +120,7 @@ def load():
         _kernels_numba.warm_up()
         _kernels_numba.warm_up_filter()
         _kernels_numba.warm_up_affine()
+        _kernels_numba.warm_up_gn()
     except Exception as err:  # noqa: B902 - ImportError, numba's compile errors: use numpy
         _state['error'] = f'{type(err).__name__}: {err}'
         return None

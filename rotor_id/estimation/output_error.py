@@ -26,7 +26,8 @@ import time
 
 import numpy as np
 
-from rotor_id.estimation.simulate import DEFAULT_MAX_STEP, simulate, TimeInvariantPlan
+from rotor_id.estimation.simulate import (DEFAULT_MAX_STEP, simulate, Simulation,
+                                          TimeInvariantPlan)
 
 INITIAL_STATE_MODES = ('estimate', 'positions', 'equilibrium', 'zero')
 
@@ -593,13 +594,21 @@ def fit_output_error(experiments, unknowns, guess=None, known=None, noise_std=No
         trial_results = evaluate(problem, trial, max_step)
         return cost_of(trial_results, noise_var), trial_results
 
+    compiled = _CompiledIteration.for_problem(problem, theta, results, floor, prior_info,
+                                              prior_mean, step_tol, not fixed_noise)
     for iteration in range(1, max_iter + 1):
-        M, grad = _weighted_sums(problem, results, noise_var)
-        M += np.diag(prior_info)
-        grad = grad + prior_info * (theta - prior_mean)
-
-        accepted, trial, _, trial_results, lm = damped_gauss_newton_step(
-            theta, grad, M, problem.lo, problem.hi, cost, trial_cost, lm)
+        status = -1 if compiled is None else compiled.iterate(theta, cost, lm, noise_var[0])
+        if status >= 0:             # the compiled iteration: the same steps as below
+            accepted, M, grad, lm = status == 1, compiled.M, compiled.grad, compiled.lm
+            if accepted:
+                trial, trial_results = compiled.theta.copy(), [compiled.result()]
+        else:
+            compiled = None         # singular step equations: Python from here on
+            M, grad = _weighted_sums(problem, results, noise_var)
+            M += np.diag(prior_info)
+            grad = grad + prior_info * (theta - prior_mean)
+            accepted, trial, _, trial_results, lm = damped_gauss_newton_step(
+                theta, grad, M, problem.lo, problem.hi, cost, trial_cost, lm)
         if not accepted:
             theta_eval = theta
             message = ('no step lowers the cost any more (stopped at a minimum or a bound; '
@@ -610,14 +619,22 @@ def fit_output_error(experiments, unknowns, guess=None, known=None, noise_std=No
         applied = trial - theta
         theta = trial
         results = trial_results
-        if not fixed_noise:
-            noise_var = estimate_var(results)
+        if compiled is not None:
             theta_eval = theta
-        cost = cost_of(results, noise_var)
-        sigma = np.sqrt(np.clip(np.diag(np.linalg.pinv(M)), 0.0, None))
-        small = np.abs(applied) <= np.maximum(step_tol * sigma, 1e-12 * np.abs(theta))
-        n_res = sum(res.size for res, _, _ in results)
-        rms = math.sqrt(sum(float(np.sum(_squares(result))) for result in results) / n_res)
+            noise_var = [compiled.var.copy()]
+            cost = compiled.cost
+            all_small = compiled.all_small
+            rms = math.sqrt(compiled.squares / results[0][0].size)
+        else:
+            if not fixed_noise:
+                noise_var = estimate_var(results)
+                theta_eval = theta
+            cost = cost_of(results, noise_var)
+            sigma = np.sqrt(np.clip(np.diag(np.linalg.pinv(M)), 0.0, None))
+            small = np.abs(applied) <= np.maximum(step_tol * sigma, 1e-12 * np.abs(theta))
+            all_small = bool(np.all(small))
+            n_res = sum(res.size for res, _, _ in results)
+            rms = math.sqrt(sum(float(np.sum(_squares(result))) for result in results) / n_res)
         info = {'iteration': iteration, 'cost': float(cost), 'rms': rms, 'names': names,
                 'values': theta.copy(), 'elapsed': time.perf_counter() - t_start,
                 'label': label, 'noise_std': _pooled_std(noise_var, experiments)}
@@ -627,7 +644,7 @@ def fit_output_error(experiments, unknowns, guess=None, known=None, noise_std=No
         if np.any(at_bound):
             bound_names = [n for n, b in zip(names, at_bound) if b]
             message = 'parameter at a physical bound: ' + ', '.join(bound_names)
-        if np.all(small):
+        if all_small:
             converged = True
             message = 'converged' if not np.any(at_bound) else message
             break
@@ -669,6 +686,93 @@ def fit_output_error(experiments, unknowns, guess=None, known=None, noise_std=No
         initial_states=init_states, warnings=warnings,
         model_parameters=dict(zip(problem.model.parameter_names, p_final)),
         run_noise_std=[np.sqrt(var) for var in noise_var])
+
+
+class _CompiledIteration:
+    """
+    The Gauss-Newton iterations of a single prepared run in one compiled call each.
+
+    Used where the run has a :class:`~rotor_id.estimation.simulate.TimeInvariantPlan` whose
+    reference point covers every unknown model parameter (so no trial needs the model), no
+    output offset, and an initial state that does not depend on the parameters (not
+    'equilibrium'). :meth:`iterate` runs ``_kernels_numba.gn_iteration``: the same M,
+    gradient, damped step, trials, noise estimate, cost and convergence test as the Python
+    loop of :func:`fit_output_error` (test_kernels.py compares the two to 1e-9).
+    """
+
+    def __init__(self, problem, plan, results, floor, prior_info, prior_mean, step_tol,
+                 estimate_noise):
+        """Hold the arrays of the compiled call (see :meth:`for_problem`)."""
+        exp = problem.experiments[0]
+        self.plan = plan
+        self.exp = exp
+        p_ref, self.F, self.g, self.dF, self.dg, _ = plan.reference
+        self.p_ref = p_ref
+        self.p_base = problem.p_base
+        self.index = np.asarray(problem.param_index, dtype=np.int64)
+        self.free = np.asarray(problem.free_states[0], dtype=np.int64)
+        theta0 = np.zeros(len(problem.names))
+        x0, self.S0 = problem.initial_state(0, theta0, problem.full_parameters(theta0))
+        x0[self.free] = 0.0
+        self.x0_base = x0
+        self.S0 = np.ascontiguousarray(self.S0, dtype=float)
+        self.y = np.ascontiguousarray(exp.y, dtype=float)
+        self.lo, self.hi = problem.lo, problem.hi
+        self.floor = float(floor)
+        self.prior_info, self.prior_mean = prior_info, prior_mean
+        self.step_tol = float(step_tol)
+        self.estimate_noise = bool(estimate_noise)
+        res, dy, sim = results[0]
+        self.current = (sim.x, sim.dx, sim.y, dy, res) + tuple(sim.residual_sums)
+        self.spare = tuple(np.empty_like(a) for a in self.current)
+        k, m = len(problem.names), exp.model.n_outputs
+        self.theta, self.var = np.empty(k), np.empty(m)
+        self.M, self.grad, self.sigma = np.empty((k, k)), np.empty(k), np.empty(k)
+        self.scalars = np.empty(4)
+
+    @classmethod
+    def for_problem(cls, problem, theta, results, floor, prior_info, prior_mean, step_tol,
+                    estimate_noise):
+        """Return the compiled iteration of this problem, or None where it does not apply."""
+        if problem.plans is None or len(problem.experiments) != 1:
+            return None
+        plan = problem.plans[0]
+        mode = problem.experiments[0].initial_state
+        if (plan is None or plan.has_offset or plan.reference is None
+                or (isinstance(mode, str) and mode == 'equilibrium')
+                or results[0][2].residual_sums is None
+                or not plan.reference[5][problem.param_index].all()
+                or np.any((plan.reference[0] != problem.p_base)
+                          & ~plan.reference[5])):
+            return None
+        return cls(problem, plan, results, floor, prior_info, prior_mean, step_tol,
+                   estimate_noise)
+
+    def iterate(self, theta, cost, lm, var):
+        """Run one iteration from θ; return 1 (step accepted), 0 (none lowers the cost), −1."""
+        plan = self.plan
+        xs, Ss, yhat, dyhat, res, sq, gc, Mc = self.spare
+        status = plan.kernels.gn_iteration(
+            self.F, self.g, self.dF, self.dg, self.p_ref, self.p_base, self.index, plan.step,
+            plan.substeps, plan.U, self.x0_base, self.free, self.S0, plan.H, self.y,
+            np.asarray(theta, dtype=float), float(cost), float(lm),
+            np.asarray(var, dtype=float), self.estimate_noise, self.floor, self.prior_info,
+            self.prior_mean, self.lo, self.hi, self.step_tol, self.current[5],
+            self.current[6], self.current[7], xs, Ss, yhat, dyhat, res, sq, gc, Mc,
+            self.theta, self.var, self.M, self.grad, self.sigma, self.scalars)
+        self.cost, self.lm = float(self.scalars[0]), float(self.scalars[1])
+        self.all_small = bool(self.scalars[2])
+        self.squares = float(self.scalars[3])
+        if status == 1:
+            self.current, self.spare = self.spare, self.current
+        return int(status)
+
+    def result(self):
+        """The accepted point's (residual, dy/dθ, Simulation), as :func:`evaluate` gives."""
+        xs, Ss, yhat, dyhat, res, sq, gc, Mc = self.current
+        sim = Simulation(self.plan.t, xs, yhat, Ss, dyhat, residual=res,
+                         residual_sums=(sq, gc, Mc))
+        return res, dyhat, sim
 
 
 def _fixed_noise(noise_std, experiments, m):

@@ -331,6 +331,13 @@ def _unit_inputs(q, mixed=False):
     return u
 
 
+def _same(a, b, rtol=1e-11):
+    """Tell whether arrays a and b agree to ``rtol`` of their largest entry."""
+    scale = max(float(np.max(np.abs(a), initial=0.0)), float(np.max(np.abs(b), initial=0.0)),
+                1e-300)
+    return bool(np.max(np.abs(a - b), initial=0.0) <= rtol * scale)
+
+
 def _check_affine(model, p, q):
     u1 = _unit_inputs(q, mixed=True)
     probes = u1.shape[0]
@@ -339,9 +346,7 @@ def _check_affine(model, p, q):
     F, g = model.system(t, p, u)
     dF, dg = model.system_jacobian(t, p, u)
 
-    def same(a, b):
-        scale = max(float(np.max(np.abs(a))), float(np.max(np.abs(b))), 1e-300)
-        return bool(np.max(np.abs(a - b)) <= 1e-11 * scale)
+    same = _same
 
     if not (same(F, np.broadcast_to(F[:1], F.shape)) and
             same(dF, np.broadcast_to(dF[:1], dF.shape))):
@@ -396,6 +401,8 @@ class TimeInvariantPlan:
         self.kernels = module
         self.probe_t = np.full(self.n_inputs + 1, float(t[0]))
         self.probe_u = _unit_inputs(self.n_inputs)
+        #: (p_ref, F, g, ∂F, ∂g at the unit inputs, mask of affine parameters); see _probes
+        self.reference = None
 
     @classmethod
     def prepare(cls, model, inputs, t, max_step, p):
@@ -436,28 +443,79 @@ class TimeInvariantPlan:
                 or (fit and np.shape(y) != (self.t.size, m))):
             raise ValueError('TimeInvariantPlan.run: x0 needs shape (n,), S0 (n, k ≥ '
                              'len(param_index)), p one value per model parameter, y (T, m)')
-        F, g = model.system(self.probe_t, p, self.probe_u)
-        if S0.shape[1]:
-            dF, dg = model.system_jacobian(self.probe_t, p, self.probe_u)
-        else:
-            dF, dg = self.no_derivatives(n, p.size)
+        F, g, dF, dg, shift = self._probes(p, index)
         if self.has_offset:
             d = np.ascontiguousarray(model.output_offset(self.t, p), dtype=float)
             dd = np.ascontiguousarray(model.output_offset_jacobian(self.t, p)[:, :, index])
         else:
             d, dd = np.zeros((0, m)), np.zeros((0, m, index.size))
         y = np.ascontiguousarray(y, dtype=float) if fit else np.zeros((0, m))
-        xs, Ss, yhat, dyhat, res, sq, gc, Mc = self.kernels.affine_run(
+        T, k = self.t.size, S0.shape[1]
+        xs, Ss = np.empty((T, n)), np.empty((T, n, k))
+        yhat, dyhat = np.empty((T, m)), np.empty((T, m, k))
+        res = np.empty((y.shape[0], m))
+        sq, gc, Mc = np.empty(m), np.empty((m, k)), np.empty((m, k, k))
+        self.kernels.affine_run(
             np.ascontiguousarray(F, dtype=float), np.ascontiguousarray(g, dtype=float),
             np.ascontiguousarray(dF, dtype=float), np.ascontiguousarray(dg, dtype=float),
-            index, self.step, self.substeps, self.U, np.ascontiguousarray(x0, dtype=float),
-            S0, self.H, d, dd, y)
+            shift, index, self.step, self.substeps, self.U, np.ascontiguousarray(x0, dtype=float),
+            S0, self.H, d, dd, y, xs, Ss, yhat, dyhat, res, sq, gc, Mc)
         sums = (sq, gc, Mc) if fit else None
         if not S0.shape[1]:
             return Simulation(self.t, xs, yhat, residual=res if fit else None,
                               residual_sums=sums)
         return Simulation(self.t, xs, yhat, Ss, dyhat, residual=res if fit else None,
                           residual_sums=sums)
+
+    def _probes(self, p, index):
+        """
+        F, g (and ∂F, ∂g for sensitivities to ``index``) at the unit inputs, and the shift.
+
+        The model is evaluated here at its unit inputs, or not at all: after the first
+        evaluation with parameter sensitivities (the reference point p_ref), the parameters
+        of ``index`` along which ∂F/∂p and ∂g/∂p do not change (:meth:`_affine_parameters`,
+        once) enter exactly as F(p) = F(p_ref) + Σ (p − p_ref) ∂F/∂p, likewise g; a p that
+        differs from p_ref in any other parameter is evaluated afresh. So a Gauss-Newton fit
+        evaluates the model two or three times in all, not at every iteration.
+        """
+        ref = self.reference
+        if ref is not None:
+            shift = p - ref[0]
+            if not np.any(shift[~ref[5]]):
+                return ref[1], ref[2], ref[3], ref[4], shift
+        model = self.model
+        F, g = model.system(self.probe_t, p, self.probe_u)
+        if not index.size:                      # no parameter sensitivities wanted
+            q1 = self.n_inputs + 1
+            n = model.n_states
+            return F, g, np.zeros((q1, 0, n, n)), np.zeros((q1, 0, n)), np.zeros(0)
+        dF, dg = model.system_jacobian(self.probe_t, p, self.probe_u)
+        if ref is None:
+            self.reference = (p.copy(), F, g, dF, dg,
+                              self._affine_parameters(p, dF, dg, index))
+        return F, g, dF, dg, np.zeros(0)
+
+    def _affine_parameters(self, p, dF, dg, candidates):
+        """
+        Mask of the ``candidates`` along which F and g are affine, near p and with the others fixed.
+
+        ∂F/∂p_i and ∂g/∂p_i of every candidate must come out the same (to 1e-12 of their
+        largest entry) after all candidates moved by distinct steps; those that change drop
+        out and the rest are checked again (for polynomial coefficients, as every model's,
+        constant derivatives at a generic second point mean constant on the whole subspace).
+        """
+        mask = np.zeros(p.size, dtype=bool)
+        mask[np.asarray(candidates, dtype=np.int64)] = True
+        spread = 0.01 * (1.0 + np.abs(p)) * np.linspace(1.0, 1.7, p.size)
+        while mask.any():
+            dF2, dg2 = self.model.system_jacobian(self.probe_t, p + np.where(mask, spread, 0.0),
+                                                  self.probe_u)
+            changed = [i for i in np.flatnonzero(mask)
+                       if not (_same(dF[:, i], dF2[:, i]) and _same(dg[:, i], dg2[:, i]))]
+            if not changed:
+                break
+            mask[changed] = False
+        return mask
 
     @staticmethod
     def no_sensitivity(n):

@@ -183,8 +183,9 @@ def test_plan_matches_numpy_on_augmented_models(monkeypatch):
     assert planned >= 3, 'the plan should take most time-invariant augmentations'
 
 
-@pytest.mark.parametrize('case_name', ['wake_7par', 'multiblade_c'])
-def test_fit_through_the_plan_matches_numpy(case_name, monkeypatch):
+@pytest.mark.parametrize('case_name, noise', [('wake_7par', 'given'), ('multiblade_c', 'given'),
+                                              ('wake_7par', 'estimated, prior')])
+def test_fit_through_the_plan_matches_numpy(case_name, noise, monkeypatch):
     """
     Output-error ML through the plan gives the numpy estimate, bound and cost to 1e-9.
 
@@ -197,9 +198,11 @@ def test_fit_through_the_plan_matches_numpy(case_name, monkeypatch):
     exp = iteration_experiment(case, case_data(case, 1))
     sigma = C.SCENARIOS[case.scenario].noise_std
 
+    options = {'noise_std': sigma} if noise == 'given' else {
+        'prior': {'mean': {case.unknowns[0]: 0.45}, 'std': {case.unknowns[0]: 0.05}}}
+
     def fit():
-        return fit_output_error([exp], list(case.unknowns), guess=dict(case.start),
-                                noise_std=sigma)
+        return fit_output_error([exp], list(case.unknowns), guess=dict(case.start), **options)
     kernel = kernels.load()
     assert kernel is not None, kernels.status()['error']
     assert _plan_of(exp.model, exp.inputs, exp.t, exp.model.nominal()) is not None
@@ -207,11 +210,18 @@ def test_fit_through_the_plan_matches_numpy(case_name, monkeypatch):
     monkeypatch.setenv('ROTOR_ID_KERNELS', 'numpy')
     reference = fit()
     monkeypatch.setitem(kernels._state, 'kernel', kernel)
+    from rotor_id.estimation import output_error
+    calls = []
+    iterate = output_error._CompiledIteration.iterate
+    monkeypatch.setattr(output_error._CompiledIteration, 'iterate',
+                        lambda self, *args: calls.append(1) or iterate(self, *args))
     planned = fit()
+    assert len(calls) == planned.iterations, 'every iteration should be the compiled one'
     assert planned.iterations == reference.iterations and planned.converged
     np.testing.assert_allclose(planned.values, reference.values, rtol=1e-9, atol=0)
     np.testing.assert_allclose(planned.std, reference.std, rtol=1e-9, atol=0)
     np.testing.assert_allclose(planned.cost, reference.cost, rtol=1e-9)
+    np.testing.assert_allclose(planned.noise_std, reference.noise_std, rtol=1e-9)
     np.testing.assert_allclose(planned.residuals[0], reference.residuals[0], rtol=0,
                                atol=1e-9 * np.max(np.abs(reference.residuals[0])))
 
