@@ -357,8 +357,9 @@ def _mm(A, B, out):
             out[i, j] = 0.0
         for r in range(A.shape[1]):
             a = A[i, r]
-            for j in range(B.shape[1]):
-                out[i, j] += a * B[r, j]
+            if a != 0.0:                    # ∂F/∂p is sparse
+                for j in range(B.shape[1]):
+                    out[i, j] += a * B[r, j]
 
 
 @njit(cache=True, nogil=True)
@@ -367,8 +368,9 @@ def _mm_add(A, B, out):
     for i in range(A.shape[0]):
         for r in range(A.shape[1]):
             a = A[i, r]
-            for j in range(B.shape[1]):
-                out[i, j] += a * B[r, j]
+            if a != 0.0:
+                for j in range(B.shape[1]):
+                    out[i, j] += a * B[r, j]
 
 
 @njit(cache=True, nogil=True)
@@ -529,12 +531,14 @@ def interval_map(F, B, e, dF, dB, de, h, substeps, Phi, dPhi, C, dC, ce, dce):
 
 
 @njit(cache=True, nogil=True)
-def affine_scan(Phi, dPhi, W, dW, x0, S0, H, d, dd, y, xs, Ss, yhat, dyhat, res, sq, gc, Mc):
+def affine_scan(Phi, dPhi, W, ce, dce, x0, S0, H, d, dd, y, xs, Ss, yhat, dyhat, res, sq, gc,
+                Mc):
     """
     States, sensitivities and outputs of x_{j+1} = Φ x_j + W_j; residuals and their sums.
 
-    Φ (n, n) and its derivatives dPhi (kp, n, n) from :func:`interval_map`; W (T-1, n) and
-    dW (T-1, kp, n) the input forcing of every interval and its derivatives (C U_j + c_e).
+    Φ (n, n) and its derivatives dPhi (kp, n, n) from :func:`interval_map`; W (T-1, kp+1, n)
+    the input forcing of every interval, then its derivatives, without the constant terms
+    ce (n,) and dce (kp, n): x_{j+1} = Φ x_j + W[j, 0] + ce.
     S0 (n, k): the first kp columns are the parameters, the rest (e.g. initial states) have no
     forcing. H (T or 1, m, n); output offset d (T, m) and its derivatives dd (T, m, kp), or
     arrays with 0 rows when there is none. y (T, m) measured outputs, or 0 rows for a plain
@@ -570,9 +574,9 @@ def affine_scan(Phi, dPhi, W, dW, x0, S0, H, d, dd, y, xs, Ss, yhat, dyhat, res,
             for i in range(n):
                 for c in range(k1):
                     Zn[i, c] = 0.0
-                Zn[i, 0] = W[j - 1, i]
+                Zn[i, 0] = W[j - 1, 0, i] + ce[i]
                 for p in range(kp):
-                    acc = dW[j - 1, p, i]
+                    acc = W[j - 1, 1 + p, i] + dce[p, i]
                     for r in range(n):
                         acc += dPhi[p, i, r] * Z[r, 0]
                     Zn[i, 1 + p] = acc
@@ -597,8 +601,9 @@ def affine_scan(Phi, dPhi, W, dW, x0, S0, H, d, dd, y, xs, Ss, yhat, dyhat, res,
                     yz[1 + c] = dd[j, a, c]
             for i in range(n):
                 hv = Hj[a, i]
-                for c in range(k1):
-                    yz[c] += hv * Z[i, c]
+                if hv != 0.0:               # H is sparse (a channel reads few states)
+                    for c in range(k1):
+                        yz[c] += hv * Z[i, c]
             yhat[j, a] = yz[0]
             for c in range(k):
                 dyhat[j, a, c] = yz[1 + c]
@@ -673,30 +678,16 @@ def affine_run(F_probe, g_probe, dF_probe, dg_probe, shift, param_index, h, subs
     ce = np.empty(n)
     dce = np.empty((kp, n))
     interval_map(F, B, e, dF, dB, de, h, substeps, Phi, dPhi, C, dC, ce, dce)
-    # the input forcing of every interval: W_j = C U_j + c_e, dW_j = dC U_j + dc_e
-    W = np.empty((T - 1, n))
-    dW = np.empty((T - 1, kp, n))
-    active = np.zeros(L, dtype=np.bool_)
+    # the input forcing of every interval, C U_j and dC U_j, as one matrix product (BLAS)
+    Ccat = np.empty((L, (kp + 1) * n))
     for col in range(L):
         for i in range(n):
-            if C[i, col] != 0.0:
-                active[col] = True
+            Ccat[col, i] = C[i, col]
             for p in range(kp):
-                if dC[p, i, col] != 0.0:
-                    active[col] = True
-    cols = np.nonzero(active)[0]
-    for j in range(T - 1):
-        for i in range(n):
-            acc = ce[i]
-            for col in cols:
-                acc += C[i, col] * U[j, col]
-            W[j, i] = acc
-            for p in range(kp):
-                acc = dce[p, i]
-                for col in cols:
-                    acc += dC[p, i, col] * U[j, col]
-                dW[j, p, i] = acc
-    affine_scan(Phi, dPhi, W, dW, x0, S0, H, d, dd, y, xs, Ss, yhat, dyhat, res, sq, gc, Mc)
+                Ccat[col, (1 + p) * n + i] = dC[p, i, col]
+    W = np.dot(U, Ccat).reshape((T - 1, kp + 1, n))
+    affine_scan(Phi, dPhi, W, ce, dce, x0, S0, H, d, dd, y, xs, Ss, yhat, dyhat, res, sq, gc,
+                Mc)
 
 
 def warm_up_affine():

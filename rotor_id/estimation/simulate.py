@@ -510,11 +510,17 @@ class TimeInvariantPlan:
         while mask.any():
             dF2, dg2 = self.model.system_jacobian(self.probe_t, p + np.where(mask, spread, 0.0),
                                                   self.probe_u)
-            changed = [i for i in np.flatnonzero(mask)
-                       if not (_same(dF[:, i], dF2[:, i]) and _same(dg[:, i], dg2[:, i]))]
-            if not changed:
+            changed = np.zeros(p.size, dtype=bool)
+            for a, b in ((dF, dF2), (dg, dg2)):      # per parameter: (probes, P, ...)
+                a = np.moveaxis(a, 1, 0).reshape(p.size, -1)
+                b = np.moveaxis(b, 1, 0).reshape(p.size, -1)
+                scale = np.maximum(np.maximum(np.abs(a).max(axis=1), np.abs(b).max(axis=1)),
+                                   1e-300)
+                changed |= np.abs(a - b).max(axis=1) > 1e-11 * scale
+            changed &= mask
+            if not changed.any():
                 break
-            mask[changed] = False
+            mask &= ~changed
         return mask
 
     @staticmethod
