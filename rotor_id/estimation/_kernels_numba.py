@@ -546,81 +546,86 @@ def affine_scan(Phi, dPhi, W, ce, dce, x0, S0, H, d, dd, y, xs, Ss, yhat, dyhat,
     res = y − ŷ (T, m), sq = Σ res² (m,), gc = Σ ∂ŷᵀ res (m, k), Mc = Σ ∂ŷᵀ ∂ŷ (m, k, k),
     per channel (so the caller can weight them by any R⁻¹).
 
-    The state and its sensitivities travel together as Z = [x S] (n, k+1), one row update
-    Z⁺ = Φ Z + [W  ∂Φ x + ∂W] per sample.
+    Three passes: the states; the sensitivities S⁺ = Φ S + [∂Φ x + ∂W, 0], whose forcing is
+    one matrix product once the states are known; then outputs, residuals and (as matrix
+    products) their sums. Only the two recursions are sequential.
     """
     T = xs.shape[0]
     n = x0.shape[0]
     k = S0.shape[1]
-    k1 = k + 1
     kp = dPhi.shape[0]
     m = yhat.shape[1]
     const_H = H.shape[0] == 1
     has_d = d.shape[0] > 0
     fit = y.shape[0] > 0
-    Z = np.empty((n, k1))
-    Zn = np.empty((n, k1))
+    # 1. the states
     for i in range(n):
-        Z[i, 0] = x0[i]
-        for c in range(k):
-            Z[i, 1 + c] = S0[i, c]
-    yz = np.empty(k1)
-    if fit:
-        sq[:] = 0.0
-        gc[:, :] = 0.0
-        Mc[:, :, :] = 0.0
-    for j in range(T):
-        if j > 0:
-            for i in range(n):
-                for c in range(k1):
-                    Zn[i, c] = 0.0
-                Zn[i, 0] = W[j - 1, 0, i] + ce[i]
-                for p in range(kp):
-                    acc = W[j - 1, 1 + p, i] + dce[p, i]
+        xs[0, i] = x0[i]
+    for j in range(1, T):
+        for i in range(n):
+            acc = W[j - 1, 0, i] + ce[i]
+            for r in range(n):
+                acc += Phi[i, r] * xs[j - 1, r]
+            xs[j, i] = acc
+    # 2. the sensitivities, with the forcing ∂Φ x_j + ∂W_j of every interval
+    if k > 0:
+        forcing = np.zeros((T - 1, kp * n))
+        if kp > 0:
+            dPhiT = np.empty((n, kp * n))
+            for p in range(kp):
+                for i in range(n):
                     for r in range(n):
-                        acc += dPhi[p, i, r] * Z[r, 0]
-                    Zn[i, 1 + p] = acc
+                        dPhiT[r, p * n + i] = dPhi[p, i, r]
+            forcing = np.dot(xs[:T - 1], dPhiT)
+        S = S0.copy()
+        Sn = np.empty((n, k))
+        for i in range(n):
+            for c in range(k):
+                Ss[0, i, c] = S[i, c]
+        for j in range(1, T):
+            for i in range(n):
+                for c in range(k):
+                    Sn[i, c] = 0.0
+                for p in range(kp):
+                    Sn[i, p] = forcing[j - 1, p * n + i] + W[j - 1, 1 + p, i] + dce[p, i]
                 for r in range(n):
                     a = Phi[i, r]
-                    for c in range(k1):
-                        Zn[i, c] += a * Z[r, c]
+                    for c in range(k):
+                        Sn[i, c] += a * S[r, c]
+            S, Sn = Sn, S
             for i in range(n):
-                for c in range(k1):
-                    Z[i, c] = Zn[i, c]
-        for i in range(n):
-            xs[j, i] = Z[i, 0]
-            for c in range(k):
-                Ss[j, i, c] = Z[i, 1 + c]
+                for c in range(k):
+                    Ss[j, i, c] = S[i, c]
+    # 3. outputs and residuals
+    for j in range(T):
         Hj = H[0] if const_H else H[j]
         for a in range(m):
-            for c in range(k1):
-                yz[c] = 0.0
-            if has_d:
-                yz[0] = d[j, a]
-                for c in range(kp):
-                    yz[1 + c] = dd[j, a, c]
+            acc = d[j, a] if has_d else 0.0
+            for c in range(k):
+                dyhat[j, a, c] = dd[j, a, c] if (has_d and c < kp) else 0.0
             for i in range(n):
                 hv = Hj[a, i]
                 if hv != 0.0:               # H is sparse (a channel reads few states)
-                    for c in range(k1):
-                        yz[c] += hv * Z[i, c]
-            yhat[j, a] = yz[0]
-            for c in range(k):
-                dyhat[j, a, c] = yz[1 + c]
+                    acc += hv * xs[j, i]
+                    for c in range(k):
+                        dyhat[j, a, c] += hv * Ss[j, i, c]
+            yhat[j, a] = acc
             if fit:
-                r_ = y[j, a] - yz[0]
-                res[j, a] = r_
-                sq[a] += r_ * r_
-                for c in range(k):
-                    v = yz[1 + c]
-                    gc[a, c] += v * r_
-                    for c2 in range(c, k):
-                        Mc[a, c, c2] += v * yz[1 + c2]
+                res[j, a] = y[j, a] - acc
     if fit:
+        D = np.empty((T, k))
+        r_ = np.empty(T)
         for a in range(m):
-            for c in range(k):
-                for c2 in range(c):
-                    Mc[a, c, c2] = Mc[a, c2, c]
+            total = 0.0
+            for j in range(T):
+                r_[j] = res[j, a]
+                total += r_[j] * r_[j]
+                for c in range(k):
+                    D[j, c] = dyhat[j, a, c]
+            sq[a] = total
+            if k > 0:
+                Mc[a] = np.dot(D.T, D)
+                gc[a] = np.dot(D.T, r_)
 
 
 @njit(cache=True, nogil=True)
