@@ -296,6 +296,7 @@ PLAN_MAX_VALUES = 1 << 19
 #: no periodic coefficient (period 2π/N) takes the same value at all three.
 _CHECK_TIMES = (0.5, 2.1, 3.9)
 _verdicts = weakref.WeakKeyDictionary()        # model -> {number of inputs: verdict}
+_affine_masks = weakref.WeakKeyDictionary()    # model -> {(unknowns, fixed p): mask}
 
 
 def affine_time_invariant(model, p, n_inputs):
@@ -491,9 +492,28 @@ class TimeInvariantPlan:
             return F, g, np.zeros((q1, 0, n, n)), np.zeros((q1, 0, n)), np.zeros(0)
         dF, dg = model.system_jacobian(self.probe_t, p, self.probe_u)
         if ref is None:
-            self.reference = (p.copy(), F, g, dF, dg,
-                              self._affine_parameters(p, dF, dg, index))
+            self.reference = (p.copy(), F, g, dF, dg, self._affine_mask(p, dF, dg, index))
         return F, g, dF, dg, np.zeros(0)
+
+    def _affine_mask(self, p, dF, dg, index):
+        """
+        :meth:`_affine_parameters`, remembered per model object, unknowns and fixed values.
+
+        Affinity along the unknowns holds on the whole subspace they span, so it depends on
+        the values of the other parameters only (a refit of the same model skips the check).
+        """
+        fixed = p.copy()
+        fixed[index] = 0.0
+        key = (tuple(int(i) for i in index), fixed.tobytes())
+        try:
+            cache = _affine_masks.setdefault(self.model, {})
+        except TypeError:
+            cache = {}
+        if key not in cache:
+            if len(cache) > 16:
+                cache.clear()
+            cache[key] = self._affine_parameters(p, dF, dg, index)
+        return cache[key].copy()
 
     def _affine_parameters(self, p, dF, dg, candidates):
         """
