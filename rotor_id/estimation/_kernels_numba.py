@@ -648,8 +648,6 @@ def affine_run(F_probe, g_probe, dF_probe, dg_probe, shift, param_index, h, subs
     kp = param_index.shape[0]
     L = U.shape[1]
     T = U.shape[0] + 1
-    m = H.shape[1]
-    k = S0.shape[1]
     F = F_probe[0].copy()
     g = g_probe.copy()
     for ip in range(shift.shape[0]):

@@ -768,7 +768,7 @@ class _CompiledIteration:
         return int(status)
 
     def result(self):
-        """The accepted point's (residual, dy/dθ, Simulation), as :func:`evaluate` gives."""
+        """Return the accepted point's (residual, dy/dθ, Simulation), as :func:`evaluate` does."""
         xs, Ss, yhat, dyhat, res, sq, gc, Mc = self.current
         sim = Simulation(self.plan.t, xs, yhat, Ss, dyhat, residual=res,
                          residual_sums=(sq, gc, Mc))

@@ -517,7 +517,7 @@ class TimeInvariantPlan:
 
     def _affine_parameters(self, p, dF, dg, candidates):
         """
-        Mask of the ``candidates`` along which F and g are affine, near p and with the others fixed.
+        Mask of the ``candidates`` along which F and g are affine (the others fixed at p).
 
         ∂F/∂p_i and ∂g/∂p_i of every candidate must come out the same (to 1e-12 of their
         largest entry) after all candidates moved by distinct steps; those that change drop
