@@ -27,13 +27,17 @@ flapping equation alike, the data want:
    made robust to the serial correlation of the smoothed states (cluster sandwich over
    :data:`N_CLUSTERS` contiguous clusters; the plain regression covariance understates it, as
    the report warns for equation error). Equation error attenuates a coefficient where the
-   smoothed states lean on the wrong model (measured: −0.086 ± 0.003 for a true −0.1), so the
+   smoothed states lean on the wrong model (bench/results/proposal.md), so the
    baseline with the kept terms (:class:`LibraryTerm`) is then fitted by the same output-error
    ML as every candidate: that coefficient and its Cramér-Rao σ are the proposal's, the
    regression's are reported beside them.
 
 What comes out is labelled ``proposal``: a hypothesis for the experimenter (a term, its
-coefficient ± σ, how much it improves the held-out fit), never a catalogue verdict.
+coefficient ± σ, how much it improves the held-out fit), never a catalogue verdict. Terms
+whose held-out error is not worse than the proposed one's beyond chance (the same t-test,
+one-sided 5 %, uncorrected: generous to rivals) are listed as ``alternatives``: e.g. β cos ψ
+and θ cos ψ are nearly collinear where the coning (∝ θ0) dominates the flap, and a small term
+may not tell them apart.
 """
 
 from dataclasses import dataclass, field
@@ -229,7 +233,9 @@ def summary_line(proposal):
         return f'proposal: no library term improves the held-out equation error beyond ' \
                f'chance{why}'
     parts = [f"beta_k'' += ({t['coefficient']:.4g} ± {t['std']:.2g}) · {t['term']} "
-             f"(held-out equation error −{t['heldout_improvement']:.0%})"
+             f"(held-out equation error −{t['heldout_improvement']:.0%}"
+             + (f"; as good within chance: {', '.join(t['alternatives'])}"
+                if t.get('alternatives') else '') + ')'
              for t in proposal['terms']]
     return 'proposal (a hypothesis, not a catalogue verdict): ' + '; '.join(parts)
 
@@ -300,6 +306,15 @@ def refine(experiments, unknowns, values, known, terms):
                             max_iter=30), extra
 
 
+def _worse(sse, best_sse, t_crit):
+    """Say whether held-out errors ``sse`` are worse than ``best_sse`` beyond chance."""
+    ratio = np.log(np.maximum(sse, 1e-300) / np.maximum(best_sse, 1e-300))
+    spread = float(np.std(ratio, ddof=1))
+    if spread == 0.0:
+        return bool(np.mean(ratio) > 0)
+    return bool(np.mean(ratio) / (spread / math.sqrt(ratio.size)) > t_crit)
+
+
 def propose(experiments, unknowns, values, known, max_terms=MAX_TERMS, n_blocks=N_BLOCKS,
             alpha=ALPHA):
     """
@@ -346,11 +361,15 @@ def propose(experiments, unknowns, values, known, max_terms=MAX_TERMS, n_blocks=
         t_stat = float(np.mean(gain)) / (spread / math.sqrt(n_blocks)) if spread > 0 \
             else (math.inf if np.mean(gain) > 0 else 0.0)
         t_crit = float(stats.t.ppf(1.0 - alpha / len(left), n_blocks - 1))
+        # a rival term is as good within chance unless worse at the one-sided 5 % level
+        t_alternative = float(stats.t.ppf(0.95, n_blocks - 1))
         improvement = float(1.0 - np.sum(trials[best]) / np.sum(sse))
         kept = bool(t_stat > t_crit and improvement >= MIN_IMPROVEMENT)
         steps.append({'term': names[best], 'heldout_improvement': improvement,
                       't_statistic': t_stat, 't_critical': t_crit,
-                      'blocks_improved': int(np.sum(gain > 0)), 'kept': kept})
+                      'blocks_improved': int(np.sum(gain > 0)), 'kept': kept,
+                      'alternatives': [names[m] for m in left if m != best and not _worse(
+                          trials[m], trials[best], t_alternative)]})
         if not kept:
             break
         current.append(best)
@@ -374,7 +393,8 @@ def propose(experiments, unknowns, values, known, max_terms=MAX_TERMS, n_blocks=
                           'coefficient_from': 'output-error ML' if ml else 'equation error',
                           'equation_error_coefficient': ee[0], 'equation_error_std': ee[1],
                           'heldout_improvement': step['heldout_improvement'],
-                          't_statistic': step['t_statistic'], 'label': 'proposal'})
+                          't_statistic': step['t_statistic'],
+                          'alternatives': step['alternatives'], 'label': 'proposal'})
     after = float(math.sqrt(np.sum(sse) / reg.e.size))
     return Proposal(terms=terms, library=names, heldout_rms_before=before,
                     heldout_rms_after=after, steps=steps, reason=reason)

@@ -62,6 +62,8 @@ def test_proposal_names_the_term_no_candidate_models():
     assert term['label'] == 'proposal' and term['coefficient_from'] == 'output-error ML'
     assert abs(term['coefficient'] + K_1C) <= 3.0 * term['std'], term
     assert term['heldout_improvement'] > 0.2
+    # rivals as good within chance are named beside it (β cos ψ ~ θ cos ψ where coning rules)
+    assert set(term['alternatives']) <= set(term_names()) - {'beta*cos(psi)'}
     assert proposal.heldout_rms_after < proposal.heldout_rms_before
 
 
