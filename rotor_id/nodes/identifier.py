@@ -43,6 +43,7 @@ import sys
 import threading
 import time
 
+from diagnostic_msgs.msg import DiagnosticStatus
 import numpy as np
 from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
 from rclpy.node import Node
@@ -150,6 +151,7 @@ class Identifier(Node):
             "(default: the run description's); a change applies from the next test point",
             read_only=False)
         self.points = None
+        self.window_checked = 0           # test point whose window length was checked
         for name, reason in (('target_std', self._targets_reason(self.d['target_std'])),
                              ('window_s', self._window_reason(self.d['window_s']))):
             if reason:
@@ -497,11 +499,34 @@ class Identifier(Node):
         self.diagnostics.idle = self.points.phase not in (Phase.ARMED, Phase.RECORDING,
                                                           Phase.FITTING)
 
+    def _check_window_samples(self, point):
+        """WARN on /diagnostics while a window spans fewer flap samples than min_window_samples."""
+        t0, t1 = point.window_s
+        period_ns = sampling_period_ns(self.points.flap.stamps)
+        if not period_ns > 0:
+            return
+        samples = (t1 - t0) * NS / period_ns
+        if samples >= self.d['min_window_samples']:
+            self.diagnostics.problem('window_too_short')
+            return
+        text = (f'{point.describe()}: window_s {t0:g}-{t1:g} s spans {samples:.0f} flap samples '
+                f'at the measured {NS / period_ns:.0f} Hz, fewer than min_window_samples '
+                f"{self.d['min_window_samples']}: its estimate rests on few samples (set a "
+                'longer window_s)')
+        if self.diagnostics.problems.get('window_too_short', (None, ''))[1] != text:
+            self.get_logger().warning(text)
+        self.diagnostics.problem('window_too_short', DiagnosticStatus.WARN, text)
+
     # -------------------------------------------------------------------------- scheduling
     def schedule(self):
         """Ask the test points for the fit that is due (growing window or final); queue it."""
         clock = time.perf_counter()
         with self.lock:
+            point = self.points.current
+            if (point is not None and point.phase == Phase.RECORDING
+                    and self.window_checked != point.number and self.points.flap.size > 2):
+                self.window_checked = point.number        # once per test point
+                self._check_window_samples(point)
             request = self.points.due(worker_idle=not (self.busy or self.requests))
             first = self._missed_provisional(request)
         if request is not None and not request.final and self._would_straddle(request):

@@ -7,7 +7,8 @@ at the measured rate is refused with the reason, and the node's window is unchan
 window set while test point 1 records is accepted, with a note (its log and a /diagnostics
 value) saying that it applies from the next test point and that test point 1 keeps its own;
 test point 1's final estimate is of its original window, test point 2's of the new one, with
-the samples of that window (first and last flap stamps) used.
+the samples of that window (first and last flap stamps) used; a window (the run description's)
+spanning fewer than ``min_window_samples`` is a WARN on /diagnostics while it records.
 """
 
 import math
@@ -46,6 +47,8 @@ def run():
               Parameter('auto_start', value='none'), Parameter('update_every_rad', value=0.0),
               Parameter('sensor_reliability', value='reliable'),
               Parameter('max_window_s', value=10.0),
+              # the run description's window (127 samples) is short of it, the new one not
+              Parameter('min_window_samples', value=130),
               Parameter('fit_process', value=False)]
     node = Identifier(parameter_overrides=params, context=context)
     test = rclpy.create_node('test_identifier_parameters', context=context)
@@ -110,13 +113,16 @@ def run():
         set_window('too long', [0.0, 20.0])
         out['started_1'] = start_test_point()
         send(0, 400)                             # test point 1 records
+        out['problems_1'] = dict(node.diagnostics.problems)
         set_window('too few samples', [0.5, 0.52])
         set_window('during test point 1', NEW_WINDOW)
         out['diagnostics'] = dict(node.diagnostics.values)
         send(400, LENGTH)
         assert final(1), 'no final estimate of test point 1'
         out['started_2'] = start_test_point()
-        send(LENGTH, 2 * LENGTH)
+        send(LENGTH, LENGTH + 400)
+        out['problems_2'] = dict(node.diagnostics.problems)
+        send(LENGTH + 400, 2 * LENGTH)
         assert final(2), 'no final estimate of test point 2'
     finally:
         node.close()
@@ -141,7 +147,7 @@ def _ns(t):
     ('reversed', '0 <= start < end'),
     ('too long', 'max_window_s 10'),
     ('too few samples', 'spans 20 flap samples at the measured 1000 Hz, fewer than '
-                        'min_window_samples 50'),
+                        'min_window_samples 130'),
 ])
 def test_an_invalid_window_is_refused_with_the_reason(run, label, words):
     successful, reason, value = run['answers'][label]
@@ -172,3 +178,12 @@ def test_each_test_point_is_fitted_over_its_own_window(run):
         assert _ns(final.test_point_start) == stamps[origin]
         assert _ns(final.window_start) == stamps[origin + math.ceil(window[0] * RATE - 1e-9)]
         assert _ns(final.window_end) == stamps[origin + math.floor(window[1] * RATE + 1e-9)]
+
+
+def test_a_window_of_few_samples_is_a_warning_while_it_records(run):
+    from diagnostic_msgs.msg import DiagnosticStatus
+    level, text = run['problems_1']['window_too_short']
+    assert level == DiagnosticStatus.WARN
+    assert text.startswith('test point 1 (recording): window_s 0.80939-0.93671 s spans 127 flap '
+                           'samples at the measured 1000 Hz, fewer than min_window_samples 130')
+    assert 'window_too_short' not in run['problems_2']      # 170 samples: cleared
