@@ -9,8 +9,9 @@ outcome is checked: right effect named, baseline residual RMS excess over the no
 truth, original parameters' bias before/after (in their σ). Writes
 bench/results/diagnosis.md (table) and bench/results/diagnosis.json (every run).
 
-    python bench/diagnosis_stats.py                  # 10 seeds, all scenarios (~1 h on 2 cores)
+    python bench/diagnosis_stats.py                  # 10 seeds, all scenarios (hours)
     python bench/diagnosis_stats.py --seeds 3 --scenarios sensor_lag none_wake
+    python bench/diagnosis_stats.py --pairs --out bench/results/diagnosis_pairs   # issue 16
 """
 
 import argparse

@@ -8,8 +8,8 @@ its first-order equivalent), the augmented fit's RMS within 5 % of the floor, th
 parameters within 3σ of the truth, the original parameters back within 3σ of the truth. And
 two effects at once (a lagging sensor with offsets): both named, each within 3σ.
 
-Study part (marker ``study``, ROTOR_ID_SLOW=1, ~30 min): the full study of
-bench/diagnosis_stats.py, ≥ 10 seeds per scenario:
+Study part (marker ``study``, ROTOR_ID_SLOW=1; hours: 60+ scenarios with the catalogue
+pairs, 10 seeds each, 5-20 s CPU a run): the full study of bench/diagnosis_stats.py:
 right effect in ≥ 90 % per effect (both effects of a pair in ≥ 80 %), ``none`` in ≥ 95 %
 of effect-free recordings and never a
 wrong effect with high confidence, augmented RMS within 5 % of the floor on average (not for
