@@ -363,11 +363,12 @@ def _weighted_sums(problem, results, noise_var):
             continue
         _, gc, Mc = sums
         cols = problem.run_columns(r)
+        Mr = (w @ Mc.reshape(w.size, -1)).reshape(Mc.shape[1:])
         if cols is None:
-            M += np.tensordot(w, Mc, axes=1)
+            M += Mr
             grad -= w @ gc
         else:
-            M[np.ix_(cols, cols)] += np.tensordot(w, Mc, axes=1)
+            M[np.ix_(cols, cols)] += Mr
             grad[cols] -= w @ gc
     return M, grad
 
@@ -616,7 +617,7 @@ def fit_output_error(experiments, unknowns, guess=None, known=None, noise_std=No
             converged = bool(np.all(np.abs(grad) * np.sqrt(np.clip(
                 np.diag(np.linalg.pinv(M)), 0, None)) < 1e-3 * max(1.0, cost)))
             break
-        applied = trial - theta
+        applied = None if compiled is not None else trial - theta
         theta = trial
         results = trial_results
         if compiled is not None:
@@ -641,12 +642,13 @@ def fit_output_error(experiments, unknowns, guess=None, known=None, noise_std=No
         history.append(info)
         stop = progress is not None and progress(info) is STOP
         at_bound = (theta <= problem.lo) | (theta >= problem.hi)
-        if np.any(at_bound):
+        any_bound = bool(at_bound.any())
+        if any_bound:
             bound_names = [n for n, b in zip(names, at_bound) if b]
             message = 'parameter at a physical bound: ' + ', '.join(bound_names)
         if all_small:
             converged = True
-            message = 'converged' if not np.any(at_bound) else message
+            message = 'converged' if not any_bound else message
             break
         if stop:
             if 'bound' not in message:
