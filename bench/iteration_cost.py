@@ -20,16 +20,21 @@ Run: ``python bench/iteration_cost.py [--repeat N]``.
 """
 
 import argparse
+import os
 import sys
 
-from common import fmt_time, markdown_table, say, time_interleaved, write_results
-from ml_vs_peers import CASES, experiment_of, iteration_case
-import numpy as np
+os.environ.setdefault('OPENBLAS_NUM_THREADS', '1')     # as ml_vs_peers: tiny matrices only
+os.environ.setdefault('OMP_NUM_THREADS', '1')
 
-from rotor_id.estimation.output_error import fit_output_error
-from rotor_id.estimation.simulate import simulate
-from rotor_id.report import cases as C
-from rotor_id.report.reproduce import case_data
+from common import fmt_time, markdown_table, say, time_interleaved, write_results  # noqa: E402
+from ml_vs_peers import CASES, experiment_of, iteration_case  # noqa: E402
+import numpy as np  # noqa: E402
+
+from rotor_id.estimation import kernels  # noqa: E402
+from rotor_id.estimation.output_error import fit_output_error  # noqa: E402
+from rotor_id.estimation.simulate import simulate  # noqa: E402
+from rotor_id.report import cases as C  # noqa: E402
+from rotor_id.report.reproduce import case_data  # noqa: E402
 
 EXTRA_CASES = (('multiblade, periodic model (γ, δ)', 'multiblade_periodic'),)
 TARGET = 1.5
@@ -105,9 +110,16 @@ def main(argv=None):
     parser.add_argument('--seed', type=int, default=1)
     parser.add_argument('--no-write', action='store_true')
     args = parser.parse_args(argv)
+    if kernels.mode() != 'numpy':           # every case on the same (compiled) simulator
+        kernels.load()
+    status = kernels.status()
+    say(f'simulator kernel: {status}')
     results = [bench_case(label, name, args.seed, args.repeat)
                for label, name in CASES + EXTRA_CASES]
     body = report(results, args.repeat)
+    body += ('\nSimulator: ' + ('compiled kernels (numba), loaded before the timing; '
+                                'time-invariant records through the prepared plan'
+                                if status['loaded'] else 'numpy only') + '.\n')
     print(body)
     if not args.no_write:
         write_results('iteration_cost', 'Cost of one Gauss-Newton iteration (issue 6.2)', body,
