@@ -9,6 +9,8 @@ Figures of a diagnosis (matplotlib, Agg): what a person would rather look at tha
   floor, baseline and augmented; the located time span shaded.
 * ``effects.png``: the fit improving effect by effect (forward selection): residual RMS over
   the floor after each added effect, and the residual energy over time of every step.
+* ``proposal.png`` (out of catalogue only): how much each library term lowers the held-out
+  equation error at every step of the proposal, the kept terms marked.
 """
 
 import math
@@ -17,6 +19,7 @@ from pathlib import Path
 import numpy as np
 
 from rotor_id.diagnosis import residuals as rs
+from rotor_id.diagnosis.proposal import MIN_IMPROVEMENT
 
 
 def _plt():
@@ -195,6 +198,32 @@ def plot_effects(diagnosis, path):
     plt.close(fig)
 
 
+def plot_proposal(proposal, path):
+    """Held-out improvement of every library term at each step of a proposal (JSON)."""
+    plt = _plt()
+    steps = proposal['steps']
+    fig, axes = plt.subplots(1, len(steps), figsize=(5.5 * len(steps), 4.5), squeeze=False)
+    for ax, step in zip(axes[0], steps):
+        names = list(step['tried'])
+        gain = [100.0 * step['tried'][n] for n in names]
+        colours = ['tab:green' if n == step['term'] and step['kept'] else
+                   'tab:orange' if n in step.get('alternatives', ()) else 'tab:gray'
+                   for n in names]
+        ax.barh(range(len(names)), gain, color=colours)
+        ax.set_yticks(range(len(names)), names)
+        ax.axvline(100.0 * MIN_IMPROVEMENT, color='k', ls=':', lw=1)
+        ax.set_xlabel('held-out equation error reduction [%]')
+        verdict = 'kept' if step['kept'] else 'not kept'
+        ax.set_title(f"{step['term']}: {verdict} (t = {step['t_statistic']:.1f}, "
+                     f"needs {step['t_critical']:.1f})", fontsize=9)
+    fig.suptitle("proposal, not a verdict: beta_k'' += ξ·term on every blade "
+                 '(green kept, orange as good within chance, dotted: smallest reduction)',
+                 fontsize=9)
+    fig.tight_layout()
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+
+
 def write_report(diagnosis, directory):
     """Write the figures into ``directory``; return their paths."""
     out = Path(directory)
@@ -205,4 +234,7 @@ def write_report(diagnosis, directory):
     plot_spectra(diagnosis, paths[1])
     plot_energy(diagnosis, paths[2])
     plot_effects(diagnosis, paths[3])
+    if getattr(diagnosis, 'proposal', None) and diagnosis.proposal.get('steps'):
+        paths.append(out / 'proposal.png')
+        plot_proposal(diagnosis.proposal, paths[-1])
     return paths

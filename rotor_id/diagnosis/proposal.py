@@ -368,6 +368,8 @@ def propose(experiments, unknowns, values, known, max_terms=MAX_TERMS, n_blocks=
         steps.append({'term': names[best], 'heldout_improvement': improvement,
                       't_statistic': t_stat, 't_critical': t_crit,
                       'blocks_improved': int(np.sum(gain > 0)), 'kept': kept,
+                      'tried': {names[m]: float(1.0 - np.sum(trials[m]) / np.sum(sse))
+                                for m in left},
                       'alternatives': [names[m] for m in left if m != best and not _worse(
                           trials[m], trials[best], t_alternative)]})
         if not kept:

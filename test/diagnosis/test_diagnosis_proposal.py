@@ -7,8 +7,8 @@ Out of catalogue (issue 16 item 4): a proposed flap-equation term, validated on 
   generator), the proposal names ``beta*cos(psi)`` with the coefficient −K_1c within 3σ;
 * on effect-free recordings it proposes nothing (the ≥ 20-seed false-proposal rate is measured
   by bench/proposal_stats.py, bench/results/proposal.md);
-* diagnose attaches it under ``explanation.proposal`` when the verdict is ``unexplained``, and
-  the text report has its line.
+* diagnose attaches it under ``explanation.proposal`` when the verdict is ``unexplained``, the
+  text report has its line and the report its figure.
 """
 
 from diagnosis_scenarios import BY_NAME, K_1C
@@ -16,6 +16,7 @@ import numpy as np
 import pytest
 from rotor_id.commands.diagnose import format_summary
 from rotor_id.diagnosis.diagnose import diagnose
+from rotor_id.diagnosis.figures import write_report
 from rotor_id.diagnosis.proposal import LibraryTerm, propose, term_names
 from rotor_id.estimation.simulate import simulate
 from rotor_id.pipeline import identify
@@ -75,7 +76,7 @@ def test_no_proposal_without_an_effect(name, seed):
     assert not proposal.steps[0]['kept']
 
 
-def test_diagnose_attaches_the_proposal_to_an_unexplained_verdict():
+def test_diagnose_attaches_the_proposal_to_an_unexplained_verdict(tmp_path):
     # with only the sensor bias to try, the once-per-rev stiffness stays unexplained
     scenario = BY_NAME['flap_stiffness_1c']
     record, description = scenario.record_and_description(1)
@@ -86,3 +87,6 @@ def test_diagnose_attaches_the_proposal_to_an_unexplained_verdict():
     assert proposal['label'] == 'proposal'
     assert proposal['terms'][0]['term'] == 'beta*cos(psi)'
     assert 'proposal (a hypothesis, not a catalogue verdict)' in format_summary(result)
+    # and --report draws it: every library term's held-out improvement, the kept one marked
+    assert (tmp_path / 'proposal.png') in write_report(result, tmp_path)
+    assert (tmp_path / 'proposal.png').stat().st_size > 10000
