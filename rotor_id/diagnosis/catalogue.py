@@ -94,6 +94,8 @@ class Job:
     bounds: dict = None
     #: effects already kept, [(effect, variant)], fitted together with this one
     prior: tuple = ()
+    #: cross-validation of one direction only: fit on this half (0 or 1), predict the other
+    half: int = None
 
 
 @dataclass
@@ -447,15 +449,16 @@ def _split_runs(runs, half):
     return out
 
 
-def cross_validate(runs, unknowns, guess, known, max_step=None):
+def cross_validate(runs, unknowns, guess, known, max_step=None, halves=(0, 1)):
     """
     Fit on one half of the window, predict the other (initial states refitted), both ways.
 
-    Returns the mean-square prediction error per channel, averaged over the two directions.
+    Returns the mean-square prediction error per channel, averaged over the directions
+    ``halves`` (the half fitted: 0 the first, 1 the second).
     """
     kw = {'max_step': max_step} if max_step else {}
     ms = []
-    for fit_half in (0, 1):
+    for fit_half in halves:
         fit_runs = _split_runs(runs, fit_half)
         est = fit_output_error(fit_runs, unknowns, guess=guess, known=known, max_iter=15, **kw)
         params = dict(est.model_parameters)
@@ -467,22 +470,45 @@ def cross_validate(runs, unknowns, guess, known, max_step=None):
 
 
 def validate_candidate(job):
-    """Cross-validated RMS of a fitted candidate (``job.start`` = its estimate), or None."""
+    """
+    Cross-validated RMS of a fitted candidate (``job.start`` = its estimate), or None.
+
+    Both directions, or only ``job.half``'s (:func:`combine_halves` joins the two RMS).
+    """
     from rotor_id.pipeline import experiments_from_record, model_for
     base_model = model_for(job.description)
+    halves = (0, 1) if job.half is None else (job.half,)
     try:
         if job.effect == 'baseline':
             runs = experiments_from_record(job.record, job.description, base_model,
                                            job.window_s)
-            ms = cross_validate(runs, job.unknowns, job.start or job.baseline_values, job.known)
+            ms = cross_validate(runs, job.unknowns, job.start or job.baseline_values, job.known,
+                                halves=halves)
         else:
             experiments = experiments_from_record(job.record, job.description, base_model,
                                                   job.window_s)
             runs, _, unknowns, _, guess, max_step = _build(job, base_model, experiments)
-            ms = cross_validate(runs, unknowns, guess, job.known, max_step)
+            ms = cross_validate(runs, unknowns, guess, job.known, max_step, halves=halves)
     except (IdentificationError, np.linalg.LinAlgError, FloatingPointError):
         return job.effect, job.variant, None
     return job.effect, job.variant, float(math.sqrt(np.mean(ms)))
+
+
+def validation_halves(job):
+    """Return the two one-direction jobs of a validation job (one per worker)."""
+    return [_replace(job, half=0), _replace(job, half=1)]
+
+
+def combine_halves(rms_first, rms_second):
+    """
+    Return the RMS of both directions from each direction's RMS (None if either failed).
+
+    The RMS is over channels of the mean square averaged over the directions, and averages
+    are linear: √((r0² + r1²)/2).
+    """
+    if rms_first is None or rms_second is None:
+        return None
+    return float(math.sqrt(0.5 * (rms_first**2 + rms_second**2)))
 
 
 def fit_candidate(job):
