@@ -303,7 +303,9 @@ def _section(result, offline):
     text += markdown_table(['estimate', 'test point', 'window end (s)', 'iterations',
                             'a fit ran when asked'] + list(COLUMNS) + ['samples'], rows)
     text += '\n\n'
-    return text, np.median(final), warm
+    path = np.nanmedian([b.get('record', 0.0) + b.get('fit_cpu', np.nan) + b.get('cpu', np.nan)
+                         for b in breakdown if b['kind'] == 'final'])
+    return text, np.median(final), warm, path
 
 
 def _cpu_line(result):
@@ -421,9 +423,9 @@ def main():
         out.mkdir(parents=True)
         result = run(mode, args.test_points, out)
         say(f'{mode}: offline fits of the recorded windows')
-        text, latency, warm = _section(result, offline_fits(result))
+        text, latency, warm, path = _section(result, offline_fits(result))
         sections.append(text)
-        summary.append((mode, latency, warm))
+        summary.append((mode, latency, warm, path))
     head = (
         '## Result\n\n'
         'Latency is measured in the identifier, from taking the newest sample of the window to '
@@ -433,9 +435,16 @@ def main():
         '*in_fit_process* is its wall time seen from the node, *fit_cpu* / *fit_cpu_wait* its '
         "CPU and run-queue wait), *cpu* / *cpu_wait* the node's worker thread, "
         '*gil_or_lock_wait* the rest of its wall time (the interpreter lock, shared with the '
-        'subscription callbacks).\n\n'
-        + ''.join(f'* fits in a {m}: final latency median {lat:.1f} ms = {lat / w:.1f} x the '
-                  f'warm offline fit ({w:.1f} ms)\n' for m, lat, w in summary))
+        "polling thread). For the window's last sample (system clock, DDS message info): "
+        '*sent_to_received* from its publication to its reception by DDS in the identifier, '
+        '*received_to_taken* until the polling thread took it, *end_to_end* from its '
+        "publication to the estimate's. *CPU path* is record + fit_cpu + cpu: the CPU "
+        'times along the path, which run one after the other, i.e. about what an idle machine '
+        'would take when no growing-window fit is in progress (waits for a CPU excluded; they '
+        'depend on the load).\n\n'
+        + ''.join(f'* fits in a {m}: final latency median **{lat:.1f} ms** = {lat / w:.1f} x '
+                  f'the warm offline fit ({w:.1f} ms); CPU path median {path:.1f} ms\n'
+                  for m, lat, w, path in summary))
     if len(summary) == 2:
         head += (f'* process / thread latency: {summary[0][1] / summary[1][1]:.2f} '
                  '(same machine, runs one after the other)\n')

@@ -50,16 +50,16 @@ from rclpy.node import Node
 from rclpy.qos import QoSProfile, ReliabilityPolicy
 from rclpy.task import Future
 from rotor_id.estimation.output_error import STOP
-from rotor_id.io.jointstate_cdr import decode_batch, decode_one
+from rotor_id.io.jointstate_cdr import decode_one
 from rotor_id.nodes.common import (allow_runtime_changes, declare, Diagnostics,
                                    estimate_message, node_run_description,
                                    NS, progress_message, RESULT_QOS, Rig, SENSOR_BUFFER_QOS,
                                    spin_node, stamp_ns, STATE_QOS, time_msg, wait_for_acks)
 from rotor_id.nodes.fit_process import (Abandoned, fit_window, FitOptions, FitProcess,
                                         thread_times, warm_up)
-from rotor_id.nodes.live import (BadSample, check_azimuth_batch, check_azimuth_sample,
-                                 check_joint_batch, check_joint_sample)
-from rotor_id.nodes.polling import incompatible_publishers, SensorPoller
+from rotor_id.nodes.live import BadSample, check_azimuth_sample, check_joint_sample
+from rotor_id.nodes.polling import (checked_azimuth_batch, checked_joint_batch,
+                                    incompatible_publishers, SensorPoller)
 from rotor_id.nodes.test_points import (FitSchedule, outcome, Phase, sampling_period_ns,
                                         TestPointSequence, window_bounds)
 from rotor_id.pipeline import model_for
@@ -345,40 +345,37 @@ class Identifier(Node):
         message of another layout, a sample refused) is taken one message at a time instead,
         so each refusal is counted with its reason exactly as a single message would be.
         """
-        batch = decode_batch(raws)
         points = self.points
-        accepted = None
-        if batch.kept.size == len(raws):
-            if role == 'azimuth':
-                psi, omega, accepted = check_azimuth_batch(
-                    batch.names, batch.position, batch.velocity, self.rig.azimuth_joint,
-                    batch.stamps_ns, points.azimuth.series.last_stamp,
-                    self.rig.azimuth_convention)
-            else:
-                flap = role == 'blade_flap'
-                values, accepted = check_joint_batch(
-                    batch.names, batch.position, self.flap_joints if flap else self.pitch_joints,
-                    batch.stamps_ns, (points.flap if flap else points.pitch).last_stamp,
-                    self.d['max_abs_angle_rad'], extra_joints=True)
-        if accepted is None or not accepted.all():
+        if role == 'azimuth':
+            checked = checked_azimuth_batch(raws, self.rig.azimuth_joint,
+                                            points.azimuth.series.last_stamp,
+                                            self.rig.azimuth_convention)
+        else:
+            flap = role == 'blade_flap'
+            checked = checked_joint_batch(raws, self.flap_joints if flap else self.pitch_joints,
+                                          (points.flap if flap else points.pitch).last_stamp,
+                                          self.d['max_abs_angle_rad'])
+        if checked is None:
+            stamps = []
             for raw in raws:
                 try:
                     stamp, names, position, velocity = decode_one(raw)
                 except ValueError as exc:
                     self.diagnostics.count('undecodable', f'not a JointState: {exc}')
                     continue
+                stamps.append(stamp)
                 self._take_one(role, stamp, names, position, velocity)
-            return batch.stamps_ns
-        stamps = [int(v) for v in batch.stamps_ns]
+            return np.array(stamps, dtype=np.int64)
+        stamps = [int(v) for v in checked[0]]
         if role == 'azimuth':
-            for stamp, angle, speed in zip(stamps, psi.tolist(), omega.tolist()):
+            for stamp, angle, speed in zip(stamps, checked[1].tolist(), checked[2].tolist()):
                 points.add_azimuth(stamp, angle, speed)
         else:
             add = points.add_flap if role == 'blade_flap' else points.add_pitch
-            for stamp, row in zip(stamps, values):
+            for stamp, row in zip(stamps, checked[1]):
                 add(stamp, row)
         self.taken += len(stamps)
-        return batch.stamps_ns
+        return checked[0]
 
     def _on_batch(self, role, raws, infos):
         """Poller thread: take a batch of one sensor topic, with its timing (ns, system)."""

@@ -22,6 +22,8 @@ import time
 
 from rclpy.callback_groups import CallbackGroup
 from rclpy.event_handler import SubscriptionEventCallbacks
+from rotor_id.io.jointstate_cdr import decode_batch
+from rotor_id.nodes.live import check_azimuth_batch, check_joint_batch
 
 
 class _PolledGroup(CallbackGroup):
@@ -166,3 +168,32 @@ def incompatible_publishers(node, subscription, qos):
     return [(tuple(info.endpoint_gid), 'RELIABILITY')
             for info in node.get_publishers_info_by_topic(subscription.topic_name)
             if info.qos_profile.reliability == ReliabilityPolicy.BEST_EFFORT]
+
+
+def checked_joint_batch(raws, expected, last_stamp_ns, max_abs_rad=None):
+    """
+    Decode and check a batch of serialized JointState samples of one sensor topic.
+
+    Returns (stamps (n,), values (n, len(expected))) when every message decodes with one
+    layout and :func:`~rotor_id.nodes.live.check_joint_sample` would accept each in turn
+    (other joints in the message allowed, as on a sensor topic); None otherwise: the caller
+    then takes the batch one message at a time, so that each refusal keeps its reason.
+    """
+    batch = decode_batch(raws)
+    if batch.kept.size != len(raws):
+        return None
+    values, accepted = check_joint_batch(batch.names, batch.position, expected,
+                                         batch.stamps_ns, last_stamp_ns, max_abs_rad,
+                                         extra_joints=True)
+    return (batch.stamps_ns, values) if accepted.all() else None
+
+
+def checked_azimuth_batch(raws, joint, last_stamp_ns, convention):
+    """As :func:`checked_joint_batch` for the azimuth: (stamps, ψ in [0, 2π), Ω) or None."""
+    batch = decode_batch(raws)
+    if batch.kept.size != len(raws):
+        return None
+    psi, omega, accepted = check_azimuth_batch(batch.names, batch.position, batch.velocity,
+                                               joint, batch.stamps_ns, last_stamp_ns,
+                                               convention)
+    return (batch.stamps_ns, psi, omega) if accepted.all() else None
