@@ -391,8 +391,8 @@ def _fit_guarded(method, experiments, unknowns, guess, known, description, model
 
     def watch(info):
         last.update(zip(info['names'], info['values']))
-        if progress is not None:
-            progress(info)
+        # the caller's answer (STOP: end after this iteration) goes back to the estimator
+        return progress(info) if progress is not None else None
     try:
         estimate = _fit(method, experiments, unknowns, guess, known, description, model,
                         watch, max_iter, filter_bounds, step_tol, noise_std)
