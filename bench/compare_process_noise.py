@@ -35,6 +35,7 @@ import multiprocessing
 import os
 from pathlib import Path
 import platform
+import subprocess
 import sys
 import time
 
@@ -169,6 +170,16 @@ def machine():
             f'{platform.system()} {platform.release()}')
 
 
+def commit():
+    """Short git commit of the repository, or 'unknown'."""
+    try:
+        out = subprocess.run(['git', '-C', str(REPO), 'rev-parse', '--short', 'HEAD'],
+                             capture_output=True, text=True, timeout=10)
+        return out.stdout.strip() or 'unknown'
+    except (OSError, subprocess.SubprocessError):
+        return 'unknown'
+
+
 def main(argv=None):
     """Run the comparison, print the table and write bench/results/process_noise.md."""
     parser = argparse.ArgumentParser(description=__doc__.split('\n')[1])
@@ -180,6 +191,7 @@ def main(argv=None):
     args = parser.parse_args(argv)
     jobs = [(seed, sv, args.sigma_m) for sv in SIGMA_V for seed in range(args.seeds)]
     start = time.perf_counter()
+    load_start = os.getloadavg()[0]
     results = []
     kernels.prefer()                        # compiled simulator and filter, before the fork
     with multiprocessing.Pool(args.workers) as pool:
@@ -194,7 +206,9 @@ def main(argv=None):
              f'{datetime.datetime.now(datetime.timezone.utc):%Y-%m-%d %H:%M} UTC, '
              f'`python bench/compare_process_noise.py --seeds {args.seeds} '
              f'--workers {args.workers} --sigma-m {args.sigma_m:g}` ({wall:.0f} s wall).', '',
-             f'Machine: {machine()}.', '',
+             f'Machine: {machine()}; load average {load_start:.1f} at the start, '
+             f'{os.getloadavg()[0]:.1f} at the end (2 cores shared: CPU times are the '
+             f'comparable figures); rotor_id commit {commit()}.', '',
              'Report Ch.2 wake case (μ = 0, progressing, t = 70-82, Δt = 0.1, measurement '
              f'σ = {args.sigma_m:g}, true A/AL/τ/1/τ = .5/.25/.125, start .4/.2/.25). '
              'System noise σ_V: '
