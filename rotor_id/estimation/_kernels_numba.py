@@ -6,6 +6,12 @@ the step map S⁺ = Φ S + (∂Φ/∂p) x + ∂c/∂p of :mod:`rotor_id.estimati
 precomputed (once for a time-invariant system, per step otherwise), and the forcing
 (∂Φ/∂p) x + ∂c/∂p is carried through the RK4 stages as vectors, one per parameter, at the
 state's stages (no ∂Φ/∂p matrices). F and ∂F/∂p enter as their non-zero entries.
+
+Time-invariant records (:class:`rotor_id.estimation.simulate.TimeInvariantPlan`) take
+:func:`affine_run` instead: one affine map per sample interval, formed with its parameter
+derivatives from F, B, e once per parameter vector (:func:`interval_map`), then states,
+sensitivities, outputs and per-channel residual sums (:func:`affine_scan`); and output error's
+Gauss-Newton iteration on such a record runs whole in :func:`gn_iteration`.
 """
 
 from numba import njit

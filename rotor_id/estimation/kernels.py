@@ -6,7 +6,9 @@ vectorised numpy code of :mod:`rotor_id.estimation.simulate` spends 30-70 times 
 interpreter (bench/ml_vs_peers.py). The kernel here runs one RK4 step after another for the
 state and all its sensitivities, with F, g, ∂F/∂p and ∂g/∂p evaluated by the model at the stage
 times as before (any :class:`rotor_id.physics.models.LinearModel`, time-invariant or periodic).
-∂F/∂p enters as its non-zero entries only, which the kernel finds per call.
+∂F/∂p enters as its non-zero entries only, which the kernel finds per call. Time-invariant
+records go through :func:`affine_kernels` instead (one map per sample interval, prepared once
+per parameter vector; see :class:`rotor_id.estimation.simulate.TimeInvariantPlan`).
 
 It is the same arithmetic as the numpy path: the RK4 stages of the state and of the variational
 equations S′ = F S + (∂F/∂p) x + ∂g/∂p evaluated at the state's stages, which is the exact
