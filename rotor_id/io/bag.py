@@ -975,6 +975,8 @@ def _azimuth(ctx, topic, joint=DEFAULT_AZIMUTH_JOINT, convention='wrapped'):
     velocity = None if velocity is None else velocity[:, column].copy()
     if convention == 'unwrapped':
         position = wrap_azimuth(position)
+    elif len(position) and -np.pi <= np.min(position) and np.max(position) < np.pi + 1e-9:
+        position = wrap_azimuth(position)   # every sample in [-π, π): an encoder's wrapping
     elif len(position) and not 0.0 <= float(np.median(position)) < TWO_PI:
         raise BagError(f'{topic}: the azimuth is mostly outside [0, 2π) (median '
                        f'{float(np.median(position)):.4g} rad): degrees or rpm? position must be '

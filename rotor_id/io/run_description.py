@@ -16,7 +16,8 @@ extended, without breaking it, by optional keys::
     joint_names: [b1, b2, b3, b4]        # or {blade_1: b1, ...} or {blade_pitch: [...],
                                          #    blade_flap: [...], azimuth: hub}; joint of each
                                          #    blade, and the azimuth topic's joint (rotor)
-    azimuth_convention: wrapped          # wrapped: ψ in [0, 2π) | unwrapped: continuous ψ
+    azimuth_convention: wrapped          # wrapped: ψ in [0, 2π) or [-π, π) | unwrapped:
+                                         #    continuous ψ
     known: {gamma: 5.0}                  # parameters held fixed
     initial_guess: {gamma: 4.0}          # start of the iteration
     initial_state: estimate              # estimate | equilibrium | zero

@@ -321,7 +321,8 @@ def check_azimuth_sample(names, position, velocity, joint, stamp_ns, last_stamp_
     Validate one azimuth sample; return (ψ in [0, 2π), Ω > 0). Raises BadSample.
 
     ``convention`` is the run description's azimuth_convention: 'wrapped' positions must lie in
-    [0, 2π) (else: degrees?), 'unwrapped' ones are wrapped here.
+    [0, 2π) or, as many encoders give them, [-π, π) (else: degrees?); both, and 'unwrapped'
+    ones, are returned wrapped to [0, 2π).
     """
     psi = check_joint_sample(names, position, [joint], stamp_ns, last_stamp_ns,
                              extra_joints=True)[0]
@@ -336,8 +337,11 @@ def check_azimuth_sample(names, position, velocity, joint, stamp_ns, last_stamp_
                         'finite value')
     if convention == 'unwrapped':
         psi = wrap_azimuth(psi)
+    elif -math.pi <= psi < 0.0:                 # an encoder's [-π, π)
+        psi = wrap_azimuth(psi)
     elif not 0.0 <= psi < TWO_PI + 1e-9:
-        raise BadSample('degrees', f'azimuth {psi:.4g} outside [0, 2π): degrees?')
+        raise BadSample('degrees', f'azimuth {psi:.4g} rad outside [0, 2π) and [-π, π): '
+                        'degrees?')
     if not velocity[0] > 0:
         raise BadSample('bad_speed', f'rotor speed {velocity[0]:.4g} rad/s is not positive')
     return psi, float(velocity[0])
@@ -405,8 +409,9 @@ def check_azimuth_batch(names, positions, velocities, joint, stamps_ns, last_sta
     with np.errstate(invalid='ignore'):
         if convention == 'unwrapped':
             psi = wrap_azimuth(psi)
-        else:
-            passing &= (psi >= 0.0) & (psi < TWO_PI + 1e-9)
+        else:                                    # [0, 2π), or an encoder's [-π, π)
+            passing &= (psi >= -math.pi) & (psi < TWO_PI + 1e-9)
+            psi = np.where(psi < 0.0, wrap_azimuth(psi), psi)
         passing &= np.isfinite(omega) & (omega > 0)
     return psi, omega, _in_stamp_order(stamps, passing, last_stamp_ns)
 

@@ -292,3 +292,41 @@ def test_every_library_model_drives_the_plant_from_trim(model, mu):
     # the lateral cyclic step (t = 40) tilts the tip-path plane: blades 1 and 3 separate
     before = np.ptp(flap_trim[:, 0] - flap_trim[:, 2])
     assert np.ptp(flap[-100:, 0] - flap[-100:, 2]) > before + math.radians(0.3)
+
+
+def test_an_encoder_wrapped_to_minus_pi_pi_is_read_as_wrapped(tmp_path):
+    """ψ in [-π, π) (many encoders) is a wrapped azimuth, live and offline: the same record."""
+    from rotor_id.io.bag import read_record, write_record_bag
+    from rotor_id.io.record import Record
+    psi = np.array([3.0, -3.0, -1.0, 0.5, 3.1])
+    ok = [check_azimuth_sample(['rotor'], [p], [94.0], 'rotor', 2 + i, 1 + i)[0]
+          for i, p in enumerate(psi)]
+    assert ok == pytest.approx(np.mod(psi, 2 * np.pi).tolist())
+    got, omega, accepted = check_azimuth_batch(['rotor'], psi[:, None], np.full((5, 1), 94.0),
+                                               'rotor', np.arange(2, 7), 1)
+    assert accepted.all() and got.tolist() == pytest.approx(np.mod(psi, 2 * np.pi).tolist())
+    with pytest.raises(BadSample, match='outside'):       # degrees stay refused
+        check_azimuth_sample(['rotor'], [-200.0], [94.0], 'rotor', 2, 1)
+    # offline: a bag whose azimuth is written in [-π, π) reads as the one in [0, 2π)
+    from rosbags.typesys import get_typestore, Stores
+    store = get_typestore(Stores.ROS2_JAZZY)
+    omega = 2 * np.pi * 15
+    n = 60                 # 0.9 revolution from ψ = 3.3: most samples negative in [-π, π)
+    time_s = np.arange(n) / 1000.0
+    record = Record(time_s=time_s, t=omega * time_s + 3.3, rotor_speed_rad_s=np.full(n, omega),
+                    blade_flap=np.zeros((n, 4)) + 0.01, blade_pitch=np.zeros((n, 4)),
+                    blade_names=[f'blade_{k}' for k in range(1, 5)], stamp0_ns=10**18)
+    write_record_bag(tmp_path / 'wrapped', record)
+    types = store.types
+    encoder = []
+    for i in range(n):
+        stamp = 10**18 + i * 1_000_000
+        header = types['std_msgs/msg/Header'](stamp=types['builtin_interfaces/msg/Time'](
+            sec=stamp // 10**9, nanosec=stamp % 10**9), frame_id='rotor')
+        position = (record.t[i] + np.pi) % (2 * np.pi) - np.pi           # in [-π, π)
+        encoder.append(('/rotor/azimuth', stamp, types['sensor_msgs/msg/JointState'](
+            header=header, name=['rotor'], position=np.array([position]),
+            velocity=np.array([omega]), effort=np.array([], dtype=float))))
+    write_record_bag(tmp_path / 'encoder', record, topics={'azimuth': None}, extra=encoder)
+    a, b = read_record(tmp_path / 'wrapped'), read_record(tmp_path / 'encoder')
+    assert np.allclose(a.t, b.t, atol=1e-9) and np.allclose(a.t, record.t, atol=1e-9)
