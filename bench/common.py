@@ -13,6 +13,7 @@ from pathlib import Path
 import platform
 import subprocess
 import sys
+import tempfile
 import time
 
 BENCH_DIR = Path(__file__).resolve().parent
@@ -79,6 +80,20 @@ def machine_description():
         'BLAS threads (OPENBLAS_NUM_THREADS)': os.environ.get('OPENBLAS_NUM_THREADS', 'default'),
         'rotor_id commit': _git_commit(),
     }
+
+
+def run_in_workdir(workdir, prefix, measure):
+    """
+    Return ``measure(directory)`` run in ``workdir``, or in a fresh temporary one.
+
+    A given ``workdir`` keeps what the benchmark makes there (a large bag) for the next run;
+    without one, a temporary directory named ``prefix``… is made and removed afterwards, so
+    that a run from a clean clone starts from nothing.
+    """
+    if workdir is None:
+        with tempfile.TemporaryDirectory(prefix=prefix) as directory:
+            return measure(directory)
+    return measure(workdir)
 
 
 def machine_markdown():

@@ -28,10 +28,10 @@ import math
 from pathlib import Path
 import struct
 import sys
-import tempfile
 import time
 
-from common import markdown_table, REPO_ROOT, say, SustainedStirring, write_results
+from common import (markdown_table, REPO_ROOT, run_in_workdir, say, SustainedStirring,
+                    write_results)
 import numpy as np
 from offline_throughput import run_measured
 
@@ -263,10 +263,8 @@ def main(argv=None):
                         help='do not measure reading the whole bag (needs several GB)')
     parser.add_argument('--no-write', action='store_true')
     args = parser.parse_args(argv)
-    if args.workdir is None:
-        with tempfile.TemporaryDirectory(prefix='rotor_id_long_bag_') as workdir:
-            return _measure(args, workdir)
-    return _measure(args, args.workdir)
+    return run_in_workdir(args.workdir, 'rotor_id_long_bag_',
+                          lambda workdir: _measure(args, workdir))
 
 
 def _measure(args, workdir):

@@ -30,11 +30,10 @@ import pstats
 import struct
 import subprocess
 import sys
-import tempfile
 import time
 
-from common import (fmt_time, markdown_table, REPO_ROOT, say, SustainedStirring,
-                    write_results)
+from common import (fmt_time, markdown_table, REPO_ROOT, run_in_workdir, say,
+                    SustainedStirring, write_results)
 import numpy as np
 
 from rotor_id.estimation.simulate import simulate
@@ -286,10 +285,8 @@ def main(argv=None):
                              '(default: a fresh temporary directory, removed at the end)')
     parser.add_argument('--no-write', action='store_true')
     args = parser.parse_args(argv)
-    if args.workdir is None:
-        with tempfile.TemporaryDirectory(prefix='rotor_id_offline_') as workdir:
-            return _measure(args, workdir)
-    return _measure(args, args.workdir)
+    return run_in_workdir(args.workdir, 'rotor_id_offline_',
+                          lambda workdir: _measure(args, workdir))
 
 
 def _measure(args, workdir):
