@@ -344,7 +344,7 @@ def propose(experiments, unknowns, values, known, max_terms=MAX_TERMS, n_blocks=
     try:
         reg = build_regressors(experiments, list(unknowns), dict(values), dict(known),
                                n_blocks)
-    except (IdentificationError, np.linalg.LinAlgError, FloatingPointError) as exc:
+    except (IdentificationError, np.linalg.LinAlgError, FloatingPointError, ValueError) as exc:
         return Proposal(library=names, reason=f'equation error failed: {exc}')
     current = []
     sse = heldout_errors(reg, current, n_blocks)
@@ -385,7 +385,8 @@ def propose(experiments, unknowns, values, known, max_terms=MAX_TERMS, n_blocks=
             est, extra = refine(experiments, unknowns, values, known,
                                 [names[m] for m in current])
             ml = {n: (est.value(n), est.std_of(n)) for n in extra}
-        except (IdentificationError, np.linalg.LinAlgError, FloatingPointError) as exc:
+        except (IdentificationError, np.linalg.LinAlgError, FloatingPointError,
+                ValueError) as exc:
             ml, reason = {}, f'output-error refit failed: {exc}'
         for i, m in enumerate(current):
             step = next(s for s in steps if s['term'] == names[m])
