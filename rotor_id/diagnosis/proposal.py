@@ -44,7 +44,7 @@ from dataclasses import dataclass, field
 import math
 
 import numpy as np
-from rotor_id.diagnosis.augmentations import Augmented
+from rotor_id.diagnosis.augmentations import Augmented, BladeView
 from rotor_id.estimation.equation_error import fit_equation_error, regression
 from rotor_id.estimation.output_error import fit_output_error, IdentificationError
 from rotor_id.physics.models import Parameter
@@ -88,28 +88,35 @@ def _split_term(name):
     return factor, harmonic
 
 
-def _harmonic(harmonic, psi):
+def term_pieces(view, term, t, u):
+    """
+    Return one library term per blade as φ_k = Φ x + φ0: (Φ (T, N_b, n) or None, φ0 or None).
+
+    The one definition of the terms (``view`` a :class:`BladeView` of the model): flap and flap
+    rate from the model's own blade matrices (linear in the states), the blade pitch from the
+    measured multiblade pitch by eq. 3, the azimuth from the model.
+    """
+    factor, harmonic = _split_term(term)
+    psi = view._psi(t)
     trig = dict(HARMONICS)[harmonic]
-    return np.ones_like(psi) if trig is None else trig(psi)
+    h = np.ones_like(psi) if trig is None else trig(psi)
+    if factor in ('beta', 'beta_dot'):
+        H = view.flap(t) if factor == 'beta' else view.flap_rate(t)
+        return h[:, :, None] * H, None
+    if factor == 'theta':
+        blades = [k - 1 for k in view.blades]
+        h = h * blade_pitch_from_multiblade(t, u[:, :3], int(view.model.rotor.n_blades))[
+            :, blades]
+    return None, h
 
 
 def library(model, t, x, u):
-    """
-    Return the library's per-blade values φ (T, N_b, M) at states x (T, n) and inputs u.
-
-    Blade flap and rate come from the model's own blade matrices, the blade pitch from the
-    measured multiblade pitch by eq. 3, the azimuth from the model (one definition each).
-    """
-    flap = np.einsum('tkn,tn->tk', model.blade_flap_matrix(t), x)
-    rate = np.einsum('tkn,tn->tk', model.blade_flap_rate_matrix(t), x)
-    psi = model.blade_azimuth(t)
-    blades = [k - 1 for k in model.blades]
-    pitch = blade_pitch_from_multiblade(t, u[:, :3], int(model.rotor.n_blades))[:, blades]
-    values = {'beta': flap, 'beta_dot': rate, 'theta': pitch, '1': np.ones_like(flap)}
+    """Return the library's per-blade values φ (T, N_b, M) at states x (T, n) and inputs u."""
+    view = BladeView(model)
     columns = []
-    for factor, _ in FACTORS:
-        for _, trig in HARMONICS:
-            columns.append(values[factor] * (1.0 if trig is None else trig(psi)))
+    for term in term_names():
+        Phi, phi0 = term_pieces(view, term, t, u)
+        columns.append(np.einsum('tkn,tn->tk', Phi, x) if Phi is not None else phi0)
     return np.stack(columns, axis=2)
 
 
@@ -253,25 +260,19 @@ class LibraryTerm(Augmented):
 
     def __init__(self, base, term):
         self.term = term
-        self.factor, self.harmonic = _split_term(term)
+        harmonic = _split_term(term)[1]
         self.extra_parameters = (Parameter(f'xi[{term}]', 'ξ', 'per rev²', 0.0, -1e3, 1e3,
                                            f"proposed β'' += ξ·{term}"),)
         super().__init__(base)
         self.name = f'{base.name}+{term}'
-        self.time_invariant = base.time_invariant and not self.harmonic
+        self.time_invariant = base.time_invariant and not harmonic
 
     def _pieces(self, t, u):
-        view = self.view
-        h = _harmonic(self.harmonic, view._psi(t))
-        G = view.force(t)
-        if self.factor in ('beta', 'beta_dot'):
-            H = view.flap(t) if self.factor == 'beta' else view.flap_rate(t)
-            return np.einsum('tnk,tk,tkm->tnm', G, h, H), None
-        if self.factor == 'theta':
-            blades = [k - 1 for k in view.blades]
-            h = h * blade_pitch_from_multiblade(t, u[:, :3], int(view.model.rotor.n_blades))[
-                :, blades]
-        return None, np.einsum('tnk,tk->tn', G, h)
+        Phi, phi0 = term_pieces(self.view, self.term, t, u)
+        G = self.view.force(t)
+        if Phi is not None:
+            return np.einsum('tnk,tkm->tnm', G, Phi), None
+        return None, np.einsum('tnk,tk->tn', G, phi0)
 
     def _extra(self, t, pb, pe, u, F, g):
         M, v = self._pieces(t, u)
