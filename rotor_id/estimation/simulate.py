@@ -22,6 +22,11 @@ Everything is vectorised over time (bench/iteration_cost.py measured the gain):
   loop over steps;
 * a time-invariant system (F constant, equal steps: the wake and constant-coefficient models)
   builds Φ once instead of once per step.
+
+With the compiled kernels loaded, a time-invariant record with g = B u + e goes through
+:class:`TimeInvariantPlan` instead: the RK4 steps of a sample interval composed into one
+affine map of the stage inputs, prepared once per parameter vector with its derivatives, and
+one compiled pass for states, sensitivities, outputs and residual sums.
 """
 
 from dataclasses import dataclass
@@ -547,11 +552,6 @@ class TimeInvariantPlan:
     def no_sensitivity(n):
         """∂x0/∂θ with no columns."""
         return np.zeros((n, 0))
-
-    def no_derivatives(self, n, P):
-        """∂F, ∂g probes with no parameters (a plain simulation)."""
-        q1 = self.n_inputs + 1
-        return np.zeros((q1, 0, n, n)), np.zeros((q1, 0, n))
 
 
 def _compiled_chunk(kernel, model, p, tf, u, F, g, h, m, param_index, x, S, xs, Ss):
