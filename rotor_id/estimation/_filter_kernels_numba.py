@@ -4,6 +4,10 @@ Compiled (numba) Kalman filter with the analytic sensitivities of filter error's
 Loaded through :func:`rotor_id.estimation.kernels.filter_sensitivity_kernel` only; the numpy
 twin is :func:`rotor_id.estimation.filter_error.sensitivity_scan_numpy`, with the same
 equations in the same order (test/estimation/test_filter_error_gradient.py checks agreement).
+
+The 2×2 (m×m) inverse is ``_kernels_numba._invert``, compiled into this module's cache: numba
+does not track that dependency, so a change to ``_invert`` needs this cache cleared too
+(``make build`` after ``make clean``, or touch this file).
 """
 
 from numba import njit

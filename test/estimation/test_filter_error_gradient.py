@@ -134,3 +134,25 @@ def test_unknown_gradient_method_is_a_clear_error():
     exp = Experiment(WAKE, PROGRESSING, T_WAKE, wake_data(3, 0.1, 0.05))
     with pytest.raises(fe.IdentificationError, match='gradients must be one of'):
         fe.fit_filter_error([exp], UNKNOWNS, gradients='exact')
+
+
+def test_analytic_gradient_with_output_offsets_and_two_runs():
+    """Sensor-bias parameters (∂d/∂p ≠ 0) and two runs, each with its own free states."""
+    from rotor_id.diagnosis.augmentations import SensorBias
+    model = SensorBias(WAKE, T_WAKE)
+    biases = [n for n in model.parameter_names if n.startswith('bias')]
+    assert biases
+    runs = [Experiment(model, PROGRESSING, T_WAKE, wake_data(seed, 0.1, 0.05) + [0.02, -0.01],
+                       initial_state='positions', name=f'run{seed}') for seed in (3, 4)]
+    prob = fe._FilterProblem(runs, UNKNOWNS + biases, GUESS, None, None, None, True, None,
+                             'held', 'auto', 0.05)
+    theta = np.zeros(len(prob.names))
+    theta[:3] = [0.45, 0.22, 0.2]
+    theta[3:3 + len(biases)] = 0.01
+    theta[3 + len(biases):prob.n_base] = 0.05
+    theta[prob.i_process] = 0.07**2
+    theta[prob.i_meas] = [0.05, 0.06]
+    prob.scale = np.maximum(np.abs(theta), 1e-3)
+    assert all(prob.analytic_sensitivities(r, theta) is not None for r in range(2))
+    worst, _ = _gradient_check(prob, theta)
+    assert worst < 1e-5
