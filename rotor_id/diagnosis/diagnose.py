@@ -584,6 +584,14 @@ def diagnose(record, description, progress=None, workers=2, effects=EFFECTS, win
                        'flap-equation terms, validated on held-out time blocks')
         proposal = propose(ident.experiments, unknowns, values, known)
         _say(progress, proposal.text())
+        if effect == 'process_noise' and proposal.terms:
+            # a deterministic term that predicts held-out blocks is not random inflow
+            confidence = 'low'
+            notes.append(f'random inflow is the explanation of last resort, and a '
+                         f'deterministic term ({proposal.terms[0]["term"]}) lowers the '
+                         f'held-out equation error by '
+                         f'{proposal.terms[0]["heldout_improvement"]:.0%} beyond chance: the '
+                         'mismatch may be unmodelled dynamics (see explanation.proposal)')
 
     # ---- show ----
     if chosen_fit is not None:

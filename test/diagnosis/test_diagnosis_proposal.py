@@ -8,7 +8,8 @@ Out of catalogue (issue 16 item 4): a proposed flap-equation term, validated on 
 * on effect-free recordings it proposes nothing (the ≥ 20-seed false-proposal rate is measured
   by bench/proposal_stats.py, bench/results/proposal.md);
 * diagnose attaches it under ``explanation.proposal`` when the verdict is ``unexplained``, the
-  text report has its line and the report its figure.
+  text report has its line and the report its figure; a random-inflow verdict with a
+  proposed deterministic term is not confident.
 """
 
 from diagnosis_scenarios import BY_NAME, K_1C
@@ -90,3 +91,17 @@ def test_diagnose_attaches_the_proposal_to_an_unexplained_verdict(tmp_path):
     # and --report draws it: every library term's held-out improvement, the kept one marked
     assert (tmp_path / 'proposal.png') in write_report(result, tmp_path)
     assert (tmp_path / 'proposal.png').stat().st_size > 10000
+
+
+@pytest.mark.slow
+def test_random_inflow_verdict_loses_confidence_to_a_deterministic_term():
+    # the filter-error fit tracks the once-per-rev stiffness as random inflow; the proposal
+    # finds the deterministic term on held-out blocks, so the verdict is not confident and a
+    # note says why (~30 s CPU: one filter-error fit)
+    scenario = BY_NAME['flap_stiffness_1c']
+    record, description = scenario.record_and_description(1)
+    out = diagnose(record, description, workers=1, effects=('process_noise',)).as_json()
+    assert out['explanation']['effect'] == 'process_noise'
+    assert out['explanation']['confidence'] == 'low'
+    assert out['explanation']['proposal']['terms'][0]['term'] == 'beta*cos(psi)'
+    assert any('deterministic term (beta*cos(psi))' in n for n in out['notes'])
