@@ -50,7 +50,6 @@ from rclpy.node import Node
 from rclpy.qos import QoSProfile, ReliabilityPolicy
 from rclpy.task import Future
 from rotor_id.estimation.output_error import STOP
-from rotor_id.io.jointstate_cdr import decode_one
 from rotor_id.nodes.common import (allow_runtime_changes, declare, Diagnostics,
                                    estimate_message, node_run_description,
                                    NS, progress_message, RESULT_QOS, Rig, SENSOR_BUFFER_QOS,
@@ -59,7 +58,7 @@ from rotor_id.nodes.fit_process import (Abandoned, fit_window, FitOptions, FitPr
                                         thread_times, warm_up)
 from rotor_id.nodes.live import BadSample, check_azimuth_sample, check_joint_sample
 from rotor_id.nodes.polling import (checked_azimuth_batch, checked_joint_batch,
-                                    incompatible_publishers, SensorPoller)
+                                    incompatible_publishers, one_by_one, SensorPoller)
 from rotor_id.nodes.test_points import (FitSchedule, outcome, Phase, sampling_period_ns,
                                         TestPointSequence, window_bounds)
 from rotor_id.pipeline import model_for
@@ -357,12 +356,7 @@ class Identifier(Node):
                                           self.d['max_abs_angle_rad'])
         if checked is None:
             stamps = []
-            for raw in raws:
-                try:
-                    stamp, names, position, velocity = decode_one(raw)
-                except ValueError as exc:
-                    self.diagnostics.count('undecodable', f'not a JointState: {exc}')
-                    continue
+            for stamp, names, position, velocity in one_by_one(raws, self.diagnostics):
                 stamps.append(stamp)
                 self._take_one(role, stamp, names, position, velocity)
             return np.array(stamps, dtype=np.int64)

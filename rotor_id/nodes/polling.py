@@ -22,7 +22,7 @@ import time
 
 from rclpy.callback_groups import CallbackGroup
 from rclpy.event_handler import SubscriptionEventCallbacks
-from rotor_id.io.jointstate_cdr import decode_batch
+from rotor_id.io.jointstate_cdr import decode_batch, decode_one
 from rotor_id.nodes.live import check_azimuth_batch, check_joint_batch
 
 
@@ -197,3 +197,18 @@ def checked_azimuth_batch(raws, joint, last_stamp_ns, convention):
                                                joint, batch.stamps_ns, last_stamp_ns,
                                                convention)
     return (batch.stamps_ns, psi, omega) if accepted.all() else None
+
+
+def one_by_one(raws, diagnostics):
+    """
+    Decode serialized JointStates one at a time: yield (stamp, names, position, velocity).
+
+    What does not decode is counted on ``diagnostics`` ('undecodable') and skipped.
+    """
+    for raw in raws:
+        try:
+            decoded = decode_one(raw)
+        except ValueError as exc:
+            diagnostics.count('undecodable', f'not a JointState: {exc}')
+            continue
+        yield decoded

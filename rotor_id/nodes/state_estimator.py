@@ -15,13 +15,13 @@ import sys
 
 import numpy as np
 from rclpy.node import Node
-from rotor_id.io.jointstate_cdr import decode_one
 from rotor_id.nodes.common import (allow_runtime_changes, declare, Diagnostics,
                                    estimate_from_message, node_run_description, RESULT_QOS,
                                    Rig, SENSOR_BUFFER_QOS, spin_node, stamp_ns, wait_for_acks)
 from rotor_id.nodes.live import (AzimuthTracker, BadSample, check_azimuth_sample,
                                  check_joint_sample, StampedSeries, StreamingKalman)
-from rotor_id.nodes.polling import checked_azimuth_batch, checked_joint_batch, SensorPoller
+from rotor_id.nodes.polling import (checked_azimuth_batch, checked_joint_batch, one_by_one,
+                                    SensorPoller)
 from rotor_id.nodes.test_points import sampling_period_ns
 from rotor_id.physics.stirring import SampledInput
 from rotor_id.pipeline import channel_noise, model_for
@@ -106,12 +106,7 @@ class StateEstimator(Node):
         else:
             checked = checked_joint_batch(raws, joints, series.last_stamp, MAX_ABS_ANGLE_RAD)
         if checked is None:               # one at a time: each refusal with its reason
-            for raw in raws:
-                try:
-                    stamp, names, position, velocity = decode_one(raw)
-                except ValueError as exc:
-                    self.diagnostics.count('undecodable', f'not a JointState: {exc}')
-                    continue
+            for stamp, names, position, velocity in one_by_one(raws, self.diagnostics):
                 if role == 'azimuth':
                     self._take_azimuth(stamp, names, position, velocity)
                 else:
