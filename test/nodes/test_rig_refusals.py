@@ -50,7 +50,7 @@ def _construct(name, path, tmp_path):
            'stirring_input': 'StirringInput', 'rotor_plant': 'RotorPlant',
            'recorder': 'Recorder'}[name]
     context = rclpy.context.Context()
-    rclpy.init(context=context, domain_id=230 + os.getpid() % 20,
+    rclpy.init(context=context, domain_id=210 + os.getpid() % 20,   # Fast DDS: at most 232
                signal_handler_options=SignalHandlerOptions.NO)
     params = [Parameter('run_description', value=str(path))]
     if name == 'recorder':
