@@ -6,7 +6,7 @@ plant's own stepper at 1 kHz, the stirring node's phases on ``rotor/stirring`` r
 after the samples they refer to, as the live recorder writes them): the test points are found
 where the live identifier's state machine starts them (each at its schedule's first flap sample),
 and each test point's offline estimate is the estimate of exactly the window the live identifier
-fits (its FitRequest from the same TestPointSequence) to 0.05σ, with ``window_s`` counted from
+fits (its FitRequest from the same TestPointSequence) to 0.001σ, with ``window_s`` counted from
 that test point's start, not the bag's; ``all`` gives a JSON list and CSV rows in order; without
 phases the estimates' test_point tags are used; a schedule cut short is reported as not
 identified (an error when asked for by number); a bag with neither signal, an unknown number and
@@ -151,7 +151,7 @@ def test_each_test_point_of_a_session_agrees_with_the_live_fit_of_its_window(ses
         assert result['converged'] and result['window_complete_in_bag']
         for name, (value, std) in live_values.items():
             offline = result['parameters'][name]
-            assert abs(offline['value'] - value) < 0.05 * std, (k, name, offline, value, std)
+            assert abs(offline['value'] - value) < 1e-3 * std, (k, name, offline, value, std)
             assert abs(offline['value'] - WAKE[name]) < 3 * offline['std']
             assert float(row[name]) == pytest.approx(offline['value'])
             assert float(row[f'{name}_std']) == pytest.approx(offline['std'])
