@@ -30,7 +30,7 @@ import sys
 import tempfile
 import time
 
-from common import machine_description, REPO_ROOT, RESULTS_DIR, say
+from common import machine_description, REPO_ROOT, RESULTS_DIR, say, warm_kernel_cache
 import numpy as np
 
 RECORDINGS = REPO_ROOT.parent / 'shared' / 'recordings'
@@ -72,6 +72,7 @@ def main(argv=None):
     if not RECORDINGS.is_dir():
         say(f'no practice recordings at {RECORDINGS}: nothing to time')
         return 0
+    warm_kernel_cache()
     from rotor_id.diagnosis.diagnose import diagnose
     from rotor_id.io.bag import read_run
     from rotor_id.io.run_description import load_run_description

@@ -18,7 +18,7 @@ import resource
 import sys
 import time
 
-from common import markdown_table, say, write_results
+from common import markdown_table, say, warm_kernel_cache, write_results
 import numpy as np
 
 from rotor_id.estimation import kernels
@@ -69,6 +69,7 @@ def main(argv=None):
                         help='draws fitted serially and in parallel for the speed-up')
     parser.add_argument('--no-write', action='store_true')
     args = parser.parse_args(argv)
+    warm_kernel_cache()
     rows = []
     worst = worst_cpu = 0.0
     for case in CASES:
@@ -104,7 +105,8 @@ def main(argv=None):
                f'cores it would take about {worst_cpu / args.workers:.1f} s (a projection from '
                'the CPU time, not a measurement).')
     body = (f'## Monte Carlo wall time\n\n{table}\n\n{verdict}\n\n'
-            'Wall time includes loading the compiled simulator kernel, the pool start-up, the '
+            'Wall time includes loading the compiled simulator kernel (from the cache that '
+            '`make build` fills; the script fills it first), the pool start-up, the '
             'noise-free reference fit and making '
             "each draw's data (truth simulation + noise). The statistics themselves are "
             "bench/monte_carlo.py's subject; the σ ratios are shown only as a check that "

@@ -184,6 +184,9 @@ def main(argv=None):
         return 1 if orphans else 0
     summary = []
     started_all = time.perf_counter()
+    if not args.quick:
+        from common import warm_kernel_cache
+        warm_kernel_cache()           # a stale cache would put a compile into a timing
     env = dict(os.environ, PYTHONUNBUFFERED='1')
     with tempfile.TemporaryDirectory(prefix='rotor_id_bench_') as tmp:
         for i, bench in enumerate(selected, 1):
