@@ -728,8 +728,6 @@ def _candidate_jobs(current, kept, ctx, residuals_noise=False):
         if effect in excluded or applicable(effect, ctx['model_name'], ctx['rotor'],
                                             ctx['unknowns']):
             continue
-        if effect == 'periodic_coefficients' and names:
-            continue            # replaces the rotor model: only as the first effect
         if residuals_noise and effect not in SCREENED:
             _say_t(ctx, f'  + {effect}: not fitted (no score test, and the residuals are '
                         'already white at the floor)')
@@ -819,8 +817,9 @@ def _confound_text(kept, c):
             f'2Δlog L = {c["two_delta_loglik_alone"]:.1f} (criterion '
             f'{c["criterion_alone"]:.1f}), with {" + ".join(c["given"])} in the model '
             f'{c["two_delta_loglik_given"]:.1f} (criterion {c["criterion_given"]:.1f}, '
-            f'{c["how_given"]}; threshold {CRITERION_THRESHOLD:g}): {kept} reproduces '
-            f'{c["reproduced_fraction"]:.0%} of what {c["effect"]} does here, so '
+            f'{c["how_given"]}; threshold {CRITERION_THRESHOLD:g}): '
+            f'{" + ".join(c["given"])} reproduce {c["reproduced_fraction"]:.0%} of what '
+            f'{c["effect"]} does here ({kept} took most of it), so '
             f'{c["effect"]} may be present too; both are named')
 
 
