@@ -12,7 +12,9 @@ Three commands on the practice recording ``id_wake_progressing`` (the repository
   (the same equations in numpy; the two must give the same estimates and bounds to 1e-9
   relative), and with finite-difference sensitivities (``gradients='finite-difference'``: the
   filter run 2k+1 times per iteration, compiled; the method before issue 15 item 2), whose
-  optimum may differ by the convergence tolerance (printed in σ).
+  optimum may differ by the convergence tolerance (printed in σ);
+* filter error on the periodic practice record ``id_multiblade_mu04`` (its own window), with
+  analytic and with finite-difference sensitivities.
 
 A ``python -X importtime`` run of the short command lists the modules whose import costs the
 most (start-up is most of that command).
@@ -34,6 +36,7 @@ from common import fmt_time, markdown_table, REPO_ROOT, say, write_results
 
 RECORDINGS = REPO_ROOT.parent / 'shared' / 'recordings'
 BAG = RECORDINGS / 'id_wake_progressing'
+PERIODIC_BAG = RECORDINGS / 'id_multiblade_mu04'
 DESCRIPTION = RECORDINGS / 'id_wake_progressing.yaml'
 SHORT_TARGET_S = 0.5
 FILTER_TARGET_S = 2.0
@@ -143,6 +146,13 @@ def main(argv=None):
             finite_difference_command(cli[3:] + ['--method', 'filter-error', '--config',
                                                  str(whole), str(BAG), '--json',
                                                  str(tmp / 'fe_fd.json')]), default_env),
+        'identify, filter error, μ = .4 (periodic) practice record': (
+            cli + ['--method', 'filter-error', '--config', f'{PERIODIC_BAG}.yaml',
+                   str(PERIODIC_BAG), '--json', str(tmp / 'fe_mu04.json')], default_env),
+        'identify, filter error, μ = .4, finite-difference sensitivities (reference)': (
+            finite_difference_command(cli[3:] + [
+                '--method', 'filter-error', '--config', f'{PERIODIC_BAG}.yaml',
+                str(PERIODIC_BAG), '--json', str(tmp / 'fe_mu04_fd.json')]), default_env),
     }
     times = {name: [] for name in commands}
     cpus = {name: [] for name in commands}
@@ -166,6 +176,11 @@ def main(argv=None):
     fd_name = 'identify, filter error, 1065 samples, finite-difference sensitivities (reference)'
     fd_cpu = median(cpus[fd_name])
     fd_shift, fd_spread = shift_in_sigma(tmp / 'fe_fd.json', tmp / 'fe.json')
+    periodic_name = 'identify, filter error, μ = .4 (periodic) practice record'
+    periodic_fd_name = ('identify, filter error, μ = .4, finite-difference sensitivities '
+                        '(reference)')
+    periodic_shift, periodic_spread = shift_in_sigma(tmp / 'fe_mu04_fd.json',
+                                                     tmp / 'fe_mu04.json')
     rows = [[name, f'**{fmt_time(median(times[name]))}**', fmt_time(median(cpus[name])),
              f'{fmt_time(min(times[name]))} – {fmt_time(max(times[name]))}']
             for name in commands]
@@ -187,6 +202,11 @@ def main(argv=None):
         f'compiled and numpy runs agree to {agreement:.1e} relative (required ≤ '
         f'{AGREEMENT:g}); the finite-difference optimum is {fd_shift:.1e} σ away, its bounds '
         f'{fd_spread:.1e} relative (both converge to 1e-3 σ steps).'
+        f'\n\nFilter error on the periodic (μ = .4) practice record: '
+        f'{fmt_time(median(cpus[periodic_name]))} CPU with analytic sensitivities, '
+        f'{fmt_time(median(cpus[periodic_fd_name]))} CPU with finite differences '
+        f'({median(cpus[periodic_fd_name]) / median(cpus[periodic_name]):.1f}×); optima '
+        f'{periodic_shift:.1e} σ apart, bounds {periodic_spread:.1e} relative.'
         f'\n\nLoad average at the end: {load:.1f} (2 cores; wall times above CPU times are '
         'waiting for a core).')
     body = (f'## Whole commands (median of {args.repeat} interleaved rounds)\n\n{table}\n\n'

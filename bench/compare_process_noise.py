@@ -35,7 +35,6 @@ import multiprocessing
 import os
 from pathlib import Path
 import platform
-import subprocess
 import sys
 import time
 
@@ -43,6 +42,7 @@ import time
 os.environ.setdefault('OPENBLAS_NUM_THREADS', '1')
 os.environ.setdefault('OMP_NUM_THREADS', '1')
 
+from common import _git_commit  # noqa: E402 (bench/ is on sys.path when run as a script)
 import numpy as np  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]
@@ -170,16 +170,6 @@ def machine():
             f'{platform.system()} {platform.release()}')
 
 
-def commit():
-    """Short git commit of the repository, or 'unknown'."""
-    try:
-        out = subprocess.run(['git', '-C', str(REPO), 'rev-parse', '--short', 'HEAD'],
-                             capture_output=True, text=True, timeout=10)
-        return out.stdout.strip() or 'unknown'
-    except (OSError, subprocess.SubprocessError):
-        return 'unknown'
-
-
 def main(argv=None):
     """Run the comparison, print the table and write bench/results/process_noise.md."""
     parser = argparse.ArgumentParser(description=__doc__.split('\n')[1])
@@ -208,7 +198,7 @@ def main(argv=None):
              f'--workers {args.workers} --sigma-m {args.sigma_m:g}` ({wall:.0f} s wall).', '',
              f'Machine: {machine()}; load average {load_start:.1f} at the start, '
              f'{os.getloadavg()[0]:.1f} at the end (2 cores shared: CPU times are the '
-             f'comparable figures); rotor_id commit {commit()}.', '',
+             f'comparable figures); rotor_id commit {_git_commit()}.', '',
              'Report Ch.2 wake case (μ = 0, progressing, t = 70-82, Δt = 0.1, measurement '
              f'σ = {args.sigma_m:g}, true A/AL/τ/1/τ = .5/.25/.125, start .4/.2/.25). '
              'System noise σ_V: '

@@ -51,15 +51,16 @@ def _sensitivity_stage(F, S, prev, scale, dF, dg_row, xs, out):
 
 
 @njit(cache=True, nogil=True)
-def sensitivity_scan(F, g, dF, dg, h, substeps, Phi, dPhi, Q, dQ, R, dR, H, d, dd, y, x0, dx0,
-                     steady, B_ss, K_ss, dB_ss, dK_ss, nu, dnu, B, dB):
+def sensitivity_scan(Fs, g, dFs, dg, h, substeps, Phis, dPhis, Qs, dQs, R, dR, H, d, dd, y, x0,
+                     dx0, steady, B_ss, K_ss, dB_ss, dK_ss, nu, dnu, B, dB):
     """
     Innovations ν_j, B_j and their derivatives ∂ν_j, ∂B_j along k directions of θ.
 
-    A model with a constant system matrix: F (n, n); g (2M+1, n) the forcing at the RK4 stage
-    times (M = (T-1)·substeps steps of length h); dF (kp, n, n), dg (2M+1, kp, n) their
-    derivatives along the first kp directions; Phi, Q (n, n) of one sample interval and
-    dPhi (k, n, n) (zero beyond the first kp), dQ (k, n, n); R (m, m), dR (k, m, m);
+    Fs (2M+1, n, n) the system matrix at the RK4 stage times (M = (T-1)·substeps steps of
+    length h), or (1, n, n) when it is constant; g (2M+1, n) the forcing there; dFs (2M+1 or 1,
+    kp, n, n), dg (2M+1, kp, n) their derivatives along the first kp directions; Phis, Qs
+    (T-1 or 1, n, n) of each sample interval and dPhis (T-1 or 1, k, n, n) (zero beyond the
+    first kp), dQs (T-1 or 1, k, n, n); R (m, m), dR (k, m, m);
     H (T, m, n); d (T, m), dd (T, m, k); y (T, m); x0 (n,), dx0 (n, k). With ``steady``
     the gain is B_ss (m, m), K_ss (n, m) with derivatives dB_ss (k, m, m), dK_ss (k, n, m)
     throughout; else P(t0) = 0 and the covariance and its derivative are propagated.
@@ -76,9 +77,11 @@ def sensitivity_scan(F, g, dF, dg, h, substeps, Phi, dPhi, Q, dQ, R, dR, H, d, d
     """
     T = y.shape[0]
     m = y.shape[1]
-    n = F.shape[0]
     k = dx0.shape[1]
-    kp = dF.shape[0]
+    kp = dFs.shape[1]
+    n = Fs.shape[1]
+    varying = Fs.shape[0] > 1
+    per_interval = Phis.shape[0] > 1
     x = x0.copy()
     S = dx0.copy()
     P = np.zeros((n, n))
@@ -212,6 +215,11 @@ def sensitivity_scan(F, g, dF, dg, h, substeps, Phi, dPhi, Q, dQ, R, dR, H, d, d
                 S[i, c] = acc
         if t == T - 1:
             break
+        iv = t if per_interval else 0
+        Phi = Phis[iv]
+        dPhi = dPhis[iv]
+        Q = Qs[iv]
+        dQ = dQs[iv]
         if not steady:
             # P⁺ = P − K B Kᵀ and its derivative (KB = K B)
             for i in range(n):
@@ -282,14 +290,21 @@ def sensitivity_scan(F, g, dF, dg, h, substeps, Phi, dPhi, Q, dQ, R, dR, H, d, d
             st = 2 * (t * substeps + s)
             # RK4 stages k = F (x + a k_prev) + g and their sensitivities
             # ∂k = F (∂x + a ∂k_prev) + ∂F (x + a k_prev) + ∂g (exact derivative of the step)
-            _stage(F, g[st], x, x, 0.0, x1, k1)
-            _sensitivity_stage(F, S, S, 0.0, dF, dg[st], x1, s1)
-            _stage(F, g[st + 1], x, k1, half, x2, k2)
-            _sensitivity_stage(F, S, s1, half, dF, dg[st + 1], x2, s2)
-            _stage(F, g[st + 1], x, k2, half, x3, k3)
-            _sensitivity_stage(F, S, s2, half, dF, dg[st + 1], x3, s3)
-            _stage(F, g[st + 2], x, k3, h, x4, k4)
-            _sensitivity_stage(F, S, s3, h, dF, dg[st + 2], x4, s4)
+            # F and ∂F at the step's start, middle and end (one matrix when constant)
+            F0 = Fs[st] if varying else Fs[0]
+            Fm = Fs[st + 1] if varying else Fs[0]
+            F1 = Fs[st + 2] if varying else Fs[0]
+            dF0 = dFs[st] if varying else dFs[0]
+            dFm = dFs[st + 1] if varying else dFs[0]
+            dF1 = dFs[st + 2] if varying else dFs[0]
+            _stage(F0, g[st], x, x, 0.0, x1, k1)
+            _sensitivity_stage(F0, S, S, 0.0, dF0, dg[st], x1, s1)
+            _stage(Fm, g[st + 1], x, k1, half, x2, k2)
+            _sensitivity_stage(Fm, S, s1, half, dFm, dg[st + 1], x2, s2)
+            _stage(Fm, g[st + 1], x, k2, half, x3, k3)
+            _sensitivity_stage(Fm, S, s2, half, dFm, dg[st + 1], x3, s3)
+            _stage(F1, g[st + 2], x, k3, h, x4, k4)
+            _sensitivity_stage(F1, S, s3, h, dF1, dg[st + 2], x4, s4)
             for i in range(n):
                 x[i] += h / 6.0 * (k1[i] + 2.0 * k2[i] + 2.0 * k3[i] + k4[i])
                 for c in range(k):
@@ -302,11 +317,11 @@ def warm_up():
     T, n, m, k, kp, sub = 2, 2, 1, 2, 1, 1
     M = (T - 1) * sub
     for steady in (True, False):
-        sensitivity_scan(np.zeros((n, n)), np.zeros((2 * M + 1, n)), np.zeros((kp, n, n)),
-                         np.zeros((2 * M + 1, kp, n)), 0.1, sub, np.eye(n), np.zeros((k, n, n)),
-                         np.zeros((n, n)), np.zeros((k, n, n)), np.eye(m), np.zeros((k, m, m)),
-                         np.ones((T, m, n)), np.zeros((T, m)), np.zeros((T, m, k)),
-                         np.zeros((T, m)), np.zeros(n), np.zeros((n, k)), steady, np.eye(m),
-                         np.zeros((n, m)), np.zeros((k, m, m)), np.zeros((k, n, m)),
-                         np.empty((T, m)), np.empty((T, m, k)), np.empty((T, m, m)),
-                         np.empty((T, m, m, k)))
+        sensitivity_scan(np.zeros((1, n, n)), np.zeros((2 * M + 1, n)), np.zeros((1, kp, n, n)),
+                         np.zeros((2 * M + 1, kp, n)), 0.1, sub, np.eye(n)[None],
+                         np.zeros((1, k, n, n)), np.zeros((1, n, n)), np.zeros((1, k, n, n)),
+                         np.eye(m), np.zeros((k, m, m)), np.ones((T, m, n)), np.zeros((T, m)),
+                         np.zeros((T, m, k)), np.zeros((T, m)), np.zeros(n), np.zeros((n, k)),
+                         steady, np.eye(m), np.zeros((n, m)), np.zeros((k, m, m)),
+                         np.zeros((k, n, m)), np.empty((T, m)), np.empty((T, m, k)),
+                         np.empty((T, m, m)), np.empty((T, m, m, k)))

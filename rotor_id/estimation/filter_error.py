@@ -21,9 +21,9 @@ whose inverse is the Cramér-Rao bound. The process noise is optimised as its va
 ∂J/∂σ vanishes at σ = 0 for any data (Q ∝ σ²), so σ = 0 would be a false stationary point,
 while ∂J/∂q is not; σ and its bound are reported (M_σ = (2σ)² M_q). The sensitivities:
 
-* analytic (``gradients='analytic'``, the default) where the system matrix F is constant
-  (time-invariant dynamics; H may rotate, as the wake model's eq.-30 measurement does): the
-  filter is differentiated through (Jategaonkar's filter-error method),
+* analytic (``gradients='analytic'``, the default) for equally spaced samples, with a
+  constant system matrix F (H may rotate, as the wake model's eq.-30 measurement does) or a
+  periodic one: the filter is differentiated through (Jategaonkar's filter-error method),
 
       ∂ν = −H ∂x − ∂d,   ∂B = H ∂P Hᵀ + ∂R,   ∂K = (∂P Hᵀ − K ∂B) B⁻¹,
       ∂x⁺ = ∂x + ∂K ν + K ∂ν,   ∂P⁺ = ∂P − ∂K B Kᵀ − K ∂B Kᵀ − K B ∂Kᵀ,
@@ -31,12 +31,13 @@ while ∂J/∂q is not; σ and its bound are reported (M_σ = (2σ)² M_q). The 
 
   with ∂x carried through the same RK4 steps as x (their variational equations, the exact
   derivative of the step map), ∂Φ exact, ∂Q = ∂Q/∂F along ∂F/∂p by a central difference of
-  that n×n function (≈1e-12 relative), ∂x(t0) from the initial-state model. With the
+  that smooth matrix function (≈1e-12 relative), ∂x(t0) from the initial-state model. With the
   steady-state gain, ∂P comes from the Riccati equation's derivative, a discrete Lyapunov
   equation (:func:`steady_gain_sensitivities`). The recursion is compiled
   (``_filter_kernels_numba``) with a numpy twin; test_filter_error_gradient checks the gradient
   against differences of the likelihood.
-* otherwise (periodic F, or ``gradients='finite-difference'``): free initial states exactly
+* otherwise (uneven time stamps, or ``gradients='finite-difference'``): free initial states
+  exactly
   (ν is linear in x(t0) at fixed gains, ∂ν_j/∂x0 = −H_j Ψ_j with Ψ_{j+1} = Φ_j (I − K_j H_j)
   Ψ_j), model and noise parameters by central finite differences of the whole filter (ν_j
   and B_j), step 1e-5 relative: truncation O(h²) ≈ 1e-10 relative, rounding ≈ 1e-11, far
@@ -68,8 +69,9 @@ from rotor_id.estimation import kalman, kernels
 from rotor_id.estimation.output_error import (_fit_initial_states, _Problem,
                                               damped_gauss_newton_step, dependence_warnings,
                                               Estimate, IdentificationError)
-from rotor_id.estimation.simulate import (_fine_grid, _rk4_step_derivative, _rk4_transition,
-                                          _time_invariant, DEFAULT_MAX_STEP, substeps_for)
+from rotor_id.estimation.simulate import (_equal_steps, _fine_grid, _rk4_step_derivative,
+                                          _rk4_transition, _time_invariant, DEFAULT_MAX_STEP,
+                                          substeps_for)
 
 PROCESS_NOISE = 'process_noise_std'
 _FD_STEP = 1e-5
@@ -234,16 +236,94 @@ class _FilterProblem:
             out.append((nu[0], B[0], dnu, dB, cost[0]))
         return out
 
+    def _noise_derivatives(self, covariance, F, dF, sig_p, k, kp):
+        """
+        ∂Q (…, k, n, n): ∂Q/∂q = Q at σ_V = 1 (θ holds q = σ_V²), ∂Q/∂p = ∂Q/∂F along ∂F/∂p.
+
+        ``covariance(F, σ)`` is the model's Q as a function of its F (a tuple of arrays);
+        ∂Q/∂F along ∂F/∂p is its central difference with a step 1e-6 of F (truncation ~1e-12
+        relative: Q is a smooth matrix function).
+        """
+        Q1 = covariance(F, 1.0)
+        dQ = np.zeros(Q1.shape[:-2] + (k, Q1.shape[-1], Q1.shape[-1]))
+        if k and self.i_process is not None:
+            dQ[..., self.i_process, :, :] = Q1
+        if sig_p > 0.0:
+            for i in range(kp):
+                size = max(max(float(np.max(np.abs(dFx[..., i, :, :]))) for dFx in dF), 1e-300)
+                eps = 1e-6 * max(max(float(np.max(np.abs(Fx))) for Fx in F), 1e-300) / size
+                up = covariance(tuple(Fx + eps * dFx[..., i, :, :] for Fx, dFx in zip(F, dF)),
+                                sig_p)
+                down = covariance(tuple(Fx - eps * dFx[..., i, :, :]
+                                        for Fx, dFx in zip(F, dF)), sig_p)
+                dQ[..., i, :, :] = (up - down) / (2.0 * eps)
+        return dQ
+
+    def _constant_pieces(self, exp, p, t, substeps, Fs, dF, step, sig_p, k, kp):
+        """Φ, ∂Φ, Q, ∂Q (leading dimension 1) of a model with a constant system matrix."""
+        n = Fs.shape[-1]
+        dt = float(t[1] - t[0])
+        Phi_s = _rk4_transition(Fs, np.array([step]))[0]
+        dPhi_s = np.moveaxis(_rk4_step_derivative(
+            Fs, np.zeros((1, n)), np.full(n, step), dF, np.zeros((1, kp, n)),
+            np.eye(n)), 0, -1) if kp else np.zeros((0, n, n))             # (kp, n, n)
+        Phi = np.eye(n)
+        dPhi = np.zeros((k, n, n))
+        for _ in range(substeps):
+            dPhi[:kp] = dPhi_s @ Phi + Phi_s @ dPhi[:kp]
+            Phi = Phi_s @ Phi
+
+        def covariance(F, sigma):
+            return kalman.constant_noise_covariance(F[0], dt, substeps, self.rows, sigma,
+                                                    self.noise_model)
+        Q = covariance((Fs[0],), sig_p)
+        dQ = self._noise_derivatives(covariance, (Fs[0],), (dF[0],), sig_p, k, kp)
+        return Phi[None], dPhi[None], Q[None], dQ[None]
+
+    def _varying_pieces(self, exp, p, t, substeps, Fs, dF, step, sig_p, k, kp):
+        """Φ_j, ∂Φ_j, Q_j, ∂Q_j (leading dimension T-1) of a model whose F varies (periodic)."""
+        n, T = Fs.shape[-1], t.size
+        M = (T - 1) * substeps
+        h = np.full(M, step)
+        Phi_s = _rk4_transition(Fs, h).reshape(T - 1, substeps, n, n)
+        dPhi_s = np.zeros((M, kp, n, n))
+        for c in range(n if kp else 0):         # ∂Φ_s e_c: the step's derivative from e_c
+            unit = np.zeros((M, n))
+            unit[:, c] = 1.0
+            dPhi_s[..., c] = _rk4_step_derivative(Fs, np.zeros((1, n)), h, dF,
+                                                  np.zeros((1, kp, n)), unit)
+        dPhi_s = dPhi_s.reshape(T - 1, substeps, kp, n, n)
+        Phi = np.broadcast_to(np.eye(n), (T - 1, n, n))
+        dPhi = np.zeros((T - 1, k, n, n))
+        for s in range(substeps):
+            dPhi[:, :kp] = dPhi_s[:, s] @ Phi[:, None] + Phi_s[:, s, None] @ dPhi[:, :kp]
+            Phi = Phi_s[:, s] @ Phi
+        mid = 0.5 * (t[:-1] + t[1:])
+        Fmid, dFmid = np.zeros((T - 1, n, n)), np.zeros((T - 1, kp, n, n))
+        if self.noise_model == 'white':
+            Fmid = exp.model.system(mid, p, exp.inputs(mid))[0]
+            if kp:
+                dFmid = exp.model.system_jacobian(mid, p, exp.inputs(mid))[0][
+                    :, self.base.param_index]
+
+        def covariance(F, sigma):
+            return kalman.varying_noise_covariance(F[0], F[1], t, substeps, self.rows, sigma,
+                                                   self.noise_model)[0]
+        Q = covariance((Fs, Fmid), sig_p)
+        dQ = self._noise_derivatives(covariance, (Fs, Fmid), (dF, dFmid), sig_p, k, kp)
+        return np.ascontiguousarray(Phi), dPhi, Q, np.ascontiguousarray(dQ)
+
     def analytic_sensitivities(self, r, theta, sensitivities=True):
         """
         Return (ν, B, ∂ν, ∂B, cost) of run r from the filter's analytic sensitivities.
 
-        For a model whose system matrix F is constant (equal steps; H may rotate, as the wake
-        model's eq.-30 measurement does); None otherwise (a periodic model: finite
-        differences then). Without ``sensitivities``, ∂ν and ∂B are None and only the filter
-        runs. The module docstring has the equations. Φ and Q are those of
-        :func:`~rotor_id.estimation.kalman.discretize` (the same RK4 steps composed and
-        :func:`~rotor_id.estimation.kalman.constant_noise_covariance`); the state is carried
+        For equal sample intervals, with F constant (one Φ, Q; H may rotate, as the wake
+        model's eq.-30 measurement does) or varying (periodic models: Φ_j, Q_j per interval);
+        None for uneven time stamps (finite differences then). Without ``sensitivities``, ∂ν
+        and ∂B are None and only the filter runs. The module docstring has the equations. Φ and
+        Q are those of :func:`~rotor_id.estimation.kalman.discretize` (the same RK4 steps
+        composed, :func:`~rotor_id.estimation.kalman.constant_noise_covariance` or
+        :func:`~rotor_id.estimation.kalman.varying_noise_covariance`); the state is carried
         through the RK4 steps themselves, so the per-interval forcing c_j is never formed.
         """
         exp = self.experiments[r]
@@ -256,47 +336,23 @@ class _FilterProblem:
         u = exp.inputs(tf)
         F, g = model.system(tf, p, u)
         h = np.repeat(np.diff(t) / substeps, substeps)
-        if not _time_invariant(F, h, t):
-            return None
+        if not _equal_steps(h, t):
+            return None                 # time-stamp jitter: one step length per step
+        constant = _time_invariant(F, h, t)
         n, m, T = model.n_states, self.m, t.size
         k = len(theta) if sensitivities else 0
         kp = len(self.base.param_index) if sensitivities else 0
         if kp:
             dF, dg = model.system_jacobian(tf, p, u)
-            dF = np.ascontiguousarray(dF[0][self.base.param_index])        # (kp, n, n)
+            dF = np.ascontiguousarray(dF[:1 if constant else None][:, self.base.param_index])
             dg = np.ascontiguousarray(dg[:, self.base.param_index])        # (2M+1, kp, n)
         else:
-            dF, dg = np.zeros((0, n, n)), np.zeros((g.shape[0], 0, n))
-        F0 = np.ascontiguousarray(F[0])
-        dt = float(t[1] - t[0])
-        # Φ and ∂Φ of one interval (its RK4 steps composed), Q = σ_V² Q₁(F) and ∂Q
-        step = h[:1]
-        Phi_s = _rk4_transition(F[:1], step)[0]
-        dPhi_s = np.moveaxis(_rk4_step_derivative(
-            F[:1], np.zeros((1, n)), np.full(n, step[0]), dF[None], np.zeros((1, kp, n)),
-            np.eye(n)), 0, -1) if kp else np.zeros((0, n, n))             # (kp, n, n)
-        Phi = np.eye(n)
-        dPhi = np.zeros((k, n, n))
-        for _ in range(substeps):
-            dPhi[:kp] = dPhi_s @ Phi + Phi_s @ dPhi[:kp]
-            Phi = Phi_s @ Phi
-        Q = kalman.constant_noise_covariance(F0, dt, substeps, self.rows, sig_p,
-                                             self.noise_model)
-        dQ = np.zeros((k, n, n))
-        if k and self.i_process is not None:    # θ holds q = σ_V²: ∂Q/∂q = Q₁
-            dQ[self.i_process] = kalman.constant_noise_covariance(
-                F0, dt, substeps, self.rows, 1.0, self.noise_model)
-        if sig_p > 0.0:
-            # ∂Q/∂p = ∂Q/∂F along ∂F/∂p: central difference of this small matrix function
-            # (step 1e-6 of F, truncation ~1e-12 relative)
-            for i in range(kp):
-                eps = 1e-6 * max(float(np.max(np.abs(F0))), 1e-300) / \
-                    max(float(np.max(np.abs(dF[i]))), 1e-300)
-                up = kalman.constant_noise_covariance(F0 + eps * dF[i], dt, substeps, self.rows,
-                                                      sig_p, self.noise_model)
-                down = kalman.constant_noise_covariance(F0 - eps * dF[i], dt, substeps,
-                                                        self.rows, sig_p, self.noise_model)
-                dQ[i] = (up - down) / (2.0 * eps)
+            dF = np.zeros((1 if constant else F.shape[0], 0, n, n))
+            dg = np.zeros((g.shape[0], 0, n))
+        Fs = np.ascontiguousarray(F[:1] if constant else F)
+        pieces = (self._constant_pieces if constant else self._varying_pieces)(
+            exp, p, t, substeps, Fs, dF, h[0], sig_p, k, kp)
+        Phi, dPhi, Q, dQ = pieces
         R = np.diag(np.maximum(sig_m, 1e-300)**2)
         dR = np.zeros((k, m, m))
         if k and self.i_meas is not None:
@@ -306,10 +362,10 @@ class _FilterProblem:
         d = np.ascontiguousarray(model.output_offset(t, p), dtype=float)
         dm = kalman.DiscreteModel(t=t, Phi=np.broadcast_to(Phi, (T - 1, n, n)), c=None,
                                   Q=np.broadcast_to(Q, (T - 1, n, n)), H=H, d=d)
-        steady = self.gain_mode(dm) == 'steady'
+        steady = self.gain_mode(dm) == 'steady' and constant
         if steady:
-            _, B_ss, K_ss, dB_ss, dK_ss = steady_gain_sensitivities(Phi, Q, H[0], R, dPhi, dQ,
-                                                                    dR)
+            _, B_ss, K_ss, dB_ss, dK_ss = steady_gain_sensitivities(Phi[0], Q[0], H[0], R,
+                                                                    dPhi[0], dQ[0], dR)
         else:
             B_ss, K_ss = np.zeros((m, m)), np.zeros((n, m))
             dB_ss, dK_ss = np.zeros((k, m, m)), np.zeros((k, n, m))
@@ -324,7 +380,7 @@ class _FilterProblem:
             dx0[:, self.base.state_slices[r]] = jac[:, n_par:]
         nu, dnu = np.empty((T, m)), np.empty((T, m, k))
         B, dB = np.empty((T, m, m)), np.empty((T, m, m, k))
-        args = (F0, np.ascontiguousarray(g), dF, dg, float(step[0]), substeps, Phi, dPhi,
+        args = (Fs, np.ascontiguousarray(g), dF, dg, float(h[0]), substeps, Phi, dPhi,
                 np.ascontiguousarray(Q), dQ, R, dR, H, d, dd,
                 np.ascontiguousarray(exp.y, dtype=float), np.asarray(x0, dtype=float), dx0,
                 steady, B_ss, np.ascontiguousarray(K_ss), dB_ss, np.ascontiguousarray(dK_ss),
@@ -376,11 +432,12 @@ def steady_gain_sensitivities(Phi, Q, H, R, dPhi, dQ, dR):
     return P, B, K, dB, dK
 
 
-def sensitivity_scan_numpy(F, g, dF, dg, h, substeps, Phi, dPhi, Q, dQ, R, dR, H, d, dd, y,
-                           x0, dx0, steady, B_ss, K_ss, dB_ss, dK_ss, nu, dnu, B, dB):
+def sensitivity_scan_numpy(Fs, g, dFs, dg, h, substeps, Phis, dPhis, Qs, dQs, R, dR, H, d, dd,
+                           y, x0, dx0, steady, B_ss, K_ss, dB_ss, dK_ss, nu, dnu, B, dB):
     """Numpy twin of ``_filter_kernels_numba.sensitivity_scan`` (same arguments and result)."""
     T = y.shape[0]
-    n, kp = F.shape[0], dF.shape[0]
+    n, kp = Fs.shape[1], dFs.shape[1]
+    varying, per_interval = Fs.shape[0] > 1, Phis.shape[0] > 1
     x = x0.copy()
     S = dx0.copy()
     P = np.zeros((n, n))
@@ -412,6 +469,8 @@ def sensitivity_scan_numpy(F, g, dF, dg, h, substeps, Phi, dPhi, Q, dQ, R, dR, H
         S = S + Kj @ dv + np.einsum('cia,a->ic', dKj, v)
         if t == T - 1:
             break
+        iv = t if per_interval else 0
+        Phi, dPhi, Q, dQ = Phis[iv], dPhis[iv], Qs[iv], dQs[iv]
         if not steady:
             KB = Kj @ Bj
             dP = (dP - dKj @ KB.T - np.swapaxes(dKj @ KB.T, -1, -2)
@@ -424,21 +483,23 @@ def sensitivity_scan_numpy(F, g, dF, dg, h, substeps, Phi, dPhi, Q, dQ, R, dR, H
             P = 0.5 * (Pn + Pn.T)
         for s in range(substeps):
             st = 2 * (t * substeps + s)
-            k1 = F @ x + g[st]
+            F0, Fm, F1 = (Fs[st], Fs[st + 1], Fs[st + 2]) if varying else (Fs[0],) * 3
+            dF0, dFm, dF1 = (dFs[st], dFs[st + 1], dFs[st + 2]) if varying else (dFs[0],) * 3
+            k1 = F0 @ x + g[st]
             x2 = x + half * k1
-            k2 = F @ x2 + g[st + 1]
+            k2 = Fm @ x2 + g[st + 1]
             x3 = x + half * k2
-            k3 = F @ x3 + g[st + 1]
+            k3 = Fm @ x3 + g[st + 1]
             x4 = x + h * k3
-            k4 = F @ x4 + g[st + 2]
-            s1 = F @ S
-            s1[:, :kp] += (dF @ x).T + dg[st].T
-            s2 = F @ (S + half * s1)
-            s2[:, :kp] += (dF @ x2).T + dg[st + 1].T
-            s3 = F @ (S + half * s2)
-            s3[:, :kp] += (dF @ x3).T + dg[st + 1].T
-            s4 = F @ (S + h * s3)
-            s4[:, :kp] += (dF @ x4).T + dg[st + 2].T
+            k4 = F1 @ x4 + g[st + 2]
+            s1 = F0 @ S
+            s1[:, :kp] += (dF0 @ x).T + dg[st].T
+            s2 = Fm @ (S + half * s1)
+            s2[:, :kp] += (dFm @ x2).T + dg[st + 1].T
+            s3 = Fm @ (S + half * s2)
+            s3[:, :kp] += (dFm @ x3).T + dg[st + 1].T
+            s4 = F1 @ (S + h * s3)
+            s4[:, :kp] += (dF1 @ x4).T + dg[st + 2].T
             x = x + h / 6.0 * (k1 + 2.0 * k2 + 2.0 * k3 + k4)
             S = S + h / 6.0 * (s1 + 2.0 * s2 + 2.0 * s3 + s4)
     return total
@@ -601,9 +662,8 @@ def fit_filter_error_ml(experiments, unknowns, guess=None, known=None, noise_std
     label : str
         Name shown by progress reports.
     gradients : {'analytic', 'finite-difference'}
-        Sensitivities of ν and B: analytic where the model is time-invariant with a
-        steady-state gain (finite differences elsewhere), or finite differences throughout
-        (the reference).
+        Sensitivities of ν and B: analytic for equally spaced samples (finite differences
+        for uneven time stamps), or finite differences throughout (the reference).
     _start : dict, optional
         Starting values by θ name (any of model unknowns, free initial states, measurement
         σ's), over the defaults; :func:`fit_filter_error`'s σ_V profile warm-starts with it.

@@ -29,7 +29,8 @@ import math
 
 import numpy as np
 from rotor_id.estimation.simulate import (_fine_grid, _rk4_constant_forcing, _rk4_maps,
-                                          _time_invariant, DEFAULT_MAX_STEP, substeps_for)
+                                          _rk4_transition, _time_invariant, DEFAULT_MAX_STEP,
+                                          substeps_for)
 import scipy.linalg
 
 NOISE_MODELS = ('held', 'white')
@@ -156,43 +157,61 @@ def discretize(model, p, inputs, t, rows=(), noise_std=0.0, noise_model='white',
         Phi_s, c_s = _rk4_maps(F, g, h)
     Phi_s = Phi_s.reshape(T - 1, m, n, n)
     c_s = c_s.reshape(T - 1, m, n)
-    # response of each step to a unit input held on each noise row
-    G_s = np.zeros((T - 1, m, n, len(rows)))
-    if noise_model == 'held' and not constant:
-        for k, row in enumerate(rows):
-            w = np.zeros((h.size, n))
-            w[:, row] = 1.0
-            G_s[:, :, :, k] = _rk4_constant_forcing(F, w, h).reshape(T - 1, m, n)
     # compose the m steps of each sample interval (vectorised over intervals)
     Phi = np.broadcast_to(np.eye(n), (T - 1 if not constant else 1, n, n)).copy()
     c = np.zeros((T - 1, n))
-    G = np.zeros((T - 1, n, len(rows)))
     for s in range(m):
         Phi = Phi_s[:Phi.shape[0], s] @ Phi
         if constant:                    # one matrix for all intervals: a single product
             c = c @ Phi_s[0, s].T + c_s[:, s]
         else:
             c = np.einsum('jab,jb->ja', Phi_s[:, s], c) + c_s[:, s]
-            G = Phi_s[:, s] @ G + G_s[:, s]
     if constant:
         Q = np.broadcast_to(constant_noise_covariance(F[0], np.diff(t)[0], m, rows, sigma,
                                                       noise_model), (T - 1, n, n))
         G = np.broadcast_to(held_noise_response(F[0], np.diff(t)[0], m, rows),
                             (T - 1, n, len(rows))) if noise_model == 'held' else None
-    elif noise_model == 'held':
-        Q = np.einsum('jak,k,jbk->jab', G, sigma**2, G)
     else:
-        mid = 0.5 * (t[:-1] + t[1:])
-        Fmid = model.system(mid, p, inputs(mid))[0]
-        Qc = np.zeros((n, n))
-        Qc[rows, rows] = sigma**2
-        Q = van_loan(Fmid, Qc, np.diff(t))[1]
-        G = None
+        Fmid = None
+        if noise_model == 'white':
+            mid = 0.5 * (t[:-1] + t[1:])
+            Fmid = model.system(mid, p, inputs(mid))[0]
+        Q, G = varying_noise_covariance(F, Fmid, t, m, rows, sigma, noise_model)
     if constant:
         Phi = np.broadcast_to(Phi, (T - 1, n, n))
     H = model.output_matrix(t)
     d = model.output_offset(t, p)
     return DiscreteModel(t=t, Phi=Phi, c=c, Q=Q, H=H, d=d, G=G)
+
+
+def varying_noise_covariance(F, Fmid, t, substeps, rows, sigma, noise_model):
+    """
+    Return Q (T-1, n, n) and G (T-1, n, q) or None of a model whose F varies (periodic).
+
+    The varying branch of :func:`discretize`: for ``'held'`` the RK4 response G_j of each
+    interval to a unit input held on each noise row (F at the stage times, (2M+1, n, n)) and
+    Q_j = G_j diag(σ²) G_jᵀ; for ``'white'`` Van Loan's integral with F frozen at the interval
+    midpoints (Fmid (T-1, n, n)). A filter's sensitivity differentiates this function along
+    ∂F/∂p.
+    """
+    T = t.size
+    n = F.shape[-1]
+    sigma = np.broadcast_to(np.asarray(sigma, dtype=float), (len(rows),))
+    if noise_model == 'white':
+        Qc = np.zeros((n, n))
+        Qc[rows, rows] = sigma**2
+        return van_loan(Fmid, Qc, np.diff(t))[1], None
+    h = np.repeat(np.diff(t) / substeps, substeps)
+    Phi_s = _rk4_transition(F, h).reshape(T - 1, substeps, n, n)
+    G_s = np.zeros((T - 1, substeps, n, len(rows)))
+    for k, row in enumerate(rows):
+        w = np.zeros((h.size, n))
+        w[:, row] = 1.0
+        G_s[:, :, :, k] = _rk4_constant_forcing(F, w, h).reshape(T - 1, substeps, n)
+    G = np.zeros((T - 1, n, len(rows)))
+    for s in range(substeps):
+        G = Phi_s[:, s] @ G + G_s[:, s]
+    return np.einsum('jak,k,jbk->jab', G, sigma**2, G), G
 
 
 def held_noise_response(F, dt, substeps, rows):

@@ -6,6 +6,7 @@ Filter error's analytic sensitivities (issue 15 item 2) against finite differenc
   Φ, Q, the forcing and the equilibrium initial state), the process-noise variance, the
   measurement σ's and free initial states; with the rotating measurement and the time-varying
   gain (wake model), and with the steady-state gain (constant-coefficient model);
+* the same for a periodic model (μ = .4: Φ_j, Q_j per interval);
 * the compiled scan and its numpy twin give the same numbers;
 * the fit with analytic gradients lands on the finite-difference fit's optimum.
 """
@@ -16,7 +17,7 @@ from rotor_id.estimation import filter_error as fe
 from rotor_id.estimation import kernels
 from rotor_id.estimation.output_error import Experiment
 from rotor_id.estimation.simulate import simulate
-from rotor_id.physics.models import MultibladeConstant, RotorConstants
+from rotor_id.physics.models import Multiblade, MultibladeConstant, RotorConstants
 from rotor_id.physics.stirring import StirringSchedule
 from test_filter_error import GUESS, PROGRESSING, T_WAKE, UNKNOWNS, WAKE, wake_data
 
@@ -55,6 +56,29 @@ def _constant_problem():
     return prob, theta
 
 
+def _periodic_problem(noise_model):
+    model = Multiblade(RotorConstants(advance_ratio=0.4))
+    p = model.nominal()
+    sched = StirringSchedule(t0=12.0)
+    t = 12.0 + 0.1 * np.arange(121)
+    x0 = model.equilibrium(t[:1], p, sched(t[:1]))
+    rng = np.random.default_rng(2)
+    forcing = np.zeros((120, model.n_states))
+    forcing[:, 4:] = 0.2 * rng.standard_normal((120, model.n_states - 4))
+    y = simulate(model, p, sched, t, x0, forcing=forcing).y
+    y = y + 0.05 * rng.standard_normal(y.shape)
+    exp = Experiment(model, sched, t, y, initial_state='equilibrium')
+    names = list(model.parameter_names[:2])
+    prob = fe._FilterProblem([exp], names, None, None, None, None, True, None, noise_model,
+                             'auto', 0.05)
+    theta = np.zeros(len(prob.names))
+    theta[:2] = 1.1 * p[:2]
+    theta[prob.i_process] = 0.2**2
+    theta[prob.i_meas] = 0.05
+    prob.scale = np.maximum(np.abs(theta), 1e-3)
+    return prob, theta
+
+
 def _gradient_check(prob, theta):
     """Largest |analytic − central difference| of ∂J/∂θ_i, relative to |∂J/∂θ_i|."""
     results = prob.evaluate(theta)
@@ -89,9 +113,21 @@ def test_analytic_gradient_with_the_steady_state_gain():
     assert worst < 1e-5
 
 
+@pytest.mark.parametrize('noise_model', ['held', 'white'])
+def test_analytic_gradient_for_a_periodic_model(noise_model):
+    """μ = .4: F, Φ_j and Q_j vary over the revolution; time-varying gain."""
+    prob, theta = _periodic_problem(noise_model)
+    dm, _, _ = prob.discretized(0, theta)
+    assert not dm.time_invariant
+    assert prob.analytic_sensitivities(0, theta) is not None
+    worst, _ = _gradient_check(prob, theta)
+    assert worst < 1e-5
+
+
 def test_analytic_sensitivities_match_the_finite_difference_ones():
     """∂ν and ∂B themselves, against the filter differenced at θ ± h (the old method)."""
-    for prob, theta in (_wake_problem('held', 'equilibrium'), _constant_problem()):
+    for prob, theta in (_wake_problem('held', 'equilibrium'), _constant_problem(),
+                        _periodic_problem('white')):
         (nu, B, dnu, dB, cost), = prob.evaluate(theta)
         prob.gradients = 'finite-difference'
         (nu_fd, B_fd, dnu_fd, dB_fd, cost_fd), = prob.evaluate(theta)
@@ -108,7 +144,8 @@ def test_compiled_scan_equals_numpy(monkeypatch):
     loaded = kernels.mode() != 'numpy' and kernels.prefer() is not None
     if not loaded or kernels.filter_sensitivity_kernel() is None:
         pytest.skip(f'no compiled kernel here ({kernels.status()["error"]})')
-    for prob, theta in (_wake_problem('white', 'positions'), _constant_problem()):
+    for prob, theta in (_wake_problem('white', 'positions'), _constant_problem(),
+                        _periodic_problem('held')):
         compiled, = prob.evaluate(theta)
         monkeypatch.setattr(kernels, 'filter_sensitivity_kernel', lambda: None)
         reference, = prob.evaluate(theta)
