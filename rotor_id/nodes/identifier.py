@@ -136,8 +136,10 @@ class Identifier(Node):
             ('min_window_samples', 50, 'fewest flap samples a window_s must span at the '
              'measured sample rate (shorter windows are refused)', 3, 10_000_000),
         ]
-        # settable at run time (checked; used by the next fit): targets and fit tolerances
-        tunable = ('target_std', 'max_iter', 'step_tol', 'max_iter_provisional')
+        # settable at run time (checked; used by the next fit): targets, fit and window-check
+        # tolerances (window_s too, declared below: from the next test point)
+        tunable = ('target_std', 'max_iter', 'step_tol', 'max_iter_provisional',
+                   'gap_tolerance_periods', 'azimuth_slip_tolerance_rad')
         self.d = {s[0]: declare(self, s[0], s[1], s[2], *s[3:], read_only=s[0] not in tunable)
                   for s in spec}
         self.rig = Rig(node_run_description(self.d['run_description']))
@@ -289,6 +291,14 @@ class Identifier(Node):
     def _apply_parameters(self, names):
         if 'target_std' in names:
             self._set_targets()
+        if names & {'gap_tolerance_periods', 'azimuth_slip_tolerance_rad'}:
+            with self.lock:               # the window checks of the next fit request on
+                self.points.gap_factor = float(self.d['gap_tolerance_periods'])
+                self.points.slip_tolerance_rad = float(self.d['azimuth_slip_tolerance_rad'])
+            self.get_logger().info(
+                f'window checks from the next fit request: gaps over '
+                f'{self.points.gap_factor:g} sampling periods, azimuth slips over '
+                f'{self.points.slip_tolerance_rad:g} rad')
         if 'window_s' in names:
             # rclpy answers a successful set without a reason: the log and /diagnostics say
             # when the new window applies

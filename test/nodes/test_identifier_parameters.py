@@ -80,12 +80,12 @@ def run():
             executor.spin_once(timeout_sec=0.002)
             idle = idle + 1 if node.taken == before else 0
 
-    def set_window(label, value):
-        future = parameters.set_parameters([Parameter('window_s', value=value)])
-        assert spin_until(future.done, 20.0), f'no answer to setting window_s {value}'
+    def set_window(label, value, name='window_s'):
+        future = parameters.set_parameters([Parameter(name, value=value)])
+        assert spin_until(future.done, 20.0), f'no answer to setting {name} {value}'
         result = future.result().results[0]
         out['answers'][label] = (result.successful, result.reason,
-                                 list(node.get_parameter('window_s').value))
+                                 node.get_parameter(name).value)
 
     def send(lo, hi):
         for i in range(lo, hi):
@@ -119,6 +119,10 @@ def run():
         out['diagnostics'] = dict(node.diagnostics.values)
         send(400, LENGTH)
         assert final(1), 'no final estimate of test point 1'
+        set_window('gap tolerance', 3.0, 'gap_tolerance_periods')
+        set_window('gap tolerance below 1', 0.5, 'gap_tolerance_periods')
+        set_window('slip tolerance', 0.05, 'azimuth_slip_tolerance_rad')
+        out['tolerances'] = (node.points.gap_factor, node.points.slip_tolerance_rad)
         out['started_2'] = start_test_point()
         send(LENGTH, LENGTH + 400)
         out['problems_2'] = dict(node.diagnostics.problems)
@@ -152,12 +156,12 @@ def _ns(t):
 def test_an_invalid_window_is_refused_with_the_reason(run, label, words):
     successful, reason, value = run['answers'][label]
     assert not successful and reason.startswith('window_s: ') and words in reason, reason
-    assert value == list(WINDOW)                  # unchanged
+    assert list(value) == list(WINDOW)            # unchanged
 
 
 def test_a_window_set_while_recording_applies_from_the_next_test_point(run):
     successful, reason, value = run['answers']['during test point 1']
-    assert successful and value == NEW_WINDOW
+    assert successful and list(value) == NEW_WINDOW
     # (rclpy answers a successful set without a reason: the node logs this and reports it)
     assert run['diagnostics']['window_s_change'] == (
         'window_s 0.7800-0.9500 s applies from the next test point armed; test point 1 '
@@ -187,3 +191,11 @@ def test_a_window_of_few_samples_is_a_warning_while_it_records(run):
     assert text.startswith('test point 1 (recording): window_s 0.80939-0.93671 s spans 127 flap '
                            'samples at the measured 1000 Hz, fewer than min_window_samples 130')
     assert 'window_too_short' not in run['problems_2']      # 170 samples: cleared
+
+
+def test_window_check_tolerances_are_settable_within_their_ranges(run):
+    assert run['answers']['gap tolerance'][:1] == (True,)
+    assert run['answers']['slip tolerance'][:1] == (True,)
+    successful, reason, value = run['answers']['gap tolerance below 1']
+    assert not successful and value == 3.0                # refused by its range, unchanged
+    assert run['tolerances'] == (3.0, 0.05)               # the next window check uses them
