@@ -277,10 +277,16 @@ SCENARIOS = SCENARIOS + [s for s in PAIR_STUDY if s not in SCENARIOS]
 #: proposal of the term ``beta*cos(psi)``, coefficient −K_1c. Not in the study's SCENARIOS: no
 #: catalogue verdict is right for it.
 K_1C = 0.1
+D_1S = 0.1
 OUT_OF_CATALOGUE = [
     Scenario('flap_stiffness_1c', 'unexplained',
              lambda s: wake_case(seed=s, wake=False, flap_stiffness_1c=K_1C), MULTIBLADE,
              accept=('process_noise',), extra_truth={'beta*cos(psi)': -K_1C},
+             original_truth={'gamma': GAMMA_WAKE, 'theta0': THETA0}),
+    # a once-per-rev flap damping, β_k″ += −D_1s sin ψ_k β_k′: the term beta_dot*sin(psi)
+    Scenario('flap_damping_1s', 'unexplained',
+             lambda s: wake_case(seed=s, wake=False, flap_damping_1s=D_1S), MULTIBLADE,
+             accept=('process_noise',), extra_truth={'beta_dot*sin(psi)': -D_1S},
              original_truth={'gamma': GAMMA_WAKE, 'theta0': THETA0}),
 ]
 

@@ -39,7 +39,8 @@ zero may be off: the recording's azimuth of blade 1 reads ``azimuth_offset`` (ra
 the blade's true azimuth, on which the rotor, its swashplate and its aerodynamics run.
 ``flap_stiffness_1c`` is physics no catalogue candidate models (issue 16 item 4): a flap spring
 whose stiffness varies once per revolution in the shaft frame (a hub spring with a
-shaft-fixed asymmetry), β_k″ += −K_1c cos ψ_k β_k.
+shaft-fixed asymmetry), β_k″ += −K_1c cos ψ_k β_k; ``flap_damping_1s`` another, a flap damper
+whose damping varies once per revolution, β_k″ += −D_1s sin ψ_k β_k′.
 
 The record starts in trim at collective pitch only (settled over ``t_settle`` from rest), the
 lateral cyclic is stepped on at ``t_step``, and pitch stirring θI = a sin φ, θII = a cos φ,
@@ -96,6 +97,8 @@ class TruthConfig:
     azimuth_offset: float = 0.0
     #: once-per-rev flap stiffness K_1c (per rev²): β_k″ += −K_1c cos ψ_k β_k (out of catalogue)
     flap_stiffness_1c: float = 0.0
+    #: once-per-rev flap damping D_1s (per rev): β_k″ += −D_1s sin ψ_k β_k′ (out of catalogue)
+    flap_damping_1s: float = 0.0
     n_blades: int = 4
     pitch_flap: float = 0.0
     #: a flap frequency the run description does not know: the rotor's P is
@@ -169,7 +172,7 @@ def _rhs_factory(cfg, turbulence):
     gam = cfg.gamma * np.asarray(cfg.gamma_scale, dtype=float)
     dtheta = np.asarray(cfg.pitch_offset, dtype=float)
     kappa = cfg.cubic_stiffness
-    k1c = cfg.flap_stiffness_1c
+    k1c, d1s = cfg.flap_stiffness_1c, cfg.flap_damping_1s
     lag = cfg.sensor_lag
     coupling, act_lag = cfg.pitch_flap_coupling, cfg.actuator_lag
     wake = cfg.wake
@@ -201,7 +204,7 @@ def _rhs_factory(cfg, turbulence):
             theta = theta + w[0] + w[1] * c1 + w[2] * s1
         aero = 0.5 * gam * (m_theta * theta + damping * (lam - rate) - stiffness * beta
                             + m_lambda * lam0)
-        accel = aero - P**2 * beta - kappa * beta**3 - k1c * c1 * beta
+        accel = aero - P**2 * beta - kappa * beta**3 - k1c * c1 * beta - d1s * s1 * rate
         out = np.zeros_like(s)
         out[:n] = rate
         out[n:2 * n] = accel
