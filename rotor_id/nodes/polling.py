@@ -146,10 +146,17 @@ class SensorPoller:
 
     def _loop(self):
         while self._running:
-            period = self.period_of() if self.period_of is not None else self.period_s
-            time.sleep(max(period, 1e-5))
-            if self._running:
-                self.poll()
+            period = self.period_s
+            try:
+                if self.period_of is not None:
+                    period = self.period_of()
+                time.sleep(max(period, 1e-5))
+                if self._running:
+                    self.poll()
+            except Exception as exc:     # noqa: B902 - the thread must go on taking samples
+                if self.on_error is not None:
+                    self.on_error(exc)
+                time.sleep(self.period_s)
 
 
 def incompatible_publishers(node, subscription, qos):
