@@ -6,8 +6,9 @@ For every seed, the independent truth generator makes a recording, the baseline 
 (:func:`rotor_id.pipeline.identify`) and :func:`rotor_id.diagnosis.proposal.propose` is asked
 directly, whatever the diagnosis would say, on
 
-* ``flap_stiffness_1c``: a once-per-rev flap stiffness no candidate models (the term to find is
-  ``beta*cos(psi)`` with coefficient −K_1c);
+* ``flap_stiffness_1c``, ``flap_damping_1s``: a once-per-rev flap stiffness (damping) no
+  candidate models (the term to find is ``beta*cos(psi)`` with coefficient −K_1c,
+  ``beta_dot*sin(psi)`` with −D_1s);
 * null records (no effect) of three kinds: their false-proposal rate;
 * in-catalogue records: what a proposal says there if asked (diagnose asks only when the verdict
   is ``unexplained`` or ``process_noise``).
@@ -33,7 +34,7 @@ from rotor_id.diagnosis.proposal import propose  # noqa: E402
 from rotor_id.pipeline import identify  # noqa: E402
 
 RESULTS = ROOT / 'bench' / 'results'
-DEFAULT = ['flap_stiffness_1c', 'none_multiblade', 'none_mu04', 'none_wake', 'process_noise',
+DEFAULT = ['flap_stiffness_1c', 'flap_damping_1s', 'none_multiblade', 'none_mu04', 'none_wake', 'process_noise',
            'dynamic_inflow', 'sensor_lag', 'azimuth_offset']
 
 
