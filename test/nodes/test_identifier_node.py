@@ -27,20 +27,11 @@ BLADES = [f'blade_{k}' for k in range(1, 5)]
 @pytest.fixture(scope='module')
 def run():
     """Four test points through one identifier node; return what it published and answered."""
-    from rclpy.executors import SingleThreadedExecutor
+    from identifier_harness import InProcessIdentifier
     from rclpy.parameter import Parameter
-    from rclpy.signals import SignalHandlerOptions
-    from rotor_id.nodes.common import joint_state, RESULT_QOS, SENSOR_OFFER_QOS
-    from rotor_id.nodes.identifier import Identifier
-    from rotor_id_msgs.msg import ParameterEstimate
-    from sensor_msgs.msg import JointState
     from std_srvs.srv import Trigger
 
     data = _stream(points=4)
-    domain = 201 + os.getpid() % 30
-    os.environ['ROS_AUTOMATIC_DISCOVERY_RANGE'] = 'LOCALHOST'
-    context = rclpy.context.Context()
-    rclpy.init(context=context, domain_id=domain, signal_handler_options=SignalHandlerOptions.NO)
     params = [Parameter('run_description', value='demo_wake.yaml'),
               Parameter('auto_start', value='none'), Parameter('sensor_queue_depth', value=100),
               Parameter('update_every_rad', value=0.0),
@@ -49,40 +40,13 @@ def run():
               # fits in the node's thread here (no child process to start); the multi-process
               # tests run the default, a separate fit process
               Parameter('fit_process', value=False)]
-    node = Identifier(parameter_overrides=params, context=context)
     # the sensor topics are taken here (drain), not by the node's poller thread: a starved
     # identifier is one whose poll does not run
-    node.poller.stop()
-    test = rclpy.create_node('test_identifier_node', context=context)
-    executor = SingleThreadedExecutor(context=context)
-    executor.add_node(node)
-    executor.add_node(test)
-    pubs = {topic: test.create_publisher(JointState, f'/rotor/{topic}', SENSOR_OFFER_QOS)
-            for topic in ('blade_flap', 'blade_pitch', 'azimuth')}
-    estimates = []
-    test.create_subscription(ParameterEstimate, '/rotor_id/estimate', estimates.append,
-                             RESULT_QOS)
-    clients = {name: test.create_client(Trigger, f'/identifier/{name}')
+    rig = InProcessIdentifier('test_identifier_node', params, 201 + os.getpid() % 30)
+    node, estimates, spin_until, drain = rig.node, rig.estimates, rig.spin_until, rig.drain
+    clients = {name: rig.test.create_client(Trigger, f'/identifier/{name}')
                for name in ('start_test_point', 'abort')}
     out = {'answers': [], 'estimates': estimates, 'data': data}
-
-    def spin_until(condition, timeout=30.0):
-        clock = rclpy.clock.Clock(clock_type=rclpy.clock.ClockType.STEADY_TIME)
-        end = clock.now().nanoseconds + timeout * 1e9
-        while not condition():
-            if clock.now().nanoseconds > end:
-                return False
-            executor.spin_once(timeout_sec=0.01)
-        return True
-
-    def drain():
-        """Spin until the identifier has taken everything delivered (no callback for 3 spins)."""
-        idle = 0
-        while idle < 3:
-            before = node.taken
-            node.poller.poll()
-            executor.spin_once(timeout_sec=0.002)
-            idle = idle + 1 if node.taken == before else 0
 
     def call(name):
         drain()                     # a test point starts at the next flap sample taken
@@ -91,14 +55,7 @@ def run():
         out['answers'].append((name, future.result().success, future.result().message))
 
     def send(i, topics=('blade_flap', 'blade_pitch', 'azimuth')):
-        stamp = int(data['stamps'][i])
-        for topic in topics:
-            if topic == 'azimuth':
-                msg = joint_state(stamp, ['rotor'], [data['psi'][i]], [OMEGA])
-            else:
-                msg = joint_state(stamp, BLADES, data['flap' if topic == 'blade_flap'
-                                                      else 'pitch'][i])
-            pubs[topic].publish(msg)
+        rig.send(data, i, OMEGA, BLADES, topics)
 
     def test_point(k, starve=None, skip_pitch=()):
         """Send test point k's samples; the identifier spun every 20, except while starved."""
@@ -108,11 +65,10 @@ def run():
             starved = starve is not None and starve[0] <= i - k * LENGTH < starve[1]
             if i % 20 == 0 and not starved:
                 drain()
-        return spin_until(lambda: any(m.test_point == k + 1 and m.kind == 1 for m in estimates),
-                          60.0)
+        return spin_until(lambda: rig.final_of(k + 1), 60.0)
 
     try:
-        assert spin_until(lambda: all(p.get_subscription_count() for p in pubs.values()) and
+        assert spin_until(lambda: all(p.get_subscription_count() for p in rig.pubs.values()) and
                           all(c.service_is_ready() for c in clients.values()))
         lo = math.ceil(WINDOW[0] * 1000)
         call('start_test_point')
@@ -125,7 +81,7 @@ def run():
         call('start_test_point')
         for i in range(3 * LENGTH, 3 * LENGTH + 100):
             send(i)
-            executor.spin_once(timeout_sec=0)
+            rig.executor.spin_once(timeout_sec=0)
         call('abort')
         call('abort')
         spin_until(lambda: any(m.test_point == 4 for m in estimates), 10.0)
@@ -133,11 +89,7 @@ def run():
             ('flap', node.points.flap), ('pitch', node.points.pitch),
             ('azimuth', node.points.azimuth.series))}
     finally:
-        node.close()
-        executor.shutdown()
-        node.destroy_node()
-        test.destroy_node()
-        rclpy.try_shutdown(context=context)
+        rig.close()
     return out
 
 

@@ -28,21 +28,12 @@ NEW_WINDOW = [0.78, 0.95]     # also during the stirring: identifiable
 @pytest.fixture(scope='module')
 def run():
     """Two test points; window_s set while the first records; return answers and estimates."""
-    from rclpy.executors import SingleThreadedExecutor
+    from identifier_harness import InProcessIdentifier
     from rclpy.parameter import Parameter
     from rclpy.parameter_client import AsyncParameterClient
-    from rclpy.signals import SignalHandlerOptions
-    from rotor_id.nodes.common import joint_state, RESULT_QOS, SENSOR_OFFER_QOS
-    from rotor_id.nodes.identifier import Identifier
-    from rotor_id_msgs.msg import ParameterEstimate
-    from sensor_msgs.msg import JointState
     from std_srvs.srv import Trigger
 
     data = _stream(points=2)
-    domain = 171 + os.getpid() % 29
-    os.environ['ROS_AUTOMATIC_DISCOVERY_RANGE'] = 'LOCALHOST'
-    context = rclpy.context.Context()
-    rclpy.init(context=context, domain_id=domain, signal_handler_options=SignalHandlerOptions.NO)
     params = [Parameter('run_description', value='demo_wake.yaml'),
               Parameter('auto_start', value='none'), Parameter('update_every_rad', value=0.0),
               Parameter('sensor_reliability', value='reliable'),
@@ -50,65 +41,35 @@ def run():
               # the run description's window (127 samples) is short of it, the new one not
               Parameter('min_window_samples', value=130),
               Parameter('fit_process', value=False)]
-    node = Identifier(parameter_overrides=params, context=context)
-    test = rclpy.create_node('test_identifier_parameters', context=context)
-    executor = SingleThreadedExecutor(context=context)
-    executor.add_node(node)
-    executor.add_node(test)
-    pubs = {topic: test.create_publisher(JointState, f'/rotor/{topic}', SENSOR_OFFER_QOS)
-            for topic in ('blade_flap', 'blade_pitch', 'azimuth')}
-    estimates = []
-    test.create_subscription(ParameterEstimate, '/rotor_id/estimate', estimates.append,
-                             RESULT_QOS)
-    start = test.create_client(Trigger, '/identifier/start_test_point')
-    parameters = AsyncParameterClient(test, 'identifier')
-    out = {'estimates': estimates, 'data': data, 'answers': {}}
-
-    def spin_until(condition, timeout=60.0):
-        clock = rclpy.clock.Clock(clock_type=rclpy.clock.ClockType.STEADY_TIME)
-        end = clock.now().nanoseconds + timeout * 1e9
-        while not condition():
-            if clock.now().nanoseconds > end:
-                return False
-            executor.spin_once(timeout_sec=0.01)
-        return True
-
-    def drain():
-        idle = 0
-        while idle < 3:
-            before = node.taken
-            executor.spin_once(timeout_sec=0.002)
-            idle = idle + 1 if node.taken == before else 0
+    rig = InProcessIdentifier('test_identifier_parameters', params, 171 + os.getpid() % 29)
+    node = rig.node
+    start = rig.test.create_client(Trigger, '/identifier/start_test_point')
+    parameters = AsyncParameterClient(rig.test, 'identifier')
+    out = {'estimates': rig.estimates, 'data': data, 'answers': {}}
 
     def set_window(label, value, name='window_s'):
         future = parameters.set_parameters([Parameter(name, value=value)])
-        assert spin_until(future.done, 20.0), f'no answer to setting {name} {value}'
+        assert rig.spin_until(future.done, 20.0), f'no answer to setting {name} {value}'
         result = future.result().results[0]
         out['answers'][label] = (result.successful, result.reason,
                                  node.get_parameter(name).value)
 
     def send(lo, hi):
         for i in range(lo, hi):
-            stamp = int(data['stamps'][i])
-            pubs['blade_flap'].publish(joint_state(stamp, BLADES, data['flap'][i]))
-            pubs['blade_pitch'].publish(joint_state(stamp, BLADES, data['pitch'][i]))
-            pubs['azimuth'].publish(joint_state(stamp, ['rotor'], [data['psi'][i]], [OMEGA]))
+            rig.send(data, i, OMEGA, BLADES)
             if i % 20 == 0:
-                drain()
-        drain()
+                rig.drain()
+        rig.drain()
 
     def start_test_point():
-        drain()
+        rig.drain()
         future = start.call_async(Trigger.Request())
-        assert spin_until(future.done), 'no answer from ~/start_test_point'
+        assert rig.spin_until(future.done), 'no answer from ~/start_test_point'
         return future.result().message
 
-    def final(k):
-        return spin_until(lambda: any(m.test_point == k and m.kind == 1 for m in estimates))
-
     try:
-        assert spin_until(lambda: all(p.get_subscription_count() for p in pubs.values())
-                          and start.service_is_ready() and parameters.services_are_ready())
+        assert rig.spin_until(lambda: all(p.get_subscription_count() for p in rig.pubs.values())
+                              and start.service_is_ready() and parameters.services_are_ready())
         set_window('reversed', [0.6, 0.5])
         set_window('too long', [0.0, 20.0])
         out['started_1'] = start_test_point()
@@ -118,7 +79,7 @@ def run():
         set_window('during test point 1', NEW_WINDOW)
         out['diagnostics'] = dict(node.diagnostics.values)
         send(400, LENGTH)
-        assert final(1), 'no final estimate of test point 1'
+        assert rig.spin_until(lambda: rig.final_of(1), 60.0), 'no final of test point 1'
         set_window('gap tolerance', 3.0, 'gap_tolerance_periods')
         set_window('gap tolerance below 1', 0.5, 'gap_tolerance_periods')
         set_window('slip tolerance', 0.05, 'azimuth_slip_tolerance_rad')
@@ -127,13 +88,9 @@ def run():
         send(LENGTH, LENGTH + 400)
         out['problems_2'] = dict(node.diagnostics.problems)
         send(LENGTH + 400, 2 * LENGTH)
-        assert final(2), 'no final estimate of test point 2'
+        assert rig.spin_until(lambda: rig.final_of(2), 60.0), 'no final of test point 2'
     finally:
-        node.close()
-        executor.shutdown()
-        node.destroy_node()
-        test.destroy_node()
-        rclpy.try_shutdown(context=context)
+        rig.close()
     return out
 
 
