@@ -34,8 +34,8 @@ from rotor_id.diagnosis.proposal import propose  # noqa: E402
 from rotor_id.pipeline import identify  # noqa: E402
 
 RESULTS = ROOT / 'bench' / 'results'
-DEFAULT = ['flap_stiffness_1c', 'flap_damping_1s', 'none_multiblade', 'none_mu04', 'none_wake', 'process_noise',
-           'dynamic_inflow', 'sensor_lag', 'azimuth_offset']
+DEFAULT = ['flap_stiffness_1c', 'flap_damping_1s', 'none_multiblade', 'none_mu04', 'none_wake',
+           'process_noise', 'dynamic_inflow', 'sensor_lag', 'azimuth_offset']
 
 
 def run_one(name, seed):
