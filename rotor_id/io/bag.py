@@ -34,7 +34,7 @@ from rotor_id.io.record import Record
 from rotor_id.io.run_description import (DEFAULT_AZIMUTH_JOINT, DEFAULT_TOPICS,
                                          normalize_joint_names, recorded_topic, validate_window)
 from rotor_id.io.streams import (
-    interleaved_streams, phase_outliers, spikes, split_runs,
+    interleaved_streams, phase_outliers, spikes, split_runs, value_spikes,
 )
 from rotor_id.io.timebase import interpolate_columns, nondimensional_time, TWO_PI, wrap_azimuth
 import yaml
@@ -408,6 +408,8 @@ def _topic_samples(ctx, topic, role, with_velocity):
     ctx.frame_ids[topic] = batch.frame_ids or {}
     stamps, position, velocity, message = _repeated_stamps(
         ctx, topic, role, stamps, position, velocity, message)
+    if role in ('blade_flap', 'blade_pitch'):
+        _repair_value_spikes(ctx, topic, role, stamps, position, batch.names)
     _check_one_stream(ctx, topic, role, stamps, position)
     if with_velocity:
         missing = np.isnan(velocity).any(axis=1)
@@ -510,6 +512,29 @@ def _publishers_note(ctx, topic):
         notes.append('header.frame_id ' + ', '.join(f'{name!r} in {number} messages'
                                                     for name, number in frames.items()))
     return f' ({"; ".join(notes)})' if notes else ''
+
+
+def _repair_value_spikes(ctx, topic, role, stamps, position, names):
+    """Replace isolated flap/pitch samples far from their neighbours (in place), and say where."""
+    found = value_spikes(position)
+    if not any(index.size for index in found):
+        return
+    said = []
+    for column, spiky in enumerate(found):
+        if not spiky.size:
+            continue
+        good = np.ones(len(stamps), dtype=bool)
+        good[spiky] = False
+        smooth = np.interp(stamps[spiky], stamps[good], position[good, column])
+        worst = int(np.argmax(np.abs(position[spiky, column] - smooth)))
+        joint = names[column] if column < len(names) else f'column {column}'
+        said.append(f'{joint}: {spiky.size}, e.g. {position[spiky[worst], column]:.4g} rad '
+                    f'among {smooth[worst]:.4g} at {ctx.when(int(stamps[spiky[worst]]))}')
+        position[spiky, column] = smooth
+    ctx.issues.append(
+        f'{topic} ({role}): sample(s) jump away from their neighbours and back (a spike: a bit '
+        f'flip or a dropped reading) in {"; ".join(said)}; replaced by interpolation. Check '
+        'the sensor if this recurs')
 
 
 def _check_one_stream(ctx, topic, role, stamps, position):
@@ -909,6 +934,7 @@ def _assemble(ctx, wanted, joint_names, n_blades, omega_rad_s, window_s,
                       'taken as 0')
     omega_mean = float(np.mean(speed))
     _judge_faults(ctx, stamp0, window_s, omega_mean)
+    _dead_flap_sensors(time_s, flap, blade_names, flap_topic, window_s)
     _check_increasing(ctx, t, time_s, wanted.get('azimuth'), window_s)
     _gaps(flap_ns, omega_mean, flap_topic, issues, 'flap samples there are missing')
     _gaps(pitch_ns, omega_mean, pitch_topic, issues, 'pitch is interpolated across')
@@ -924,6 +950,30 @@ def _assemble(ctx, wanted, joint_names, n_blades, omega_rad_s, window_s,
 
 def _in_window(time_s, window_s, margin_s):
     return window_s is None or window_s[0] - margin_s <= time_s <= window_s[1] + margin_s
+
+
+def _dead_flap_sensors(time_s, flap, blade_names, topic, window_s):
+    """
+    Refuse a blade whose flap reads one exact value throughout the window (or the record).
+
+    A flap sensor always shows its noise and the blade's response to the stirring; a reading
+    that never changes is a dead or disconnected sensor (0.0 from an unplugged amplifier, a
+    held last value), and a fit would take it for a blade that does not flap.
+    """
+    inside = np.ones(len(time_s), dtype=bool) if window_s is None else (
+        (time_s >= window_s[0]) & (time_s <= window_s[1]))
+    if np.count_nonzero(inside) < 2:
+        return
+    values = flap[inside]
+    dead = [k for k in range(values.shape[1]) if np.all(values[:, k] == values[0, k])]
+    if dead:
+        where = ('the record' if window_s is None
+                 else f'window_s [{window_s[0]}, {window_s[1]}] s')
+        raise BagError(
+            f'{topic}: the flap of {", ".join(blade_names[k] for k in dead)} reads exactly '
+            f'{", ".join(f"{values[0, k]:.6g}" for k in dead)} rad in every one of its '
+            f'{len(values)} samples in {where}: a dead or disconnected sensor (a real reading '
+            'shows noise and the stirring response); check the sensor and its wiring')
 
 
 def _judge_faults(ctx, stamp0, window_s, omega_mean):

@@ -17,6 +17,9 @@ wrong on a rig, and how each is told from the others:
   steps alternate short/long (:func:`interleaved_streams`).
 * azimuth glitch or encoder slip: the measured phase leaves what the rotor speed predicts and
   returns (glitch, repaired) or stays off (slip, reported) (:func:`phase_outliers`).
+* value spike of a flap or pitch reading (a bit flip, a sample dropped to zero): one to
+  ``REPAIR_MAX_SAMPLES`` samples leave the channel's running median and come back
+  (:func:`value_spikes`, repaired and reported by the reader).
 """
 
 from dataclasses import dataclass
@@ -50,6 +53,10 @@ STEADY_PARITY = 0.9               # the near-duplicates sit at the same parity i
 OUTLIER_SIGMAS = 10.0
 MEDIAN_SPAN = 11
 REPAIR_MAX_SAMPLES = 5
+#: Value spikes of a flap or pitch channel must also exceed this fraction of the channel's
+#: 1-99 % range: the residual of a smooth signal about its running median (near its extrema)
+#: is never counted, even on a noiseless channel.
+VALUE_SPIKE_RANGE_FRACTION = 0.1
 
 
 @dataclass
@@ -430,6 +437,37 @@ def spikes(values, floor):
     out = [np.arange(a, b) for a, b in _stretches(np.abs(residual) > threshold)
            if b - a <= REPAIR_MAX_SAMPLES]
     return np.concatenate(out) if out else np.empty(0, dtype=np.int64)
+
+
+def value_spikes(values):
+    """
+    Find the isolated spikes of each column of sampled angles (flap or pitch readings).
+
+    A spike leaves the channel's running median by more than ``OUTLIER_SIGMAS`` robust σ of
+    the residual and by ``VALUE_SPIKE_RANGE_FRACTION`` of the channel's 1-99 % range, for at
+    most ``REPAIR_MAX_SAMPLES`` samples (see :func:`spikes`).
+
+    Parameters
+    ----------
+    values
+        (n, m) samples in recording order, m channels.
+
+    Returns
+    -------
+    List of m index arrays, one per column.
+
+    """
+    values = np.asarray(values, dtype=float)
+    if values.ndim == 1:
+        values = values[:, None]
+    found = []
+    for column in values.T:
+        if column.size < MEDIAN_SPAN:
+            found.append(np.empty(0, dtype=np.int64))
+            continue
+        low, high = np.percentile(column, [1.0, 99.0])
+        found.append(spikes(column, VALUE_SPIKE_RANGE_FRACTION * (high - low)))
+    return found
 
 
 def _running_median(values, span, block=1 << 16):

@@ -1,0 +1,258 @@
+"""
+"Never confidently wrong" on messy recordings: one lab fault at a time, through the CLI.
+
+A clean 4-blade recording of the μ = 0 wake rotor is simulated by the library's planning path
+(test/commands/campaign_helpers.write_test_point: trim, cyclic step, stirring, 0.05° sensor
+noise); each fault below is injected into a copy of it, the copy written as a bag, and
+``rotor-id identify`` run on it (cli.main: exit code, stderr, JSON). Every outcome is put in one
+class:
+
+(a) ``error``: exit 2 with one line, before any fitting;
+(b) ``warned``: exit 0 with a warning (or an inadequate adequacy verdict) that the clean record
+    does not have;
+(c) ``within``: exit 0 and every estimate within 3σ (its Cramér-Rao bound) of the truth;
+(b') ``not_converged``: exit 1 with a warning: no estimate offered as usable;
+(d) ``confidently_wrong``: exit 0, no new warning, some estimate outside 3σ: a bug.
+
+Each fault is asserted to end in its expected class (never (d)). ``python
+test/io/test_messy_recordings.py`` prints the sweep's table (bench/results/messy_sweep.md).
+"""
+
+from dataclasses import replace
+import io
+import json
+from pathlib import Path
+import sys
+from contextlib import redirect_stderr, redirect_stdout
+
+import numpy as np
+import pytest
+from rotor_id import cli
+from rotor_id.io.bag import read_record, write_record_bag
+import yaml
+
+REPO = Path(__file__).resolve().parents[2]
+sys.path.insert(0, str(REPO / 'test' / 'commands'))
+from campaign_helpers import write_test_point  # noqa: E402,I100
+
+TRUTH = {'A': 0.5, 'AL_over_tau': 0.25, 'inv_tau': 0.125}    # the plan's values (simulated)
+NOISE_DEG = 0.05
+NOISE_RAD = np.radians(NOISE_DEG)
+SEED = 3
+ERROR, WARNED, WITHIN, WRONG = 'error', 'warned', 'within', 'confidently_wrong'
+NOT_CONVERGED = 'not_converged'
+
+
+def _in_window(record, window_s):
+    """Indices of the record's samples inside window_s."""
+    return np.flatnonzero((record.time_s >= window_s[0]) & (record.time_s <= window_s[1]))
+
+
+def _flap(record, change):
+    flap = record.blade_flap.copy()
+    change(flap)
+    return replace(record, blade_flap=flap)
+
+
+def _pitch(record, change):
+    pitch = record.blade_pitch.copy()
+    change(pitch)
+    return replace(record, blade_pitch=pitch)
+
+
+def _spike(size):
+    def inject(record, window_s):
+        i = _in_window(record, window_s)[40]
+        return _flap(record, lambda f: f.__setitem__((i, 1), f[i, 1] + size))
+    return inject
+
+
+def _dropped_to_zero(record, window_s):
+    i = _in_window(record, window_s)[60]
+    return _flap(record, lambda f: f.__setitem__((i, 2), 0.0))
+
+
+def _pitch_stuck(samples):
+    def inject(record, window_s):
+        i = _in_window(record, window_s)[30]
+        return _pitch(record, lambda p: p.__setitem__((slice(i, i + samples), 0), p[i, 0]))
+    return inject
+
+
+def _flap_dead(record, window_s):
+    return _flap(record, lambda f: f.__setitem__((slice(None), 2), f[0, 2]))
+
+
+def _flap_zero(record, window_s):
+    return _flap(record, lambda f: f.__setitem__((slice(None), 3), 0.0))
+
+
+def _flap_sign(record, window_s):
+    return _flap(record, lambda f: f.__setitem__((slice(None), 1), -f[:, 1]))
+
+
+def _joints_swapped(record, window_s):
+    names = list(record.blade_names)
+    names[0], names[1] = names[1], names[0]
+    return replace(record, blade_names=names)
+
+
+def _offset_all(size):
+    def inject(record, window_s):
+        return replace(record, blade_flap=record.blade_flap + size)
+    return inject
+
+
+def _speed_scaled(factor):
+    def inject(record, window_s):
+        return replace(record, rotor_speed_rad_s=record.rotor_speed_rad_s * factor)
+    return inject
+
+
+def _short(record, window_s):
+    keep = record.time_s <= window_s[0] + 0.3 * (window_s[1] - window_s[0])
+    return record.window(record.time_s[0], record.time_s[keep][-1])
+
+
+def _nan_message(record, window_s):
+    i = _in_window(record, window_s)[50]
+    return _flap(record, lambda f: f.__setitem__((i, 0), np.nan))
+
+
+def _flap_late(samples):
+    def inject(record, window_s):
+        late = np.roll(record.blade_flap, samples, axis=0)
+        late[:samples] = record.blade_flap[0]
+        return replace(record, blade_flap=late)
+    return inject
+
+
+#: name -> (what it is, injection, class, text the warning or error must contain or None)
+FAULTS = {
+    'flap_spike_20sigma': ('one flap sample of blade 2 +20σ (0.017 rad)',
+                           _spike(20 * NOISE_RAD), WITHIN, 'blade_2: 1,'),
+    'flap_spike_0.2rad': ('one flap sample of blade 2 +0.2 rad', _spike(0.2), WITHIN,
+                          'blade_2: 1,'),
+    'flap_dropped_to_zero': ('one flap sample of blade 3 reads 0.0', _dropped_to_zero,
+                             WITHIN, 'blade_3: 1, e.g. 0 rad'),
+    'pitch_stuck_5': ('blade 1 pitch held for 5 samples', _pitch_stuck(5), WITHIN, None),
+    'pitch_stuck_60': ('blade 1 pitch held for 60 samples', _pitch_stuck(60), NOT_CONVERGED,
+                       'not noise'),
+    'flap_dead': ('blade 3 flap constant (first value) throughout', _flap_dead, ERROR,
+                  'flap of blade_3 reads exactly'),
+    'flap_zero': ('blade 4 flap exactly 0.0 throughout (disconnected)', _flap_zero, ERROR,
+                  'flap of blade_4 reads exactly 0 rad'),
+    'flap_sign_flipped': ('blade 2 flap with the sign flipped', _flap_sign, WITHIN,
+                          'not noise'),
+    'joints_swapped': ('joint names of blades 1 and 2 swapped in the bag', _joints_swapped,
+                       NOT_CONVERGED, 'not noise'),
+    'offset_all_blades': ('+0.01 rad on every blade\'s flap', _offset_all(0.01), WITHIN, None),
+    'speed_10pct_high': ('rotor speed (velocity) 10 % above the azimuth rate',
+                         _speed_scaled(1.1), ERROR, 'rotor speed (velocity) says 103.7'),
+    'speed_in_rpm': ('rotor speed written in rpm', _speed_scaled(60 / (2 * np.pi)), ERROR,
+                     'rotor speed (velocity) says 900'),
+    'record_short': ('record ends 30 % into the window', _short, ERROR, 'outside the record'),
+    'nan_in_one_message': ('blade 1 flap NaN in one message', _nan_message, WITHIN,
+                           'position is NaN'),
+    'flap_late_2': ('flap read 2 samples late (all blades)', _flap_late(2), WRONG, None),
+}
+#: Faults still confidently wrong, with the reason (asserted to stay so: xfail strict)
+KNOWN_WRONG = {
+    'flap_late_2': 'a common flap delay is a phase lag, which the fit absorbs into A, '
+                   'AL_over_tau and inv_tau; the residuals stay white (identify prints the '
+                   'shift per sample of delay on its "timing:" line, not as a warning)',
+}
+
+
+@pytest.fixture(scope='module')
+def clean(tmp_path_factory):
+    """Return (directory, clean Record, run-description dict) of the simulated test point."""
+    root = tmp_path_factory.mktemp('messy')
+    return _clean(root)
+
+
+def _clean(root):
+    bag = write_test_point(root, 'clean', seed=SEED, noise_deg=NOISE_DEG)
+    description = yaml.safe_load((root / 'clean.yaml').read_text())
+    return root, read_record(bag), description
+
+
+def identify(root, name, record, description):
+    """Write ``record`` as bag NAME and run ``rotor-id identify`` on it: (rc, stderr, JSON)."""
+    bag = write_record_bag(root / name, record)
+    config = root / f'{name}.yaml'
+    config.write_text(yaml.safe_dump(description, sort_keys=False))
+    out = root / f'{name}.json'
+    err, std = io.StringIO(), io.StringIO()
+    with redirect_stderr(err), redirect_stdout(std):
+        rc = cli.main(['identify', str(bag), '--config', str(config), '--json', str(out),
+                       '--quiet'])
+    data = json.loads(out.read_text()) if rc == 0 and out.is_file() else None
+    return rc, err.getvalue().strip().splitlines(), data
+
+
+def classify(rc, err, data):
+    """
+    Return (class, worst |estimate − truth|/σ, warnings) of one identify run.
+
+    The warnings are the ``warning:`` lines on stderr (the reader's and the fit's) and the
+    JSON's; the clean record has none.
+    """
+    said = [line[len('warning: '):] for line in err if line.startswith('warning: ')]
+    if rc == 1:                  # not converged: no estimate offered as usable
+        return NOT_CONVERGED, None, said
+    if rc != 0:
+        return (ERROR if rc == 2 and len(err) == 1 else f'exit {rc}'), None, err
+    worst = max(abs(p['value'] - TRUTH[name]) / p['std']
+                for name, p in data['parameters'].items())
+    said = list(dict.fromkeys(said + data['warnings']))
+    if worst <= 3.0:
+        return WITHIN, worst, said
+    if said or data['adequacy']['verdict'] != 'adequate':
+        return WARNED, worst, said
+    return WRONG, worst, said
+
+
+def run_fault(root, record, description, name):
+    """Inject fault ``name`` into the clean record, identify, classify."""
+    inject = FAULTS[name][1]
+    faulty = inject(record, description['window_s'])
+    return classify(*identify(root, name, faulty, description))
+
+
+def test_clean_record_is_within_its_bounds(clean):
+    root, record, description = clean
+    kind, worst, said = classify(*identify(root, 'again', record, description))
+    assert kind == WITHIN and not said, (kind, worst, said)
+
+
+@pytest.mark.parametrize('name', [pytest.param(name, marks=pytest.mark.xfail(
+    reason=KNOWN_WRONG[name], strict=True)) if name in KNOWN_WRONG else name for name in FAULTS])
+def test_fault_is_never_confidently_wrong(clean, name):
+    root, record, description = clean
+    kind, worst, said = run_fault(root, record, description, name)
+    assert kind != WRONG, (name, worst, said)
+    expected, text = FAULTS[name][2:]
+    assert kind == expected, (name, kind, worst, said)
+    if text is not None:
+        assert any(text in line for line in said), (name, said)
+    if kind == WITHIN and text is None:       # nothing to say, and nothing said
+        assert not said, (name, said)
+
+
+def main():
+    """Print the sweep as a markdown table."""
+    import tempfile
+    with tempfile.TemporaryDirectory() as directory:
+        root, record, description = _clean(Path(directory))
+        print('| fault | outcome | worst \\|error\\|/σ | first new warning / error |')
+        print('|---|---|---|---|')
+        for name, (what, *_rest) in FAULTS.items():
+            kind, worst, new = run_fault(root, record, description, name)
+            shown = '' if worst is None else f'{worst:.1f}'
+            said = (new[0] if new else '').replace('|', '/')
+            print(f'| {name}: {what} | {kind} | {shown} | {said[:160]} |', flush=True)
+
+
+if __name__ == '__main__':
+    main()
