@@ -54,8 +54,9 @@ OUTLIER_SIGMAS = 10.0
 MEDIAN_SPAN = 11
 REPAIR_MAX_SAMPLES = 5
 #: Value spikes of a flap or pitch channel must also exceed this fraction of the channel's
-#: 1-99 % range: the residual of a smooth signal about its running median (near its extrema)
-#: is never counted, even on a noiseless channel.
+#: 1-99 % range, and the distance the channel moves in half the median span at its median
+#: step: the residual of a smooth signal about its running median (near its extrema, large
+#: when few samples span a revolution) is never counted, even on a noiseless channel.
 VALUE_SPIKE_RANGE_FRACTION = 0.1
 
 
@@ -444,8 +445,10 @@ def value_spikes(values):
     Find the isolated spikes of each column of sampled angles (flap or pitch readings).
 
     A spike leaves the channel's running median by more than ``OUTLIER_SIGMAS`` robust σ of
-    the residual and by ``VALUE_SPIKE_RANGE_FRACTION`` of the channel's 1-99 % range, for at
-    most ``REPAIR_MAX_SAMPLES`` samples (see :func:`spikes`).
+    the residual, by ``VALUE_SPIKE_RANGE_FRACTION`` of the channel's 1-99 % range and by
+    ``MEDIAN_SPAN // 2`` median steps, for at most ``REPAIR_MAX_SAMPLES`` samples (see
+    :func:`spikes`), and comes back: its neighbours either side agree to within half its
+    excursion from the line between them (a step or a sharp peak of the signal does not).
 
     Parameters
     ----------
@@ -466,8 +469,27 @@ def value_spikes(values):
             found.append(np.empty(0, dtype=np.int64))
             continue
         low, high = np.percentile(column, [1.0, 99.0])
-        found.append(spikes(column, VALUE_SPIKE_RANGE_FRACTION * (high - low)))
+        travel = (MEDIAN_SPAN // 2) * float(np.median(np.abs(np.diff(column))))
+        floor = max(VALUE_SPIKE_RANGE_FRACTION * (high - low), travel)
+        candidates = np.zeros(column.size, dtype=bool)
+        candidates[spikes(column, floor)] = True
+        kept = [np.arange(a, b) for a, b in _stretches(candidates)
+                if _returns(column, a, b, floor)]
+        found.append(np.concatenate(kept) if kept else np.empty(0, dtype=np.int64))
     return found
+
+
+def _returns(column, start, end, floor):
+    """
+    True if column[start:end] leaves the line between its neighbours by more than ``floor`` and
+    the neighbours agree to within half that excursion: out and back, not a step or a peak.
+    """
+    if start == 0 or end >= column.size:
+        return False                  # at an end: nothing to come back to
+    before, after = column[start - 1], column[end]
+    line = before + (after - before) * np.arange(1, end - start + 1) / (end - start + 1)
+    excursion = float(np.max(np.abs(column[start:end] - line)))
+    return excursion > floor and abs(after - before) < 0.5 * excursion
 
 
 def _running_median(values, span, block=1 << 16):

@@ -240,6 +240,44 @@ def test_fault_is_never_confidently_wrong(clean, name):
         assert not said, (name, said)
 
 
+@pytest.mark.parametrize('rate_hz', [1000.0, 300.0])
+def test_value_spikes_found_where_injected_and_nowhere_else(rate_hz):
+    """
+    streams.value_spikes on planned records (the lateral-cyclic step, stirring, 0.1° noise).
+
+    Clean: nothing flagged on any channel (the step of the pitch and the flap's peaks are
+    signal, also at 300 Hz where a revolution is 20 samples). Injected: exactly the samples of
+    a 0.2 rad spike, of a reading dropped to 0.0 and of a 3-sample burst.
+    """
+    from rotor_id import planning
+    from rotor_id.io.streams import value_spikes
+    plan = planning.load_plan(REPO / 'config' / 'plan_wake.yaml')
+    plan = replace(plan, rate_hz=rate_hz)
+    checked = 0
+    for seed in range(4):
+        candidate = plan.candidates[seed % len(plan.candidates)]
+        record = planning.simulate_run(plan, candidate, rng=np.random.default_rng(seed)).record
+        for values in (record.blade_flap, record.blade_pitch):
+            assert not any(found.size for found in value_spikes(values)), seed
+        flap = record.blade_flap.copy()
+        n = len(flap)
+        flap[n // 3, 0] += 0.2
+        dropped = n // 4 + int(np.argmax(np.abs(flap[n // 4:n // 2, 1])))   # largest |flap|
+        flap[dropped, 1] = 0.0
+        flap[2 * n // 3:2 * n // 3 + 3, 2] -= 0.05
+        found = value_spikes(flap)
+        assert found[0].tolist() == [n // 3]
+        # (a reading dropped to 0.0 where the flap is within 10σ of zero is harmless, and not
+        # told from the noise: the check is where it is largest; at 300 Hz the flap moves
+        # ~0.005 rad a sample, and a spike must exceed 5 such steps)
+        if rate_hz >= 1000 and abs(record.blade_flap[dropped, 1]) > 12 * plan.noise_std_rad:
+            assert found[1].tolist() == [dropped]
+            checked += 1
+        assert found[2].tolist() == list(range(2 * n // 3, 2 * n // 3 + 3))
+        assert found[3].size == 0
+    assert checked >= 2 or rate_hz < 1000
+
+
 def main():
     """Print the sweep as a markdown table."""
     import tempfile
