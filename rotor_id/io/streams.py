@@ -481,8 +481,10 @@ def value_spikes(values):
 
 def _returns(column, start, end, floor):
     """
-    True if column[start:end] leaves the line between its neighbours by more than ``floor`` and
-    the neighbours agree to within half that excursion: out and back, not a step or a peak.
+    Tell whether column[start:end] goes out and comes back (not a step or a peak).
+
+    It must leave the line between its neighbours by more than ``floor``, and the neighbours
+    must agree to within half that excursion.
     """
     if start == 0 or end >= column.size:
         return False                  # at an end: nothing to come back to

@@ -18,12 +18,12 @@ Each fault is asserted to end in its expected class (never (d)). ``python
 test/io/test_messy_recordings.py`` prints the sweep's table (bench/results/messy_sweep.md).
 """
 
+from contextlib import redirect_stderr, redirect_stdout
 from dataclasses import replace
 import io
 import json
 from pathlib import Path
 import sys
-from contextlib import redirect_stderr, redirect_stdout
 
 import numpy as np
 import pytest
@@ -44,7 +44,7 @@ NOT_CONVERGED = 'not_converged'
 
 
 def _in_window(record, window_s):
-    """Indices of the record's samples inside window_s."""
+    """Return the indices of the record's samples inside window_s."""
     return np.flatnonzero((record.time_s >= window_s[0]) & (record.time_s <= window_s[1]))
 
 
@@ -146,7 +146,7 @@ FAULTS = {
                           'not noise'),
     'joints_swapped': ('joint names of blades 1 and 2 swapped in the bag', _joints_swapped,
                        NOT_CONVERGED, 'not noise'),
-    'offset_all_blades': ('+0.01 rad on every blade\'s flap', _offset_all(0.01), WITHIN, None),
+    'offset_all_blades': ("+0.01 rad on every blade's flap", _offset_all(0.01), WITHIN, None),
     'speed_10pct_high': ('rotor speed (velocity) 10 % above the azimuth rate',
                          _speed_scaled(1.1), ERROR, 'rotor speed (velocity) says 103.7'),
     'speed_in_rpm': ('rotor speed written in rpm', _speed_scaled(60 / (2 * np.pi)), ERROR,
