@@ -578,8 +578,10 @@ class Identifier(Node):
         time). The first growing-window estimate of a test point is never skipped: one precedes
         every final estimate.
         """
-        if request.test_point not in self.provisional_points:
-            return False
+        return request.test_point in self.provisional_points and self._near_end(request)
+
+    def _near_end(self, request):
+        """Say whether a growing-window fit of ``request`` would end after its window's end."""
         horizon = 1.5 * max(self.provisional_wall_s, default=PROVISIONAL_DEFAULT_S)
         point = self.points.points.get(request.test_point)
         return point is not None and point.window_s[1] - request.window_s[1] < horizon
@@ -849,7 +851,10 @@ class Identifier(Node):
                                                          else 'max_iter_provisional'],
                              multi_start=final, step_tol=self.d['step_tol'],
                              targets=tuple(self.targets),
-                             full_verdict=final or not self._final_waiting())
+                             # a growing window next to the window's end: the final's verdict
+                             # follows at once, its own extrapolation would only delay it
+                             full_verdict=final or not (self._final_waiting()
+                                                        or self._near_end(request)))
         return desc, options
 
     def _failed(self, request, kind, status, reason):
