@@ -503,7 +503,7 @@ def diagnose(record, description, progress=None, workers=2, effects=EFFECTS, win
     for t in eligible:
         t['adequate'] = _adequate(t['fit'], floors, u, exp0.t)
     chosen, passed_over = _choose(eligible)
-    notes = []
+    notes, confound_notes = [], []
     noise_row = None
     if chosen is not None and chosen['effect'] == 'process_noise':
         deterministic_rows = [t for t in eligible if t['effect'] != 'process_noise']
@@ -528,22 +528,32 @@ def diagnose(record, description, progress=None, workers=2, effects=EFFECTS, win
                        'verbose': verbose_fits,
                        'trace': [_standalone_gains(scored, screened_out, n_obs, n_blades)]}
             chosen_fit, steps, dropped = _forward_selection(chosen['fit'], steps, context)
-            for effect_row in steps:
-                for c in effect_row.get('confounds', []):
-                    notes.append(_confound_text(effect_row['effect'], c))
+            confound_notes = [_confound_text(effect_row['effect'], c) for effect_row in steps
+                              for c in effect_row.get('confounds', [])]
+            notes += confound_notes
             for old in dropped:
                 notes.append(f'{old} was dropped by the backward check: with the effects added '
                              'after it, it no longer earns its place')
             if len(steps) > 1:
                 mismatch = True
+    last_resort = ''
     if noise_row is not None:
         if steps and steps[-1]['adequate']:
             passed_over = True
         else:
+            tried = ' + '.join(st['effect'] for st in steps)
             chosen, chosen_fit = noise_row, noise_row['fit']
             steps = [_step_row(chosen_fit, noise_row['delta_loglik'], noise_row['criterion'],
                                validation.get('process_noise'), floors, u, exp0.t)]
             steps[0]['parameters'] = chosen_fit.parameters
+            # random inflow as the last resort over eligible deterministic effects: a filter
+            # tracks any unmodelled dynamics, so the verdict is weak by construction
+            last_resort = tried
+            notes = [n for n in notes if n not in confound_notes]     # of the effects dropped
+            notes.append(f'random inflow is the explanation of last resort: {tried} raise(s) '
+                         'the likelihood past the criterion but leave(s) structured residuals; '
+                         'a deterministic effect the catalogue cannot represent in this record '
+                         'is as likely (low confidence)')
     if passed_over:
         notes.append('process_noise also raises the likelihood (a Kalman filter tracks any '
                      f'unmodelled dynamics), but {" + ".join(st["effect"] for st in steps)} '
@@ -556,7 +566,7 @@ def diagnose(record, description, progress=None, workers=2, effects=EFFECTS, win
         rivals = [t for t in ranked if t['effect'] not in named
                   and not (passed_over and t['effect'] == 'process_noise')]
         gap = chosen['criterion'] - (rivals[0]['criterion'] if rivals else 0.0)
-        confidence = 'high' if gap > CONFIDENCE_GAP else 'low'
+        confidence = 'high' if gap > CONFIDENCE_GAP and not last_resort else 'low'
         for one in [st['effect'] for st in steps] or [effect]:
             for eq in EQUIVALENT.get(one, ()):
                 if any(t['effect'] == eq for t in eligible):

@@ -91,3 +91,16 @@ def test_offsets_and_an_odd_blade_are_named_as_confounded(tmp_path):
         assert 0.5 < c['reproduced_fraction'] <= 1.0
         assert any(c['effect'] in n and 'cannot be told apart' in n for n in result['notes'])
     assert effects[-1]['excess_over_floor'] <= 0.02
+
+
+def test_random_inflow_as_last_resort_is_never_confident():
+    # μ = 0.4, periodic terms with a flap-frequency error: when the deterministic effects
+    # raise the likelihood but leave structured residuals, random inflow is named only as the
+    # explanation of last resort, with low confidence and a note naming what was tried
+    result, out = diagnosed('periodic+flap_frequency', 1000)
+    if result['explanation']['effect'] == 'process_noise':
+        assert result['explanation']['confidence'] == 'low'
+        assert any(n.startswith('random inflow is the explanation of last resort: ')
+                   for n in result['notes'])
+    else:
+        assert out['right'], out['named']
