@@ -109,6 +109,7 @@ KNOWN = {
     'live': {'what': '10 minutes of the live nodes: nothing lost, latency'},
     'live_60s': {'what': '60 s of the live nodes: latency'},
     'live_latency': {'what': 'live test points: latency of the final estimate'},
+    'sensor_intake': {'what': 'live sensor topics: CPU per message, callbacks vs polled batches'},
 }
 
 _REPRODUCE = re.compile(r'Reproduce:\s*`([^`]*)`', re.S)
