@@ -114,6 +114,30 @@ def _short(record, window_s):
     return record.window(record.time_s[0], record.time_s[keep][-1])
 
 
+def _pitch_spike(record, window_s):
+    i = _in_window(record, window_s)[70]
+    return _pitch(record, lambda p: p.__setitem__((i, 3), p[i, 3] + 0.2))
+
+
+def _flap_stuck(samples):
+    def inject(record, window_s):
+        i = _in_window(record, window_s)[50]
+        return _flap(record, lambda f: f.__setitem__((slice(i, i + samples), 1), f[i, 1]))
+    return inject
+
+
+def _offset_one(size):
+    def inject(record, window_s):
+        return _flap(record, lambda f: f.__setitem__((slice(None), 0), f[:, 0] + size))
+    return inject
+
+
+def _omega_in_description(record, window_s):
+    """Return the record and a run description stating a rotor speed 15 % below the bag's."""
+    omega = float(np.mean(record.rotor_speed_rad_s))
+    return record, {'omega_rad_s': round(0.85 * omega, 2)}
+
+
 def _nan_message(record, window_s):
     i = _in_window(record, window_s)[50]
     return _flap(record, lambda f: f.__setitem__((i, 0), np.nan))
@@ -152,6 +176,14 @@ FAULTS = {
     'speed_in_rpm': ('rotor speed written in rpm', _speed_scaled(60 / (2 * np.pi)), ERROR,
                      'rotor speed (velocity) says 900'),
     'record_short': ('record ends 30 % into the window', _short, ERROR, 'outside the record'),
+    'pitch_spike_0.2rad': ('one pitch sample of blade 4 +0.2 rad', _pitch_spike, WITHIN,
+                           'blade_4: 1,'),
+    'flap_stuck_30': ('blade 2 flap held for 30 samples', _flap_stuck(30), WITHIN, 'not noise'),
+    'offset_one_blade': ('+0.005 rad on blade 1 flap only', _offset_one(0.005), WITHIN,
+                         'not noise'),
+    'flap_late_1': ('flap read 1 sample late (all blades)', _flap_late(1), WITHIN, None),
+    'omega_in_description': ('run description says omega_rad_s 15 % below the bag',
+                             _omega_in_description, WITHIN, "unknown key 'omega_rad_s' ignored"),
     'nan_in_one_message': ('blade 1 flap NaN in one message', _nan_message, WITHIN,
                            'position is NaN'),
     'flap_late_2': ('flap read 2 samples late (all blades)', _flap_late(2), WRONG, None),
@@ -215,8 +247,10 @@ def classify(rc, err, data):
 
 def run_fault(root, record, description, name):
     """Inject fault ``name`` into the clean record, identify, classify."""
-    inject = FAULTS[name][1]
-    faulty = inject(record, description['window_s'])
+    faulty = FAULTS[name][1](record, description['window_s'])
+    if isinstance(faulty, tuple):            # (record, changes of the run description)
+        faulty, changes = faulty
+        description = {**description, **changes}
     return classify(*identify(root, name, faulty, description))
 
 
@@ -278,18 +312,38 @@ def test_value_spikes_found_where_injected_and_nowhere_else(rate_hz):
     assert checked >= 2 or rate_hz < 1000
 
 
-def main():
-    """Print the sweep as a markdown table."""
+def main(argv=None):
+    """Print the sweep as a markdown table; ``--seeds N``: classes over N noise seeds."""
+    import argparse
+    import collections
     import tempfile
+    parser = argparse.ArgumentParser(description=main.__doc__)
+    parser.add_argument('--seeds', type=int, default=1)
+    seeds = range(SEED, SEED + parser.parse_args(argv).seeds)
     with tempfile.TemporaryDirectory() as directory:
-        root, record, description = _clean(Path(directory))
-        print('| fault | outcome | worst \\|error\\|/σ | first new warning / error |')
+        rows = collections.defaultdict(list)
+        for seed in seeds:
+            root = Path(directory) / f'seed{seed}'
+            root.mkdir()
+            bag = write_test_point(root, 'clean', seed=seed, noise_deg=NOISE_DEG)
+            description = yaml.safe_load((root / 'clean.yaml').read_text())
+            record = read_record(bag)
+            rows['clean'].append(classify(*identify(root, 'again', record, description)))
+            for name in FAULTS:
+                rows[name].append(run_fault(root, record, description, name))
+            print(f'seed {seed} done', file=sys.stderr, flush=True)
+        print('| fault | outcome(s) | worst \\|error\\|/σ | first warning / error (first seed) |')
         print('|---|---|---|---|')
-        for name, (what, *_rest) in FAULTS.items():
-            kind, worst, new = run_fault(root, record, description, name)
-            shown = '' if worst is None else f'{worst:.1f}'
-            said = (new[0] if new else '').replace('|', '/')
-            print(f'| {name}: {what} | {kind} | {shown} | {said[:160]} |', flush=True)
+        for name, outcomes in rows.items():
+            what = FAULTS[name][0] if name in FAULTS else 'no fault'
+            counts = collections.Counter(kind for kind, _, _ in outcomes)
+            kinds = ', '.join(f'{kind} {count}/{len(outcomes)}' if len(outcomes) > 1 else kind
+                              for kind, count in counts.items())
+            worst = [w for _, w, _ in outcomes if w is not None]
+            shown = f'{max(worst):.1f}' if worst else ''
+            said = (outcomes[0][2][0] if outcomes[0][2] else '').replace('|', '/')
+            said = said.replace('rotor-id identify: error: ', 'error: ')
+            print(f'| {name}: {what} | {kinds} | {shown} | {said[:150]} |', flush=True)
 
 
 if __name__ == '__main__':
