@@ -2,8 +2,9 @@
 Sensor subscriptions taken in batches by a thread of the node, not one executor callback each.
 
 At 1 kHz x 3 topics an rclpy executor wakes, rebuilds its wait set and runs a Python callback
-for every message: about 90 µs of CPU each on this project's 2-core machine, half a core for a
-node that reads the three sensor topics (bench/results/live_latency.md). A :class:`SensorPoller`
+for every message: 112 µs of CPU each on this project's 2-core machine, a third of a core for a
+node that reads the three sensor topics; taken and decoded in batches 46 µs
+(bench/results/sensor_intake.md). A :class:`SensorPoller`
 keeps the subscriptions out of the executor's wait set and takes whatever they queued, as
 serialized CDR bytes, every ``period_s`` (or faster while the caller needs a prompt sample, e.g.
 at the end of an identification window); the caller decodes a batch with numpy

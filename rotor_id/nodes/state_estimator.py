@@ -80,7 +80,8 @@ class StateEstimator(Node):
                                                RESULT_QOS)
         self.diagnostics = Diagnostics(self, 'state reconstruction')
         # the sensor topics are taken in batches at each tick (rotor_id.nodes.polling), not by
-        # one executor callback per message (~90 µs of CPU each, 3 kHz)
+        # one executor callback per message (112 µs of CPU each, at 3 kHz;
+        # bench/results/sensor_intake.md)
         self.poller = SensorPoller(self, on_error=lambda exc: self.diagnostics.count(
             'sensor_batch_error', f'{type(exc).__name__}: {exc}'))
         for role, series, joints in (('blade_flap', self.flap, self.flap_joints),
