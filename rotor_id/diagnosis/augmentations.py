@@ -471,8 +471,11 @@ class FlapFrequency(Augmented):
         if P not in self._cache:
             if len(self._cache) > 8:
                 self._cache.clear()
-            model = copy.copy(self.base)
-            model.rotor = replace(self.base.rotor, **{self.constant: P})
+            if hasattr(self.base, 'with_rotor'):         # fresh caches of its blocks
+                model = self.base.with_rotor(**{self.constant: P})
+            else:
+                model = copy.copy(self.base)
+                model.rotor = replace(self.base.rotor, **{self.constant: P})
             self._cache[P] = model
         return self._cache[P]
 

@@ -21,6 +21,7 @@ dynamic inflow (the report's two-state cyclic wake or a three-state uniform + fi
 inflow). The report's four models are instances with the report's choices (:func:`build_model`).
 """
 
+import copy
 from dataclasses import dataclass, replace
 import math
 
@@ -573,6 +574,18 @@ class RotorModel(LinearModel):
         else:
             self.output_names = tuple(names[i] for i in self._kept_coords
                                       if i in self._measured)
+
+    def with_rotor(self, **constants):
+        """
+        Return a copy with some rotor constants changed (e.g. ``flap_frequency``).
+
+        The copy computes its own parameter-free blocks: a shallow copy would share this
+        model's caches and go on returning blocks built with the old constants.
+        """
+        model = copy.copy(self)
+        model.rotor = replace(self.rotor, **constants).check()
+        model._cache, model._constant = {}, None
+        return model
 
     # -- evaluation ---------------------------------------------------------------------------
     _SYSTEM_KEYS = ('F_const', 'aero', 'wake', 'decay', 'wake0', 'decay0')

@@ -11,7 +11,7 @@ from itertools import combinations
 import math
 import sys
 
-from diagnosis_scenarios import (catalogue_pairs, CONCEALED, diagnosed, effect_classes,
+from diagnosis_scenarios import (BY_NAME, catalogue_pairs, CONCEALED, diagnosed, effect_classes,
                                  groups_without_generator)
 from rotor_id.diagnosis.catalogue import EFFECTS, EQUIVALENT
 from rotor_id.diagnosis.diagnose import CRITERION_THRESHOLD
@@ -104,3 +104,21 @@ def test_random_inflow_as_last_resort_is_never_confident():
                    for n in result['notes'])
     else:
         assert out['right'], out['named']
+
+
+def test_a_freed_rotor_constant_changes_a_forward_flight_model():
+    # the flap frequency (and δ3) freed on the μ = 0.4 multiblade model: the copy with the new
+    # constant must not reuse the base's cached blocks (it did, and the candidate gained 0)
+    import numpy as np
+    from rotor_id.diagnosis import augmentations as aug
+    from rotor_id.pipeline import model_for
+    _, description = BY_NAME['flap_frequency+azimuth'].record_and_description(1)
+    base = model_for(description)
+    t, u = np.array([1.0, 2.0]), np.array([[0.03, 0.01, 0.0]] * 2)
+    base.system(t, base.parameter_vector({}), u)              # the base's blocks cached first
+    for freed in (aug.FlapFrequency(base), aug.PitchFlapCoupling(base)):
+        p = freed.parameter_vector({})
+        i = freed.parameter_names.index(freed.extra_parameters[0].name)
+        q = p.copy()
+        q[i] += 0.3
+        assert np.abs(freed.system(t, q, u)[0] - freed.system(t, p, u)[0]).max() > 0.1
