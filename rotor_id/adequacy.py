@@ -126,7 +126,13 @@ class Adequacy:
                                else None)}
 
     def warning(self):
-        """One-line warning for an inadequate fit, else None."""
+        """One-line warning for an inadequate or an unchecked fit, else None."""
+        if self.verdict is Verdict.NOT_TESTED:
+            # (too few samples: a misfit, a sensor fault included, would pass unnoticed)
+            return (f'the fit\'s adequacy was not checked ({self.note.split(";")[0]}): a '
+                    'misfit or a sensor fault would go unnoticed, and the σ assume the model '
+                    f'and the sensors are right; lengthen window_s to at least {MIN_SAMPLES} '
+                    'samples')
         if self.verdict is not Verdict.INADEQUATE:
             return None
         figures = '; '.join(_describe(t) for t in sorted(self.failed, key=lambda t: t.p_value)[:3])

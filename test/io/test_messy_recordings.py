@@ -138,6 +138,13 @@ def _omega_in_description(record, window_s):
     return record, {'omega_rad_s': round(0.85 * omega, 2)}
 
 
+def _short_window_stuck(record, window_s):
+    """Return blade 2's flap held for 15 samples, and a window of 70 samples (< 80) over it."""
+    inside = _in_window(record, window_s)
+    window = [float(record.time_s[inside[0]]), float(record.time_s[inside[69]])]
+    return _flap_stuck(15)(record, window_s), {'window_s': window}
+
+
 def _nan_message(record, window_s):
     i = _in_window(record, window_s)[50]
     return _flap(record, lambda f: f.__setitem__((i, 0), np.nan))
@@ -184,6 +191,8 @@ FAULTS = {
     'flap_late_1': ('flap read 1 sample late (all blades)', _flap_late(1), WITHIN, None),
     'omega_in_description': ('run description says omega_rad_s 15 % below the bag',
                              _omega_in_description, WITHIN, "unknown key 'omega_rad_s' ignored"),
+    'short_window_stuck': ('70-sample window (adequacy untested), blade 2 flap held 15',
+                           _short_window_stuck, WITHIN, 'adequacy was not checked'),
     'nan_in_one_message': ('blade 1 flap NaN in one message', _nan_message, WITHIN,
                            'position is NaN'),
     'flap_late_2': ('flap read 2 samples late (all blades)', _flap_late(2), WRONG, None),
