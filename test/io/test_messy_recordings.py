@@ -232,7 +232,7 @@ def identify(root, name, record, description):
     return rc, err.getvalue().strip().splitlines(), data
 
 
-def classify(rc, err, data):
+def classify(rc, err, data, truth=None):
     """
     Return (class, worst |estimate − truth|/σ, warnings) of one identify run.
 
@@ -244,12 +244,13 @@ def classify(rc, err, data):
         return NOT_CONVERGED, None, said
     if rc != 0:
         return (ERROR if rc == 2 and len(err) == 1 else f'exit {rc}'), None, err
-    worst = max(abs(p['value'] - TRUTH[name]) / p['std']
+    truth = TRUTH if truth is None else truth
+    worst = max(abs(p['value'] - truth[name]) / p['std']
                 for name, p in data['parameters'].items())
     said = list(dict.fromkeys(said + data['warnings']))
     if worst <= 3.0:
         return WITHIN, worst, said
-    if said or data['adequacy']['verdict'] != 'adequate':
+    if said or data['adequacy']['verdict'] == 'inadequate':
         return WARNED, worst, said
     return WRONG, worst, said
 
@@ -319,6 +320,35 @@ def test_value_spikes_found_where_injected_and_nowhere_else(rate_hz):
         assert found[2].tolist() == list(range(2 * n // 3, 2 * n // 3 + 3))
         assert found[3].size == 0
     assert checked >= 2 or rate_hz < 1000
+
+
+def test_short_multiblade_window_with_a_held_flap_is_not_silent(tmp_path):
+    """
+    A 1-rev test point of the μ = 0.4 multiblade plan has 67 samples: too few for the adequacy tests.
+
+    With blade 2's flap held for 30 samples the estimate is tens of σ off the truth; before the
+    "not checked" warning it came with exit 0 and no warning at all.
+    """
+    from rotor_id import planning
+    plan_path = REPO / 'config' / 'plan_multiblade.yaml'
+    plan = replace(planning.load_plan(plan_path), noise_std_rad=NOISE_RAD)
+    candidate = next(c for c in plan.candidates
+                     if c.duration_rev == 1.0 and c.amplitude_rad > 0.05)
+    run = planning.simulate_run(plan, candidate, rng=np.random.default_rng(SEED))
+    write_record_bag(tmp_path / 'point', replace(run.record,
+                                                 stamp0_ns=1_763_700_000_000_000_000))
+    description = yaml.safe_load(plan_path.read_text())
+    for key in planning.PLAN_KEYS:
+        description.pop(key, None)
+    description['window_s'] = [float(v) for v in candidate.window_s(plan.omega_rad_s)]
+    description['initial_guess'] = dict(plan.guess)
+    record = read_record(tmp_path / 'point')
+    faulty = _flap_stuck(30)(record, description['window_s'])
+    rc, err, data = identify(tmp_path, 'held', faulty, description)
+    kind, worst, said = classify(rc, err, data, truth=dict(plan.guess))
+    assert kind != WRONG, (worst, said)
+    assert any('adequacy was not checked' in line and '67 samples' in line
+               for line in said), said
 
 
 def main(argv=None):
