@@ -324,7 +324,7 @@ def test_value_spikes_found_where_injected_and_nowhere_else(rate_hz):
 
 def test_short_multiblade_window_with_a_held_flap_is_not_silent(tmp_path):
     """
-    A 1-rev test point of the μ = 0.4 multiblade plan has 67 samples: too few for the adequacy tests.
+    A 67-sample multiblade test point (μ = 0.4, 1 rev) is too short for the adequacy tests.
 
     With blade 2's flap held for 30 samples the estimate is tens of σ off the truth; before the
     "not checked" warning it came with exit 0 and no warning at all.
