@@ -318,7 +318,7 @@ def starting_values(record, description, model, experiments, known, multi_start=
 
 def identify(record, description, method=None, progress=None, window_s=None,
              multi_start=True, max_iter=50, filter_bounds='marginal', step_tol=None,
-             check_adequacy=True):
+             check_adequacy=True, model=None):
     """
     Identify the run description's unknowns from a record.
 
@@ -348,6 +348,9 @@ def identify(record, description, method=None, progress=None, window_s=None,
     check_adequacy : bool
         Test the residuals (:mod:`rotor_id.adequacy`, a few ms to tens of ms). Only a caller
         that fits the same data again at once (a live growing window) may skip it.
+    model : optional
+        ``model_for(description)`` kept by a caller that fits the same description again and
+        again (the live fits); it must not be changed by anyone while in use.
 
     Returns
     -------
@@ -355,7 +358,7 @@ def identify(record, description, method=None, progress=None, window_s=None,
 
     """
     method = method or description.method or 'output-error'
-    model = model_for(description)
+    model = model if model is not None else model_for(description)
     window_s = tuple(window_s or description.window_s)
     record = _near_window(record, window_s)
     experiments = experiments_from_record(record, description, model, window_s)

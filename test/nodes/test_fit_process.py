@@ -6,9 +6,13 @@ answers STOP ends the fit after that iteration, through ``identify`` (a final re
 growing-window fit this way; the answer was once dropped on its way to the estimator, and the
 final waited for the whole growing-window fit); a fit told to hurry skips the extrapolation of
 how much more data its targets need (additional_data_s -1: unknown) and one that is not gives
-it; the fit process gives the same estimate as a fit in the caller's thread.
+it; the fit process gives the same estimate as a fit in the caller's thread; the model the
+live fits keep per description structure (built once, not per fit) gives the estimate a fresh
+model gives, is shared only by descriptions that differ in their starting values, and the
+bound history's last σ is the fit's own Cramér-Rao σ (one run: no double pseudo-inverse).
 """
 
+from dataclasses import replace
 import math
 
 import numpy as np
@@ -16,8 +20,10 @@ import pytest
 from rotor_id.commands.demo import case_files
 from rotor_id.estimation.output_error import STOP
 from rotor_id.io.run_description import load_run_description
-from rotor_id.nodes.fit_process import fit_window, FitOptions, FitProcess
+from rotor_id.nodes.fit_process import fit_window, FitOptions, FitProcess, live_model
+from rotor_id.nodes.live import bound_history
 from rotor_id.nodes.test_points import TestPointSequence
+from rotor_id.pipeline import identify
 
 from test_test_points import _stream, OMEGA, WINDOW  # noqa: I100
 
@@ -79,3 +85,30 @@ def test_the_fit_process_gives_the_callers_estimate(request_and_description):
         fitter.close()
     np.testing.assert_allclose(there.estimate.values, here.estimate.values, rtol=1e-12)
     assert timing['fit_cpu'] > 0
+
+
+def test_the_kept_model_gives_a_fresh_models_estimate(request_and_description):
+    request, desc = request_and_description
+    warm = replace(desc, initial_guess={'A': 0.45, 'AL_over_tau': 0.22, 'inv_tau': 0.11})
+    assert live_model(warm) is live_model(desc)      # starting values only: the same model
+    other = replace(desc, rotor=replace(desc.rotor, flap_frequency=desc.rotor.flap_frequency
+                                        * 1.01))
+    assert live_model(other) is not live_model(desc)
+    assert live_model(other).rotor.flap_frequency != live_model(desc).rotor.flap_frequency
+    for _ in range(2):                               # the second fit reuses the kept model
+        kept, _, _ = fit_window(request, warm, _options())
+    fresh = identify(request.record, warm, window_s=request.window_s, multi_start=False,
+                     max_iter=30, step_tol=1e-3, check_adequacy=False)
+    assert kept.estimate.iterations == fresh.estimate.iterations
+    np.testing.assert_allclose(kept.estimate.values, fresh.estimate.values, rtol=1e-12)
+
+
+def test_the_bound_historys_last_sigma_is_the_fits(request_and_description):
+    request, desc = request_and_description
+    ident, _, _ = fit_window(request, desc, _options())
+    t, std = bound_history(ident)
+    assert t.size == ident.experiments[0].t.size and np.isnan(std[0]).all()
+    sigma = [ident.estimate.std_of(n) for n in ident.unknowns]
+    np.testing.assert_allclose(std[-1], sigma, rtol=1e-6)
+    good = np.isfinite(std).all(axis=1)
+    assert np.all(np.diff(std[good], axis=0) <= 1e-12 * std[good][1:])   # σ falls with data
