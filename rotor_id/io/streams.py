@@ -23,6 +23,7 @@ wrong on a rig, and how each is told from the others:
 """
 
 from dataclasses import dataclass
+import math
 
 import numpy as np
 
@@ -445,10 +446,11 @@ def value_spikes(values):
     Find the isolated spikes of each column of sampled angles (flap or pitch readings).
 
     A spike leaves the channel's running median by more than ``OUTLIER_SIGMAS`` robust σ of
-    the residual, by ``VALUE_SPIKE_RANGE_FRACTION`` of the channel's 1-99 % range and by
-    ``MEDIAN_SPAN // 2`` median steps, for at most ``REPAIR_MAX_SAMPLES`` samples (see
-    :func:`spikes`), and comes back: its neighbours either side agree to within half its
-    excursion from the line between them (a step or a sharp peak of the signal does not).
+    the residual and of the channel's white noise, by ``VALUE_SPIKE_RANGE_FRACTION`` of the
+    channel's 1-99 % range and by ``MEDIAN_SPAN // 2`` median steps, for at most
+    ``REPAIR_MAX_SAMPLES`` samples (see :func:`spikes`), and comes back: its neighbours
+    either side agree to within half its excursion from the line between them (a step or a
+    sharp peak of the signal does not).
 
     Parameters
     ----------
@@ -470,7 +472,11 @@ def value_spikes(values):
             continue
         low, high = np.percentile(column, [1.0, 99.0])
         travel = (MEDIAN_SPAN // 2) * float(np.median(np.abs(np.diff(column))))
-        floor = max(VALUE_SPIKE_RANGE_FRACTION * (high - low), travel)
+        # white-noise σ from the curvature (6σ²), as in interleaved_streams: the spread of the
+        # residual about the running median is smaller (the sample is often the median), so
+        # OUTLIER_SIGMAS of it alone flagged 1 in 4·10⁶ samples of plain Gaussian noise
+        noise = math.sqrt(float(np.median(np.diff(column, 2) ** 2)) / CHI2_1_MEDIAN / 6.0)
+        floor = max(VALUE_SPIKE_RANGE_FRACTION * (high - low), travel, OUTLIER_SIGMAS * noise)
         candidates = np.zeros(column.size, dtype=bool)
         candidates[spikes(column, floor)] = True
         kept = [np.arange(a, b) for a, b in _stretches(candidates)

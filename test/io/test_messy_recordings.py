@@ -68,7 +68,9 @@ def _spike(size):
 
 
 def _dropped_to_zero(record, window_s):
-    i = _in_window(record, window_s)[60]
+    # where blade 3's flap is largest: a reading dropped to 0.0 within ~10σ of zero is noise
+    inside = _in_window(record, window_s)
+    i = inside[np.argmax(np.abs(record.blade_flap[inside, 2]))]
     return _flap(record, lambda f: f.__setitem__((i, 2), 0.0))
 
 
@@ -164,7 +166,7 @@ FAULTS = {
                            _spike(20 * NOISE_RAD), WITHIN, 'blade_2: 1,'),
     'flap_spike_0.2rad': ('one flap sample of blade 2 +0.2 rad', _spike(0.2), WITHIN,
                           'blade_2: 1,'),
-    'flap_dropped_to_zero': ('one flap sample of blade 3 reads 0.0', _dropped_to_zero,
+    'flap_dropped_to_zero': ('blade 3 flap reads 0.0 at its largest sample', _dropped_to_zero,
                              WITHIN, 'blade_3: 1, e.g. 0 rad'),
     'pitch_stuck_5': ('blade 1 pitch held for 5 samples', _pitch_stuck(5), WITHIN, None),
     'pitch_stuck_60': ('blade 1 pitch held for 60 samples', _pitch_stuck(60), NOT_CONVERGED,
