@@ -954,21 +954,23 @@ def _in_window(time_s, window_s, margin_s):
 
 def _dead_flap_sensors(time_s, flap, blade_names, topic, window_s):
     """
-    Refuse a blade whose flap reads one exact value throughout the window (or the record).
+    Refuse a blade whose flap reads one exact value throughout the window.
 
     A flap sensor always shows its noise and the blade's response to the stirring; a reading
     that never changes is a dead or disconnected sensor (0.0 from an unplugged amplifier, a
-    held last value), and a fit would take it for a blade that does not flap.
+    held last value), and a fit would take it for a blade that does not flap. Only with a
+    window (identification: run descriptions require window_s); a record read whole may be
+    anything (a recorder's test pattern).
     """
-    inside = np.ones(len(time_s), dtype=bool) if window_s is None else (
-        (time_s >= window_s[0]) & (time_s <= window_s[1]))
+    if window_s is None:
+        return
+    inside = (time_s >= window_s[0]) & (time_s <= window_s[1])
     if np.count_nonzero(inside) < 2:
         return
     values = flap[inside]
     dead = [k for k in range(values.shape[1]) if np.all(values[:, k] == values[0, k])]
     if dead:
-        where = ('the record' if window_s is None
-                 else f'window_s [{window_s[0]}, {window_s[1]}] s')
+        where = f'window_s [{window_s[0]}, {window_s[1]}] s'
         raise BagError(
             f'{topic}: the flap of {", ".join(blade_names[k] for k in dead)} reads exactly '
             f'{", ".join(f"{values[0, k]:.6g}" for k in dead)} rad in every one of its '
