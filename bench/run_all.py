@@ -109,6 +109,8 @@ KNOWN = {
     'live': {'what': '10 minutes of the live nodes: nothing lost, latency'},
     'live_60s': {'what': '60 s of the live nodes: latency'},
     'live_latency': {'what': 'live test points: latency of the final estimate'},
+    'final_fit_cpu': {'target': False, 'what': 'live final fit CPU, kept vs rebuilt model, '
+                      'on the newest recorded run of live_latency (run that first)'},
     'sensor_intake': {'what': 'live sensor topics: CPU per message, callbacks vs polled batches'},
 }
 
