@@ -585,7 +585,7 @@ def diagnose(record, description, progress=None, workers=2, effects=EFFECTS, win
         mismatch = residual_flag
         effect = 'unexplained' if mismatch else 'none'
         confidence = 'high' if not ranked or ranked[0]['criterion'] < 0 else 'low'
-    proposal = None
+    proposal, out_of_catalogue = None, False
     # out of catalogue: a term the data want, as a proposal. Random inflow is asked too: it is
     # the explanation of last resort, and a Kalman filter tracks unmodelled dynamics as well
     if effect in ('unexplained', 'process_noise'):
@@ -595,13 +595,15 @@ def diagnose(record, description, progress=None, workers=2, effects=EFFECTS, win
         proposal = propose(ident.experiments, unknowns, values, known)
         _say(progress, proposal.text())
         if effect == 'process_noise' and proposal.terms:
-            # a deterministic term that predicts held-out blocks is not random inflow
-            confidence = 'low'
-            notes.append(f'random inflow is the explanation of last resort, and a '
-                         f'deterministic term ({proposal.terms[0]["term"]}) lowers the '
-                         f'held-out equation error by '
-                         f'{proposal.terms[0]["heldout_improvement"]:.0%} beyond chance: the '
-                         'mismatch may be unmodelled dynamics (see explanation.proposal)')
+            # a deterministic term that predicts held-out blocks is not random inflow: the
+            # Kalman filter tracks any unmodelled dynamics, so the verdict is out of catalogue
+            effect, confidence, out_of_catalogue = 'unexplained', 'low', True
+            notes.append(f'random inflow (process_noise) raises the likelihood, but it is the '
+                         f'explanation of last resort, and a deterministic term '
+                         f'({proposal.terms[0]["term"]}) lowers the held-out equation error by '
+                         f'{proposal.terms[0]["heldout_improvement"]:.0%} beyond chance: '
+                         'unexplained, unmodelled dynamics likely (see explanation.proposal, '
+                         'a proposal, not a catalogue verdict)')
 
     # ---- show ----
     if chosen_fit is not None:
@@ -631,9 +633,9 @@ def diagnose(record, description, progress=None, workers=2, effects=EFFECTS, win
         'validation_rms_baseline': base_val,
     }
     explanation = {}
-    if steps:
+    if steps and not out_of_catalogue:
         effect = max(steps, key=lambda st: st['criterion'])['effect']
-    if chosen_fit is not None:
+    if chosen_fit is not None and not out_of_catalogue:
         own = chosen_fit.effect_parameters.get(effect, chosen_fit.parameters)
         explanation = {n: {'value': v, 'std': s} for n, (v, s) in own.items()}
         if effect == 'time_delay' and 'delay_rad' in explanation:
