@@ -374,17 +374,28 @@ def identify(record, description, method=None, progress=None, window_s=None,
         guess = starting_values(record, description, model, experiments, known, multi_start)
         estimate = _fit_guarded(method, experiments, unknowns, guess, known, description,
                                 model, progress, max_iter, filter_bounds, step_tol)
-    from rotor_id import adequacy as adequacy_check   # imports diagnosis, which imports us
     part = record.window(*window_s)
     notes = [w for w in [defaults_warning(defaults, sources)] if w]
-    return Identification(estimate=estimate, model=experiments[0].model, experiments=experiments,
-                          description=description, window_s=window_s,
-                          omega_rad_s=part.omega_mean, unknowns=unknowns,
-                          defaults_used=defaults, notes=notes,
-                          adequacy=adequacy_check.check(
-                              estimate, experiments,
-                              [(part.blade_flap, part.time_s)] * len(experiments))
-                          if check_adequacy else None)
+    ident = Identification(estimate=estimate, model=experiments[0].model, experiments=experiments,
+                           description=description, window_s=window_s,
+                           omega_rad_s=part.omega_mean, unknowns=unknowns,
+                           defaults_used=defaults, notes=notes)
+    if check_adequacy:
+        ident.adequacy = adequacy_of(ident, record)
+    return ident
+
+
+def adequacy_of(ident, record):
+    """
+    Return the residual-adequacy check (:mod:`rotor_id.adequacy`) of a one-record identification.
+
+    ``identify`` runs it unless told not to; the live identifier runs it on its final estimate
+    after publishing it, off the latency path.
+    """
+    from rotor_id import adequacy as adequacy_check   # imports diagnosis, which imports us
+    part = record.window(*ident.window_s)
+    return adequacy_check.check(ident.estimate, ident.experiments,
+                                [(part.blade_flap, part.time_s)] * len(ident.experiments))
 
 
 def _fit_guarded(method, experiments, unknowns, guess, known, description, model, progress,

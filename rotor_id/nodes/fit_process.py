@@ -71,9 +71,8 @@ def fit_window(request, description, options, progress=None, hurry=None):
     timing = {}
     started = time.perf_counter()
     cpu0, wait0 = thread_times()
-    # no residual-adequacy test: a live estimate does not carry one (ParameterEstimate has no
-    # field for it; it was 40 % of a fit's CPU, computed and dropped). `rotor-id identify` on
-    # the recorded bag gives it with the same window.
+    # no residual-adequacy test here (it was 40 % of a fit's CPU): the identifier checks each
+    # final estimate after publishing it (IdentifierNode._check_final), off the latency path
     ident = identify(request.record, description, progress=progress, window_s=request.window_s,
                      max_iter=options.max_iter, multi_start=options.multi_start,
                      step_tol=options.step_tol, check_adequacy=False,

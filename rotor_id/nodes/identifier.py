@@ -62,7 +62,7 @@ from rotor_id.nodes.polling import (checked_azimuth_batch, checked_joint_batch,
                                     incompatible_publishers, one_by_one, SensorPoller)
 from rotor_id.nodes.test_points import (FitSchedule, outcome, Phase, sampling_period_ns,
                                         TestPointSequence, window_bounds)
-from rotor_id.pipeline import model_for
+from rotor_id.pipeline import adequacy_of, model_for
 from rotor_id_msgs.msg import IdentificationProgress, ParameterEstimate, StirringCommand
 from rotor_id_msgs.srv import Identify
 from sensor_msgs.msg import JointState
@@ -181,6 +181,7 @@ class Identifier(Node):
         self.provisional_points = set()   # test points with a growing-window estimate out
         self.provisional_wall_s = collections.deque(maxlen=5)  # their recent fits' wall times
         self.provisional_skipped = 0      # not asked for: they would have delayed the final
+        self.final_to_check = None        # (request, Identification) of the final just fitted
         self.provisional_requested = set()  # test points with a growing-window fit asked for
         self.guess = {}                   # warm start: the latest sane iterate of a window fit
         self.bounds = None                # (lower, upper) of each unknown, for that check
@@ -708,6 +709,39 @@ class Identifier(Node):
         self.diagnostics.set_value('latency_ms_max', f'{lat.max():.1f}')
         self.diagnostics.set_value('latency_count', lat.size)
         self.diagnostics.set_value('latency_breakdown_last', _breakdown_text(self.breakdowns[-1]))
+        if kind == ParameterEstimate.KIND_FINAL:
+            self._check_final(request)
+
+    def _check_final(self, request):
+        """
+        Check the residual adequacy of a test point's final estimate, once it is published.
+
+        It is not on the latency path (it costs about as much CPU as the fit), and a
+        ParameterEstimate has no field for it: an inadequate fit is a WARN on /diagnostics
+        (``final_adequacy``, with the figures and where) and a logged warning naming the test
+        point; ``adequacy`` / ``adequacy_test_point`` give the last verdict.
+        """
+        pending, self.final_to_check = self.final_to_check, None
+        if pending is None or pending[0] is not request or request.record is None:
+            return
+        ident = pending[1]
+        point = f'test point {request.test_point}' if request.test_point else 'final estimate'
+        try:
+            result = adequacy_of(ident, request.record)
+        except (ValueError, np.linalg.LinAlgError, FloatingPointError) as exc:
+            self.diagnostics.problem('final_adequacy', DiagnosticStatus.WARN,
+                                     f'{point}: the adequacy check failed ({exc})')
+            return
+        self.diagnostics.set_value('adequacy', result.verdict.value)
+        self.diagnostics.set_value('adequacy_test_point', request.test_point)
+        self.diagnostics.set_value('adequacy_misfit_channels', ' '.join(
+            (result.location or {}).get('channels', [])))
+        warning = result.warning()
+        if warning is None:
+            self.diagnostics.problem('final_adequacy')
+            return
+        self.diagnostics.problem('final_adequacy', DiagnosticStatus.WARN, f'{point}: {warning}')
+        self.get_logger().warning(f'{point}: {warning}')
 
     # -------------------------------------------------------------------------- fitting
     def _final_waiting(self):
@@ -804,6 +838,8 @@ class Identifier(Node):
                                 (f'; {problems}' if problems else ''))
         timing.update(fit_timing)
         est = ident.estimate
+        if kind == ParameterEstimate.KIND_FINAL:
+            self.final_to_check = (request, ident)   # its adequacy: after it is published
         self.last_fit_s = time.perf_counter() - started
         clock = time.perf_counter()
         if remember:

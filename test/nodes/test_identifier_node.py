@@ -7,7 +7,9 @@ What it proves: test points run in a row without restart through ``~/start_test_
 identifier (its sensor topics not taken while 150 samples arrive; its queues hold 100) loses the
 window's first samples and publishes the test point as STATUS_INCOMPLETE with the channels and
 counts missing, never as converged; two pitch samples not sent in the middle of a window do the
-same for that channel alone; an aborted test point ends with STATUS_ABORTED.
+same for that channel alone; an aborted test point ends with STATUS_ABORTED; each final is
+checked for adequacy after it is published: the clean first test point is `adequate`, a fifth
+whose blade 2 flap sensor reads 0.01 rad (11σ) high is a WARN on /diagnostics naming it.
 """
 
 import math
@@ -31,7 +33,7 @@ def run():
     from rclpy.parameter import Parameter
     from std_srvs.srv import Trigger
 
-    data = _stream(points=4)
+    data = _stream(points=5)
     params = [Parameter('run_description', value='demo_wake.yaml'),
               Parameter('auto_start', value='none'), Parameter('sensor_queue_depth', value=100),
               Parameter('update_every_rad', value=0.0),
@@ -74,6 +76,9 @@ def run():
         call('start_test_point')
         call('start_test_point')                       # refused: one is armed
         assert test_point(0), 'no final estimate of test point 1'
+        out['adequacy'] = {1: (node.diagnostics.values.get('adequacy'),
+                               node.diagnostics.problems.get('final_adequacy'),
+                               node.diagnostics.values.get('adequacy_misfit_channels'))}
         call('start_test_point')
         assert test_point(1, starve=(lo - 50, lo + 100)), 'no final estimate of test point 2'
         call('start_test_point')
@@ -85,6 +90,13 @@ def run():
         call('abort')
         call('abort')
         spin_until(lambda: any(m.test_point == 4 for m in estimates), 10.0)
+        # a flap sensor offset on blade 2 the wake model cannot explain
+        data['flap'][4 * LENGTH:5 * LENGTH, 1] += 0.01
+        call('start_test_point')
+        assert test_point(4), 'no final estimate of test point 5'
+        out['adequacy'][5] = (node.diagnostics.values.get('adequacy'),
+                              node.diagnostics.problems.get('final_adequacy'),
+                              node.diagnostics.values.get('adequacy_misfit_channels'))
         out['limits'] = {name: series.capacity for name, series in (
             ('flap', node.points.flap), ('pitch', node.points.pitch),
             ('azimuth', node.points.azimuth.series))}
@@ -210,3 +222,13 @@ def test_state_estimator_buffers_are_bounded(buffer_s, tick_every):
     finally:
         node.destroy_node()
         rclpy.try_shutdown(context=context)
+
+
+def test_each_final_is_checked_for_adequacy_after_it_is_published(run):
+    from diagnostic_msgs.msg import DiagnosticStatus
+    assert run['adequacy'][1] == ('adequate', None, '')
+    verdict, problem, channels = run['adequacy'][5]
+    assert verdict == 'inadequate'
+    assert problem[0] == DiagnosticStatus.WARN and problem[1].startswith('test point 5: ')
+    # the measured channel ½(β2 − β4) of eq. 30 (docs/models.md) carries a blade-2 offset
+    assert channels == 'beta_m2', problem[1]
