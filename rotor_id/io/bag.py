@@ -34,7 +34,8 @@ from rotor_id.io.record import Record
 from rotor_id.io.run_description import (DEFAULT_AZIMUTH_JOINT, DEFAULT_TOPICS,
                                          normalize_joint_names, recorded_topic, validate_window)
 from rotor_id.io.streams import (
-    interleaved_streams, phase_outliers, spikes, split_runs, value_spikes,
+    interleaved_streams, phase_outliers, repair_value_spikes, spikes, split_runs,
+    stuck_channels,
 )
 from rotor_id.io.timebase import interpolate_columns, nondimensional_time, TWO_PI, wrap_azimuth
 import yaml
@@ -516,21 +517,14 @@ def _publishers_note(ctx, topic):
 
 def _repair_value_spikes(ctx, topic, role, stamps, position, names):
     """Replace isolated flap/pitch samples far from their neighbours (in place), and say where."""
-    found = value_spikes(position)
-    if not any(index.size for index in found):
+    repairs = repair_value_spikes(stamps, position)
+    if not repairs:
         return
     said = []
-    for column, spiky in enumerate(found):
-        if not spiky.size:
-            continue
-        good = np.ones(len(stamps), dtype=bool)
-        good[spiky] = False
-        smooth = np.interp(stamps[spiky], stamps[good], position[good, column])
-        worst = int(np.argmax(np.abs(position[spiky, column] - smooth)))
-        joint = names[column] if column < len(names) else f'column {column}'
-        said.append(f'{joint}: {spiky.size}, e.g. {position[spiky[worst], column]:.4g} rad '
-                    f'among {smooth[worst]:.4g} at {ctx.when(int(stamps[spiky[worst]]))}')
-        position[spiky, column] = smooth
+    for repair in repairs:
+        joint = names[repair.column] if repair.column < len(names) else f'column {repair.column}'
+        said.append(f'{joint}: {repair.count}, e.g. {repair.value:.4g} rad '
+                    f'among {repair.neighbours:.4g} at {ctx.when(int(stamps[repair.index]))}')
     ctx.issues.append(
         f'{topic} ({role}): sample(s) jump away from their neighbours and back (a spike: a bit '
         f'flip or a dropped reading) in {"; ".join(said)}; replaced by interpolation. Check '
@@ -968,7 +962,7 @@ def _dead_flap_sensors(time_s, flap, blade_names, topic, window_s):
     if np.count_nonzero(inside) < 2:
         return
     values = flap[inside]
-    dead = [k for k in range(values.shape[1]) if np.all(values[:, k] == values[0, k])]
+    dead = stuck_channels(values)
     if dead:
         where = f'window_s [{window_s[0]}, {window_s[1]}] s'
         raise BagError(
