@@ -4,6 +4,7 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
+from rotor_id.io.streams import repair_value_spikes, stuck_channels
 from rotor_id.io.timebase import blade_azimuths, multiblade_coordinates
 
 # Window ends are inclusive; this absorbs float rounding of a stamp written as seconds.
@@ -129,6 +130,29 @@ class Record:
         """Multiblade coordinates of 'flap' or 'pitch' (see :mod:`rotor_id.io.timebase`)."""
         values = {'flap': self.blade_flap, 'pitch': self.blade_pitch}[quantity]
         return multiblade_coordinates(values, self.t)
+
+    def repair_value_spikes(self):
+        """
+        Replace the flap and pitch spikes in place (:func:`rotor_id.io.streams.value_spikes`).
+
+        Returns [(quantity, blade name, :class:`~rotor_id.io.streams.SpikeRepair`)], quantity
+        'flap' or 'pitch'. The bag reader repairs each topic on its own stamps before a Record
+        is formed; the live identifier calls this on each window's record.
+        """
+        found = []
+        for quantity, values in (('flap', self.blade_flap), ('pitch', self.blade_pitch)):
+            found += [(quantity, self.blade_names[r.column], r)
+                      for r in repair_value_spikes(self.time_s, values)]
+        return found
+
+    def stuck_flap_blades(self, t0_s, t1_s):
+        """
+        Return [(blade name, value)] of the blades whose flap reads one exact value in every
+        sample of [t0_s, t1_s] s: dead sensors (:func:`rotor_id.io.streams.stuck_channels`).
+        """
+        keep = (self.time_s >= t0_s - _WINDOW_TOL_S) & (self.time_s <= t1_s + _WINDOW_TOL_S)
+        flap = self.blade_flap[keep]
+        return [(self.blade_names[k], float(flap[0, k])) for k in stuck_channels(flap)]
 
     def window(self, t0_s, t1_s):
         """

@@ -25,6 +25,12 @@ docs/run_description.md), as for every node and ``rotor-id identify``.
   flap samples used.
 * The ``~/identify`` service (rotor_id_msgs/srv/Identify) fits any buffered window (KIND_ON_DEMAND,
   seconds after the latest test point's first flap sample).
+* Each window's sensor values get the bag reader's checks (the same functions,
+  :meth:`rotor_id.io.record.Record.repair_value_spikes` / ``stuck_flap_blades``): flap/pitch
+  spikes are replaced by interpolation before the fit (``value_spikes_repaired`` on
+  /diagnostics, logged once per test point, named in the estimate's message); a blade whose flap
+  reads one exact value over the window (a dead sensor) fails the fit: STATUS_FAILED naming it,
+  ERROR ``dead_flap_sensor`` on /diagnostics.
 
 Each estimate carries the Cramér-Rao covariance and the data-length verdict of Ch.3
 (target_met, additional_data_s for the targets ``target_std``); every Gauss-Newton iteration is
@@ -182,6 +188,9 @@ class Identifier(Node):
         self.provisional_wall_s = collections.deque(maxlen=5)  # their recent fits' wall times
         self.provisional_skipped = 0      # not asked for: they would have delayed the final
         self.final_to_check = None        # (request, Identification) of the final just fitted
+        self.spikes_seen = set()          # (test point, quantity, blade, stamp) repaired
+        self.spikes_logged = set()        # test points whose spikes were logged
+        self.spikes_repaired = 0          # distinct flap/pitch samples replaced as spikes
         self.provisional_requested = set()  # test points with a growing-window fit asked for
         self.guess = {}                   # warm start: the latest sane iterate of a window fit
         self.bounds = None                # (lower, upper) of each unknown, for that check
@@ -200,6 +209,7 @@ class Identifier(Node):
                                 depth=self.d['sensor_queue_depth'],
                                 durability=SENSOR_BUFFER_QOS.durability)
         self.diagnostics = Diagnostics(self, 'identification')
+        self.diagnostics.set_value('value_spikes_repaired', 0)
         # after the Diagnostics' own check, so that nothing is applied when that one refuses
         allow_runtime_changes(self, self._check_parameter, self._apply_parameters)
         # taken in batches by a thread (rotor_id.nodes.polling), not one callback per message
@@ -686,7 +696,7 @@ class Identifier(Node):
         # in the fit process: its wall time (identify and verdict there, and the pipe)
         stages = timing.get('in_fit_process', sum(timing.get(k, 0.0)
                                                   for k in ('identify', 'verdict')))
-        stages += timing.get('message', 0.0)
+        stages += timing.get('message', 0.0) + timing.get('value_checks', 0.0)
         self.breakdowns.append({
             'kind': 'final' if request.final else 'provisional',
             'test_point': request.test_point, 'window_end_s': round(request.window_s[1], 5),
@@ -804,6 +814,12 @@ class Identifier(Node):
                       else ParameterEstimate.STATUS_FAILED)
             return self._failed(request, kind, status, request.error +
                                 (f'; {problems}' if problems else ''))
+        clock = time.perf_counter()
+        dead, repaired = self._check_values(request)
+        timing['value_checks'] = (time.perf_counter() - clock) * 1e3
+        if dead:
+            return self._failed(request, kind, ParameterEstimate.STATUS_FAILED, dead +
+                                (f'; {problems}' if problems else ''))
         desc, options = self._fit_setup(request, kind, max_iter)
 
         def progress(info):
@@ -861,7 +877,7 @@ class Identifier(Node):
         note = (f'{point}{label}: {request.window_s[0]:.4f}-{request.window_s[1]:.4f} s, '
                 + (f'INCOMPLETE WINDOW ({problems}), no convergence claimed (fit: '
                    f'{est.message})' if result == 'incomplete' else est.message)
-                + f', {self.last_fit_s * 1e3:.0f} ms')
+                + f', {self.last_fit_s * 1e3:.0f} ms' + (f'; {repaired}' if repaired else ''))
         msg = estimate_message(ident, self.get_clock().now().to_msg(), status, verdict,
                                self.d['frame_id'], note)
         self._annotate(msg, request, kind)
@@ -874,6 +890,59 @@ class Identifier(Node):
                                    f'{self.diagnostics.values["last_estimate"]} ({note}); '
                                    f'target met: {verdict[0]}')
         return msg
+
+    def _check_values(self, request):
+        """
+        Check a window's sensor values as the bag reader does (the same functions); return
+        (why it cannot be fitted or '', what was repaired or '').
+
+        A blade's flap reading one exact value over the requested window is a dead sensor: the
+        ERROR ``dead_flap_sensor`` on /diagnostics, cleared by the next window whose flap
+        readings all move. Flap/pitch spikes are replaced in the request's record (its own
+        copy of the buffers) before the fit; ``value_spikes_repaired`` counts the samples
+        replaced, each once however many growing windows see it, ``value_spike_last`` names
+        the last one, and the first spike of each test point is logged.
+        """
+        record = request.record
+        point = (f'test point {request.test_point}' if request.test_point
+                 else 'on-demand window')
+        t0, t1 = request.window_s
+        dead = record.stuck_flap_blades(t0, t1)
+        if dead:
+            text = (f'{point}: the flap of {", ".join(name for name, _ in dead)} reads exactly '
+                    f'{", ".join(f"{value:.6g}" for _, value in dead)} rad in every sample of '
+                    f'window_s [{t0:g}, {t1:g}] s: a dead or disconnected sensor (a real '
+                    'reading shows noise and the stirring response); no estimate. Check the '
+                    'sensor and its wiring')
+            self.diagnostics.problem('dead_flap_sensor', DiagnosticStatus.ERROR, text)
+            return text, ''
+        self.diagnostics.problem('dead_flap_sensor')
+        repairs = record.repair_value_spikes()
+        if not repairs:
+            return '', ''
+        said, new = [], 0
+        for quantity, blade, repair in repairs:
+            stamps = record.stamp0_ns + np.round(record.time_s[repair.indices] * NS)
+            for stamp in stamps.astype(np.int64).tolist():
+                key = (request.test_point, quantity, blade, stamp)
+                if key not in self.spikes_seen:
+                    self.spikes_seen.add(key)
+                    new += 1
+            said.append(f'{blade} {quantity}: {repair.count}, e.g. {repair.value:.4g} rad among '
+                        f'{repair.neighbours:.4g} at {record.time_s[repair.index]:.4f} s')
+        text = (f'value spike(s) replaced by interpolation (a bit flip or a dropped reading) '
+                f'in {"; ".join(said)}')
+        if new:
+            self.spikes_repaired += new
+            self.diagnostics.set_value('value_spikes_repaired', self.spikes_repaired)
+            self.diagnostics.set_value('value_spike_last', f'{point}: {said[-1]}')
+            if request.test_point not in self.spikes_logged:
+                self.spikes_logged.add(request.test_point)
+                self.get_logger().warning(f'{point}: {text}; check the sensor if this recurs '
+                                          '(counted on /diagnostics: value_spikes_repaired)')
+        # keys of older test points are no longer needed
+        self.spikes_seen = {k for k in self.spikes_seen if k[0] >= request.test_point - 1}
+        return '', text
 
     def _fit_setup(self, request, kind, max_iter=None):
         """Return the run description (warm start: the latest iterate) and FitOptions of a fit."""
@@ -985,6 +1054,7 @@ def _sample_times(last_sample, published_ns):
 def _breakdown_text(b):
     """One line of a latency breakdown (ms) for /diagnostics."""
     return (f'{b["total"]:.1f} = record {b.get("record", 0):.1f} + queued {b["queued"]:.1f} + '
+            f'value checks {b.get("value_checks", 0):.1f} + '
             f'identify {b.get("identify", 0):.1f} (Gauss-Newton {b.get("gauss_newton", 0):.1f}, '
             f'{b.get("iterations", 0)} it) + verdict {b.get("verdict", 0):.1f} + message '
             f'{b.get("message", 0):.1f} + publish {b["publish"]:.1f} + other {b["other"]:.1f}; '
