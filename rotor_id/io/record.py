@@ -147,8 +147,9 @@ class Record:
 
     def stuck_flap_blades(self, t0_s, t1_s):
         """
-        Return [(blade name, value)] of the blades whose flap reads one exact value in every
-        sample of [t0_s, t1_s] s: dead sensors (:func:`rotor_id.io.streams.stuck_channels`).
+        Return the blades whose flap reads one exact value throughout [t0_s, t1_s] s.
+
+        [(blade name, value)]: dead sensors (:func:`rotor_id.io.streams.stuck_channels`).
         """
         keep = (self.time_s >= t0_s - _WINDOW_TOL_S) & (self.time_s <= t1_s + _WINDOW_TOL_S)
         flap = self.blade_flap[keep]

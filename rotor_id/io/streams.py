@@ -25,7 +25,6 @@ wrong on a rig, and how each is told from the others:
 """
 
 from dataclasses import dataclass
-import math
 
 import numpy as np
 

@@ -893,8 +893,9 @@ class Identifier(Node):
 
     def _check_values(self, request):
         """
-        Check a window's sensor values as the bag reader does (the same functions); return
-        (why it cannot be fitted or '', what was repaired or '').
+        Check a window's sensor values as the bag reader does (the same functions).
+
+        Returns (why it cannot be fitted or '', what was repaired or '').
 
         A blade's flap reading one exact value over the requested window is a dead sensor: the
         ERROR ``dead_flap_sensor`` on /diagnostics, cleared by the next window whose flap

@@ -22,7 +22,7 @@ import pytest
 rclpy = pytest.importorskip('rclpy', reason='rclpy not importable')
 msgs = pytest.importorskip('rotor_id_msgs.msg', reason='rotor_id_msgs not built')
 
-from test_test_points import _stream, LENGTH, OMEGA, WAKE, WINDOW  # noqa: E402
+from test_test_points import _stream, LENGTH, OMEGA, WAKE  # noqa: E402
 
 BLADES = [f'blade_{k}' for k in range(1, 5)]
 SPIKE_AT = 870                          # sample of test point 1, inside WINDOW (810..937)
