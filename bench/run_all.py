@@ -112,6 +112,7 @@ KNOWN = {
     'final_fit_cpu': {'target': False, 'what': 'live final fit CPU, kept vs rebuilt model, '
                       'on the newest recorded run of live_latency (run that first)'},
     'sensor_intake': {'what': 'live sensor topics: CPU per message, callbacks vs polled batches'},
+    'value_checks': {'what': 'live window value checks (spikes, dead flap) CPU vs the final fit'},
 }
 
 _REPRODUCE = re.compile(r'Reproduce:\s*`([^`]*)`', re.S)

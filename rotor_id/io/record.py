@@ -139,10 +139,16 @@ class Record:
         'flap' or 'pitch'. The bag reader repairs each topic on its own stamps before a Record
         is formed; the live identifier calls this on each window's record.
         """
+        both = np.hstack([self.blade_flap, self.blade_pitch])    # one call: half the CPU
+        repairs = repair_value_spikes(self.time_s, both)
+        if repairs:
+            self.blade_flap[:] = both[:, :self.n_blades]
+            self.blade_pitch[:] = both[:, self.n_blades:]
         found = []
-        for quantity, values in (('flap', self.blade_flap), ('pitch', self.blade_pitch)):
-            found += [(quantity, self.blade_names[r.column], r)
-                      for r in repair_value_spikes(self.time_s, values)]
+        for r in repairs:
+            quantity, blade = divmod(r.column, self.n_blades)
+            found.append((('flap', 'pitch')[quantity], self.blade_names[blade], replace(
+                r, column=blade)))
         return found
 
     def stuck_flap_blades(self, t0_s, t1_s):
