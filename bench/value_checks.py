@@ -27,9 +27,10 @@ OMEGA = 2 * math.pi * 15
 RATE = 1000
 WAKE = {'A': 0.5, 'AL_over_tau': 0.25, 'inv_tau': 0.125}
 MARGIN_S = 1.5 * 2 * math.pi / OMEGA      # the live record: 1.5 revolutions either side
-#: window_s of the demo's test point, then longer ones (s after the first sample). Not longer:
-#: past 1.85 s this stirring reaches ~7/rev (blade pitch ~85-115 Hz, 9-12 samples a cycle) and
-#: value_spikes takes the pitch's peaks there for spikes (found here; the README says so)
+#: window_s of the demo's test point, then longer ones (s after the first sample). Past 1.85 s
+#: this stirring reaches ~7/rev (blade pitch ~85-115 Hz, 9-12 samples a cycle), whose peaks
+#: value_spikes took for spikes until it asked a spike to stand out from its neighbours
+#: (test_messy_recordings.test_fast_stirring_peaks_are_signal_not_spikes)
 WINDOWS = [(0.80939, 0.93671), (0.80939, 1.20939), (0.80939, 1.60939)]
 
 
@@ -116,11 +117,10 @@ def main():
                               'value checks CPU', 'column by column (value_spikes only)',
                               'checks / column by column', 'final fit CPU',
                               'checks / fit', 'fit iterations'], rows)
-            + '\nThe windows stop at 0.8 s because the demo stirring, continued, reaches ~7/rev '
-            'near 1.85 s (blade pitch ~85-115 Hz, 9-12 samples a cycle at 1 kHz), and there '
-            "value_spikes takes the pitch's peaks for spikes (4-20 samples per blade in a 1 s "
-            'window): the reader and the live window would flatten them. Pure chirps to 150 Hz '
-            'with 0.005° noise are not flagged; the cause in this record is not isolated.\n')
+            + '\nThe demo stirring, continued, reaches ~7/rev near 1.85 s (blade pitch ~85-115 '
+            'Hz, 9-12 samples a cycle at 1 kHz); its peaks are no spikes (they were taken for '
+            'spikes, 70-85 a blade in 3 s, until a spike had to stand out from every excursion '
+            'within 11 samples).\n')
     write_results('value_checks', 'Live window value checks: CPU against the final fit', body,
                   'python bench/value_checks.py')
     print(body)

@@ -221,15 +221,16 @@ def _drop_impossible_receive_times(raw, storage_file):
     for topic, times in raw.log_ns.items():
         if isinstance(times, np.ndarray):
             continue                # read from an index as int64: in range by construction
-        bad = [k for k, ns in enumerate(times) if not 0 <= ns <= _LAST_RECEIVE_NS]
+        bad = [k for k, ns in enumerate(times)
+               if not isinstance(ns, int) or not 0 <= ns <= _LAST_RECEIVE_NS]
         if not bad:
             continue
         keep = sorted(set(range(len(times))) - set(bad))
         raw.log_ns[topic] = [times[k] for k in keep]
         raw.data[topic] = [raw.data[topic][k] for k in keep]
         raw.notes.append(
-            f'{storage_file}: {len(bad)} message(s) on {topic} carry a receive time outside '
-            f'the 64-bit range (first at message {bad[0]}): damaged records, dropped')
+            f'{storage_file}: {len(bad)} message(s) on {topic} carry no receive time or one '
+            f'outside the 64-bit range (first at message {bad[0]}): damaged records, dropped')
 
 
 def _recover_mcap(storage_file, wanted, error, omega_rad_s):

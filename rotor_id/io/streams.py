@@ -449,8 +449,9 @@ def value_spikes(values):
     A spike leaves the channel's running median by more than ``OUTLIER_SIGMAS`` robust σ of
     the residual and of the channel's white noise, by ``VALUE_SPIKE_RANGE_FRACTION`` of the
     channel's 1-99 % range and by ``MEDIAN_SPAN // 2`` median steps, for at most
-    ``REPAIR_MAX_SAMPLES`` samples (see :func:`spikes`), and comes back: its neighbours
-    either side agree to within half its excursion from the line between them (a step or a
+    ``REPAIR_MAX_SAMPLES`` samples (see :func:`spikes`), with no other such excursion within
+    ``MEDIAN_SPAN`` samples (a fast signal's peaks repeat), and comes back: its neighbours
+    either side agree to within half its excursion from the cubic through them (a step or a
     sharp peak of the signal does not).
 
     Parameters
@@ -486,8 +487,11 @@ def value_spikes(values):
         kept = []
         if outside[:, k].any():
             column = values[:, k]
-            kept = [np.arange(a, b) for a, b in _stretches(outside[:, k])
-                    if b - a <= REPAIR_MAX_SAMPLES and _returns(column, a, b, floor[k])]
+            stretches = list(_stretches(outside[:, k]))
+            peaks = [float(np.max(np.abs(residual[a:b, k]))) for a, b in stretches]
+            kept = [np.arange(a, b) for j, (a, b) in enumerate(stretches)
+                    if b - a <= REPAIR_MAX_SAMPLES and _isolated(stretches, peaks, j)
+                    and _returns(column, a, b, floor[k])]
         found.append(np.concatenate(kept) if kept else np.empty(0, dtype=np.int64))
     return found
 
@@ -557,19 +561,58 @@ def stuck_channels(values):
     return [k for k in range(values.shape[1]) if np.all(values[:, k] == values[0, k])]
 
 
+def _isolated(stretches, peaks, j):
+    """
+    Tell whether outlier stretch j stands out from its neighbours.
+
+    No other stretch within ``MEDIAN_SPAN`` samples may reach half its peak (``peaks``: each
+    stretch's largest distance from the running median). A spike is an event; a signal
+    faster than the running median follows (a stirring near 7/rev at 1 kHz, 9-12 samples a
+    cycle) leaves it every half cycle by about as much, and those excursions are the signal,
+    not spikes.
+    """
+    start, end = stretches[j]
+    for i in (j - 1, j + 1):
+        if 0 <= i < len(stretches) and peaks[i] >= 0.5 * peaks[j]:
+            a, b = stretches[i]
+            if (start - b if i < j else a - end) < MEDIAN_SPAN:
+                return False
+    return True
+
+
 def _returns(column, start, end, floor):
     """
     Tell whether column[start:end] goes out and comes back (not a step or a peak).
 
-    It must leave the line between its neighbours by more than ``floor``, and the neighbours
-    must agree to within half that excursion.
+    It must leave the cubic through its two neighbours either side (the line between its
+    neighbours at the ends of the record) by more than ``floor``, and the neighbours must agree
+    to within half that excursion. The cubic is what tells a spike from a peak of the signal
+    sampled at 9-12 samples a cycle: such a peak leaves the line between its neighbours by a
+    fifth of its amplitude, the cubic by about 3 % of it.
     """
     if start == 0 or end >= column.size:
         return False                  # at an end: nothing to come back to
     before, after = column[start - 1], column[end]
-    line = before + (after - before) * np.arange(1, end - start + 1) / (end - start + 1)
-    excursion = float(np.max(np.abs(column[start:end] - line)))
+    inside = np.arange(start, end, dtype=float)
+    if start >= 2 and end + 1 < column.size:
+        knots = np.array([start - 2, start - 1, end, end + 1], dtype=float)
+        guess = _lagrange(knots, column[knots.astype(np.int64)], inside)
+    else:
+        guess = before + (after - before) * (inside - start + 1) / (end - start + 1)
+    excursion = float(np.max(np.abs(column[start:end] - guess)))
     return excursion > floor and abs(after - before) < 0.5 * excursion
+
+
+def _lagrange(knots, values, at):
+    """Return the polynomial through (knots, values) evaluated at ``at``."""
+    out = np.zeros_like(at)
+    for j, (xj, yj) in enumerate(zip(knots, values)):
+        basis = np.ones_like(at)
+        for i, xi in enumerate(knots):
+            if i != j:
+                basis *= (at - xi) / (xj - xi)
+        out += yj * basis
+    return out
 
 
 def _running_median(values, span, block=1 << 16):

@@ -96,6 +96,8 @@ def corrupt(data, edits, cut):
 # a byte of a message's receive time set to 0x80: a time beyond the 64-bit range (found by
 # hypothesis; it raised OverflowError instead of reading the rest)
 @example(edits=[(1181, 128)], cut=0.9)
+# a sqlite3 row whose timestamp reads NULL (found by hypothesis; it raised TypeError)
+@example(edits=[(26884, 0)], cut=1.0)
 def test_corrupted_bags_read_or_raise_bag_error(storage, edits, cut):
     data, suffix = clean_bag(storage)
     with tempfile.TemporaryDirectory() as tmp:

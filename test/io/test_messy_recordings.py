@@ -324,6 +324,41 @@ def test_value_spikes_found_where_injected_and_nowhere_else(rate_hz):
     assert checked >= 2 or rate_hz < 1000
 
 
+def test_fast_stirring_peaks_are_signal_not_spikes():
+    """
+    Fast stirring: the peaks of the pitch are signal, not spikes.
+
+    The demo plant stirred on past its window (the progressing stirring reaches ~7/rev, blade
+    pitch 85-115 Hz, 9-12 samples a cycle at 1 kHz, after 1.85 s): its pitch peaks leave the
+    running median every half cycle and are signal (they were taken for spikes,
+    70-85 a blade in 3 s, and flattened). A 0.5 rad pitch spike among them is still found (a
+    spike must leave the running median by 10 times the signal's spread about it).
+    """
+    from rotor_id.io.streams import value_spikes
+    from rotor_id.nodes.live import PlantStepper, rotor_constants
+    from rotor_id.physics.stirring import StirringSchedule
+    omega, theta0 = 2 * np.pi * 15, np.radians(2.0)
+    stepper = PlantStepper('multiblade_wake', rotor_constants(4, 0.0, 1.2, 0.97),
+                           {'A': 0.5, 'AL_over_tau': 0.25, 'inv_tau': 0.125}, omega, 1000.0,
+                           theta0, flap_noise_std=np.radians(0.05),
+                           pitch_noise_std=np.radians(0.005), seed=3)
+    schedule = StirringSchedule(theta0, np.radians(1.5), -0.1 / np.pi,
+                                stepper.step + 2 * np.pi + 70.0, stepper.step + 2 * np.pi)
+    parts = []
+    for _ in range(3000 // 5):
+        for j in range(5):
+            tc = stepper.t + stepper.step * (j + 1)
+            stepper.command(tc, schedule([tc])[0])
+        parts.append(stepper.advance(5))
+    _, flap, pitch = (np.concatenate(p) for p in zip(*parts))
+    for values in (flap, pitch):
+        assert not any(found.size for found in value_spikes(values))
+    pitch[2500, 1] += 0.5
+    found = value_spikes(pitch)
+    assert 2500 in found[1].tolist() and found[1].size <= 3
+    assert not any(found[k].size for k in (0, 2, 3))
+
+
 def test_short_multiblade_window_with_a_held_flap_is_not_silent(tmp_path):
     """
     A 67-sample multiblade test point (μ = 0.4, 1 rev) is too short for the adequacy tests.
