@@ -5,14 +5,15 @@ Loaded through :func:`rotor_id.estimation.kernels.filter_sensitivity_kernel` onl
 twin is :func:`rotor_id.estimation.filter_error.sensitivity_scan_numpy`, with the same
 equations in the same order (test/estimation/test_filter_error_gradient.py checks agreement).
 
-The 2×2 (m×m) inverse is ``_kernels_numba._invert``, compiled into this module's cache: numba
-does not track that dependency, so a change to ``_invert`` needs this cache cleared too
-(``make build`` after ``make clean``, or touch this file).
+The m×m inverse and the innovation covariance and gain are ``_kernels_numba._invert`` and
+``_kernels_numba.innovation_gain``, compiled into this module's cache: numba does not track
+that dependency, so a change to either needs this cache cleared too (``make build`` after
+``make clean``, or touch this file).
 """
 
 from numba import njit
 import numpy as np
-from rotor_id.estimation._kernels_numba import _invert
+from rotor_id.estimation._kernels_numba import _invert, innovation_gain
 
 
 @njit(cache=True, nogil=True)
@@ -129,30 +130,7 @@ def sensitivity_scan(Fs, g, dFs, dg, h, substeps, Phis, dPhis, Qs, dQs, R, dR, H
                         dKj[c, i, a] = dK_ss[c, i, a]
             logdet = _invert(Bj, Binv)
         else:
-            for i in range(n):
-                for a in range(m):
-                    acc = 0.0
-                    for j in range(n):
-                        acc += P[i, j] * Ht[a, j]
-                    PHT[i, a] = acc
-            for a in range(m):
-                for b in range(m):
-                    acc = R[a, b]
-                    for i in range(n):
-                        acc += Ht[a, i] * PHT[i, b]
-                    Bj[a, b] = acc
-            for a in range(m):
-                for b in range(a + 1, m):
-                    sym = 0.5 * (Bj[a, b] + Bj[b, a])
-                    Bj[a, b] = sym
-                    Bj[b, a] = sym
-            logdet = _invert(Bj, Binv)
-            for i in range(n):
-                for b in range(m):
-                    acc = 0.0
-                    for a in range(m):
-                        acc += PHT[i, a] * Binv[a, b]
-                    Kj[i, b] = acc
+            logdet = innovation_gain(P, Ht, R, PHT, Bj, Binv, Kj)
             for c in range(k):
                 for i in range(n):
                     for a in range(m):

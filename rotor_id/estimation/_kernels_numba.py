@@ -184,6 +184,43 @@ def _invert(A, inverse):
 
 
 @njit(cache=True, nogil=True)
+def innovation_gain(P, Ht, R, PHT, B, Binv, K):
+    """
+    Kalman innovation covariance and gain, in place; return log det B.
+
+    PHT = P Hᵀ, B = H P Hᵀ + R (symmetrised), Binv = B⁻¹ and K = P Hᵀ B⁻¹: the one copy of
+    these products for the filter scan here and the filter-sensitivity scan
+    (_filter_kernels_numba, which compiles it into its own cache).
+    """
+    n, m = P.shape[0], Ht.shape[0]
+    for i in range(n):
+        for a in range(m):
+            acc = 0.0
+            for j in range(n):
+                acc += P[i, j] * Ht[a, j]
+            PHT[i, a] = acc
+    for a in range(m):
+        for b in range(m):
+            acc = R[a, b]
+            for i in range(n):
+                acc += Ht[a, i] * PHT[i, b]
+            B[a, b] = acc
+    for a in range(m):
+        for b in range(a + 1, m):
+            sym = 0.5 * (B[a, b] + B[b, a])
+            B[a, b] = sym
+            B[b, a] = sym
+    logdet = _invert(B, Binv)
+    for i in range(n):
+        for b in range(m):
+            acc = 0.0
+            for a in range(m):
+                acc += PHT[i, a] * Binv[a, b]
+            K[i, b] = acc
+    return logdet
+
+
+@njit(cache=True, nogil=True)
 def filter_scan(Phi, c, Q, H, d, y, x0, R, P_steady, steady, nu, B, gains, cost):
     """
     Kalman filters of K stacked discrete models, the equations of filter_error.filter_batch.
@@ -220,30 +257,7 @@ def filter_scan(Phi, c, Q, H, d, y, x0, R, P_steady, steady, nu, B, gains, cost)
                     acc -= Ht[a, i] * x[i]
                 v[a] = acc
                 nu[kk, t, a] = acc
-            for i in range(n):
-                for a in range(m):
-                    acc = 0.0
-                    for j in range(n):
-                        acc += P[i, j] * Ht[a, j]
-                    PHT[i, a] = acc
-            for a in range(m):
-                for b in range(m):
-                    acc = R[kk, a, b]
-                    for i in range(n):
-                        acc += Ht[a, i] * PHT[i, b]
-                    Bj[a, b] = acc
-            for a in range(m):
-                for b in range(a + 1, m):
-                    s = 0.5 * (Bj[a, b] + Bj[b, a])
-                    Bj[a, b] = s
-                    Bj[b, a] = s
-            logdet = _invert(Bj, Binv)
-            for i in range(n):
-                for b in range(m):
-                    acc = 0.0
-                    for a in range(m):
-                        acc += PHT[i, a] * Binv[a, b]
-                    Kj[i, b] = acc
+            logdet = innovation_gain(P, Ht, R[kk], PHT, Bj, Binv, Kj)
             quad = 0.0
             for a in range(m):
                 for b in range(m):
