@@ -13,6 +13,7 @@ commit. A line per benchmark shows progress; the summary gives each one's verdic
     python bench/run_all.py --only diagnose_speed command_speed
     python bench/run_all.py --list             # what would run, and how
     python bench/run_all.py --quick            # smoke run: small sizes, nothing written
+    nice -n 19 python bench/run_all.py --only adequacy --workers 1   # on a shared machine
 
 Exit status 1 if a benchmark missed its target or failed.
 """
@@ -44,11 +45,18 @@ class Benchmark:
     quick: list = None    # smoke-run arguments (``{tmp}`` is a scratch directory), None: skip
     target: bool = True   # exit 1 means a missed target (else the script has no target)
     source: str = 'results file'
+    workers: bool = False  # takes ``--workers N`` and its figures do not depend on N
 
-    def command(self, quick=False, tmp=''):
-        """Return the command line of a full (or smoke) run."""
-        args = self.quick if quick else self.args
-        return [sys.executable] + [a.replace('{tmp}', tmp) for a in args]
+    def command(self, quick=False, tmp='', workers=None):
+        """Return the command line of a full (or smoke) run (``workers``: override N)."""
+        args = [a.replace('{tmp}', tmp) for a in (self.quick if quick else self.args)]
+        if workers is not None and self.workers:
+            if '--workers' in args:
+                at = args.index('--workers') + 1
+                args = args[:at] + [str(workers)] + args[at + 1:]
+            else:
+                args = args + ['--workers', str(workers)]
+        return [sys.executable] + args
 
 
 #: What the results files' own Reproduce lines do not say. ``args`` overrides the line (None:
@@ -93,18 +101,26 @@ KNOWN = {
         'what': 'planned bounds vs Monte Carlo scatter (within 15 %)',
         'quick': ['bench/plan_vs_monte_carlo.py', '--seeds', '20', '--json', '{tmp}/pvm.json',
                   '--figure', '{tmp}/pvm.png', '--markdown', '{tmp}/pvm.md']},
-    'monte_carlo': {'target': False, 'what': "ML scatter vs Cramér-Rao bound, the report's cases"},
+    'monte_carlo': {'workers': True,
+                    'what': "ML scatter vs Cramér-Rao bound, the report's cases (limits)"},
     'process_noise': {
-        'target': False, 'what': 'OE / FE / EKF under system noise, σ_m .05 (coverage, RMS)',
+        'target': False, 'workers': True,
+        'what': 'OE / FE / EKF under system noise, σ_m .05 (coverage, RMS)',
         'args': ['bench/compare_process_noise.py', '--seeds', '100', '--workers', '2',
                  '--sigma-m', '0.05', '--out', str(RESULTS_DIR / 'process_noise.md')],
         'quick': ['bench/compare_process_noise.py', '--seeds', '4', '--workers', '1',
                   '--out', '{tmp}/pn.md']},
     'process_noise_sigma_m_0.1': {
-        'target': False, 'what': 'the same at σ_m .1',
+        'target': False, 'workers': True, 'what': 'the same at σ_m .1',
         'args': ['bench/compare_process_noise.py', '--seeds', '100', '--workers', '2',
                  '--sigma-m', '0.1', '--out', str(RESULTS_DIR / 'process_noise_sigma_m_0.1.md')]},
-    'adequacy': {'target': False, 'what': 'adequacy check: false alarms and detection'},
+    'diagnosis': {'target': False, 'workers': True,
+                  'what': 'diagnosis study: verdicts over the scenario catalogue'},
+    'diagnosis_azimuth': {'target': False, 'workers': True, 'what': 'diagnosis: azimuth offset'},
+    'diagnosis_pairs': {'target': False, 'workers': True, 'what': 'diagnosis: pairs of effects'},
+    'diagnosis_rig': {'target': False, 'workers': True, 'what': 'diagnosis: rig scenarios'},
+    'adequacy': {'target': False, 'workers': True,
+                 'what': 'adequacy check: false alarms and detection'},
     'long_bag_memory': {'what': 'one-hour 1 kHz bag: peak memory follows the window'},
     'live': {'what': '10 minutes of the live nodes: nothing lost, latency'},
     'live_60s': {'what': '60 s of the live nodes: latency'},
@@ -162,6 +178,9 @@ def main(argv=None):
     parser.add_argument('--quick', action='store_true',
                         help='smoke run with small sizes; nothing in bench/results is written')
     parser.add_argument('--list', action='store_true', help='show what would run and exit')
+    parser.add_argument('--workers', type=int, default=None, metavar='N',
+                        help='worker processes of the statistical studies whose figures do not '
+                             "depend on it (a shared machine: 1); default: each one's own")
     args = parser.parse_args(argv)
     benchmarks, orphans = registry()
     for name in orphans:
@@ -184,7 +203,7 @@ def main(argv=None):
     if args.list:
         for b in selected:
             print(f'{b.name:28s} {"long " if b.long else "short"} '
-                  f'{" ".join(b.command(args.quick, "TMP")[1:])}   [{b.source}]')
+                  f'{" ".join(b.command(args.quick, "TMP", args.workers)[1:])}   [{b.source}]')
         return 1 if orphans else 0
     summary = []
     started_all = time.perf_counter()
@@ -194,7 +213,7 @@ def main(argv=None):
     env = dict(os.environ, PYTHONUNBUFFERED='1')
     with tempfile.TemporaryDirectory(prefix='rotor_id_bench_') as tmp:
         for i, bench in enumerate(selected, 1):
-            command = bench.command(args.quick, tmp)
+            command = bench.command(args.quick, tmp, args.workers)
             print(f'\n=== [{i}/{len(selected)}] {bench.name} ({"long" if bench.long else "short"}'
                   f', {time.perf_counter() - started_all:.0f} s into the run): {bench.what}\n'
                   f'    {" ".join(command[1:])}', flush=True)

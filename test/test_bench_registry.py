@@ -44,3 +44,17 @@ def test_short_selection_leaves_out_the_long_studies(capsys):
     benchmarks, _ = run_all.registry()
     assert listed == [n for n, b in benchmarks.items() if not b.long]
     assert 'diagnose_speed' in listed and 'process_noise' not in listed
+
+
+def test_workers_override_reaches_only_the_studies_that_take_it(capsys):
+    """--workers 1 replaces or adds the worker count of the statistical studies, nothing else."""
+    assert run_all.main(['--list', '--workers', '1']) == 0
+    commands = {line.split()[0]: line.split()[2:] for line in capsys.readouterr().out.splitlines()}
+    benchmarks, _ = run_all.registry()
+    for name, words in commands.items():
+        if benchmarks[name].workers:
+            assert words[words.index('--workers') + 1] == '1', name
+            assert words.count('--workers') == 1, name
+    assert 'adequacy' in commands and benchmarks['adequacy'].workers
+    speed = commands['monte_carlo_speed']        # its timing on 2 cores is the figure
+    assert speed[speed.index('--workers') + 1] == '2'
