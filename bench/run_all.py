@@ -23,6 +23,7 @@ from dataclasses import dataclass
 import os
 from pathlib import Path
 import re
+import resource
 import shlex
 import subprocess
 import sys
@@ -131,6 +132,9 @@ KNOWN = {
     'value_checks': {'what': 'live window value checks (spikes, dead flap) CPU vs the final fit'},
 }
 
+#: Hand-written notes on a results file's figures go after this line; a re-run keeps them.
+NOTES_MARK = '<!-- notes below: kept by make bench when it rewrites the file above -->'
+
 _REPRODUCE = re.compile(r'Reproduce:\s*`([^`]*)`', re.S)
 #: Older results files name the command without ``Reproduce:``: the first one quoted.
 _QUOTED = re.compile(r'`((?:nice -n \d+ )?python bench/[^`]*)`', re.S)
@@ -149,6 +153,27 @@ def reproduce_line(path):
             not words[1].startswith('bench/'):
         return None
     return words[1:]
+
+
+def notes_of(path):
+    """Return the hand-written notes of a results file (from :data:`NOTES_MARK` on), or ''."""
+    text = Path(path).read_text() if Path(path).is_file() else ''
+    return text[text.index(NOTES_MARK):] if NOTES_MARK in text else ''
+
+
+def keep_notes(path, notes):
+    """Append ``notes`` to a rewritten results file that lost them; True if it did."""
+    path = Path(path)
+    if not notes or not path.is_file() or NOTES_MARK in path.read_text():
+        return False
+    path.write_text(path.read_text().rstrip('\n') + '\n\n' + notes)
+    return True
+
+
+def children_cpu_s():
+    """CPU seconds (user + system) of the finished child processes, theirs included."""
+    usage = resource.getrusage(resource.RUSAGE_CHILDREN)
+    return usage.ru_utime + usage.ru_stime
 
 
 def registry():
@@ -217,22 +242,32 @@ def main(argv=None):
             print(f'\n=== [{i}/{len(selected)}] {bench.name} ({"long" if bench.long else "short"}'
                   f', {time.perf_counter() - started_all:.0f} s into the run): {bench.what}\n'
                   f'    {" ".join(command[1:])}', flush=True)
-            started = time.perf_counter()
+            results = RESULTS_DIR / f'{bench.name}.md'
+            notes = '' if args.quick else notes_of(results)
+            load_before = os.getloadavg()[0]
+            started, cpu_before = time.perf_counter(), children_cpu_s()
             code = subprocess.run(command, cwd=REPO_ROOT, env=env).returncode
-            elapsed = time.perf_counter() - started
+            elapsed, cpu = time.perf_counter() - started, children_cpu_s() - cpu_before
+            load = f'{load_before:.1f}-{os.getloadavg()[0]:.1f}'
             verdict = {0: 'target met' if bench.target else 'done',
                        1: 'TARGET MISSED'}.get(code, f'FAILED (exit {code})')
             if code == 1 and not bench.target:
                 verdict = 'FAILED (exit 1)'
-            print(f'=== {bench.name}: {verdict} in {elapsed:.0f} s', flush=True)
-            summary.append((bench.name, verdict, elapsed, bench.what))
-    print(f'\n=== summary ({time.perf_counter() - started_all:.0f} s)')
-    for name, verdict, elapsed, what in summary:
-        print(f'  {name:28s} {verdict:16s} {elapsed:6.0f} s   {what}')
+            print(f'=== {bench.name}: {verdict} in {elapsed:.0f} s wall, {cpu:.0f} s CPU '
+                  f'(load {load})', flush=True)
+            if keep_notes(results, notes):
+                print(f'=== {results.name}: hand-written notes kept below the new figures; '
+                      'check the figures they quote', flush=True)
+            summary.append((bench.name, verdict, elapsed, cpu, load, bench.what))
+    print(f'\n=== summary ({time.perf_counter() - started_all:.0f} s; CPU of each benchmark '
+          'with its child processes; 1-minute load average before-after)')
+    for name, verdict, elapsed, cpu, load, what in summary:
+        print(f'  {name:28s} {verdict:16s} {elapsed:6.0f} s {cpu:6.0f} s CPU  load {load:9s}  '
+              f'{what}')
     if not args.quick:
         print(f'results: {RESULTS_DIR}/*.md')
     good = ('target met', 'done')
-    return 0 if all(v in good for _, v, _, _ in summary) and not orphans else 1
+    return 0 if all(row[1] in good for row in summary) and not orphans else 1
 
 
 if __name__ == '__main__':

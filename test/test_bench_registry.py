@@ -58,3 +58,16 @@ def test_workers_override_reaches_only_the_studies_that_take_it(capsys):
     assert 'adequacy' in commands and benchmarks['adequacy'].workers
     speed = commands['monte_carlo_speed']        # its timing on 2 cores is the figure
     assert speed[speed.index('--workers') + 1] == '2'
+
+
+def test_notes_survive_a_rewrite(tmp_path):
+    """Notes after NOTES_MARK come back when a benchmark rewrites its file without them."""
+    results = tmp_path / 'x.md'
+    results.write_text(f'# x\n\nold table\n\n{run_all.NOTES_MARK}\nReading: it is fast.\n')
+    notes = run_all.notes_of(results)
+    assert notes.startswith(run_all.NOTES_MARK) and 'it is fast' in notes
+    results.write_text('# x\n\nnew table\n')           # what the benchmark writes
+    assert run_all.keep_notes(results, notes)
+    assert results.read_text() == f'# x\n\nnew table\n\n{notes}'
+    assert not run_all.keep_notes(results, notes)     # already there: not twice
+    assert run_all.notes_of(tmp_path / 'missing.md') == ''
