@@ -27,7 +27,6 @@ from rclpy.qos import (DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityP
 from rclpy.signals import SignalHandlerOptions
 from rotor_id.io.run_description import load_run_description
 from rotor_id.io.timebase import wrap_azimuth
-from rotor_id.nodes.live import check_azimuth_sample
 from rotor_id_msgs.msg import IdentificationProgress, ParameterEstimate
 from sensor_msgs.msg import JointState
 
@@ -152,12 +151,6 @@ class Rig:
         self.azimuth_joint = description.azimuth_joint
         self.azimuth_convention = description.azimuth_convention
         self.topics = {**description.topics, **description.node_topics}
-
-    def check_azimuth(self, msg, last_stamp_ns):
-        """Validate an azimuth JointState of this rig; return (ψ in [0, 2π), Ω). BadSample."""
-        return check_azimuth_sample(msg.name, msg.position, msg.velocity, self.azimuth_joint,
-                                    stamp_ns(msg.header.stamp), last_stamp_ns,
-                                    self.azimuth_convention)
 
     def azimuth_position(self, psi):
         """Return what this rig's azimuth joint reads for the unwrapped azimuth ``psi`` (rad)."""

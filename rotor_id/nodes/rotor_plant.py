@@ -12,10 +12,11 @@ unwrapped as the description says; velocity = Ω in rad/s). The physics is
 
 import math
 
+import numpy as np
 from rclpy.node import Node
-from rotor_id.nodes.common import (declare, declare_rig, Diagnostics, joint_state, NS,
-                                   SENSOR_OFFER_QOS, SENSOR_QOS, spin_node, stamp_ns,
-                                   wait_for_acks)
+from rotor_id.io.jointstate_cdr import encode_rows
+from rotor_id.nodes.common import (declare, declare_rig, Diagnostics, NS, SENSOR_OFFER_QOS,
+                                   SENSOR_QOS, spin_node, stamp_ns, wait_for_acks)
 from rotor_id.nodes.live import BadSample, check_joint_sample, PlantStepper, rotor_constants
 from rotor_id.physics.models import MODEL_NAMES
 from rotor_id.physics.stirring import multiblade_from_blade_pitch
@@ -174,12 +175,18 @@ class RotorPlant(Node):
         t, flap, pitch = self.stepper.advance(min(due, self.d['max_batch']))
         psi = self.rig.azimuth_position(t)
         frame, rig = self.d['frame_id'], self.rig
+        stamps = self.start_ns + np.round((first + np.arange(t.size)) * NS
+                                          / self.rate).astype(np.int64)
+        # serialized once per batch with numpy (the bytes rclpy would send for the same
+        # JointState), published as CDR: no message object and conversion per sample
+        pitch_rows = encode_rows(stamps, rig.pitch_joints, pitch, frame_id=frame)
+        flap_rows = encode_rows(stamps, rig.flap_joints, flap, frame_id=frame)
+        azimuth_rows = encode_rows(stamps, [rig.azimuth_joint], psi[:, None],
+                                   np.full((t.size, 1), self.omega), frame_id=frame)
         for i in range(t.size):
-            stamp = self.start_ns + int(round((first + i) * NS / self.rate))
-            self.pub_pitch.publish(joint_state(stamp, rig.pitch_joints, pitch[i], frame_id=frame))
-            self.pub_flap.publish(joint_state(stamp, rig.flap_joints, flap[i], frame_id=frame))
-            self.pub_azimuth.publish(joint_state(stamp, [rig.azimuth_joint], [psi[i]],
-                                                 [self.omega], frame_id=frame))
+            self.pub_pitch.publish(pitch_rows[i].tobytes())
+            self.pub_flap.publish(flap_rows[i].tobytes())
+            self.pub_azimuth.publish(azimuth_rows[i].tobytes())
         self.diagnostics.set_value('samples_published', self.stepper.samples)
         self.diagnostics.set_value('commands_received', self.commands)
 

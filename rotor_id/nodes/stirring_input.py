@@ -31,9 +31,10 @@ from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPo
 from rotor_id.excitation import (check_excitation_limits, PHASE_DONE, PHASE_NAMES,
                                  StirringTestPoint)
 from rotor_id.nodes.common import (allow_runtime_changes, declare, declare_rig, Diagnostics,
-                                   joint_state, RESULT_QOS, SENSOR_QOS, spin_node, stamp_ns,
-                                   time_msg, wait_for_acks)
-from rotor_id.nodes.live import AzimuthTracker, BadSample
+                                   joint_state, RESULT_QOS, SENSOR_QOS, spin_node, time_msg,
+                                   wait_for_acks)
+from rotor_id.nodes.live import AzimuthTracker, BadSample, check_azimuth_sample
+from rotor_id.nodes.polling import checked_azimuth_batch, one_by_one, SensorPoller
 from rotor_id.physics.stirring import blade_pitch_from_multiblade, StirringSchedule
 from rotor_id_msgs.msg import StirringCommand
 from sensor_msgs.msg import JointState
@@ -42,6 +43,9 @@ from std_srvs.srv import Trigger
 TWO_PI = 2.0 * math.pi
 #: Time a pitch command may live after the time it applies from, s (QoS lifespan on top of lead_s).
 COMMAND_LIFETIME_S = 0.1
+#: Azimuth samples kept for the unwrapping and t_at (s): commands apply from at most
+#: max_command_age_s ago, so older samples are never read.
+AZIMUTH_KEPT_S = 2.0
 
 
 def pitch_command_qos(lead_s, rate_hz):
@@ -123,8 +127,13 @@ class StirringInput(Node):
         self.pub_stirring = self.create_publisher(StirringCommand, rig.topics['stirring'],
                                                   RESULT_QOS)
         self.diagnostics = Diagnostics(self, 'stirring schedule')
-        self.diagnostics.subscribe(JointState, rig.topics['azimuth'], self.on_azimuth,
-                                   SENSOR_QOS, 'azimuth')
+        # the azimuth (1 kHz) is taken in batches at each tick (rotor_id.nodes.polling), not
+        # by one executor callback per message: that was most of this node's CPU
+        self.diagnostics.watch('azimuth', rig.topics['azimuth'])
+        self.poller = SensorPoller(self, on_error=lambda exc: self.diagnostics.count(
+            'sensor_batch_error', f'{type(exc).__name__}: {exc}'))
+        self.poller.subscribe(JointState, rig.topics['azimuth'],
+                              lambda raws, _infos: self.on_azimuth_batch(raws), SENSOR_QOS)
         self.create_service(Trigger, '~/start', self.on_start)
         self.create_service(Trigger, '~/abort', self.on_abort)
         self.create_timer(1.0 / self.d['rate_hz'], self.tick)
@@ -200,15 +209,31 @@ class StirringInput(Node):
             f'{self.test_point.t_end:.4g} ({self.test_point.end_reason}), trim again by '
             f't = {self.test_point.t_done:.4g}')
 
-    def on_azimuth(self, msg):
-        """Track the unwrapped azimuth of blade 1 (nearest branch to what Ω predicts)."""
-        stamp = stamp_ns(msg.header.stamp)
-        try:
-            psi, omega = self.rig.check_azimuth(msg, self.azimuth.series.last_stamp)
-        except BadSample as bad:
-            self.diagnostics.count(bad.kind, str(bad))
+    def on_azimuth_batch(self, raws):
+        """Track the unwrapped azimuth of blade 1 from a batch of serialized samples."""
+        for _ in raws:
+            self.diagnostics.received('azimuth')
+        checked = checked_azimuth_batch(raws, self.rig.azimuth_joint,
+                                        self.azimuth.series.last_stamp,
+                                        self.rig.azimuth_convention)
+        if checked is None:               # one at a time: each refusal with its reason
+            for stamp, names, position, velocity in one_by_one(raws, self.diagnostics):
+                try:
+                    psi, omega = check_azimuth_sample(
+                        names, position, velocity, self.rig.azimuth_joint, stamp,
+                        self.azimuth.series.last_stamp, self.rig.azimuth_convention)
+                except BadSample as bad:
+                    self.diagnostics.count(bad.kind, str(bad))
+                    continue
+                self._add_azimuth(stamp, psi, omega)
             return
-        self.azimuth.add(stamp, psi, omega)
+        for stamp, psi, omega in zip(checked[0].tolist(), checked[1].tolist(),
+                                     checked[2].tolist()):
+            self._add_azimuth(stamp, psi, omega)
+
+    def _add_azimuth(self, stamp, psi, omega):
+        """Add an accepted sample (the nearest branch to what Ω predicts); start the grid."""
+        self.azimuth.add(stamp, psi, omega, stamp - int(AZIMUTH_KEPT_S * 1e9))
         if self.next_ns is None:
             self.next_ns = stamp
 
@@ -221,6 +246,7 @@ class StirringInput(Node):
         late. A test point starts with the first command sent after it was asked for, so its
         first StirringCommand (PHASE_TRIM) is stamped with the schedule's start.
         """
+        self.poller.poll()
         if self.next_ns is None:
             self.diagnostics.set_value('state', 'waiting for the azimuth')
             return
