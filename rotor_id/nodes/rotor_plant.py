@@ -16,8 +16,9 @@ import numpy as np
 from rclpy.node import Node
 from rotor_id.io.jointstate_cdr import encode_rows
 from rotor_id.nodes.common import (declare, declare_rig, Diagnostics, NS, SENSOR_OFFER_QOS,
-                                   SENSOR_QOS, spin_node, stamp_ns, wait_for_acks)
+                                   SENSOR_QOS, spin_node, wait_for_acks)
 from rotor_id.nodes.live import BadSample, check_joint_sample, PlantStepper, rotor_constants
+from rotor_id.nodes.polling import one_by_one, SensorPoller
 from rotor_id.physics.models import MODEL_NAMES
 from rotor_id.physics.stirring import multiblade_from_blade_pitch
 from sensor_msgs.msg import JointState
@@ -56,8 +57,13 @@ class RotorPlant(Node):
         self.pub_flap = self.create_publisher(JointState, topics['blade_flap'], offer)
         self.pub_azimuth = self.create_publisher(JointState, topics['azimuth'], offer)
         self.diagnostics = Diagnostics(self, 'simulated rotor')
-        self.diagnostics.subscribe(JointState, topics['pitch_command'], self.on_command,
-                                   SENSOR_QOS, 'pitch_command')
+        # the commands are taken at each tick, before simulating (rotor_id.nodes.polling): one
+        # executor wake-up per tick instead of one more per command
+        self.diagnostics.watch('pitch_command', topics['pitch_command'])
+        self.poller = SensorPoller(self, on_error=lambda exc: self.diagnostics.count(
+            'sensor_batch_error', f'{type(exc).__name__}: {exc}'))
+        self.poller.subscribe(JointState, topics['pitch_command'],
+                              lambda raws, _infos: self.on_commands(raws), SENSOR_QOS)
         self.timer = self.create_timer(d['publish_period_s'], self.tick)
         self.get_logger().info(
             f'{d["model"]} rotor at {self.omega:.4g} rad/s, {self.rate:g} Hz, flap noise '
@@ -123,11 +129,17 @@ class RotorPlant(Node):
         """Nondimensional time (azimuth of blade 1, unwrapped) at ROS time ``ns``."""
         return self.d['initial_azimuth_rad'] + self.omega * (ns - self.start_ns) / NS
 
-    def on_command(self, msg):
+    def on_commands(self, raws):
+        """Take a batch of serialized pitch commands, in order (each as :meth:`on_command`)."""
+        for _ in raws:
+            self.diagnostics.received('pitch_command')
+        for stamp, names, position, _velocity in one_by_one(raws, self.diagnostics):
+            self.on_command(stamp, names, position)
+
+    def on_command(self, stamp, names, position):
         """Hold a per-blade pitch command, converted to the swashplate input (eq. 3)."""
-        stamp = stamp_ns(msg.header.stamp)
         try:
-            pitch = check_joint_sample(msg.name, msg.position, self.rig.pitch_joints, stamp,
+            pitch = check_joint_sample(names, position, self.rig.pitch_joints, stamp,
                                        self.last_cmd_ns, self.d['max_abs_pitch_rad'])
         except BadSample as bad:
             self.diagnostics.count(bad.kind, str(bad))
@@ -140,7 +152,8 @@ class RotorPlant(Node):
         self.commands += 1
 
     def tick(self):
-        """Advance the simulation to now and publish the samples that became due."""
+        """Take the commands that arrived, advance the simulation to now, publish the samples."""
+        self.poller.poll()
         now = self.get_clock().now().nanoseconds
         if self.start_ns is None:
             if self.ready_ns is None:

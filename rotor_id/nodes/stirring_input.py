@@ -100,6 +100,9 @@ class StirringInput(Node):
              'commands', 1.0, 10000.0),
             ('lead_s', 0.1, 'commands are published up to this far ahead of the clock, each '
              'stamped with the time it applies from (s)', 0.0, 5.0),
+            ('publish_period_s', 0.02, 'publish the commands due up to lead_s ahead this often '
+             '(s; at most lead_s / 2 and at least one command period is used): one wake-up per '
+             'batch of commands, not per command', 1e-4, 1.0),
             ('max_command_age_s', COMMAND_LIFETIME_S, 'commands that would apply more than this '
              'long ago (the node was stalled) are skipped, never sent late (s)', 0.0, 1.0),
             ('stirring_every', 10, 'publish the StirringCommand every this many commands',
@@ -136,7 +139,12 @@ class StirringInput(Node):
                               lambda raws, _infos: self.on_azimuth_batch(raws), SENSOR_QOS)
         self.create_service(Trigger, '~/start', self.on_start)
         self.create_service(Trigger, '~/abort', self.on_abort)
-        self.create_timer(1.0 / self.d['rate_hz'], self.tick)
+        self.create_timer(self.tick_period_s(self.d), self.tick)
+
+    @staticmethod
+    def tick_period_s(d):
+        """Timer period: ``publish_period_s``, within [one command period, lead_s / 2]."""
+        return min(d['publish_period_s'], max(1.0 / d['rate_hz'], 0.5 * d['lead_s']))
 
     @staticmethod
     def _limits_reason(values):
