@@ -601,9 +601,11 @@ def fit_output_error(experiments, unknowns, guess=None, known=None, noise_std=No
         status = -1 if compiled is None else compiled.iterate(theta, cost, lm, noise_var[0])
         if status >= 0:             # the compiled iteration: the same steps as below
             accepted, M, grad, lm = status == 1, compiled.M, compiled.grad, compiled.lm
-            if accepted:
-                trial, trial_results = compiled.theta.copy(), [compiled.result()]
+            if accepted:            # its results stay in its buffers until they are read
+                trial, trial_results = compiled.theta.copy(), None
         else:
+            if compiled is not None:
+                results = [compiled.result()]
             compiled = None         # singular step equations: Python from here on
             M, grad = _weighted_sums(problem, results, noise_var)
             M += np.diag(prior_info)
@@ -625,7 +627,7 @@ def fit_output_error(experiments, unknowns, guess=None, known=None, noise_std=No
             noise_var = [compiled.var.copy()]
             cost = compiled.cost
             all_small = compiled.all_small
-            rms = math.sqrt(compiled.squares / results[0][0].size)
+            rms = math.sqrt(compiled.squares / compiled.y.size)
         else:
             if not fixed_noise:
                 noise_var = estimate_var(results)
@@ -655,6 +657,8 @@ def fit_output_error(experiments, unknowns, guess=None, known=None, noise_std=No
                 message = 'stopped by the caller before convergence'
             break
     theta_eval = theta
+    if compiled is not None:
+        results = [compiled.result()]
     M, _ = _weighted_sums(problem, results, noise_var)
     M += np.diag(prior_info)
     dep, _ = dependence_warnings(names, M)
@@ -803,6 +807,8 @@ def _fixed_noise(noise_std, experiments, m):
 
 def _pooled_std(noise_var, experiments):
     """Noise σ per channel over all runs: the runs' own when equal, else sample-weighted."""
+    if len(noise_var) == 1:
+        return np.sqrt(noise_var[0])
     if all(np.array_equal(v, noise_var[0]) for v in noise_var[1:]):
         return np.sqrt(noise_var[0]).copy()
     n = np.array([exp.t.size for exp in experiments], dtype=float)
