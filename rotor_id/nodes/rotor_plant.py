@@ -11,6 +11,8 @@ unwrapped as the description says; velocity = Ω in rad/s). The physics is
 """
 
 import math
+import threading
+import time
 
 import numpy as np
 from rclpy.node import Node
@@ -51,6 +53,10 @@ class RotorPlant(Node):
         self.ready_ns = None
         self.last_cmd_ns = None
         self.commands = 0
+        self.published = 0              # samples published
+        blades = rig.description.rotor.blades
+        self.pending = (np.empty(0), np.empty((0, blades)), np.empty((0, blades)))
+        self.ahead = int(round(d['simulate_ahead_s'] * self.rate))
         offer = SENSOR_OFFER_QOS if d['reliable_sensors'] else SENSOR_QOS
         topics = rig.topics
         self.pub_pitch = self.create_publisher(JointState, topics['blade_pitch'], offer)
@@ -64,7 +70,13 @@ class RotorPlant(Node):
             'sensor_batch_error', f'{type(exc).__name__}: {exc}'))
         self.poller.subscribe(JointState, topics['pitch_command'],
                               lambda raws, _infos: self.on_commands(raws), SENSOR_QOS)
-        self.timer = self.create_timer(d['publish_period_s'], self.tick)
+        # ticks paced by a thread of their own, not an executor timer: the executor's
+        # wake-up per tick (wait set rebuilt in Python) was a third of this node's main thread
+        self.stopping = threading.Event()
+        self.pacer_error = None
+        self.pacer = threading.Thread(target=self._pace, name='plant-ticks', daemon=True)
+        self.create_timer(0.2, self._check_pacer)
+        self.pacer.start()
         self.get_logger().info(
             f'{d["model"]} rotor at {self.omega:.4g} rad/s, {self.rate:g} Hz, flap noise '
             f'{d["flap_noise_std_rad"]:.3g} rad; waiting for {d["wait_for_subscribers"]} '
@@ -108,6 +120,9 @@ class RotorPlant(Node):
              'stamps); false: hold the last command'),
             ('publish_period_s', 0.005, 'period of the simulation/publishing timer (s)',
              0.0005, 0.1),
+            ('simulate_ahead_s', 0.02, 'with wait_for_commands, simulate up to this far past '
+             'the samples due (never past the newest command; published when due): one '
+             'simulation call per this long, not per tick (s)', 0.0, 1.0),
             ('max_batch', 50, 'most samples simulated per timer tick', 1, 100000),
             ('wait_for_subscribers', 0, 'start the rotor once this many subscribers of the '
              'azimuth topic are matched (0: at once)', 0, 100),
@@ -167,44 +182,85 @@ class RotorPlant(Node):
             self.get_logger().info('rotor started (trim at collective only)')
             return
         elapsed = (now - self.start_ns) / NS - self.d['command_latency_s']
-        if self.d['duration_s'] > 0 and self.stepper.samples >= self.d['duration_s'] * self.rate:
-            if self.timer is not None:
-                self.timer.cancel()
+        if self.d['duration_s'] > 0 and self.published >= self.d['duration_s'] * self.rate:
+            if not self.stopping.is_set():
+                self.stopping.set()
                 self.diagnostics.idle = True          # finished by design: quiet is STALE
-                self.get_logger().info(f'run complete: {self.stepper.samples} samples')
+                self.get_logger().info(f'run complete: {self.published} samples')
             return
         due = int(elapsed * self.rate)
+        simulate_to = due
         if self.d['wait_for_commands']:
             # the first sample is free (the stirring node locks onto it), then follow commands
             newest = self.stepper.cmd_t[-1] if self.commands else self.stepper.t
-            due = min(due, max(1, int((newest - self.d['initial_azimuth_rad']) /
-                                      self.stepper.step + 1e-9)))
+            commanded = max(1, int((newest - self.d['initial_azimuth_rad']) /
+                                   self.stepper.step + 1e-9))
+            due = min(due, commanded)
             self.diagnostics.set_value('waiting_for_commands', due < int(elapsed * self.rate))
-        due -= self.stepper.samples
-        if due <= 0:
+            # the samples up to the newest command do not depend on when they are computed:
+            # simulated ahead, they cost one simulation call per simulate_ahead_s, not per tick
+            simulate_to = max(due, min(due + self.ahead, commanded))
+        if due - self.published <= 0:
             return
-        first = self.stepper.samples + 1
-        # a bounded batch per tick, so command callbacks run in between while catching up
-        t, flap, pitch = self.stepper.advance(min(due, self.d['max_batch']))
+        if self.stepper.samples < due:
+            # a bounded batch per tick, so the commands are taken in between while catching up
+            self._simulate(min(simulate_to - self.stepper.samples, self.d['max_batch']))
+        self._publish(min(due - self.published, self.d['max_batch'], self.pending[0].size))
+        self.diagnostics.set_value('samples_published', self.published)
+        self.diagnostics.set_value('commands_received', self.commands)
+
+    def _simulate(self, n):
+        """Simulate the next ``n`` samples into the ones waiting to be published."""
+        t, flap, pitch = self.stepper.advance(n)
+        self.pending = tuple(np.concatenate([old, new]) for old, new in
+                             zip(self.pending, (t, flap, pitch)))
+
+    def _publish(self, n):
+        """Publish the next ``n`` simulated samples, stamped on the sample grid."""
+        t, flap, pitch = (v[:n] for v in self.pending)
+        self.pending = tuple(v[n:] for v in self.pending)
+        first = self.published + 1
+        self.published += n
         psi = self.rig.azimuth_position(t)
         frame, rig = self.d['frame_id'], self.rig
-        stamps = self.start_ns + np.round((first + np.arange(t.size)) * NS
+        stamps = self.start_ns + np.round((first + np.arange(n)) * NS
                                           / self.rate).astype(np.int64)
         # serialized once per batch with numpy (the bytes rclpy would send for the same
         # JointState), published as CDR: no message object and conversion per sample
         pitch_rows = encode_rows(stamps, rig.pitch_joints, pitch, frame_id=frame)
         flap_rows = encode_rows(stamps, rig.flap_joints, flap, frame_id=frame)
         azimuth_rows = encode_rows(stamps, [rig.azimuth_joint], psi[:, None],
-                                   np.full((t.size, 1), self.omega), frame_id=frame)
-        for i in range(t.size):
+                                   np.full((n, 1), self.omega), frame_id=frame)
+        for i in range(n):
             self.pub_pitch.publish(pitch_rows[i].tobytes())
             self.pub_flap.publish(flap_rows[i].tobytes())
             self.pub_azimuth.publish(azimuth_rows[i].tobytes())
-        self.diagnostics.set_value('samples_published', self.stepper.samples)
-        self.diagnostics.set_value('commands_received', self.commands)
+
+    def _pace(self):
+        """Pacing thread: :meth:`tick` every ``publish_period_s`` (monotonic clock)."""
+        period = self.d['publish_period_s']
+        due = time.monotonic()
+        while not self.stopping.is_set():
+            due += period
+            if self.stopping.wait(max(0.0, due - time.monotonic())):
+                break
+            due = max(due, time.monotonic() - period)      # late: no burst of ticks after
+            try:
+                self.tick()
+            except Exception as exc:        # noqa: B902 - raised again by the executor
+                self.pacer_error = exc
+                return
+
+    def _check_pacer(self):
+        """Executor timer: an error of the pacing thread stops the node as a callback's would."""
+        if self.pacer_error is not None:
+            raise self.pacer_error
 
     def close(self):
-        """Let reliable readers (a recorder) take the samples still in flight."""
+        """Stop the ticks; let reliable readers (a recorder) take the samples in flight."""
+        self.stopping.set()
+        if self.pacer.is_alive() and self.pacer is not threading.current_thread():
+            self.pacer.join(timeout=2.0)
         wait_for_acks([self.pub_pitch, self.pub_flap, self.pub_azimuth])
 
 
