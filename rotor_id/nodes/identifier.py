@@ -132,7 +132,7 @@ class Identifier(Node):
             ('sensor_queue_depth', 10000, 'samples each sensor subscription queues while the '
              'node is busy (10 s at 1 kHz); older ones are lost, and the window says so',
              1, 1000000),
-            ('sensor_poll_period_s', 0.002, 'the sensor topics are taken in batches this '
+            ('sensor_poll_period_s', 0.005, 'the sensor topics are taken in batches this '
              'often (s): 46 µs of CPU per message, against 112 µs for one executor callback '
              'each', 1e-4, 0.1),
             ('sensor_poll_fast_s', 0.0002, 'and this often in the last few milliseconds of a '
