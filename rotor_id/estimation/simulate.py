@@ -302,6 +302,12 @@ PLAN_MAX_VALUES = 1 << 19
 _CHECK_TIMES = (0.5, 2.1, 3.9)
 _verdicts = weakref.WeakKeyDictionary()        # model -> {number of inputs: verdict}
 _affine_masks = weakref.WeakKeyDictionary()    # model -> {(unknowns, fixed p): mask}
+#: model -> {(id(inputs), max_step, T): (inputs, t, plan or None)}: the records prepared for
+#: a model (see :meth:`TimeInvariantPlan.prepare`); a plan refers to its model weakly, so the
+#: entries go with the model.
+_record_plans = weakref.WeakKeyDictionary()
+#: Most records remembered per model object (a diagnosis refits a handful per record).
+RECORD_PLANS_PER_MODEL = 8
 
 
 def affine_time_invariant(model, p, n_inputs):
@@ -384,13 +390,19 @@ class TimeInvariantPlan:
 
     What is prepared here depends on the record only (sample times, stage inputs, H), so an
     estimator builds one plan per run and calls :meth:`run` every iteration; the structural
-    check is cached per model object. Built only where the compiled kernels are loaded.
+    check is cached per model object, and so are the plans of records whose input schedule
+    is immutable (:meth:`prepare`), with their reference point (:meth:`_probes`): a refit of
+    the same record with the same model evaluates neither inputs nor model again. Built only
+    where the compiled kernels are loaded.
     """
 
     def __init__(self, model, t, substeps, u, module):
         """Hold the record: times, stage inputs u (at _fine_grid), H; see :meth:`prepare`."""
         T = t.size
-        self.model = model
+        try:
+            self._model = weakref.ref(model)
+        except TypeError:                       # not weakly referenceable: held (not cached)
+            self._model = lambda: model
         self.t = t
         self.substeps = substeps
         self.step = float(t[1] - t[0]) / substeps      # as the numpy path: h of the first step
@@ -409,14 +421,42 @@ class TimeInvariantPlan:
         self.probe_u = _unit_inputs(self.n_inputs)
         #: (p_ref, F, g, ∂F, ∂g at the unit inputs, mask of affine parameters); see _probes
         self.reference = None
+        #: parameters whose affinity the reference's mask has checked (P,)
+        self.checked = np.zeros(len(model.parameters), dtype=bool)
+
+    @property
+    def model(self):
+        """Return the model this record was prepared for."""
+        return self._model()
 
     @classmethod
     def prepare(cls, model, inputs, t, max_step, p):
-        """Return a plan for this record, or None where it does not apply (then simulate)."""
+        """
+        Return a plan for this record, or None where it does not apply (then simulate).
+
+        Remembered per model object for inputs that are immutable (a frozen dataclass such as
+        :class:`~rotor_id.physics.stirring.StirringSchedule`): the same model, the same input
+        object, equal sample times and step give the same plan, not a new one.
+        """
         module = kernels.affine_kernels()
         t = np.asarray(t, dtype=float)
         if module is None or t.size < 2:
             return None
+        cache = _record_cache(model, inputs)
+        key = (id(inputs), float(max_step), t.size)
+        if cache is not None:
+            hit = cache.get(key)
+            if hit is not None and hit[0] is inputs and np.array_equal(hit[1], t):
+                return hit[2]
+        plan = cls._build(model, inputs, t, max_step, p, module)
+        if cache is not None:
+            if len(cache) >= RECORD_PLANS_PER_MODEL:
+                cache.clear()
+            cache[key] = (inputs, t.copy() if plan is None else plan.t, plan)
+        return plan
+
+    @classmethod
+    def _build(cls, model, inputs, t, max_step, p, module):
         m = substeps_for(t, max_step)
         if (2 * m * (t.size - 1) + 1) * 3 > PLAN_MAX_VALUES:
             return None
@@ -425,6 +465,8 @@ class TimeInvariantPlan:
         u = np.asarray(inputs(_fine_grid(t, m)), dtype=float)
         if u.ndim != 2 or not affine_time_invariant(model, p, u.shape[1]):
             return None
+        t = t.copy()
+        t.setflags(write=False)                 # shared by every fit of this record
         return cls(model, t, m, u, module)
 
     def run(self, p, x0, param_index=(), S0=None, y=None):
@@ -485,7 +527,7 @@ class TimeInvariantPlan:
         evaluates the model two or three times in all, not at every iteration.
         """
         ref = self.reference
-        if ref is not None:
+        if ref is not None and self.checked[index].all():
             shift = p - ref[0]
             if not np.any(shift[~ref[5]]):
                 return ref[1], ref[2], ref[3], ref[4], shift
@@ -496,8 +538,13 @@ class TimeInvariantPlan:
             n = model.n_states
             return F, g, np.zeros((q1, 0, n, n)), np.zeros((q1, 0, n)), np.zeros(0)
         dF, dg = model.system_jacobian(self.probe_t, p, self.probe_u)
-        if ref is None:
-            self.reference = (p.copy(), F, g, dF, dg, self._affine_mask(p, dF, dg, index))
+        # a new reference: the first, or (a plan kept from another fit of this record) one
+        # that p left along a parameter that is not affine or was not among its unknowns
+        checked = self.checked.copy()
+        checked[index] = True
+        self.reference = (p.copy(), F, g, dF, dg,
+                          self._affine_mask(p, dF, dg, np.flatnonzero(checked)))
+        self.checked = checked
         return F, g, dF, dg, np.zeros(0)
 
     def _affine_mask(self, p, dF, dg, index):
@@ -552,6 +599,17 @@ class TimeInvariantPlan:
     def no_sensitivity(n):
         """∂x0/∂θ with no columns."""
         return np.zeros((n, 0))
+
+
+def _record_cache(model, inputs):
+    """Return the per-model dict of prepared records, or None where plans are not kept."""
+    params = getattr(type(inputs), '__dataclass_params__', None)
+    if params is None or not params.frozen:
+        return None
+    try:
+        return _record_plans.setdefault(model, {})
+    except TypeError:                           # not weakly referenceable
+        return None
 
 
 def _compiled_chunk(kernel, model, p, tf, u, F, g, h, m, param_index, x, S, xs, Ss):

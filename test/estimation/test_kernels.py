@@ -254,3 +254,77 @@ def test_fit_of_two_runs_through_the_plan_matches_numpy(monkeypatch):
     np.testing.assert_allclose(planned.covariance, reference.covariance, rtol=1e-8,
                                atol=1e-12 * np.max(np.abs(reference.covariance)))
     np.testing.assert_allclose(planned.noise_std, reference.noise_std, rtol=1e-9)
+
+
+def test_refit_of_a_record_reuses_its_plan(monkeypatch):
+    """
+    A second fit of the same record and model takes the kept plan and reference point.
+
+    It evaluates neither the inputs nor the model at the starting point again, gives the first
+    fit's estimate exactly, and a fit of other unknowns on the kept plan (a new reference with
+    those checked) still runs every iteration compiled and matches the numpy path to 1e-9.
+    """
+    from rotor_id.estimation import output_error
+    from rotor_id.estimation.output_error import Experiment, fit_output_error
+    assert kernels.load() is not None, kernels.status()['error']
+    model, stirring, t0 = CASES['wake']
+    t = t0 + 0.1 * np.arange(121)
+    rng = np.random.default_rng(11)
+    p = model.nominal()
+    y = simulate(model, p, stirring, t, 0.05 * np.cos(np.arange(6))).y
+    exp = Experiment(model, stirring, t, y + 0.01 * rng.standard_normal(y.shape), 'positions')
+    guess = {'A': 0.4, 'inv_tau': 0.2}
+    first = fit_output_error([exp], list(guess), guess=guess)
+    plan = _plan_of(model, stirring, t.copy(), p)
+    assert plan is not None and plan is _plan_of(model, stirring, t.copy(), p)
+    evaluations = []
+    system = type(model).system
+    monkeypatch.setattr(type(model), 'system',
+                        lambda self, *a: evaluations.append(1) or system(self, *a))
+    again = fit_output_error([exp], list(guess), guess=guess)
+    assert not evaluations, 'the kept reference point should spare every model evaluation'
+    np.testing.assert_array_equal(again.values, first.values)
+    np.testing.assert_array_equal(again.covariance, first.covariance)
+    monkeypatch.setattr(type(model), 'system', system)
+    # other unknowns (one of them not among the kept reference's) on the same kept plan
+    other = {'A': 0.45, 'AL_over_tau': 0.2, 'inv_tau': 0.15}
+    assert not plan.checked[model.parameter_names.index('AL_over_tau')]
+    calls = []
+    iterate = output_error._CompiledIteration.iterate
+    monkeypatch.setattr(output_error._CompiledIteration, 'iterate',
+                        lambda self, *args: calls.append(1) or iterate(self, *args))
+    planned = fit_output_error([exp], list(other), guess=other)
+    assert plan.checked[[model.parameter_names.index(n) for n in other]].all()
+    assert len(calls) == planned.iterations
+    kernel = kernels._state['kernel']
+    monkeypatch.setitem(kernels._state, 'kernel', None)
+    monkeypatch.setenv('ROTOR_ID_KERNELS', 'numpy')
+    reference = fit_output_error([exp], list(other), guess=other)
+    monkeypatch.setitem(kernels._state, 'kernel', kernel)
+    assert planned.iterations == reference.iterations
+    np.testing.assert_allclose(planned.values, reference.values, rtol=1e-9, atol=1e-12)
+
+
+def test_kept_plans_follow_the_record_and_the_model():
+    """New sample times give a new plan; sampled (mutable) inputs and dead models are not kept."""
+    import gc
+    import weakref
+    from rotor_id.physics.stirring import SampledInput
+    assert kernels.load() is not None, kernels.status()['error']
+    model = MultibladeWake(HOVER)
+    stirring = StirringSchedule(t0=70.0)
+    t = 70.0 + 0.1 * np.arange(121)
+    p = model.nominal()
+    plan = _plan_of(model, stirring, t, p)
+    assert plan is not None and plan is _plan_of(model, stirring, t, p)
+    t[5] += 0.05                                 # the caller's array changed in place
+    assert _plan_of(model, stirring, t, p) is None          # jittered: no plan, not the kept one
+    t[5] -= 0.05
+    shifted = t + 0.1
+    assert _plan_of(model, stirring, shifted, p) is not plan
+    sampled = SampledInput(t, stirring(t))
+    assert _plan_of(model, sampled, t, p) is not _plan_of(model, sampled, t, p)
+    alive = weakref.ref(model)
+    del model, plan
+    gc.collect()
+    assert alive() is None, 'a kept plan must not keep its model alive'
