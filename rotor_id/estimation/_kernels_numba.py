@@ -820,7 +820,8 @@ def gn_iteration(F_probe, g_probe, dF_probe, dg_probe, p_ref, p_base, param_inde
     trial simulated by :func:`affine_run` into the trial buffers (xs … Mc); on acceptance the
     noise variance re-estimated (``estimate_noise``), the cost at the new point, σ from
     pinv(M) and the step-size convergence test. Writes out_theta, out_var, out_M, out_grad,
-    out_sigma and out_scalars = [cost, λ, all steps small (1/0), Σ res²]. Returns 1 when a step
+    out_sigma and out_scalars = [cost, λ, all steps small (1/0), Σ res², the accepted point on
+    a bound (1/0)]. Returns 1 when a step
     was accepted, 0 when none lowers the cost, −1 when the step equations could not be solved
     (the caller then takes this iteration in Python).
     """
@@ -900,8 +901,13 @@ def gn_iteration(F_probe, g_probe, dF_probe, dg_probe, p_ref, p_base, param_inde
         out_theta[a] = trial[a]
     for c in range(m):
         total += sq[c]
+    bound = 0.0
+    for a in range(k):
+        if trial[a] <= lo[a] or trial[a] >= hi[a]:
+            bound = 1.0
     out_scalars[2] = small
     out_scalars[3] = total
+    out_scalars[4] = bound
     return 1
 
 
@@ -918,4 +924,4 @@ def warm_up_gn():
                  np.eye(k)[None], np.empty((T, n)), np.empty((T, n, k)), np.empty((T, m)),
                  np.empty((T, m, k)), np.empty((T, m)), np.empty(m), np.empty((m, k)),
                  np.empty((m, k, k)), np.empty(k), np.empty(m), np.empty((k, k)), np.empty(k),
-                 np.empty(k), np.empty(4))
+                 np.empty(k), np.empty(5))

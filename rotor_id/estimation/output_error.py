@@ -397,12 +397,26 @@ def _per_run(noise_var, n_runs):
 
 
 def dependence_warnings(names, M, threshold=1e-7):
-    """Eigen-analysis of the scaled information matrix: name near-dependent combinations."""
-    d = np.sqrt(np.clip(np.diag(M), 1e-300, None))
+    """
+    Eigen-analysis of the scaled information matrix: name near-dependent combinations.
+
+    Returns (warnings, eigenvalues of the scaled matrix, or None when none can be small).
+    A Cholesky factorisation of Ms − threshold·k·I first: where it succeeds, every eigenvalue
+    of Ms exceeds threshold·k ≥ threshold·λmax (its diagonal is one, so λmax ≤ trace = k), no
+    ratio falls below the threshold, and the eigen-analysis is not needed.
+    """
+    diag = np.diag(M)
+    d = np.sqrt(np.clip(diag, 1e-300, None))
     Ms = M / np.outer(d, d)
+    if np.all(diag > 0) and np.all(np.isfinite(Ms)):
+        try:
+            np.linalg.cholesky(Ms - (threshold * len(diag)) * np.eye(len(diag)))
+            return [], None
+        except np.linalg.LinAlgError:
+            pass
     vals, vecs = np.linalg.eigh(Ms)
     warnings = []
-    if np.any(np.diag(M) <= 0):
+    if np.any(diag <= 0):
         zero = [n for n, v in zip(names, np.diag(M)) if v <= 0]
         warnings.append('no information at all on ' + ', '.join(zero)
                         + ': the data do not depend on them; fix them or change the input')
@@ -563,8 +577,7 @@ def fit_output_error(experiments, unknowns, guess=None, known=None, noise_std=No
         data = sum(0.5 * float(_squares(result) @ (1.0 / v)) for result, v in zip(results, var))
         return data + 0.5 * np.sum(prior_info * (theta_eval - prior_mean)**2)
 
-    floor = 1e-24 * max(1.0, float(np.max(np.abs(np.concatenate(
-        [exp.y for exp in experiments])))))**2
+    floor = 1e-24 * max(1.0, max(float(np.max(np.abs(exp.y))) for exp in experiments))**2
 
     def estimate_var(results):
         # one R per noise group, from the residuals of its runs whose noise is not given
@@ -643,9 +656,10 @@ def fit_output_error(experiments, unknowns, guess=None, known=None, noise_std=No
                 'label': label, 'noise_std': _pooled_std(noise_var, experiments)}
         history.append(info)
         stop = progress is not None and progress(info) is STOP
-        at_bound = (theta <= problem.lo) | (theta >= problem.hi)
-        any_bound = bool(at_bound.any())
+        any_bound = (compiled.at_bound if compiled is not None else
+                     bool(np.any(theta <= problem.lo) or np.any(theta >= problem.hi)))
         if any_bound:
+            at_bound = (theta <= problem.lo) | (theta >= problem.hi)
             bound_names = [n for n, b in zip(names, at_bound) if b]
             message = 'parameter at a physical bound: ' + ', '.join(bound_names)
         if all_small:
@@ -734,7 +748,7 @@ class _CompiledIteration:
         k, m = len(problem.names), exp.model.n_outputs
         self.theta, self.var = np.empty(k), np.empty(m)
         self.M, self.grad, self.sigma = np.empty((k, k)), np.empty(k), np.empty(k)
-        self.scalars = np.empty(4)
+        self.scalars = np.empty(5)
 
     @classmethod
     def for_problem(cls, problem, theta, results, floor, prior_info, prior_mean, step_tol,
@@ -761,14 +775,14 @@ class _CompiledIteration:
         status = plan.kernels.gn_iteration(
             self.F, self.g, self.dF, self.dg, self.p_ref, self.p_base, self.index, plan.step,
             plan.substeps, plan.U, self.x0_base, self.free, self.S0, plan.H, self.y,
-            np.asarray(theta, dtype=float), float(cost), float(lm),
-            np.asarray(var, dtype=float), self.estimate_noise, self.floor, self.prior_info,
+            theta, float(cost), float(lm), var, self.estimate_noise, self.floor, self.prior_info,
             self.prior_mean, self.lo, self.hi, self.step_tol, self.current[5],
             self.current[6], self.current[7], xs, Ss, yhat, dyhat, res, sq, gc, Mc,
             self.theta, self.var, self.M, self.grad, self.sigma, self.scalars)
         self.cost, self.lm = float(self.scalars[0]), float(self.scalars[1])
         self.all_small = bool(self.scalars[2])
         self.squares = float(self.scalars[3])
+        self.at_bound = bool(self.scalars[4])
         if status == 1:
             self.current, self.spare = self.spare, self.current
         return int(status)
@@ -796,7 +810,7 @@ def _fixed_noise(noise_std, experiments, m):
         given = noise_std
     else:
         given = [noise_std] * n_runs
-    variances = [None if s is None else
+    variances = [None if s is None else np.full(m, float(s)**2) if np.ndim(s) == 0 else
                  np.broadcast_to(np.asarray(s, dtype=float)**2, (m,)).copy() for s in given]
     groups = {}
     for r, exp in enumerate(experiments):
