@@ -100,17 +100,20 @@ def thread_times(tid=None):
     Return (CPU s, run-queue wait s) of a thread of this process (default: the caller).
 
     From /proc/<pid>/task/<tid>/schedstat (on CPU, waiting for a CPU): the run-queue wait is the
-    time the thread was ready but the machine had no free core. Where that file is missing
-    (not Linux) the CPU time is the caller's ``time.thread_time()`` and the wait is 0.
+    time the thread was ready but the machine had no free core. The caller's own CPU time is
+    ``time.thread_time()``: schedstat's on-CPU sum is brought up to date only when the thread
+    is switched out, so a fit that ran without being preempted read 0.0 ms there. Where the
+    file is missing (not Linux) the wait is 0.
     """
     path = ('/proc/thread-self/schedstat' if tid is None
             else f'/proc/self/task/{tid}/schedstat')
     try:
         with open(path) as stat:
             on_cpu, waiting = stat.read().split()[:2]
-        return int(on_cpu) / 1e9, int(waiting) / 1e9
+        on_cpu, waiting = int(on_cpu) / 1e9, int(waiting) / 1e9
     except (OSError, ValueError):
-        return (time.thread_time() if tid is None else float('nan')), 0.0
+        on_cpu, waiting = float('nan'), 0.0
+    return (time.thread_time() if tid is None else on_cpu), waiting
 
 
 def warm_up():
