@@ -34,8 +34,8 @@ docs/run_description.md), as for every node and ``rotor-id identify``.
 
 Each estimate carries the Cramér-Rao covariance and the data-length verdict of Ch.3
 (target_met, additional_data_s for the targets ``target_std``); every Gauss-Newton iteration is
-published on ``/rotor_id/progress``. Fits run in a separate process (or a worker thread), so
-the subscriptions keep up. The sensor topics are taken in batches by a polling thread
+published on ``/rotor_id/progress``. Fits run in a worker thread (``fit_process``: in a separate
+process), so the subscriptions keep up. The sensor topics are taken in batches by a polling thread
 (:mod:`rotor_id.nodes.polling`: every ``sensor_poll_period_s``, every ``sensor_poll_fast_s`` in a
 window's last 10 ms), decoded and checked with numpy: 46 µs of CPU per message against 112 µs
 for one executor callback each (bench/results/sensor_intake.md); with the per-sample checks the
@@ -119,9 +119,9 @@ class Identifier(Node):
              'sampling periods is a gap (the window is then incomplete)', 1.01, 100.0),
             ('azimuth_slip_tolerance_rad', 0.1, 'an azimuth step that differs from rotor speed '
              'x time step by more than this is a slip of the time base (rad)', 1e-4, 3.0),
-            ('fit_process', True, 'fit in a separate process, so that a fit never waits for '
-             "the interpreter lock behind the subscriptions (false: in a thread of the node's "
-             'process)'),
+            ('fit_process', False, 'fit in a separate process (false: in a thread of the '
+             "node's process, which costs less CPU on the final's path and measured faster on "
+             'the quiet machine: bench/results/live_latency.md)'),
             # best effort by default: it receives from every publisher, while a reliable
             # subscription receives nothing from a best-effort (sensor-data QoS) publisher
             ('sensor_reliability', 'best_effort', 'QoS reliability of the sensor '
@@ -681,11 +681,14 @@ class Identifier(Node):
                 point = self.points.finish(request.test_point, _OUTCOME_OF[msg.status])
             if point is None:             # aborted while it was fitted: already published
                 return
-            self._report_state()
         published = time.monotonic()
         self.pub_estimate.publish(msg)
         done, done_ns = time.monotonic(), time.time_ns()
         cpu1, waiting1 = thread_times()
+        if kind == ParameterEstimate.KIND_FINAL:   # off the latency path: after publishing
+            self._report_state()
+            if getattr(request, 'log_line', None):
+                self.get_logger().info(request.log_line)
         if kind == ParameterEstimate.KIND_PROVISIONAL:
             self.provisional_wall_s.append(done - started)
             self.provisional_points = {n for n in self.provisional_points
@@ -885,10 +888,10 @@ class Identifier(Node):
             f'{n}={v:.4g}±{s:.2g}' for n, v, s in zip(msg.names, msg.values, msg.std)))
         self.diagnostics.set_value('last_fit_ms', f'{self.last_fit_s * 1e3:.1f}')
         timing['message'] = (time.perf_counter() - clock) * 1e3
-        if kind == ParameterEstimate.KIND_FINAL:
-            self.get_logger().info(f'{point}final estimate: '
-                                   f'{self.diagnostics.values["last_estimate"]} ({note}); '
-                                   f'target met: {verdict[0]}')
+        if kind == ParameterEstimate.KIND_FINAL:      # logged once it is published (_run)
+            request.log_line = (f'{point}final estimate: '
+                                f'{self.diagnostics.values["last_estimate"]} ({note}); '
+                                f'target met: {verdict[0]}')
         return msg
 
     def _check_values(self, request):
@@ -1071,7 +1074,7 @@ GIL_SWITCH_INTERVAL_S = 0.0005
 
 
 def main(args=None):
-    """Run the node until SIGINT/SIGTERM (fits in the fit process, published by a worker)."""
+    """Run the node until SIGINT/SIGTERM (fits in a worker thread or the fit process)."""
     sys.setswitchinterval(GIL_SWITCH_INTERVAL_S)
     return spin_node(Identifier, args)
 
