@@ -36,7 +36,10 @@ def _estimates(bag):
 
 
 def _newest_bag():
-    bags = sorted((REPO_ROOT / 'out' / 'bench_live').glob('*-process/bag'))
+    # either fit mode records the same run (directories are named by start time, then mode)
+    bags = sorted([*(REPO_ROOT / 'out' / 'bench_live').glob('*-process/bag'),
+                   *(REPO_ROOT / 'out' / 'bench_live').glob('*-thread/bag')],
+                  key=lambda bag: bag.parent.name)
     return bags[-1] if bags else None
 
 
@@ -44,13 +47,12 @@ def main():
     """Time the final fits of a recorded live run; write bench/results/final_fit_cpu.md."""
     parser = argparse.ArgumentParser(description=__doc__.split('\n\n')[0])
     parser.add_argument('--bag', default=None, help='a bag of bench/live_latency.py (default: '
-                        'the newest out/bench_live/*-process/bag)')
+                        'the newest out/bench_live/*-process/bag or *-thread/bag)')
     parser.add_argument('--repeat', type=int, default=15)
     args = parser.parse_args()
     bag = Path(args.bag) if args.bag else _newest_bag()
     if bag is None or not bag.exists():
-        say('no recorded live run: run `python bench/live_latency.py --fit-mode process` '
-            'first, or give --bag')
+        say('no recorded live run: run `python bench/live_latency.py` first, or give --bag')
         return 2
     from rotor_id.commands.demo import case_files
     from rotor_id.io.bag import read_record
