@@ -12,6 +12,11 @@ report's starting values by
   right-hand side, at rtol 1e-6 / atol 1e-9 (the loosest setting that lands on our optimum to
   1e-4 σ; with solve_ivp's default rtol 1e-3 the optimum moves by several 0.01 σ, timed too).
 
+Every round fits the same record, as every round of the peers does; our simulator keeps the
+record's prepared plan (:class:`rotor_id.estimation.simulate.TimeInvariantPlan`) from one fit
+to the next, in ours and in peer (b) alike. The first fit of a record (a new, equal input
+schedule object each time, so nothing kept from an earlier fit applies) is timed beside it.
+
 The three are timed interleaved (median of ``--repeat`` rounds), wall and CPU time, with one
 BLAS thread (OpenBLAS's idle threads spin and would be charged to the next timed call). The
 optima must agree: the largest difference, in units of our Cramér-Rao σ, is printed and
@@ -27,6 +32,8 @@ Run: ``python bench/ml_vs_peers.py [--repeat N] [--seed S]``.
 """
 
 import argparse
+import copy
+import dataclasses
 import os
 import sys
 import time
@@ -94,6 +101,12 @@ def bench_case(label, case_name, seed, repeat, rate):
     def ours():
         return fit_output_error([exp], unknowns, guess=dict(case.start), noise_std=sigma)
 
+    def ours_first():
+        inputs = (dataclasses.replace(exp.inputs) if dataclasses.is_dataclass(exp.inputs)
+                  else copy.copy(exp.inputs))
+        return fit_output_error([dataclasses.replace(exp, inputs=inputs)], unknowns,
+                                guess=dict(case.start), noise_std=sigma)
+
     def fd_ours():
         return peers.fit_fd_ours(model, model.nominal(), param_index, exp.inputs, exp.t, y,
                                  sigma, theta0, x0_fixed, free)
@@ -108,9 +121,13 @@ def bench_case(label, case_name, seed, repeat, rate):
 
     say(f'{label}: {len(theta0)} unknowns, {exp.t.size} samples, {repeat} interleaved rounds')
     n_states, n_sens = model.n_states, len(theta0)
-    timing = time_interleaved({'ours': ours, 'fd_ours': fd_ours, 'afternoon': afternoon,
-                               'afternoon_default': afternoon_default}, repeat=repeat)
+    timing = time_interleaved({'ours': ours, 'ours_first': ours_first, 'fd_ours': fd_ours,
+                               'afternoon': afternoon, 'afternoon_default': afternoon_default},
+                              repeat=repeat)
     est = timing['ours']['result']
+    first = timing['ours_first']['result']
+    if not np.array_equal(first.values, est.values):
+        raise RuntimeError(f'{case_name}: the first fit of a record and a refit differ')
     sims = {}
     dev = {}
     for name in ('fd_ours', 'afternoon', 'afternoon_default'):
@@ -158,7 +175,9 @@ def report(results, seed, repeat, rate, kernel_status):
         rows.append([
             r['label'], r['k'], r['samples'],
             f'{fmt_time(t["ours"])}, CPU {fmt_time(f["ours"])} ({r["ours_iterations"]} it; '
-            f'limit {fmt_time(r["macs"] / rate)}, {t["ours"] * rate / r["macs"]:.0f}×)',
+            f'limit {fmt_time(r["macs"] / rate)}, {t["ours"] * rate / r["macs"]:.0f}×); '
+            f'first fit of a record {fmt_time(t["ours_first"])}, CPU '
+            f'{fmt_time(f["ours_first"])}',
             f'{fmt_time(t["fd_ours"])} ({r["sims"]["fd_ours"]} sims)',
             f'{fmt_time(t["afternoon"])} ({r["sims"]["afternoon"]} solves)',
             f'**{t["afternoon"] / t["ours"]:.1f}×** ({f["afternoon"] / f["ours"]:.1f}×)',
@@ -187,6 +206,8 @@ def report(results, seed, repeat, rate, kernel_status):
     cpu_b = wake7['cpu']['fd_ours'] / wake7['cpu']['ours']
     ours7 = wake7['time']['ours']
     ours7_cpu = wake7['cpu']['ours']
+    first7 = wake7['time']['ours_first']
+    first7_cpu = wake7['cpu']['ours_first']
     if kernel_status['loaded']:
         kernel_text = f'compiled (numba; loaded in {fmt_time(kernel_status["load_seconds"])})'
     else:
@@ -205,7 +226,11 @@ def report(results, seed, repeat, rate, kernel_status):
                f'{"met" if ratio_b >= WAKE7_VS_B else "MISSED"}; CPU {cpu_b:.2f}×). Compute limit '
                f'{fmt_time(wake7["macs"] / rate)} ({wake7["macs"]:,} multiply-adds at '
                f'{rate / 1e9:.1f} G/s, a 128×128 matrix product here, best of 200); ours takes '
-               f'{ours7 * rate / wake7["macs"]:.0f}× that.\n\n'
+               f'{ours7 * rate / wake7["macs"]:.0f}× that. The first fit of a record takes '
+               f'{fmt_time(first7)} wall, {fmt_time(first7_cpu)} CPU (≤ '
+               f'{fmt_time(WAKE7_LIMIT_S)}: {"met" if first7 <= WAKE7_LIMIT_S else "MISSED"}; '
+               f'(a) / first fit {wake7["time"]["afternoon"] / first7:.0f}×, CPU '
+               f'{wake7["cpu"]["afternoon"] / first7_cpu:.0f}×).\n\n'
                f'Simulator kernel for ours and (b): {kernel_text}.')
     return (f'## Timings (median of {repeat} interleaved rounds; data: report σ, seed {seed})\n\n'
             f'{table}\n\n{verdict}\n\n'
@@ -268,7 +293,8 @@ def main(argv=None):
         print(f'ERROR: optima disagree in {", ".join(bad)}', file=sys.stderr)
         return 2
     wake7 = next(r for r in results if r['case'] == 'wake_7par')['time']
-    met = (wake7['ours'] <= WAKE7_LIMIT_S and wake7['afternoon'] >= WAKE7_VS_A * wake7['ours']
+    met = (wake7['ours'] <= WAKE7_LIMIT_S and wake7['ours_first'] <= WAKE7_LIMIT_S
+           and wake7['afternoon'] >= WAKE7_VS_A * wake7['ours']
            and wake7['fd_ours'] >= WAKE7_VS_B * wake7['ours'])
     return 0 if met else 1
 
