@@ -405,12 +405,14 @@ def dependence_warnings(names, M, threshold=1e-7):
     of Ms exceeds threshold·k ≥ threshold·λmax (its diagonal is one, so λmax ≤ trace = k), no
     ratio falls below the threshold, and the eigen-analysis is not needed.
     """
-    diag = np.diag(M)
+    diag = M.diagonal()
     d = np.sqrt(np.clip(diag, 1e-300, None))
     Ms = M / np.outer(d, d)
-    if np.all(diag > 0) and np.all(np.isfinite(Ms)):
+    if diag.min() > 0:                          # (False with a NaN on the diagonal)
+        shifted = Ms.copy()
+        shifted.flat[::len(diag) + 1] -= threshold * len(diag)
         try:
-            np.linalg.cholesky(Ms - (threshold * len(diag)) * np.eye(len(diag)))
+            np.linalg.cholesky(shifted)
             return [], None
         except np.linalg.LinAlgError:
             pass
@@ -674,12 +676,12 @@ def fit_output_error(experiments, unknowns, guess=None, known=None, noise_std=No
     if compiled is not None:
         results = [compiled.result()]
     M, _ = _weighted_sums(problem, results, noise_var)
-    M += np.diag(prior_info)
+    M.flat[::k + 1] += prior_info
     dep, _ = dependence_warnings(names, M)
     warnings += dep
     try:
         cov = np.linalg.inv(M)
-        if not np.all(np.isfinite(cov)) or np.any(np.diag(cov) < 0):
+        if not np.isfinite(cov).all() or (cov.diagonal() < 0).any():
             raise np.linalg.LinAlgError
     except np.linalg.LinAlgError:
         cov = np.linalg.pinv(M)
@@ -690,9 +692,9 @@ def fit_output_error(experiments, unknowns, guess=None, known=None, noise_std=No
     if 'bound' in message:
         warnings.append(message + ': the estimate is limited by the bound, not by the data '
                         '(missing physics in the model, or a poor start); do not use it as is')
-    data_cost = sum(0.5 * np.sum(res**2 / var)
-                    for (res, _, _), var in zip(results, noise_var))
-    nll = data_cost + 0.5 * sum(exp.t.size * (np.sum(np.log(var)) + m * math.log(2 * math.pi))
+    data_cost = sum(0.5 * float(_squares(result) @ (1.0 / var))
+                    for result, var in zip(results, noise_var))
+    nll = data_cost + 0.5 * sum(exp.t.size * (float(np.log(var).sum()) + m * math.log(2 * math.pi))
                                 for exp, var in zip(experiments, noise_var))
     p_final = problem.full_parameters(theta)
     init_states = [problem.initial_state(r, theta, p_final)[0] for r in range(len(experiments))]
