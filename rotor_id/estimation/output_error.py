@@ -722,13 +722,13 @@ class _CompiledIteration:
     loop of :func:`fit_output_error` (test_kernels.py compares the two to 1e-9).
     """
 
-    def __init__(self, problem, plan, results, floor, prior_info, prior_mean, step_tol,
-                 estimate_noise):
+    def __init__(self, problem, plan, reference, results, floor, prior_info, prior_mean,
+                 step_tol, estimate_noise):
         """Hold the arrays of the compiled call (see :meth:`for_problem`)."""
         exp = problem.experiments[0]
         self.plan = plan
         self.exp = exp
-        p_ref, self.F, self.g, self.dF, self.dg, _ = plan.reference
+        p_ref, self.F, self.g, self.dF, self.dg, _ = reference
         self.p_ref = p_ref
         self.p_base = problem.p_base
         self.index = np.asarray(problem.param_index, dtype=np.int64)
@@ -760,14 +760,15 @@ class _CompiledIteration:
             return None
         plan = problem.plans[0]
         mode = problem.experiments[0].initial_state
-        if (plan is None or plan.has_offset or plan.reference is None
+        # read once: a plan kept for its record may get a new reference from another fit
+        reference = None if plan is None else plan.reference
+        if (plan is None or plan.has_offset or reference is None
                 or (isinstance(mode, str) and mode == 'equilibrium')
                 or results[0][2].residual_sums is None
-                or not plan.reference[5][problem.param_index].all()
-                or np.any((plan.reference[0] != problem.p_base)
-                          & ~plan.reference[5])):
+                or not reference[5][problem.param_index].all()
+                or np.any((reference[0] != problem.p_base) & ~reference[5])):
             return None
-        return cls(problem, plan, results, floor, prior_info, prior_mean, step_tol,
+        return cls(problem, plan, reference, results, floor, prior_info, prior_mean, step_tol,
                    estimate_noise)
 
     def iterate(self, theta, cost, lm, var):
