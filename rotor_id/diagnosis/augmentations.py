@@ -425,9 +425,17 @@ class SensorBias(Augmented):
         self.blade_numbers = view.blades
 
     def output_offset(self, t, p):
-        """Return the offset d = C(t) V c."""
+        """
+        Return the inner layers' offset plus d = C(t) V c.
+
+        The inner offset matters on a sensor gain (its start offset C diag(s) β(t₀)): left
+        out, a bias on top of a gain lost what the gain fitted and gained a negative
+        2Δlog L (−38 in bias+azimuth at μ = 0.4).
+        """
+        t = np.atleast_1d(np.asarray(t, dtype=float))
         _, pe = self._split(p)
-        return np.einsum('tmn,n->tm', self.view.channels(t), self.basis @ pe)
+        return super().output_offset(t, p) + np.einsum('tmn,n->tm', self.view.channels(t),
+                                                       self.basis @ pe)
 
     def output_offset_jacobian(self, t, p):
         """∂d/∂c = C(t) V."""
@@ -516,6 +524,16 @@ class ChannelSubset(LinearModel):
         self.state_names = model.state_names
         self.output_names = tuple(model.output_names[i] for i in self.rows)
         self.time_invariant = model.time_invariant
+
+    def with_rotor(self, **constants):
+        """
+        Return a copy whose inner model has some rotor constants changed.
+
+        A freed flap frequency or δ3 stacked on the periodic model must reach the model that
+        computes F: replacing this wrapper's ``rotor`` alone left the inner model's P in place,
+        so the pair periodic + flap frequency could never gain from P.
+        """
+        return ChannelSubset(self.inner.with_rotor(**constants), self.rows, self.effect)
 
     def system(self, t, p, u):
         """Return the inner model's F and g."""

@@ -304,7 +304,10 @@ def _build(job, baseline_model, experiments):
         if layer.effect in ('sensor_lag', 'pitch_actuator_lag'):
             max_step = min(layer.step(), max_step or math.inf)
     unknowns = list(job.unknowns) + all_extra
-    guess.update(job.start or {})
+    # a start taken from a bigger model (the backward check's refit without an effect, an
+    # exchange) carries parameters this model does not have: the fit refused them, so the
+    # backward check never ran
+    guess.update({n: v for n, v in (job.start or {}).items() if n in unknowns})
     return runs, model, unknowns, extra, guess, max_step
 
 
