@@ -474,6 +474,24 @@ class FlapFrequency(Augmented):
     #: the rotor constant this augmentation frees
     constant = 'flap_frequency'
 
+    def with_rotor(self, **constants):
+        """
+        Return a copy on a base with some rotor constants changed (fresh caches).
+
+        δ3 freed on top of a freed flap frequency (they are separate physics in forward
+        flight) reaches the rotor model through this layer; without it the outer layer only
+        replaced this wrapper's ``rotor`` and flap_frequency on δ3 gained 2Δlog L = −17.
+        """
+        model = copy.copy(self)
+        if hasattr(self.base, 'with_rotor'):
+            model.base = self.base.with_rotor(**constants)
+        else:
+            model.base = copy.copy(self.base)
+            model.base.rotor = replace(self.base.rotor, **constants)
+        model.rotor = model.base.rotor
+        model._cache = {}
+        return model
+
     def _with_P(self, P):
         P = float(P)
         if P not in self._cache:

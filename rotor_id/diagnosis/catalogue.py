@@ -42,6 +42,31 @@ EQUIVALENT = {'sensor_lag': ('time_delay', 'pitch_actuator_lag'),
               'flap_frequency': ('cubic_stiffness', 'pitch_flap_coupling'),
               'cubic_stiffness': ('flap_frequency', 'pitch_flap_coupling'),
               'pitch_flap_coupling': ('flap_frequency', 'cubic_stiffness')}
+#: Pairs of :data:`EQUIVALENT` that are one physics in hover only. In forward flight the
+#: pitch moment coefficient is periodic, m_θ = (B⁴ + B²μ²)/4 + (2/3)B³μ sin ψ − (B²μ²/4) cos 2ψ:
+#: δ3 adds a once-per-rev stiffness (2/3)B³μ / ((B⁴+B²μ²)/4) = 0.94 of its mean at μ = 0.4
+#: (B = 0.97), which a flap-frequency change has not; a cubic spring linearised about the trim
+#: flapping β0 + β1c cos ψ + β1s sin ψ adds 6κβ0(β1c cos ψ + β1s sin ψ) beside 3κβ0²; and
+#: the rotor is time-varying, so a lag of the blade pitch no longer commutes with the rotor to
+#: become a lag of the flap reading. Each differs at first order in μ: in a forward-flight
+#: record they are separate candidates (the confound check, record by record, still says when
+#: the data cannot tell them apart).
+HOVER_ONLY = frozenset(frozenset(pair) for pair in (
+    ('flap_frequency', 'pitch_flap_coupling'), ('flap_frequency', 'cubic_stiffness'),
+    ('cubic_stiffness', 'pitch_flap_coupling'), ('pitch_actuator_lag', 'sensor_lag'),
+    ('pitch_actuator_lag', 'time_delay')))
+
+
+def equivalent(effect, advance_ratio=0.0):
+    """
+    Return the first-order equivalents of ``effect`` in a record at this advance ratio.
+
+    :data:`EQUIVALENT` in hover; in forward flight without the :data:`HOVER_ONLY` pairs.
+    """
+    same = EQUIVALENT.get(effect, ())
+    if advance_ratio > 0.0:
+        same = tuple(e for e in same if frozenset((effect, e)) not in HOVER_ONLY)
+    return same
 
 
 @dataclass

@@ -30,7 +30,7 @@ import numpy as np
 from rotor_id.diagnosis import residuals as rs
 from rotor_id.diagnosis.augmentations import BladeView
 from rotor_id.diagnosis.catalogue import (
-    applicable, CandidateFit, combine_halves, EFFECTS, EQUIVALENT, fit_candidate, Job,
+    applicable, CandidateFit, combine_halves, EFFECTS, equivalent, fit_candidate, Job,
     n_choices, screen_candidate, SCREENED, validate_candidate, validation_halves, variants)
 from rotor_id.estimation import kernels
 from rotor_id.estimation.output_error import IdentificationError
@@ -47,7 +47,7 @@ MAX_VALIDATED = 3
 #: Most effects named together.
 MAX_EFFECTS = 3
 #: Rig physics added to the catalogue after the others (issue 16); each has a first-order
-#: equivalent among them (:data:`rotor_id.diagnosis.catalogue.EQUIVALENT`).
+#: equivalent among them in hover (:data:`rotor_id.diagnosis.catalogue.EQUIVALENT`).
 RIG_EFFECTS = ('pitch_flap_coupling', 'pitch_actuator_lag')
 #: A score test's LM may underpredict the full fit's 2Δlog L where the effect is not small;
 #: screening credits the fit with this multiple of LM before ruling it out.
@@ -502,7 +502,8 @@ def diagnose(record, description, progress=None, workers=2, effects=EFFECTS, win
     floors = [c.floor for c in channels if c.model_channel]
     for t in eligible:
         t['adequate'] = _adequate(t['fit'], floors, u, exp0.t)
-    chosen, passed_over = _choose(eligible)
+    mu = ident.model.rotor.advance_ratio
+    chosen, passed_over = _choose(eligible, mu)
     notes, confound_notes = [], []
     noise_row = None
     if chosen is not None and chosen['effect'] == 'process_noise':
@@ -511,7 +512,7 @@ def diagnose(record, description, progress=None, workers=2, effects=EFFECTS, win
             # several deterministic effects may explain together what none explains alone:
             # try them first; random inflow stays the explanation of last resort
             noise_row = chosen
-            chosen, _ = _choose(deterministic_rows)
+            chosen, _ = _choose(deterministic_rows, mu)
     # ---- more effects: forward selection with refits and a backward check ----
     steps = []
     chosen_fit = chosen['fit'] if chosen else None
@@ -525,7 +526,7 @@ def diagnose(record, description, progress=None, workers=2, effects=EFFECTS, win
                        't': exp0.t, 'workers': workers, 'screen': screen,
                        'effects': deterministic, 'model_name': ident.model.name,
                        'rotor': ident.model.rotor, 'progress': progress, 't_start': t_start,
-                       'verbose': verbose_fits,
+                       'verbose': verbose_fits, 'mu': mu,
                        'trace': [_standalone_gains(scored, screened_out, n_obs, n_blades)]}
             chosen_fit, steps, dropped = _forward_selection(chosen['fit'], steps, context)
             confound_notes = [_confound_text(effect_row['effect'], c) for effect_row in steps
@@ -562,13 +563,18 @@ def diagnose(record, description, progress=None, workers=2, effects=EFFECTS, win
     if chosen is not None:
         effect = chosen['effect']
         named = {st['effect'] for st in steps} | {effect}
-        named |= {eq for e in list(named) for eq in EQUIVALENT.get(e, ())}
+        named |= {eq for e in list(named) for eq in equivalent(e, mu)}
         rivals = [t for t in ranked if t['effect'] not in named
                   and not (passed_over and t['effect'] == 'process_noise')]
         gap = chosen['criterion'] - (rivals[0]['criterion'] if rivals else 0.0)
         confidence = 'high' if gap > CONFIDENCE_GAP and not last_resort else 'low'
+        dominant = max(steps, key=lambda st: st['criterion'])['effect'] if steps else effect
+        if any(c.get('how_given') == 'exchange' for st in steps for c in st.get('confounds', [])
+               if st['effect'] == dominant):
+            # another description of the record fits as well: not a confident name
+            confidence = 'low'
         for one in [st['effect'] for st in steps] or [effect]:
-            for eq in EQUIVALENT.get(one, ()):
+            for eq in equivalent(one, mu):
                 if any(t['effect'] == eq for t in eligible):
                     notes.append(f'{one} and {eq} are the same physics to first order at this '
                                  'size; both explain the data')
@@ -702,19 +708,20 @@ def _residuals_are_noise(fit, ctx):
     return True
 
 
-def _prefer_established(near):
+def _prefer_established(near, mu=0.0):
     """
     Drop rig effects from near-tied candidates that tie with their first-order equivalent.
 
     A pitch actuator lag and a sensor lag (or δ3 and a flap-frequency change) fit alike at
     these sizes; the effect that is the same physics and was in the catalogue first is named,
-    and the note names both.
+    and the note names both. ``mu``: the record's advance ratio (in forward flight δ3 and a
+    pitch-actuator lag are physics of their own, :func:`~rotor_id.diagnosis.catalogue.equivalent`).
     """
     names = {t[2].effect if isinstance(t, tuple) else t['effect'] for t in near}
     keep = []
     for t in near:
         effect = t[2].effect if isinstance(t, tuple) else t['effect']
-        if effect in RIG_EFFECTS and any(e in names for e in EQUIVALENT.get(effect, ())
+        if effect in RIG_EFFECTS and any(e in names for e in equivalent(effect, mu)
                                          if e not in RIG_EFFECTS):
             continue
         keep.append(t)
@@ -733,7 +740,7 @@ def _candidate_jobs(current, kept, ctx, residuals_noise=False):
     names = {e for e, _ in kept}
     excluded = set(names)
     for e in names:
-        excluded.update(EQUIVALENT.get(e, ()))
+        excluded.update(equivalent(e, ctx['mu']))
     noise_var = np.asarray(est.noise_std, dtype=float)**2
     jobs = []
     for effect in ctx['effects']:
@@ -783,13 +790,15 @@ def _confounds(kept_names, ctx):
     """
     Return {kept effect: [confound]}: effects the kept ones reproduce in this record.
 
-    An effect C is confounded with a kept effect K when C alone would pass the criterion
-    (its fit at the baseline, first row of ``ctx['trace']``) but, with the kept effects in
-    the model, gains less than the criterion's threshold (last row, the selection's final
-    step): in this record K does what C would do, to within the noise, so the data can
-    neither confirm nor exclude C beside K. K is the kept effect whose addition took the
-    most of C's likelihood gain away. First-order equivalents of kept effects are said apart
-    (:data:`rotor_id.diagnosis.catalogue.EQUIVALENT`).
+    An effect C is confounded with a kept effect K when C passed the criterion at some step
+    of the selection (alone at the baseline, first row of ``ctx['trace']``, or on top of the
+    effects kept by then: a second effect can hide C at the baseline, as a flap-frequency
+    error hides an azimuth offset at μ = 0.4) but, with all the kept effects in the model,
+    gains less than the criterion's threshold (last row, the selection's final step): in
+    this record K does what C would do, to within the noise, so the data can neither confirm
+    nor exclude C beside K. K is the kept effect whose addition after that step took the most
+    of C's likelihood gain away. First-order equivalents of kept effects in this record are
+    said apart (:func:`rotor_id.diagnosis.catalogue.equivalent`).
     """
     trace = ctx['trace']
     out = {k: [] for k in kept_names}
@@ -797,14 +806,20 @@ def _confounds(kept_names, ctx):
         return out              # the final model's step was not run (MAX_EFFECTS reached)
     covered = set(kept_names)
     for k in kept_names:
-        covered.update(EQUIVALENT.get(k, ()))
-    for effect, alone in trace[0]['gains'].items():
+        covered.update(equivalent(k, ctx.get('mu', 0.0)))
+    for effect in dict.fromkeys(e for row in trace[:-1] for e in row['gains']):
         given = trace[-1]['gains'].get(effect)
-        if effect in covered or given is None or alone['criterion'] <= CRITERION_THRESHOLD \
+        # the first step at which C passed the criterion (its gain given the effects kept then)
+        first = next((i for i, row in enumerate(trace[:-1])
+                      if row['gains'].get(effect, {}).get('criterion', -math.inf)
+                      > CRITERION_THRESHOLD), None)
+        if effect in covered or given is None or first is None \
                 or given['criterion'] > CRITERION_THRESHOLD:
             continue
-        culprit, largest, previous = kept_names[0], -math.inf, alone
-        for row in trace[1:]:
+        alone = trace[first]['gains'][effect]
+        culprit, largest, previous = kept_names[min(first, len(kept_names) - 1)], -math.inf, \
+            alone
+        for row in trace[first + 1:]:
             now = row['gains'].get(effect)
             if now is None:
                 continue
@@ -814,6 +829,7 @@ def _confounds(kept_names, ctx):
             previous = now
         out[culprit].append({
             'effect': effect, 'given': list(kept_names),
+            'passed_after': list(trace[first]['after']),
             'two_delta_loglik_alone': float(alone['two_delta_loglik']),
             'criterion_alone': float(alone['criterion']),
             'two_delta_loglik_given': float(given['two_delta_loglik']),
@@ -825,7 +841,17 @@ def _confounds(kept_names, ctx):
 
 def _confound_text(kept, c):
     """One note of a confounded pair, with the figures behind it."""
-    return (f'{c["effect"]} cannot be told apart from {kept} in this record: alone it gains '
+    if c.get('how_given') == 'exchange':
+        others = [e for e in c['given'] if e != c['effect'] and e != kept]
+        with_ = f' (with {" + ".join(others)})' if others else ''
+        return (f'{c["effect"]} cannot be told apart from {kept} in this record: the model '
+                f'with {c["effect"]} in place of {kept}{with_} fits within '
+                f'{c["criterion_difference"]:.1f} of it by the criterion (2Δlog L '
+                f'{c["two_delta_loglik_difference"]:.1f}; a confident difference is '
+                f'{CONFIDENCE_GAP:g}), so {c["effect"]} may be present instead; both are named')
+    before = ' + '.join(c.get('passed_after', ()))
+    return (f'{c["effect"]} cannot be told apart from {kept} in this record: '
+            f'{"with " + before + " in the model" if before else "alone"} it gains '
             f'2Δlog L = {c["two_delta_loglik_alone"]:.1f} (criterion '
             f'{c["criterion_alone"]:.1f}), with {" + ".join(c["given"])} in the model '
             f'{c["two_delta_loglik_given"]:.1f} (criterion {c["criterion_given"]:.1f}, '
@@ -881,7 +907,8 @@ def _forward_step(current, cur_val, kept, ctx, residuals_noise=False):
     if not ok:
         return None
     best = ok[0]
-    near = _prefer_established([c for c in ok if best[0] - c[0] <= CONFIDENCE_GAP])
+    near = _prefer_established([c for c in ok if best[0] - c[0] <= CONFIDENCE_GAP],
+                               ctx['mu'])
     best = near[0]
     if len(near) > 1:
         best = min(near, key=lambda c: vals[c[2].effect])
@@ -903,16 +930,22 @@ def _without(effect, fit, kept, ctx):
     return out if out.available else None
 
 
-def _forward_selection(first, steps, ctx):
-    """
-    Add effects one at a time until the residuals are noise or no effect earns its place.
+def _criterion_over(fit, other, n_obs):
+    """(2Δlog L, criterion) of ``fit`` over the nested or rival ``other``, ρ of ``fit``."""
+    dll = float(other.estimate.neg_log_likelihood - fit.estimate.neg_log_likelihood)
+    res = np.concatenate(fit.estimate.residuals, axis=0)
+    rho = min(rs.effective_fraction(res[:, j]) for j in range(res.shape[1]))
+    k = max(fit.n_extra - other.n_extra, 0)
+    return 2.0 * dll, 2.0 * dll * rho - k * math.log(n_obs * rho)
 
-    Returns (the fit of the final model, the step rows, the effects dropped by the backward
-    check). After each addition every effect kept before is tested by refitting without it:
-    it stays only if its criterion, given the others, still exceeds the threshold.
+
+def _add_effects(current, cur_val, kept, steps, dropped, ctx):
     """
-    current, kept, dropped = first, [(first.effect, first.variant)], []
-    cur_val = steps[0]['validation_rms']
+    Forward steps with a backward check after each: (current, cur_val, kept, steps).
+
+    After each addition every effect kept before is tested by refitting without it: it
+    stays only if its criterion, given the others, still exceeds the threshold.
+    """
     # Residuals that pass the omnibus tests (white, at the floor, no mean) do not stop the
     # selection: a directed test (one effect's likelihood ratio) has far more power than the
     # omnibus one; a lag hidden under a per-blade gain passes whiteness and RMS and still
@@ -932,12 +965,7 @@ def _forward_selection(first, steps, ctx):
             without = _without(old, current, kept, ctx)
             if without is None:
                 continue
-            dll = float(without.estimate.neg_log_likelihood
-                        - current.estimate.neg_log_likelihood)
-            res = np.concatenate(current.estimate.residuals, axis=0)
-            rho = min(rs.effective_fraction(res[:, j]) for j in range(res.shape[1]))
-            k = max(current.n_extra - without.n_extra, 0)
-            crit = 2.0 * dll * rho - k * math.log(ctx['n_obs'] * rho)
+            _, crit = _criterion_over(current, without, ctx['n_obs'])
             if crit > CRITERION_THRESHOLD:
                 continue
             _say_t(ctx, f'backward check: {old} no longer earns its place '
@@ -947,11 +975,236 @@ def _forward_selection(first, steps, ctx):
             steps = [st for st in steps if st['effect'] != old]
             current = without
             steps[-1]['fit'] = current
-    confounds = _confounds([e for e, _ in kept], ctx)
+    return current, cur_val, kept, steps
+
+
+def _forward_selection(first, steps, ctx):
+    """
+    Add effects one at a time until the residuals are noise or no effect earns its place.
+
+    Returns (the fit of the final model, the step rows, the effects dropped by the backward
+    check or an exchange). When two or more effects are kept, one exchange round follows
+    (:func:`_exchange`): greedy selection can keep first an effect that stands in for parts
+    of two concealed ones; the effects are added again after a swap.
+    """
+    current, kept, dropped = first, [(first.effect, first.variant)], []
+    cur_val = steps[0]['validation_rms']
+    current, cur_val, kept, steps = _add_effects(current, cur_val, kept, steps, dropped, ctx)
+    ahead = _look_ahead(current, kept, steps, ctx)
+    if ahead is not None:
+        current, kept, steps, gone = ahead
+        dropped += gone
+        cur_val = None
+        current, cur_val, kept, steps = _add_effects(current, cur_val, kept, steps, dropped,
+                                                     ctx)
+    ties = []
+    if len(kept) >= 2:
+        swap = _exchange(current, kept, ctx)
+        ties = swap['ties']
+        if swap['fit'] is not None:
+            fit = swap['fit']
+            _say_t(ctx, f'exchange: {swap["out"]} replaced by {fit.effect} (criterion '
+                        f'{swap["criterion"]:.1f} over the model with {swap["out"]})')
+            kept = [ev for ev in kept if ev[0] != swap['out']] + [(fit.effect, fit.variant)]
+            steps = [st for st in steps if st['effect'] != swap['out']] + [swap['row']]
+            dropped.append(swap['out'])
+            current, cur_val = fit, swap['row']['validation_rms']
+            current, kept, steps = _backward(current, kept, steps, dropped, ctx)
+            current, cur_val, kept, steps = _add_effects(current, cur_val, kept, steps,
+                                                         dropped, ctx)
+    names = [e for e, _ in kept]
+    confounds = _confounds(names, ctx)
+    for tie in ties:
+        if tie['winner'] in confounds and tie['effect'] not in names and not any(
+                c['effect'] == tie['effect'] for cs in confounds.values() for c in cs):
+            confounds[tie['winner']].append(tie)
     for st in steps:
         st['parameters'] = current.effect_parameters.get(st['effect'], {})
         st['confounds'] = confounds.get(st['effect'], [])
     return current, steps, dropped
+
+
+def _look_ahead(current, kept, steps, ctx):
+    """
+    One step past the criterion when the selection ends with structured residuals.
+
+    A stand-in kept first can leave the concealed effects below the criterion one at a time
+    (μ = 0.4, periodic terms and a sensor lag: a flap-frequency change is kept first; the
+    periodic terms then gain 2Δlog L = 93 but, on residuals still coloured by the lag, a
+    criterion of 9, and the lag's score test is 5). The effect that gains most on top of the
+    final model is added anyway, the next forward step is taken, and every kept effect must
+    then earn its place given the others (backward check). The result is kept only if it
+    beats the final model by the criterion. Returns (fit, kept, steps, dropped) or None.
+    """
+    if len(kept) >= MAX_EFFECTS - 1 or _adequate(current, ctx['floors'], ctx['u'], ctx['t']):
+        return None
+    names = [e for e, _ in kept]
+    covered = set(names) | {eq for e in names for eq in equivalent(e, ctx['mu'])}
+    gains = ctx['trace'][-1]['gains'] if ctx['trace'] else {}
+    fitted = [e for e, g in gains.items() if e not in covered and g['how'] == 'fit'
+              and g['two_delta_loglik'] > EXCHANGE_MIN_GAIN]
+    if not fitted:
+        return None
+    best = max(fitted, key=lambda e: gains[e]['two_delta_loglik'])
+    _say_t(ctx, f'look-ahead: the residuals are structured; {best} added past the criterion '
+                f'(2Δlog L = {gains[best]["two_delta_loglik"]:.1f}) to see what follows')
+    start = {n: current.estimate.model_parameters[n] for n in current.unknowns}
+    fit = fit_candidate(Job(best, '', ctx['record'], ctx['description'], ctx['values'],
+                            ctx['unknowns'], ctx['known'], ctx['window_s'],
+                            verbose=ctx['verbose'], start=start, prior=tuple(kept),
+                            baseline_nll=current.estimate.neg_log_likelihood))
+    if not fit.available or fit.bound_limited:
+        return None
+    two_dll, crit = _criterion_over(fit, current, ctx['n_obs'])
+    row = _step_row(fit, 0.5 * two_dll, crit, None, ctx['floors'], ctx['u'], ctx['t'])
+    trial_kept, trial_steps, gone = list(kept) + [(fit.effect, fit.variant)], steps + [row], []
+    trial, _, trial_kept, trial_steps = _add_effects(fit, None, trial_kept, trial_steps, gone,
+                                                     ctx)
+    trial, trial_kept, trial_steps = _backward(trial, trial_kept, trial_steps, gone, ctx)
+    _, gain = _criterion_over(trial, current, ctx['n_obs'])
+    if gain <= CRITERION_THRESHOLD or [e for e, _ in trial_kept] == names:
+        _say_t(ctx, f'look-ahead: {" + ".join(e for e, _ in trial_kept)} does not beat '
+                    f'{" + ".join(names)} (criterion {gain:.1f}); kept the latter')
+        ctx['trace'].append({'after': tuple(names), 'gains': dict(gains)})
+        return None
+    _say_t(ctx, f'look-ahead: {" + ".join(e for e, _ in trial_kept)} beats '
+                f'{" + ".join(names)} by a criterion of {gain:.1f}')
+    for st in trial_steps:
+        st['fit'] = trial
+    return trial, trial_kept, trial_steps, gone
+
+
+def _backward(current, kept, steps, dropped, ctx):
+    """Drop every kept effect that does not earn its place given all the others."""
+    for old, variant in list(kept):
+        if len(kept) < 2:
+            break
+        without = _refit([ev for ev in kept if ev != (old, variant)], ctx, current)
+        if without is None:
+            continue
+        _, crit = _criterion_over(current, without, ctx['n_obs'])
+        if crit <= CRITERION_THRESHOLD:
+            _say_t(ctx, f'backward check: {old} does not earn its place given the others '
+                        f'(criterion {crit:.1f}); dropped')
+            kept.remove((old, variant))
+            steps = [st for st in steps if st['effect'] != old]
+            dropped.append(old)
+            current = without
+    for st in steps:
+        st['fit'] = current
+    return current, kept, steps
+
+
+def _refit(kept, ctx, like):
+    """Fit the model of the kept effects [(effect, variant)], started from ``like``."""
+    start = {n: like.estimate.model_parameters[n] for n in like.unknowns}
+    out = fit_candidate(Job(kept[-1][0], kept[-1][1], ctx['record'], ctx['description'],
+                            ctx['values'], ctx['unknowns'], ctx['known'], ctx['window_s'],
+                            prior=tuple(kept[:-1]), start=start))
+    return out if out.available else None
+
+
+#: Contenders tried by an exchange: the strongest effects not kept, by what they gain on top
+#: of the final model.
+EXCHANGE_CONTENDERS = 2
+#: 2Δlog L a contender must gain on top of the final model to be tried in an exchange (the
+#: 5 % point of χ² with one degree of freedom: a trace of the effect, not yet evidence).
+EXCHANGE_MIN_GAIN = 3.84
+
+
+def _exchange(current, kept, ctx):
+    """
+    Try replacing one kept effect by a contender (one exchange round of stepwise selection).
+
+    Forward selection is greedy: an effect that reproduces parts of two concealed effects can
+    be kept first, and then one of those no longer passes beside it. Contenders are the
+    effects not kept that passed the criterion at some step or still gain 2Δlog L >
+    :data:`EXCHANGE_MIN_GAIN` on the final model. At μ = 0.4 a flap read
+    early (negative time delay) turns the steady 1/rev flapping as an azimuth offset does and
+    as a flap-frequency error partly does; kept with δ3, it left the azimuth offset at a
+    criterion of 3. Each contender (the strongest :data:`EXCHANGE_CONTENDERS` by their best
+    2Δlog L) is fitted in place of each kept effect. The best swap is made when it beats the
+    final model by the criterion and still earns its place given the others. A swap within
+    :data:`CONFIDENCE_GAP` of the final model either way is a tie: the record cannot tell the
+    two descriptions apart, and the loser is reported as confounded with the winner.
+
+    Returns {'fit', 'out', 'criterion', 'row', 'ties'} ('fit' None: no swap).
+    """
+    names = [e for e, _ in kept]
+    out = {'fit': None, 'ties': []}
+    covered = set(names) | {eq for e in names for eq in equivalent(e, ctx['mu'])}
+    # what each effect gained at its best: on the final model, or at any earlier step where
+    # it passed the criterion (an effect a stand-in absorbed gains little at the end)
+    best = {}
+    for i, row in enumerate(ctx['trace']):
+        for e, g in row['gains'].items():
+            if e in covered or not (g['criterion'] > CRITERION_THRESHOLD or (
+                    i == len(ctx['trace']) - 1 and g['two_delta_loglik'] > EXCHANGE_MIN_GAIN)):
+                continue
+            best[e] = max(best.get(e, -math.inf), g['two_delta_loglik'])
+    contenders = sorted(best, key=lambda e: -best[e])[:EXCHANGE_CONTENDERS]
+    start = {n: current.estimate.model_parameters[n] for n in current.unknowns}
+    jobs = [Job(c, '', ctx['record'], ctx['description'], ctx['values'], ctx['unknowns'],
+                ctx['known'], ctx['window_s'], verbose=ctx['verbose'],
+                baseline_nll=current.estimate.neg_log_likelihood, start=start,
+                prior=tuple(ev for ev in kept if ev[0] != k))
+            for c in contenders for k in names]
+    if not jobs:
+        return out
+    _say_t(ctx, f'exchange: fitting {", ".join(contenders)} in place of each of '
+                f'{" + ".join(names)}')
+    scored = []
+    for fit in _run_jobs(fit_candidate, jobs, ctx['workers'], lambda f: None):
+        if not fit.available or fit.bound_limited:
+            _say_t(ctx, f'  {fit.effect} after {" + ".join(p for p, _ in fit.prior)}: '
+                        f'{fit.reason or "bound-limited"}, not compared')
+            continue
+        replaced = next(e for e in names if e not in {p for p, _ in fit.prior})
+        two_dll = 2.0 * float(current.estimate.neg_log_likelihood
+                              - fit.estimate.neg_log_likelihood)
+        res = np.concatenate(fit.estimate.residuals, axis=0)
+        rho = min(rs.effective_fraction(res[:, j]) for j in range(res.shape[1]))
+        crit = two_dll * rho - (fit.n_extra - current.n_extra) * math.log(ctx['n_obs'] * rho)
+        crit -= 2.0 * math.log(n_choices(fit.effect, ctx['n_blades']))
+        _say_t(ctx, f'  {fit.effect} for {replaced}: 2Δlog L = {two_dll:.1f}, criterion '
+                    f'{crit:.1f} over the final model')
+        scored.append((crit, two_dll, replaced, fit))
+    if not scored:
+        return out
+    scored.sort(key=lambda c: -c[0])
+    crit, two_dll, replaced, fit = scored[0]
+    tie = {'effect': fit.effect if crit <= 0 else replaced,
+           'winner': replaced if crit <= 0 else fit.effect, 'given': list(names),
+           'how_given': 'exchange', 'criterion_difference': float(abs(crit)),
+           'two_delta_loglik_difference': float(abs(two_dll))}
+    if abs(crit) <= CONFIDENCE_GAP:
+        out['ties'] = [tie]
+    if crit <= 0:
+        return out
+    kept_tie = [{**tie, 'effect': fit.effect, 'winner': replaced}] if out['ties'] else []
+    # what the swapped-in effect adds to the others alone (its own backward check)
+    others = [ev for ev in kept if ev[0] != replaced]
+    rest = Job(others[-1][0], others[-1][1], ctx['record'], ctx['description'],
+               ctx['values'], ctx['unknowns'], ctx['known'], ctx['window_s'],
+               prior=tuple(others[:-1]), start=start)
+    base = fit_candidate(rest)
+    if not base.available:
+        out['ties'] = kept_tie
+        return out
+    add_2dll, add_crit = _criterion_over(fit, base, ctx['n_obs'])
+    if add_crit <= CRITERION_THRESHOLD:
+        out['ties'] = kept_tie
+        return out
+    val = _run_validation([Job(fit.effect, fit.variant, ctx['record'], ctx['description'],
+                               ctx['values'], ctx['unknowns'], ctx['known'],
+                               ctx['window_s'], prior=tuple(others),
+                               start={n: fit.estimate.model_parameters[n]
+                                      for n in fit.unknowns}, bounds=fit.bounds)],
+                          ctx['workers'], lambda r: None)
+    row = _step_row(fit, 0.5 * add_2dll, add_crit, val[0][2] if val else None, ctx['floors'],
+                    ctx['u'], ctx['t'])
+    out.update(fit=fit, out=replaced, criterion=crit, row=row)
+    return out
 
 
 def _bound_text(fit):
@@ -974,7 +1227,7 @@ def _adequate(fit, floors, u, t):
     return bool(rs.combined_whiteness_p(stats) > 1e-3 and max(s.z_excess for s in stats) < 4.0)
 
 
-def _choose(eligible):
+def _choose(eligible, mu=0.0):
     """
     Return the explanation among the eligible candidates, and whether noise was passed over.
 
@@ -991,7 +1244,7 @@ def _choose(eligible):
     pool = deterministic or eligible
     best = pool[0]
     near = _prefer_established([t for t in pool
-                                if best['criterion'] - t['criterion'] <= CONFIDENCE_GAP])
+                                if best['criterion'] - t['criterion'] <= CONFIDENCE_GAP], mu)
     best = near[0]
     if len(near) > 1 and all(t['validation_rms'] is not None for t in near):
         best = min(near, key=lambda t: t['validation_rms'])
