@@ -930,12 +930,19 @@ def _without(effect, fit, kept, ctx):
     return out if out.available else None
 
 
-def _criterion_over(fit, other, n_obs):
-    """(2Δlog L, criterion) of ``fit`` over the nested or rival ``other``, ρ of ``fit``."""
+def _criterion_over(fit, other, n_obs, rival=False):
+    """
+    (2Δlog L, criterion) of ``fit`` over ``other``, with ρ of ``fit``'s residuals.
+
+    ``other`` is nested in ``fit`` (k ≥ 0 extra parameters), or with ``rival`` a model that
+    is not (an exchange: k may be negative, fewer parameters earn credit).
+    """
     dll = float(other.estimate.neg_log_likelihood - fit.estimate.neg_log_likelihood)
     res = np.concatenate(fit.estimate.residuals, axis=0)
     rho = min(rs.effective_fraction(res[:, j]) for j in range(res.shape[1]))
-    k = max(fit.n_extra - other.n_extra, 0)
+    k = fit.n_extra - other.n_extra
+    if not rival:
+        k = max(k, 0)
     return 2.0 * dll, 2.0 * dll * rho - k * math.log(n_obs * rho)
 
 
@@ -1160,11 +1167,7 @@ def _exchange(current, kept, ctx):
                         f'{fit.reason or "bound-limited"}, not compared')
             continue
         replaced = next(e for e in names if e not in {p for p, _ in fit.prior})
-        two_dll = 2.0 * float(current.estimate.neg_log_likelihood
-                              - fit.estimate.neg_log_likelihood)
-        res = np.concatenate(fit.estimate.residuals, axis=0)
-        rho = min(rs.effective_fraction(res[:, j]) for j in range(res.shape[1]))
-        crit = two_dll * rho - (fit.n_extra - current.n_extra) * math.log(ctx['n_obs'] * rho)
+        two_dll, crit = _criterion_over(fit, current, ctx['n_obs'], rival=True)
         crit -= 2.0 * math.log(n_choices(fit.effect, ctx['n_blades']))
         _say_t(ctx, f'  {fit.effect} for {replaced}: 2Δlog L = {two_dll:.1f}, criterion '
                     f'{crit:.1f} over the final model')
