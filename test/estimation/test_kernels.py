@@ -328,3 +328,41 @@ def test_kept_plans_follow_the_record_and_the_model():
     del model, plan
     gc.collect()
     assert alive() is None, 'a kept plan must not keep its model alive'
+
+
+def test_step_test_sigma_by_cholesky_is_pinv():
+    """gn_iteration's σ of the step test: diag(M⁻¹) by Cholesky equals pinv's, else pinv."""
+    assert kernels.load() is not None, kernels.status()['error']
+    inverse_diagonal = kernels._state['module']._inverse_diagonal
+    rng = np.random.default_rng(5)
+    for scale in (1.0, 30.0):
+        A = rng.standard_normal((60, 7)) * np.logspace(0, np.log10(scale), 7)
+        M = A.T @ A
+        out = np.empty(7)
+        assert inverse_diagonal(M, out)
+        np.testing.assert_allclose(out, np.diag(np.linalg.pinv(M)), rtol=1e-12)
+    A[:, 6] = 2.0 * A[:, 5] + 1e-6 * rng.standard_normal(60)     # nearly dependent
+    assert not inverse_diagonal(A.T @ A, out)
+    assert not inverse_diagonal(np.diag([1e6, 1.0, 1.0]), np.empty(3))   # badly scaled
+    assert not inverse_diagonal(np.ones((3, 3)), np.empty(3))           # singular
+
+
+def test_dependence_warnings_with_and_without_the_eigen_analysis():
+    """The Cholesky pre-test skips eigh only where no eigenvalue ratio can be below 1e-7."""
+    from rotor_id.estimation.output_error import dependence_warnings
+    rng = np.random.default_rng(6)
+    names = ['a', 'b', 'c', 'd']
+    A = rng.standard_normal((40, 4)) * [1.0, 10.0, 0.1, 3.0]
+    assert dependence_warnings(names, A.T @ A) == ([], None)
+    for eps, warned in ((1e-2, False), (1e-6, True)):   # ratio ~ eps² against 1e-7
+        B = A.copy()
+        B[:, 3] = 2.0 * B[:, 1] + eps * 10.0 * rng.standard_normal(40)
+        warnings, vals = dependence_warnings(names, B.T @ B)
+        assert bool(warnings) is warned, (eps, warnings)
+        if warned:
+            assert 'near-dependent' in warnings[0] and '·b' in warnings[0] and '·d' in warnings[0]
+            assert vals[0] / vals[-1] < 1e-7
+    M = A.T @ A
+    M[2, :] = M[:, 2] = 0.0
+    warnings, _ = dependence_warnings(names, M)
+    assert warnings[0].startswith('no information at all on c')
