@@ -819,9 +819,10 @@ def gn_iteration(F_probe, g_probe, dF_probe, dg_probe, p_ref, p_base, param_inde
     step of output_error.damped_gauss_newton_step (λ, 12 dampings × 6 halvings, bounds), each
     trial simulated by :func:`affine_run` into the trial buffers (xs … Mc); on acceptance the
     noise variance re-estimated (``estimate_noise``), the cost at the new point, σ from
-    pinv(M) and the step-size convergence test. Writes out_theta, out_var, out_M, out_grad,
-    out_sigma and out_scalars = [cost, λ, all steps small (1/0), Σ res², the accepted point on
-    a bound (1/0)]. Returns 1 when a step
+    pinv(M) (by Cholesky where that is the same to rounding, :func:`_inverse_diagonal`) and
+    the step-size convergence test. Writes out_theta, out_var, out_M, out_grad, out_sigma and
+    out_scalars = [cost, λ, all steps small (1/0), Σ res², the accepted point on a bound
+    (1/0)]. Returns 1 when a step
     was accepted, 0 when none lowers the cost, −1 when the step equations could not be solved
     (the caller then takes this iteration in Python).
     """

@@ -26,7 +26,9 @@ Everything is vectorised over time (bench/iteration_cost.py measured the gain):
 With the compiled kernels loaded, a time-invariant record with g = B u + e goes through
 :class:`TimeInvariantPlan` instead: the RK4 steps of a sample interval composed into one
 affine map of the stage inputs, prepared once per parameter vector with its derivatives, and
-one compiled pass for states, sensitivities, outputs and residual sums.
+one compiled pass for states, sensitivities, outputs and residual sums. A model keeps the
+plans of its records (input schedules that are immutable only), so a refit of a record, or
+a finite-difference peer's next simulation, prepares nothing again.
 """
 
 from dataclasses import dataclass
