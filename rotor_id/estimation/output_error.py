@@ -592,7 +592,12 @@ def fit_output_error(experiments, unknowns, guess=None, known=None, noise_std=No
         return var
 
     theta_eval = theta
-    results = evaluate(problem, theta, max_step)
+    compiled = _CompiledIteration.for_problem(problem, floor, prior_info, prior_mean, step_tol,
+                                              not fixed_noise)
+    if compiled is not None:        # the first simulation already through its buffers
+        results = [compiled.first(theta)]
+    else:
+        results = evaluate(problem, theta, max_step)
     if not fixed_noise:
         noise_var = estimate_var(results)
     cost = cost_of(results, noise_var)
@@ -610,8 +615,6 @@ def fit_output_error(experiments, unknowns, guess=None, known=None, noise_std=No
         trial_results = evaluate(problem, trial, max_step)
         return cost_of(trial_results, noise_var), trial_results
 
-    compiled = _CompiledIteration.for_problem(problem, theta, results, floor, prior_info,
-                                              prior_mean, step_tol, not fixed_noise)
     for iteration in range(1, max_iter + 1):
         status = -1 if compiled is None else compiled.iterate(theta, cost, lm, noise_var[0])
         if status >= 0:             # the compiled iteration: the same steps as below
@@ -722,8 +725,8 @@ class _CompiledIteration:
     loop of :func:`fit_output_error` (test_kernels.py compares the two to 1e-9).
     """
 
-    def __init__(self, problem, plan, reference, results, floor, prior_info, prior_mean,
-                 step_tol, estimate_noise):
+    def __init__(self, problem, plan, reference, floor, prior_info, prior_mean, step_tol,
+                 estimate_noise):
         """Hold the arrays of the compiled call (see :meth:`for_problem`)."""
         exp = problem.experiments[0]
         self.plan = plan
@@ -744,32 +747,49 @@ class _CompiledIteration:
         self.prior_info, self.prior_mean = prior_info, prior_mean
         self.step_tol = float(step_tol)
         self.estimate_noise = bool(estimate_noise)
-        res, dy, sim = results[0]
-        self.current = (sim.x, sim.dx, sim.y, dy, res) + tuple(sim.residual_sums)
-        self.spare = tuple(np.empty_like(a) for a in self.current)
         k, m = len(problem.names), exp.model.n_outputs
+        n, T = exp.model.n_states, exp.t.size
+        shapes = ((T, n), (T, n, k), (T, m), (T, m, k), (T, m), (m,), (m, k), (m, k, k))
+        # buffers (xs, Ss, ŷ, ∂ŷ, res, Σres², Σ∂ŷᵀres, Σ∂ŷᵀ∂ŷ) of the current point and a trial
+        self.current = tuple(np.empty(shape) for shape in shapes)
+        self.spare = tuple(np.empty(shape) for shape in shapes)
         self.theta, self.var = np.empty(k), np.empty(m)
         self.M, self.grad, self.sigma = np.empty((k, k)), np.empty(k), np.empty(k)
         self.scalars = np.empty(5)
 
     @classmethod
-    def for_problem(cls, problem, theta, results, floor, prior_info, prior_mean, step_tol,
-                    estimate_noise):
+    def for_problem(cls, problem, floor, prior_info, prior_mean, step_tol, estimate_noise):
         """Return the compiled iteration of this problem, or None where it does not apply."""
         if problem.plans is None or len(problem.experiments) != 1:
             return None
         plan = problem.plans[0]
         mode = problem.experiments[0].initial_state
-        # read once: a plan kept for its record may get a new reference from another fit
-        reference = None if plan is None else plan.reference
-        if (plan is None or plan.has_offset or reference is None
+        if (plan is None or plan.has_offset or problem.experiments[0].y is None
                 or (isinstance(mode, str) and mode == 'equilibrium')
-                or results[0][2].residual_sums is None
-                or not reference[5][problem.param_index].all()
+                or not problem.param_index):
+            return None
+        # one read: a plan kept for its record may get a new reference from another fit
+        reference = plan.reference_at(problem.p_base,
+                                      np.asarray(problem.param_index, dtype=np.int64))
+        if (not reference[5][problem.param_index].all()
                 or np.any((reference[0] != problem.p_base) & ~reference[5])):
             return None
-        return cls(problem, plan, reference, results, floor, prior_info, prior_mean, step_tol,
+        return cls(problem, plan, reference, floor, prior_info, prior_mean, step_tol,
                    estimate_noise)
+
+    def first(self, theta):
+        """Simulate at the starting θ into the current buffers; return it as :meth:`result`."""
+        k_par = self.index.size
+        shift = self.p_base - self.p_ref
+        shift[self.index] = theta[:k_par] - self.p_ref[self.index]
+        x0 = self.x0_base.copy()
+        x0[self.free] = theta[k_par:]
+        m = self.y.shape[1]
+        plan = self.plan
+        plan.kernels.affine_run(self.F, self.g, self.dF, self.dg, shift, self.index, plan.step,
+                                plan.substeps, plan.U, x0, self.S0, plan.H, np.zeros((0, m)),
+                                np.zeros((0, m, k_par)), self.y, *self.current)
+        return self.result()
 
     def iterate(self, theta, cost, lm, var):
         """Run one iteration from θ; return 1 (step accepted), 0 (none lowers the cost), −1."""

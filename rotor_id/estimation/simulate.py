@@ -517,6 +517,20 @@ class TimeInvariantPlan:
         return Simulation(self.t, xs, yhat, Ss, dyhat, residual=res if fit else None,
                           residual_sums=sums)
 
+    def reference_at(self, p, index):
+        """
+        Return the reference point (as :attr:`reference`) that serves p with sensitivities.
+
+        It is the kept one where p is on it along every parameter that is not affine and
+        ``index`` (int64 array) was checked; otherwise a new one at p (the model evaluated).
+        """
+        ref = self.reference
+        if (ref is not None and self.checked[index].all()
+                and not np.any((p != ref[0]) & ~ref[5])):
+            return ref
+        self._probes(np.asarray(p, dtype=float), index)
+        return self.reference
+
     def _probes(self, p, index):
         """
         F, g (and ∂F, ∂g for sensitivities to ``index``) at the unit inputs, and the shift.
