@@ -12,6 +12,7 @@ import os
 from pathlib import Path
 import signal
 import sys
+import threading
 import time
 
 from builtin_interfaces.msg import Time
@@ -451,6 +452,51 @@ def estimate_from_message(msg):
     cov = cov.reshape(n, n) if cov.size == n * n else np.full((n, n), np.nan)
     return list(msg.names), np.asarray(msg.values, dtype=float), \
         np.asarray(msg.std, dtype=float), cov
+
+
+class PacedTicks:
+    """
+    Call ``tick()`` every ``period_s`` of the monotonic clock, from a thread of its own.
+
+    Instead of an executor timer: every executor wake-up rebuilds its wait set in Python, which
+    was most of the main thread of a node ticking at 50-200 Hz. A late tick is not followed by
+    a burst of catch-up ticks. Like a timer's, the ticks start once an executor spins the node
+    (its 0.2 s timer starts the thread); an exception in ``tick`` ends the thread and is
+    raised again by that timer in the executor, so the node stops as for a callback's.
+    """
+
+    def __init__(self, node, period_s, tick, name='ticks'):
+        self.period_s = float(period_s)
+        self.tick = tick
+        self.stopping = threading.Event()
+        self.error = None
+        self.thread = threading.Thread(target=self._run, name=name, daemon=True)
+        node.create_timer(0.2, self._watch)
+
+    def _run(self):
+        due = time.monotonic()
+        while not self.stopping.is_set():
+            due += self.period_s
+            if self.stopping.wait(max(0.0, due - time.monotonic())):
+                break
+            due = max(due, time.monotonic() - self.period_s)
+            try:
+                self.tick()
+            except Exception as exc:        # noqa: B902 - raised again by the executor
+                self.error = exc
+                return
+
+    def _watch(self):
+        if self.error is not None:
+            raise self.error
+        if self.thread.ident is None and not self.stopping.is_set():
+            self.thread.start()
+
+    def stop(self, timeout_s=2.0):
+        """Stop the ticks (from any thread; waits for a tick in progress unless it is this one)."""
+        self.stopping.set()
+        if self.thread.is_alive() and self.thread is not threading.current_thread():
+            self.thread.join(timeout_s)
 
 
 def wait_for_acks(publishers, timeout_s=10.0):

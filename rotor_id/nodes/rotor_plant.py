@@ -11,14 +11,12 @@ unwrapped as the description says; velocity = Ω in rad/s). The physics is
 """
 
 import math
-import threading
-import time
 
 import numpy as np
 from rclpy.node import Node
 from rotor_id.io.jointstate_cdr import encode_rows
-from rotor_id.nodes.common import (declare, declare_rig, Diagnostics, NS, SENSOR_OFFER_QOS,
-                                   SENSOR_QOS, spin_node, wait_for_acks)
+from rotor_id.nodes.common import (declare, declare_rig, Diagnostics, NS, PacedTicks,
+                                   SENSOR_OFFER_QOS, SENSOR_QOS, spin_node, wait_for_acks)
 from rotor_id.nodes.live import BadSample, check_joint_sample, PlantStepper, rotor_constants
 from rotor_id.nodes.polling import one_by_one, SensorPoller
 from rotor_id.physics.models import MODEL_NAMES
@@ -72,11 +70,7 @@ class RotorPlant(Node):
                               lambda raws, _infos: self.on_commands(raws), SENSOR_QOS)
         # ticks paced by a thread of their own, not an executor timer: the executor's
         # wake-up per tick (wait set rebuilt in Python) was a third of this node's main thread
-        self.stopping = threading.Event()
-        self.pacer_error = None
-        self.pacer = threading.Thread(target=self._pace, name='plant-ticks', daemon=True)
-        self.create_timer(0.2, self._check_pacer)
-        self.pacer.start()
+        self.ticks = PacedTicks(self, d['publish_period_s'], self.tick, 'plant-ticks')
         self.get_logger().info(
             f'{d["model"]} rotor at {self.omega:.4g} rad/s, {self.rate:g} Hz, flap noise '
             f'{d["flap_noise_std_rad"]:.3g} rad; waiting for {d["wait_for_subscribers"]} '
@@ -183,8 +177,8 @@ class RotorPlant(Node):
             return
         elapsed = (now - self.start_ns) / NS - self.d['command_latency_s']
         if self.d['duration_s'] > 0 and self.published >= self.d['duration_s'] * self.rate:
-            if not self.stopping.is_set():
-                self.stopping.set()
+            if not self.ticks.stopping.is_set():
+                self.ticks.stop()
                 self.diagnostics.idle = True          # finished by design: quiet is STALE
                 self.get_logger().info(f'run complete: {self.published} samples')
             return
@@ -236,31 +230,9 @@ class RotorPlant(Node):
             self.pub_flap.publish(flap_rows[i].tobytes())
             self.pub_azimuth.publish(azimuth_rows[i].tobytes())
 
-    def _pace(self):
-        """Pacing thread: :meth:`tick` every ``publish_period_s`` (monotonic clock)."""
-        period = self.d['publish_period_s']
-        due = time.monotonic()
-        while not self.stopping.is_set():
-            due += period
-            if self.stopping.wait(max(0.0, due - time.monotonic())):
-                break
-            due = max(due, time.monotonic() - period)      # late: no burst of ticks after
-            try:
-                self.tick()
-            except Exception as exc:        # noqa: B902 - raised again by the executor
-                self.pacer_error = exc
-                return
-
-    def _check_pacer(self):
-        """Executor timer: an error of the pacing thread stops the node as a callback's would."""
-        if self.pacer_error is not None:
-            raise self.pacer_error
-
     def close(self):
         """Stop the ticks; let reliable readers (a recorder) take the samples in flight."""
-        self.stopping.set()
-        if self.pacer.is_alive() and self.pacer is not threading.current_thread():
-            self.pacer.join(timeout=2.0)
+        self.ticks.stop()
         wait_for_acks([self.pub_pitch, self.pub_flap, self.pub_azimuth])
 
 
