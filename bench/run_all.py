@@ -99,6 +99,7 @@ KNOWN = {
         'quick': ['bench/campaign.py', '--bags', '12', '--repeat', '1', '--diagnose-bags', '2',
                   '--no-write']},
     'plan_vs_monte_carlo': {
+        'long': False,              # 19 s at load 10 (make bench, 2026-11-24)
         'what': 'planned bounds vs Monte Carlo scatter (within 15 %)',
         'quick': ['bench/plan_vs_monte_carlo.py', '--seeds', '20', '--json', '{tmp}/pvm.json',
                   '--figure', '{tmp}/pvm.png', '--markdown', '{tmp}/pvm.md']},
@@ -129,7 +130,13 @@ KNOWN = {
     'final_fit_cpu': {'target': False, 'what': 'live final fit CPU, kept vs rebuilt model, '
                       'on the newest recorded run of live_latency (run that first)'},
     'sensor_intake': {'what': 'live sensor topics: CPU per message, callbacks vs polled batches'},
-    'value_checks': {'what': 'live window value checks (spikes, dead flap) CPU vs the final fit'},
+    'value_checks': {'long': False,  # 3 s
+                     'what': 'live window value checks (spikes, dead flap) CPU vs the final fit'},
+    'messy_sweep': {'long': False, 'target': False,  # 59 s, 9 s CPU at load 10
+                    'what': 'identify on one injected recording fault at a time (8 seeds)'},
+    'forward_stop_cost': {'target': False,
+                          'what': 'diagnose: CPU of always a last selection step vs the '
+                                  'omnibus stop'},
 }
 
 #: Hand-written notes on a results file's figures go after this line; a re-run keeps them.
