@@ -34,8 +34,8 @@ docs/run_description.md), as for every node and ``rotor-id identify``.
 
 Each estimate carries the Cramér-Rao covariance and the data-length verdict of Ch.3
 (target_met, additional_data_s for the targets ``target_std``); every Gauss-Newton iteration is
-published on ``/rotor_id/progress``. Fits run in a worker thread (``fit_process``: in a separate
-process), so the subscriptions keep up. The sensor topics are taken in batches by a polling thread
+published on ``/rotor_id/progress``. Fits run in a separate process (or a worker thread), so
+the subscriptions keep up. The sensor topics are taken in batches by a polling thread
 (:mod:`rotor_id.nodes.polling`: every ``sensor_poll_period_s``, every ``sensor_poll_fast_s`` in a
 window's last 10 ms), decoded and checked with numpy: 46 µs of CPU per message against 112 µs
 for one executor callback each (bench/results/sensor_intake.md); with the per-sample checks the
@@ -119,9 +119,10 @@ class Identifier(Node):
              'sampling periods is a gap (the window is then incomplete)', 1.01, 100.0),
             ('azimuth_slip_tolerance_rad', 0.1, 'an azimuth step that differs from rotor speed '
              'x time step by more than this is a slip of the time base (rad)', 1e-4, 3.0),
-            ('fit_process', False, 'fit in a separate process (false: in a thread of the '
-             "node's process, which costs less CPU on the final's path and measured faster on "
-             'the quiet machine: bench/results/live_latency.md)'),
+            ('fit_process', True, 'fit in a separate process, so that a fit never waits for '
+             "the interpreter lock behind the subscriptions (false: in a thread of the node's "
+             "process; less CPU on the final's path, but slower under load: "
+             'bench/results/live_latency.md)'),
             # best effort by default: it receives from every publisher, while a reliable
             # subscription receives nothing from a best-effort (sensor-data QoS) publisher
             ('sensor_reliability', 'best_effort', 'QoS reliability of the sensor '
