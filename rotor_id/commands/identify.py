@@ -18,6 +18,7 @@ replay_excitation`): the stirring node's phases (topic ``stirring``), else the i
 estimates tagged with their test point (topic ``estimate``, their ``test_point_start``).
 """
 
+from dataclasses import replace
 import json
 from pathlib import Path
 import sys
@@ -298,6 +299,7 @@ def plot_runs(result, records, path, title=''):
 
 # ------------------------------------------------------------------------------ session bags
 NS = 1_000_000_000
+SESSION_SLICE_S = 30.0      # a long session bag is read this many seconds at a time
 CSV_FIXED = ('test_point', 'found_from', 'test_point_start_s', 'window_start_s', 'window_end_s',
              'status', 'converged', 'n_samples')
 
@@ -319,7 +321,128 @@ def _stamp_ns(stamp):
     return int(stamp.sec) * NS + int(stamp.nanosec)
 
 
-def find_test_points(bag, description, record):
+class SessionRecord:
+    """
+    A session bag's record, read whole when the bag is small, else slice by slice.
+
+    A long bag is read ``SESSION_SLICE_S`` at a time with the windowed reader
+    (:func:`rotor_id.io.bag.read_record` with ``window_s``), so memory follows a slice and the
+    session's time stamps, not the session. ``whole`` is the Record when the reader took the
+    whole bag (small bags, bags without an index, clock trouble: as the plain read). The
+    slices share the recording's origin, so their flap stamps, values and the window checks
+    of the replay are those of the whole read; the unwrapped azimuth of each slice counts its
+    own revolutions (the replay uses it modulo 2π).
+    """
+
+    def __init__(self, bag, options, slice_s=None):
+        self.bag, self.options = bag, {**options, 'window_s': None}
+        self.slice_s = float(SESSION_SLICE_S if slice_s is None else slice_s)
+        first = self._read(0.0)
+        self.whole = None if first.read_around_window else first
+        self.stamp0_ns, self.blade_names = first.stamp0_ns, first.blade_names
+        self.warnings = list(first.warnings)
+        self._first = first
+
+    def _read(self, start):
+        return read_record(self.bag, **{**self.options,
+                                        'window_s': (start, start + self.slice_s)})
+
+    def window(self, window_s):
+        """Return the record around ``window_s`` (the whole record when it was read whole)."""
+        if self.whole is not None:
+            return self.whole
+        record = read_record(self.bag, **{**self.options, 'window_s': tuple(window_s)})
+        self.warnings += [w for w in record.warnings if w not in self.warnings]
+        return record
+
+    def slices(self):
+        """Yield the samples of [k·slice_s, (k+1)·slice_s) s as Records, k = 0, 1, ..."""
+        k, start, part = 0, 0.0, self._first
+        while True:
+            if not part.read_around_window or part.stamp0_ns != self.stamp0_ns:
+                raise _ReadWhole(part)
+            stop = start + self.slice_s
+            keep = (part.time_s >= start) & (part.time_s < stop)
+            yield replace(part, time_s=part.time_s[keep], t=part.t[keep],
+                          rotor_speed_rad_s=part.rotor_speed_rad_s[keep],
+                          blade_flap=part.blade_flap[keep],
+                          blade_pitch=part.blade_pitch[keep])
+            if not part.time_s[-1] >= stop:               # the recording ends in this slice
+                return
+            k += 1
+            start = k * self.slice_s
+            part = self._read(start)
+
+    def replay_record(self):
+        """
+        Return the session as :func:`~rotor_id.nodes.test_points.replay_excitation` takes it.
+
+        The Record when it was read whole, else the session's stamps and azimuth with its rows
+        read slice by slice, forwards (two passes over the slices in all).
+        """
+        if self.whole is not None:
+            return self.whole
+        time_s, t, counts = [], [], []
+        try:
+            for part in self.slices():
+                time_s.append(part.time_s)
+                t.append(part.t)
+                counts.append(len(part))
+                self.warnings += [w for w in part.warnings if w not in self.warnings]
+        except _ReadWhole as whole:          # the reader took the whole bag after all
+            self.whole = whole.record
+            return self.whole
+        return _SlicedSession(self, np.concatenate(time_s), np.concatenate(t), counts)
+
+
+class _ReadWhole(Exception):
+    """A slice came back as the whole recording."""
+
+    def __init__(self, record):
+        super().__init__('read whole')
+        self.record = record
+
+
+class _SlicedSession:
+    """A session record whose rows are read slice by slice, in index order (for the replay)."""
+
+    def __init__(self, session, time_s, t, counts):
+        self.stamp0_ns, self.time_s, self.t = session.stamp0_ns, time_s, t
+        self.blade_names = list(session.blade_names)
+        self.n_blades = len(self.blade_names)
+        self._slices, self._ends = session.slices(), np.cumsum(counts)
+        self._part, self._first, self._end = None, 0, 0
+        self.blade_flap = _SliceRows(self, 'blade_flap')
+        self.blade_pitch = _SliceRows(self, 'blade_pitch')
+        self.rotor_speed_rad_s = _SliceRows(self, 'rotor_speed_rad_s')
+
+    def __len__(self):
+        """Return the number of samples."""
+        return self.time_s.size
+
+    def row(self, name, index):
+        """Return row ``index`` of column ``name``; rows are read forwards, a slice at a time."""
+        while index >= self._end:
+            self._part = next(self._slices)
+            self._first, self._end = self._end, self._end + len(self._part)
+        if index < self._first:
+            raise IndexError(f'row {index} is behind the slice read (rows {self._first}-'
+                             f'{self._end - 1}): a sliced session is read forwards only')
+        return getattr(self._part, name)[index - self._first]
+
+
+class _SliceRows:
+    """One column of a :class:`_SlicedSession`, indexed by row."""
+
+    def __init__(self, session, name):
+        self.session, self.name = session, name
+
+    def __getitem__(self, index):
+        """Return one row."""
+        return self.session.row(self.name, int(index))
+
+
+def find_test_points(bag, description, session, found=None):
     """
     Find the test points of a session bag; return (RecordedTestPoints, found from, notes).
 
@@ -327,11 +450,14 @@ def find_test_points(bag, description, record):
     else from the estimates (``topics.estimate``) tagged with a test point. Where both are in
     the bag, each test point found from the phases takes the live identifier's number (the
     estimates' ``test_point`` with the same first flap sample). Raises ValueError when the bag
-    holds neither, saying how to select a time window instead.
+    holds neither, saying how to select a time window instead. ``session`` is a
+    :class:`SessionRecord` (or a Record); ``found`` the bag's messages on the two topics when
+    already read.
     """
     from rotor_id.nodes.test_points import Phase, RecordedTestPoint, replay_excitation
     stirring, estimate = description.node_topics['stirring'], description.node_topics['estimate']
-    found = read_messages(bag, [stirring, estimate])
+    if found is None:
+        found = read_messages(bag, [stirring, estimate])
     stirring_topic, commands = found[stirring]
     estimate_topic, estimates = found[estimate]
     tagged = {}                                      # live number -> its estimates
@@ -341,6 +467,7 @@ def find_test_points(bag, description, record):
     notes = []
     if commands:
         excitation = [(_stamp_ns(m.header.stamp), int(m.phase)) for _, m in commands]
+        record = session.replay_record() if isinstance(session, SessionRecord) else session
         points = replay_excitation(record, excitation, description.window_s)
         live = {_stamp_ns(ms[0].test_point_start): n for n, ms in tagged.items()}
         for point in points:
@@ -380,7 +507,6 @@ def _live_windows(bag, description):
 
 def run_test_points(args, configs):
     """Identify test point K (or all) of a session bag; exit 0 when all converged, else 1."""
-    from dataclasses import replace
     from rotor_id.nodes.test_points import Phase
     if args.test_point is None:
         raise ValueError('--csv is written with --test-point (one row per test point); give '
@@ -393,11 +519,14 @@ def run_test_points(args, configs):
     bag, config = args.bag[0], configs[0]
     started = time.perf_counter()
     description = load_run_description(config)
-    # the whole session: its test points' windows are found in it first
-    record = read_record(bag, **{**description.record_options(), 'window_s': None})
-    print_warnings(list(description.warnings) + list(record.warnings))
-    points, source, notes = find_test_points(bag, description, record)
-    print_warnings(notes)
+    # the test points are found in the session first: a small bag is read whole, a long one
+    # a slice at a time, and then only each test point's window (memory follows the slice)
+    session = SessionRecord(bag, description.record_options())
+    print_warnings(list(description.warnings) + list(session.warnings))
+    printed = len(session.warnings)
+    points, source, notes = find_test_points(bag, description, session)
+    print_warnings(session.warnings[printed:] + notes)
+    printed = len(session.warnings)
     numbers = [p.number for p in points]
     if not args.quiet:
         print(f'{bag}: {len(points)} test point(s) found from {source}: '
@@ -411,7 +540,7 @@ def run_test_points(args, configs):
     method = args.method or description.method
     results, rows, all_converged = [], [], True
     for point in points:
-        shift = (point.stamp0_ns - record.stamp0_ns) / NS
+        shift = (point.stamp0_ns - session.stamp0_ns) / NS
         head = {'test_point': point.number, 'found_from': source,
                 'test_point_start_ns': int(point.stamp0_ns), 'test_point_start_s': shift,
                 'window_s_test_point': list(point.window_s)}
@@ -433,6 +562,9 @@ def run_test_points(args, configs):
             continue
         window = (point.window_s[0] + shift, point.window_s[1] + shift)
         desc_k = replace(description, window_s=window)
+        record = session.window(window)
+        print_warnings(session.warnings[printed:])
+        printed = len(session.warnings)
         check_against_record(desc_k, record)
         if point.check is not None and not point.check.complete:
             print_warnings([f'test point {point.number}: the bag misses samples in its window '

@@ -679,6 +679,7 @@ def read_record(bag_path, topics=None, joint_names=None, *, n_blades=None, omega
     record = _assemble(ctx, wanted, joint_names, n_blades, omega_rad_s, window_s,
                        (azimuth_joint, azimuth_convention))
     part = ''
+    record.read_around_window = origin_ns is not None
     if origin_ns is not None:
         part = (f', read {record.time_s[0]:.3f}-{record.time_s[-1]:.3f} s around window_s '
                 'only')
@@ -1156,6 +1157,32 @@ def typestore_with_custom_types(msg_dirs=()):
     for directory in dirs:
         register_msg_dir(store, directory)
     return store
+
+
+def message_with_defaults(store, name, **values):
+    """
+    Build a message of type ``name`` from ``store``: the fields given, every other at zero.
+
+    Zero is 0, 0.0, False, '' or an empty sequence, and a nested message of zeros: what a
+    test or a benchmark writes when only some fields matter (e.g. a StirringCommand's header
+    and phase).
+    """
+    numpy_types = {'float64': float, 'float32': np.float32, 'uint32': np.uint32,
+                   'uint8': np.uint8, 'int32': np.int32}
+    fields = {}
+    for name_, (kind, detail) in store.fielddefs[name][1]:
+        if name_ in values:
+            continue
+        if kind == 2:                                   # a nested message
+            fields[name_] = message_with_defaults(store, detail)
+        elif kind == 1:                                 # a base type
+            fields[name_] = {'string': '', 'bool': False}.get(
+                detail[0], 0.0 if detail[0].startswith('float') else 0)
+        else:                                           # a sequence or an array
+            base = detail[0][1][0]
+            fields[name_] = ([] if base == 'string'
+                             else np.array([], dtype=numpy_types.get(base, float)))
+    return store.types[name](**fields, **values)
 
 
 def read_messages(bag_path, topics):

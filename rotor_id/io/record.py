@@ -43,6 +43,9 @@ class Record:
         the blades, whatever joint_names selected.
     pitch_joints
         Joint names the bag's pitch messages carry, in message order.
+    read_around_window
+        True when only the part of the bag around a window was read (a long bag, see
+        :func:`rotor_id.io.bag.read_record`), False when the whole recording was read.
 
     """
 
@@ -57,6 +60,7 @@ class Record:
     stamp0_ns: int = 0
     flap_joints: tuple = ()
     pitch_joints: tuple = ()
+    read_around_window: bool = False
 
     def __post_init__(self):
         """Convert to float arrays and check that the shapes agree."""

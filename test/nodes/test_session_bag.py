@@ -21,7 +21,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 from rotor_id.cli import main
-from rotor_id.io.bag import typestore_with_custom_types, write_record_bag
+from rotor_id.io.bag import (message_with_defaults, typestore_with_custom_types,
+                             write_record_bag)
 from rotor_id.io.record import Record
 from rotor_id.io.run_description import load_run_description
 from rotor_id.nodes.test_points import Excitation, FitSchedule, TestPointSequence
@@ -41,26 +42,6 @@ def _schedules(points, done_at=960):
     return phases
 
 
-def _message(store, name, **values):
-    """Build a rosbags message of ``name``, every field not given at its zero value."""
-    numpy_types = {'float64': float, 'float32': np.float32, 'uint32': np.uint32,
-                   'uint8': np.uint8, 'int32': np.int32}
-    fields = {}
-    for field, (kind, detail) in store.fielddefs[name][1]:
-        if field in values:
-            continue
-        if kind == 2:                                   # a nested message
-            fields[field] = _message(store, detail)
-        elif kind == 1:                                 # a base type
-            fields[field] = {'string': '', 'bool': False}.get(
-                detail[0], 0.0 if detail[0].startswith('float') else 0)
-        else:                                           # a sequence or an array
-            base = detail[0][1][0]
-            fields[field] = ([] if base == 'string'
-                             else np.array([], dtype=numpy_types.get(base, float)))
-    return store.types[name](**fields, **values)
-
-
 def _time(store, ns):
     return store.types['builtin_interfaces/msg/Time'](sec=int(ns) // 10**9,
                                                       nanosec=int(ns) % 10**9)
@@ -77,24 +58,24 @@ def session(tmp_path_factory):
     store = typestore_with_custom_types()
     tmp = tmp_path_factory.mktemp('session')
 
-    def bag(name, phases=(), estimates=()):
+    def bag(name, phases=(), estimates=(), storage='mcap'):
         extra = []
         for index, phase in phases:
             stamp = int(data['stamps'][index])
             header = store.types['std_msgs/msg/Header'](stamp=_time(store, stamp),
                                                         frame_id='rotor')
-            extra.append(('/rotor/stirring', stamp + LATE * MS, _message(
+            extra.append(('/rotor/stirring', stamp + LATE * MS, message_with_defaults(
                 store, 'rotor_id_msgs/msg/StirringCommand', header=header, phase=int(phase))))
         for number, start_index, status in estimates:
             start = int(data['stamps'][start_index])
-            extra.append(('/rotor_id/estimate', start + LENGTH * MS, _message(
+            extra.append(('/rotor_id/estimate', start + LENGTH * MS, message_with_defaults(
                 store, 'rotor_id_msgs/msg/ParameterEstimate', test_point=number, kind=1,
                 status=status, test_point_start=_time(store, start))))
         extra.sort(key=lambda e: e[1])
         topics = {e[0] for e in extra}
         path = tmp / name
         if not path.exists():
-            write_record_bag(path, record, extra=extra, typestore=store)
+            write_record_bag(path, record, extra=extra, typestore=store, storage=storage)
         return path, topics
 
     return {'data': data, 'record': record, 'bag': bag, 'tmp': tmp}
@@ -228,3 +209,67 @@ def test_a_bag_without_test_points_says_how_to_select_a_window(session, capsys):
     assert len(err) == 1 and 'holds no test points' in err[0], err
     assert 'drop --test-point and set window_s' in err[0]
     assert math.isfinite(len(err))
+
+
+def test_a_long_session_read_slice_by_slice_gives_the_whole_reads_results(session, capsys,
+                                                                          monkeypatch):
+    """
+    A long bag's test points are found from slices and fitted from windowed reads only.
+
+    The bag's reader is told to read parts of this small bag (sqlite3: read by its timestamp
+    index, where a small MCAP has too few chunks) as it does of a long one (no size limit,
+    short margins) and the session to go 0.3 s at a time, so that slice boundaries fall
+    inside test points' windows; the whole reader is then never called, and every test point
+    comes out as from the whole record: the same start, window check and CSV row, estimates
+    equal to 1e-12 (the windowed records count the azimuth's revolutions from their own start).
+    """
+    from rotor_id.commands import identify as identify_command
+    from rotor_id.io import bag as bag_module
+    # test point 2's schedule is cut short: aborted in both
+    phases = [p for p in _schedules(3) if p[0] != LENGTH + 960] + [(LENGTH + 850,
+                                                                   Excitation.DONE)]
+    bag, _ = session['bag']('cut_sqlite3', sorted(phases, key=lambda p: p[0]), storage='sqlite3')
+
+    def identify_all(name):
+        out, table = session['tmp'] / f'{name}.json', session['tmp'] / f'{name}.csv'
+        code = _cli(bag, '--config', CONFIG, '--test-point', 'all', '--json', out,
+                    '--csv', table)
+        err = capsys.readouterr().err
+        assert out.exists(), err
+        return code, json.loads(out.read_text()), list(csv.DictReader(table.open()))
+
+    whole = identify_all('whole')
+    monkeypatch.setattr(bag_module, 'WINDOW_READ_MIN_BYTES', 0)
+    monkeypatch.setattr(bag_module, 'WINDOW_READ_MARGIN_S', 0.2)
+    monkeypatch.setattr(bag_module, 'WINDOW_READ_CLOCK_TOLERANCE_S', 0.01)
+    monkeypatch.setattr(bag_module, 'WINDOW_READ_MAX_FRACTION', 10.0)
+    monkeypatch.setattr(identify_command, 'SESSION_SLICE_S', 0.3)
+    reads = []
+    part = bag_module.read_record
+
+    def windowed_only(*args, **kwargs):
+        record = part(*args, **kwargs)
+        assert record.read_around_window, 'the whole bag was read'
+        reads.append(kwargs['window_s'])
+        return record
+
+    monkeypatch.setattr(identify_command, 'read_record', windowed_only)
+    sliced = identify_all('sliced')
+    # ten slices to find the test points (the last holds the end; the first read once), the
+    # other nine again for the replay's rows, then the windows of test points 1 and 3
+    np.testing.assert_allclose(reads[:10], [(k * 0.3, (k + 1) * 0.3) for k in range(10)])
+    assert len(reads) == 10 + 9 + 2 and reads[-1][0] == pytest.approx(2.80939)
+    assert sliced[0] == whole[0] == 1
+    assert [r['status'] for r in sliced[2]] == ['converged', 'not identified', 'converged']
+    for got, want in zip(sliced[1], whole[1]):
+        assert got.keys() == want.keys()
+        for key in ('test_point', 'found_from', 'test_point_start_ns', 'status', 'reason',
+                    'converged', 'n_samples', 'window_complete_in_bag', 'iterations'):
+            assert got.get(key) == want.get(key), key
+        for name, value in want.get('parameters', {}).items():
+            assert got['parameters'][name]['value'] == pytest.approx(value['value'], rel=1e-12)
+            assert got['parameters'][name]['std'] == pytest.approx(value['std'], rel=1e-12)
+    for got, want in zip(sliced[2], whole[2]):
+        assert got.keys() == want.keys()
+        assert {k: v for k, v in got.items() if k not in WAKE and not k.endswith('_std')} == {
+            k: v for k, v in want.items() if k not in WAKE and not k.endswith('_std')}
