@@ -519,15 +519,15 @@ def diagnose(record, description, progress=None, workers=2, effects=EFFECTS, win
     if chosen is not None:
         steps.append(_step_row(chosen['fit'], chosen['delta_loglik'], chosen['criterion'],
                                validation.get(chosen['effect']), floors, u, exp0.t))
+        context = {'record': record, 'description': description, 'values': values,
+                   'unknowns': unknowns, 'known': known, 'window_s': window_s,
+                   'n_obs': n_obs, 'n_blades': n_blades, 'floors': floors, 'u': u,
+                   't': exp0.t, 'workers': workers, 'screen': screen,
+                   'effects': deterministic, 'model_name': ident.model.name,
+                   'rotor': ident.model.rotor, 'progress': progress, 't_start': t_start,
+                   'verbose': verbose_fits, 'mu': mu,
+                   'trace': [_standalone_gains(scored, screened_out, n_obs, n_blades)]}
         if chosen['effect'] != 'process_noise':
-            context = {'record': record, 'description': description, 'values': values,
-                       'unknowns': unknowns, 'known': known, 'window_s': window_s,
-                       'n_obs': n_obs, 'n_blades': n_blades, 'floors': floors, 'u': u,
-                       't': exp0.t, 'workers': workers, 'screen': screen,
-                       'effects': deterministic, 'model_name': ident.model.name,
-                       'rotor': ident.model.rotor, 'progress': progress, 't_start': t_start,
-                       'verbose': verbose_fits, 'mu': mu,
-                       'trace': [_standalone_gains(scored, screened_out, n_obs, n_blades)]}
             chosen_fit, steps, dropped = _forward_selection(chosen['fit'], steps, context)
             confound_notes = [_confound_text(effect_row['effect'], c) for effect_row in steps
                               for c in effect_row.get('confounds', [])]
@@ -555,6 +555,9 @@ def diagnose(record, description, progress=None, workers=2, effects=EFFECTS, win
                          'the likelihood past the criterion but leave(s) structured residuals; '
                          'a deterministic effect the catalogue cannot represent in this record '
                          'is as likely (low confidence)')
+    if chosen is not None and 'process_noise' in effects:
+        chosen_fit, steps, last_resort, passed_over = _with_random_inflow(
+            chosen, chosen_fit, steps, context, notes, last_resort, passed_over)
     if passed_over:
         notes.append('process_noise also raises the likelihood (a Kalman filter tracks any '
                      f'unmodelled dynamics), but {" + ".join(st["effect"] for st in steps)} '
@@ -594,7 +597,8 @@ def diagnose(record, description, progress=None, workers=2, effects=EFFECTS, win
     proposal, out_of_catalogue = None, False
     # out of catalogue: a term the data want, as a proposal. Random inflow is asked too: it is
     # the explanation of last resort, and a Kalman filter tracks unmodelled dynamics as well
-    if effect in ('unexplained', 'process_noise'):
+    if effect in ('unexplained', 'process_noise') and not any(
+            st['effect'] != 'process_noise' for st in steps):
         from rotor_id.diagnosis.proposal import propose
         _say(progress, 'proposal: stepwise regression of the equation error on a library of '
                        'flap-equation terms, validated on held-out time blocks')
@@ -672,6 +676,43 @@ def diagnose(record, description, progress=None, workers=2, effects=EFFECTS, win
                      blade_floor=blade_sigma, record_window=part, elapsed_s=elapsed,
                      notes=notes, fits=fits, steps=steps,
                      proposal=None if proposal is None else proposal.as_json())
+
+
+def _with_random_inflow(chosen, chosen_fit, steps, ctx, notes, last_resort, passed_over):
+    """
+    Random inflow together with deterministic effects (:mod:`rotor_id.diagnosis.noisy`).
+
+    Random inflow chosen: deterministic effects are added to it by the innovations
+    likelihood. Deterministic effects chosen: random inflow is added to them when its score
+    test, fit and held-out prediction say so. Returns (fit, steps, last_resort, passed_over).
+    """
+    from rotor_id.diagnosis import noisy
+    if chosen['effect'] == 'process_noise':
+        fit, found, more = noisy.add_deterministic(chosen_fit, steps[0], ctx)
+        notes += more
+        deterministic = [st['effect'] for st in found if st['effect'] != 'process_noise']
+        if deterministic:
+            # found beside (or in place of) random inflow: it is no longer the last resort
+            notes[:] = [n for n in notes
+                        if not n.startswith('random inflow is the explanation of last resort')]
+            last_resort = ''
+            notes.append(f'{" + ".join(deterministic)} found by the innovations (filter-error) '
+                         'likelihood with random inflow in the model: the output-error '
+                         'likelihood of a deterministic effect is swamped by the turbulence')
+        return fit, found, last_resort, passed_over
+    added = noisy.add_random_inflow(chosen_fit, steps, ctx)
+    if added is None:
+        return chosen_fit, steps, last_resort, passed_over
+    fit, row = added
+    steps = steps + [row]
+    for st in steps:
+        st['parameters'] = fit.effect_parameters.get(st['effect'], st.get('parameters', {}))
+        st.setdefault('confounds', [])
+    notes.append('random inflow (process_noise) added to '
+                 f'{" + ".join(st["effect"] for st in steps[:-1])}: its innovations '
+                 f'likelihood gains a criterion {row["criterion"]:.1f} and the filter '
+                 'predicts the unfitted half-window better')
+    return fit, steps, last_resort, False
 
 
 def _residual_matrix(est):

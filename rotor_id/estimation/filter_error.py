@@ -68,7 +68,7 @@ import numpy as np
 from rotor_id.estimation import kalman, kernels
 from rotor_id.estimation.output_error import (_fit_initial_states, _Problem,
                                               damped_gauss_newton_step, dependence_warnings,
-                                              Estimate, IdentificationError)
+                                              Estimate, IdentificationError, STOP)
 from rotor_id.estimation.simulate import (_equal_steps, _fine_grid, _rk4_step_derivative,
                                           _rk4_transition, _time_invariant, DEFAULT_MAX_STEP,
                                           substeps_for)
@@ -639,7 +639,8 @@ def fit_filter_error_ml(experiments, unknowns, guess=None, known=None, noise_std
     noise_std : float or array_like, optional
         Measurement-noise σ per channel; estimated (``noise_std_<channel>``) when None.
     progress : callable, optional
-        ``progress(info)`` after every iteration (iteration, cost, names, values, elapsed, label).
+        ``progress(info)`` after every iteration (iteration, cost, names, values, elapsed, label);
+        if it returns :data:`~rotor_id.estimation.output_error.STOP`, the fit ends there.
     max_iter : int
         Most iterations.
     process_noise_std : float, optional
@@ -760,8 +761,9 @@ def fit_filter_error_ml(experiments, unknowns, guess=None, known=None, noise_std
                 'values': _reported(prob, theta), 'elapsed': time.perf_counter() - t_start,
                 'label': label}
         history.append(info)
-        if progress is not None:
-            progress(info)
+        if progress is not None and progress(info) is STOP:
+            message = 'stopped by the caller'
+            break
         if np.all(np.abs(applied) <= np.maximum(step_tol * sigma, 1e-12 * np.abs(theta))):
             converged = True
             message = 'converged'

@@ -1,0 +1,491 @@
+"""
+Deterministic effects under random inflow: the selection by the innovations likelihood (issue 16).
+
+Random inflow (``process_noise``) is fitted by filter error; every deterministic candidate by
+output error. A recording with turbulence *and* a sensor offset is then named one or the
+other: the output-error likelihood of the offset is swamped by the turbulence, and once the
+filter-error model wins nothing was added to it. Here the two are put together:
+
+* **deterministic effects on top of random inflow** (:func:`add_deterministic`): forward
+  selection with the filter-error (innovations) likelihood
+  J = ½ Σ_j [ν_jᵀ B_j⁻¹ ν_j + log|B_j|] (Ch.1 eq. 26) as the criterion. Each candidate is the
+  augmented model of the catalogue (the same stack as output error's,
+  :func:`rotor_id.diagnosis.catalogue._build`), fitted with σ_V and the measurement σ's
+  estimated (:func:`rotor_id.estimation.filter_error.fit_filter_error_ml`). The nested ones
+  are first screened by the score test of the innovations likelihood at the current
+  estimate, LM = gᵀ M⁻¹ g (g, M the gradient and Fisher information of J with the extra
+  parameters at their neutral values): one filter pass with sensitivities instead of a fit.
+  An effect is added when its criterion, 2ΔJ·ρ − k log(nρ) (as output error's), exceeds the
+  threshold and its one-step prediction of the unfitted half of the window (innovation RMS,
+  both ways) beats the current model's. A backward check follows each addition, and at the
+  end random inflow itself must still earn its place against the output-error fit of the
+  same deterministic model.
+* **random inflow on top of deterministic effects** (:func:`add_random_inflow`): after the
+  output-error selection, the score test of σ_V² at 0 on the final model (one filter pass:
+  at σ_V = 0 the filter is output error, so the model's own gradient vanishes and only σ_V²'s
+  is left; one-sided, a cost that rises with σ_V² asks for none). Only when it could reach
+  the threshold is the filter-error model fitted, and then it is added under the same
+  criterion and held-out test.
+
+The noise rows are the baseline model's (:func:`rotor_id.estimation.kalman.default_noise_rows`)
+for every candidate, so that all the models compared are nested.
+"""
+
+from dataclasses import dataclass
+import math
+import time
+
+import numpy as np
+
+from rotor_id.diagnosis import residuals as rs
+from rotor_id.diagnosis.catalogue import (
+    _at_catalogue_bound, _build, _full_covariance, _split_runs, _stop_at_bound, applicable,
+    CandidateFit, EQUIVALENT, fit_candidate, Job, layers, n_choices, SCREENED)
+from rotor_id.estimation import kalman
+from rotor_id.estimation.filter_error import (
+    _FilterProblem, _gradient_information, fit_filter_error_ml, measurement_noise_name,
+    PROCESS_NOISE)
+from rotor_id.estimation.output_error import _fit_initial_states, IdentificationError
+from rotor_id.estimation.simulate import DEFAULT_MAX_STEP
+
+NOISE = 'process_noise'
+#: Most filter-error fits of one step cross-validated (the strongest by criterion).
+MAX_VALIDATED = 2
+#: Most screened effects fitted in one step, those of largest score statistic (a filter-error
+#: fit of a time-varying model costs tens of score tests).
+MAX_FITTED = 2
+#: Gauss-Newton (scoring) iterations of a candidate's filter-error fit; it starts at the
+#: current estimate with the extra parameters neutral, a few steps from its optimum.
+MAX_ITER = 20
+FAILURES = (IdentificationError, np.linalg.LinAlgError, FloatingPointError, ValueError)
+
+
+@dataclass
+class _Setup:
+    """What every filter-error fit of one diagnosis shares."""
+
+    base_model: object
+    experiments: list
+    rows: list                  # process-noise rows (state names of the baseline model)
+    noise_std: object           # fixed measurement σ per channel, or None (estimated)
+
+
+def _setup(ctx):
+    from rotor_id.pipeline import channel_noise, experiments_from_record, model_for
+    description = ctx['description']
+    base_model = model_for(description)
+    experiments = experiments_from_record(ctx['record'], description, base_model,
+                                          ctx['window_s'])
+    rows = [base_model.state_names[i] for i in kalman.default_noise_rows(base_model)]
+    noise = description.noise_std_rad
+    fixed = None if noise is None else channel_noise(base_model, float(noise))
+    return _Setup(base_model, experiments, rows, fixed)
+
+
+def _say(ctx, text):
+    if ctx.get('progress') is not None:
+        ctx['progress'](f'{text} ({time.perf_counter() - ctx["t_start"]:.1f} s)')
+
+
+def _job(ctx, effect, variant, kept, start):
+    return Job(effect, variant, ctx['record'], ctx['description'], ctx['values'],
+               ctx['unknowns'], ctx['known'], ctx['window_s'], prior=tuple(kept), start=start)
+
+
+def _sigma_v(est):
+    return float(est.value(PROCESS_NOISE)) if PROCESS_NOISE in est.names else 0.0
+
+
+def _problem(runs, unknowns, guess, known, setup, sigma_v, max_step, start_est,
+             process_sigma=None):
+    """
+    Filter problem of a candidate and its θ at the current estimate (extra parts neutral).
+
+    Every θ entry the current estimate has (model unknowns, initial states, measurement σ's)
+    is taken from it; the candidate's extra parameters stay at their neutral values and its
+    extra initial states at their output-error fit. σ_V² is ``process_sigma``² if given.
+    """
+    prob = _FilterProblem(runs, unknowns, guess, known, setup.noise_std, sigma_v, True,
+                          setup.rows, 'white', 'auto', max_step)
+    k = len(prob.names)
+    base = prob.base
+    theta = np.zeros(k)
+    theta[:len(base.param_index)] = base.p_base[base.param_index]
+    theta[:prob.n_base] = _fit_initial_states(base, theta[:prob.n_base].copy(), max_step)
+    have = dict(zip(start_est.names, start_est.values))
+    for i, name in enumerate(prob.names):
+        if name == PROCESS_NOISE:
+            theta[i] = (sigma_v if process_sigma is None else process_sigma)**2
+        elif name in have and i >= len(base.param_index):
+            theta[i] = have[name]
+    if prob.i_meas is not None:
+        for j, channel in enumerate(prob.model.output_names):
+            name = measurement_noise_name(channel)
+            if name not in have:
+                theta[prob.i_meas][j] = float(np.asarray(start_est.noise_std)[j])
+    y = np.concatenate([e.y for e in runs])
+    scale_meas = float(np.mean(np.asarray(start_est.noise_std, dtype=float)))
+    prob.scale = np.concatenate([np.maximum(np.abs(theta[:prob.n_base]),
+                                            1e-3 * float(np.abs(y).max())),
+                                 np.full(k - prob.n_base, scale_meas)])
+    if prob.i_process is not None:
+        prob.scale[prob.i_process] = scale_meas**2
+    return prob, theta
+
+
+def _score(prob, theta, one_sided=None):
+    """
+    Score statistic LM = gᵀ M⁻¹ g of the innovations likelihood at θ.
+
+    Parameters on a lower bound that the gradient pushes against (σ_V² = 0 with a cost that
+    rises with it) carry no evidence: their gradient is set to zero. ``one_sided`` names a θ
+    index whose positive gradient (the cost rises) means LM = 0.
+    """
+    results = prob.evaluate(theta)
+    g, M = _gradient_information(results, len(theta))
+    if one_sided is not None and g[one_sided] >= 0.0:
+        return 0.0
+    at_lower = (theta <= prob.lo) & (g > 0)
+    # a parameter the data carry no information on (a bilinear one at its neutral value,
+    # e.g. a Lock-number change of a blade whose extra states start at rest) adds nothing
+    informed = (np.diag(M) > 1e-12 * np.max(np.diag(M))) & ~at_lower
+    g, M = g[informed], M[np.ix_(informed, informed)]
+    d = np.sqrt(np.diag(M))
+    gs = g / d
+    return float(gs @ np.linalg.pinv(M / np.outer(d, d), rcond=1e-10) @ gs)
+
+
+def screen(effect, kept, current, ctx, setup):
+    """
+    Score-test one effect on top of ``current`` (filter error): [(variant, LM, k)].
+
+    A sensor lag (not nested, τ > 0) is tested by its first-order equivalent, the delay
+    nested at d = 0, as output error's screening does; a blade dissimilarity blade by blade.
+    """
+    test = 'time_delay' if effect in ('sensor_lag', 'pitch_actuator_lag') else effect
+    blades = list(setup.base_model.blades) if effect == 'blade_dissimilarity' else [None]
+    est = current.estimate
+    start = {n: est.model_parameters[n] for n in current.unknowns}
+    out = []
+    for blade in blades:
+        variant = '' if blade is None else f'blade_{blade}'
+        job = _job(ctx, test, variant, kept, start)
+        runs, model, unknowns, extra, guess, max_step = _build(job, setup.base_model,
+                                                               setup.experiments)
+        prob, theta = _problem(runs, unknowns, guess, job.known, setup, _sigma_v(est),
+                               max_step or DEFAULT_MAX_STEP, est)
+        k = len(prob.names) - len(est.names)
+        out.append((variant, _score(prob, theta), k))
+    return out
+
+
+def fit_filter(effect, variant, kept, start_fit, ctx, setup, max_iter=MAX_ITER):
+    """
+    Filter-error fit of the stack ``kept`` + ``effect`` with σ_V estimated: CandidateFit.
+
+    Started from ``start_fit``'s estimate (a filter-error one: its σ_V and measurement σ's
+    too). ``effect`` None fits ``kept`` alone (the backward check).
+    """
+    t0 = time.perf_counter()
+    est0 = start_fit.estimate
+    start = {n: est0.model_parameters[n] for n in start_fit.unknowns
+             if n in est0.model_parameters}
+    if effect is None:
+        effect, variant = kept[-1]
+        kept = kept[:-1]
+    out = CandidateFit(effect=effect, variant=variant, prior=tuple(kept))
+    try:
+        job = _job(ctx, effect, variant, kept, start)
+        runs, model, unknowns, extra, guess, max_step = _build(job, setup.base_model,
+                                                               setup.experiments)
+        max_step = max_step or DEFAULT_MAX_STEP
+        prob, theta = _problem(runs, unknowns, guess, job.known, setup, _sigma_v(est0),
+                               max_step, est0, process_sigma=max(_sigma_v(est0), 1e-12))
+        begin = {n: v for n, v in zip(prob.names, theta)
+                 if n != PROCESS_NOISE and n not in unknowns}
+        # two iterations at a catalogue bound end the fit: it is reported bound-limited
+        est = fit_filter_error_ml(runs, unknowns, guess=guess, known=job.known,
+                                  noise_std=setup.noise_std, max_iter=max_iter,
+                                  process_noise_std=math.sqrt(theta[prob.i_process]),
+                                  rows=setup.rows, max_step=max_step,
+                                  label=f'{effect} + random inflow', _start=begin,
+                                  progress=_stop_at_bound(model, extra, None))
+    except FAILURES as exc:
+        out.available, out.reason = False, f'filter-error fit failed: {exc}'
+        return out
+    _fill(out, est, model, unknowns, extra, ctx)
+    out.bound_limited = [n for n, _ in _at_catalogue_bound(est, model, extra)]
+    out.elapsed_s = time.perf_counter() - t0
+    out.experiments = runs
+    out.max_step = max_step
+    return out
+
+
+def _fill(out, est, model, unknowns, extra, ctx):
+    """Estimate, model and every effect's parameters ± σ (random inflow's σ's included)."""
+    out.estimate, out.model, out.unknowns, out.extra_names = est, model, unknowns, extra
+    if layers(model):
+        p_full = np.array([est.model_parameters[n] for n in model.parameter_names])
+        cov_full = _full_covariance(est, model)
+        for layer in layers(model):
+            n = len(layer.parameters)
+            out.effect_parameters[layer.effect] = layer.report_parameters(p_full[:n],
+                                                                          cov_full[:n, :n])
+    out.effect_parameters[NOISE] = {n: (est.value(n), est.std_of(n)) for n in est.names
+                                    if n == PROCESS_NOISE or n.startswith('noise_std_')}
+    out.parameters = out.effect_parameters.get(out.effect, {})
+
+
+def cross_validate(fit, ctx, setup):
+    """
+    Held-out one-step prediction of a filter-error model: innovation RMS, or None.
+
+    Fit on one half of the window (σ_V and measurement σ's too, started from the whole
+    window's fit), run the filter with those values over the other half (initial states
+    refitted), both ways; the RMS over channels of the mean-square innovation.
+    """
+    est = fit.estimate
+    runs = fit.experiments
+    max_step = getattr(fit, 'max_step', DEFAULT_MAX_STEP)
+    unknowns = fit.unknowns
+    ms = []
+    try:
+        for half in (0, 1):
+            part = fit_filter_error_ml(
+                _split_runs(runs, half), unknowns,
+                guess={n: est.model_parameters[n] for n in unknowns}, known=ctx['known'],
+                noise_std=setup.noise_std, max_iter=10,
+                process_noise_std=max(_sigma_v(est), 1e-12), rows=setup.rows,
+                max_step=max_step, label='held-out half')
+            known = dict(part.model_parameters)
+            pred = fit_filter_error_ml(
+                _split_runs(runs, 1 - half), [], known=known,
+                noise_std=np.asarray(part.noise_std, dtype=float), max_iter=3,
+                process_noise_std=_sigma_v(part), estimate_process_noise=False,
+                rows=setup.rows, max_step=max_step, label='held-out prediction')
+            res = np.concatenate(pred.residuals, axis=0)
+            ms.append(np.mean(res**2, axis=0))
+    except FAILURES:
+        return None
+    return float(math.sqrt(np.mean(ms)))
+
+
+def _criterion(dll, fit, k, ctx):
+    res = np.concatenate(fit.estimate.residuals, axis=0)
+    rho = min(rs.effective_fraction(res[:, j]) for j in range(res.shape[1]))
+    crit = 2.0 * dll * rho - max(k, 0) * math.log(ctx['n_obs'] * rho)
+    if n_choices(fit.effect, ctx['n_blades']) > 1:
+        crit -= 2.0 * math.log(n_choices(fit.effect, ctx['n_blades']))
+    return crit
+
+
+def _step(current, cur_val, kept, ctx, setup):
+    """One forward step under random inflow: (row, fit) of the effect added, or None."""
+    from rotor_id.diagnosis.diagnose import CRITERION_THRESHOLD, SCREEN_SAFETY, _step_row
+    names = {e for e, _ in kept}
+    excluded = set(names)
+    for e in names:
+        excluded.update(EQUIVALENT.get(e, ()))
+    est = current.estimate
+    todo = []                   # (reach, effect, variant): the unscreened ones first
+    for effect in ctx['effects']:
+        if effect == NOISE or effect in excluded or applicable(
+                effect, ctx['model_name'], ctx['rotor'], ctx['unknowns']):
+            continue
+        if not (ctx['screen'] and effect in SCREENED):
+            todo.append((math.inf, effect, ''))
+            continue
+        try:
+            tests = screen(effect, kept, current, ctx, setup)
+        except FAILURES:
+            tests = [('', math.nan, 0)]
+        variant, lm, k = max(tests, key=lambda v: v[1] if math.isfinite(v[1]) else -1)
+        reach = SCREEN_SAFETY * lm - k * math.log(ctx['n_obs'] / 50.0) \
+            - 2.0 * math.log(n_choices(effect, ctx['n_blades']))
+        if not math.isfinite(lm):
+            reach = math.inf
+        if reach <= CRITERION_THRESHOLD:
+            _say(ctx, f'  + {effect} under random inflow: screened out, innovations '
+                      f'score test 2ΔJ ≈ {lm:.1f}')
+            continue
+        _say(ctx, f'  + {effect} under random inflow: innovations score test 2ΔJ ≈ {lm:.1f}')
+        todo.append((reach, effect, variant))
+    todo.sort(key=lambda c: -c[0])
+    # one fit per physics: first-order equivalents score alike (a lag is tested as a delay)
+    group_seen, screened = set(), []
+    for c in [c for c in todo if math.isfinite(c[0])]:
+        group = frozenset((c[1],) + tuple(EQUIVALENT.get(c[1], ())))
+        if group in group_seen:
+            todo.remove(c)
+            _say(ctx, f'  + {c[1]} under random inflow: not fitted (a first-order '
+                      'equivalent with as large a score is)')
+            continue
+        group_seen.add(group)
+        screened.append(c)
+    for _, effect, _ in screened[MAX_FITTED:]:
+        _say(ctx, f'  + {effect} under random inflow: not fitted ({MAX_FITTED} effects have a '
+                  'larger score)')
+    fits = []
+    for _, effect, variant in [c for c in todo if c not in screened[MAX_FITTED:]]:
+        fit = fit_filter(effect, variant, kept, current, ctx, setup)
+        if not fit.available or fit.bound_limited:
+            _say(ctx, f'  + {effect} under random inflow: '
+                      f'{fit.reason or "bound-limited, not compared"}')
+            continue
+        dll = float(est.neg_log_likelihood - fit.estimate.neg_log_likelihood)
+        crit = _criterion(dll, fit, len(fit.estimate.names) - len(est.names), ctx)
+        _say(ctx, f'  + {effect} under random inflow: ΔJ = {dll:.1f}, criterion {crit:.1f} '
+                  f'({fit.elapsed_s:.1f} s)')
+        if crit > CRITERION_THRESHOLD:
+            fits.append((crit, dll, fit))
+    fits.sort(key=lambda c: -c[0])
+    for crit, dll, fit in fits[:MAX_VALIDATED]:
+        val = cross_validate(fit, ctx, setup)
+        _say(ctx, f'  {fit.effect} under random inflow: held-out innovation RMS '
+                  f'{"n/a" if val is None else f"{val:.4g}"} against '
+                  f'{"n/a" if cur_val is None else f"{cur_val:.4g}"} rad')
+        if val is not None and (cur_val is None or val < cur_val):
+            row = _step_row(fit, dll, crit, val, ctx['floors'], ctx['u'], ctx['t'])
+            return row, fit
+    return None
+
+
+def add_deterministic(noise_fit, noise_row, ctx):
+    """
+    Forward selection of deterministic effects on top of random inflow (filter error).
+
+    Returns (final fit, step rows, notes). The rows start with random inflow's; when no
+    deterministic effect earns its place the answer is ``noise_fit`` and ``[noise_row]``.
+    When some do and random inflow no longer earns its own place beside them (their
+    output-error fit is as likely), it is dropped and the output-error fit is the answer.
+    """
+    from rotor_id.diagnosis.diagnose import CRITERION_THRESHOLD, MAX_EFFECTS, _step_row
+    setup = _setup(ctx)
+    notes = []
+    current = noise_fit
+    current.experiments = current.experiments or setup.experiments
+    current.max_step = DEFAULT_MAX_STEP
+    cur_val = cross_validate(current, ctx, setup)
+    noise_row['validation_rms'] = cur_val
+    steps, kept = [noise_row], []
+    while len(kept) + 1 < MAX_EFFECTS:
+        _say(ctx, f'random inflow step {len(kept) + 2}: deterministic effects on top of '
+                  f'{" + ".join([NOISE] + [e for e, _ in kept])} (filter error)')
+        found = _step(current, cur_val, kept, ctx, setup)
+        if found is None:
+            break
+        row, fit = found
+        kept.append((fit.effect, fit.variant))
+        steps.append(row)
+        current, cur_val = fit, row['validation_rms']
+        for old in list(kept[:-1]):
+            rest = [ev for ev in kept if ev != old]
+            without = fit_filter(None, '', rest, current, ctx, setup)
+            if not without.available:
+                continue
+            dll = float(without.estimate.neg_log_likelihood
+                        - current.estimate.neg_log_likelihood)
+            crit = _criterion(dll, current,
+                              len(current.estimate.names) - len(without.estimate.names), ctx)
+            if crit > CRITERION_THRESHOLD:
+                continue
+            _say(ctx, f'backward check under random inflow: {old[0]} dropped (criterion '
+                      f'{crit:.1f} given the others)')
+            kept.remove(old)
+            steps = [st for st in steps if st['effect'] != old[0]]
+            notes.append(f'{old[0]} was dropped by the backward check: with the effects '
+                         'added after it, it no longer earns its place')
+            current = without
+    if not kept:
+        return noise_fit, [noise_row], notes
+    # random inflow must still earn its place beside the deterministic effects
+    last, others = kept[-1], kept[:-1]
+    start = {n: current.estimate.model_parameters[n] for n in current.unknowns
+             if n in current.estimate.model_parameters}
+    oe = fit_candidate(_job(ctx, last[0], last[1], others, start))
+    if oe.available and not oe.bound_limited:
+        dll = float(oe.estimate.neg_log_likelihood - current.estimate.neg_log_likelihood)
+        crit = _criterion(dll, current, 1, ctx)
+        noise_row.update(delta_loglik=dll, criterion=crit)
+        if crit <= CRITERION_THRESHOLD:
+            det = ' + '.join(e for e, _ in kept)
+            notes.append(f'random inflow no longer earns its place beside {det}: the filter '
+                         f'error gains 2ΔJ = {2 * dll:.1f} over their output-error fit '
+                         f'(criterion {crit:.1f}); dropped')
+            steps = [st for st in steps if st['effect'] != NOISE]
+            current = oe
+            for st in steps:
+                st['fit'] = oe
+    for st in steps:
+        st['parameters'] = current.effect_parameters.get(st['effect'], {})
+        st['confounds'] = []
+        st['adequate'] = _step_row(current, 0.0, 0.0, None, ctx['floors'], ctx['u'],
+                                   ctx['t'])['adequate'] if st['effect'] != NOISE else False
+    current.experiments = []
+    return current, steps, notes
+
+
+def add_random_inflow(final_fit, steps, ctx):
+    """
+    Random inflow on top of the deterministic effects of the output-error selection.
+
+    Returns (fit, row) when it earns its place (criterion and held-out one-step prediction),
+    else None. Screened first: the score test of σ_V² at 0 on the final model.
+    """
+    from rotor_id.diagnosis.diagnose import CRITERION_THRESHOLD, SCREEN_SAFETY, _step_row
+    kept = [(st['effect'], st['variant']) for st in steps]
+    if not kept or any(e == NOISE for e, _ in kept):
+        return None
+    setup = _setup(ctx)
+    est = final_fit.estimate
+    start = {n: est.model_parameters[n] for n in final_fit.unknowns}
+    job = _job(ctx, kept[-1][0], kept[-1][1], kept[:-1], start)
+    try:
+        runs, model, unknowns, extra, guess, max_step = _build(job, setup.base_model,
+                                                               setup.experiments)
+        max_step = max_step or DEFAULT_MAX_STEP
+        prob, theta = _problem(runs, unknowns, guess, job.known, setup, 0.0, max_step, est,
+                               process_sigma=0.0)
+        lm = _score(prob, theta, one_sided=prob.i_process)
+    except FAILURES as exc:
+        _say(ctx, f'random inflow on top of {" + ".join(e for e, _ in kept)}: score test '
+                  f'failed ({exc})')
+        return None
+    reach = SCREEN_SAFETY * lm - math.log(ctx['n_obs'] / 50.0)
+    if reach <= CRITERION_THRESHOLD:
+        _say(ctx, f'random inflow on top of {" + ".join(e for e, _ in kept)}: screened out, '
+                  f'innovations score test of σ_V² = 0 gives 2ΔJ ≈ {lm:.1f}')
+        return None
+    _say(ctx, f'random inflow on top of {" + ".join(e for e, _ in kept)}: score test '
+              f'2ΔJ ≈ {lm:.1f}, fitting by filter error')
+    t0 = time.perf_counter()
+    fit = CandidateFit(effect=NOISE, prior=tuple(kept))
+    try:
+        begin = {n: v for n, v in zip(prob.names, theta)
+                 if n != PROCESS_NOISE and n not in unknowns}
+        fe = fit_filter_error_ml(runs, unknowns, guess=guess, known=job.known,
+                                 noise_std=setup.noise_std, max_iter=MAX_ITER, rows=setup.rows,
+                                 max_step=max_step, label='random inflow on top',
+                                 _start=begin)
+    except FAILURES as exc:
+        _say(ctx, f'random inflow on top: filter-error fit failed ({exc})')
+        return None
+    _fill(fit, fe, model, unknowns, extra, ctx)
+    fit.parameters = fit.effect_parameters[NOISE]
+    fit.experiments, fit.max_step = runs, max_step
+    fit.elapsed_s = time.perf_counter() - t0
+    dll = float(est.neg_log_likelihood - fe.neg_log_likelihood)
+    crit = _criterion(dll, fit, 1, ctx)          # one more parameter: σ_V
+    _say(ctx, f'  + random inflow: ΔJ = {dll:.1f}, criterion {crit:.1f}')
+    if crit <= CRITERION_THRESHOLD:
+        return None
+    val = cross_validate(fit, ctx, setup)
+    cur_val = steps[-1]['validation_rms']
+    _say(ctx, f'  random inflow: held-out innovation RMS '
+              f'{"n/a" if val is None else f"{val:.4g}"} against '
+              f'{"n/a" if cur_val is None else f"{cur_val:.4g}"} rad (output error)')
+    if val is None or (cur_val is not None and val >= cur_val):
+        return None
+    row = _step_row(fit, dll, crit, val, ctx['floors'], ctx['u'], ctx['t'])
+    fit.experiments = []
+    return fit, row
