@@ -689,7 +689,8 @@ def _with_random_inflow(chosen, chosen_fit, steps, ctx, notes, last_resort, pass
     from rotor_id.diagnosis import noisy
     if chosen['effect'] == 'process_noise':
         fit, found, more = noisy.add_deterministic(chosen_fit, steps[0], ctx)
-        notes += more
+        notes += more + [_confound_text(st['effect'], c) for st in found
+                         for c in st.get('confounds', [])]
         deterministic = [st['effect'] for st in found if st['effect'] != 'process_noise']
         if deterministic:
             # found beside (or in place of) random inflow: it is no longer the last resort

@@ -130,6 +130,18 @@ def _problem(runs, unknowns, guess, known, setup, sigma_v, max_step, start_est,
                                  np.full(k - prob.n_base, scale_meas)])
     if prob.i_process is not None:
         prob.scale[prob.i_process] = scale_meas**2
+    # the extra states' initial values: their output-error fit, or at rest, whichever the
+    # filter finds more likely (a state the effect's neutral value leaves unobservable, as
+    # a dissimilar blade's at ε = 0, gets an arbitrary output-error value)
+    new = [i for i, n in enumerate(prob.names[:prob.n_base])
+           if i >= len(base.param_index) and n not in have]
+    if new:
+        rest = theta.copy()
+        rest[new] = 0.0
+        costs = [0.5 * float(sum(r[4] for r in prob.evaluate(th, sensitivities=False)))
+                 for th in (theta, rest)]
+        if not costs[0] <= costs[1]:
+            theta = rest
     return prob, theta
 
 
@@ -280,8 +292,16 @@ def _criterion(dll, fit, k, ctx):
 
 
 def _step(current, cur_val, kept, ctx, setup):
-    """One forward step under random inflow: (row, fit) of the effect added, or None."""
-    from rotor_id.diagnosis.diagnose import CRITERION_THRESHOLD, SCREEN_SAFETY, _step_row
+    """
+    One forward step under random inflow: (row, fit) of the effect added, or None.
+
+    What every candidate gains (its fit, else its score test) is recorded in a new row of
+    ``ctx['noisy_trace']``, for the confounds (:func:`rotor_id.diagnosis.diagnose._confounds`).
+    """
+    from rotor_id.diagnosis.diagnose import (CRITERION_THRESHOLD, SCREEN_SAFETY,
+                                             _score_test_gain, _step_row)
+    gains = {}
+    ctx['noisy_trace'].append({'after': tuple(e for e, _ in kept), 'gains': gains})
     names = {e for e, _ in kept}
     excluded = set(names)
     for e in names:
@@ -300,6 +320,9 @@ def _step(current, cur_val, kept, ctx, setup):
         except FAILURES:
             tests = [('', math.nan, 0)]
         variant, lm, k = max(tests, key=lambda v: v[1] if math.isfinite(v[1]) else -1)
+        if math.isfinite(lm):
+            gains[effect] = _score_test_gain({'effect': effect, 'lm': lm, 'k': k},
+                                             ctx['n_obs'], ctx['n_blades'])
         reach = SCREEN_SAFETY * lm - k * math.log(ctx['n_obs'] / 50.0) \
             - 2.0 * math.log(n_choices(effect, ctx['n_blades']))
         if not math.isfinite(lm):
@@ -336,6 +359,7 @@ def _step(current, cur_val, kept, ctx, setup):
         crit = _criterion(dll, fit, len(fit.estimate.names) - len(est.names), ctx)
         _say(ctx, f'  + {effect} under random inflow: ΔJ = {dll:.1f}, criterion {crit:.1f} '
                   f'({fit.elapsed_s:.1f} s)')
+        gains[effect] = {'two_delta_loglik': 2.0 * dll, 'criterion': crit, 'how': 'fit'}
         if crit > CRITERION_THRESHOLD:
             fits.append((crit, dll, fit))
     fits.sort(key=lambda c: -c[0])
@@ -359,9 +383,11 @@ def add_deterministic(noise_fit, noise_row, ctx):
     When some do and random inflow no longer earns its own place beside them (their
     output-error fit is as likely), it is dropped and the output-error fit is the answer.
     """
-    from rotor_id.diagnosis.diagnose import CRITERION_THRESHOLD, MAX_EFFECTS, _step_row
+    from rotor_id.diagnosis.diagnose import (_confounds, CRITERION_THRESHOLD, MAX_EFFECTS,
+                                             _step_row)
     setup = _setup(ctx)
     notes = []
+    ctx['noisy_trace'] = []
     current = noise_fit
     current.experiments = current.experiments or setup.experiments
     current.max_step = DEFAULT_MAX_STEP
@@ -416,9 +442,12 @@ def add_deterministic(noise_fit, noise_row, ctx):
             current = oe
             for st in steps:
                 st['fit'] = oe
+    # an effect that passes alone (beside random inflow) but adds nothing once the kept ones
+    # are in is named as confounded with them, as in the output-error selection
+    confounds = _confounds([e for e, _ in kept], {'trace': ctx['noisy_trace']})
     for st in steps:
         st['parameters'] = current.effect_parameters.get(st['effect'], {})
-        st['confounds'] = []
+        st['confounds'] = confounds.get(st['effect'], [])
         st['adequate'] = _step_row(current, 0.0, 0.0, None, ctx['floors'], ctx['u'],
                                    ctx['t'])['adequate'] if st['effect'] != NOISE else False
     current.experiments = []
