@@ -693,10 +693,8 @@ def _with_random_inflow(chosen, chosen_fit, steps, ctx, notes, last_resort, pass
                          for c in st.get('confounds', [])]
         deterministic = [st['effect'] for st in found if st['effect'] != 'process_noise']
         if deterministic:
-            # found beside (or in place of) random inflow: it is no longer the last resort
-            notes[:] = [n for n in notes
-                        if not n.startswith('random inflow is the explanation of last resort')]
-            last_resort = ''
+            # a last resort stays one (low confidence): the output-error fits of these effects
+            # left structured residuals, and a filter tracks any unmodelled dynamics
             notes.append(f'{" + ".join(deterministic)} found by the innovations (filter-error) '
                          'likelihood with random inflow in the model: the output-error '
                          'likelihood of a deterministic effect is swamped by the turbulence')

@@ -423,6 +423,7 @@ def add_deterministic(noise_fit, noise_row, ctx):
                          'added after it, it no longer earns its place')
             current = without
     if not kept:
+        noise_row.setdefault('parameters', noise_fit.parameters)
         return noise_fit, [noise_row], notes
     # random inflow must still earn its place beside the deterministic effects
     last, others = kept[-1], kept[:-1]
