@@ -379,9 +379,10 @@ def add_deterministic(noise_fit, noise_row, ctx):
     Forward selection of deterministic effects on top of random inflow (filter error).
 
     Returns (final fit, step rows, notes). The rows start with random inflow's; when no
-    deterministic effect earns its place the answer is ``noise_fit`` and ``[noise_row]``.
-    When some do and random inflow no longer earns its own place beside them (their
-    output-error fit is as likely), it is dropped and the output-error fit is the answer.
+    deterministic effect earns its place the answer is ``noise_fit`` and ``[noise_row]``, and
+    so it is when some do but random inflow then no longer earns its own place beside them
+    (their output-error fit is as likely): a verdict without random inflow is the
+    output-error selection's, which did not reach it (a note says what was found).
     """
     from rotor_id.diagnosis.diagnose import (_confounds, CRITERION_THRESHOLD, MAX_EFFECTS,
                                              _step_row)
@@ -433,16 +434,17 @@ def add_deterministic(noise_fit, noise_row, ctx):
     if oe.available and not oe.bound_limited:
         dll = float(oe.estimate.neg_log_likelihood - current.estimate.neg_log_likelihood)
         crit = _criterion(dll, current, 1, ctx)
-        noise_row.update(delta_loglik=dll, criterion=crit)
         if crit <= CRITERION_THRESHOLD:
+            # a verdict without random inflow is the output-error selection's to give (it
+            # did not reach this one): this search only adds effects to random inflow
             det = ' + '.join(e for e, _ in kept)
-            notes.append(f'random inflow no longer earns its place beside {det}: the filter '
-                         f'error gains 2ΔJ = {2 * dll:.1f} over their output-error fit '
-                         f'(criterion {crit:.1f}); dropped')
-            steps = [st for st in steps if st['effect'] != NOISE]
-            current = oe
-            for st in steps:
-                st['fit'] = oe
+            notes.append(f'{det} found beside random inflow, but then random inflow no longer '
+                         f'earns its place (the filter error gains 2ΔJ = {2 * dll:.1f} over '
+                         f'their output-error fit, criterion {crit:.1f}): not a verdict of '
+                         'the output-error selection, so random inflow alone is kept')
+            noise_row.setdefault('parameters', noise_fit.parameters)
+            return noise_fit, [noise_row], notes
+        noise_row.update(delta_loglik=dll, criterion=crit)
     # an effect that passes alone (beside random inflow) but adds nothing once the kept ones
     # are in is named as confounded with them, as in the output-error selection
     confounds = _confounds([e for e, _ in kept], {'trace': ctx['noisy_trace']})
