@@ -40,7 +40,7 @@ import numpy as np
 from rotor_id.diagnosis import residuals as rs
 from rotor_id.diagnosis.catalogue import (
     _at_catalogue_bound, _build, _full_covariance, _split_runs, _stop_at_bound, applicable,
-    CandidateFit, EQUIVALENT, fit_candidate, Job, layers, n_choices, SCREENED)
+    CandidateFit, equivalent, fit_candidate, Job, layers, n_choices, SCREENED)
 from rotor_id.estimation import kalman
 from rotor_id.estimation.filter_error import (
     _FilterProblem, _gradient_information, fit_filter_error_ml, measurement_noise_name,
@@ -305,7 +305,7 @@ def _step(current, cur_val, kept, ctx, setup):
     names = {e for e, _ in kept}
     excluded = set(names)
     for e in names:
-        excluded.update(EQUIVALENT.get(e, ()))
+        excluded.update(equivalent(e, ctx.get('mu', 0.0)))
     est = current.estimate
     todo = []                   # (reach, effect, variant): the unscreened ones first
     for effect in ctx['effects']:
@@ -337,7 +337,7 @@ def _step(current, cur_val, kept, ctx, setup):
     # one fit per physics: first-order equivalents score alike (a lag is tested as a delay)
     group_seen, screened = set(), []
     for c in [c for c in todo if math.isfinite(c[0])]:
-        group = frozenset((c[1],) + tuple(EQUIVALENT.get(c[1], ())))
+        group = frozenset((c[1],) + tuple(equivalent(c[1], ctx.get('mu', 0.0))))
         if group in group_seen:
             todo.remove(c)
             _say(ctx, f'  + {c[1]} under random inflow: not fitted (a first-order '
@@ -447,7 +447,8 @@ def add_deterministic(noise_fit, noise_row, ctx):
         noise_row.update(delta_loglik=dll, criterion=crit)
     # an effect that passes alone (beside random inflow) but adds nothing once the kept ones
     # are in is named as confounded with them, as in the output-error selection
-    confounds = _confounds([e for e, _ in kept], {'trace': ctx['noisy_trace']})
+    confounds = _confounds([e for e, _ in kept], {'trace': ctx['noisy_trace'],
+                                                  'mu': ctx.get('mu', 0.0)})
     for st in steps:
         st['parameters'] = current.effect_parameters.get(st['effect'], {})
         st['confounds'] = confounds.get(st['effect'], [])
