@@ -196,6 +196,8 @@ def test_equivalences_that_hold_in_hover_only():
     for e in EFFECTS:                                   # forward flight only removes pairs
         assert set(equivalent(e, 0.4)) <= set(EQUIVALENT.get(e, ()))
         assert all(e in equivalent(q, 0.4) for q in equivalent(e, 0.4))     # symmetric
+
+
 def test_turbulence_and_a_sensor_offset_are_both_named():
     # random inflow swamps the offsets' output-error likelihood, and once the filter-error
     # model won nothing was added to it (0 of 8 turbulence pairs named). With the innovations
