@@ -130,6 +130,11 @@ KNOWN = {
     'final_fit_cpu': {'target': False, 'what': 'live final fit CPU, kept vs rebuilt model, '
                       'on the newest recorded run of live_latency (run that first)'},
     'sensor_intake': {'what': 'live sensor topics: CPU per message, callbacks vs polled batches'},
+    'state_estimator_cpu': {
+        'long': False, 'target': False,     # 1 min
+        'what': 'state estimator node: CPU per second of 1 kHz stream, numpy vs compiled filter',
+        'quick': ['bench/state_estimator_cpu.py', '--seconds', '1', '--repeats', '1',
+                  '--no-write']},
     'value_checks': {'long': False,  # 3 s
                      'what': 'live window value checks (spikes, dead flap) CPU vs the final fit'},
     'messy_sweep': {'long': False, 'target': False,  # 59 s, 9 s CPU at load 10

@@ -221,13 +221,16 @@ def innovation_gain(P, Ht, R, PHT, B, Binv, K):
 
 
 @njit(cache=True, nogil=True)
-def filter_scan(Phi, c, Q, H, d, y, x0, R, P_steady, steady, nu, B, gains, cost):
+def filter_scan(Phi, c, Q, H, d, y, x0, R, P0, steady, nu, B, gains, cost, x_last, P_last):
     """
     Kalman filters of K stacked discrete models, the equations of filter_error.filter_batch.
 
     Phi (T-1, K, n, n), c (T-1, K, n), Q (T-1, K, n, n), H (T, K, m, n), d (T, K, m), y (T, m),
-    x0 (K, n), R (K, m, m), P_steady (K, n, n) used when ``steady``. Fills nu (K, T, m),
-    B (K, T, m, m), gains (K, T, n, m) and cost (K,) (Σ νᵀB⁻¹ν + log|B|).
+    x0 (K, n), R (K, m, m), P0 (K, n, n) the covariance of x0 (filter error: zero), or with
+    ``steady`` the steady-state covariance used throughout. Fills nu (K, T, m),
+    B (K, T, m, m), gains (K, T, n, m), cost (K,) (Σ νᵀB⁻¹ν + log|B|), and the filtered
+    state x_last (K, n) and covariance P_last (K, n, n) after the last sample (the live
+    state estimator's batch, :meth:`rotor_id.nodes.live.StreamingKalman.advance`).
     """
     T = y.shape[0]
     m = y.shape[1]
@@ -247,7 +250,7 @@ def filter_scan(Phi, c, Q, H, d, y, x0, R, P_steady, steady, nu, B, gains, cost)
         for i in range(n):
             x[i] = x0[kk, i]
             for j in range(n):
-                P[i, j] = P_steady[kk, i, j] if steady else 0.0
+                P[i, j] = P0[kk, i, j]
         total = 0.0
         for t in range(T):
             Ht = H[t, kk]
@@ -313,6 +316,10 @@ def filter_scan(Phi, c, Q, H, d, y, x0, R, P_steady, steady, nu, B, gains, cost)
                             P[i, j] = s
                             P[j, i] = s
         cost[kk] = total
+        for i in range(n):
+            x_last[kk, i] = x[i]
+            for j in range(n):
+                P_last[kk, i, j] = P[i, j]
 
 
 def warm_up_filter():
@@ -325,7 +332,7 @@ def warm_up_filter():
     R = np.ones((K_, m, m))
     filter_scan(Phi, c, Phi.copy(), H, d, np.zeros((T, m)), np.zeros((K_, n)), R,
                 np.zeros((K_, n, n)), False, np.empty((K_, T, m)), np.empty((K_, T, m, m)),
-                np.empty((K_, T, n, m)), np.empty(K_))
+                np.empty((K_, T, n, m)), np.empty(K_), np.empty((K_, n)), np.empty((K_, n, n)))
     initial_state_innovations(Phi[:, 0], np.zeros((T, n, m)), H[:, 0], np.eye(n),
                               np.empty((T, m, n)))
 

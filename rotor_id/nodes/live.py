@@ -9,6 +9,7 @@ import math
 
 import numpy as np
 
+from rotor_id.estimation import kernels
 from rotor_id.estimation.information import information_history
 from rotor_id.estimation.kalman import default_noise_rows, DiscreteModel, discretize, kalman_filter
 from rotor_id.estimation.simulate import simulate
@@ -249,6 +250,35 @@ class StreamingKalman:
         result = kalman_filter(sub, y, x, P, self.R)
         self.t, self.x, self.P = float(t[-1]), result.x_filt[-1], result.P_filt[-1]
         return result.x_filt, result.P_filt
+
+    def advance(self, t, inputs, y):
+        """
+        Filter the batch as :meth:`update` does; return the state x (n,) and P (n, n) after it.
+
+        The live node publishes only the state after each batch, so the batch goes through the
+        compiled filter scan (one call, :mod:`rotor_id.estimation.kernels`) when it is loaded;
+        its covariance update is P − K B Kᵀ where :func:`kalman_filter` takes the Joseph form
+        (equal to rounding). Without the compiled kernels this is :meth:`update`.
+        """
+        scan = kernels.filter_kernel()
+        t = np.asarray(t, dtype=float)
+        if scan is None or self.t is None:          # the first batch: the library's filter
+            x, P = self.update(t, inputs, y)
+            return x[-1], P[-1]
+        grid = np.concatenate([[self.t], t])
+        dm = discretize(self.model, self.p, inputs, grid, self.rows, self.q)
+        # predict the last filtered state across the first interval (eqs 27-28)
+        x = dm.Phi[0] @ self.x + dm.c[0]
+        P = dm.Phi[0] @ self.P @ dm.Phi[0].T + dm.Q[0]
+        T, m, n = t.size, y.shape[1], x.size
+        x_last, P_last = np.empty((1, n)), np.empty((1, n, n))
+        scan(np.ascontiguousarray(dm.Phi[1:, None]), np.ascontiguousarray(dm.c[1:, None]),
+             np.ascontiguousarray(dm.Q[1:, None]), np.ascontiguousarray(dm.H[1:, None]),
+             np.ascontiguousarray(dm.d[1:, None]), np.ascontiguousarray(y, dtype=float),
+             x[None], np.diag(self.R)[None], P[None], False, np.empty((1, T, m)),
+             np.empty((1, T, m, m)), np.empty((1, T, n, m)), np.empty(1), x_last, P_last)
+        self.t, self.x, self.P = float(t[-1]), x_last[0], P_last[0]
+        return self.x, self.P
 
 
 # ------------------------------------------------------------------------------ sample checks

@@ -229,6 +229,32 @@ def test_streaming_kalman_equals_the_batch_filter():
     assert np.allclose(stream.P, batch.P_filt[-1], atol=1e-15)
 
 
+@pytest.mark.parametrize('name, mu', [('multiblade_wake', 0.0), ('multiblade', 0.4)])
+def test_streaming_kalman_compiled_batches_equal_the_library_filter(name, mu):
+    """advance() (one compiled scan per batch, the node's path) gives update()'s last states."""
+    from rotor_id.estimation import kernels
+    assert kernels.prefer() is not None, kernels.status()['error']
+    model = build_model(name, RotorConstants(advance_ratio=mu))
+    p = model.nominal()
+    schedule = StirringSchedule(THETA0, math.radians(1.5), -0.1 / math.pi, 2.0, 1.0)
+    t = np.arange(0.0, 30.0, OMEGA / 1000.0)            # 1 kHz at 15 Hz: 318 samples
+    sim = simulate(model, p, schedule, t, np.zeros(model.n_states))
+    y = sim.y + np.random.default_rng(2).normal(0, 1e-3, sim.y.shape)
+    x0, P0 = np.zeros(model.n_states), np.eye(model.n_states) * 4e-4
+    library = StreamingKalman(model, p, np.full(model.n_outputs, 1e-3), x0, P0, 0.01)
+    compiled = StreamingKalman(model, p, np.full(model.n_outputs, 1e-3), x0, P0, 0.01)
+    for k, chunk in enumerate(np.array_split(np.arange(t.size), [20, 21, 40, 60, 150, 250])):
+        if k == 4:                      # new parameters from the identifier between batches
+            library.p = compiled.p = p * 1.1
+        xs, Ps = library.update(t[chunk], schedule, y[chunk])
+        x, P = compiled.advance(t[chunk], schedule, y[chunk])
+        std = np.sqrt(np.diag(Ps[-1]))
+        np.testing.assert_allclose(x, xs[-1], rtol=1e-9, atol=1e-9 * std.min())
+        np.testing.assert_allclose(P, Ps[-1], rtol=1e-9, atol=1e-9 * np.outer(std, std).min())
+        assert np.max(np.abs(x - xs[-1]) / std) < 1e-9
+    assert compiled.t == library.t
+
+
 def test_verdict_extrapolates_a_one_over_t_law_exactly():
     t = np.linspace(70.0, 82.0, 121)
     span = t - t[0]
