@@ -123,16 +123,22 @@ def _message_records(channel, log_ns, rows):
     return out
 
 
-def template_records(workdir):
-    """Return the Schema and Channel records and metadata that rosbags writes for the 3 topics."""
+def template_records(workdir, extra=(), typestore=None):
+    """
+    Return the Schema and Channel records and metadata that rosbags writes for the 3 topics.
+
+    With ``extra`` ((topic, receive ns, message) of ``typestore``), also for their topics.
+    """
     from rotor_id.io.record import Record
-    tiny = Path(workdir) / 'template_bag'
+    tiny = Path(workdir) / ('template_bag' if not extra else 'template_bag_extra')
     if not tiny.exists():
         n = 3
         write_record_bag(tiny, Record(
             time_s=np.arange(n) / RATE_HZ, t=OMEGA * np.arange(n) / RATE_HZ,
             rotor_speed_rad_s=np.full(n, OMEGA), blade_flap=np.zeros((n, 4)),
-            blade_pitch=np.zeros((n, 4)), blade_names=BLADES, stamp0_ns=STAMP0))
+            blade_pitch=np.zeros((n, 4)), blade_names=BLADES, stamp0_ns=STAMP0),
+            extra=[(topic, STAMP0, message) for topic, _, message in extra],
+            typestore=typestore)
     data = next(tiny.glob('*.mcap')).read_bytes()
     summary_start = struct.unpack_from('<Q', data, len(data) - 8 - 20)[0]
     pos, schemas, channels = summary_start, [], {}
@@ -150,11 +156,20 @@ def template_records(workdir):
     return schemas, channels, meta
 
 
-def write_hour_bag(bag, workdir, seed=12):
-    """Write the one-hour bag chunk by chunk; return its path."""
+def write_hour_bag(bag, workdir, seed=12, duration_s=DURATION_S, extra=(), typestore=None):
+    """
+    Write the one-hour bag chunk by chunk; return its path.
+
+    ``duration_s`` shortens (or lengthens) the trimmed part; ``extra`` adds messages (topic,
+    receive ns, message of ``typestore``), each in the chunk of its receive time.
+    """
     rng = np.random.default_rng(seed)
-    schemas, channels, meta = template_records(workdir)
-    n = int(round(DURATION_S * RATE_HZ))
+    schemas, channels, meta = template_records(workdir, extra, typestore)
+    n = int(round(duration_s * RATE_HZ))
+    extra = sorted(((t, int(ns), typestore.serialize_cdr(m, m.__msgtype__))
+                    for t, ns, m in extra), key=lambda e: e[1])
+    extra_topics = sorted({t for t, _, _ in extra})
+    extra_all = list(extra)
     n_transient = int(round(TRANSIENT_S * RATE_HZ))
     flap_end, pitch_end = transient(rng)
     model = MultibladeWake(RotorConstants(advance_ratio=0.0))
@@ -168,7 +183,7 @@ def write_hour_bag(bag, workdir, seed=12):
     with open(path, 'wb') as out:
         out.write(_MAGIC)
         out.write(_record(0x01, _string('ros2') + _string('rotor_id bench')))
-        for record in schemas + [channels[t][1] for t in topics]:
+        for record in schemas + [channels[t][1] for t in topics + extra_topics]:
             out.write(record)
         for first in range(0, n, CHUNK_SAMPLES):
             index = np.arange(first, min(first + CHUNK_SAMPLES, n))
@@ -190,7 +205,19 @@ def write_hour_bag(bag, workdir, seed=12):
             blocks = [_message_records(cid, log_ns, r) for cid, r in zip(ids, rows)]
             widths = [b.shape[1] for b in blocks]
             records = np.hstack(blocks).tobytes()                 # sample by sample
-            body = (struct.pack('<QQQI', int(log_ns[0]), int(log_ns[-1]), len(records), 0)
+            last_chunk = first + CHUNK_SAMPLES >= n
+            here = [e for e in extra if e[1] <= log_ns[-1] or last_chunk]
+            extra = extra[len(here):]
+            extra_at, extra_records = {}, b''
+            for topic, ns, data in here:
+                cid = channels[topic][0]
+                extra_at.setdefault(cid, []).append((ns, len(records) + len(extra_records)))
+                extra_records += _message_records(cid, np.array([ns]), np.frombuffer(
+                    data, np.uint8)[None, :]).tobytes()
+            records += extra_records
+            chunk_start = min([int(log_ns[0])] + [ns for _, ns, _ in here])
+            chunk_end = max([int(log_ns[-1])] + [ns for _, ns, _ in here])
+            body = (struct.pack('<QQQI', chunk_start, chunk_end, len(records), 0)
                     + _string('') + struct.pack('<Q', len(records)) + records)
             chunk_at = out.tell()
             out.write(_record(0x06, body))
@@ -202,11 +229,15 @@ def write_hour_bag(bag, workdir, seed=12):
                 pairs[:, 1] = np.arange(k) * sum(widths) + sum(widths[:j])
                 offsets[cid] = out.tell()
                 out.write(_record(0x07, struct.pack('<HI', cid, pairs.nbytes) + pairs.tobytes()))
-            chunk_index.append((int(log_ns[0]), int(log_ns[-1]), chunk_at, index_at - chunk_at,
+            for cid, pairs in extra_at.items():
+                pairs = np.array(pairs, dtype='<u8')
+                offsets[cid] = out.tell()
+                out.write(_record(0x07, struct.pack('<HI', cid, pairs.nbytes) + pairs.tobytes()))
+            chunk_index.append((chunk_start, chunk_end, chunk_at, index_at - chunk_at,
                                 offsets, out.tell() - index_at, len(records)))
         out.write(_record(0x0F, struct.pack('<I', 0)))
         summary_start = out.tell()
-        for record in schemas + [channels[t][1] for t in topics]:
+        for record in schemas + [channels[t][1] for t in topics + extra_topics]:
             out.write(record)
         for start, end, at, length, offsets, index_length, size in chunk_index:
             entries = b''.join(struct.pack('<HQ', cid, o) for cid, o in offsets.items())
@@ -217,16 +248,17 @@ def write_hour_bag(bag, workdir, seed=12):
         out.write(_record(0x02, struct.pack('<QQI', summary_start, 0, 0)))
         out.write(_MAGIC)
     info = meta['rosbag2_bagfile_information']
-    duration = int(DURATION_S * 1e9) - int(1e9 / RATE_HZ)
+    duration = int(duration_s * 1e9) - int(1e9 / RATE_HZ)
     info['duration'] = {'nanoseconds': duration}
     info['starting_time'] = {'nanoseconds_since_epoch': STAMP0 + LATENCY_NS}
-    info['message_count'] = 3 * n
+    info['message_count'] = 3 * n + len(extra_all)
     info['relative_file_paths'] = [path.name]
-    info['files'] = [{'path': path.name, 'message_count': 3 * n,
+    info['files'] = [{'path': path.name, 'message_count': 3 * n + len(extra_all),
                       'duration': {'nanoseconds': duration},
                       'starting_time': {'nanoseconds_since_epoch': STAMP0 + LATENCY_NS}}]
+    counts = {t: sum(1 for e in extra_all if e[0] == t) for t in extra_topics}
     for entry in info['topics_with_message_count']:
-        entry['message_count'] = n
+        entry['message_count'] = counts.get(entry['topic_metadata']['name'], n)
     (bag / 'metadata.yaml').write_text(yaml.safe_dump(meta, sort_keys=False))
     return bag
 
