@@ -285,11 +285,11 @@ class Diagnostics:
         """Check an input for staleness and rate; call :meth:`received` on each message."""
         self.streams[stream] = [topic, 0, None, None, 0]
 
-    def received(self, stream):
-        """Note one message of a watched input (accepted or not: data arrives)."""
+    def received(self, stream, count=1):
+        """Note ``count`` messages of a watched input arriving now (accepted or not)."""
         entry = self.streams[stream]
         now = self._now()
-        entry[1] += 1
+        entry[1] += count
         entry[3] = now
         if entry[2] is None:
             entry[2] = now

@@ -474,6 +474,30 @@ class StampedSeries:
         self._values[self.size] = values
         self.size += 1
 
+    def extend(self, stamps_ns, values, keep_from_ns=None):
+        """
+        Add accepted samples (k,), (k, width) in stamp order, in one copy.
+
+        As :meth:`append` of each in turn, except that, when the arrays are full, the samples
+        before ``keep_from_ns`` (the one bound of the whole batch) are forgotten at once.
+        """
+        k = len(stamps_ns)
+        if self.size + k > self._stamps.size:
+            if keep_from_ns is not None:
+                self.drop_before(keep_from_ns)
+            capacity = self._stamps.size
+            while self.size + k > 0.75 * capacity:
+                capacity *= 2
+            if capacity > self._stamps.size:
+                stamps, vals = self._stamps, self._values
+                self._stamps = np.empty(capacity, dtype=np.int64)
+                self._values = np.empty((capacity, self.width))
+                self._stamps[:self.size] = stamps[:self.size]
+                self._values[:self.size] = vals[:self.size]
+        self._stamps[self.size:self.size + k] = stamps_ns
+        self._values[self.size:self.size + k] = values
+        self.size += k
+
     def drop_before(self, stamp_ns):
         """Forget the samples stamped before ``stamp_ns``; return how many."""
         cut = int(np.searchsorted(self._stamps[:self.size], stamp_ns, side='left'))
@@ -534,6 +558,12 @@ class AzimuthTracker:
         value = self.unwrapper.add(stamp_ns, psi, omega)
         self.series.append(stamp_ns, (psi, omega, value), keep_from_ns)
         return value
+
+    def add_batch(self, stamps_ns, psi, omega, keep_from_ns=None):
+        """Add accepted samples (k,) each, in stamp order: :meth:`add` of each, one copy."""
+        unwrapped = [self.unwrapper.add(stamp, p, w)
+                     for stamp, p, w in zip(stamps_ns.tolist(), psi.tolist(), omega.tolist())]
+        self.series.extend(stamps_ns, np.column_stack([psi, omega, unwrapped]), keep_from_ns)
 
     @property
     def ready(self):

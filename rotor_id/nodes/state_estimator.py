@@ -102,8 +102,7 @@ class StateEstimator(Node):
 
     def _take_batch(self, role, series, joints, raws):
         """Check and buffer a batch of serialized samples of one sensor topic."""
-        for _ in raws:
-            self.diagnostics.received(role)
+        self.diagnostics.received(role, len(raws))
         if role == 'azimuth':
             checked = checked_azimuth_batch(raws, self.rig.azimuth_joint,
                                             self.azimuth.series.last_stamp,
@@ -116,13 +115,12 @@ class StateEstimator(Node):
                     self._take_azimuth(stamp, names, position, velocity)
                 else:
                     self._take_joint(series, joints, stamp, names, position)
-        elif role == 'azimuth':
-            for stamp, psi, omega in zip(checked[0].tolist(), checked[1].tolist(),
-                                         checked[2].tolist()):
-                self.azimuth.add(stamp, psi, omega, self._keep_from(stamp))
+        elif not checked[0].size:
+            return
+        elif role == 'azimuth':         # whole batches: no Python per sample but the unwrapping
+            self.azimuth.add_batch(*checked, self._keep_from(int(checked[0][0])))
         else:
-            for stamp, values in zip(checked[0].tolist(), checked[1]):
-                series.append(stamp, values, self._keep_from(stamp))
+            series.extend(checked[0], checked[1], self._keep_from(int(checked[0][0])))
 
     def _take_joint(self, series, joints, stamp, names, position):
         try:
@@ -201,8 +199,10 @@ class StateEstimator(Node):
         keep = np.concatenate([[True], np.diff(t_pitch) > 0])
         inputs = SampledInput.from_blade_pitch(t_pitch[keep], self.pitch.values[first:][keep])
         y = self.model.observe_blades(t, self.flap.values[start:end])
-        if self.done_ns is not None and (self.flap.first_stamp - self.done_ns >
-                                         1.5 * sampling_period_ns(self.flap.stamps)):
+        # (the median step only when samples after the last filtered one may be gone)
+        if (self.done_ns is not None and self.flap.first_stamp > self.done_ns
+                and (self.flap.first_stamp - self.done_ns >
+                     1.5 * sampling_period_ns(self.flap.stamps))):
             self.diagnostics.count('dropped_unfiltered', 'flap samples older than buffer_s '
                                    'were dropped before they were filtered')
         self.done_ns = int(stamps[-1])
@@ -233,14 +233,15 @@ class StateEstimator(Node):
 
     def _publish(self, stamp, t, x, P):
         omega = self.azimuth.omega
-        rate = np.array([omega if s.endswith('_dot') else 1.0 for s in self.model.state_names])
+        rates = [s.endswith('_dot') for s in self.model.state_names]
+        rate = np.where(rates, omega, 1.0)
         msg = StateEstimate()
         msg.header.stamp.sec, msg.header.stamp.nanosec = divmod(stamp, 1_000_000_000)
         msg.header.frame_id = self.d['frame_id']
         msg.names = list(self.model.state_names)
-        msg.units = ['rad/s' if s.endswith('_dot') else 'rad' for s in self.model.state_names]
-        msg.values = [float(v) for v in x * rate]
-        msg.covariance = [float(c) for c in (P * np.outer(rate, rate)).ravel()]
+        msg.units = ['rad/s' if r else 'rad' for r in rates]
+        msg.values = (x * rate).tolist()
+        msg.covariance = (P * np.outer(rate, rate)).ravel().tolist()
         msg.azimuth = float(math.fmod(t, 2.0 * math.pi))
         msg.rotor_speed = float(omega)
         self.pub_state.publish(msg)

@@ -255,6 +255,36 @@ def test_streaming_kalman_compiled_batches_equal_the_library_filter(name, mu):
     assert compiled.t == library.t
 
 
+def test_batches_into_the_buffers_keep_what_sample_by_sample_keeps():
+    """extend() / add_batch() (the state estimator's intake) hold append() / add()'s samples."""
+    rng = np.random.default_rng(4)
+    stamps = np.cumsum(rng.integers(900_000, 1_100_000, 5000))       # ~1 kHz, jittered
+    values = rng.normal(size=(stamps.size, 4))
+    omega = 94.0 + rng.normal(0, 0.1, stamps.size)
+    psi = np.mod(np.cumsum(omega * np.diff(stamps, prepend=0) / 1e9), 2 * math.pi)
+    keep_ns = 300_000_000                                 # a 0.3 s buffer
+    one, batched = StampedSeries(4, capacity=64), StampedSeries(4, capacity=64)
+    tracker, batch_tracker = AzimuthTracker(), AzimuthTracker()
+    for chunk in np.array_split(np.arange(stamps.size), np.arange(7, stamps.size, 23)):
+        for i in chunk:
+            one.append(int(stamps[i]), values[i], int(stamps[i]) - keep_ns)
+            tracker.add(int(stamps[i]), psi[i], omega[i], int(stamps[i]) - keep_ns)
+        first = int(stamps[chunk[0]]) - keep_ns
+        batched.extend(stamps[chunk], values[chunk], first)
+        batch_tracker.add_batch(stamps[chunk], psi[chunk], omega[chunk], first)
+        # the batch may keep older samples a little longer; the newest ones are the same
+        tail = min(one.size, batched.size)
+        np.testing.assert_array_equal(batched.stamps[-tail:], one.stamps[-tail:])
+        np.testing.assert_array_equal(batched.values[-tail:], one.values[-tail:])
+        tail = min(tracker.series.size, batch_tracker.series.size)
+        np.testing.assert_array_equal(batch_tracker.series.values[-tail:],
+                                      tracker.series.values[-tail:])
+    need = stamps.size - int(np.searchsorted(stamps, stamps[-1] - keep_ns))
+    for series, reference in ((batched, one), (batch_tracker.series, tracker.series)):
+        assert need <= series.size <= series.capacity <= 4 * need    # bounded by the span
+        assert series.capacity <= reference.capacity
+
+
 def test_verdict_extrapolates_a_one_over_t_law_exactly():
     t = np.linspace(70.0, 82.0, 121)
     span = t - t[0]
