@@ -28,7 +28,8 @@ import numpy as np
 
 from rotor_id import pipeline
 from rotor_id.commands.common import check_output_paths, print_warnings
-from rotor_id.io.bag import read_messages, read_record
+from rotor_id.io.bag import may_read_by_parts, read_messages, read_record
+from rotor_id.io.errors import BagError
 from rotor_id.io.run_description import check_against_record, load_run_description
 
 METHODS = ('output-error', 'filter-error', 'equation-error')
@@ -337,15 +338,26 @@ class SessionRecord:
     def __init__(self, bag, options, slice_s=None):
         self.bag, self.options = bag, {**options, 'window_s': None}
         self.slice_s = float(SESSION_SLICE_S if slice_s is None else slice_s)
-        first = self._read(0.0)
+        first = None
+        if options.get('run') is None and may_read_by_parts(bag):
+            first = self._read(0.0)
+        if first is None or not first.read_around_window:
+            # the whole session without a window, as before the slices: a fault anywhere in
+            # it is an error (a slice is judged as a window: each fault an error in its slice)
+            first = read_record(bag, **self.options)
         self.whole = None if first.read_around_window else first
         self.stamp0_ns, self.blade_names = first.stamp0_ns, first.blade_names
         self.warnings = list(first.warnings)
         self._first = first
 
     def _read(self, start):
-        return read_record(self.bag, **{**self.options,
-                                        'window_s': (start, start + self.slice_s)})
+        stop = start + self.slice_s
+        try:
+            return read_record(self.bag, **{**self.options, 'window_s': (start, stop)})
+        except BagError as err:
+            raise BagError(f'{err} [window_s here is the slice {start:g}-{stop:g} s of the '
+                           f'session, read {self.slice_s:g} s at a time to find its test '
+                           'points]') from None
 
     def window(self, window_s):
         """Return the record around ``window_s`` (the whole record when it was read whole)."""

@@ -692,6 +692,19 @@ def read_record(bag_path, topics=None, joint_names=None, *, n_blades=None, omega
     return record
 
 
+def may_read_by_parts(bag_path):
+    """
+    Say whether :func:`read_record` may read only the part of this bag around a window.
+
+    True for a bag of at least WINDOW_READ_MIN_BYTES whose storage file is not compressed whole
+    (it may still read it all: no index, clocks that disagree); False: every read takes the
+    whole bag, whatever the window.
+    """
+    storage_file = _resolve(bag_path)[2]
+    return (storage_file.stat().st_size >= WINDOW_READ_MIN_BYTES
+            and '.zstd' not in storage_file.suffixes)
+
+
 class _McapParts:
     """Parts of an indexed MCAP by receive time, read chunk by chunk (see _read_window)."""
 

@@ -58,7 +58,7 @@ def session(tmp_path_factory):
     store = typestore_with_custom_types()
     tmp = tmp_path_factory.mktemp('session')
 
-    def bag(name, phases=(), estimates=(), storage='mcap'):
+    def bag(name, phases=(), estimates=(), storage='mcap', written=record):
         extra = []
         for index, phase in phases:
             stamp = int(data['stamps'][index])
@@ -75,7 +75,7 @@ def session(tmp_path_factory):
         topics = {e[0] for e in extra}
         path = tmp / name
         if not path.exists():
-            write_record_bag(path, record, extra=extra, typestore=store, storage=storage)
+            write_record_bag(path, written, extra=extra, typestore=store, storage=storage)
         return path, topics
 
     return {'data': data, 'record': record, 'bag': bag, 'tmp': tmp}
@@ -239,11 +239,7 @@ def test_a_long_session_read_slice_by_slice_gives_the_whole_reads_results(sessio
         return code, json.loads(out.read_text()), list(csv.DictReader(table.open()))
 
     whole = identify_all('whole')
-    monkeypatch.setattr(bag_module, 'WINDOW_READ_MIN_BYTES', 0)
-    monkeypatch.setattr(bag_module, 'WINDOW_READ_MARGIN_S', 0.2)
-    monkeypatch.setattr(bag_module, 'WINDOW_READ_CLOCK_TOLERANCE_S', 0.01)
-    monkeypatch.setattr(bag_module, 'WINDOW_READ_MAX_FRACTION', 10.0)
-    monkeypatch.setattr(identify_command, 'SESSION_SLICE_S', 0.3)
+    _read_in_slices(monkeypatch, slice_s=0.3)
     reads = []
     part = bag_module.read_record
 
@@ -273,3 +269,28 @@ def test_a_long_session_read_slice_by_slice_gives_the_whole_reads_results(sessio
         assert got.keys() == want.keys()
         assert {k: v for k, v in got.items() if k not in WAKE and not k.endswith('_std')} == {
             k: v for k, v in want.items() if k not in WAKE and not k.endswith('_std')}
+
+
+def _read_in_slices(monkeypatch, slice_s=0.3):
+    """Make the bag reader read parts of small bags, and the session go ``slice_s`` at a time."""
+    from rotor_id.commands import identify as identify_command
+    from rotor_id.io import bag as bag_module
+    monkeypatch.setattr(bag_module, 'WINDOW_READ_MIN_BYTES', 0)
+    monkeypatch.setattr(bag_module, 'WINDOW_READ_MARGIN_S', 0.2)
+    monkeypatch.setattr(bag_module, 'WINDOW_READ_CLOCK_TOLERANCE_S', 0.01)
+    monkeypatch.setattr(bag_module, 'WINDOW_READ_MAX_FRACTION', 10.0)
+    monkeypatch.setattr(identify_command, 'SESSION_SLICE_S', slice_s)
+
+
+def test_a_fault_in_a_slice_is_one_line_naming_the_slice(session, capsys, monkeypatch):
+    """A slice is judged as a window: a blade whose flap reads one value there is refused."""
+    from dataclasses import replace
+    dead = session['record'].blade_flap.copy()
+    dead[1300:1700, 2] = 0.0                         # blade 3 reads 0.0 from 1.3 to 1.7 s
+    bag, _ = session['bag']('dead_sqlite3', _schedules(3), storage='sqlite3',
+                            written=replace(session['record'], blade_flap=dead))
+    _read_in_slices(monkeypatch, slice_s=0.2)
+    assert _cli(bag, '--config', CONFIG, '--test-point', 'all') == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and 'blade_3 reads exactly 0 rad' in err[0], err
+    assert 'the slice 1.4-1.6 s of the session, read 0.2 s at a time' in err[0], err
