@@ -294,3 +294,30 @@ def test_a_fault_in_a_slice_is_one_line_naming_the_slice(session, capsys, monkey
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and 'blade_3 reads exactly 0 rad' in err[0], err
     assert 'the slice 1.4-1.6 s of the session, read 0.2 s at a time' in err[0], err
+
+
+def test_estimates_tags_of_a_long_session_need_only_its_first_slice(session, capsys,
+                                                                    monkeypatch):
+    from rotor_id.commands import identify as identify_command
+    bag, _ = session['bag']('estimates_sqlite3', storage='sqlite3',
+                            estimates=[(4 + k, k * LENGTH, 1) for k in range(3)])
+    whole_out, sliced_out = session['tmp'] / 'tags_whole.json', session['tmp'] / 'tags_sliced.json'
+    assert _cli(bag, '--config', CONFIG, '--test-point', 'all', '--json', whole_out) == 0
+    _read_in_slices(monkeypatch)
+    reads = []
+    part = identify_command.read_record
+
+    def counted(*args, **kwargs):
+        reads.append(kwargs['window_s'])
+        return part(*args, **kwargs)
+
+    monkeypatch.setattr(identify_command, 'read_record', counted)
+    assert _cli(bag, '--config', CONFIG, '--test-point', 'all', '--json', sliced_out) == 0
+    capsys.readouterr()
+    assert len(reads) == 1 + 3 and reads[0] == (0.0, 0.3)     # the origin, then each window
+    whole, sliced = json.loads(whole_out.read_text()), json.loads(sliced_out.read_text())
+    assert [r['test_point_start_ns'] for r in sliced] == [r['test_point_start_ns']
+                                                          for r in whole]
+    for got, want in zip(sliced, whole):
+        for name, value in want['parameters'].items():
+            assert got['parameters'][name]['value'] == pytest.approx(value['value'], rel=1e-12)
