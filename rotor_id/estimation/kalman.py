@@ -167,8 +167,8 @@ def discretize(model, p, inputs, t, rows=(), noise_std=0.0, noise_model='white',
         else:
             c = np.einsum('jab,jb->ja', Phi_s[:, s], c) + c_s[:, s]
     if constant:
-        Q = np.broadcast_to(constant_noise_covariance(F[0], np.diff(t)[0], m, rows, sigma,
-                                                      noise_model), (T - 1, n, n))
+        Q = np.broadcast_to(_constant_noise_covariance_memo(F[0], np.diff(t)[0], m, rows, sigma,
+                                                            noise_model), (T - 1, n, n))
         G = np.broadcast_to(held_noise_response(F[0], np.diff(t)[0], m, rows),
                             (T - 1, n, len(rows))) if noise_model == 'held' else None
     else:
@@ -255,6 +255,27 @@ def constant_noise_covariance(F, dt, substeps, rows, sigma, noise_model):
     Qc = np.zeros((n, n))
     Qc[rows, rows] = sigma**2
     return van_loan(F[None], Qc, np.array([dt]))[1][0]
+
+
+#: Q of the time-invariant discretisations done last, by their exact arguments: a stream cut
+#: into batches (the live state estimator, 50 a second) discretises the same F and Δt each
+#: time, and Van Loan's exponential was a third of its discretisation.
+_Q_MEMO = {}
+_Q_MEMO_SIZE = 32
+
+
+def _constant_noise_covariance_memo(F, dt, substeps, rows, sigma, noise_model):
+    """:func:`constant_noise_covariance`, remembered for the same arguments (a read-only Q)."""
+    key = (F.tobytes(), F.shape, float(dt), int(substeps), tuple(rows),
+           np.asarray(sigma, dtype=float).tobytes(), noise_model)
+    Q = _Q_MEMO.get(key)
+    if Q is None:
+        if len(_Q_MEMO) >= _Q_MEMO_SIZE:
+            _Q_MEMO.clear()
+        Q = constant_noise_covariance(F, dt, substeps, rows, sigma, noise_model)
+        Q.setflags(write=False)
+        _Q_MEMO[key] = Q
+    return Q
 
 
 def expm_batch(A):

@@ -18,7 +18,7 @@ import math
 import numpy as np
 import pytest
 from rotor_id.estimation import kalman
-from rotor_id.estimation.simulate import simulate
+from rotor_id.estimation.simulate import simulate, substeps_for
 from rotor_id.physics.models import (MultibladeConstant, MultibladeWake, RotorConstants,
                                      SingleBlade)
 from rotor_id.physics.stirring import StirringSchedule
@@ -230,3 +230,24 @@ def test_smoother_reconstructs_the_unmeasured_inflow():
     # measured: βI, βII 5.5 %, 3.5 % (model alone 33 %, 32 %); λI, λII 10 %, 10 %
     assert np.all(err[[4, 5]] < 0.15), err
     assert np.all(err[[0, 2]] < err_model[[0, 2]] / 4), (err, err_model)
+
+
+def test_remembered_noise_covariance_is_the_one_of_each_discretisation():
+    """Batches of one stream reuse Q by its exact arguments; another Δt, σ or p gets its own."""
+    model = MultibladeWake(RotorConstants(advance_ratio=0.0))
+    p = model.nominal()
+    schedule = StirringSchedule(0.0349, 0.0262, -0.1 / math.pi, 2.0, 1.0)
+    kalman._Q_MEMO.clear()
+    for dt, sigma, scale in ((0.0942, 0.01, 1.0), (0.0942, 0.01, 1.0), (0.0943, 0.01, 1.0),
+                             (0.0942, 0.02, 1.0), (0.0942, 0.01, 1.1)):
+        t = 5.0 + dt * np.arange(30)
+        dm = kalman.discretize(model, p * scale, schedule, t, [4, 5], sigma)
+        F = model.system(t[:1], p * scale, schedule(t[:1]))[0][0]
+        fresh = kalman.constant_noise_covariance(F, np.diff(t)[0], substeps_for(t), [4, 5],
+                                                 np.array([sigma] * 2), 'white')
+        np.testing.assert_array_equal(dm.Q[0], fresh)
+        np.testing.assert_array_equal(dm.Q[-1], fresh)
+    assert len(kalman._Q_MEMO) == 4                 # the repeated discretisation reused its Q
+    for k in range(2 * kalman._Q_MEMO_SIZE):        # bounded however many models come
+        kalman.discretize(model, p * (1 + 1e-3 * k), schedule, t, [4, 5], 0.01)
+    assert len(kalman._Q_MEMO) <= kalman._Q_MEMO_SIZE
