@@ -131,7 +131,7 @@ KNOWN = {
                       'on the newest recorded run of live_latency (run that first)'},
     'sensor_intake': {'what': 'live sensor topics: CPU per message, callbacks vs polled batches'},
     'state_estimator_cpu': {
-        'long': False, 'target': False,     # 20 s at load 5
+        'long': False, 'target': False,     # 35 s at load 5
         'what': 'state estimator node: CPU per second of 1 kHz stream, numpy vs compiled filter',
         'quick': ['bench/state_estimator_cpu.py', '--seconds', '1', '--repeats', '1',
                   '--no-write']},

@@ -137,7 +137,7 @@ def run(seconds=10.0, profile=False, publish_to=None):
 def main():
     parser = argparse.ArgumentParser(description=__doc__.split('\n\n')[0])
     parser.add_argument('--seconds', type=float, default=10.0, help='stream length (s)')
-    parser.add_argument('--repeats', type=int, default=3, help='runs of each filter path')
+    parser.add_argument('--repeats', type=int, default=5, help='runs of each filter path')
     parser.add_argument('--profile', action='store_true', help='print the cProfile of the ticks')
     parser.add_argument('--no-write', action='store_true', help='print only (a smoke run)')
     args = parser.parse_args()
