@@ -336,7 +336,9 @@ class SessionRecord:
     """
 
     def __init__(self, bag, options, slice_s=None):
-        self.bag, self.options = bag, {**options, 'window_s': None}
+        # slices and windows are read without the reader's dead-sensor check: a blade may
+        # read one value between test points; each fitted window is checked by the caller
+        self.bag, self.options = bag, {**options, 'window_s': None, 'check_dead_flap': False}
         self.slice_s = float(SESSION_SLICE_S if slice_s is None else slice_s)
         first = None
         if options.get('run') is None and may_read_by_parts(bag):
@@ -551,6 +553,12 @@ def run_test_points(args, configs):
     live = _live_windows(bag, description)
     method = args.method or description.method
     results, rows, all_converged = [], [], True
+
+    def not_identified(head, reason):
+        results.append({**head, 'status': 'not identified', 'reason': reason})
+        rows.append({**head, 'status': 'not identified', 'converged': False})
+        print(f'test point {head["test_point"]}: not identified ({reason})')
+
     for point in points:
         shift = (point.stamp0_ns - session.stamp0_ns) / NS
         head = {'test_point': point.number, 'found_from': source,
@@ -568,15 +576,24 @@ def run_test_points(args, configs):
                                  "--test-point and set window_s to seconds after the bag's "
                                  f'first flap sample (this test point starts at {shift:.4f} s)')
             all_converged = False
-            results.append({**head, 'status': 'not identified', 'reason': reason})
-            rows.append({**head, 'status': 'not identified', 'converged': False})
-            print(f'test point {point.number}: not identified ({reason})')
+            not_identified(head, reason)
             continue
         window = (point.window_s[0] + shift, point.window_s[1] + shift)
         desc_k = replace(description, window_s=window)
         record = session.window(window)
         print_warnings(session.warnings[printed:])
         printed = len(session.warnings)
+        dead = record.stuck_flap_blades(*window)
+        if dead:
+            # a dead sensor spoils this test point only: the others are still identified
+            reason = ('dead flap sensor: ' + ', '.join(
+                f'{name} reads exactly {value:.6g} rad' for name, value in dead)
+                + ' in every sample of the window; check the sensor and its wiring')
+            if wanted is not None:
+                raise ValueError(f'{point.describe()}: {reason}')
+            all_converged = False
+            not_identified(head, reason)
+            continue
         check_against_record(desc_k, record)
         if point.check is not None and not point.check.complete:
             print_warnings([f'test point {point.number}: the bag misses samples in its window '

@@ -601,7 +601,7 @@ def _gaps(stamps_ns, omega, topic, issues, what):
 
 def read_record(bag_path, topics=None, joint_names=None, *, n_blades=None, omega_rad_s=None,
                 run=None, window_s=None, azimuth_joint=DEFAULT_AZIMUTH_JOINT,
-                azimuth_convention='wrapped'):
+                azimuth_convention='wrapped', check_dead_flap=True):
     """
     Read a test-stand recording into a Record on the flap stamps.
 
@@ -634,6 +634,11 @@ def read_record(bag_path, topics=None, joint_names=None, *, n_blades=None, omega
     azimuth_joint, azimuth_convention
         Joint name on the azimuth topic, and 'wrapped' ([0, 2π)) or 'unwrapped' position
         (the run description's; :meth:`RunDescription.record_options` gives all of these).
+    check_dead_flap
+        Refuse a blade whose flap reads one exact value throughout ``window_s`` (a dead
+        sensor). False when ``window_s`` only says which part of a long bag to read and the
+        caller checks each window it fits (a session's slices:
+        :meth:`Record.stuck_flap_blades`).
 
     Returns
     -------
@@ -677,7 +682,7 @@ def read_record(bag_path, topics=None, joint_names=None, *, n_blades=None, omega
                               'metadata.yaml were read')
 
     record = _assemble(ctx, wanted, joint_names, n_blades, omega_rad_s, window_s,
-                       (azimuth_joint, azimuth_convention))
+                       (azimuth_joint, azimuth_convention), check_dead_flap)
     part = ''
     record.read_around_window = origin_ns is not None
     if origin_ns is not None:
@@ -887,7 +892,7 @@ def _decompress_messages(raw):
 
 
 def _assemble(ctx, wanted, joint_names, n_blades, omega_rad_s, window_s,
-              azimuth=(DEFAULT_AZIMUTH_JOINT, 'wrapped')):
+              azimuth=(DEFAULT_AZIMUTH_JOINT, 'wrapped'), check_dead_flap=True):
     issues = ctx.issues
     flap_topic, pitch_topic = wanted['blade_flap'], wanted['blade_pitch']
     flap_s = _topic_samples(ctx, flap_topic, 'blade_flap', False)
@@ -943,7 +948,8 @@ def _assemble(ctx, wanted, joint_names, n_blades, omega_rad_s, window_s,
                       'taken as 0')
     omega_mean = float(np.mean(speed))
     _judge_faults(ctx, stamp0, window_s, omega_mean)
-    _dead_flap_sensors(time_s, flap, blade_names, flap_topic, window_s)
+    if check_dead_flap:
+        _dead_flap_sensors(time_s, flap, blade_names, flap_topic, window_s)
     _check_increasing(ctx, t, time_s, wanted.get('azimuth'), window_s)
     _gaps(flap_ns, omega_mean, flap_topic, issues, 'flap samples there are missing')
     _gaps(pitch_ns, omega_mean, pitch_topic, issues, 'pitch is interpolated across')

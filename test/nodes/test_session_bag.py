@@ -282,18 +282,56 @@ def _read_in_slices(monkeypatch, slice_s=0.3):
     monkeypatch.setattr(identify_command, 'SESSION_SLICE_S', slice_s)
 
 
-def test_a_fault_in_a_slice_is_one_line_naming_the_slice(session, capsys, monkeypatch):
-    """A slice is judged as a window: a blade whose flap reads one value there is refused."""
+def _dead_blade_bag(session, name, first, last):
+    """Write a session bag whose blade 3 reads 0.0 from sample ``first`` to ``last``."""
     from dataclasses import replace
     dead = session['record'].blade_flap.copy()
-    dead[1300:1700, 2] = 0.0                         # blade 3 reads 0.0 from 1.3 to 1.7 s
-    bag, _ = session['bag']('dead_sqlite3', _schedules(3), storage='sqlite3',
+    dead[first:last, 2] = 0.0
+    bag, _ = session['bag'](name, _schedules(3), storage='sqlite3',
                             written=replace(session['record'], blade_flap=dead))
-    _read_in_slices(monkeypatch, slice_s=0.2)
-    assert _cli(bag, '--config', CONFIG, '--test-point', 'all') == 2
-    err = capsys.readouterr().err.strip().splitlines()
-    assert len(err) == 1 and 'blade_3 reads exactly 0 rad' in err[0], err
-    assert 'the slice 1.4-1.6 s of the session, read 0.2 s at a time' in err[0], err
+    return bag
+
+
+@pytest.mark.parametrize('sliced', [False, True])
+def test_a_dead_flap_between_test_points_spoils_nothing(session, capsys, monkeypatch, sliced):
+    """
+    Identify every test point when a blade reads one value only between them.
+
+    A blade reading one value outside every window (sensors off between test points) is no
+    fault: read whole or slice by slice, the session's three test points are identified.
+    """
+    bag = _dead_blade_bag(session, 'dead_between_sqlite3', 1300, 1700)   # 1.3-1.7 s
+    if sliced:
+        _read_in_slices(monkeypatch, slice_s=0.2)
+    table = session['tmp'] / f'dead_between_{sliced}.csv'
+    assert _cli(bag, '--config', CONFIG, '--test-point', 'all', '--csv', table) == 0
+    capsys.readouterr()
+    assert [r['status'] for r in csv.DictReader(table.open())] == ['converged'] * 3
+
+
+@pytest.mark.parametrize('sliced', [False, True])
+def test_a_dead_flap_in_a_window_spoils_that_test_point_only(session, capsys, monkeypatch,
+                                                             sliced):
+    """
+    Leave out only the test point whose window holds a dead flap sensor.
+
+    Blade 3 reads one value throughout test point 2's window (1.81-1.94 s): that test
+    point is not identified, with the blade and the value; the others are; exit 1. Asked
+    for alone, it is one line and exit 2.
+    """
+    bag = _dead_blade_bag(session, 'dead_in_window_sqlite3', 1750, 2000)
+    if sliced:
+        _read_in_slices(monkeypatch, slice_s=0.2)
+    table = session['tmp'] / f'dead_in_window_{sliced}.csv'
+    assert _cli(bag, '--config', CONFIG, '--test-point', 'all', '--csv', table) == 1
+    out = capsys.readouterr().out
+    assert [r['status'] for r in csv.DictReader(table.open())] == [
+        'converged', 'not identified', 'converged']
+    assert 'test point 2: not identified (dead flap sensor: blade_3 reads exactly 0 rad' in out
+    assert _cli(bag, '--config', CONFIG, '--test-point', '2') == 2
+    err = [line for line in capsys.readouterr().err.strip().splitlines()
+           if not line.startswith('warning: ')]      # (the step to 0.0 may look like a spike)
+    assert len(err) == 1 and 'dead flap sensor: blade_3 reads exactly 0 rad' in err[0], err
 
 
 def test_estimates_tags_of_a_long_session_need_only_its_first_slice(session, capsys,
