@@ -30,7 +30,6 @@ NS = 1_000_000_000
 def stream(seconds, period_s, params):
     """Batches of serialized (flap, pitch, azimuth) JointStates, one per tick."""
     from rclpy.serialization import serialize_message
-    from rotor_id.io.jointstate_cdr import parse_layout
     from rotor_id.nodes.live import PlantStepper
     from rotor_id.physics.models import RotorConstants
     from rotor_id.physics.stirring import StirringSchedule
@@ -53,15 +52,7 @@ def stream(seconds, period_s, params):
         msg = JointState()
         msg.header.stamp.sec, msg.header.stamp.nanosec = divmod(stamp, NS)
         msg.name, msg.position, msg.velocity = names, position, list(velocity)
-        raw = serialize_message(msg)
-        # rclpy's serialize_message returns its buffer with 8 bytes of slack at the end (DDS
-        # delivers the message's own length): cut to what the CDR layout uses
-        try:
-            parse_layout(raw)
-        except ValueError:
-            raw = raw[:-8]
-            parse_layout(raw)
-        return raw
+        return serialize_message(msg)
 
     sample = 0
     batches = []

@@ -26,6 +26,10 @@ FIELDS = ('position', 'velocity', 'effort')
 _HEADER = 4  # CDR encapsulation header
 _ENCAPSULATION = {0: False, 1: True}  # CDR_BE, CDR_LE -> little endian?
 _MAX_TRAILING = 7  # serializers may pad the end of the message
+# rclpy's serialize_message (Fast CDR's size bound) also leaves the 4 bytes that would align an
+# empty float64[] to 8 at the end: a position-only message written to a bag by a Python script
+# ends 8 bytes after its effort[] count
+_EMPTY_SEQUENCE_SLACK = 4
 
 
 @dataclass(frozen=True)
@@ -164,7 +168,8 @@ def parse_layout(raw):
             raise ValueError(f'JointState {field}[] runs past the end of the message')
         offsets[field] = (pos, count)
         pos += 8 * count
-    if size - pos > _MAX_TRAILING:
+    empty = sum(1 for _, count in offsets.values() if count == 0)
+    if size - pos > _MAX_TRAILING + _EMPTY_SEQUENCE_SLACK * empty:
         raise ValueError(f'{size - pos} unexpected bytes after the JointState fields')
     return JointStateLayout(size, little, frame_id, tuple(names), offsets)
 

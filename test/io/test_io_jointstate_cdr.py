@@ -89,3 +89,34 @@ def test_big_endian_message_decodes():
 def test_malformed_bytes_raise_value_error(raw):
     with pytest.raises(ValueError):
         decode_one(raw)
+
+
+@pytest.mark.parametrize('fields', [('position',), ('position', 'velocity'),
+                                    ('position', 'effort'), ('position', 'velocity', 'effort')])
+@pytest.mark.parametrize('frame_id', ['', 'hub', 'a_longer_frame'])
+def test_messages_serialized_by_rclpy_decode(fields, frame_id):
+    """
+    Read what rclpy's own serializer writes (a bag made by a Python script).
+
+    serialize_message leaves up to 4 bytes per empty float64[] after the last field (12 with
+    all three empty); a position-only flap message used to be refused for its 8.
+    """
+    from rclpy.serialization import serialize_message
+    from sensor_msgs.msg import JointState
+    names = ['blade_1', 'blade_2', 'blade_3']
+    raws = []
+    for k in range(3):
+        msg = JointState()
+        msg.header.stamp.sec, msg.header.stamp.nanosec = 7, 1000 * k
+        msg.header.frame_id = frame_id
+        msg.name = names
+        for field in fields:
+            setattr(msg, field, [0.25 * k + j for j in range(3)])
+        raws.append(serialize_message(msg))
+    batch = decode_batch(raws)
+    assert not batch.dropped
+    np.testing.assert_array_equal(batch.stamps_ns, [7_000_000_000 + 1000 * k for k in range(3)])
+    np.testing.assert_array_equal(batch.position[2], [0.5, 1.5, 2.5])
+    stamp, got_names, position, velocity = decode_one(raws[1])
+    assert got_names == tuple(names) and position.tolist() == [0.25, 1.25, 2.25]
+    assert velocity.size == (3 if 'velocity' in fields else 0)
