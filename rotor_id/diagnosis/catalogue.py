@@ -594,12 +594,7 @@ def fit_candidate(job):
     out.estimate, out.model, out.unknowns, out.extra_names = est, model, unknowns, extra
     out.experiments = runs
     out.n_extra = len(est.names) - len(job.unknowns) - _n_initial(experiments)
-    p_full = np.array([est.model_parameters[n] for n in model.parameter_names])
-    cov_full = _full_covariance(est, model)
-    for layer in layers(model):
-        n = len(layer.parameters)
-        out.effect_parameters[layer.effect] = layer.report_parameters(p_full[:n],
-                                                                      cov_full[:n, :n])
+    out.effect_parameters.update(effect_parameters(est, model))
     out.parameters = out.effect_parameters.get(job.effect, {})
     if job.validate:
         try:
@@ -714,6 +709,19 @@ def _blades_of(model, record):
 
 def _n_initial(experiments):
     return sum(len(e.free_states()) for e in experiments)
+
+
+def effect_parameters(est, model):
+    """Return {effect: its parameters ± σ as reported} for each augmentation layer of a fit."""
+    if not layers(model):
+        return {}
+    p_full = np.array([est.model_parameters[n] for n in model.parameter_names])
+    cov_full = _full_covariance(est, model)
+    found = {}
+    for layer in layers(model):
+        n = len(layer.parameters)          # its base's parameters, then its own
+        found[layer.effect] = layer.report_parameters(p_full[:n], cov_full[:n, :n])
+    return found
 
 
 def _full_covariance(est, model):

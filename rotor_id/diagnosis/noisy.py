@@ -39,8 +39,8 @@ import numpy as np
 
 from rotor_id.diagnosis import residuals as rs
 from rotor_id.diagnosis.catalogue import (
-    _at_catalogue_bound, _build, _full_covariance, _split_runs, _stop_at_bound, applicable,
-    CandidateFit, equivalent, fit_candidate, Job, layers, n_choices, SCREENED)
+    _at_catalogue_bound, _build, _split_runs, _stop_at_bound, applicable, CandidateFit,
+    effect_parameters, equivalent, fit_candidate, Job, n_choices, SCREENED)
 from rotor_id.estimation import kalman
 from rotor_id.estimation.filter_error import (
     _FilterProblem, _gradient_information, fit_filter_error_ml, measurement_noise_name,
@@ -236,13 +236,7 @@ def fit_filter(effect, variant, kept, start_fit, ctx, setup, max_iter=MAX_ITER):
 def _fill(out, est, model, unknowns, extra, ctx):
     """Estimate, model and every effect's parameters ± σ (random inflow's σ's included)."""
     out.estimate, out.model, out.unknowns, out.extra_names = est, model, unknowns, extra
-    if layers(model):
-        p_full = np.array([est.model_parameters[n] for n in model.parameter_names])
-        cov_full = _full_covariance(est, model)
-        for layer in layers(model):
-            n = len(layer.parameters)
-            out.effect_parameters[layer.effect] = layer.report_parameters(p_full[:n],
-                                                                          cov_full[:n, :n])
+    out.effect_parameters.update(effect_parameters(est, model))
     out.effect_parameters[NOISE] = {n: (est.value(n), est.std_of(n)) for n in est.names
                                     if n == PROCESS_NOISE or n.startswith('noise_std_')}
     out.parameters = out.effect_parameters.get(out.effect, {})
