@@ -18,8 +18,11 @@ import argparse
 import json
 import math
 import multiprocessing
+import os
 from pathlib import Path
+import subprocess
 import sys
+import tempfile
 import time
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -29,8 +32,12 @@ sys.path.insert(0, str(ROOT / 'test' / 'diagnosis'))
 from diagnosis_scenarios import BY_NAME, evaluate, PAIR_STUDY, SCENARIOS  # noqa: E402
 import numpy as np  # noqa: E402
 from rotor_id.diagnosis.diagnose import diagnose  # noqa: E402
+import truth_generator  # noqa: E402
 
 RESULTS = ROOT / 'bench' / 'results'
+#: the commit the study ran at (each run records it), '' outside a git checkout
+COMMIT = subprocess.run(['git', '-C', str(ROOT), 'rev-parse', '--short', 'HEAD'],
+                        capture_output=True, text=True, check=False).stdout.strip()
 
 
 def run_one(args):
@@ -39,12 +46,16 @@ def run_one(args):
     scenario = BY_NAME[name]
     t0, c0 = time.perf_counter(), time.process_time()
     record, description = scenario.record_and_description(seed)
+    generated = {'generate_s': time.perf_counter() - t0,
+                 'generate_cpu_s': time.process_time() - c0, 'commit': COMMIT}
+    t0, c0 = time.perf_counter(), time.process_time()
     try:
         result = diagnose(record, description, workers=1).as_json()
     except Exception as exc:  # noqa: B902 - a failed run is a result of the study
         return {'scenario': name, 'seed': seed, 'effect': f'error: {exc}', 'right': False,
-                'elapsed_s': time.perf_counter() - t0}
+                'elapsed_s': time.perf_counter() - t0, **generated}
     out = evaluate(scenario, result)
+    out.update(generated)
     out.update(seed=seed, elapsed_s=time.perf_counter() - t0, cpu_s=time.process_time() - c0,
                parameters=result['explanation']['parameters'],
                candidates=[{k: c.get(k) for k in ('effect', 'variant', 'delta_loglik',
@@ -67,7 +78,9 @@ def summarize(runs, seeds):
              '|estimate − truth|/σ of the original parameters, baseline → corrected. Pairs: '
              '`named right` counts an effect reported as confounded with a named one (the '
              'same physics to first order in that record, issue 16), `both named` does not; '
-             '`confounded` lists what was reported so. `s/run` wall (CPU) per run.', '',
+             '`confounded` lists what was reported so. `s/run` wall (CPU) per run of the '
+             "diagnosis alone (the truth's generation, or its read from the cache, is "
+             '`generate_s` in the JSON).', '',
              '| scenario | truth effect | named right | both named | confounded | names given | '
              'wrong names (high conf.) | '
              'runs with an effect added beyond the truth | '
@@ -138,7 +151,14 @@ def main(argv=None):
                              'every scenario gets its first seed early)')
     parser.add_argument('--workers', type=int, default=2)
     parser.add_argument('--out', default=str(RESULTS / 'diagnosis'))
+    parser.add_argument('--truth-cache', default=str(Path(tempfile.gettempdir())
+                                                     / 'rotor_id_truth_cache'),
+                        help='directory of generated truth records, looked up by a hash of the '
+                             'generator source and the truth (a re-run reads them: a turbulent '
+                             'record takes seconds to generate); "" generates every record')
     args = parser.parse_args(argv)
+    if args.truth_cache:
+        os.environ[truth_generator.CACHE_ENV] = args.truth_cache
     unknown = [n for n in args.scenarios if n not in BY_NAME]
     if unknown:
         parser.error(f'unknown scenario(s) {unknown}; choose from {list(BY_NAME)}')
