@@ -33,6 +33,7 @@ from diagnosis_scenarios import BY_NAME, evaluate, PAIR_STUDY, SCENARIOS  # noqa
 import numpy as np  # noqa: E402
 from rotor_id.diagnosis.diagnose import diagnose  # noqa: E402
 import truth_generator  # noqa: E402
+from run_all import NOTES_MARK, notes_of  # noqa: E402,I100
 
 RESULTS = ROOT / 'bench' / 'results'
 #: the commit the study ran at (each run records it), '' outside a git checkout
@@ -129,12 +130,29 @@ def summarize(runs, seeds):
     return '\n'.join(lines) + '\n'
 
 
-def rewrite_summary(path, seeds):
+def results_markdown(runs, seeds, command, notes, load_at_start):
+    """
+    The results file: the table, how it was made (command, commit, load), then ``notes``.
+
+    ``notes`` are the hand-written notes of the file being replaced (from :data:`NOTES_MARK`
+    on), so a re-run, or an interrupted one, keeps them; their figures are to be checked.
+    """
+    commits = sorted({r.get('commit', '') for r in runs} - {''})
+    made = (f'Reproduce: `{command}` ({seeds} seed(s) per scenario; commit '
+            f'{", ".join(commits) or "unknown"}; load average (1/5/15 min) '
+            f'{" / ".join(f"{x:.2f}" for x in load_at_start)} at the start, '
+            f'{" / ".join(f"{x:.2f}" for x in os.getloadavg())} at the last write).')
+    text = summarize(runs, seeds) + '\n' + made + '\n'
+    return text + '\n' + (notes or NOTES_MARK + '\n')
+
+
+def rewrite_summary(path, seeds, command='python bench/diagnosis_stats.py'):
     """Regenerate the Markdown table from a study's JSON (e.g. after an interrupted run)."""
     path = Path(path)
     runs = json.loads(path.with_suffix('.json').read_text())
-    path.with_suffix('.md').write_text(summarize(runs, seeds))
-    return path.with_suffix('.md')
+    md = path.with_suffix('.md')
+    md.write_text(results_markdown(runs, seeds, command, notes_of(md), os.getloadavg()))
+    return md
 
 
 def main(argv=None):
@@ -171,6 +189,10 @@ def main(argv=None):
     runs = []
     t0 = time.perf_counter()
     out = Path(args.out)
+    notes = notes_of(out.with_suffix('.md'))
+    load_at_start = os.getloadavg()
+    command = ' '.join(['python', 'bench/diagnosis_stats.py'] + list(
+        sys.argv[1:] if argv is None else argv))
     out.parent.mkdir(parents=True, exist_ok=True)
     ctx = multiprocessing.get_context('fork')
     with ctx.Pool(args.workers) as pool:
@@ -182,7 +204,8 @@ def main(argv=None):
                   f'(total {time.perf_counter() - t0:.0f} s)', flush=True)
             # written after every run, so an interrupted study still leaves its results
             out.with_suffix('.json').write_text(json.dumps(runs, indent=1, default=float))
-            out.with_suffix('.md').write_text(summarize(runs, args.seeds))
+            out.with_suffix('.md').write_text(
+                results_markdown(runs, args.seeds, command, notes, load_at_start))
     print(out.with_suffix('.md').read_text())
     return 0
 
