@@ -571,6 +571,8 @@ def diagnose(record, description, progress=None, workers=2, effects=EFFECTS, win
                   and not (passed_over and t['effect'] == 'process_noise')]
         gap = chosen['criterion'] - (rivals[0]['criterion'] if rivals else 0.0)
         confidence = 'high' if gap > CONFIDENCE_GAP and not last_resort else 'low'
+        if context.get('doubts'):
+            confidence = 'low'
         dominant = max(steps, key=lambda st: st['criterion'])['effect'] if steps else effect
         if any(c.get('how_given') == 'exchange' for st in steps for c in st.get('confounds', [])
                if st['effect'] == dominant):
@@ -701,6 +703,7 @@ def _with_random_inflow(chosen, chosen_fit, steps, ctx, notes, last_resort, pass
         return fit, found, last_resort, passed_over
     added = noisy.add_random_inflow(chosen_fit, steps, ctx)
     if added is None:
+        notes += ctx.get('doubts', [])         # turbulence likely beside it: not confident
         return chosen_fit, steps, last_resort, passed_over
     fit, row = added
     steps = steps + [row]

@@ -37,9 +37,11 @@ import time
 
 import numpy as np
 
+from rotor_id.diagnosis import augmentations as aug
 from rotor_id.diagnosis import residuals as rs
 from rotor_id.diagnosis.catalogue import (
-    _at_catalogue_bound, _build, _split_runs, _stop_at_bound, applicable, CandidateFit,
+    _at_catalogue_bound, _augment_runs, _build, _split_runs, _stop_at_bound, applicable,
+    CandidateFit,
     effect_parameters, equivalent, fit_candidate, Job, n_choices, SCREENED)
 from rotor_id.estimation import kalman
 from rotor_id.estimation.filter_error import (
@@ -58,6 +60,8 @@ MAX_FITTED = 2
 #: current estimate with the extra parameters neutral, a few steps from its optimum.
 MAX_ITER = 20
 FAILURES = (IdentificationError, np.linalg.LinAlgError, FloatingPointError, ValueError)
+#: random inflow's own parameters beside σ_V (its correlation time, a model without a wake)
+SHAPE = tuple(par.name for par in aug.PitchLikeRandomInflow.extra_parameters)
 
 
 @dataclass
@@ -97,7 +101,7 @@ def _sigma_v(est):
 
 
 def _problem(runs, unknowns, guess, known, setup, sigma_v, max_step, start_est,
-             process_sigma=None):
+             process_sigma=None, rows=None):
     """
     Filter problem of a candidate and its θ at the current estimate (extra parts neutral).
 
@@ -106,7 +110,7 @@ def _problem(runs, unknowns, guess, known, setup, sigma_v, max_step, start_est,
     extra initial states at their output-error fit. σ_V² is ``process_sigma``² if given.
     """
     prob = _FilterProblem(runs, unknowns, guess, known, setup.noise_std, sigma_v, True,
-                          setup.rows, 'white', 'auto', max_step)
+                          setup.rows if rows is None else rows, 'white', 'auto', max_step)
     k = len(prob.names)
     base = prob.base
     theta = np.zeros(k)
@@ -238,7 +242,8 @@ def _fill(out, est, model, unknowns, extra, ctx):
     out.estimate, out.model, out.unknowns, out.extra_names = est, model, unknowns, extra
     out.effect_parameters.update(effect_parameters(est, model))
     out.effect_parameters[NOISE] = {n: (est.value(n), est.std_of(n)) for n in est.names
-                                    if n == PROCESS_NOISE or n.startswith('noise_std_')}
+                                    if n in (PROCESS_NOISE,) + SHAPE
+                                    or n.startswith('noise_std_')}
     out.parameters = out.effect_parameters.get(out.effect, {})
 
 
@@ -253,6 +258,7 @@ def cross_validate(fit, ctx, setup):
     est = fit.estimate
     runs = fit.experiments
     max_step = getattr(fit, 'max_step', DEFAULT_MAX_STEP)
+    rows = getattr(fit, 'noise_rows', None) or setup.rows
     unknowns = fit.unknowns
     ms = []
     try:
@@ -261,14 +267,14 @@ def cross_validate(fit, ctx, setup):
                 _split_runs(runs, half), unknowns,
                 guess={n: est.model_parameters[n] for n in unknowns}, known=ctx['known'],
                 noise_std=setup.noise_std, max_iter=10,
-                process_noise_std=max(_sigma_v(est), 1e-12), rows=setup.rows,
+                process_noise_std=max(_sigma_v(est), 1e-12), rows=rows,
                 max_step=max_step, label='held-out half')
             known = dict(part.model_parameters)
             pred = fit_filter_error_ml(
                 _split_runs(runs, 1 - half), [], known=known,
                 noise_std=np.asarray(part.noise_std, dtype=float), max_iter=3,
                 process_noise_std=_sigma_v(part), estimate_process_noise=False,
-                rows=setup.rows, max_step=max_step, label='held-out prediction')
+                rows=rows, max_step=max_step, label='held-out prediction')
             res = np.concatenate(pred.residuals, axis=0)
             ms.append(np.mean(res**2, axis=0))
     except FAILURES:
@@ -276,9 +282,13 @@ def cross_validate(fit, ctx, setup):
     return float(math.sqrt(np.mean(ms)))
 
 
-def _criterion(dll, fit, k, ctx):
+def _effective_fraction(fit):
     res = np.concatenate(fit.estimate.residuals, axis=0)
-    rho = min(rs.effective_fraction(res[:, j]) for j in range(res.shape[1]))
+    return min(rs.effective_fraction(res[:, j]) for j in range(res.shape[1]))
+
+
+def _criterion(dll, fit, k, ctx):
+    rho = _effective_fraction(fit)
     crit = 2.0 * dll * rho - max(k, 0) * math.log(ctx['n_obs'] * rho)
     if n_choices(fit.effect, ctx['n_blades']) > 1:
         crit -= 2.0 * math.log(n_choices(fit.effect, ctx['n_blades']))
@@ -452,6 +462,45 @@ def add_deterministic(noise_fit, noise_row, ctx):
     return current, steps, notes
 
 
+def _random_inflow_states(runs, ctx, setup):
+    """
+    Return (runs, process-noise rows, extra unknowns) of random inflow over a candidate's runs.
+
+    A model with inflow states (a wake: λI, λII) takes the noise on them, first-order states
+    on the pitch-like path already. A model without gets random inflow as a pitch-like angle
+    with a first-order spectrum (:class:`~rotor_id.diagnosis.augmentations.PitchLikeRandomInflow`),
+    its correlation time estimated.
+    """
+    if any(r.startswith('lambda') for r in setup.rows):
+        return runs, setup.rows, []
+    runs, model = _augment_runs(runs, aug.PitchLikeRandomInflow, ctx['record'])
+    return runs, list(model.extra_states), list(SHAPE)
+
+
+#: Significance of random inflow's likelihood-ratio test (without the criterion's log n
+#: per parameter) that makes a verdict without it doubtful: turbulence is then likely beside
+#: the effects found although it does not earn its place by the criterion.
+DOUBT_LEVEL = 0.01
+
+
+def _doubt(ctx, kept, text, lr, k):
+    """
+    Record a doubt (a note; the verdict is not confident) when random inflow is not added.
+
+    ``lr`` = 2ΔJ·ρ (ρ the residuals' effective fraction), ``k`` its parameters: a doubt when
+    it passes the χ²_k test at :data:`DOUBT_LEVEL`.
+    """
+    from scipy.stats import chi2
+    if not lr > chi2.ppf(1.0 - DOUBT_LEVEL, k):
+        return
+    ctx.setdefault('doubts', []).append(
+        f'random inflow (process_noise) on top of {" + ".join(e for e, _ in kept)} '
+        f'{text}: not added, but its likelihood-ratio test passes at the '
+        f'{DOUBT_LEVEL:.0%} level (2ΔJ·ρ = {lr:.1f} > χ²_{k} '
+        f'{chi2.ppf(1.0 - DOUBT_LEVEL, k):.1f}): '
+        'the verdict may be incomplete, turbulence beside it is likely, not established')
+
+
 def add_random_inflow(final_fit, steps, ctx):
     """
     Random inflow on top of the deterministic effects of the output-error selection.
@@ -471,8 +520,12 @@ def add_random_inflow(final_fit, steps, ctx):
         runs, model, unknowns, extra, guess, max_step = _build(job, setup.base_model,
                                                                setup.experiments)
         max_step = max_step or DEFAULT_MAX_STEP
+        runs, rows, shape = _random_inflow_states(runs, ctx, setup)
+        if shape:
+            model, unknowns = runs[0].model, unknowns + shape
+            guess.update({par.name: par.nominal for par in model.extra_parameters})
         prob, theta = _problem(runs, unknowns, guess, job.known, setup, 0.0, max_step, est,
-                               process_sigma=0.0)
+                               process_sigma=0.0, rows=rows)
         lm = _score(prob, theta, one_sided=prob.i_process)
     except FAILURES as exc:
         _say(ctx, f'random inflow on top of {" + ".join(e for e, _ in kept)}: score test '
@@ -491,7 +544,7 @@ def add_random_inflow(final_fit, steps, ctx):
         begin = {n: v for n, v in zip(prob.names, theta)
                  if n != PROCESS_NOISE and n not in unknowns}
         fe = fit_filter_error_ml(runs, unknowns, guess=guess, known=job.known,
-                                 noise_std=setup.noise_std, max_iter=MAX_ITER, rows=setup.rows,
+                                 noise_std=setup.noise_std, max_iter=MAX_ITER, rows=rows,
                                  max_step=max_step, label='random inflow on top',
                                  _start=begin)
     except FAILURES as exc:
@@ -499,12 +552,16 @@ def add_random_inflow(final_fit, steps, ctx):
         return None
     _fill(fit, fe, model, unknowns, extra, ctx)
     fit.parameters = fit.effect_parameters[NOISE]
-    fit.experiments, fit.max_step = runs, max_step
+    fit.experiments, fit.max_step, fit.noise_rows = runs, max_step, rows
     fit.elapsed_s = time.perf_counter() - t0
     dll = float(est.neg_log_likelihood - fe.neg_log_likelihood)
-    crit = _criterion(dll, fit, 1, ctx)          # one more parameter: σ_V
-    _say(ctx, f'  + random inflow: ΔJ = {dll:.1f}, criterion {crit:.1f}')
+    crit = _criterion(dll, fit, 1 + len(shape), ctx)      # σ_V (and τ_w)
+    shape_text = ''.join(f', τ_w = {fe.value(n):.2g} ± {fe.std_of(n):.1g} rad' for n in shape)
+    _say(ctx, f'  + random inflow: ΔJ = {dll:.1f}, criterion {crit:.1f}{shape_text}')
     if crit <= CRITERION_THRESHOLD:
+        _doubt(ctx, kept, f'gains 2ΔJ = {2 * dll:.1f} in the innovations likelihood '
+               f'(criterion {crit:.1f}, threshold {CRITERION_THRESHOLD:g})',
+               2.0 * dll * _effective_fraction(fit), 1 + len(shape))
         return None
     val = cross_validate(fit, ctx, setup)
     cur_val = steps[-1]['validation_rms']
@@ -512,6 +569,11 @@ def add_random_inflow(final_fit, steps, ctx):
               f'{"n/a" if val is None else f"{val:.4g}"} against '
               f'{"n/a" if cur_val is None else f"{cur_val:.4g}"} rad (output error)')
     if val is None or (cur_val is not None and val >= cur_val):
+        _doubt(ctx, kept, f'gains a criterion {crit:.1f} (2ΔJ = {2 * dll:.1f}) but does not '
+               'predict the unfitted half-window better (innovation RMS '
+               f'{"n/a" if val is None else f"{val:.4g}"} against '
+               f'{"n/a" if cur_val is None else f"{cur_val:.4g}"} rad)',
+               2.0 * dll * _effective_fraction(fit), 1 + len(shape))
         return None
     row = _step_row(fit, dll, crit, val, ctx['floors'], ctx['u'], ctx['t'])
     fit.experiments = []

@@ -268,3 +268,24 @@ def test_azimuth_offset_turns_the_cyclic_coordinates():
     np.testing.assert_allclose(S[1:3, 1:3], [[c, -s], [s, c]], atol=1e-15)
     c2, s2 = math.cos(2 * offset), math.sin(2 * offset)
     np.testing.assert_allclose(S[3:5, 3:5], [[c2, -s2], [s2, c2]], atol=1e-15)
+
+
+@pytest.mark.parametrize('name,mu', [('multiblade', 0.4), ('multiblade_wake', 0.0)])
+def test_pitch_like_random_inflow_acts_as_pitch(name, mu):
+    # random inflow's states w = (w0, wI, wII) enter as the pitch inputs do: a w held still
+    # (τ_w far beyond the record) gives the response to the pitch shifted by w, also through
+    # an azimuth offset underneath (forward flight: in hover it is invisible); its
+    # sensitivities are exact
+    base = _base(name, mu)
+    for inner in (base, aug.AzimuthOffset(base)) if mu > 0 else (base,):
+        model = aug.PitchLikeRandomInflow(inner)
+        assert model.state_names[-3:] == ('random_inflow_0', 'random_inflow_I',
+                                          'random_inflow_II')
+        shift = np.array([0.004, -0.003, 0.002])
+        p_inner = _away_from_neutral(inner) if inner is not base else inner.nominal()
+        x0b = 0.01 * np.arange(1, inner.n_states + 1)
+        ref = simulate(inner, p_inner, lambda t: SCHEDULE(t) + shift, T, x0b).y
+        p = np.concatenate([p_inner, [1e9]])
+        y = simulate(model, p, SCHEDULE, T, np.concatenate([x0b, shift])).y
+        np.testing.assert_allclose(y, ref, atol=1e-9 * np.abs(ref).max(), err_msg=inner.name)
+        check_sensitivities(model, SCHEDULE, np.random.default_rng(5))
