@@ -571,7 +571,8 @@ def affine_scan(Phi, dPhi, W, ce, dce, x0, S0, H, d, dd, y, xs, Ss, yhat, dyhat,
     arrays with 0 rows when there is none. y (T, m) measured outputs, or 0 rows for a plain
     simulation. Fills xs (T, n), Ss (T, n, k), yhat (T, m), dyhat (T, m, k) and, with y,
     res = y − ŷ (T, m), sq = Σ res² (m,), gc = Σ ∂ŷᵀ res (m, k), Mc = Σ ∂ŷᵀ ∂ŷ (m, k, k),
-    per channel (so the caller can weight them by any R⁻¹).
+    per channel (so the caller can weight them by any R⁻¹). xs, Ss and dyhat with 0 rows: they
+    are not stored (a fit that needs only ŷ, the residuals and their sums).
 
     One pass over the samples. States and sensitivities travel as one block Z = [x S]
     (n × (1+k), rows contiguous), so a step is, per pair of rows (i, r), one contiguous update
@@ -580,7 +581,7 @@ def affine_scan(Phi, dPhi, W, ce, dce, x0, S0, H, d, dd, y, xs, Ss, yhat, dyhat,
     the outer product of u = [res, ∂ŷ] (whose entries are sq, gc and Mc) are formed in the same
     pass.
     """
-    T = xs.shape[0]
+    T = W.shape[0] + 1
     n = x0.shape[0]
     k = S0.shape[1]
     K = k + 1
@@ -589,6 +590,7 @@ def affine_scan(Phi, dPhi, W, ce, dce, x0, S0, H, d, dd, y, xs, Ss, yhat, dyhat,
     const_H = H.shape[0] == 1
     has_d = d.shape[0] > 0
     fit = y.shape[0] > 0
+    store = xs.shape[0] > 0             # xs, Ss, dyhat with 0 rows: only ŷ, res and the sums
     G = np.zeros((n, n, K))
     for p in range(kp):
         for i in range(n):
@@ -604,10 +606,11 @@ def affine_scan(Phi, dPhi, W, ce, dce, x0, S0, H, d, dd, y, xs, Ss, yhat, dyhat,
     v = np.empty(K)
     for j in range(T):
         # sample j: states, sensitivities, outputs, residuals and their products
-        for i in range(n):
-            xs[j, i] = Z[i, 0]
-            for c in range(k):
-                Ss[j, i, c] = Z[i, 1 + c]
+        if store:
+            for i in range(n):
+                xs[j, i] = Z[i, 0]
+                for c in range(k):
+                    Ss[j, i, c] = Z[i, 1 + c]
         Hj = H[0] if const_H else H[j]
         for a in range(m):
             for c in range(K):
@@ -622,8 +625,9 @@ def affine_scan(Phi, dPhi, W, ce, dce, x0, S0, H, d, dd, y, xs, Ss, yhat, dyhat,
                     for c in range(K):
                         v[c] += hv * Z[i, c]
             yhat[j, a] = v[0]
-            for c in range(k):
-                dyhat[j, a, c] = v[1 + c]
+            if store:
+                for c in range(k):
+                    dyhat[j, a, c] = v[1 + c]
             if fit:
                 r_ = y[j, a] - v[0]
                 res[j, a] = r_
@@ -919,8 +923,169 @@ def gn_iteration(F_probe, g_probe, dF_probe, dg_probe, p_ref, p_base, param_inde
     return 1
 
 
+#: gn_fit's stop reasons (out_scalars[3]): the iteration limit, no step lowers the cost, every
+#: step small (converged), singular step equations (the caller fits again in Python), a
+#: response at the start that is not finite.
+FIT_MAX_ITER, FIT_NO_STEP, FIT_CONVERGED, FIT_SINGULAR, FIT_NOT_FINITE = 0, 1, 2, -1, -2
+
+
+@njit(cache=True, nogil=True)
+def gn_fit(F_probe, g_probe, dF_probe, dg_probe, p_ref, p_base, param_index, h, substeps, U,
+           x0_base, free_states, S0, H, y, theta0, var0, estimate_noise, floor, prior_info,
+           prior_mean, lo, hi, step_tol, max_iter, dependence_threshold, res, yhat, sq, gc, Mc,
+           hist_theta, hist_var, hist_scalars, out_theta, out_var, out_M, out_grad, out_cov,
+           out_scalars):
+    """
+    Run a whole output-error fit of a single prepared run in one call (no progress callback).
+
+    The steps of output_error.fit_output_error's loop with :func:`gn_iteration`: the start
+    simulated (noise estimated from it when ``estimate_noise``, else var0), then up to
+    ``max_iter`` iterations of :func:`gn_iteration`; afterwards M = Σ_c Mc/var_c + diag(prior)
+    at the final point, the Cholesky pre-test of output_error.dependence_warnings
+    (``dependence_threshold``) and M⁻¹. Fills the final point's res, yhat, sq, gc, Mc (T, m),
+    (T, m), (m,), (m, k), (m, k, k); per accepted iteration i hist_theta[i] (k,),
+    hist_var[i] (m,) and hist_scalars[i] = [cost, rms, at a bound (1/0)]; out_theta, out_var,
+    out_M, out_grad (the gradient of the last iteration's step), out_cov = M⁻¹, and
+    out_scalars = [cost, data cost ½Σ sq/var, accepted iterations, stop reason (FIT_*),
+    iteration count as fit_output_error reports it, pre-test passed (1/0),
+    M⁻¹ valid (1/0)]. Returns the stop reason.
+    """
+    k = theta0.shape[0]
+    m = y.shape[1]
+    T = y.shape[0]
+    n = x0_base.shape[0]
+    kp = param_index.shape[0]
+    no_x = np.empty((0, n))
+    no_S = np.empty((0, n, k))
+    no_dy = np.empty((0, m, k))
+    d = np.zeros((0, m))
+    dd = np.zeros((0, m, kp))
+    shift = np.empty(p_base.shape[0])
+    x0 = np.empty(n)
+    theta = theta0.copy()
+    var = var0.copy()
+    # the start, into the current buffers (res, yhat, sq, gc, Mc); trials into the spare ones
+    _fit_point(theta, p_base, param_index, p_ref, x0_base, free_states, shift, x0)
+    affine_run(F_probe, g_probe, dF_probe, dg_probe, shift, param_index, h, substeps, U, x0,
+               S0, H, d, dd, y, no_x, no_S, yhat, no_dy, res, sq, gc, Mc)
+    if estimate_noise:
+        for c in range(m):
+            var[c] = max(sq[c] / T, floor)
+    cost = _fit_cost(sq, var, theta, prior_info, prior_mean)
+    for i in range(out_scalars.shape[0]):
+        out_scalars[i] = 0.0
+    if not np.isfinite(cost):
+        out_scalars[3] = FIT_NOT_FINITE
+        return FIT_NOT_FINITE
+    cur = (res, yhat, sq, gc, Mc)
+    spare = (np.empty_like(res), np.empty_like(yhat), np.empty_like(sq), np.empty_like(gc),
+             np.empty_like(Mc))
+    new_theta = np.empty(k)
+    new_var = np.empty(m)
+    sigma = np.empty(k)
+    scalars = np.empty(5)
+    lm = 0.0
+    reason = FIT_MAX_ITER
+    accepted = 0
+    in_spare = False                    # the current point is in the second set of buffers
+    iteration = 0
+    for it in range(1, max_iter + 1):
+        iteration = it
+        status = gn_iteration(
+            F_probe, g_probe, dF_probe, dg_probe, p_ref, p_base, param_index, h, substeps, U,
+            x0_base, free_states, S0, H, y, theta, cost, lm, var, estimate_noise, floor,
+            prior_info, prior_mean, lo, hi, step_tol, cur[2], cur[3], cur[4], no_x, no_S,
+            spare[1], no_dy, spare[0], spare[2], spare[3], spare[4], new_theta, new_var, out_M,
+            out_grad, sigma, scalars)
+        lm = scalars[1]
+        if status < 0:
+            out_scalars[3] = FIT_SINGULAR
+            return FIT_SINGULAR
+        if status == 0:
+            reason = FIT_NO_STEP
+            break
+        cur, spare = spare, cur
+        in_spare = not in_spare
+        for a in range(k):
+            theta[a] = new_theta[a]
+            hist_theta[accepted, a] = new_theta[a]
+        for c in range(m):
+            var[c] = new_var[c]
+            hist_var[accepted, c] = new_var[c]
+        cost = scalars[0]
+        hist_scalars[accepted, 0] = cost
+        hist_scalars[accepted, 1] = np.sqrt(scalars[3] / (T * m))
+        hist_scalars[accepted, 2] = scalars[4]
+        accepted += 1
+        if scalars[2] != 0.0:
+            reason = FIT_CONVERGED
+            break
+    # the final point's sums into the caller's buffers (the last accepted trial's may be spare)
+    if in_spare:
+        res[:, :] = cur[0]
+        yhat[:, :] = cur[1]
+        sq[:] = cur[2]
+        gc[:, :] = cur[3]
+        Mc[:, :, :] = cur[4]
+    for a in range(k):
+        out_theta[a] = theta[a]
+    for c in range(m):
+        out_var[c] = var[c]
+    data = 0.0
+    for c in range(m):
+        data += sq[c] * (1.0 / var[c])
+    # M at the final point (output_error._weighted_sums + prior), as the Python path forms it
+    M = np.empty((k, k))
+    for a in range(k):
+        for b in range(k):
+            acc = 0.0
+            for c in range(m):
+                acc += (1.0 / var[c]) * Mc[c, a, b]
+            M[a, b] = acc
+        M[a, a] += prior_info[a]
+    for a in range(k):                  # (after "no step": the step's M, formed alike)
+        for b in range(k):
+            out_M[a, b] = M[a, b]
+    # dependence_warnings' pre-test: Cholesky of the scaled M − threshold·k·I
+    passed = True
+    for a in range(k):
+        if not M[a, a] > 0.0:
+            passed = False
+    if passed:
+        shifted = np.empty((k, k))
+        for a in range(k):
+            da = np.sqrt(M[a, a])
+            for b in range(k):
+                shifted[a, b] = M[a, b] / (da * np.sqrt(M[b, b]))
+            shifted[a, a] -= dependence_threshold * k
+        try:
+            np.linalg.cholesky(shifted)
+        except Exception:  # noqa: B902 - not positive definite: the caller's eigen-analysis
+            passed = False
+    valid = True
+    try:
+        inverse = np.linalg.inv(M)
+        for a in range(k):
+            if inverse[a, a] < 0.0:
+                valid = False
+            for b in range(k):
+                if not np.isfinite(inverse[a, b]):
+                    valid = False
+                out_cov[a, b] = inverse[a, b]
+    except Exception:  # noqa: B902 - singular: the caller takes pinv
+        valid = False
+    out_scalars[0] = cost
+    out_scalars[1] = 0.5 * data
+    out_scalars[2] = accepted
+    out_scalars[3] = reason
+    out_scalars[4] = iteration
+    out_scalars[5] = 1.0 if passed else 0.0
+    out_scalars[6] = 1.0 if valid else 0.0
+    return reason
+
+
 def warm_up_gn():
-    """Compile (or load from the cache) gn_iteration for the types output error passes."""
+    """Compile (or load from the cache) gn_iteration and gn_fit for output error's types."""
     n, q, P, k, m, T = 2, 1, 1, 2, 1, 3
     L = 3 * q
     i64 = np.zeros(1, dtype=np.int64)
@@ -933,3 +1098,11 @@ def warm_up_gn():
                  np.empty((T, m, k)), np.empty((T, m)), np.empty(m), np.empty((m, k)),
                  np.empty((m, k, k)), np.empty(k), np.empty(m), np.empty((k, k)), np.empty(k),
                  np.empty(k), np.empty(5))
+    gn_fit(np.zeros((q + 1, n, n)), np.zeros((q + 1, n)), np.zeros((q + 1, P, n, n)),
+           np.zeros((q + 1, P, n)), np.zeros(P), np.zeros(P), i64, 0.1, 1, np.zeros((T - 1, L)),
+           np.zeros(n), i64, np.eye(n, k), np.ones((1, m, n)), np.zeros((T, m)), np.zeros(k),
+           np.ones(m), True, 1e-24, np.zeros(k), np.zeros(k), -np.ones(k), np.ones(k), 1e-6, 1,
+           1e-7, np.empty((T, m)), np.empty((T, m)), np.empty(m), np.empty((m, k)),
+           np.empty((m, k, k)), np.empty((1, k)), np.empty((1, m)), np.empty((1, 3)),
+           np.empty(k), np.empty(m), np.empty((k, k)), np.empty(k), np.empty((k, k)),
+           np.empty(7))

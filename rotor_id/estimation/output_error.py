@@ -396,7 +396,11 @@ def _per_run(noise_var, n_runs):
     return [noise_var] * n_runs
 
 
-def dependence_warnings(names, M, threshold=1e-7):
+#: Scaled-information eigenvalue ratio below which parameters are reported near-dependent.
+DEPENDENCE_THRESHOLD = 1e-7
+
+
+def dependence_warnings(names, M, threshold=DEPENDENCE_THRESHOLD):
     """
     Eigen-analysis of the scaled information matrix: name near-dependent combinations.
 
@@ -594,6 +598,11 @@ def fit_output_error(experiments, unknowns, guess=None, known=None, noise_std=No
     theta_eval = theta
     compiled = _CompiledIteration.for_problem(problem, floor, prior_info, prior_mean, step_tol,
                                               not fixed_noise)
+    if compiled is not None and progress is None:     # the whole fit in one compiled call
+        estimate = compiled.whole_fit(theta, noise_var[0], max_iter, t_start, label)
+        if estimate is not None:
+            return estimate
+        # singular step equations on the way: the same fit again, an iteration at a time
     if compiled is not None:        # the first simulation already through its buffers
         results = [compiled.first(theta)]
     else:
@@ -602,8 +611,7 @@ def fit_output_error(experiments, unknowns, guess=None, known=None, noise_std=No
         noise_var = estimate_var(results)
     cost = cost_of(results, noise_var)
     if not math.isfinite(cost):
-        raise IdentificationError('the model response at the starting values is not finite; '
-                                  'check the starting values and the run description')
+        raise IdentificationError(NOT_FINITE_AT_START)
     converged = False
     message = 'maximum iterations reached'
     lm = 0.0
@@ -632,10 +640,8 @@ def fit_output_error(experiments, unknowns, guess=None, known=None, noise_std=No
                 theta, grad, M, problem.lo, problem.hi, cost, trial_cost, lm)
         if not accepted:
             theta_eval = theta
-            message = ('no step lowers the cost any more (stopped at a minimum or a bound; '
-                       'the bound-limited parameters are reported)')
-            converged = bool(np.all(np.abs(grad) * np.sqrt(np.clip(
-                np.diag(np.linalg.pinv(M)), 0, None)) < 1e-3 * max(1.0, cost)))
+            message = NO_STEP_MESSAGE
+            converged = _gradient_small(grad, M, cost)
             break
         applied = None if compiled is not None else trial - theta
         theta = trial
@@ -688,13 +694,8 @@ def fit_output_error(experiments, unknowns, guess=None, known=None, noise_std=No
             raise np.linalg.LinAlgError
     except np.linalg.LinAlgError:
         cov = np.linalg.pinv(M)
-        warnings.append('information matrix is singular: the Cramér-Rao bound is a '
-                        'pseudo-inverse and meaningless for the dependent combination')
-    if not converged and 'bound' not in message:
-        warnings.append(message)
-    if 'bound' in message:
-        warnings.append(message + ': the estimate is limited by the bound, not by the data '
-                        '(missing physics in the model, or a poor start); do not use it as is')
+        warnings.append(SINGULAR_WARNING)
+    warnings += _stop_warnings(converged, message)
     data_cost = sum(0.5 * float(_squares(result) @ (1.0 / var))
                     for result, var in zip(results, noise_var))
     nll = data_cost + 0.5 * sum(exp.t.size * (float(np.log(var).sum()) + m * math.log(2 * math.pi))
@@ -711,6 +712,28 @@ def fit_output_error(experiments, unknowns, guess=None, known=None, noise_std=No
         initial_states=init_states, warnings=warnings,
         model_parameters=dict(zip(problem.model.parameter_names, p_final)),
         run_noise_std=[np.sqrt(var) for var in noise_var])
+
+
+NOT_FINITE_AT_START = ('the model response at the starting values is not finite; check the '
+                       'starting values and the run description')
+NO_STEP_MESSAGE = ('no step lowers the cost any more (stopped at a minimum or a bound; the '
+                   'bound-limited parameters are reported)')
+SINGULAR_WARNING = ('information matrix is singular: the Cramér-Rao bound is a pseudo-inverse '
+                    'and meaningless for the dependent combination')
+
+
+def _gradient_small(grad, M, cost):
+    """Converged after all when no step lowers the cost: |g|·σ below 1e-3 of the cost."""
+    return bool(np.all(np.abs(grad) * np.sqrt(np.clip(np.diag(np.linalg.pinv(M)), 0, None))
+                       < 1e-3 * max(1.0, cost)))
+
+
+def _stop_warnings(converged, message):
+    """Warnings of how the iterations stopped (not converged, or at a physical bound)."""
+    if 'bound' in message:
+        return [message + ': the estimate is limited by the bound, not by the data (missing '
+                'physics in the model, or a poor start); do not use it as is']
+    return [] if converged else [message]
 
 
 class _CompiledIteration:
@@ -747,7 +770,13 @@ class _CompiledIteration:
         self.prior_info, self.prior_mean = prior_info, prior_mean
         self.step_tol = float(step_tol)
         self.estimate_noise = bool(estimate_noise)
-        k, m = len(problem.names), exp.model.n_outputs
+        self.problem = problem
+        self.current = None             # the buffers of the iteration at a time (_buffers)
+
+    def _buffers(self):
+        """Allocate the buffers of :meth:`first` and :meth:`iterate` (not :meth:`whole_fit`)."""
+        exp = self.exp
+        k, m = len(self.problem.names), exp.model.n_outputs
         n, T = exp.model.n_states, exp.t.size
         shapes = ((T, n), (T, n, k), (T, m), (T, m, k), (T, m), (m,), (m, k), (m, k, k))
         # buffers (xs, Ss, ŷ, ∂ŷ, res, Σres², Σ∂ŷᵀres, Σ∂ŷᵀ∂ŷ) of the current point and a trial
@@ -779,6 +808,8 @@ class _CompiledIteration:
 
     def first(self, theta):
         """Simulate at the starting θ into the current buffers; return it as :meth:`result`."""
+        if self.current is None:
+            self._buffers()
         k_par = self.index.size
         shift = self.p_base - self.p_ref
         shift[self.index] = theta[:k_par] - self.p_ref[self.index]
@@ -809,6 +840,77 @@ class _CompiledIteration:
         if status == 1:
             self.current, self.spare = self.spare, self.current
         return int(status)
+
+    def whole_fit(self, theta, noise_var, max_iter, t_start, label):
+        """
+        Run the whole fit in one compiled call (``_kernels_numba.gn_fit``); return its Estimate.
+
+        The same iterations, stops, messages, warnings and bound as fit_output_error's loop
+        (test_kernels.py compares them to 1e-9), for a caller without a progress callback.
+        Returns None when the step equations became singular on the way (the caller fits again
+        an iteration at a time). The iterations run without the interpreter, so no clock is
+        read between them: every history entry's ``elapsed`` is the time of the whole fit, as
+        its ``elapsed_of`` says.
+        """
+        problem, exp, plan = self.problem, self.exp, self.plan
+        names = problem.names
+        k, m, T = theta.size, self.y.shape[1], self.y.shape[0]
+        hist_theta, hist_var = np.empty((max(max_iter, 0), k)), np.empty((max(max_iter, 0), m))
+        hist_scalars = np.empty((max(max_iter, 0), 3))
+        res, yhat = np.empty((T, m)), np.empty((T, m))
+        sq, gc, Mc = np.empty(m), np.empty((m, k)), np.empty((m, k, k))
+        values, var, M, grad, cov = (np.empty(k), np.empty(m), np.empty((k, k)), np.empty(k),
+                                     np.empty((k, k)))
+        scalars = np.empty(7)
+        reason = plan.kernels.gn_fit(
+            self.F, self.g, self.dF, self.dg, self.p_ref, self.p_base, self.index, plan.step,
+            plan.substeps, plan.U, self.x0_base, self.free, self.S0, plan.H, self.y, theta,
+            np.ones(m) if noise_var is None else noise_var, self.estimate_noise, self.floor,
+            self.prior_info, self.prior_mean, self.lo, self.hi, self.step_tol, int(max_iter),
+            DEPENDENCE_THRESHOLD, res, yhat, sq, gc, Mc, hist_theta, hist_var, hist_scalars,
+            values, var, M, grad, cov, scalars)
+        elapsed = time.perf_counter() - t_start
+        if reason == -2:
+            raise IdentificationError(NOT_FINITE_AT_START)
+        if reason == -1:
+            return None
+        cost, data_cost, accepted, iterations = (float(scalars[0]), float(scalars[1]),
+                                                 int(scalars[2]), int(scalars[4]))
+        std = np.sqrt(hist_var[:accepted])
+        history = [{'iteration': i + 1, 'cost': float(hist_scalars[i, 0]),
+                    'rms': float(hist_scalars[i, 1]), 'names': names, 'values': hist_theta[i],
+                    'elapsed': elapsed, 'elapsed_of': 'the whole fit (one compiled call)',
+                    'label': label, 'noise_std': std[i]} for i in range(accepted)]
+        message = 'maximum iterations reached'
+        bounded = np.flatnonzero(hist_scalars[:accepted, 2])
+        if bounded.size:            # the last iterate on a bound names it (as the loop does)
+            last = hist_theta[bounded[-1]]
+            at_bound = (last <= problem.lo) | (last >= problem.hi)
+            message = 'parameter at a physical bound: ' + ', '.join(
+                n for n, b in zip(names, at_bound) if b)
+        converged = reason == 2
+        if reason == 1:
+            message = NO_STEP_MESSAGE
+            converged = _gradient_small(grad, M, cost)
+        elif converged and not (bounded.size and bounded[-1] == accepted - 1):
+            message = 'converged'
+        warnings = [] if scalars[5] else dependence_warnings(names, M)[0]
+        if not scalars[6]:
+            cov = np.linalg.pinv(M)
+            warnings.append(SINGULAR_WARNING)
+        warnings += _stop_warnings(converged, message)
+        nll = data_cost + 0.5 * T * (float(np.log(var).sum()) + m * math.log(2 * math.pi))
+        p_final = problem.full_parameters(values)
+        x0 = self.x0_base.copy()
+        x0[self.free] = values[self.index.size:]
+        return Estimate(
+            names=names, values=values, covariance=cov, information=M, noise_std=np.sqrt(var),
+            channel_names=list(exp.model.output_names), cost=cost, neg_log_likelihood=nll,
+            iterations=iterations, converged=converged, message=message, n_samples=T,
+            history=history, residuals=[res], fitted=[yhat], initial_states=[x0],
+            warnings=warnings, model_parameters=dict(zip(problem.model.parameter_names,
+                                                         p_final)),
+            run_noise_std=[np.sqrt(var)])
 
     def result(self):
         """Return the accepted point's (residual, dy/dθ, Simulation), as :func:`evaluate` does."""
