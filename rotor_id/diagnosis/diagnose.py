@@ -531,7 +531,9 @@ def diagnose(record, description, progress=None, workers=2, effects=EFFECTS, win
             chosen_fit, steps, dropped = _forward_selection(chosen['fit'], steps, context)
             confound_notes = [_confound_text(effect_row['effect'], c) for effect_row in steps
                               for c in effect_row.get('confounds', [])]
+            confound_notes += [_confound_text(t['winner'], t) for t in context['doubt']]
             notes += confound_notes
+            notes += context['replaced']
             for old in dropped:
                 notes.append(f'{old} was dropped by the backward check: with the effects added '
                              'after it, it no longer earns its place')
@@ -574,8 +576,10 @@ def diagnose(record, description, progress=None, workers=2, effects=EFFECTS, win
         if context.get('doubts'):
             confidence = 'low'
         dominant = max(steps, key=lambda st: st['criterion'])['effect'] if steps else effect
-        if any(c.get('how_given') == 'exchange' for st in steps for c in st.get('confounds', [])
-               if st['effect'] == dominant):
+        if any(c.get('how_given') == 'exchange' and st['effect'] == dominant
+               or c.get('how_given') == 'two_for_one'
+               for st in steps for c in st.get('confounds', [])) or (
+                   context.get('doubt') and not last_resort):
             # another description of the record fits as well: not a confident name
             confidence = 'low'
         for one in [st['effect'] for st in steps] or [effect]:
@@ -884,6 +888,12 @@ def _confounds(kept_names, ctx):
 
 def _confound_text(kept, c):
     """One note of a confounded pair, with the figures behind it."""
+    if c.get('how_given') == 'two_for_one':
+        return (f'{" + ".join(c["alternative"])} fits this record within '
+                f'{c["criterion_difference"]:.1f} of {" + ".join(c["given"])} by the criterion '
+                f'(2Δlog L {c["two_delta_loglik_difference"]:.1f}, extra parameters charged; a '
+                f'confident difference is {CONFIDENCE_GAP:g}): the two descriptions cannot be '
+                f'told apart, so {c["effect"]} may be present instead of {kept}; both are named')
     if c.get('how_given') == 'exchange':
         others = [e for e in c['given'] if e != c['effect'] and e != kept]
         with_ = f' (with {" + ".join(others)})' if others else ''
@@ -1038,6 +1048,7 @@ def _forward_selection(first, steps, ctx):
     of two concealed ones; the effects are added again after a swap.
     """
     current, kept, dropped = first, [(first.effect, first.variant)], []
+    ctx['doubt'], ctx['replaced'] = [], []
     cur_val = steps[0]['validation_rms']
     current, cur_val, kept, steps = _add_effects(current, cur_val, kept, steps, dropped, ctx)
     ahead = _look_ahead(current, kept, steps, ctx)
@@ -1047,31 +1058,62 @@ def _forward_selection(first, steps, ctx):
         cur_val = None
         current, cur_val, kept, steps = _add_effects(current, cur_val, kept, steps, dropped,
                                                      ctx)
-    ties = []
-    if len(kept) >= 2:
-        swap = _exchange(current, kept, ctx)
-        ties = swap['ties']
-        if swap['fit'] is not None:
-            fit = swap['fit']
-            _say_t(ctx, f'exchange: {swap["out"]} replaced by {fit.effect} (criterion '
-                        f'{swap["criterion"]:.1f} over the model with {swap["out"]})')
-            kept = [ev for ev in kept if ev[0] != swap['out']] + [(fit.effect, fit.variant)]
-            steps = [st for st in steps if st['effect'] != swap['out']] + [swap['row']]
-            dropped.append(swap['out'])
-            current, cur_val = fit, swap['row']['validation_rms']
-            current, kept, steps = _backward(current, kept, steps, dropped, ctx)
-            current, cur_val, kept, steps = _add_effects(current, cur_val, kept, steps,
-                                                         dropped, ctx)
+    current, cur_val, kept, steps, ties = _exchange_round(current, cur_val, kept, steps,
+                                                          dropped, ctx)
+    if len(kept) < MAX_EFFECTS:
+        alt = _two_for_one(current, kept, steps, ctx)
+        ties += alt['ties']
+        if alt['fit'] is not None:
+            names = [e for e, _ in kept]
+            _say_t(ctx, f'two-for-one: {" + ".join(e for e, _ in alt["kept"])} replaces '
+                        f'{" + ".join(names)} (criterion {alt["criterion"]:.1f})')
+            gone = [e for e in names if e not in {a for a, _ in alt['kept']}]
+            ctx['replaced'].append(
+                f'{" + ".join(gone)} replaced by {" + ".join(e for e, _ in alt["kept"])}, '
+                f'which fit(s) better by a criterion of {alt["criterion"]:.1f} (2Δlog L '
+                f'{alt["two_delta_loglik"]:.1f}, the extra parameters charged): the greedy '
+                f'selection had kept {" + ".join(gone)}, a stand-in for effects found '
+                'together')
+            current, kept, steps = alt['fit'], alt['kept'], alt['steps']
     names = [e for e, _ in kept]
     confounds = _confounds(names, ctx)
     for tie in ties:
-        if tie['winner'] in confounds and tie['effect'] not in names and not any(
-                c['effect'] == tie['effect'] for cs in confounds.values() for c in cs):
+        if tie['winner'] not in confounds or tie['effect'] in names:
+            continue
+        if not any(c['effect'] == tie['effect'] for cs in confounds.values() for c in cs):
             confounds[tie['winner']].append(tie)
+        elif tie['how_given'] == 'two_for_one':
+            # already a confound of a kept effect: the two-effect alternative still gets its
+            # note and still takes the confidence away
+            ctx['doubt'].append(tie)
     for st in steps:
         st['parameters'] = current.effect_parameters.get(st['effect'], {})
         st['confounds'] = confounds.get(st['effect'], [])
     return current, steps, dropped
+
+
+def _exchange_round(current, cur_val, kept, steps, dropped, ctx):
+    """
+    Run one exchange round (:func:`_exchange`) and, after a swap, the selection again.
+
+    After a swap: the backward check and the forward steps. Returns (current, cur_val, kept,
+    steps, ties).
+    """
+    if len(kept) < 2:
+        return current, cur_val, kept, steps, []
+    swap = _exchange(current, kept, ctx)
+    if swap['fit'] is not None:
+        fit = swap['fit']
+        _say_t(ctx, f'exchange: {swap["out"]} replaced by {fit.effect} (criterion '
+                    f'{swap["criterion"]:.1f} over the model with {swap["out"]})')
+        kept = [ev for ev in kept if ev[0] != swap['out']] + [(fit.effect, fit.variant)]
+        steps = [st for st in steps if st['effect'] != swap['out']] + [swap['row']]
+        dropped.append(swap['out'])
+        current, cur_val = fit, swap['row']['validation_rms']
+        current, kept, steps = _backward(current, kept, steps, dropped, ctx)
+        current, cur_val, kept, steps = _add_effects(current, cur_val, kept, steps, dropped,
+                                                     ctx)
+    return current, cur_val, kept, steps, swap['ties']
 
 
 def _look_ahead(current, kept, steps, ctx):
@@ -1250,6 +1292,108 @@ def _exchange(current, kept, ctx):
     row = _step_row(fit, 0.5 * add_2dll, add_crit, val[0][2] if val else None, ctx['floors'],
                     ctx['u'], ctx['t'])
     out.update(fit=fit, out=replaced, criterion=crit, row=row)
+    return out
+
+
+#: Stand-ins of a kept effect tried by :func:`_two_for_one` (the strongest by their own gain).
+TWO_FOR_ONE_STAND_INS = 2
+
+
+def _two_for_one(current, kept, steps, ctx):
+    """
+    Try one stand-in C of a kept effect E, plus what C lets in, in place of E.
+
+    Two concealed effects together can look like a third catalogue effect alone in forward
+    flight: at μ = 0.4 a flap-frequency error and an azimuth offset together look like δ3
+    (δ3 beats P alone by a criterion of 16, and beside δ3 the azimuth gains 2Δlog L ≈ 9), so
+    δ3 is kept first and the selection stops. The one-for-one exchange needs two kept
+    effects and swaps one name for one name; here one name stands for two. The stand-ins of
+    E are the effects E reproduces in this record (its confounds: each passed the criterion
+    at some step and no longer passes beside E, :func:`_confounds`). For each of the
+    :data:`TWO_FOR_ONE_STAND_INS` strongest, C replaces E and the forward selection (with its
+    backward checks) starts again from there, so the second effect must earn its place given
+    C by the criterion and the held-out prediction as any other. The alternative is compared
+    with the final model by the criterion, which charges the extra parameters
+    (k log(n ρ)): it replaces it when it is better. Within :data:`CONFIDENCE_GAP` either way
+    the record cannot tell the two descriptions apart: the loser is reported as a tie (the
+    dominant name gets low confidence; the note gives both criteria).
+
+    Returns {'fit', 'kept', 'steps', 'criterion', 'ties'} ('fit' None: no replacement).
+    """
+    out = {'fit': None, 'ties': []}
+    names = [e for e, _ in kept]
+    trace = ctx['trace']
+    stand_ins = []
+    for effect, cs in _confounds(names, ctx).items():
+        for c in sorted(cs, key=lambda c: -c['criterion_alone'])[:TWO_FOR_ONE_STAND_INS]:
+            stand_ins.append((effect, c['effect'], c['criterion_alone']))
+    best = None
+    for replaced, stand_in, _ in sorted(stand_ins, key=lambda s: -s[2]):
+        others = [ev for ev in kept if ev[0] != replaced]
+        start = {n: current.estimate.model_parameters[n] for n in current.unknowns}
+        _say_t(ctx, f'two-for-one: {stand_in} in place of {replaced}, then the selection '
+                    'again')
+        fit = fit_candidate(Job(stand_in, '', ctx['record'], ctx['description'],
+                                ctx['values'], ctx['unknowns'], ctx['known'],
+                                ctx['window_s'], verbose=ctx['verbose'], start=start,
+                                prior=tuple(others),
+                                baseline_nll=current.estimate.neg_log_likelihood))
+        if not fit.available or fit.bound_limited:
+            continue
+        # the stand-in's own row: what it adds to the effects kept beside it (the baseline's
+        # candidate table when it stands alone)
+        ctx['trace'] = trace[:1]
+        base = _refit(others, ctx, current) if others else None
+        if others and base is None:
+            continue
+        two_dll, crit = _criterion_over(fit, base, ctx['n_obs']) if base is not None else (
+            trace[0]['gains'].get(stand_in, {}).get('two_delta_loglik', math.nan),
+            trace[0]['gains'].get(stand_in, {}).get('criterion', math.nan))
+        row = _step_row(fit, 0.5 * two_dll, crit, None, ctx['floors'], ctx['u'], ctx['t'])
+        kept_rows = [st for st in steps if st['effect'] != replaced]
+        alt_kept, alt_steps = list(others) + [(fit.effect, fit.variant)], kept_rows + [row]
+        alt, alt_val, alt_kept, alt_steps = _add_effects(fit, None, alt_kept, alt_steps, [],
+                                                         ctx)
+        # the stand-in may leave a second effect's stand-in kept (a flap read early standing
+        # in for the azimuth offset): the same exchange round as the greedy selection's
+        alt, _, alt_kept, alt_steps, _ = _exchange_round(alt, alt_val, alt_kept, alt_steps,
+                                                         [], ctx)
+        alt_trace = ctx['trace']
+        ctx['trace'] = trace
+        alt_names = [e for e, _ in alt_kept]
+        if set(alt_names) == set(names):
+            _say_t(ctx, f'two-for-one: from {stand_in} the selection comes back to '
+                        f'{" + ".join(names)}')
+            continue
+        two_dll, crit = _criterion_over(alt, current, ctx['n_obs'], rival=True)
+        _say_t(ctx, f'two-for-one: {" + ".join(alt_names)} against {" + ".join(names)}: '
+                    f'2Δlog L = {two_dll:.1f}, criterion {crit:.1f}')
+        if best is None or crit > best['criterion']:
+            best = {'fit': alt, 'kept': alt_kept, 'steps': alt_steps, 'criterion': crit,
+                    'two_delta_loglik': two_dll, 'trace': alt_trace, 'replaced': replaced,
+                    'stand_in': stand_in}
+    if best is None:
+        return out
+    crit = best['criterion']
+    alt_names = [e for e, _ in best['kept']]
+    new = [e for e in alt_names if e not in names]
+    if abs(crit) <= CONFIDENCE_GAP:
+        # the loser may be present instead: reported with the winner's dominant effect
+        tie = {'how_given': 'two_for_one', 'criterion_difference': float(abs(crit)),
+               'two_delta_loglik_difference': float(abs(best['two_delta_loglik']))}
+        if crit > 0:
+            out['ties'] = [{**tie, 'effect': best['replaced'], 'winner': best['stand_in'],
+                            'given': alt_names, 'alternative': names}]
+        else:
+            out['ties'] = [{**tie, 'effect': e, 'winner': best['replaced'], 'given': names,
+                            'alternative': alt_names} for e in new]
+    if crit <= 0:
+        return out
+    ctx['trace'] = best['trace']
+    for st in best['steps']:
+        st['fit'] = best['fit']
+    out.update(fit=best['fit'], kept=best['kept'], steps=best['steps'], criterion=crit,
+               two_delta_loglik=best['two_delta_loglik'])
     return out
 
 

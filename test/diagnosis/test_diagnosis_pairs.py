@@ -245,3 +245,27 @@ def test_turbulence_likely_but_not_established_is_not_a_confident_verdict():
     assert result['explanation']['confidence'] == 'low'
     doubt = [n for n in result['notes'] if 'likelihood-ratio test passes' in n]
     assert doubt and '2ΔJ = ' in doubt[0], result['notes']
+
+
+def test_two_effects_that_look_like_a_third_are_both_named():
+    # μ = 0.4: a flap-frequency error (P + 0.0162) and an azimuth offset (0.03 rad) together
+    # look like δ3 alone; δ3 is kept first (criterion 93 against P's 76) and beside it the
+    # azimuth gains 2Δlog L ≈ 9, so greedy selection named δ3 alone, with high confidence.
+    # The two-for-one exchange fits P (δ3's stand-in) + what P lets in against δ3
+    # (~20 s CPU)
+    result, out = diagnosed('flap_frequency+azimuth', 1001, workers=1)
+    assert out['right_named'], (out['named'], out['confounded'])
+    assert not out['extra_names'], out['named']
+    effects = {e['effect']: e for e in result['explanation']['effects']}
+    assert all(e['criterion'] > CRITERION_THRESHOLD for e in effects.values())
+    P = effects['flap_frequency']['parameters']['P']
+    assert abs(P['value'] - 1.2162) <= 3.0 * P['std'], P
+    (name, offset), = effects['azimuth_offset']['parameters'].items()
+    assert abs(offset['value'] - 0.03) <= 3.0 * offset['std'], (name, offset)
+    replaced = [n for n in result['notes'] if 'pitch_flap_coupling replaced by' in n]
+    assert len(replaced) == 1, result['notes']
+    criterion = float(replaced[0].split('criterion of ')[1].split(' ')[0])
+    assert criterion > 0.0
+    # how far the alternative is ahead sets the confidence: a tie would make it low
+    assert result['explanation']['confidence'] == (
+        'high' if criterion > DIAGNOSE.CONFIDENCE_GAP else 'low')
