@@ -1295,24 +1295,27 @@ def _exchange(current, kept, ctx):
     return out
 
 
-#: Stand-ins of a kept effect tried by :func:`_two_for_one` (the strongest by their own gain).
-TWO_FOR_ONE_STAND_INS = 2
+#: Stand-ins of the dominant effect tried by :func:`_two_for_one` (the strongest by their
+#: own gain): each costs a forward selection and an exchange round.
+TWO_FOR_ONE_STAND_INS = 1
 
 
 def _two_for_one(current, kept, steps, ctx):
     """
-    Try one stand-in C of a kept effect E, plus what C lets in, in place of E.
+    Try the stand-in C of the dominant effect E, plus what C lets in, in place of E.
 
     Two concealed effects together can look like a third catalogue effect alone in forward
     flight: at μ = 0.4 a flap-frequency error and an azimuth offset together look like δ3
     (δ3 beats P alone by a criterion of 16, and beside δ3 the azimuth gains 2Δlog L ≈ 9), so
     δ3 is kept first and the selection stops. The one-for-one exchange needs two kept
-    effects and swaps one name for one name; here one name stands for two. The stand-ins of
-    E are the effects E reproduces in this record (its confounds: each passed the criterion
-    at some step and no longer passes beside E, :func:`_confounds`). For each of the
-    :data:`TWO_FOR_ONE_STAND_INS` strongest, C replaces E and the forward selection (with its
-    backward checks) starts again from there, so the second effect must earn its place given
-    C by the criterion and the held-out prediction as any other. The alternative is compared
+    effects and swaps one name for one name; here one name stands for two. E is the kept
+    effect with the largest criterion (the name the verdict gives); its stand-ins are the
+    effects it reproduces in this record (its confounds: each passed the criterion at some
+    step and no longer passes beside E, :func:`_confounds`). For each of the
+    :data:`TWO_FOR_ONE_STAND_INS` strongest, C replaces E and the selection (forward steps
+    with backward checks, then an exchange round) starts again from there, so the second
+    effect must earn its place given C by the criterion and the held-out prediction as any
+    other. The alternative is compared
     with the final model by the criterion, which charges the extra parameters
     (k log(n ρ)): it replaces it when it is better. Within :data:`CONFIDENCE_GAP` either way
     the record cannot tell the two descriptions apart: the loser is reported as a tie (the
@@ -1323,10 +1326,10 @@ def _two_for_one(current, kept, steps, ctx):
     out = {'fit': None, 'ties': []}
     names = [e for e, _ in kept]
     trace = ctx['trace']
-    stand_ins = []
-    for effect, cs in _confounds(names, ctx).items():
-        for c in sorted(cs, key=lambda c: -c['criterion_alone'])[:TWO_FOR_ONE_STAND_INS]:
-            stand_ins.append((effect, c['effect'], c['criterion_alone']))
+    dominant = max(steps, key=lambda st: st['criterion'])['effect']
+    stand_ins = [(dominant, c['effect'], c['criterion_alone'])
+                 for c in sorted(_confounds(names, ctx).get(dominant, []),
+                                 key=lambda c: -c['criterion_alone'])[:TWO_FOR_ONE_STAND_INS]]
     best = None
     for replaced, stand_in, _ in sorted(stand_ins, key=lambda s: -s[2]):
         others = [ev for ev in kept if ev[0] != replaced]
