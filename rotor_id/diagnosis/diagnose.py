@@ -531,7 +531,8 @@ def diagnose(record, description, progress=None, workers=2, effects=EFFECTS, win
             chosen_fit, steps, dropped = _forward_selection(chosen['fit'], steps, context)
             confound_notes = [_confound_text(effect_row['effect'], c) for effect_row in steps
                               for c in effect_row.get('confounds', [])]
-            confound_notes += [_confound_text(t['winner'], t) for t in context['doubt']]
+            confound_notes += [_confound_text(t['winner'], t)
+                               for t in context['two_for_one_ties']]
             notes += confound_notes
             notes += context['replaced']
             for old in dropped:
@@ -578,8 +579,8 @@ def diagnose(record, description, progress=None, workers=2, effects=EFFECTS, win
         dominant = max(steps, key=lambda st: st['criterion'])['effect'] if steps else effect
         if any(c.get('how_given') == 'exchange' and st['effect'] == dominant
                or c.get('how_given') == 'two_for_one'
-               for st in steps for c in st.get('confounds', [])) or (
-                   context.get('doubt') and not last_resort):
+               for st in steps for c in st.get('confounds', [])) \
+                or context.get('two_for_one_ties'):
             # another description of the record fits as well: not a confident name
             confidence = 'low'
         for one in [st['effect'] for st in steps] or [effect]:
@@ -1048,7 +1049,7 @@ def _forward_selection(first, steps, ctx):
     of two concealed ones; the effects are added again after a swap.
     """
     current, kept, dropped = first, [(first.effect, first.variant)], []
-    ctx['doubt'], ctx['replaced'] = [], []
+    ctx['two_for_one_ties'], ctx['replaced'] = [], []
     cur_val = steps[0]['validation_rms']
     current, cur_val, kept, steps = _add_effects(current, cur_val, kept, steps, dropped, ctx)
     ahead = _look_ahead(current, kept, steps, ctx)
@@ -1085,7 +1086,7 @@ def _forward_selection(first, steps, ctx):
         elif tie['how_given'] == 'two_for_one':
             # already a confound of a kept effect: the two-effect alternative still gets its
             # note and still takes the confidence away
-            ctx['doubt'].append(tie)
+            ctx['two_for_one_ties'].append(tie)
     for st in steps:
         st['parameters'] = current.effect_parameters.get(st['effect'], {})
         st['confounds'] = confounds.get(st['effect'], [])
