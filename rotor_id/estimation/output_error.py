@@ -252,16 +252,22 @@ class _Problem:
             x0 = exp.model.equilibrium(exp.t[:1], p, u0)
             jac[:, :k_par] = exp.model.equilibrium_jacobian(exp.t[:1], p, u0)[:, self.param_index]
             return x0, jac
-        if isinstance(mode, str):
-            x0 = np.zeros(n)
-        else:
-            x0 = np.asarray(mode, dtype=float).copy()
-            if x0.shape != (n,):
-                raise IdentificationError(f'initial state of run {exp.name!r} needs {n} values '
-                                          f'({", ".join(exp.model.state_names)})')
+        x0 = self.fixed_initial_state(r)
         x0[free] = theta[self.state_slices[r]]
         jac[free, k_par + np.arange(len(free))] = 1.0
         return x0, jac
+
+    def fixed_initial_state(self, r):
+        """x0 of run r before its free states are set (not for 'equilibrium'): a new array."""
+        exp = self.experiments[r]
+        n = exp.model.n_states
+        if isinstance(exp.initial_state, str):
+            return np.zeros(n)
+        x0 = np.array(exp.initial_state, dtype=float)
+        if x0.shape != (n,):
+            raise IdentificationError(f'initial state of run {exp.name!r} needs {n} values '
+                                      f'({", ".join(exp.model.state_names)})')
+        return x0
 
 
 def _fit_initial_states(problem, theta, max_step):
@@ -748,8 +754,8 @@ class _CompiledIteration:
     loop of :func:`fit_output_error` (test_kernels.py compares the two to 1e-9).
     """
 
-    def __init__(self, problem, plan, reference, floor, prior_info, prior_mean, step_tol,
-                 estimate_noise):
+    def __init__(self, problem, plan, reference, index, floor, prior_info, prior_mean,
+                 step_tol, estimate_noise):
         """Hold the arrays of the compiled call (see :meth:`for_problem`)."""
         exp = problem.experiments[0]
         self.plan = plan
@@ -757,13 +763,15 @@ class _CompiledIteration:
         p_ref, self.F, self.g, self.dF, self.dg, _ = reference
         self.p_ref = p_ref
         self.p_base = problem.p_base
-        self.index = np.asarray(problem.param_index, dtype=np.int64)
+        self.index = index
         self.free = np.asarray(problem.free_states[0], dtype=np.int64)
-        theta0 = np.zeros(len(problem.names))
-        x0, self.S0 = problem.initial_state(0, theta0, problem.full_parameters(theta0))
+        # x0(θ) = x0_base + S0 θ: _Problem.initial_state of a run whose x0 is not 'equilibrium'
+        n, k_par = exp.model.n_states, index.size
+        x0 = problem.fixed_initial_state(0)
         x0[self.free] = 0.0
         self.x0_base = x0
-        self.S0 = np.ascontiguousarray(self.S0, dtype=float)
+        self.S0 = np.zeros((n, len(problem.names)))
+        self.S0[self.free, k_par + np.arange(self.free.size)] = 1.0
         self.y = np.ascontiguousarray(exp.y, dtype=float)
         self.lo, self.hi = problem.lo, problem.hi
         self.floor = float(floor)
@@ -798,12 +806,12 @@ class _CompiledIteration:
                 or not problem.param_index):
             return None
         # one read: a plan kept for its record may get a new reference from another fit
-        reference = plan.reference_at(problem.p_base,
-                                      np.asarray(problem.param_index, dtype=np.int64))
-        if (not reference[5][problem.param_index].all()
+        index = np.asarray(problem.param_index, dtype=np.int64)
+        reference = plan.reference_at(problem.p_base, index)
+        if (not reference[5][index].all()
                 or np.any((reference[0] != problem.p_base) & ~reference[5])):
             return None
-        return cls(problem, plan, reference, floor, prior_info, prior_mean, step_tol,
+        return cls(problem, plan, reference, index, floor, prior_info, prior_mean, step_tol,
                    estimate_noise)
 
     def first(self, theta):
