@@ -22,6 +22,10 @@ BLAS thread (OpenBLAS's idle threads spin and would be charged to the next timed
 optima must agree: the largest difference, in units of our Cramér-Rao σ, is printed and
 checked (< 1e-3 σ).
 
+For the 7-parameter wake case the compiled whole fit (``gn_fit``, one call) is also timed alone
+with the arguments our fit passes it, in the same rounds, which splits our time into the compiled
+fit and the Python around it.
+
 Our simulator runs its compiled kernel (:mod:`rotor_id.estimation.kernels`, loaded before the
 timing, its load time printed), in ours and in peer (b) alike. Beside each of our times stands
 the compute limit: the multiply-adds of the sensitivity recursion that the fit needs at the
@@ -121,9 +125,12 @@ def bench_case(label, case_name, seed, repeat, rate):
 
     say(f'{label}: {len(theta0)} unknowns, {exp.t.size} samples, {repeat} interleaved rounds')
     n_states, n_sens = model.n_states, len(theta0)
-    timing = time_interleaved({'ours': ours, 'ours_first': ours_first, 'fd_ours': fd_ours,
-                               'afternoon': afternoon, 'afternoon_default': afternoon_default},
-                              repeat=repeat)
+    functions = {'ours': ours, 'ours_first': ours_first, 'fd_ours': fd_ours,
+                 'afternoon': afternoon, 'afternoon_default': afternoon_default}
+    kernel_call = compiled_fit_call(ours)
+    if kernel_call is not None:         # the compiled part of ours alone, timed beside it
+        functions['ours_kernel'] = kernel_call
+    timing = time_interleaved(functions, repeat=repeat)
     est = timing['ours']['result']
     first = timing['ours_first']['result']
     if not np.array_equal(first.values, est.values):
@@ -152,6 +159,33 @@ def bench_case(label, case_name, seed, repeat, rate):
         f'(b)/ours {t["fd_ours"] / t["ours"]:.1f}x; optima differ by '
         f'{dev["afternoon"]:.1e} σ (a), {dev["fd_ours"]:.1e} σ (b)')
     return out
+
+
+def compiled_fit_call(fit):
+    """
+    Return a call of the compiled whole fit (``gn_fit``) with the arguments ``fit()`` gives it.
+
+    None where ``fit`` does not take the one-call path (numpy simulator, or a problem the
+    compiled fit does not cover). Timing it beside ``fit`` splits ours into the compiled fit
+    (start, iterations, final M and M⁻¹) and the Python around it (set-up, Estimate).
+    """
+    module = kernels.affine_kernels()
+    if module is None:
+        return None
+    kernel, captured = module.gn_fit, []
+
+    def spy(*args):
+        captured.append(args)
+        return kernel(*args)
+    module.gn_fit = spy
+    try:
+        fit()
+    finally:
+        module.gn_fit = kernel
+    if not captured:
+        return None
+    args = captured[0]
+    return lambda: kernel(*args)
 
 
 def multiply_add_rate(size=128, repeat=200):
@@ -206,6 +240,18 @@ def report(results, seed, repeat, rate, kernel_status):
     cpu_b = wake7['cpu']['fd_ours'] / wake7['cpu']['ours']
     ours7 = wake7['time']['ours']
     ours7_cpu = wake7['cpu']['ours']
+    if 'ours_kernel' in wake7['cpu']:
+        kernel7 = wake7['cpu']['ours_kernel']
+        iterations = wake7['ours_iterations']
+        split = (f' Of our CPU time, the compiled fit (one call: start, {iterations} iterations, '
+                 f'final M and M⁻¹; {iterations + 1} simulations with sensitivities) takes '
+                 f'{fmt_time(kernel7)} ({kernel7 / ours7_cpu:.0%}), timed alone beside it; the '
+                 'Python around it (problem set-up, the kept plan, Estimate) the other '
+                 f'{fmt_time(ours7_cpu - kernel7)}. For ≥ {WAKE7_VS_A:.0f}× (a) at the (a) of '
+                 f'this run the whole fit may take '
+                 f'{fmt_time(wake7["cpu"]["afternoon"] / WAKE7_VS_A)} CPU.')
+    else:
+        split = ''
     first7 = wake7['time']['ours_first']
     first7_cpu = wake7['cpu']['ours_first']
     if kernel_status['loaded']:
@@ -220,17 +266,19 @@ def report(results, seed, repeat, rate, kernel_status):
                f'Issue 15 targets: fit {fmt_time(ours7)} wall, {fmt_time(ours7_cpu)} CPU '
                f'(≤ {fmt_time(WAKE7_LIMIT_S)}: wall '
                f'{"met" if ours7 <= WAKE7_LIMIT_S else "MISSED"}, CPU '
-               f'{"met" if ours7_cpu <= WAKE7_LIMIT_S else "MISSED"}), {ratio_a:.0f}× (a) '
-               f'(≥ {WAKE7_VS_A:.0f}×: {"met" if ratio_a >= WAKE7_VS_A else "MISSED"}; '
-               f'CPU {cpu_a:.0f}×), {ratio_b:.2f}× (b) (≥ {WAKE7_VS_B:.0f}×: '
-               f'{"met" if ratio_b >= WAKE7_VS_B else "MISSED"}; CPU {cpu_b:.2f}×). Compute limit '
+               f'{"met" if ours7_cpu <= WAKE7_LIMIT_S else "MISSED"}), CPU {cpu_a:.0f}× (a) '
+               f'(≥ {WAKE7_VS_A:.0f}×: {"met" if cpu_a >= WAKE7_VS_A else "MISSED"}; wall '
+               f'{ratio_a:.0f}×), CPU {cpu_b:.2f}× (b) (≥ {WAKE7_VS_B:.0f}×: '
+               f'{"met" if cpu_b >= WAKE7_VS_B else "MISSED"}; wall {ratio_b:.2f}×); the ratios '
+               'are judged on CPU time, which a loaded machine does not inflate for the '
+               'slower peer as it does wall time. Compute limit '
                f'{fmt_time(wake7["macs"] / rate)} ({wake7["macs"]:,} multiply-adds at '
                f'{rate / 1e9:.1f} G/s, a 128×128 matrix product here, best of 200); ours takes '
                f'{ours7 * rate / wake7["macs"]:.0f}× that. The first fit of a record takes '
                f'{fmt_time(first7)} wall, {fmt_time(first7_cpu)} CPU (≤ '
                f'{fmt_time(WAKE7_LIMIT_S)}: {"met" if first7 <= WAKE7_LIMIT_S else "MISSED"}; '
                f'(a) / first fit {wake7["time"]["afternoon"] / first7:.0f}×, CPU '
-               f'{wake7["cpu"]["afternoon"] / first7_cpu:.0f}×).\n\n'
+               f'{wake7["cpu"]["afternoon"] / first7_cpu:.0f}×).{split}\n\n'
                f'Simulator kernel for ours and (b): {kernel_text}.')
     return (f'## Timings (median of {repeat} interleaved rounds; data: report σ, seed {seed})\n\n'
             f'{table}\n\n{verdict}\n\n'
@@ -293,9 +341,10 @@ def main(argv=None):
         print(f'ERROR: optima disagree in {", ".join(bad)}', file=sys.stderr)
         return 2
     wake7 = next(r for r in results if r['case'] == 'wake_7par')['time']
+    cpu7 = next(r for r in results if r['case'] == 'wake_7par')['cpu']
     met = (wake7['ours'] <= WAKE7_LIMIT_S and wake7['ours_first'] <= WAKE7_LIMIT_S
-           and wake7['afternoon'] >= WAKE7_VS_A * wake7['ours']
-           and wake7['fd_ours'] >= WAKE7_VS_B * wake7['ours'])
+           and cpu7['afternoon'] >= WAKE7_VS_A * cpu7['ours']
+           and cpu7['fd_ours'] >= WAKE7_VS_B * cpu7['ours'])
     return 0 if met else 1
 
 
