@@ -14,7 +14,10 @@ sensitivities, outputs and per-channel residual sums (:func:`affine_scan`); and 
 Gauss-Newton iteration on such a record runs whole in :func:`gn_iteration`.
 """
 
-from numba import njit
+from llvmlite import ir
+from numba import njit, types
+from numba.core import cgutils
+from numba.extending import intrinsic
 import numpy as np
 
 
@@ -923,6 +926,30 @@ def gn_iteration(F_probe, g_probe, dF_probe, dg_probe, p_ref, p_base, param_inde
     return 1
 
 
+@intrinsic
+def _clock_ns(typingctx, clock_id):
+    """Read libc's clock_gettime(clock_id) in nanoseconds (by symbol name: the cache keeps it)."""
+    def codegen(context, builder, signature, args):
+        i64 = ir.IntType(64)
+        timespec = ir.LiteralStructType([i64, i64])
+        function = cgutils.get_or_insert_function(
+            builder.module, ir.FunctionType(ir.IntType(32), [ir.IntType(32),
+                                                             timespec.as_pointer()]),
+            'clock_gettime')
+        ts = cgutils.alloca_once(builder, timespec)
+        builder.call(function, [builder.trunc(args[0], ir.IntType(32)), ts])
+        seconds = builder.load(cgutils.gep_inbounds(builder, ts, 0, 0))
+        nanoseconds = builder.load(cgutils.gep_inbounds(builder, ts, 0, 1))
+        return builder.add(builder.mul(seconds, ir.Constant(i64, 1_000_000_000)), nanoseconds)
+    return types.int64(types.int64), codegen
+
+
+@njit(cache=True, nogil=True)
+def clock_ns(clock_id):
+    """Return clock_gettime(clock_id) in ns, as gn_fit reads it (compared with time's clocks)."""
+    return _clock_ns(clock_id)
+
+
 #: gn_fit's stop reasons (out_scalars[3]): the iteration limit, no step lowers the cost, every
 #: step small (converged), singular step equations (the caller fits again in Python), a
 #: response at the start that is not finite.
@@ -932,9 +959,9 @@ FIT_MAX_ITER, FIT_NO_STEP, FIT_CONVERGED, FIT_SINGULAR, FIT_NOT_FINITE = 0, 1, 2
 @njit(cache=True, nogil=True)
 def gn_fit(F_probe, g_probe, dF_probe, dg_probe, p_ref, p_base, param_index, h, substeps, U,
            x0_base, free_states, S0, H, y, theta0, var0, estimate_noise, floor, prior_info,
-           prior_mean, lo, hi, step_tol, max_iter, dependence_threshold, res, yhat, sq, gc, Mc,
-           hist_theta, hist_var, hist_scalars, out_theta, out_var, out_M, out_grad, out_cov,
-           out_scalars):
+           prior_mean, lo, hi, step_tol, max_iter, dependence_threshold, clock_id, res, yhat, sq,
+           gc, Mc, hist_theta, hist_var, hist_scalars, out_theta, out_var, out_M, out_grad,
+           out_cov, out_scalars):
     """
     Run a whole output-error fit of a single prepared run in one call (no progress callback).
 
@@ -944,7 +971,8 @@ def gn_fit(F_probe, g_probe, dF_probe, dg_probe, p_ref, p_base, param_index, h, 
     at the final point, the Cholesky pre-test of output_error.dependence_warnings
     (``dependence_threshold``) and M⁻¹. Fills the final point's res, yhat, sq, gc, Mc (T, m),
     (T, m), (m,), (m, k), (m, k, k); per accepted iteration i hist_theta[i] (k,),
-    hist_var[i] (m,) and hist_scalars[i] = [cost, rms, at a bound (1/0)]; out_theta, out_var,
+    hist_var[i] (m,) and hist_scalars[i] = [cost, rms, at a bound (1/0), clock_gettime(clock_id)
+    in ns when the iteration ended (NaN for clock_id < 0)]; out_theta, out_var,
     out_M, out_grad (the gradient of the last iteration's step), out_cov = M⁻¹, and
     out_scalars = [cost, data cost ½Σ sq/var, accepted iterations, stop reason (FIT_*),
     iteration count as fit_output_error reports it, pre-test passed (1/0),
@@ -1016,6 +1044,7 @@ def gn_fit(F_probe, g_probe, dF_probe, dg_probe, p_ref, p_base, param_index, h, 
         hist_scalars[accepted, 0] = cost
         hist_scalars[accepted, 1] = np.sqrt(scalars[3] / (T * m))
         hist_scalars[accepted, 2] = scalars[4]
+        hist_scalars[accepted, 3] = float(_clock_ns(clock_id)) if clock_id >= 0 else np.nan
         accepted += 1
         if scalars[2] != 0.0:
             reason = FIT_CONVERGED
@@ -1086,6 +1115,7 @@ def gn_fit(F_probe, g_probe, dF_probe, dg_probe, p_ref, p_base, param_index, h, 
 
 def warm_up_gn():
     """Compile (or load from the cache) gn_iteration and gn_fit for output error's types."""
+    clock_ns(1)
     n, q, P, k, m, T = 2, 1, 1, 2, 1, 3
     L = 3 * q
     i64 = np.zeros(1, dtype=np.int64)
@@ -1102,7 +1132,7 @@ def warm_up_gn():
            np.zeros((q + 1, P, n)), np.zeros(P), np.zeros(P), i64, 0.1, 1, np.zeros((T - 1, L)),
            np.zeros(n), i64, np.eye(n, k), np.ones((1, m, n)), np.zeros((T, m)), np.zeros(k),
            np.ones(m), True, 1e-24, np.zeros(k), np.zeros(k), -np.ones(k), np.ones(k), 1e-6, 1,
-           1e-7, np.empty((T, m)), np.empty((T, m)), np.empty(m), np.empty((m, k)),
-           np.empty((m, k, k)), np.empty((1, k)), np.empty((1, m)), np.empty((1, 3)),
+           1e-7, -1, np.empty((T, m)), np.empty((T, m)), np.empty(m), np.empty((m, k)),
+           np.empty((m, k, k)), np.empty((1, k)), np.empty((1, m)), np.empty((1, 4)),
            np.empty(k), np.empty(m), np.empty((k, k)), np.empty(k), np.empty((k, k)),
            np.empty(7))

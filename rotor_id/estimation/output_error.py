@@ -720,6 +720,22 @@ def fit_output_error(experiments, unknowns, guess=None, known=None, noise_std=No
         run_noise_std=[np.sqrt(var) for var in noise_var])
 
 
+def _perf_counter_clock_id():
+    """
+    clock_gettime's id of time.perf_counter's clock, for gn_fit's per-iteration times; else -1.
+
+    Only where perf_counter is that clock (Linux: CLOCK_MONOTONIC), so the compiled times and
+    the start taken here in Python are on one clock.
+    """
+    clock = getattr(time, 'CLOCK_MONOTONIC', None)
+    if clock is None or time.get_clock_info('perf_counter').implementation != \
+            'clock_gettime(CLOCK_MONOTONIC)':
+        return -1
+    return int(clock)
+
+
+PERF_COUNTER_CLOCK_ID = _perf_counter_clock_id()
+
 NOT_FINITE_AT_START = ('the model response at the starting values is not finite; check the '
                        'starting values and the run description')
 NO_STEP_MESSAGE = ('no step lowers the cost any more (stopped at a minimum or a bound; the '
@@ -856,15 +872,15 @@ class _CompiledIteration:
         The same iterations, stops, messages, warnings and bound as fit_output_error's loop
         (test_kernels.py compares them to 1e-9), for a caller without a progress callback.
         Returns None when the step equations became singular on the way (the caller fits again
-        an iteration at a time). The iterations run without the interpreter, so no clock is
-        read between them: every history entry's ``elapsed`` is the time of the whole fit, as
-        its ``elapsed_of`` says.
+        an iteration at a time). Each iteration's ``elapsed`` is read in the compiled loop from
+        perf_counter's clock (clock_gettime); where that clock is not available there, every
+        history entry's ``elapsed`` is the time of the whole fit, as its ``elapsed_of`` says.
         """
         problem, exp, plan = self.problem, self.exp, self.plan
         names = problem.names
         k, m, T = theta.size, self.y.shape[1], self.y.shape[0]
         hist_theta, hist_var = np.empty((max(max_iter, 0), k)), np.empty((max(max_iter, 0), m))
-        hist_scalars = np.empty((max(max_iter, 0), 3))
+        hist_scalars = np.empty((max(max_iter, 0), 4))
         res, yhat = np.empty((T, m)), np.empty((T, m))
         sq, gc, Mc = np.empty(m), np.empty((m, k)), np.empty((m, k, k))
         values, var, M, grad, cov = (np.empty(k), np.empty(m), np.empty((k, k)), np.empty(k),
@@ -875,8 +891,8 @@ class _CompiledIteration:
             plan.substeps, plan.U, self.x0_base, self.free, self.S0, plan.H, self.y, theta,
             np.ones(m) if noise_var is None else noise_var, self.estimate_noise, self.floor,
             self.prior_info, self.prior_mean, self.lo, self.hi, self.step_tol, int(max_iter),
-            DEPENDENCE_THRESHOLD, res, yhat, sq, gc, Mc, hist_theta, hist_var, hist_scalars,
-            values, var, M, grad, cov, scalars)
+            DEPENDENCE_THRESHOLD, PERF_COUNTER_CLOCK_ID, res, yhat, sq, gc, Mc, hist_theta,
+            hist_var, hist_scalars, values, var, M, grad, cov, scalars)
         elapsed = time.perf_counter() - t_start
         if reason == -2:
             raise IdentificationError(NOT_FINITE_AT_START)
@@ -887,8 +903,11 @@ class _CompiledIteration:
         std = np.sqrt(hist_var[:accepted])
         history = [{'iteration': i + 1, 'cost': float(hist_scalars[i, 0]),
                     'rms': float(hist_scalars[i, 1]), 'names': names, 'values': hist_theta[i],
-                    'elapsed': elapsed, 'elapsed_of': 'the whole fit (one compiled call)',
-                    'label': label, 'noise_std': std[i]} for i in range(accepted)]
+                    'elapsed': float(hist_scalars[i, 3] * 1e-9 - t_start), 'label': label,
+                    'noise_std': std[i]} for i in range(accepted)]
+        if PERF_COUNTER_CLOCK_ID < 0:           # no clock in the compiled loop: say so
+            for info in history:
+                info.update(elapsed=elapsed, elapsed_of='the whole fit (one compiled call)')
         message = 'maximum iterations reached'
         bounded = np.flatnonzero(hist_scalars[:accepted, 2])
         if bounded.size:            # the last iterate on a bound names it (as the loop does)

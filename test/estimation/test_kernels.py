@@ -238,6 +238,9 @@ def test_fit_through_the_plan_matches_numpy(case_name, noise, path, monkeypatch)
                                    rtol=1e-9)
         np.testing.assert_allclose(ours['noise_std'], theirs['noise_std'], rtol=1e-9)
         assert 0 < ours['elapsed'] <= planned.history[-1]['elapsed']
+    elapsed = [info['elapsed'] for info in planned.history]
+    assert elapsed == sorted(elapsed) and len(set(elapsed)) == len(elapsed), \
+        'each iteration timed when it ended, not the whole fit for all'
     np.testing.assert_allclose(planned.neg_log_likelihood, reference.neg_log_likelihood,
                                rtol=1e-9)
     np.testing.assert_allclose(planned.covariance, reference.covariance, rtol=1e-8,
@@ -453,3 +456,17 @@ def test_whole_fit_stops_and_warns_as_the_python_loop(story, monkeypatch):
         assert 'not identifiable' in ' '.join(planned.warnings)
     else:
         assert 'elapsed_of' not in planned.history[-1], 'an iteration at a time: timed each'
+
+
+def test_compiled_clock_is_perf_counter():
+    """gn_fit's per-iteration times come from time.perf_counter's clock, read in the kernel."""
+    import time
+    from rotor_id.estimation.output_error import PERF_COUNTER_CLOCK_ID
+    assert kernels.load() is not None, kernels.status()['error']
+    if PERF_COUNTER_CLOCK_ID < 0:
+        pytest.skip('perf_counter is not clock_gettime here: whole-fit times (elapsed_of)')
+    clock_ns = kernels._state['module'].clock_ns
+    before = time.perf_counter_ns()
+    inside = clock_ns(PERF_COUNTER_CLOCK_ID)
+    after = time.perf_counter_ns()
+    assert before <= inside <= after
