@@ -820,6 +820,19 @@ def _inverse_diagonal(M, out):
 
 
 @njit(cache=True, nogil=True)
+def _information(Mc, var, prior_info, out):
+    """Set out = M = Σ_c Mc[c]/var_c + diag(prior_info) (output_error._weighted_sums + prior)."""
+    k = out.shape[0]
+    for a in range(k):
+        for b in range(k):
+            acc = 0.0
+            for c in range(var.shape[0]):
+                acc += (1.0 / var[c]) * Mc[c, a, b]
+            out[a, b] = acc
+        out[a, a] += prior_info[a]
+
+
+@njit(cache=True, nogil=True)
 def gn_iteration(F_probe, g_probe, dF_probe, dg_probe, p_ref, p_base, param_index, h, substeps,
                  U, x0_base, free_states, S0, H, y, theta, cost, lm, var, estimate_noise,
                  floor, prior_info, prior_mean, lo, hi, step_tol, cur_sq, cur_gc, cur_Mc,
@@ -844,13 +857,8 @@ def gn_iteration(F_probe, g_probe, dF_probe, dg_probe, p_ref, p_base, param_inde
     m = var.shape[0]
     T = y.shape[0]
     # M = Σ_c Mc/var_c + diag(prior), gradient = −Σ_c gc/var_c + prior (θ − mean)
+    _information(cur_Mc, var, prior_info, out_M)
     for a in range(k):
-        for b in range(k):
-            acc = 0.0
-            for c in range(m):
-                acc += (1.0 / var[c]) * cur_Mc[c, a, b]
-            out_M[a, b] = acc
-        out_M[a, a] += prior_info[a]
         acc = 0.0
         for c in range(m):
             acc += (1.0 / var[c]) * cur_gc[c, a]
@@ -1063,18 +1071,9 @@ def gn_fit(F_probe, g_probe, dF_probe, dg_probe, p_ref, p_base, param_index, h, 
     data = 0.0
     for c in range(m):
         data += sq[c] * (1.0 / var[c])
-    # M at the final point (output_error._weighted_sums + prior), as the Python path forms it
-    M = np.empty((k, k))
-    for a in range(k):
-        for b in range(k):
-            acc = 0.0
-            for c in range(m):
-                acc += (1.0 / var[c]) * Mc[c, a, b]
-            M[a, b] = acc
-        M[a, a] += prior_info[a]
-    for a in range(k):                  # (after "no step": the step's M, formed alike)
-        for b in range(k):
-            out_M[a, b] = M[a, b]
+    # M at the final point (output_error._weighted_sums + prior; after "no step" the step's M)
+    M = out_M
+    _information(Mc, var, prior_info, M)
     # dependence_warnings' pre-test: Cholesky of the scaled M − threshold·k·I
     passed = True
     for a in range(k):
