@@ -11,7 +11,8 @@ Time-invariant records (:class:`rotor_id.estimation.simulate.TimeInvariantPlan`)
 :func:`affine_run` instead: one affine map per sample interval, formed with its parameter
 derivatives from F, B, e once per parameter vector (:func:`interval_map`), then states,
 sensitivities, outputs and per-channel residual sums (:func:`affine_scan`); and output error's
-Gauss-Newton iteration on such a record runs whole in :func:`gn_iteration`.
+Gauss-Newton iteration on such a record runs whole in :func:`gn_iteration`, its whole fit (for
+a caller without a progress callback) in :func:`gn_fit`.
 """
 
 from llvmlite import ir

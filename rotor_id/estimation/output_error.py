@@ -760,14 +760,16 @@ def _stop_warnings(converged, message):
 
 class _CompiledIteration:
     """
-    The Gauss-Newton iterations of a single prepared run in one compiled call each.
+    The Gauss-Newton fit of a single prepared run: whole in one compiled call, or by iteration.
 
     Used where the run has a :class:`~rotor_id.estimation.simulate.TimeInvariantPlan` whose
     reference point covers every unknown model parameter (so no trial needs the model), no
     output offset, and an initial state that does not depend on the parameters (not
     'equilibrium'). :meth:`iterate` runs ``_kernels_numba.gn_iteration``: the same M,
     gradient, damped step, trials, noise estimate, cost and convergence test as the Python
-    loop of :func:`fit_output_error` (test_kernels.py compares the two to 1e-9).
+    loop of :func:`fit_output_error` (test_kernels.py compares the two to 1e-9);
+    :meth:`whole_fit` runs all iterations and the final M, dependence pre-test and M⁻¹ in
+    ``_kernels_numba.gn_fit`` (callers without a progress callback).
     """
 
     def __init__(self, problem, plan, reference, index, floor, prior_info, prior_mean,
