@@ -132,7 +132,7 @@ def summarize(runs, seeds):
 
 def results_markdown(runs, seeds, command, notes, load_at_start):
     """
-    The results file: the table, how it was made (command, commit, load), then ``notes``.
+    Return the results file: the table, how it was made (command, commit, load), ``notes``.
 
     ``notes`` are the hand-written notes of the file being replaced (from :data:`NOTES_MARK`
     on), so a re-run, or an interrupted one, keeps them; their figures are to be checked.
