@@ -1365,9 +1365,11 @@ def _two_for_one(current, kept, steps, ctx):
         alt_trace = ctx['trace']
         ctx['trace'] = trace
         alt_names = [e for e, _ in alt_kept]
-        if set(alt_names) == set(names):
-            _say_t(ctx, f'two-for-one: from {stand_in} the selection comes back to '
-                        f'{" + ".join(names)}')
+        if set(alt_names) in (set(names), {e for e, _ in others} | {stand_in}):
+            # back where it started, or a plain swap of one name for another: the choice
+            # among near ties (held-out prediction) and the confidence gap judge that
+            _say_t(ctx, f'two-for-one: from {stand_in} the selection finds '
+                        f'{" + ".join(alt_names)}, no second effect')
             continue
         two_dll, crit = _criterion_over(alt, current, ctx['n_obs'], rival=True)
         _say_t(ctx, f'two-for-one: {" + ".join(alt_names)} against {" + ".join(names)}: '
