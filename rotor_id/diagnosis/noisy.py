@@ -480,7 +480,7 @@ def _random_inflow_states(runs, ctx, setup):
 #: Significance of random inflow's likelihood-ratio test (without the criterion's log n
 #: per parameter) that makes a verdict without it doubtful: turbulence is then likely beside
 #: the effects found although it does not earn its place by the criterion.
-DOUBT_LEVEL = 0.01
+DOUBT_LEVEL = 0.05
 
 
 def _doubt(ctx, kept, text, lr, k):

@@ -237,7 +237,7 @@ def test_turbulence_beside_an_azimuth_offset_in_forward_flight():
 def test_turbulence_likely_but_not_established_is_not_a_confident_verdict():
     # seed 1001 of the same pair: random inflow gains 2ΔJ = 15 beside the azimuth offset, a
     # criterion below the threshold, so it is not named; its likelihood-ratio test passes at
-    # 1 %, so the verdict (the offset alone, the truth but incomplete) is not confident and a
+    # 5 %, so the verdict (the offset alone, the truth but incomplete) is not confident and a
     # note gives the figures
     result, out = diagnosed('noise+azimuth', 1001, workers=1)
     assert out['named'] == ['azimuth_offset'], out['named']
