@@ -786,7 +786,7 @@ def _candidate_jobs(current, kept, ctx, residuals_noise=False):
     est = current.estimate
     start = {n: est.model_parameters[n] for n in current.unknowns}
     names = {e for e, _ in kept}
-    excluded = set(names) | set(ctx.get('replaced_group', ()))
+    excluded = set(names)
     for e in names:
         excluded.update(equivalent(e, ctx['mu']))
     noise_var = np.asarray(est.noise_std, dtype=float)**2
@@ -1360,19 +1360,12 @@ def _two_for_one(current, kept, steps, ctx):
         row = _step_row(fit, 0.5 * two_dll, crit, None, ctx['floors'], ctx['u'], ctx['t'])
         kept_rows = [st for st in steps if st['effect'] != replaced]
         alt_kept, alt_steps = list(others) + [(fit.effect, fit.variant)], kept_rows + [row]
-        # the alternative is C and what C lets in *in place of* E: E and its first-order
-        # equivalents are no candidates there (re-adding E leads back to the model it
-        # challenges, which the comparison below discards anyway)
-        ctx['replaced_group'] = {replaced, *equivalent(replaced, ctx['mu'])}
-        try:
-            alt, alt_val, alt_kept, alt_steps = _add_effects(fit, None, alt_kept, alt_steps,
-                                                             [], ctx)
-            # the stand-in may leave a second effect's stand-in kept (a flap read early
-            # standing in for the azimuth offset): the greedy selection's exchange round
-            alt, _, alt_kept, alt_steps, _ = _exchange_round(alt, alt_val, alt_kept,
-                                                             alt_steps, [], ctx)
-        finally:
-            ctx['replaced_group'] = ()
+        alt, alt_val, alt_kept, alt_steps = _add_effects(fit, None, alt_kept, alt_steps, [],
+                                                         ctx)
+        # the stand-in may leave a second effect's stand-in kept (a flap read early standing
+        # in for the azimuth offset): the same exchange round as the greedy selection's
+        alt, _, alt_kept, alt_steps, _ = _exchange_round(alt, alt_val, alt_kept, alt_steps,
+                                                         [], ctx)
         alt_trace = ctx['trace']
         ctx['trace'] = trace
         alt_names = [e for e, _ in alt_kept]
