@@ -776,6 +776,12 @@ def _prefer_established(near, mu=0.0):
     return keep or near
 
 
+def _ctx_job(ctx, effect, variant, **options):
+    """Return a candidate :class:`Job` on the diagnosis's record, description and values."""
+    return Job(effect, variant, ctx['record'], ctx['description'], ctx['values'],
+               ctx['unknowns'], ctx['known'], ctx['window_s'], **options)
+
+
 def _candidate_jobs(current, kept, ctx, residuals_noise=False):
     """
     Jobs of every effect that can still be added to the kept ones (screened first).
@@ -799,9 +805,8 @@ def _candidate_jobs(current, kept, ctx, residuals_noise=False):
             _say_t(ctx, f'  + {effect}: not fitted (no score test, and the residuals are '
                         'already white at the floor)')
             continue
-        job = Job(effect, '', ctx['record'], ctx['description'], ctx['values'],
-                  ctx['unknowns'], ctx['known'], ctx['window_s'], verbose=ctx['verbose'],
-                  baseline_nll=est.neg_log_likelihood, start=start, prior=tuple(kept))
+        job = _ctx_job(ctx, effect, '', verbose=ctx['verbose'],
+                       baseline_nll=est.neg_log_likelihood, start=start, prior=tuple(kept))
         if ctx['screen'] and effect in SCREENED:
             verdict = _screen(job, noise_var, ctx['n_obs'], ctx['n_blades'])
             if not verdict['fit']:
@@ -951,10 +956,9 @@ def _forward_step(current, cur_val, kept, ctx, residuals_noise=False):
     scored = scored[:MAX_VALIDATED]
     if not scored:
         return None
-    val_jobs = [Job(f.effect, f.variant, ctx['record'], ctx['description'], ctx['values'],
-                    ctx['unknowns'], ctx['known'], ctx['window_s'], prior=tuple(kept),
-                    start={n: f.estimate.model_parameters[n] for n in f.unknowns},
-                    bounds=f.bounds) for _, _, f in scored]
+    val_jobs = [_ctx_job(ctx, f.effect, f.variant, prior=tuple(kept),
+                         start={n: f.estimate.model_parameters[n] for n in f.unknowns},
+                         bounds=f.bounds) for _, _, f in scored]
     vals = {e: v for e, _, v in _run_validation(val_jobs, ctx['workers'], lambda r: None)}
     ok = [(c, d, f) for c, d, f in scored
           if vals.get(f.effect) is not None and (cur_val is None or vals[f.effect] < cur_val)]
@@ -977,9 +981,7 @@ def _without(effect, fit, kept, ctx):
     new = (fit.effect, fit.variant)
     others = [ev for ev in rest if ev != new]
     start = {n: fit.estimate.model_parameters[n] for n in fit.unknowns}
-    job = Job(new[0], new[1], ctx['record'], ctx['description'], ctx['values'],
-              ctx['unknowns'], ctx['known'], ctx['window_s'], prior=tuple(others),
-              start=start)
+    job = _ctx_job(ctx, new[0], new[1], prior=tuple(others), start=start)
     out = fit_candidate(job)
     return out if out.available else None
 
@@ -1146,10 +1148,9 @@ def _look_ahead(current, kept, steps, ctx):
     _say_t(ctx, f'look-ahead: the residuals are structured; {best} added past the criterion '
                 f'(2Δlog L = {gains[best]["two_delta_loglik"]:.1f}) to see what follows')
     start = {n: current.estimate.model_parameters[n] for n in current.unknowns}
-    fit = fit_candidate(Job(best, '', ctx['record'], ctx['description'], ctx['values'],
-                            ctx['unknowns'], ctx['known'], ctx['window_s'],
-                            verbose=ctx['verbose'], start=start, prior=tuple(kept),
-                            baseline_nll=current.estimate.neg_log_likelihood))
+    fit = fit_candidate(_ctx_job(ctx, best, '', verbose=ctx['verbose'], start=start,
+                                 prior=tuple(kept),
+                                 baseline_nll=current.estimate.neg_log_likelihood))
     if not fit.available or fit.bound_limited:
         return None
     two_dll, crit = _criterion_over(fit, current, ctx['n_obs'])
@@ -1195,9 +1196,8 @@ def _backward(current, kept, steps, dropped, ctx):
 def _refit(kept, ctx, like):
     """Fit the model of the kept effects [(effect, variant)], started from ``like``."""
     start = {n: like.estimate.model_parameters[n] for n in like.unknowns}
-    out = fit_candidate(Job(kept[-1][0], kept[-1][1], ctx['record'], ctx['description'],
-                            ctx['values'], ctx['unknowns'], ctx['known'], ctx['window_s'],
-                            prior=tuple(kept[:-1]), start=start))
+    out = fit_candidate(_ctx_job(ctx, kept[-1][0], kept[-1][1], prior=tuple(kept[:-1]),
+                                 start=start))
     return out if out.available else None
 
 
@@ -1241,10 +1241,9 @@ def _exchange(current, kept, ctx):
             best[e] = max(best.get(e, -math.inf), g['two_delta_loglik'])
     contenders = sorted(best, key=lambda e: -best[e])[:EXCHANGE_CONTENDERS]
     start = {n: current.estimate.model_parameters[n] for n in current.unknowns}
-    jobs = [Job(c, '', ctx['record'], ctx['description'], ctx['values'], ctx['unknowns'],
-                ctx['known'], ctx['window_s'], verbose=ctx['verbose'],
-                baseline_nll=current.estimate.neg_log_likelihood, start=start,
-                prior=tuple(ev for ev in kept if ev[0] != k))
+    jobs = [_ctx_job(ctx, c, '', verbose=ctx['verbose'],
+                     baseline_nll=current.estimate.neg_log_likelihood, start=start,
+                     prior=tuple(ev for ev in kept if ev[0] != k))
             for c in contenders for k in names]
     if not jobs:
         return out
@@ -1277,9 +1276,7 @@ def _exchange(current, kept, ctx):
     kept_tie = [{**tie, 'effect': fit.effect, 'winner': replaced}] if out['ties'] else []
     # what the swapped-in effect adds to the others alone (its own backward check)
     others = [ev for ev in kept if ev[0] != replaced]
-    rest = Job(others[-1][0], others[-1][1], ctx['record'], ctx['description'],
-               ctx['values'], ctx['unknowns'], ctx['known'], ctx['window_s'],
-               prior=tuple(others[:-1]), start=start)
+    rest = _ctx_job(ctx, others[-1][0], others[-1][1], prior=tuple(others[:-1]), start=start)
     base = fit_candidate(rest)
     if not base.available:
         out['ties'] = kept_tie
@@ -1288,11 +1285,9 @@ def _exchange(current, kept, ctx):
     if add_crit <= CRITERION_THRESHOLD:
         out['ties'] = kept_tie
         return out
-    val = _run_validation([Job(fit.effect, fit.variant, ctx['record'], ctx['description'],
-                               ctx['values'], ctx['unknowns'], ctx['known'],
-                               ctx['window_s'], prior=tuple(others),
-                               start={n: fit.estimate.model_parameters[n]
-                                      for n in fit.unknowns}, bounds=fit.bounds)],
+    val = _run_validation([_ctx_job(ctx, fit.effect, fit.variant, prior=tuple(others),
+                                    start={n: fit.estimate.model_parameters[n]
+                                           for n in fit.unknowns}, bounds=fit.bounds)],
                           ctx['workers'], lambda r: None)
     row = _step_row(fit, 0.5 * add_2dll, add_crit, val[0][2] if val else None, ctx['floors'],
                     ctx['u'], ctx['t'])
@@ -1341,11 +1336,9 @@ def _two_for_one(current, kept, steps, ctx):
         start = {n: current.estimate.model_parameters[n] for n in current.unknowns}
         _say_t(ctx, f'two-for-one: {stand_in} in place of {replaced}, then the selection '
                     'again')
-        fit = fit_candidate(Job(stand_in, '', ctx['record'], ctx['description'],
-                                ctx['values'], ctx['unknowns'], ctx['known'],
-                                ctx['window_s'], verbose=ctx['verbose'], start=start,
-                                prior=tuple(others),
-                                baseline_nll=current.estimate.neg_log_likelihood))
+        fit = fit_candidate(_ctx_job(ctx, stand_in, '', verbose=ctx['verbose'], start=start,
+                                     prior=tuple(others),
+                                     baseline_nll=current.estimate.neg_log_likelihood))
         if not fit.available or fit.bound_limited:
             continue
         # the stand-in's own row: what it adds to the effects kept beside it (the baseline's
