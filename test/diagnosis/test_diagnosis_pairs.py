@@ -235,11 +235,11 @@ def test_turbulence_beside_an_azimuth_offset_in_forward_flight():
 
 
 def test_turbulence_likely_but_not_established_is_not_a_confident_verdict():
-    # seed 1001 of the same pair: random inflow gains 2ΔJ = 15 beside the azimuth offset, a
-    # criterion below the threshold, so it is not named; its likelihood-ratio test passes at
-    # 5 %, so the verdict (the offset alone, the truth but incomplete) is not confident and a
-    # note gives the figures
-    result, out = diagnosed('noise+azimuth', 1001, workers=1)
+    # seed 1001 of noise+azimuth with the turbulence at its μ = 0 size: random inflow gains
+    # 2ΔJ = 15 beside the azimuth offset, a criterion below the threshold, so it is not named;
+    # its likelihood-ratio test passes at 5 %, so the verdict (the offset alone, the truth but
+    # incomplete) is not confident and a note gives the figures
+    result, out = diagnosed('weak_noise+azimuth', 1001, workers=1)
     assert out['named'] == ['azimuth_offset'], out['named']
     assert result['explanation']['confidence'] == 'low'
     doubt = [n for n in result['notes'] if 'likelihood-ratio test passes' in n]
