@@ -597,6 +597,16 @@ def _grid(states):
     return states[:, None], states[None, :]
 
 
+def _compact(model, method):
+    """
+    ``model``'s ``system`` or ``system_jacobian``, F (∂F) of length 1 along time where constant.
+
+    A :class:`~rotor_id.physics.models.RotorModel` has ``system_compact`` and
+    ``system_jacobian_compact``; any other model gives the full arrays (the same sums).
+    """
+    return getattr(model, f'{method}_compact', None) or getattr(model, method)
+
+
 class DynamicInflow(Augmented):
     """
     The report's two-parameter cyclic wake (Ch.2 eq. 29) added to a multiblade γ-model.
@@ -659,8 +669,9 @@ class DynamicInflow(Augmented):
     def _extra(self, t, pb, pe, u, F, g):
         """Add the wake: the inner model's F, g minus the root's (which the baseline has)."""
         q, pr = self._inner_p(pb, pe)
-        Fi, gi = self.inner.system(t, q, u[:, :3])
-        Fr, gr = self.root.system(t, pr, u[:, :3])
+        # F of length 1 along time where constant: added by broadcasting, not copied T times
+        Fi, gi = _compact(self.inner, 'system')(t, q, u[:, :3])
+        Fr, gr = _compact(self.root, 'system')(t, pr, u[:, :3])
         for sign, (_, states, _), Fx, gx in ((1.0, self._inner_at, Fi, gi),
                                              (-1.0, self._root_at, Fr, gr)):
             F[(slice(None),) + _grid(states)] += sign * Fx
@@ -671,8 +682,8 @@ class DynamicInflow(Augmented):
         # the indices are slices (a loop over parameters with fancy-indexed adds and a copy
         # of the root's derivatives embedded in the inner states was a quarter of diagnose)
         q, pr = self._inner_p(pb, pe)
-        dFi, dgi = self.inner.system_jacobian(t, q, u[:, :3])
-        dFr, dgr = self.root.system_jacobian(t, pr, u[:, :3])
+        dFi, dgi = _compact(self.inner, 'system_jacobian')(t, q, u[:, :3])
+        dFr, dgr = _compact(self.root, 'system_jacobian')(t, pr, u[:, :3])
         for sign, (mine, states, theirs), dFx, dgx in ((1.0, self._inner_at, dFi, dgi),
                                                        (-1.0, self._root_at, dFr, dgr)):
             dFx, dgx = sign * dFx[:, theirs], sign * dgx[:, theirs]
@@ -881,6 +892,11 @@ class BladeDissimilarity(Augmented):
         return out
 
 
+#: Time grids (with their measured flap) whose cubic-spring forcing a model keeps: a fit's
+#: record, and the halves of the cross-validation.
+FORCING_GRIDS_KEPT = 4
+
+
 class CubicStiffness(Augmented):
     """
     A hardening flap spring κβ³ on every blade (hub spring or elastic-stop nonlinearity).
@@ -898,9 +914,27 @@ class CubicStiffness(Augmented):
         self.extra_inputs = tuple(f'beta_{k}_measured' for k in BladeView(base).blades)
         super().__init__(base)
 
+    def __getstate__(self):
+        """Pickle without the kept forcing (a fit's result travels back from its worker)."""
+        state = self.__dict__.copy()
+        state.pop('_forcing_memo', None)
+        return state
+
     def _forcing(self, t, u):
-        cube = u[:, 3:3 + self.view.n_blades] ** 3
-        return -np.einsum('tnk,tk->tn', self.view.force(t), cube)
+        """−G(t) β_meas³ (T, n_base): no parameter enters, so it is kept per time grid."""
+        beta = u[:, 3:3 + self.view.n_blades]
+        # a fit evaluates F, g and their derivatives on the same grid and measured flap
+        # every time: a copy of them decides a hit (the einsum was a sixth of a diagnosis)
+        memo = self.__dict__.setdefault('_forcing_memo', [])
+        for t_seen, beta_seen, forcing in memo:
+            if np.array_equal(t_seen, t) and np.array_equal(beta_seen, beta):
+                return forcing
+        forcing = -np.einsum('tnk,tk->tn', self.view.force(t), beta ** 3)
+        forcing.setflags(write=False)
+        if len(memo) >= FORCING_GRIDS_KEPT:
+            memo.pop(0)
+        memo.append((np.array(t, dtype=float), np.array(beta, dtype=float), forcing))
+        return forcing
 
     def _extra(self, t, pb, pe, u, F, g):
         g[:, :self.n_base_states] += pe[0] * self._forcing(t, u)

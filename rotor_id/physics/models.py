@@ -643,6 +643,13 @@ class RotorModel(LinearModel):
         return pieces[key][2]
 
     def system(self, t, p, u):
+        F, g = self.system_compact(t, p, u)
+        if F.shape[0] != g.shape[0]:
+            F = np.broadcast_to(F, (g.shape[0],) + F.shape[1:]).copy()
+        return F, g
+
+    def system_compact(self, t, p, u):
+        """:meth:`system` with F of length 1 along time where it is constant (time-invariant)."""
         t = np.atleast_1d(np.asarray(t, dtype=float))
         p = np.asarray(p, dtype=float)
         ucyc = np.asarray(u, dtype=float)[:, 1:3]
@@ -655,11 +662,16 @@ class RotorModel(LinearModel):
                 F += c * self._block(pieces, key, part)
             else:
                 g += c * self._input_term(pieces, key, part, ucyc)
-        if F.shape[0] != t.size:
-            F = np.broadcast_to(F, (t.size,) + F.shape[1:]).copy()
         return F, g
 
     def system_jacobian(self, t, p, u):
+        dF, dg = self.system_jacobian_compact(t, p, u)
+        if dF.shape[0] != dg.shape[0]:
+            dF = np.broadcast_to(dF, (dg.shape[0],) + dF.shape[1:]).copy()
+        return dF, dg
+
+    def system_jacobian_compact(self, t, p, u):
+        """:meth:`system_jacobian` with ∂F/∂p of length 1 along time where F is constant."""
         t = np.atleast_1d(np.asarray(t, dtype=float))
         p = np.asarray(p, dtype=float)
         ucyc = np.asarray(u, dtype=float)[:, 1:3]
@@ -674,8 +686,6 @@ class RotorModel(LinearModel):
                     dF[:, i] += c * self._block(pieces, key, part)
                 else:
                     dg[:, i] += c * self._input_term(pieces, key, part, ucyc)
-        if dF.shape[0] != t.size:
-            dF = np.broadcast_to(dF, (t.size,) + dF.shape[1:]).copy()
         return dF, dg
 
     # -- blades and channels ------------------------------------------------------------------

@@ -11,6 +11,7 @@ Every candidate of the catalogue is a correct LinearModel built from the baselin
 """
 
 import math
+import pickle
 
 import numpy as np
 import pytest
@@ -289,3 +290,43 @@ def test_pitch_like_random_inflow_acts_as_pitch(name, mu):
         y = simulate(model, p, SCHEDULE, T, np.concatenate([x0b, shift])).y
         np.testing.assert_allclose(y, ref, atol=1e-9 * np.abs(ref).max(), err_msg=inner.name)
         check_sensitivities(model, SCHEDULE, np.random.default_rng(5))
+
+
+@pytest.mark.parametrize('name,mu', [('multiblade_constant', 0.4), ('multiblade', 0.4),
+                                     ('multiblade', 0.0)])
+def test_wake_with_constant_blocks_is_the_full_sum(name, mu, monkeypatch):
+    # the wake adds the inner and root models' F (and ∂F) of length 1 along time where they
+    # are constant: bit for bit what adding the arrays copied to every time gives
+    model = aug.CubicStiffness(aug.DynamicInflow(_base(name, mu)))
+    p = _away_from_neutral(model)
+    u = _inputs()(T)
+    fast = model.system(T, p, u) + model.system_jacobian(T, p, u)
+    monkeypatch.setattr(aug, '_compact', lambda inner, method: getattr(inner, method))
+    slow = model.system(T, p, u) + model.system_jacobian(T, p, u)
+    for a, b in zip(fast, slow):
+        np.testing.assert_array_equal(a, b)
+
+
+def test_cubic_spring_forcing_follows_the_grid_and_the_measured_flap():
+    # the kept forcing −G(t) β³ is the one of the grid and flap asked for, never a stale one
+    base = _base('multiblade', 0.4)
+    p = _away_from_neutral(aug.CubicStiffness(base))
+    u = _inputs()(T)
+    other = u.copy()
+    other[:, 3:] *= 1.5
+    model = aug.CubicStiffness(base)
+    for t, inputs in ((T, u), (T, other), (T[:100], u[:100]), (T, u), (T, other)):
+        fresh = aug.CubicStiffness(base)
+        np.testing.assert_array_equal(model.system(t, p, inputs)[1],
+                                      fresh.system(t, p, inputs)[1])
+        np.testing.assert_array_equal(model.system_jacobian(t, p, inputs)[1],
+                                      fresh.system_jacobian(t, p, inputs)[1])
+    # β³ scaled by 1.5³: the forcing (g − baseline g) scales with it, a check on the values
+    g_base = aug.CubicStiffness(base).system(T, np.concatenate([p[:-1], [0.0]]), u)[1]
+    change = model.system(T, p, u)[1] - g_base
+    moved = np.abs(change) > 1e-12
+    assert moved.any()
+    np.testing.assert_allclose((model.system(T, p, other)[1] - g_base)[moved] / change[moved],
+                               1.5**3, rtol=1e-9)
+    assert '_forcing_memo' in model.__dict__
+    assert '_forcing_memo' not in pickle.loads(pickle.dumps(model)).__dict__
