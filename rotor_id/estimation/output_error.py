@@ -197,8 +197,9 @@ class _Problem:
             self.p_base[names.index(name)] = float(value)
         self.free_states = [exp.free_states() for exp in experiments]
         self.names = list(self.unknowns)
-        self.bounds_lo = [model.parameter(n).lower for n in self.unknowns]
-        self.bounds_hi = [model.parameter(n).upper for n in self.unknowns]
+        parameters = model.parameters
+        self.bounds_lo = [parameters[i].lower for i in self.param_index]
+        self.bounds_hi = [parameters[i].upper for i in self.param_index]
         self.state_slices = []
         for r, (exp, free) in enumerate(zip(experiments, self.free_states)):
             start = len(self.names)
@@ -556,6 +557,7 @@ def fit_output_error(experiments, unknowns, guess=None, known=None, noise_std=No
     theta = np.concatenate([problem.p_base[problem.param_index],
                             np.zeros(k - len(problem.param_index))])
     m = experiments[0].model.n_outputs
+    largest = 1.0
     for exp in experiments:
         if exp.y is None:
             raise IdentificationError(f'run {exp.name!r} has no measurements to fit')
@@ -564,9 +566,12 @@ def fit_output_error(experiments, unknowns, guess=None, known=None, noise_std=No
                 f'run {exp.name!r}: measurements have shape {exp.y.shape}, the model needs '
                 f'({exp.t.size}, {exp.model.n_outputs}) = samples x '
                 f'({", ".join(exp.model.output_names)})')
-        if not np.all(np.isfinite(exp.y)):
+        # the largest |y| is NaN or inf where any value is; it also sets the noise floor
+        peak = float(np.max(np.abs(exp.y), initial=0.0))
+        if not math.isfinite(peak):
             raise IdentificationError(f'run {exp.name!r}: measurements contain NaN or inf; '
                                       'drop those samples before identifying')
+        largest = max(largest, peak)
     problem.prepare(max_step)
     theta = _fit_initial_states(problem, theta, max_step)
     n_total = sum(exp.t.size for exp in experiments)
@@ -589,7 +594,7 @@ def fit_output_error(experiments, unknowns, guess=None, known=None, noise_std=No
         data = sum(0.5 * float(_squares(result) @ (1.0 / v)) for result, v in zip(results, var))
         return data + 0.5 * np.sum(prior_info * (theta_eval - prior_mean)**2)
 
-    floor = 1e-24 * max(1.0, max(float(np.max(np.abs(exp.y))) for exp in experiments))**2
+    floor = 1e-24 * largest**2
 
     def estimate_var(results):
         # one R per noise group, from the residuals of its runs whose noise is not given
@@ -902,17 +907,19 @@ class _CompiledIteration:
             return None
         cost, data_cost, accepted, iterations = (float(scalars[0]), float(scalars[1]),
                                                  int(scalars[2]), int(scalars[4]))
-        std = np.sqrt(hist_var[:accepted])
-        history = [{'iteration': i + 1, 'cost': float(hist_scalars[i, 0]),
-                    'rms': float(hist_scalars[i, 1]), 'names': names, 'values': hist_theta[i],
-                    'elapsed': float(hist_scalars[i, 3] * 1e-9 - t_start), 'label': label,
-                    'noise_std': std[i]} for i in range(accepted)]
+        # per accepted iteration [cost, rms, on a bound, clock ns] as Python floats
+        rows = hist_scalars[:accepted].tolist()
+        history = [{'iteration': i + 1, 'cost': cost_i, 'rms': rms_i, 'names': names,
+                    'values': values_i, 'elapsed': clock_i * 1e-9 - t_start, 'label': label,
+                    'noise_std': std_i}
+                   for i, ((cost_i, rms_i, _, clock_i), values_i, std_i) in enumerate(
+                       zip(rows, hist_theta[:accepted], np.sqrt(hist_var[:accepted])))]
         if PERF_COUNTER_CLOCK_ID < 0:           # no clock in the compiled loop: say so
             for info in history:
                 info.update(elapsed=elapsed, elapsed_of='the whole fit (one compiled call)')
         message = 'maximum iterations reached'
-        bounded = np.flatnonzero(hist_scalars[:accepted, 2])
-        if bounded.size:            # the last iterate on a bound names it (as the loop does)
+        bounded = [i for i, row in enumerate(rows) if row[2]]
+        if bounded:                 # the last iterate on a bound names it (as the loop does)
             last = hist_theta[bounded[-1]]
             at_bound = (last <= problem.lo) | (last >= problem.hi)
             message = 'parameter at a physical bound: ' + ', '.join(
@@ -921,7 +928,7 @@ class _CompiledIteration:
         if reason == 1:
             message = NO_STEP_MESSAGE
             converged = _gradient_small(grad, M, cost)
-        elif converged and not (bounded.size and bounded[-1] == accepted - 1):
+        elif converged and not (bounded and bounded[-1] == accepted - 1):
             message = 'converged'
         warnings = [] if scalars[5] else dependence_warnings(names, M)[0]
         if not scalars[6]:
