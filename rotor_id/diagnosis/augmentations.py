@@ -22,8 +22,8 @@ import numpy as np
 
 from rotor_id.physics.aerodynamics import (blade_aerodynamics, flap_damping,
                                            lock_number_from_damping)
-from rotor_id.physics.models import (CYCLIC_INFLOW, LinearModel, Multiblade, Parameter,
-                                     RotorModel)
+from rotor_id.physics.models import (compact, CYCLIC_INFLOW, full_along_time, LinearModel,
+                                     Multiblade, Parameter, RotorModel, via_compact)
 from rotor_id.physics.multiblade import azimuth_offset_matrix, coordinate_names
 from rotor_id.physics.stirring import blade_pitch_from_multiblade, multiblade_from_blade_pitch
 
@@ -188,14 +188,35 @@ class Augmented(LinearModel):
         p = np.asarray(p, dtype=float)
         return p[:self.n_base_parameters], p[self.n_base_parameters:]
 
+    def constant_terms(self):
+        """
+        Tell whether this layer's own F and ∂F terms are the same at every time.
+
+        Then, over a base whose F is constant, :meth:`system_compact` keeps F of length 1
+        along time (the layer's ``_extra`` adds arrays of length 1 there). Default: no.
+        """
+        return False
+
+    @via_compact
     def system(self, t, p, u):
         """F and g: the baseline's, with the augmentation's blocks added."""
+        F, g = self.system_compact(t, p, u)
+        return full_along_time(F, g.shape[0]), g
+
+    @via_compact
+    def system_jacobian(self, t, p, u):
+        """∂F/∂p and ∂g/∂p: the baseline's, with the augmentation's blocks added."""
+        dF, dg = self.system_jacobian_compact(t, p, u)
+        return full_along_time(dF, dg.shape[0]), dg
+
+    def system_compact(self, t, p, u):
+        """:meth:`system`, F of length 1 along time where it is constant (:func:`compact`)."""
         t = np.atleast_1d(np.asarray(t, dtype=float))
         u = np.asarray(u, dtype=float)
         pb, pe = self._split(p)
-        Fb, gb = self.base.system(t, pb, self.base_inputs(u))
+        Fb, gb = compact(self.base, 'system', t, pb, self.base_inputs(u))
         n, nb = self.n_states, self.n_base_states
-        F = np.zeros((t.size, n, n))
+        F = np.zeros((Fb.shape[0] if self.constant_terms() else t.size, n, n))
         F[:, :nb, :nb] = Fb
         g = np.zeros((t.size, n))
         g[:, :nb] = gb
@@ -203,14 +224,14 @@ class Augmented(LinearModel):
         self._extra(t, pb, pe, self.own_inputs(u), F, g)
         return F, g
 
-    def system_jacobian(self, t, p, u):
-        """∂F/∂p and ∂g/∂p: the baseline's, with the augmentation's blocks added."""
+    def system_jacobian_compact(self, t, p, u):
+        """:meth:`system_jacobian`, ∂F/∂p of length 1 along time where F is constant."""
         t = np.atleast_1d(np.asarray(t, dtype=float))
         u = np.asarray(u, dtype=float)
         pb, pe = self._split(p)
-        dFb, dgb = self.base.system_jacobian(t, pb, self.base_inputs(u))
+        dFb, dgb = compact(self.base, 'system_jacobian', t, pb, self.base_inputs(u))
         n, nb, P, Pb = self.n_states, self.n_base_states, len(self.parameters), len(pb)
-        dF = np.zeros((t.size, P, n, n))
+        dF = np.zeros((dFb.shape[0] if self.constant_terms() else t.size, P, n, n))
         dF[:, :Pb, :nb, :nb] = dFb
         dg = np.zeros((t.size, P, n))
         dg[:, :Pb, :nb] = dgb
@@ -597,16 +618,6 @@ def _grid(states):
     return states[:, None], states[None, :]
 
 
-def _compact(model, method):
-    """
-    ``model``'s ``system`` or ``system_jacobian``, F (∂F) of length 1 along time where constant.
-
-    A :class:`~rotor_id.physics.models.RotorModel` has ``system_compact`` and
-    ``system_jacobian_compact``; any other model gives the full arrays (the same sums).
-    """
-    return getattr(model, f'{method}_compact', None) or getattr(model, method)
-
-
 class DynamicInflow(Augmented):
     """
     The report's two-parameter cyclic wake (Ch.2 eq. 29) added to a multiblade γ-model.
@@ -659,6 +670,10 @@ class DynamicInflow(Augmented):
                          _as_index(self._states[self._root_in_inner]),
                          _as_index([root_of[mine] for mine, _ in pairs if mine in root_of]))
 
+    def constant_terms(self):
+        """Tell whether the rotor models of the wake are time-invariant (then so are its F, ∂F)."""
+        return bool(self.inner.time_invariant and getattr(self.root, 'time_invariant', False))
+
     def _inner_p(self, pb, pe):
         p = np.concatenate([pb, pe])
         q = np.zeros(len(self.inner.parameters))
@@ -670,8 +685,8 @@ class DynamicInflow(Augmented):
         """Add the wake: the inner model's F, g minus the root's (which the baseline has)."""
         q, pr = self._inner_p(pb, pe)
         # F of length 1 along time where constant: added by broadcasting, not copied T times
-        Fi, gi = _compact(self.inner, 'system')(t, q, u[:, :3])
-        Fr, gr = _compact(self.root, 'system')(t, pr, u[:, :3])
+        Fi, gi = compact(self.inner, 'system', t, q, u[:, :3])
+        Fr, gr = compact(self.root, 'system', t, pr, u[:, :3])
         for sign, (_, states, _), Fx, gx in ((1.0, self._inner_at, Fi, gi),
                                              (-1.0, self._root_at, Fr, gr)):
             F[(slice(None),) + _grid(states)] += sign * Fx
@@ -682,8 +697,8 @@ class DynamicInflow(Augmented):
         # the indices are slices (a loop over parameters with fancy-indexed adds and a copy
         # of the root's derivatives embedded in the inner states was a quarter of diagnose)
         q, pr = self._inner_p(pb, pe)
-        dFi, dgi = _compact(self.inner, 'system_jacobian')(t, q, u[:, :3])
-        dFr, dgr = _compact(self.root, 'system_jacobian')(t, pr, u[:, :3])
+        dFi, dgi = compact(self.inner, 'system_jacobian', t, q, u[:, :3])
+        dFr, dgr = compact(self.root, 'system_jacobian', t, pr, u[:, :3])
         for sign, (mine, states, theirs), dFx, dgx in ((1.0, self._inner_at, dFi, dgi),
                                                        (-1.0, self._root_at, dFr, dgr)):
             dFx, dgx = sign * dFx[:, theirs], sign * dgx[:, theirs]
@@ -935,6 +950,10 @@ class CubicStiffness(Augmented):
             memo.pop(0)
         memo.append((np.array(t, dtype=float), np.array(beta, dtype=float), forcing))
         return forcing
+
+    def constant_terms(self):
+        """Return True: the spring adds to g only."""
+        return True
 
     def _extra(self, t, pb, pe, u, F, g):
         g[:, :self.n_base_states] += pe[0] * self._forcing(t, u)

@@ -39,6 +39,7 @@ import weakref
 import numpy as np
 
 from rotor_id.estimation import kernels
+from rotor_id.physics.models import compact, full_along_time
 
 #: Longest RK4 step (nondimensional time). 0.05 keeps the truncation error of a 2/rev mode at
 #: about 1e-7 per revolution, far below any measurement noise.
@@ -244,14 +245,16 @@ def simulate(model, p, inputs, t, x0, param_index=(), x0_jacobian=None,
         ts = t[start:stop + 1]
         tf = _fine_grid(ts, m)
         u = inputs(tf)
-        F, g = model.system(tf, p, u)
         h = np.repeat(np.diff(ts) / m, m)
         if kernel is not None:
+            # F of length 1 along time where the model knows it is constant (compact)
+            F, g = compact(model, 'system', tf, p, u)
             x, S = _compiled_chunk(kernel, model, p, tf, u, F, g, h, m, param_index,
                                    x, S if want_sens else np.zeros((n, 0)),
                                    xs[start:stop + 1],
                                    Ss[start:stop + 1] if want_sens else None)
             continue
+        F, g = model.system(tf, p, u)
         if _time_invariant(F, h, ts):
             # one Φ for every step; c still follows the input step by step
             F_maps, h_maps = F[:1], h[:1]
@@ -640,10 +643,10 @@ def _compiled_chunk(kernel, model, p, tf, u, F, g, h, m, param_index, x, S, xs, 
     if constant_F and _equal_steps(h, tf):
         Phi = _rk4_transition(F[:1], h[:1])
     else:
-        Phi = _rk4_transition(F, h)
+        Phi = _rk4_transition(full_along_time(F, tf.size), h)
     F_val, (F_i, F_j) = _nonzero_entries(F[:1] if constant_F else F)
     if param_index:
-        dF, dg = model.system_jacobian(tf, p, u)
+        dF, dg = compact(model, 'system_jacobian', tf, p, u)
         dF_val, (dF_p, dF_i, dF_j) = _nonzero_entries(dF[:, param_index])
         dg = dg[:, param_index]
     else:

@@ -76,6 +76,37 @@ class RotorConstants:
         return self
 
 
+def via_compact(method):
+    """
+    Mark a ``system`` or ``system_jacobian`` computed as its ``*_compact`` form, broadcast.
+
+    :func:`compact` calls the compact form only where the model's class computes the method
+    that way: a subclass that overrides ``system`` gets its own, full arrays.
+    """
+    method.via_compact = True
+    return method
+
+
+def full_along_time(A, T):
+    """Return A (F or ∂F of :func:`compact`) with T entries along time (a copy if it had one)."""
+    if A.shape[0] == T:
+        return A
+    return np.broadcast_to(A, (T,) + A.shape[1:]).copy()
+
+
+def compact(model, method, t, p, u):
+    """
+    Return ``model.system`` or ``system_jacobian`` (``method``), constant F of length 1 in time.
+
+    F (∂F/∂p) has length 1 along time where the model knows it is constant; g (∂g/∂p) has
+    every time. The values are the method's; only the copies of a constant F to every time
+    are left out (for a record of T stage times they were most of an augmented model's cost).
+    """
+    if getattr(getattr(type(model), method), 'via_compact', False):
+        return getattr(model, f'{method}_compact')(t, p, u)
+    return getattr(model, method)(t, p, u)
+
+
 class LinearModel:
     """
     Interface of a linear flapping model (see the module docstring).
@@ -642,11 +673,10 @@ class RotorModel(LinearModel):
             return np.matmul(pieces[key][1], ucyc[:, :, None])[:, :, 0]
         return pieces[key][2]
 
+    @via_compact
     def system(self, t, p, u):
         F, g = self.system_compact(t, p, u)
-        if F.shape[0] != g.shape[0]:
-            F = np.broadcast_to(F, (g.shape[0],) + F.shape[1:]).copy()
-        return F, g
+        return full_along_time(F, g.shape[0]), g
 
     def system_compact(self, t, p, u):
         """:meth:`system` with F of length 1 along time where it is constant (time-invariant)."""
@@ -664,11 +694,10 @@ class RotorModel(LinearModel):
                 g += c * self._input_term(pieces, key, part, ucyc)
         return F, g
 
+    @via_compact
     def system_jacobian(self, t, p, u):
         dF, dg = self.system_jacobian_compact(t, p, u)
-        if dF.shape[0] != dg.shape[0]:
-            dF = np.broadcast_to(dF, (dg.shape[0],) + dF.shape[1:]).copy()
-        return dF, dg
+        return full_along_time(dF, dg.shape[0]), dg
 
     def system_jacobian_compact(self, t, p, u):
         """:meth:`system_jacobian` with ∂F/∂p of length 1 along time where F is constant."""
