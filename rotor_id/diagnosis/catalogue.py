@@ -744,20 +744,10 @@ def _fit_process_noise(job, out, t_start):
                       '(rotor_id.estimation.filter_error) is not installed in this build')
         return out
     from rotor_id.diagnosis import noisy
-    from rotor_id.estimation.kalman import default_noise_rows
-    from rotor_id.pipeline import identify, model_for
-    base_model = model_for(job.description)
-    rows = [base_model.state_names[i] for i in default_noise_rows(base_model)]
     try:
-        # the joint ML optimum: its likelihood is what the Δlog L test compares
-        if noisy.pitch_like(rows):
-            # the noise model of every filter-error fit beside deterministic effects
-            est, model, unknowns = noisy.fit_alone(job)
-        else:
-            ident = identify(job.record, job.description, method='filter-error',
-                             window_s=job.window_s, multi_start=False, max_iter=15,
-                             filter_bounds='conditional')
-            est, model, unknowns = ident.estimate, ident.model, list(ident.unknowns)
+        # the joint ML optimum: its likelihood is what the Δlog L test compares; random
+        # inflow as every filter-error fit of the diagnosis models it (noisy.fit_alone)
+        est, model, unknowns = noisy.fit_alone(job)
     except Exception as exc:  # noqa: B902 - another module's failure must not end diagnosis
         out.available = False
         out.reason = f'filter-error fit failed: {type(exc).__name__}: {exc}'

@@ -27,8 +27,12 @@ filter-error model wins nothing was added to it. Here the two are put together:
   the threshold is the filter-error model fitted, and then it is added under the same
   criterion and held-out test.
 
-The noise rows are the baseline model's (:func:`rotor_id.estimation.kalman.default_noise_rows`)
-for every candidate, so that all the models compared are nested.
+Random inflow is one model in all of these fits and in the ``process_noise`` candidate itself
+(:func:`fit_alone`): a pitch-like angle with a first-order spectrum, its σ_V and correlation
+time τ_w estimated (:func:`_random_inflow_states`), so that "random inflow alone", "random
+inflow + effect" and "effect + random inflow" are nested models compared under one noise
+model. Models are held out by their log score with the parameters under test taken from the
+other half of the window (:func:`cross_validate`).
 """
 
 from dataclasses import dataclass
@@ -435,7 +439,7 @@ def add_deterministic(noise_fit, noise_row, ctx):
     ctx['noisy_trace'] = []
     current = noise_fit
     current.experiments, current.noise_rows, shape = _random_inflow_states(
-        setup.experiments, ctx['record'], setup.rows)
+        setup.experiments, ctx['record'])
     current.max_step = DEFAULT_MAX_STEP
     cur_val = cross_validate(current, ctx, setup, [])
     if cur_val is not None:
@@ -506,36 +510,28 @@ def add_deterministic(noise_fit, noise_row, ctx):
     return current, steps, notes
 
 
-def pitch_like(rows):
-    """
-    Whether random inflow is modelled as pitch-like states (True) or on a wake's λ rows.
-
-    ``rows`` are the baseline model's default process-noise rows. A wake model's λI, λII are
-    first-order states on the pitch-like path already; a model without them would get white
-    noise on its flap-acceleration rows, which has neither the spectrum nor the direction of
-    turbulence (bench/results/diagnosis_pairs.md): it gets
-    :class:`~rotor_id.diagnosis.augmentations.PitchLikeRandomInflow`.
-    """
-    return not any(r.startswith('lambda') for r in rows)
-
-
-def _random_inflow_states(runs, record, rows):
+def _random_inflow_states(runs, record):
     """
     Return (runs, process-noise rows, extra unknowns) of random inflow over a candidate's runs.
 
     The one noise model of every filter-error fit of a diagnosis (random inflow alone, with
-    deterministic effects added to it, or added to them), so that they are nested: the
-    wake's λ rows, or pitch-like states with their correlation time τ_w (:func:`pitch_like`).
+    deterministic effects added to it, or added to them), so that they are nested: random
+    inflow as a pitch-like angle with a first-order spectrum
+    (:class:`~rotor_id.diagnosis.augmentations.PitchLikeRandomInflow`), its correlation time
+    τ_w estimated, on a wake model too. White noise on the flap-acceleration rows (the
+    default rows of a model without a wake) has neither the spectrum nor the direction of
+    turbulence; a wake's λ rows have its direction but the wake's time constant. Measured
+    (bench/results/diagnosis_pairs.md): a flap-frequency error beside turbulence in the wake
+    record gains 2ΔJ = 18-25 with the pitch-like states against 15 with noise on λ
+    (noise+flap_frequency seeds 1001, 1002).
     """
-    if not pitch_like(rows):
-        return runs, list(rows), []
     runs, model = _augment_runs(runs, aug.PitchLikeRandomInflow, record)
     return runs, list(model.extra_states), list(SHAPE)
 
 
 def _with_inflow_states(runs, unknowns, guess, est, ctx, setup):
     """Candidate runs with random inflow's states; τ_w (if any) started at ``est``'s."""
-    runs, rows, shape = _random_inflow_states(runs, ctx['record'], setup.rows)
+    runs, rows, shape = _random_inflow_states(runs, ctx['record'])
     for name in shape:
         guess[name] = est.model_parameters.get(name, SHAPE_START[name])
     return runs, rows, list(unknowns) + shape
@@ -545,13 +541,13 @@ def fit_alone(job):
     """
     Fit random inflow alone (the ``process_noise`` candidate) by filter error: the Estimate.
 
-    With the noise model of :func:`_random_inflow_states`; the wake's λ rows are the default
-    rows of :func:`rotor_id.pipeline.identify`'s filter error, the pitch-like states are
-    fitted here, started at the baseline's values. Returns (estimate, model, unknowns).
+    With the noise model of every filter-error fit here (:func:`_random_inflow_states`),
+    started at the baseline's values and the nominal correlation time. Returns (estimate,
+    model, unknowns).
     """
     ctx = {'description': job.description, 'record': job.record, 'window_s': job.window_s}
     setup = _setup(ctx)
-    runs, rows, shape = _random_inflow_states(setup.experiments, job.record, setup.rows)
+    runs, rows, shape = _random_inflow_states(setup.experiments, job.record)
     model = runs[0].model
     guess = {**job.baseline_values, **{n: SHAPE_START[n] for n in shape}}
     est = fit_filter_error_ml(runs, list(job.unknowns) + shape, guess=guess, known=job.known,
@@ -604,10 +600,9 @@ def add_random_inflow(final_fit, steps, ctx):
                                                                setup.experiments)
         max_step = max_step or DEFAULT_MAX_STEP
         oe_runs, oe_unknowns = runs, list(unknowns)
-        runs, rows, shape = _random_inflow_states(runs, ctx['record'], setup.rows)
-        if shape:
-            model, unknowns = runs[0].model, unknowns + shape
-            guess.update({n: SHAPE_START[n] for n in shape})
+        runs, rows, shape = _random_inflow_states(runs, ctx['record'])
+        model, unknowns = runs[0].model, unknowns + shape
+        guess.update({n: SHAPE_START[n] for n in shape})
         prob, theta = _problem(runs, unknowns, guess, job.known, setup, 0.0, max_step, est,
                                process_sigma=0.0, rows=rows)
         lm = _score(prob, theta, one_sided=prob.i_process)
