@@ -698,6 +698,7 @@ def _with_random_inflow(chosen, chosen_fit, steps, ctx, notes, last_resort, pass
         fit, found, more = noisy.add_deterministic(chosen_fit, steps[0], ctx)
         notes += more + [_confound_text(st['effect'], c) for st in found
                          for c in st.get('confounds', [])]
+        notes += ctx.get('doubts', [])         # an effect likely beside it: not confident
         deterministic = [st['effect'] for st in found if st['effect'] != 'process_noise']
         if deterministic:
             # a last resort stays one (low confidence): the output-error fits of these effects

@@ -397,7 +397,7 @@ def _step(current, cur_val, kept, ctx, setup):
     for _, effect, _ in screened[MAX_FITTED:]:
         _say(ctx, f'  + {effect} under random inflow: not fitted ({MAX_FITTED} effects have a '
                   'larger score)')
-    fits = []
+    fits, near = [], []
     for _, effect, variant in [c for c in todo if c not in screened[MAX_FITTED:]]:
         fit = fit_filter(effect, variant, kept, current, ctx, setup)
         if not fit.available or fit.bound_limited:
@@ -409,8 +409,14 @@ def _step(current, cur_val, kept, ctx, setup):
         _say(ctx, f'  + {effect} under random inflow: ΔJ = {dll:.1f}, criterion {crit:.1f} '
                   f'({fit.elapsed_s:.1f} s)')
         gains[effect] = {'two_delta_loglik': 2.0 * dll, 'criterion': crit, 'how': 'fit'}
+        k = len(fit.estimate.names) - len(est.names)
+        lr = 2.0 * dll * _effective_fraction(fit)
         if crit > CRITERION_THRESHOLD:
             fits.append((crit, dll, fit))
+        else:
+            near.append((effect, f'gains 2ΔJ = {2 * dll:.1f} in the innovations likelihood '
+                                 f'(criterion {crit:.1f}, threshold {CRITERION_THRESHOLD:g})',
+                         lr, k))
     fits.sort(key=lambda c: -c[0])
     for crit, dll, fit in fits[:MAX_VALIDATED]:
         val = cross_validate(fit, ctx, setup, fit.extra_names)
@@ -419,6 +425,14 @@ def _step(current, cur_val, kept, ctx, setup):
             row = _step_row(fit, dll, crit, val.rms, ctx['floors'], ctx['u'], ctx['t'])
             row['validation_nll'] = val.nll
             return row, fit, val
+        near.append((fit.effect, f'gains a criterion {crit:.1f} (2ΔJ = {2 * dll:.1f}) but '
+                                 'does not predict the unfitted half-window better '
+                                 f'({_heldout_text(val, cur_val)})',
+                     2.0 * dll * _effective_fraction(fit),
+                     len(fit.estimate.names) - len(est.names)))
+    # nothing added: an effect whose likelihood-ratio test passes is likely, not established
+    for effect, text, lr, k in near:
+        _doubt(ctx, kept, text, lr, k, what=effect)
     return None
 
 
@@ -562,22 +576,24 @@ def fit_alone(job):
 DOUBT_LEVEL = 0.05
 
 
-def _doubt(ctx, kept, text, lr, k):
+def _doubt(ctx, kept, text, lr, k, what=NOISE):
     """
-    Record a doubt (a note; the verdict is not confident) when random inflow is not added.
+    Record a doubt (a note; the verdict is not confident) when ``what`` is not added.
 
     ``lr`` = 2ΔJ·ρ (ρ the residuals' effective fraction), ``k`` its parameters: a doubt when
-    it passes the χ²_k test at :data:`DOUBT_LEVEL`.
+    it passes the χ²_k test at :data:`DOUBT_LEVEL`. ``what``: random inflow beside the
+    deterministic effects ``kept``, or a deterministic effect beside random inflow (+ kept).
     """
     from scipy.stats import chi2
     if not lr > chi2.ppf(1.0 - DOUBT_LEVEL, k):
         return
+    shown = 'random inflow (process_noise)' if what == NOISE else what
+    beside = ' + '.join(([] if what == NOISE else [NOISE]) + [e for e, _ in kept])
     ctx.setdefault('doubts', []).append(
-        f'random inflow (process_noise) on top of {" + ".join(e for e, _ in kept)} '
-        f'{text}: not added, but its likelihood-ratio test passes at the '
-        f'{DOUBT_LEVEL:.0%} level (2ΔJ·ρ = {lr:.1f} > χ²_{k} '
-        f'{chi2.ppf(1.0 - DOUBT_LEVEL, k):.1f}): '
-        'the verdict may be incomplete, turbulence beside it is likely, not established')
+        f'{shown} on top of {beside} {text}: not added, but its likelihood-ratio test passes '
+        f'at the {DOUBT_LEVEL:.0%} level (2ΔJ·ρ = {lr:.1f} > χ²_{k} '
+        f'{chi2.ppf(1.0 - DOUBT_LEVEL, k):.1f}): the verdict may be incomplete, '
+        f'{"turbulence" if what == NOISE else what} beside it is likely, not established')
 
 
 def add_random_inflow(final_fit, steps, ctx):

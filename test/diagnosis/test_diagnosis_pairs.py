@@ -208,8 +208,14 @@ def test_turbulence_and_a_sensor_offset_are_both_named():
     assert out['right_named'], out['named']
     assert not out['extra_names'], out['named']
     effects = {e['effect']: e for e in result['explanation']['effects']}
-    sigma_v = effects['process_noise']['parameters']['process_noise_std']
-    assert sigma_v['value'] > 3.0 * sigma_v['std']
+    # random inflow as a pitch-like angle with its correlation time (truth 2 rad) estimated
+    # (σ_V 3.3e-4 ± 1.1e-4, τ_w 2.4 ± 1.2 rad: σ_w = σ_V √(τ_w/2) = 3.6e-4, truth 4e-4)
+    noise = effects['process_noise']
+    sigma_v = noise['parameters']['process_noise_std']
+    assert sigma_v['value'] > 2.0 * sigma_v['std']
+    tau = noise['parameters']['turbulence_corr_rad']
+    assert abs(tau['value'] - 2.0) < 3.0 * tau['std'], tau
+    assert noise['criterion'] > CRITERION_THRESHOLD
     truth = _eq30_bias(BIAS)
     bias = effects['sensor_bias']['parameters']
     assert set(bias) == set(truth)
