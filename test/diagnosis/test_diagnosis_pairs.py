@@ -225,6 +225,27 @@ def test_turbulence_and_a_sensor_offset_are_both_named():
     assert any('innovations (filter-error) likelihood' in n for n in result['notes'])
 
 
+def test_a_flap_frequency_error_beside_turbulence_is_held_out_by_its_log_score():
+    # μ = 0 wake record, seed 1003: the flap-frequency error beside random inflow gains a
+    # criterion of 15 but was not added: its one-step prediction of the unfitted half, with
+    # σ_V and the wake held at the other half's estimates, had a 0.1 % larger innovation RMS
+    # (0.6324 against 0.6316 mrad), and random inflow alone was named. Held out by the log
+    # score of the parameter under test (P from the other half, the shared parameters and
+    # noise levels refitted on the predicted half), and with random inflow as a pitch-like
+    # angle on the wake model too, the effect is named beside it (~15 s CPU)
+    result, out = diagnosed('noise+flap_frequency', 1003, workers=1)
+    assert out['right_named'], out['named']
+    assert not out['extra_names'], out['named']
+    effects = {e['effect']: e for e in result['explanation']['effects']}
+    P = effects['flap_frequency']['parameters']['P']            # truth 1.2 + 0.02
+    assert abs(P['value'] - 1.22) < 3.0 * P['std'], P
+    assert effects['flap_frequency']['criterion'] > CRITERION_THRESHOLD
+    assert effects['flap_frequency']['validation_rms'] < effects['process_noise'][
+        'validation_rms']
+    tau = effects['process_noise']['parameters']['turbulence_corr_rad']     # truth 2 rad
+    assert abs(tau['value'] - 2.0) < 3.0 * tau['std'], tau
+
+
 def test_turbulence_beside_an_azimuth_offset_in_forward_flight():
     # μ = 0.4, no wake: white noise on the flap-acceleration rows gained only 2ΔJ = 9.6 beside
     # the azimuth offset (criterion 0.7, not added; azimuth_offset named alone with high
