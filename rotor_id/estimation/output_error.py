@@ -184,11 +184,12 @@ class _Problem:
             if exp.model.parameter_names != names:
                 raise IdentificationError('all runs combined in one estimate must share the '
                                           'same model parameters')
-        for name in list(unknowns) + list(known or {}) + list(guess or {}):
-            if name not in names:
-                raise IdentificationError(
-                    f'unknown parameter {name!r} for model {model.name!r}; '
-                    f'its parameters are {", ".join(names)}')
+        for group in (unknowns, known or (), guess or ()):
+            for name in group:
+                if name not in names:
+                    raise IdentificationError(
+                        f'unknown parameter {name!r} for model {model.name!r}; '
+                        f'its parameters are {", ".join(names)}')
         self.model = model
         self.unknowns = list(unknowns)
         self.param_index = [names.index(n) for n in self.unknowns]
@@ -273,7 +274,7 @@ class _Problem:
 
 def _fit_initial_states(problem, theta, max_step):
     """Least-squares initial states at fixed model parameters (y is linear in x0)."""
-    p = problem.full_parameters(theta)
+    p = None                            # the model parameters, once a run needs them
     for r, exp in enumerate(problem.experiments):
         free = problem.free_states[r]
         if not free or exp.y is None:
@@ -281,6 +282,8 @@ def _fit_initial_states(problem, theta, max_step):
         if exp.x0_guess is not None:
             theta[problem.state_slices[r]] = np.asarray(exp.x0_guess, dtype=float)[free]
             continue
+        if p is None:
+            p = problem.full_parameters(theta)
         x0, _ = problem.initial_state(r, theta, p)
         x0[free] = 0.0
         jac = np.zeros((exp.model.n_states, len(free)))
@@ -554,8 +557,8 @@ def fit_output_error(experiments, unknowns, guess=None, known=None, noise_std=No
     problem = _Problem(experiments, unknowns, guess, known)
     names = problem.names
     k = len(names)
-    theta = np.concatenate([problem.p_base[problem.param_index],
-                            np.zeros(k - len(problem.param_index))])
+    theta = np.zeros(k)
+    theta[:len(problem.param_index)] = problem.p_base[problem.param_index]
     m = experiments[0].model.n_outputs
     largest = 1.0
     for exp in experiments:
@@ -567,7 +570,7 @@ def fit_output_error(experiments, unknowns, guess=None, known=None, noise_std=No
                 f'({exp.t.size}, {exp.model.n_outputs}) = samples x '
                 f'({", ".join(exp.model.output_names)})')
         # the largest |y| is NaN or inf where any value is; it also sets the noise floor
-        peak = float(np.max(np.abs(exp.y), initial=0.0))
+        peak = float(np.abs(exp.y).max()) if exp.y.size else 0.0
         if not math.isfinite(peak):
             raise IdentificationError(f'run {exp.name!r}: measurements contain NaN or inf; '
                                       'drop those samples before identifying')
@@ -831,8 +834,8 @@ class _CompiledIteration:
         # one read: a plan kept for its record may get a new reference from another fit
         index = np.asarray(problem.param_index, dtype=np.int64)
         reference = plan.reference_at(problem.p_base, index)
-        if (not reference[5][index].all()
-                or np.any((reference[0] != problem.p_base) & ~reference[5])):
+        # reference_at's point equals p_base along every parameter that is not affine
+        if not reference[5][index].all():
             return None
         return cls(problem, plan, reference, index, floor, prior_info, prior_mean, step_tol,
                    estimate_noise)
@@ -905,8 +908,9 @@ class _CompiledIteration:
             raise IdentificationError(NOT_FINITE_AT_START)
         if reason == -1:
             return None
-        cost, data_cost, accepted, iterations = (float(scalars[0]), float(scalars[1]),
-                                                 int(scalars[2]), int(scalars[4]))
+        cost, data_cost, accepted, _, iterations, pretest_passed, inverse_valid = \
+            scalars.tolist()
+        accepted, iterations = int(accepted), int(iterations)
         # per accepted iteration [cost, rms, on a bound, clock ns] as Python floats
         rows = hist_scalars[:accepted].tolist()
         history = [{'iteration': i + 1, 'cost': cost_i, 'rms': rms_i, 'names': names,
@@ -930,8 +934,8 @@ class _CompiledIteration:
             converged = _gradient_small(grad, M, cost)
         elif converged and not (bounded and bounded[-1] == accepted - 1):
             message = 'converged'
-        warnings = [] if scalars[5] else dependence_warnings(names, M)[0]
-        if not scalars[6]:
+        warnings = [] if pretest_passed else dependence_warnings(names, M)[0]
+        if not inverse_valid:
             cov = np.linalg.pinv(M)
             warnings.append(SINGULAR_WARNING)
         warnings += _stop_warnings(converged, message)
@@ -964,6 +968,8 @@ def _fixed_noise(noise_std, experiments, m):
     per run, and a list of run-index lists, one per noise group whose R is estimated.
     """
     n_runs = len(experiments)
+    if isinstance(noise_std, (int, float, np.floating)):      # one σ for every channel and run
+        return [np.full(m, float(noise_std)**2) for _ in range(n_runs)], []
     if isinstance(noise_std, list):
         if len(noise_std) != n_runs:
             raise IdentificationError(f'{len(noise_std)} noise σ entries for {n_runs} runs; '

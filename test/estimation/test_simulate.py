@@ -113,3 +113,24 @@ def test_forcing_is_a_piecewise_constant_input():
     shifted = simulate(Shifted(HOVER), p, stirring, t, x0)
     assert np.max(np.abs(forced.x - shifted.x)) < 1e-12
     assert np.max(np.abs(forced.x - simulate(model, p, stirring, t, x0).x)) > 1e-4
+
+
+def test_reference_point_test_on_lists_is_numpys():
+    # TimeInvariantPlan._on_reference reads p against the kept reference point on Python lists:
+    # the same verdict as not np.any((p != p_ref) & ~affine), NaN included, and it follows a
+    # new reference
+    from rotor_id.estimation.simulate import TimeInvariantPlan
+    rng = np.random.default_rng(7)
+    plan = TimeInvariantPlan.__new__(TimeInvariantPlan)
+    plan._reference_lists = None
+    verdicts = set()
+    for _ in range(300):
+        p_ref = rng.integers(0, 3, 6).astype(float)
+        affine = rng.random(6) < 0.5
+        ref = (p_ref, None, None, None, None, affine)
+        p = p_ref.copy()
+        p[rng.integers(0, 6)] = rng.choice([0.0, 1.0, 2.0, np.nan])
+        expected = not np.any((p != p_ref) & ~affine)
+        assert plan._on_reference(p, ref) == expected
+        verdicts.add(expected)
+    assert verdicts == {True, False}
