@@ -426,8 +426,11 @@ class TimeInvariantPlan:
         self.probe_u = _unit_inputs(self.n_inputs)
         #: (p_ref, F, g, ∂F, ∂g at the unit inputs, mask of affine parameters); see _probes
         self.reference = None
-        #: (reference, its p as a list, its affine mask as a list): :meth:`_on_reference`
+        #: (reference, its p, its affine mask, the checked parameters) as lists (:meth:`_lists`)
         self._reference_lists = None
+        #: (free states, x0_base, S0) of the compiled fits of this record, by initial-state
+        #: mode and θ's layout (output_error._CompiledIteration._initial_state_map)
+        self.initial_state_maps = {}
         #: parameters whose affinity the reference's mask has checked (P,)
         self.checked = np.zeros(len(model.parameters), dtype=bool)
 
@@ -531,23 +534,34 @@ class TimeInvariantPlan:
         ``index`` (int64 array) was checked; otherwise a new one at p (the model evaluated).
         """
         ref = self.reference
-        if ref is not None and self.checked[index].all() and self._on_reference(p, ref):
+        if ref is not None and self._on_reference(p, ref, index.tolist()):
             return ref
         self._probes(np.asarray(p, dtype=float), index)
         return self.reference
 
-    def _on_reference(self, p, ref):
-        """
-        Tell whether p equals the reference point along every parameter that is not affine.
-
-        As ``not np.any((p != p_ref) & ~affine)``, on Python lists (a few parameters: numpy's
-        three operations on them cost four times as much, in every refit of a record).
-        """
+    def _lists(self, ref):
+        """Return (reference, its p, its affine mask, the checked parameters) as lists."""
         if self._reference_lists is None or self._reference_lists[0] is not ref:
-            self._reference_lists = (ref, ref[0].tolist(), ref[5].tolist())
-        _, values, affine = self._reference_lists
-        return all(a == b for a, b, free in zip(np.asarray(p).tolist(), values, affine)
-                   if not free)
+            self._reference_lists = (ref, ref[0].tolist(), ref[5].tolist(),
+                                     self.checked.tolist())
+        return self._reference_lists
+
+    def _on_reference(self, p, ref, indices):
+        """
+        Tell whether the reference serves p with sensitivities to ``indices`` (a list).
+
+        As ``checked[indices].all() and not np.any((p != p_ref) & ~affine)``, on Python lists:
+        a refit of a record runs this once, and its few numpy calls on a few values cost more
+        than the lists, most of all where the refit's Python runs cold (between other work).
+        """
+        _, values, affine, checked = self._lists(ref)
+        return all(checked[i] for i in indices) and all(
+            a == b for a, b, free in zip(np.asarray(p).tolist(), values, affine) if not free)
+
+    def affine_along(self, ref, indices):
+        """Tell whether F and g of the reference ``ref`` are affine along ``indices`` (a list)."""
+        affine = self._lists(ref)[2]
+        return all(affine[i] for i in indices)
 
     def _probes(self, p, index):
         """

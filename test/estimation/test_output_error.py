@@ -172,3 +172,32 @@ def test_estimated_noise_is_the_residual_rms():
                              noise_std=est.noise_std[0])
     np.testing.assert_allclose(known.values, est.values, rtol=1e-6)
     np.testing.assert_allclose(known.covariance, est.covariance, rtol=1e-6)
+
+
+def test_refits_of_a_record_keep_only_what_their_layout_shares():
+    # the compiled fit keeps the initial-state map (free states, x0_base, S0) on the record's
+    # plan by initial-state mode and θ's layout: refits of one record with other modes and
+    # unknowns, in any order, give what a fresh record (nothing kept) gives, bit for bit
+    import dataclasses
+    from rotor_id.estimation import kernels
+    from rotor_id.report.reproduce import case_data, iteration_experiment
+    assert kernels.load() is not None, kernels.status()['error']
+    case = next(c for c in C.ITERATION_CASES if c.name == 'wake_7par')
+    sigma = C.SCENARIOS[case.scenario].noise_std
+    exp = iteration_experiment(case, case_data(case, 1))
+    variants = [('estimate', list(case.unknowns)), ('zero', list(case.unknowns)),
+                ('estimate', list(case.unknowns)[:2]), ('estimate', list(case.unknowns))]
+
+    def fit(record, mode, unknowns):
+        run = dataclasses.replace(record, initial_state=mode, x0_guess=None)
+        return fit_output_error([run], unknowns, guess=dict(case.start), noise_std=sigma)
+    names = set()
+    for mode, unknowns in variants:
+        kept = fit(exp, mode, unknowns)
+        fresh = fit(dataclasses.replace(exp, inputs=dataclasses.replace(exp.inputs)), mode,
+                    unknowns)
+        assert kept.names == fresh.names
+        np.testing.assert_array_equal(kept.values, fresh.values)
+        np.testing.assert_array_equal(kept.covariance, fresh.covariance)
+        names.add(tuple(kept.names))
+    assert len(names) == 3                      # the variants fit different θ

@@ -116,21 +116,25 @@ def test_forcing_is_a_piecewise_constant_input():
 
 
 def test_reference_point_test_on_lists_is_numpys():
-    # TimeInvariantPlan._on_reference reads p against the kept reference point on Python lists:
-    # the same verdict as not np.any((p != p_ref) & ~affine), NaN included, and it follows a
-    # new reference
+    # TimeInvariantPlan._on_reference and affine_along read p, the checked parameters and the
+    # affine mask of the kept reference point on Python lists: the same verdicts as numpy's
+    # checked[index].all() and not np.any((p != p_ref) & ~affine), NaN included, and they
+    # follow a new reference
     from rotor_id.estimation.simulate import TimeInvariantPlan
     rng = np.random.default_rng(7)
     plan = TimeInvariantPlan.__new__(TimeInvariantPlan)
     plan._reference_lists = None
     verdicts = set()
-    for _ in range(300):
+    for _ in range(400):
         p_ref = rng.integers(0, 3, 6).astype(float)
         affine = rng.random(6) < 0.5
+        plan.checked = rng.random(6) < 0.8
         ref = (p_ref, None, None, None, None, affine)
         p = p_ref.copy()
         p[rng.integers(0, 6)] = rng.choice([0.0, 1.0, 2.0, np.nan])
-        expected = not np.any((p != p_ref) & ~affine)
-        assert plan._on_reference(p, ref) == expected
+        index = np.flatnonzero(rng.random(6) < 0.5)
+        expected = bool(plan.checked[index].all()) and not np.any((p != p_ref) & ~affine)
+        assert plan._on_reference(p, ref, index.tolist()) == expected
+        assert plan.affine_along(ref, index.tolist()) == bool(affine[index].all())
         verdicts.add(expected)
     assert verdicts == {True, False}
