@@ -23,6 +23,7 @@ on the functions below.
 from dataclasses import dataclass, field
 import math
 import time
+import weakref
 
 import numpy as np
 
@@ -171,6 +172,87 @@ def _initial_state_name(state, run_index, n_runs):
     return f'{state}(t0){suffix}'
 
 
+#: θ's layouts (names, indices, start, bounds, free states) per model object, by unknowns,
+#: guess, known values and the runs' free states (:func:`_layout`): id(model) -> (a weak
+#: reference to the model, {key: layout}); at most this many models and layouts per model
+LAYOUT_MODELS = 64
+LAYOUTS_PER_MODEL = 8
+_layouts = {}
+
+
+def _layout(experiments, unknowns, guess, known):
+    """
+    Return θ's layout for these runs as a dict of :class:`_Problem`'s attributes (read only).
+
+    Kept per model object (runs of one model), by the unknowns, the guess and known values,
+    each run's free states and the model's parameter tuple (which ``with_bounds`` replaces):
+    the refits of a record and the runs of a Monte Carlo study build it once. Where that
+    key cannot be hashed or the runs have different models it is built every time.
+    """
+    model = experiments[0].model
+    free = tuple(tuple(exp.free_states()) for exp in experiments)
+    if any(exp.model is not model for exp in experiments):
+        return _new_layout(experiments, unknowns, guess, known, free)
+    entry = _layouts.get(id(model))
+    try:
+        if entry is None or entry[0]() is not model:
+            if len(_layouts) >= LAYOUT_MODELS:
+                _layouts.clear()
+            entry = _layouts[id(model)] = (weakref.ref(model), {})
+        kept = entry[1]
+        key = (tuple(unknowns), tuple((guess or {}).items()), tuple((known or {}).items()),
+               free)
+        hit = kept.get(key)
+    except TypeError:                   # values that cannot be hashed, or no weak reference
+        return _new_layout(experiments, unknowns, guess, known, free)
+    if hit is not None and hit['parameters'] is model.parameters:
+        return hit
+    layout = _new_layout(experiments, unknowns, guess, known, free)
+    if len(kept) >= LAYOUTS_PER_MODEL:
+        kept.clear()
+    kept[key] = layout
+    return layout
+
+
+def _new_layout(experiments, unknowns, guess, known, free_states):
+    """Build :func:`_layout`'s dict, checking the names (IdentificationError)."""
+    model = experiments[0].model
+    names = model.parameter_names
+    for exp in experiments[1:]:
+        if exp.model.parameter_names != names:
+            raise IdentificationError('all runs combined in one estimate must share the '
+                                      'same model parameters')
+    for group in (unknowns, known or (), guess or ()):
+        for name in group:
+            if name not in names:
+                raise IdentificationError(
+                    f'unknown parameter {name!r} for model {model.name!r}; '
+                    f'its parameters are {", ".join(names)}')
+    param_index = [names.index(n) for n in unknowns]
+    # model.parameter_vector(known), then the guess
+    values = [par.nominal for par in model.parameters]
+    for overrides in (known or {}, guess or {}):
+        for name, value in overrides.items():
+            values[names.index(name)] = float(value)
+    parameters = model.parameters
+    theta_names = list(unknowns)
+    bounds_lo = [parameters[i].lower for i in param_index]
+    bounds_hi = [parameters[i].upper for i in param_index]
+    state_slices = []
+    for r, (exp, free) in enumerate(zip(experiments, free_states)):
+        start = len(theta_names)
+        theta_names += [_initial_state_name(exp.model.state_names[i], r, len(experiments))
+                        for i in free]
+        bounds_lo += [-np.inf] * len(free)
+        bounds_hi += [np.inf] * len(free)
+        state_slices.append(slice(start, len(theta_names)))
+    return {'parameters': parameters, 'param_index': tuple(param_index),
+            'p_base': np.array(values, dtype=float), 'free_states': free_states,
+            'names': tuple(theta_names), 'bounds_lo': tuple(bounds_lo),
+            'bounds_hi': tuple(bounds_hi), 'state_slices': tuple(state_slices),
+            'lo': np.array(bounds_lo), 'hi': np.array(bounds_hi)}
+
+
 class _Problem:
     """Bookkeeping of θ = [free model parameters, free initial states of each run]."""
 
@@ -178,42 +260,17 @@ class _Problem:
         if not experiments:
             raise IdentificationError('no experiment (run) to identify from')
         self.experiments = experiments
-        model = experiments[0].model
-        names = model.parameter_names
-        for exp in experiments[1:]:
-            if exp.model.parameter_names != names:
-                raise IdentificationError('all runs combined in one estimate must share the '
-                                          'same model parameters')
-        for group in (unknowns, known or (), guess or ()):
-            for name in group:
-                if name not in names:
-                    raise IdentificationError(
-                        f'unknown parameter {name!r} for model {model.name!r}; '
-                        f'its parameters are {", ".join(names)}')
-        self.model = model
+        self.model = experiments[0].model
         self.unknowns = list(unknowns)
-        self.param_index = [names.index(n) for n in self.unknowns]
-        # model.parameter_vector(known), then the guess, built as a list (one numpy call)
-        values = [par.nominal for par in model.parameters]
-        for overrides in (known or {}, guess or {}):
-            for name, value in overrides.items():
-                values[names.index(name)] = float(value)
-        self.p_base = np.array(values, dtype=float)
-        self.free_states = [exp.free_states() for exp in experiments]
-        self.names = list(self.unknowns)
-        parameters = model.parameters
-        self.bounds_lo = [parameters[i].lower for i in self.param_index]
-        self.bounds_hi = [parameters[i].upper for i in self.param_index]
-        self.state_slices = []
-        for r, (exp, free) in enumerate(zip(experiments, self.free_states)):
-            start = len(self.names)
-            self.names += [_initial_state_name(exp.model.state_names[i], r, len(experiments))
-                           for i in free]
-            self.bounds_lo += [-np.inf] * len(free)
-            self.bounds_hi += [np.inf] * len(free)
-            self.state_slices.append(slice(start, len(self.names)))
-        self.lo = np.array(self.bounds_lo)
-        self.hi = np.array(self.bounds_hi)
+        layout = _layout(experiments, self.unknowns, guess, known)
+        self.param_index = list(layout['param_index'])
+        self.p_base = layout['p_base'].copy()
+        self.free_states = [list(free) for free in layout['free_states']]
+        self.names = list(layout['names'])
+        self.bounds_lo = list(layout['bounds_lo'])
+        self.bounds_hi = list(layout['bounds_hi'])
+        self.state_slices = list(layout['state_slices'])
+        self.lo, self.hi = layout['lo'], layout['hi']
         #: per run: a TimeInvariantPlan (or None) once :meth:`prepare` ran; None before
         self.plans = None
         self.max_step = None

@@ -201,3 +201,28 @@ def test_refits_of_a_record_keep_only_what_their_layout_shares():
         np.testing.assert_array_equal(kept.covariance, fresh.covariance)
         names.add(tuple(kept.names))
     assert len(names) == 3                      # the variants fit different θ
+
+
+def test_the_kept_layout_follows_new_parameter_bounds_and_starts():
+    # θ's layout is kept per model object: new bounds (a new parameter tuple, as with_bounds
+    # makes) and another guess give their own layout, the same arguments the kept one
+    import dataclasses
+    from rotor_id.estimation.output_error import _Problem
+    from rotor_id.report.reproduce import case_data, iteration_experiment
+    case = next(c for c in C.ITERATION_CASES if c.name == 'wake_7par')
+    exp = iteration_experiment(case, case_data(case, 1))
+    model, unknowns = exp.model, list(case.unknowns)
+    first = _Problem([exp], unknowns, dict(case.start), None)
+    again = _Problem([exp], unknowns, dict(case.start), None)
+    assert again.lo is first.lo and again.names == first.names      # kept
+    moved = _Problem([exp], unknowns, {**case.start, unknowns[0]: 0.123}, None)
+    assert moved.p_base[moved.param_index[0]] == 0.123
+    assert first.p_base[first.param_index[0]] == case.start[unknowns[0]]
+    saved = model.parameters
+    try:
+        model.parameters = tuple(dataclasses.replace(par, lower=par.lower - 1.0)
+                                 for par in saved)
+        wider = _Problem([exp], unknowns, dict(case.start), None)
+    finally:
+        model.parameters = saved
+    np.testing.assert_array_equal(wider.lo[:len(unknowns)], first.lo[:len(unknowns)] - 1.0)
