@@ -273,6 +273,20 @@ def test_turbulence_likely_but_not_established_is_not_a_confident_verdict():
     assert doubt and '2ΔJ = ' in doubt[0], result['notes']
 
 
+def test_an_effect_likely_beside_turbulence_but_not_established_is_not_confident():
+    # noise+azimuth seed 1002 (μ = 0.4, turbulence at its μ = 0.4 size): random inflow wins
+    # first and the azimuth offset beside it gains 2ΔJ ≈ 13 in the innovations likelihood,
+    # a criterion ≈ 0 (not added); random inflow alone was named with high confidence. Its
+    # likelihood-ratio test passes at 5 %, so the verdict is not confident, with the figures
+    # in a note (~40 s CPU)
+    result, out = diagnosed('noise+azimuth', 1002, workers=1)
+    assert out['named'] == ['process_noise'], out['named']
+    assert result['explanation']['confidence'] == 'low'
+    doubt = [n for n in result['notes'] if n.startswith('azimuth_offset on top of process_noise')
+             and 'likelihood-ratio test passes' in n]
+    assert doubt and '2ΔJ = ' in doubt[0], result['notes']
+
+
 def test_two_effects_that_look_like_a_third_are_both_named():
     # μ = 0.4: a flap-frequency error (P + 0.0162) and an azimuth offset (0.03 rad) together
     # look like δ3 alone; δ3 is kept first (criterion 93 against P's 76) and beside it the
