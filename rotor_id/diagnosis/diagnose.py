@@ -576,6 +576,12 @@ def diagnose(record, description, progress=None, workers=2, effects=EFFECTS, win
         confidence = 'high' if gap > CONFIDENCE_GAP and not last_resort else 'low'
         if context.get('doubts'):
             confidence = 'low'
+        # a rival whose fit did not converge has a likelihood that is only a lower bound
+        from rotor_id.diagnosis import noisy
+        unsettled = noisy.unconverged(table, named)
+        if unsettled:
+            confidence = 'low'
+            notes += unsettled
         dominant = max(steps, key=lambda st: st['criterion'])['effect'] if steps else effect
         if any(c.get('how_given') == 'exchange' and st['effect'] == dominant
                or c.get('how_given') == 'two_for_one'
@@ -601,6 +607,12 @@ def diagnose(record, description, progress=None, workers=2, effects=EFFECTS, win
         mismatch = residual_flag
         effect = 'unexplained' if mismatch else 'none'
         confidence = 'high' if not ranked or ranked[0]['criterion'] < 0 else 'low'
+        # turbulence likely but not established, or a candidate whose fit did not converge
+        from rotor_id.diagnosis import noisy
+        doubts = noisy.unconverged(table, set()) + noisy.noise_alone_doubt(table)
+        if doubts:
+            confidence = 'low'
+            notes += doubts
     proposal, out_of_catalogue = None, False
     # out of catalogue: a term the data want, as a proposal. Random inflow is asked too: it is
     # the explanation of last resort, and a Kalman filter tracks unmodelled dynamics as well

@@ -620,7 +620,8 @@ def fit_filter_error_ml(experiments, unknowns, guess=None, known=None, noise_std
                         progress=None, max_iter=50, process_noise_std=None,
                         estimate_process_noise=True, rows=None, noise_model='white',
                         gain='auto', step_tol=1e-3, max_step=DEFAULT_MAX_STEP,
-                        label='filter-error ML', gradients='analytic', _start=None):
+                        label='filter-error ML', gradients='analytic', _start=None,
+                        loglik_tol=None):
     """
     Filter-error maximum likelihood over one or more runs; Cramér-Rao bound at the optimum.
 
@@ -668,6 +669,14 @@ def fit_filter_error_ml(experiments, unknowns, guess=None, known=None, noise_std
     _start : dict, optional
         Starting values by θ name (any of model unknowns, free initial states, measurement
         σ's), over the defaults; :func:`fit_filter_error`'s σ_V profile warm-starts with it.
+    loglik_tol : float, optional
+        Also converged when the Newton decrement ½ gᵀM⁻¹g (the log-likelihood a full scoring
+        step would still gain by the quadratic model, over the parameters free to move) is
+        below it. Scoring can zigzag about the optimum along a direction where the expected
+        information misjudges the curvature: the cost flat to 0.01 while the steps stay above
+        ``step_tol`` σ's for tens of iterations (random inflow on the wake record). With it, a
+        step that reverses the previous one (cosine < −½ in the coordinates scaled by
+        √diag M) is replaced by the midpoint of the two iterates when that is as likely.
 
     Returns
     -------
@@ -740,10 +749,16 @@ def fit_filter_error_ml(experiments, unknowns, guess=None, known=None, noise_std
             return _cost(results), results
         return _cost(prob.evaluate(trial, sensitivities=False)), None
     iteration = 0
+    previous = None
     for iteration in range(1, max_iter + 1):
         grad, M = _gradient_information(results, k)
         # active set: a parameter on a bound that the gradient pushes outwards stays there
         free = ~(((theta <= prob.lo) & (grad > 0)) | ((theta >= prob.hi) & (grad < 0)))
+        if loglik_tol is not None and _newton_decrement(grad, M, free) < loglik_tol:
+            converged = True
+            message = 'converged (the likelihood a further step would gain is below tolerance)'
+            iteration -= 1
+            break
         accepted, trial, _, payload, lm = damped_gauss_newton_step(
             theta, grad, M, prob.lo, prob.hi, cost, trial_cost, lm,
             free=np.flatnonzero(free), attempts=10, halvings=8)
@@ -752,6 +767,15 @@ def fit_filter_error_ml(experiments, unknowns, guess=None, known=None, noise_std
             converged = True
             break
         applied = trial - theta
+        if loglik_tol is not None and _reverses(applied, previous, M):
+            # a zigzag across the optimum: the midpoint of the two iterates, if as likely
+            mid = theta + 0.5 * applied
+            mid_cost, mid_payload = trial_cost(mid)
+            if payload is None:
+                payload = prob.evaluate(trial)
+            if math.isfinite(mid_cost) and mid_cost <= _cost(payload):
+                trial, payload, applied = mid, mid_payload, 0.5 * applied
+        previous = applied
         theta = trial
         results = payload if payload is not None else prob.evaluate(theta)
         cost = _cost(results)
@@ -821,6 +845,24 @@ def fit_filter_error_ml(experiments, unknowns, guess=None, known=None, noise_std
                         for r in range(len(experiments))],
         warnings=warnings, model_parameters=dict(zip(prob.model.parameter_names, p_final)),
         method='filter-error')
+
+
+def _newton_decrement(grad, M, free):
+    """½ gᵀM⁻¹g over the ``free`` parameters: the cost a full scoring step would still lower."""
+    g, Mf = grad[free], M[np.ix_(free, free)]
+    d = np.sqrt(np.clip(np.diag(Mf), 1e-300, None))
+    gs = g / d
+    return 0.5 * float(gs @ np.linalg.pinv(Mf / np.outer(d, d), rcond=1e-13) @ gs)
+
+
+def _reverses(step, previous, M):
+    """Whether ``step`` turns back on ``previous`` (cosine < −½, scaled by √diag M)."""
+    if previous is None:
+        return False
+    d = np.sqrt(np.clip(np.diag(M), 0.0, None))
+    a, b = step * d, previous * d
+    na, nb = float(np.linalg.norm(a)), float(np.linalg.norm(b))
+    return na > 0.0 and nb > 0.0 and float(a @ b) < -0.5 * na * nb
 
 
 #: Restricted-likelihood rise over its minimum beyond which σ_V carries no weight (e⁻⁸ < 4e-4).
