@@ -464,16 +464,34 @@ def _printer(label, verbose):
 
 def _split_runs(runs, half):
     """Return the runs cut to the first (half=0) or second (half=1) half of their samples."""
+    return _block_runs(runs, [half], 2)
+
+
+def _block_runs(runs, blocks, k):
+    """
+    Return the runs cut to ``blocks`` (indices) of ``k`` equal blocks of their samples.
+
+    Adjacent blocks stay one run; each separate span is a run of its own (its own initial
+    states), named after the run and its first block.
+    """
+    spans = []
+    for b in sorted(blocks):
+        if spans and spans[-1][1] == b:
+            spans[-1][1] = b + 1
+        else:
+            spans.append([b, b + 1])
     out = []
     for exp in runs:
-        n = exp.t.size // 2
-        sl = slice(0, n) if half == 0 else slice(n, None)
-        kwargs = {'initial_state': exp.initial_state, 'name': exp.name}
-        if isinstance(exp, AugmentedExperiment):
-            out.append(AugmentedExperiment(exp.model, exp.inputs, exp.t[sl], exp.y[sl],
-                                           free=exp.free, **kwargs))
-        else:
-            out.append(Experiment(exp.model, exp.inputs, exp.t[sl], exp.y[sl], **kwargs))
+        n = exp.t.size
+        for a, b in spans:
+            sl = slice(a * n // k, b * n // k)
+            name = exp.name if len(spans) == 1 else f'{exp.name} (block {a + 1}/{k})'
+            kwargs = {'initial_state': exp.initial_state, 'name': name}
+            if isinstance(exp, AugmentedExperiment):
+                out.append(AugmentedExperiment(exp.model, exp.inputs, exp.t[sl], exp.y[sl],
+                                               free=exp.free, **kwargs))
+            else:
+                out.append(Experiment(exp.model, exp.inputs, exp.t[sl], exp.y[sl], **kwargs))
     return out
 
 

@@ -731,7 +731,7 @@ def _with_random_inflow(chosen, chosen_fit, steps, ctx, notes, last_resort, pass
     notes.append('random inflow (process_noise) added to '
                  f'{" + ".join(st["effect"] for st in steps[:-1])}: its innovations '
                  f'likelihood gains a criterion {row["criterion"]:.1f} and the filter '
-                 'predicts the unfitted half-window better')
+                 'predicts each quarter of the window better from the other three')
     return fit, steps, last_resort, False
 
 
