@@ -1266,12 +1266,14 @@ class PitchLikeRandomInflow(Augmented):
         w′ = −w/τ_w + ξ,     x′ = F x + g + B_θ(t) w,
 
     where B_θ is the base model's own response to a unit pitch input θ0, θI, θII (its affine
-    term differenced in u, so every augmentation underneath, an azimuth offset or periodic
-    coefficients, acts on w as on the pitch). The filter's process noise goes on the w rows
-    only. White noise on the flap-acceleration rows (the default of a model without inflow
-    states) has neither the spectrum nor the direction of this input; a wake model's λ rows
-    are already first-order states on the pitch-like path, and there nothing is gained
-    (measured: bench/results/diagnosis_pairs.md).
+    term differenced in the cyclic u, and in the collective parameter θ0 or δ = γθ0 for w_0:
+    the model reads the collective from that parameter, not from u[0]; so every
+    augmentation underneath, an azimuth offset or periodic coefficients, acts on w as on the
+    pitch). The filter's process noise goes on the w rows only. White noise on the
+    flap-acceleration rows (the default of a model without inflow states) has neither the
+    spectrum nor the direction of this input; a wake model's λ rows are already first-order
+    states on the pitch-like path, and there nothing is gained (measured:
+    bench/results/diagnosis_pairs.md).
     """
 
     effect = 'process_noise'
@@ -1287,12 +1289,38 @@ class PitchLikeRandomInflow(Augmented):
         zero = np.zeros_like(np.asarray(u, dtype=float)[:, :self.n_base_inputs])
         evaluate = self.base.system_jacobian if jacobian else self.base.system
         g0 = evaluate(t, pb, zero)[1]
-        out = []
-        for j in range(3):
+        out = [self._collective_column(t, pb, zero, g0, evaluate, jacobian)]
+        for j in (1, 2):
             unit = zero.copy()
             unit[:, j] = 1.0
             out.append(evaluate(t, pb, unit)[1] - g0)
         return out
+
+    def _collective_column(self, t, pb, zero, g0, evaluate, jacobian):
+        """
+        Δg per unit collective pitch w_0 (or its ∂/∂p): the g term differenced in θ0 (or δ).
+
+        The model's collective is its parameter θ0 (δ = γθ0), which g is affine in; u[0] is not
+        read (rotor_id.physics.models), so a unit u[0] would leave w_0 without any effect and
+        the coning's response to turbulence unmodelled (measured at μ = 0.4: β0's innovations
+        at the true parameters correlated, effective fraction 0.47 of 449 samples).
+        """
+        root = self.view.model
+        if root.collective is None:             # the collective reaches no modelled state
+            return np.zeros_like(g0)
+        i = list(self.base.parameter_names).index(root.collective)
+        gamma, dgamma = root.lock_number(pb)
+        step = 1.0 if root.collective == 'theta0' else gamma     # δ changes by γ per radian
+        p1 = np.array(pb, dtype=float)
+        p1[i] += step
+        column = evaluate(t, p1, zero)[1] - g0
+        if jacobian and root.collective == 'delta':
+            # ∂/∂p of γ·∂g/∂δ: the step itself depends on γ
+            d = np.zeros(len(pb))
+            d[:dgamma.size] = dgamma
+            slope = (self.base.system(t, p1, zero)[1] - self.base.system(t, pb, zero)[1]) / step
+            column = column + d[None, :, None] * slope[:, None, :]
+        return column
 
     def _extra(self, t, pb, pe, u, F, g):
         nb = self.n_base_states

@@ -276,7 +276,9 @@ def test_pitch_like_random_inflow_acts_as_pitch(name, mu):
     # random inflow's states w = (w0, wI, wII) enter as the pitch inputs do: a w held still
     # (τ_w far beyond the record) gives the response to the pitch shifted by w, also through
     # an azimuth offset underneath (forward flight: in hover it is invisible); its
-    # sensitivities are exact
+    # sensitivities are exact. The model reads the collective from its parameter θ0, not
+    # from u[0]: w0 shifts θ0 (at μ = 0.4 it drives the coning β0 and, through the periodic
+    # coefficients, the tilt; with w0 on u[0] it moved nothing)
     base = _base(name, mu)
     for inner in (base, aug.AzimuthOffset(base)) if mu > 0 else (base,):
         model = aug.PitchLikeRandomInflow(inner)
@@ -285,7 +287,14 @@ def test_pitch_like_random_inflow_acts_as_pitch(name, mu):
         shift = np.array([0.004, -0.003, 0.002])
         p_inner = _away_from_neutral(inner) if inner is not base else inner.nominal()
         x0b = 0.01 * np.arange(1, inner.n_states + 1)
-        ref = simulate(inner, p_inner, lambda t: SCHEDULE(t) + shift, T, x0b).y
+        p_shifted = np.array(p_inner, dtype=float)
+        if 'theta0' in inner.parameter_names:
+            p_shifted[inner.parameter_names.index('theta0')] += shift[0]
+        cyclic = shift * np.array([0.0, 1.0, 1.0])
+        ref = simulate(inner, p_shifted, lambda t: SCHEDULE(t) + cyclic, T, x0b).y
+        if mu > 0:      # the collective turbulence reaches the outputs in forward flight
+            still = simulate(inner, p_inner, lambda t: SCHEDULE(t) + cyclic, T, x0b).y
+            assert np.abs(ref - still).max() > 0.01 * np.abs(ref).max()
         p = np.concatenate([p_inner, [1e9]])
         y = simulate(model, p, SCHEDULE, T, np.concatenate([x0b, shift])).y
         np.testing.assert_allclose(y, ref, atol=1e-9 * np.abs(ref).max(), err_msg=inner.name)
