@@ -730,8 +730,13 @@ def add_random_inflow(final_fit, steps, ctx):
         _say(ctx, f'random inflow on top of {" + ".join(e for e, _ in kept)}: score test '
                   f'failed ({exc})')
         return None
+    from scipy.stats import chi2
     reach = SCREEN_SAFETY * lm - math.log(ctx['n_obs'] / 50.0)
-    if reach <= CRITERION_THRESHOLD:
+    # fitted also when it could only make the verdict doubtful (its likelihood-ratio test,
+    # :func:`_doubt`): a screen on the criterion alone would pass over turbulence that is
+    # likely and call the verdict confident
+    doubt_level = chi2.ppf(1.0 - DOUBT_LEVEL, 1 + len(shape))
+    if reach <= CRITERION_THRESHOLD and SCREEN_SAFETY * lm <= doubt_level:
         _say(ctx, f'random inflow on top of {" + ".join(e for e, _ in kept)}: screened out, '
                   f'innovations score test of σ_V² = 0 gives 2ΔJ ≈ {lm:.1f}')
         return None
