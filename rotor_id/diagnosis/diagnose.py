@@ -468,7 +468,8 @@ def diagnose(record, description, progress=None, workers=2, effects=EFFECTS, win
                           'delta_loglik': s['delta_loglik'], 'criterion': s['criterion'],
                           'validation_rms': v, 'n_extra': fit.n_extra,
                           'n_eff_fraction': s['rho'], 'eligible': eligible,
-                          'available': True, 'fit': fit})
+                          'available': True, 'converged': bool(fit.estimate.converged),
+                          'fit': fit})
         elif fit.available and fit.bound_limited:
             # a likelihood capped by a catalogue range is not compared (issue 16, item 3)
             names = ', '.join(fit.bound_limited)

@@ -306,9 +306,17 @@ def test_two_effects_that_look_like_a_third_are_both_named():
     assert len(replaced) == 1, result['notes']
     criterion = float(replaced[0].split('criterion of ')[1].split(' ')[0])
     assert criterion > 0.0
-    # how far the alternative is ahead sets the confidence: a tie would make it low
-    assert result['explanation']['confidence'] == (
-        'high' if criterion > DIAGNOSE.CONFIDENCE_GAP else 'low')
+    # how far the alternative is ahead sets the confidence: a tie would make it low; so does
+    # a rival whose fit did not converge (its likelihood is only a lower bound), said in a note
+    unsettled = [c for c in result['candidates'] if c['effect'] not in effects
+                 and c.get('converged') is False]
+    if criterion <= DIAGNOSE.CONFIDENCE_GAP or unsettled:
+        assert result['explanation']['confidence'] == 'low'
+    else:
+        assert result['explanation']['confidence'] == 'high', result['notes']
+    for c in unsettled:
+        assert any(n.startswith(f"the fit of {c['effect']} did not converge")
+                   for n in result['notes']), result['notes']
 
 
 def _lr_passes(candidate):
