@@ -579,7 +579,8 @@ def diagnose(record, description, progress=None, workers=2, effects=EFFECTS, win
             confidence = 'low'
         # a rival whose fit did not converge has a likelihood that is only a lower bound
         from rotor_id.diagnosis import noisy
-        unsettled = noisy.unconverged(table, named)
+        unsettled = noisy.unconverged(table, named,
+                                      at_floor=bool(steps and steps[-1]['adequate']))
         if unsettled:
             confidence = 'low'
             notes += unsettled
@@ -610,7 +611,8 @@ def diagnose(record, description, progress=None, workers=2, effects=EFFECTS, win
         confidence = 'high' if not ranked or ranked[0]['criterion'] < 0 else 'low'
         # turbulence likely but not established, or a candidate whose fit did not converge
         from rotor_id.diagnosis import noisy
-        doubts = noisy.unconverged(table, set()) + noisy.noise_alone_doubt(table)
+        doubts = (noisy.unconverged(table, set(), at_floor=not mismatch)
+                  + noisy.noise_alone_doubt(table))
         if doubts:
             confidence = 'low'
             notes += doubts

@@ -651,19 +651,23 @@ def _doubt(ctx, kept, text, lr, k, what=NOISE, raw=None, score=None, converged=T
         'established')
 
 
-def unconverged(table, named):
+def unconverged(table, named, at_floor=False):
     """
     Note the candidate fits that did not converge, other than the ``named`` effects.
 
     Their likelihood is a lower bound: such a candidate may explain the record better than
     the verdict, which is then not confident. ``table``: the diagnosis's candidate rows.
+    ``at_floor``: the verdict's model (or the baseline, for ``none``) leaves white residuals
+    at the model-free noise floor. A deterministic rival's output-error fit can then at best
+    reach that floor too, so its unfinished fit is no doubt about the verdict; random inflow
+    still is (white output-error residuals do not exclude it).
     """
     notes = []
     for row in table:
         fit = row.get('fit')
         est = getattr(fit, 'estimate', None)
         if (row['effect'] in named or est is None or est.converged or not fit.available
-                or fit.bound_limited):
+                or fit.bound_limited or (at_floor and row['effect'] != NOISE)):
             continue
         dll = row.get('delta_loglik')
         gain = '' if dll is None else f', 2Δlog L = {2.0 * dll:.1f} so far'
