@@ -390,8 +390,8 @@ def test_a_rival_whose_fit_did_not_converge_is_named_in_a_note():
     table.append(row('flap_frequency', False))
     assert [n.split()[3] for n in noisy.unconverged(table, {'dynamic_inflow'})] == [
         'process_noise', 'flap_frequency']
-    assert [n.split()[3] for n in noisy.unconverged(table, {'dynamic_inflow'},
-                                                     at_floor=True)] == ['process_noise']
+    at_floor = noisy.unconverged(table, {'dynamic_inflow'}, at_floor=True)
+    assert [n.split()[3] for n in at_floor] == ['process_noise']
 
 
 def test_turbulence_beside_a_sensor_lag_is_held_out_on_quarters():
