@@ -256,7 +256,8 @@ def _score(fit, baseline_est, n_obs, n_variants):
     est = fit.estimate
     dll = float(baseline_est.neg_log_likelihood - est.neg_log_likelihood)
     res = np.concatenate(est.residuals, axis=0)
-    rho = min(rs.effective_fraction(res[:, j]) for j in range(res.shape[1]))
+    # random inflow's fit is by filter error: its residuals are innovations
+    rho = rs.channels_effective_fraction(res, innovations=fit.effect == 'process_noise')
     k = max(fit.n_extra, 0)
     criterion = 2.0 * dll * rho - k * math.log(n_obs * rho)
     if n_variants > 1:
@@ -958,7 +959,7 @@ def _forward_step(current, cur_val, kept, ctx, residuals_noise=False):
             continue
         dll = float(cur.neg_log_likelihood - fit.estimate.neg_log_likelihood)
         res = np.concatenate(fit.estimate.residuals, axis=0)
-        rho = min(rs.effective_fraction(res[:, j]) for j in range(res.shape[1]))
+        rho = rs.channels_effective_fraction(res)
         k = max(fit.n_extra - current.n_extra, 0)
         crit = 2.0 * dll * rho - k * math.log(ctx['n_obs'] * rho)
         if n_choices(fit.effect, ctx['n_blades']) > 1:
@@ -1011,7 +1012,7 @@ def _criterion_over(fit, other, n_obs, rival=False):
     """
     dll = float(other.estimate.neg_log_likelihood - fit.estimate.neg_log_likelihood)
     res = np.concatenate(fit.estimate.residuals, axis=0)
-    rho = min(rs.effective_fraction(res[:, j]) for j in range(res.shape[1]))
+    rho = rs.channels_effective_fraction(res)
     k = fit.n_extra - other.n_extra
     if not rival:
         k = max(k, 0)

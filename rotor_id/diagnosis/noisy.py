@@ -354,7 +354,7 @@ def _heldout_text(val, cur_val):
 
 def _effective_fraction(fit):
     res = np.concatenate(fit.estimate.residuals, axis=0)
-    return min(rs.effective_fraction(res[:, j]) for j in range(res.shape[1]))
+    return rs.channels_effective_fraction(res, innovations=True)
 
 
 def _criterion(dll, fit, k, ctx):
