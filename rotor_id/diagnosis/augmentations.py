@@ -422,18 +422,26 @@ class SensorBias(Augmented):
     Constant flap-sensor offsets b_k per blade: y = H x + C(t) b.
 
     Only the bias patterns the channels can see and the collective pitch does not absorb are
-    parameters: b = V c with V an orthonormal basis of the observable, non-collective patterns
-    (e.g. (β1−β3)/2 and (β2−β4)/2 channels see b1−b3 and b2−b4 only). The report gives b.
+    parameters: b = V c with V an orthonormal basis of the observable patterns (e.g.
+    (β1−β3)/2 and (β2−β4)/2 channels see b1−b3 and b2−b4 only). The common offset of all
+    blades (the collective pattern) moves β0 alone. In hover a fitted collective pitch
+    absorbs it exactly (θ0 only sets the coning there), so it is left out when
+    ``collective_fitted`` and μ = 0. In forward flight θ0 also drives the once-per-rev flap
+    (the μ terms of the flap moment), so a common offset is a bias of its own there, as it
+    is whenever the collective is known; left out, it would bias θ0 and let a pitch-flap
+    coupling take its place. The report gives b.
     """
 
     effect = 'sensor_bias'
 
-    def __init__(self, base, t_window):
+    def __init__(self, base, t_window, collective_fitted=True):
         view = BladeView(base)
         C = view.channels(t_window)
         N = view.n_blades
         gram = np.einsum('tmi,tmj->ij', C, C)
-        if N > 1:
+        absorbed = (collective_fitted and view.model.collective is not None
+                    and view.model.rotor.advance_ratio == 0.0)
+        if N > 1 and absorbed:
             ones = np.ones((N, 1)) / math.sqrt(N)
             proj = np.eye(N) - ones @ ones.T
             gram = proj @ gram @ proj

@@ -244,15 +244,23 @@ COMPOSE_ORDER = ('periodic_coefficients', 'flap_frequency', 'pitch_flap_coupling
                  'azimuth_offset')
 
 
-def _augment_one(effect, variant, record, experiments):
-    """Wrap every run's model in one effect's augmentation: (runs, model)."""
+def _augment_one(effect, variant, record, experiments, unknowns=()):
+    """
+    Wrap every run's model in one effect's augmentation: (runs, model).
+
+    ``unknowns``: the fitted parameters of the baseline (a sensor bias asks whether its
+    collective pitch is one).
+    """
     if effect == 'sensor_lag':
         return _augment_runs(experiments, aug.SensorLag, record)
     if effect == 'time_delay':
         return _augment_runs(experiments, aug.TimeDelay, record, _pitch_rates)
     if effect == 'sensor_bias':
         t_all = np.concatenate([e.t for e in experiments])
-        return _augment_runs(experiments, lambda m: aug.SensorBias(m, t_all), record)
+        return _augment_runs(
+            experiments, lambda m: aug.SensorBias(
+                m, t_all, collective_fitted=aug.BladeView(m).model.collective in unknowns),
+            record)
     if effect == 'flap_frequency':
         return _augment_runs(experiments, aug.FlapFrequency, record)
     if effect == 'cubic_stiffness':
@@ -313,7 +321,7 @@ def _build(job, baseline_model, experiments):
                    key=lambda ev: COMPOSE_ORDER.index(ev[0]))
     runs, model = experiments, None
     for effect, variant in stack:
-        runs, model = _augment_one(effect, variant, record, runs)
+        runs, model = _augment_one(effect, variant, record, runs, job.unknowns)
         if job.bounds and isinstance(model, aug.Augmented):
             for exp in runs:
                 exp.model.with_bounds(job.bounds)

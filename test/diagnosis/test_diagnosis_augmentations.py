@@ -151,10 +151,14 @@ def test_sensor_bias_patterns_are_what_the_channels_see():
                                [1.0, 0.0, -1.0, 0.0], atol=1e-12)
     mb = aug.SensorBias(_base('multiblade', 0.0), T)
     assert mb.basis.shape == (4, 3)                 # all but the collective (θ0 absorbs it)
+    np.testing.assert_allclose(mb.basis.T @ np.ones(4), 0.0, atol=1e-12)
+    known = aug.SensorBias(_base('multiblade', 0.0), T, collective_fitted=False)
+    assert known.basis.shape == (4, 4)              # a known collective absorbs nothing
+    # in forward flight θ0 drives the 1P flap too: the common offset is a bias of its own
     const = aug.SensorBias(_base('multiblade_constant', 0.4), T)
-    assert const.basis.shape == (4, 2)              # no βd channel: no reactionless pattern
-    assert math.isclose(float(np.sum(const.basis[:, 0] * (-1.0) ** np.arange(1, 5))), 0.0,
-                        abs_tol=1e-12)
+    assert const.basis.shape == (4, 3)              # no βd channel: no reactionless pattern
+    np.testing.assert_allclose(const.basis.T @ (-1.0) ** np.arange(1, 5), 0.0, atol=1e-12)
+    np.testing.assert_allclose(np.linalg.norm(const.basis.T @ np.ones(4)), 2.0, rtol=1e-12)
 
 
 def _stacked(base):
