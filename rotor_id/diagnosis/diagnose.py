@@ -934,7 +934,9 @@ def _confound_text(kept, c):
             f'{c["criterion_alone"]:.1f}), with {" + ".join(c["given"])} in the model '
             f'{c["two_delta_loglik_given"]:.1f} (criterion {c["criterion_given"]:.1f}, '
             f'{c["how_given"]}; threshold {CRITERION_THRESHOLD:g}): '
-            f'{" + ".join(c["given"])} reproduce {c["reproduced_fraction"]:.0%} of what '
+            f'{" + ".join(c["given"])} '
+            f'{"reproduce" if len(c["given"]) > 1 else "reproduces"} '
+            f'{c["reproduced_fraction"]:.0%} of what '
             f'{c["effect"]} does here ({kept} took most of it), so '
             f'{c["effect"]} may be present too; both are named')
 
