@@ -535,7 +535,7 @@ def diagnose(record, description, progress=None, workers=2, effects=EFFECTS, win
                               for c in effect_row.get('confounds', [])]
             confound_notes += [_confound_text(t['winner'], t)
                                for t in context['two_for_one_ties']]
-            notes += confound_notes
+            notes += list(dict.fromkeys(confound_notes))   # a two-for-one tie: one note
             notes += context['replaced']
             for old in dropped:
                 notes.append(f'{old} was dropped by the backward check: with the effects added '
@@ -918,7 +918,8 @@ def _confound_text(kept, c):
                 f'{c["criterion_difference"]:.1f} of {" + ".join(c["given"])} by the criterion '
                 f'(2Δlog L {c["two_delta_loglik_difference"]:.1f}, extra parameters charged; a '
                 f'confident difference is {CONFIDENCE_GAP:g}): the two descriptions cannot be '
-                f'told apart, so {c["effect"]} may be present instead of {kept}; both are named')
+                f'told apart, so {" + ".join(c["alternative"])} may be present instead of '
+                f'{kept}; all are named')
     if c.get('how_given') == 'exchange':
         others = [e for e in c['given'] if e != c['effect'] and e != kept]
         with_ = f' (with {" + ".join(others)})' if others else ''
