@@ -580,10 +580,8 @@ def diagnose(record, description, progress=None, workers=2, effects=EFFECTS, win
             confidence = 'low'
         # a rival whose fit did not converge has a likelihood that is only a lower bound
         from rotor_id.diagnosis import noisy
-        final_fit = steps[-1].get('fit') if steps else None
         unsettled = noisy.unconverged(table, named,
-                                      at_floor=bool(steps and steps[-1]['adequate']),
-                                      verdict_extra=getattr(final_fit, 'n_extra', 0))
+                                      at_floor=bool(steps and steps[-1]['adequate']))
         if unsettled:
             confidence = 'low'
             notes += unsettled

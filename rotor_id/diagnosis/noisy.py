@@ -651,7 +651,7 @@ def _doubt(ctx, kept, text, lr, k, what=NOISE, raw=None, score=None, converged=T
         'established')
 
 
-def unconverged(table, named, at_floor=False, verdict_extra=0):
+def unconverged(table, named, at_floor=False):
     """
     Note the candidate fits that did not converge, other than the ``named`` effects.
 
@@ -659,19 +659,15 @@ def unconverged(table, named, at_floor=False, verdict_extra=0):
     the verdict, which is then not confident. ``table``: the diagnosis's candidate rows.
     ``at_floor``: the verdict's model (or the baseline, for ``none``) leaves white residuals
     at the model-free noise floor. A deterministic rival's output-error fit can then at best
-    reach that floor too, so its unfinished fit is no doubt about the verdict, unless it has
-    fewer extra parameters than the verdict's ``verdict_extra``: at the same likelihood it
-    would win the criterion by the charge it saves. Random inflow still is a doubt (white
-    output-error residuals do not exclude it).
+    reach that floor too, so its unfinished fit is no doubt about the verdict; random inflow
+    still is (white output-error residuals do not exclude it).
     """
     notes = []
     for row in table:
         fit = row.get('fit')
         est = getattr(fit, 'estimate', None)
         if (row['effect'] in named or est is None or est.converged or not fit.available
-                or fit.bound_limited):
-            continue
-        if at_floor and row['effect'] != NOISE and row.get('n_extra', 0) >= verdict_extra:
+                or fit.bound_limited or (at_floor and row['effect'] != NOISE)):
             continue
         dll = row.get('delta_loglik')
         gain = '' if dll is None else f', 2Δlog L = {2.0 * dll:.1f} so far'
