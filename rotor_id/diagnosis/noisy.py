@@ -473,7 +473,8 @@ def add_deterministic(noise_fit, noise_row, ctx):
     deterministic effect earns its place the answer is ``noise_fit`` and ``[noise_row]``, and
     so it is when some do but random inflow then no longer earns its own place beside them
     (their output-error fit is as likely): a verdict without random inflow is the
-    output-error selection's, which did not reach it (a note says what was found).
+    output-error selection's, which did not reach it, and random inflow alone is then a doubt
+    (a note says what was found; the verdict is low confidence).
     """
     from rotor_id.diagnosis.diagnose import (_confounds, CRITERION_THRESHOLD, MAX_EFFECTS,
                                              _step_row)
@@ -532,11 +533,15 @@ def add_deterministic(noise_fit, noise_row, ctx):
         if crit <= CRITERION_THRESHOLD:
             # a verdict without random inflow is the output-error selection's to give (it
             # did not reach this one): this search only adds effects to random inflow
+            # but they explain the record as well as random inflow with them does, and
+            # better than random inflow alone: so random inflow alone is not confident
             det = ' + '.join(e for e, _ in kept)
-            notes.append(f'{det} found beside random inflow, but then random inflow no longer '
-                         f'earns its place (the filter error gains 2ΔJ = {2 * dll:.1f} over '
-                         f'their output-error fit, criterion {crit:.1f}): not a verdict of '
-                         'the output-error selection, so random inflow alone is kept')
+            ctx.setdefault('doubts', []).append(
+                f'{det} found beside random inflow, but then random inflow no longer earns '
+                f'its place (the filter error gains 2ΔJ = {2 * dll:.1f} over their '
+                f'output-error fit, criterion {crit:.1f}): not a verdict of the output-error '
+                f'selection, so random inflow alone is kept, but {det} without it may be '
+                'the explanation (low confidence)')
             noise_row.setdefault('parameters', noise_fit.parameters)
             return noise_fit, [noise_row], notes
         noise_row.update(delta_loglik=dll, criterion=crit)

@@ -403,3 +403,20 @@ def test_turbulence_beside_a_sensor_lag_is_held_out_on_quarters():
     assert out['right'] and {'sensor_lag', 'process_noise'} <= set(out['named']), out
     noise = [st for st in result['explanation']['effects'] if st['effect'] == 'process_noise']
     assert noise and noise[0]['criterion'] > CRITERION_THRESHOLD, result['explanation']
+
+
+def test_random_inflow_kept_alone_beside_a_deterministic_explanation_is_not_confident():
+    # inflow+periodic seed 1002 (μ = 0.4, no turbulence): beside random inflow the selection
+    # adds the periodic terms (criterion 82.8) and the wake (15.3), both predicting held-out
+    # halves better; then random inflow no longer earns its place beside them, and random
+    # inflow alone was kept with high confidence. Those effects without random inflow are at
+    # least as likely: the verdict must say so and not be confident (~40 s CPU)
+    from diagnosis_scenarios import BY_NAME, evaluate
+    scenario = BY_NAME['inflow+periodic']
+    record, description = scenario.record_and_description(1002)
+    result = DIAGNOSE.diagnose(record, description, workers=1).as_json()
+    out = evaluate(scenario, result)
+    if not out['right']:
+        assert result['explanation']['confidence'] == 'low', (out, result['notes'])
+        assert any('periodic_coefficients' in n and 'may be the explanation' in n
+                   for n in result['notes']), result['notes']
