@@ -499,13 +499,31 @@ class PacedTicks:
             self.thread.join(timeout_s)
 
 
-def wait_for_acks(publishers, timeout_s=10.0):
-    """Before exiting: give reliable readers (a lagging recorder) the messages still in flight."""
+#: How long a stopping node waits for reliable readers to acknowledge what it sent. With the
+#: tick thread's join (2 s) and the executor's shutdown (1 s) it bounds a node's clean-up;
+#: processes.STOP_TIMEOUT_S leaves a loaded machine room above it.
+ACK_WAIT_S = 10.0
+
+
+def wait_for_acks(publishers, timeout_s=ACK_WAIT_S):
+    """
+    Before exiting: give reliable readers (a lagging recorder) the messages still in flight.
+
+    Returns the topics whose readers had not acknowledged everything by ``timeout_s``; each is
+    one line on stderr, since what they missed is not in a recording.
+    """
     deadline = time.monotonic() + timeout_s
+    missed = []
     for publisher in publishers:
         if publisher.qos_profile.reliability == ReliabilityPolicy.RELIABLE:
             left = max(0.0, deadline - time.monotonic())
-            publisher.wait_for_all_acked(Duration(nanoseconds=int(left * 1e9)))
+            if not publisher.wait_for_all_acked(Duration(nanoseconds=int(left * 1e9))):
+                missed.append(publisher.topic_name)
+    for topic in missed:
+        print(f'warning: a reliable reader of {topic} had not acknowledged every message '
+              f'{timeout_s:.0f} s after the stop; a recording of it may lack the last ones',
+              file=sys.stderr, flush=True)
+    return missed
 
 
 # ------------------------------------------------------------------------------ main
@@ -549,15 +567,44 @@ def spin_node(node_factory, args=None, executor_factory=None, after_stop=None,
     finally:
         for signum in (signal.SIGINT, signal.SIGTERM):   # stopping already: no second interrupt
             signal.signal(signum, signal.SIG_IGN)
+        steps = _CleanUpClock(getattr(node, 'get_name', lambda: 'rotor_id')())
         if node is not None:
             close = getattr(node, 'close', None)
             if close is not None:
                 close()
+                steps.done('close')
             node.destroy_node()
+            steps.done('destroy_node')
         if executor is not None:
             # shut down here, while the context lives: an executor left to the garbage
             # collector after rclpy's shutdown prints a traceback from its __del__
             executor.shutdown(timeout_sec=1.0)
             del executor
+            steps.done('executor.shutdown')
         rclpy.try_shutdown()
+        steps.done('rclpy.try_shutdown')
+        steps.report()
     return code
+
+
+class _CleanUpClock:
+    """Seconds spent in each clean-up step; one stderr line when the whole took long."""
+
+    SLOW_S = 5.0
+
+    def __init__(self, name):
+        self.name = name
+        self.start = self.last = time.monotonic()
+        self.steps = []
+
+    def done(self, step):
+        now = time.monotonic()
+        self.steps.append((step, now - self.last))
+        self.last = now
+
+    def report(self):
+        total = self.last - self.start
+        if total > self.SLOW_S:
+            print(f'{self.name}: slow clean-up, {total:.1f} s: '
+                  + ', '.join(f'{step} {s:.1f} s' for step, s in self.steps),
+                  file=sys.stderr, flush=True)

@@ -109,6 +109,12 @@ def _tree_cpu_s(pid):
     return total
 
 
+#: How long a stopped node may take to exit before it is killed: its own clean-up is bounded
+#: by about 13 s (common.ACK_WAIT_S for a lagging reader, the tick thread, the executor), and
+#: a loaded machine (the test suite on two cores) stretches every step of it.
+STOP_TIMEOUT_S = 30.0
+
+
 class NodeProcesses:
     """The node processes of one run; a context manager that never leaves one running."""
 
@@ -119,6 +125,8 @@ class NodeProcesses:
         self.prefix = list(prefix)
         self.procs = {}
         self.logs = {}
+        self.stop_s = {}        # seconds from the stop signal to the exit, per process
+        self._signalled = {}
 
     def start(self, name, params_file=None, params=None, node=None, namespace=None,
               ros_args=(), cwd=None):
@@ -162,7 +170,7 @@ class NodeProcesses:
         """Names of processes that exited, with their return codes."""
         return {n: p.returncode for n, p in self.procs.items() if p.poll() is not None}
 
-    def stop(self, name, sig=signal.SIGINT, timeout=15.0):
+    def stop(self, name, sig=signal.SIGINT, timeout=STOP_TIMEOUT_S):
         """
         Signal one process and wait for it (SIGKILL after ``timeout``); return its code.
 
@@ -171,15 +179,17 @@ class NodeProcesses:
         proc = self.procs[name]
         if proc.poll() is None:
             if sig is not None:
+                self._signalled[name] = time.monotonic()
                 proc.send_signal(sig)
             try:
                 proc.wait(timeout)
             except subprocess.TimeoutExpired:
                 proc.kill()
                 proc.wait()
+            self.stop_s[name] = time.monotonic() - self._signalled.get(name, time.monotonic())
         return proc.returncode
 
-    def stop_all(self, last=('recorder',), timeout=15.0):
+    def stop_all(self, last=('recorder',), timeout=STOP_TIMEOUT_S):
         """
         Stop every process but ``last`` together, then ``last`` in order; return exit codes.
 
@@ -190,6 +200,7 @@ class NodeProcesses:
         rest = [n for n in self.procs if n not in last]
         for name in rest:
             if self.procs[name].poll() is None:
+                self._signalled[name] = time.monotonic()
                 self.procs[name].send_signal(signal.SIGINT)
         deadline = time.monotonic() + timeout
         for name in rest:
@@ -201,6 +212,18 @@ class NodeProcesses:
             log.close()
         return codes
 
+    def exit_summary(self, tail=15):
+        """Each process's exit code and seconds from its stop signal; the log tail of failures."""
+        lines = []
+        for name, proc in self.procs.items():
+            code = proc.poll()
+            took = self.stop_s.get(name)
+            lines.append(f'{name}: exit {code}' + (f' {took:.1f} s after the stop signal'
+                                                   if took is not None else ''))
+            if code != 0:
+                lines += ['    ' + line for line in self.log(name).splitlines()[-tail:]]
+        return '\n'.join(lines)
+
     def __enter__(self):
         """Return self."""
         return self
@@ -208,5 +231,5 @@ class NodeProcesses:
     def __exit__(self, *exc):
         """Stop whatever still runs."""
         if any(p.poll() is None for p in self.procs.values()):
-            self.stop_all(timeout=10.0)
+            self.stop_all()
         return False

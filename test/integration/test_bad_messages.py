@@ -105,6 +105,7 @@ def bad_run(tmp_path_factory):
         run['alive_at_end'] = not procs.dead()
     finally:
         run['codes'] = procs.stop_all(last=())
+        run['exits'] = procs.exit_summary()
         run['logs'] = {name: procs.log(name) for name in procs.procs}
         session.close()
     return run
@@ -137,6 +138,6 @@ def test_nodes_recover_and_identify(bad_run):
     assert last.level in (b'\x00', b'\x03'), f'identifier did not return to OK: {last.message}'
     assert 'in the last period' not in last.message, last.message
     assert bad_run['alive_at_end']
-    assert set(bad_run['codes'].values()) == {0}, bad_run['codes']
+    assert set(bad_run['codes'].values()) == {0}, bad_run['exits']
     for name, log in bad_run['logs'].items():
         assert 'Traceback' not in log, f'{name}:\n{log}'

@@ -110,6 +110,7 @@ def test_plant_and_identifier_on_two_hosts(two_hosts, tmp_path):
         if listener is not None and listener.poll() is None:
             listener.kill()
         codes = {**rig_procs.stop_all(last=()), **lab_procs.stop_all(last=())}
+        exits = rig_procs.exit_summary() + '\n' + lab_procs.exit_summary()
     final = json.loads(out.strip().splitlines()[-1]) if out.strip() else None
     assert final is not None, (f'no estimate crossed the veth link\nlistener (exit '
                                f'{listener.returncode}): {out[-500:]} {err[-2000:]}\n'
@@ -118,4 +119,4 @@ def test_plant_and_identifier_on_two_hosts(two_hosts, tmp_path):
     assert final['status'] == 1, final['message']
     ok, text = within_sigma(final['values'], final['std'], TRUTH, final['names'])
     assert ok, text
-    assert set(codes.values()) == {0}, codes
+    assert set(codes.values()) == {0}, exits

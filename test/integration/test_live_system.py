@@ -89,6 +89,7 @@ def live_run(tmp_path_factory):
         mark('diagnostics')
     finally:
         run['codes'] = procs.stop_all()
+        run['exits'] = procs.exit_summary()
         mark('stopped')
         run['logs'] = {name: procs.log(name) for name in procs.procs}
         session.close()
@@ -209,6 +210,6 @@ def test_offline_identification_of_the_bag_agrees(live_run):
 
 
 def test_every_node_exits_cleanly(live_run):
-    assert live_run['codes'] == dict.fromkeys(live_run['codes'], 0), live_run['codes']
+    assert live_run['codes'] == dict.fromkeys(live_run['codes'], 0), live_run['exits']
     for name, log in live_run['logs'].items():
         assert 'Traceback' not in log, f'{name}:\n{log}'

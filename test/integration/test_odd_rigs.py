@@ -98,13 +98,14 @@ def rig(request, tmp_path_factory):
         out['load'] = max(out['load'], os.getloadavg()[0])
     finally:
         out['codes'] = procs.stop_all()
+        out['exits'] = procs.exit_summary()
         out['logs'] = {name: procs.log(name) for name in procs.procs}
         session.close()
     return out
 
 
 def test_nodes_run_and_exit_cleanly(rig):
-    assert rig['codes'] == dict.fromkeys(rig['codes'], 0), rig['codes']
+    assert rig['codes'] == dict.fromkeys(rig['codes'], 0), rig['exits']
     for name, log in rig['logs'].items():
         assert 'Traceback' not in log and 'configuration error' not in log, f'{name}:\n{log}'
     assert rig['states'], "no state estimate on the rig's state topic"

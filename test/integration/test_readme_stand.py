@@ -131,6 +131,7 @@ def stand(tmp_path_factory):
                               ).results[0]
     finally:
         out['codes'] = procs.stop_all()
+        out['exits'] = procs.exit_summary()
         session.close()
     return out
 
@@ -178,7 +179,7 @@ def test_settings_change_at_run_time_as_the_readme_says(stand):
 
 
 def test_the_bag_and_its_description_are_written(stand):
-    assert set(stand['codes'].values()) == {0}, stand['codes']
+    assert set(stand['codes'].values()) == {0}, stand['exits']
     bag = stand['work'] / 'run_001'
     assert (bag / 'metadata.yaml').is_file()
     assert (stand['work'] / 'run_001.yaml').read_text() == \

@@ -105,6 +105,7 @@ def three_points(tmp_path_factory):
                           + procs.log('identifier')[-4000:])
     finally:
         run['codes'] = procs.stop_all()
+        run['exits'] = procs.exit_summary()
         run['logs'] = {name: procs.log(name) for name in procs.procs}
         session.close()
     return run
@@ -190,6 +191,6 @@ def test_offline_identification_of_each_test_point_agrees(three_points, tmp_path
 
 
 def test_every_node_exits_cleanly(three_points):
-    assert three_points['codes'] == dict.fromkeys(three_points['codes'], 0), three_points['codes']
+    assert three_points['codes'] == dict.fromkeys(three_points['codes'], 0), three_points['exits']
     for name, log in three_points['logs'].items():
         assert 'Traceback' not in log, f'{name}:\n{log}'
