@@ -47,9 +47,9 @@ import numpy as np
 from rotor_id.diagnosis import augmentations as aug
 from rotor_id.diagnosis import residuals as rs
 from rotor_id.diagnosis.catalogue import (
-    _at_catalogue_bound, _augment_runs, _block_runs, _build, _stop_at_bound, applicable,
-    CandidateFit,
-    effect_parameters, equivalent, fit_candidate, Job, n_choices, SCREENED)
+    _at_catalogue_bound, _augment_runs, _block_runs, _build, _lag_starts, _stop_at_bound,
+    _wake_starts, applicable, CandidateFit, effect_parameters, equivalent, fit_candidate, Job,
+    LAG_PARAMETER, n_choices, SCREENED)
 from rotor_id.estimation import kalman
 from rotor_id.estimation.filter_error import (
     _FilterProblem, _gradient_information, fit_filter_error_ml, measurement_noise_name,
@@ -232,6 +232,8 @@ def fit_filter(effect, variant, kept, start_fit, ctx, setup, max_iter=MAX_ITER):
         max_step = max_step or DEFAULT_MAX_STEP
         runs, rows, unknowns = _with_inflow_states(runs, unknowns, guess, est0, ctx, setup)
         model = runs[0].model
+        guess = _best_filter_start(effect, job, model, runs, unknowns, guess, setup,
+                                   max_step, est0, rows)
         prob, theta = _problem(runs, unknowns, guess, job.known, setup, _sigma_v(est0),
                                max_step, est0, process_sigma=max(_sigma_v(est0), 1e-12),
                                rows=rows)
@@ -253,6 +255,37 @@ def fit_filter(effect, variant, kept, start_fit, ctx, setup, max_iter=MAX_ITER):
     out.elapsed_s = time.perf_counter() - t0
     out.experiments, out.max_step, out.noise_rows = runs, max_step, rows
     return out
+
+
+def _best_filter_start(effect, job, model, runs, unknowns, guess, setup, max_step, est0,
+                       rows):
+    """
+    Return the start of lowest innovations cost among those output error tries.
+
+    Effects whose likelihood has several valleys (the wake's gain and time constant, a lag's
+    τ) are started where the filter, at the current σ_V, finds them most likely: from the
+    neutral values the first scoring steps beside random inflow swing far (γ to twice its
+    value, σ_V to its bound) and the fit ends, within its iterations, in whichever valley the
+    path found.
+    """
+    if effect == 'dynamic_inflow':
+        starts = list(_wake_starts(model, guess, unknowns))
+    elif effect in LAG_PARAMETER and LAG_PARAMETER[effect] not in (job.start or {}):
+        starts = list(_lag_starts(model, guess, LAG_PARAMETER[effect]))
+    else:
+        return guess
+    best, best_cost = guess, math.inf
+    for start in [guess] + starts:
+        try:
+            prob, theta = _problem(runs, unknowns, start, job.known, setup, _sigma_v(est0),
+                                   max_step, est0, process_sigma=max(_sigma_v(est0), 1e-12),
+                                   rows=rows)
+            cost = float(sum(r[4] for r in prob.evaluate(theta, sensitivities=False)))
+        except FAILURES:
+            continue
+        if cost < best_cost:
+            best, best_cost = start, cost
+    return best
 
 
 def _fill(out, est, model, unknowns, extra, ctx):
