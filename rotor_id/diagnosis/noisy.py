@@ -269,7 +269,9 @@ def _best_filter_start(effect, job, model, runs, unknowns, guess, setup, max_ste
     path found.
     """
     if effect == 'dynamic_inflow':
-        starts = list(_wake_starts(model, guess, unknowns))
+        # and no wake gain (L = 0, the current model's likelihood): a fit from there never
+        # ends below the model it extends, where the grid's starts are all less likely
+        starts = [{**guess, 'AL_over_tau': 0.0}] + list(_wake_starts(model, guess, unknowns))
     elif effect in LAG_PARAMETER and LAG_PARAMETER[effect] not in (job.start or {}):
         starts = list(_lag_starts(model, guess, LAG_PARAMETER[effect]))
     else:
