@@ -398,6 +398,21 @@ def _stop_at_bound(model, extra, show):
 LAG_PARAMETER = {'sensor_lag': 'lag_rad', 'pitch_actuator_lag': 'actuator_lag_rad'}
 
 
+def grid_starts(job, model, guess, unknowns):
+    """
+    Return the starting points of an effect whose likelihood has several valleys, or None.
+
+    The wake (gain and time constant) and a lag whose τ the job does not already start from:
+    the fit starts from the most likely of them (output error :func:`_best_start`, filter
+    error :func:`rotor_id.diagnosis.noisy.fit_filter`).
+    """
+    if job.effect == 'dynamic_inflow':
+        return list(_wake_starts(model, guess, unknowns))
+    if job.effect in LAG_PARAMETER and LAG_PARAMETER[job.effect] not in (job.start or {}):
+        return list(_lag_starts(model, guess, LAG_PARAMETER[job.effect]))
+    return None
+
+
 def _lag_starts(model, guess, name):
     """Yield starting τ from the smallest admissible up (the best by cost starts the fit)."""
     lower = model.parameter(name).lower
@@ -589,12 +604,7 @@ def fit_candidate(job):
             runs, model, unknowns, extra, guess, max_step = _build(job, base_model,
                                                                    experiments)
             kw = {'max_step': max_step} if max_step else {}
-            starts = None
-            if job.effect == 'dynamic_inflow':
-                starts = _wake_starts(model, guess, unknowns)
-            elif job.effect in LAG_PARAMETER and LAG_PARAMETER[job.effect] not in (
-                    job.start or {}):
-                starts = _lag_starts(model, guess, LAG_PARAMETER[job.effect])
+            starts = grid_starts(job, model, guess, unknowns)
             if starts is not None:
                 guess = _best_start(runs, unknowns, starts, job.known, max_step) or guess
             fit_kw = dict(known=job.known, label=label, **kw,

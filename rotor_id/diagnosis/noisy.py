@@ -47,12 +47,12 @@ import numpy as np
 from rotor_id.diagnosis import augmentations as aug
 from rotor_id.diagnosis import residuals as rs
 from rotor_id.diagnosis.catalogue import (
-    _at_catalogue_bound, _augment_runs, _block_runs, _build, _lag_starts, _stop_at_bound,
-    _wake_starts, applicable, CandidateFit, effect_parameters, equivalent, fit_candidate, Job,
-    LAG_PARAMETER, n_choices, SCREENED)
+    _at_catalogue_bound, _augment_runs, _block_runs, _build, _stop_at_bound, applicable,
+    CandidateFit, effect_parameters, equivalent, fit_candidate, grid_starts, Job, n_choices,
+    SCREENED)
 from rotor_id.estimation import kalman
 from rotor_id.estimation.filter_error import (
-    _FilterProblem, _gradient_information, fit_filter_error_ml, measurement_noise_name,
+    _cost, _FilterProblem, _gradient_information, fit_filter_error_ml, measurement_noise_name,
     PROCESS_NOISE)
 from rotor_id.estimation.output_error import _fit_initial_states, IdentificationError
 from rotor_id.estimation.simulate import DEFAULT_MAX_STEP
@@ -156,8 +156,7 @@ def _problem(runs, unknowns, guess, known, setup, sigma_v, max_step, start_est,
     if new:
         rest = theta.copy()
         rest[new] = 0.0
-        costs = [0.5 * float(sum(r[4] for r in prob.evaluate(th, sensitivities=False)))
-                 for th in (theta, rest)]
+        costs = [_cost(prob.evaluate(th, sensitivities=False)) for th in (theta, rest)]
         if not costs[0] <= costs[1]:
             theta = rest
     return prob, theta
@@ -232,11 +231,8 @@ def fit_filter(effect, variant, kept, start_fit, ctx, setup, max_iter=MAX_ITER):
         max_step = max_step or DEFAULT_MAX_STEP
         runs, rows, unknowns = _with_inflow_states(runs, unknowns, guess, est0, ctx, setup)
         model = runs[0].model
-        guess = _best_filter_start(effect, job, model, runs, unknowns, guess, setup,
-                                   max_step, est0, rows)
-        prob, theta = _problem(runs, unknowns, guess, job.known, setup, _sigma_v(est0),
-                               max_step, est0, process_sigma=max(_sigma_v(est0), 1e-12),
-                               rows=rows)
+        guess, prob, theta = _best_filter_start(effect, job, model, runs, unknowns, guess,
+                                                setup, max_step, est0, rows)
         begin = {n: v for n, v in zip(prob.names, theta)
                  if n != PROCESS_NOISE and n not in unknowns}
         # two iterations at a catalogue bound end the fit: it is reported bound-limited
@@ -260,33 +256,40 @@ def fit_filter(effect, variant, kept, start_fit, ctx, setup, max_iter=MAX_ITER):
 def _best_filter_start(effect, job, model, runs, unknowns, guess, setup, max_step, est0,
                        rows):
     """
-    Return the start of lowest innovations cost among those output error tries.
+    Return (start, its filter problem, its θ): the most likely of output error's grid starts.
 
     Effects whose likelihood has several valleys (the wake's gain and time constant, a lag's
-    τ) are started where the filter, at the current σ_V, finds them most likely: from the
-    neutral values the first scoring steps beside random inflow swing far (γ to twice its
-    value, σ_V to its bound) and the fit ends, within its iterations, in whichever valley the
-    path found.
+    τ, :func:`~rotor_id.diagnosis.catalogue.grid_starts`) are started where the filter, at the
+    current σ_V, finds them most likely: from the neutral values the first scoring steps
+    beside random inflow swing far (γ to twice its value, σ_V to its bound) and the fit ends,
+    within its iterations, in whichever valley the path found.
     """
+    starts = [guess] + (grid_starts(job, model, guess, unknowns) or [])
     if effect == 'dynamic_inflow':
         # and no wake gain (L = 0, the current model's likelihood): a fit from there never
         # ends below the model it extends, where the grid's starts are all less likely
-        starts = [{**guess, 'AL_over_tau': 0.0}] + list(_wake_starts(model, guess, unknowns))
-    elif effect in LAG_PARAMETER and LAG_PARAMETER[effect] not in (job.start or {}):
-        starts = list(_lag_starts(model, guess, LAG_PARAMETER[effect]))
-    else:
-        return guess
-    best, best_cost = guess, math.inf
-    for start in [guess] + starts:
+        starts.insert(1, {**guess, 'AL_over_tau': 0.0})
+    best, best_cost = None, math.inf
+    for start in starts:
         try:
             prob, theta = _problem(runs, unknowns, start, job.known, setup, _sigma_v(est0),
                                    max_step, est0, process_sigma=max(_sigma_v(est0), 1e-12),
                                    rows=rows)
-            cost = float(sum(r[4] for r in prob.evaluate(theta, sensitivities=False)))
         except FAILURES:
             continue
-        if cost < best_cost:
-            best, best_cost = start, cost
+        if len(starts) == 1:
+            return start, prob, theta
+        try:
+            cost = _cost(prob.evaluate(theta, sensitivities=False))
+        except FAILURES:
+            continue
+        if math.isfinite(cost) and (best is None or cost < best_cost):
+            best, best_cost = (start, prob, theta), cost
+    if best is None:           # no start evaluates: the neutral one fails as it did before
+        prob, theta = _problem(runs, unknowns, guess, job.known, setup, _sigma_v(est0),
+                               max_step, est0, process_sigma=max(_sigma_v(est0), 1e-12),
+                               rows=rows)
+        return guess, prob, theta
     return best
 
 
