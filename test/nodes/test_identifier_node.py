@@ -76,6 +76,8 @@ def run():
         call('start_test_point')
         call('start_test_point')                       # refused: one is armed
         assert test_point(0), 'no final estimate of test point 1'
+        # the check runs after the final is published (off the latency path): wait for it
+        spin_until(lambda: node.diagnostics.values.get('adequacy_test_point') == 1, 60.0)
         out['adequacy'] = {1: (node.diagnostics.values.get('adequacy'),
                                node.diagnostics.problems.get('final_adequacy'),
                                node.diagnostics.values.get('adequacy_misfit_channels'))}
@@ -94,6 +96,7 @@ def run():
         data['flap'][4 * LENGTH:5 * LENGTH, 1] += 0.01
         call('start_test_point')
         assert test_point(4), 'no final estimate of test point 5'
+        spin_until(lambda: node.diagnostics.values.get('adequacy_test_point') == 5, 60.0)
         out['adequacy'][5] = (node.diagnostics.values.get('adequacy'),
                               node.diagnostics.problems.get('final_adequacy'),
                               node.diagnostics.values.get('adequacy_misfit_channels'))
