@@ -31,6 +31,8 @@ writable place numba compiles at every start (about 2 s) and still gives the sam
 import os
 import time
 
+import numpy as np
+
 MODES = ('auto', 'numba', 'numpy')
 #: CPU seconds of numpy simulation after which ``auto`` loads the kernel (about its load cost).
 AUTO_SWITCH_SECONDS = 0.5
@@ -70,11 +72,30 @@ def rk4_kernel():
     return load()
 
 
+#: Inputs of ``filter_scan`` (Phi, c, Q, H, d, y, x0, R, P0): the arguments before ``steady``.
+_FILTER_INPUTS = 9
+
+
 def filter_kernel():
-    """Return the compiled Kalman filter of stacked models, or None (as :func:`rk4_kernel`)."""
+    """
+    Return the compiled Kalman filter of stacked models, or None (as :func:`rk4_kernel`).
+
+    Its array inputs are passed on C-contiguous, writable and float64, the one type signature
+    that :func:`load` compiles or reads from the cache. numba specialises on layout and
+    read-only flags, and a view it had not seen (a read-only slice of a single-interval
+    batch, a non-contiguous stack) would be compiled at its first call: a stall of seconds
+    in the middle of a live run (the state estimator of a 5-bladed rig published nothing for
+    4 s while ``filter_scan`` compiled a read-only variant).
+    """
     if rk4_kernel() is None:
         return None
-    return _state['module'].filter_scan
+    scan = _state['module'].filter_scan
+
+    def canonical_scan(*args):
+        inputs = [np.require(a, np.float64, ('C', 'W')) if isinstance(a, np.ndarray) else a
+                  for a in args[:_FILTER_INPUTS]]
+        return scan(*inputs, *args[_FILTER_INPUTS:])
+    return canonical_scan
 
 
 def affine_kernels():

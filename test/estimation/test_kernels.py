@@ -127,6 +127,44 @@ def test_filter_kernel_matches_numpy(gain, monkeypatch):
         _assert_close(a, b, what)
 
 
+def test_filter_kernel_compiles_nothing_for_read_only_or_strided_inputs():
+    """
+    Views of any layout reach the one cached specialisation of the filter scan.
+
+    numba compiles a new specialisation for each layout and read-only flag it meets: seconds
+    at the first call, mid-run in a live node (a 5-bladed rig's state estimator stalled 4 s).
+    """
+    kernel = kernels.load()
+    assert kernel is not None, kernels.status()['error']
+    scan = kernels.filter_kernel()
+    dispatcher = kernels._state['module'].filter_scan
+    before = list(dispatcher.signatures)
+    rng = np.random.default_rng(3)
+    K_, T, n, m = 1, 6, 3, 2
+    Phi = 0.3 * rng.standard_normal((T - 1, K_, n, n)) + np.eye(n)
+    c = rng.standard_normal((T - 1, K_, n))
+    Q = np.broadcast_to(0.01 * np.eye(n), (T - 1, K_, n, n))        # read-only, stride 0
+    H = rng.standard_normal((T, K_, m, n))
+    d = np.zeros((T, K_, m))
+    y = rng.standard_normal((T, m))
+    R = np.eye(m)[None] * 0.1
+    P0 = np.eye(n)[None] * 0.2
+    read_only = Phi.copy()
+    read_only.flags.writeable = False
+    strided = np.zeros((T - 1, K_, n, 2 * n))
+    strided[..., ::2] = Phi
+    outputs = []
+    for phi in (Phi, read_only, strided[..., ::2]):
+        out = (np.empty((K_, T, m)), np.empty((K_, T, m, m)), np.empty((K_, T, n, m)),
+               np.empty(K_), np.empty((K_, n)), np.empty((K_, n, n)))
+        scan(phi, c, Q, H, d, y, np.zeros((K_, n)), R, P0, False, *out)
+        outputs.append(out)
+    assert list(dispatcher.signatures) == before
+    for out in outputs[1:]:
+        for a, b in zip(outputs[0], out):
+            np.testing.assert_array_equal(a, b)
+
+
 # -- the prepared time-invariant path (TimeInvariantPlan) ---------------------------------------
 
 def _plan_of(model, stirring, t, p):
