@@ -165,9 +165,11 @@ def test_state_estimator_tracks_the_flapping(live_run):
     assert last.units[1] == 'rad/s' and last.rotor_speed == pytest.approx(30 * math.pi)
     cov = np.array(last.covariance).reshape(6, 6)
     assert np.all(np.linalg.eigvalsh(0.5 * (cov + cov.T)) > -1e-15)
-    # compare the filtered tilt with the measured flap of the same stamp
+    # compare the filtered tilt with the measured flap of the same stamp, as recorded: the
+    # recorder takes every flap sample (test_recorded_bag_is_complete...), where this test's
+    # best-effort reader drops many on a loaded machine (CI: 1 of ~20 states found its flap)
     flaps = {(m.header.stamp.sec, m.header.stamp.nanosec): m
-             for m in watcher.messages['blade_flap']}
+             for m in mcap_messages(live_run['bag'])['/rotor/blade_flap']}
     compared = 0
     for msg in states[len(states) // 2:]:
         flap = flaps.get((msg.header.stamp.sec, msg.header.stamp.nanosec))
