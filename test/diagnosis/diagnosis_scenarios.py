@@ -267,34 +267,35 @@ SHORT = {'dynamic_inflow': 'inflow', 'periodic_coefficients': 'periodic', 'senso
          'azimuth_offset': 'azimuth'}
 
 
-def _pair_scenario(first, second):
+def _together_scenario(*groups):
     """
-    Return a scenario with two effect groups concealed at once, each at its single size.
+    Return a scenario with several effect groups concealed at once, each at its single size.
 
-    In the μ = 0.4 record each at its μ = 0.4 size (:data:`CONCEALED_MU04`).
+    In the μ = 0.4 record (when one of them is seen only in forward flight) each at its
+    μ = 0.4 size (:data:`CONCEALED_MU04`).
     """
-    (a, *_), (b, *_) = first, second
-    knobs = {**CONCEALED[a], **CONCEALED[b]}
-    if a in FORWARD_FLIGHT or b in FORWARD_FLIGHT:
+    firsts = [g[0] for g in groups]
+    knobs = {k: v for a in firsts for k, v in CONCEALED[a].items()}
+    if any(a in FORWARD_FLIGHT for a in firsts):
         from rotor_id.diagnosis.catalogue import equivalent
-        knobs = {**CONCEALED_MU04[a], **CONCEALED_MU04[b]}
+        knobs = {k: v for a in firsts for k, v in CONCEALED_MU04[a].items()}
         # in forward flight δ3, a cubic spring and a pitch-actuator lag are physics of their
         # own (catalogue.HOVER_ONLY): naming one for a flap-frequency error or a sensor lag
         # is right only with the truth reported as confounded with it
-        first, second = ((g[0],) + equivalent(g[0], 0.4) for g in (first, second))
+        groups = tuple((g[0],) + equivalent(g[0], 0.4) for g in groups)
 
         def make(seed):
-            return mu04_case(seed=seed, wake='dynamic_inflow' in (a, b), **knobs)
-        model = CONSTANT if 'periodic_coefficients' in (a, b) else MULTIBLADE
+            return mu04_case(seed=seed, wake='dynamic_inflow' in firsts, **knobs)
+        model = CONSTANT if 'periodic_coefficients' in firsts else MULTIBLADE
         original = {'gamma': 5.0, 'theta0': THETA0}
     else:
         def make(seed):
             return wake_case(seed=seed, **knobs)
-        model = MULTIBLADE if 'dynamic_inflow' in (a, b) else WAKE
+        model = MULTIBLADE if 'dynamic_inflow' in firsts else WAKE
         original = {'gamma': GAMMA_WAKE, 'theta0': THETA0} if model is MULTIBLADE \
             else WAKE_TRUTH
-    return Scenario(f'{SHORT[a]}+{SHORT[b]}', a, make, model, together=(first, second),
-                    original_truth=original)
+    return Scenario('+'.join(SHORT[a] for a in firsts), firsts[0], make, model,
+                    together=tuple(groups), original_truth=original)
 
 
 def catalogue_pairs():
@@ -312,7 +313,7 @@ def catalogue_pairs():
     for i, first in enumerate(groups):
         for second in groups[i + 1:]:
             key = frozenset((SHORT[first[0]], SHORT[second[0]]))
-            out.append(have.get(key) or _pair_scenario(first, second))
+            out.append(have.get(key) or _together_scenario(first, second))
     return out
 
 
@@ -358,7 +359,23 @@ WEAK_NOISE_AZIMUTH = replace(
     make=lambda s: mu04_case(seed=s, **CONCEALED['process_noise'],
                              **CONCEALED_MU04['azimuth_offset']))
 
-BY_NAME = {s.name: s for s in SCENARIOS + OUT_OF_CATALOGUE + [WEAK_NOISE_AZIMUTH]}
+
+def _triples():
+    group = {g[0]: g for g in effect_classes()}
+    return [_together_scenario(*(group[e] for e in effects)) for effects in (
+        ('dynamic_inflow', 'sensor_lag', 'sensor_bias'),
+        ('dynamic_inflow', 'blade_dissimilarity', 'process_noise'),
+        ('sensor_lag', 'flap_frequency', 'sensor_gain'),
+        ('sensor_lag', 'sensor_gain', 'azimuth_offset'))]
+
+
+#: Three concealed effects at once, as the issue's rig would make them (a flap sensor with
+#: an offset and a lag beside an unmodelled wake; a wake and a blade that differs under
+#: turbulence; rig physics in hover and in forward flight). Not in the pair study nor in CI:
+#: probes of the forward selection beyond two effects (diagnosis_pairs.md, "Three effects").
+TRIPLES = _triples()
+
+BY_NAME = {s.name: s for s in SCENARIOS + OUT_OF_CATALOGUE + [WEAK_NOISE_AZIMUTH] + TRIPLES}
 
 
 def evaluate(scenario, result):
