@@ -88,7 +88,10 @@ def summarize(runs, seeds):
              'excess mean (max) | aug excess mean (max) | extra within 3σ | orig z before → '
              'after | s/run |',
              '|---|---|---|---|---|---|---|---|---|---|---|---|---|']
-    for sc in SCENARIOS:
+    # the study's scenarios in their order, then any other named one run (triples, ...)
+    ran = dict.fromkeys(r['scenario'] for r in runs)
+    for sc in [s for s in SCENARIOS if s.name in ran] + [
+            BY_NAME[n] for n in ran if n not in {s.name for s in SCENARIOS}]:
         rs = [r for r in runs if r['scenario'] == sc.name]
         if not rs:
             continue

@@ -372,7 +372,7 @@ def _triples():
 #: Three concealed effects at once, as the issue's rig would make them (a flap sensor with
 #: an offset and a lag beside an unmodelled wake; a wake and a blade that differs under
 #: turbulence; rig physics in hover and in forward flight). Not in the pair study nor in CI:
-#: probes of the forward selection beyond two effects (diagnosis_pairs.md, "Three effects").
+#: probes of the forward selection beyond two effects (bench/results/diagnosis_triples.md).
 TRIPLES = _triples()
 
 BY_NAME = {s.name: s for s in SCENARIOS + OUT_OF_CATALOGUE + [WEAK_NOISE_AZIMUTH] + TRIPLES}
