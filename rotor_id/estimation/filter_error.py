@@ -552,8 +552,7 @@ def filter_batch(dms, y, x0, R, gain='time-varying'):
         P_ss = np.stack([kalman.steady_state_covariance(dm, R[i]) for i, dm in enumerate(dms)])
     compiled = kernels.filter_kernel()
     if compiled is not None:
-        compiled(Phi, c, Q, H, d, np.ascontiguousarray(y, dtype=float), x,
-                 np.ascontiguousarray(R, dtype=float), P_ss if gain == 'steady' else P,
+        compiled(Phi, c, Q, H, d, y, x, R, P_ss if gain == 'steady' else P,
                  gain == 'steady', nu, B, gains, cost, np.empty((K_, n)), np.empty((K_, n, n)))
         return nu, B, gains, cost
     clock = time.process_time()

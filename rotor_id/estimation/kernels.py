@@ -92,8 +92,7 @@ def filter_kernel():
     scan = _state['module'].filter_scan
 
     def canonical_scan(*args):
-        inputs = [np.require(a, np.float64, ('C', 'W')) if isinstance(a, np.ndarray) else a
-                  for a in args[:_FILTER_INPUTS]]
+        inputs = [np.require(a, np.float64, ('C', 'W')) for a in args[:_FILTER_INPUTS]]
         return scan(*inputs, *args[_FILTER_INPUTS:])
     return canonical_scan
 

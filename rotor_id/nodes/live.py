@@ -272,10 +272,9 @@ class StreamingKalman:
         P = dm.Phi[0] @ self.P @ dm.Phi[0].T + dm.Q[0]
         T, m, n = t.size, y.shape[1], x.size
         x_last, P_last = np.empty((1, n)), np.empty((1, n, n))
-        scan(np.ascontiguousarray(dm.Phi[1:, None]), np.ascontiguousarray(dm.c[1:, None]),
-             np.ascontiguousarray(dm.Q[1:, None]), np.ascontiguousarray(dm.H[1:, None]),
-             np.ascontiguousarray(dm.d[1:, None]), np.ascontiguousarray(y, dtype=float),
-             x[None], np.diag(self.R)[None], P[None], False, np.empty((1, T, m)),
+        # (the scan takes its inputs C-contiguous and writable, copying views as needed)
+        scan(dm.Phi[1:, None], dm.c[1:, None], dm.Q[1:, None], dm.H[1:, None], dm.d[1:, None],
+             y, x[None], np.diag(self.R)[None], P[None], False, np.empty((1, T, m)),
              np.empty((1, T, m, m)), np.empty((1, T, n, m)), np.empty(1), x_last, P_last)
         self.t, self.x, self.P = float(t[-1]), x_last[0], P_last[0]
         return self.x, self.P
