@@ -136,6 +136,7 @@ def _problem(runs, unknowns, guess, known, setup, sigma_v, max_step, start_est,
     theta = np.zeros(k)
     theta[:len(base.param_index)] = base.p_base[base.param_index]
     theta[:prob.n_base] = _fit_initial_states(base, theta[:prob.n_base].copy(), max_step)
+    fitted_states = theta[:prob.n_base].copy()
     have = dict(zip(start_est.names, start_est.values))
     for i, name in enumerate(prob.names):
         if name == PROCESS_NOISE:
@@ -159,12 +160,23 @@ def _problem(runs, unknowns, guess, known, setup, sigma_v, max_step, start_est,
     # a dissimilar blade's at ε = 0, gets an arbitrary output-error value)
     new = [i for i, n in enumerate(prob.names[:prob.n_base])
            if i >= len(base.param_index) and n not in have]
+    tries = [theta]
     if new:
         rest = theta.copy()
         rest[new] = 0.0
-        costs = [_cost(prob.evaluate(th, sensitivities=False)) for th in (theta, rest)]
-        if not costs[0] <= costs[1]:
-            theta = rest
+        tries.append(rest)
+    # the current estimate's initial states, or all of them refitted at this start, whichever
+    # the filter finds more likely: a filter-error fit can leave initial states far along a
+    # direction its own model barely sees, which another model sees (measured,
+    # inflow+blade+noise seed 1000: random inflow and the blade left β0(t0) = 64 rad,
+    # η(t0) = -256 rad at the optimum; every start of the wake beside them cost 1e8-1e9)
+    refitted = theta.copy()
+    refitted[len(base.param_index):prob.n_base] = fitted_states[len(base.param_index):]
+    if not np.array_equal(refitted, theta):
+        tries.append(refitted)
+    if len(tries) > 1:
+        costs = [_cost(prob.evaluate(th, sensitivities=False)) for th in tries]
+        theta = tries[int(np.nanargmin(np.where(np.isfinite(costs), costs, np.inf)))]
     return prob, theta
 
 
@@ -237,8 +249,9 @@ def fit_filter(effect, variant, kept, start_fit, ctx, setup, max_iter=MAX_ITER):
         max_step = max_step or DEFAULT_MAX_STEP
         runs, rows, unknowns = _with_inflow_states(runs, unknowns, guess, est0, ctx, setup)
         model = runs[0].model
-        guess, prob, theta = _best_filter_start(effect, job, model, runs, unknowns, guess,
-                                                setup, max_step, est0, rows)
+        guess, prob, theta = _best_filter_start(
+            effect, job, model, runs, unknowns, guess, setup, max_step, est0, rows,
+            earlier=_earlier_fit(ctx, effect, variant, kept))
         begin = {n: v for n, v in zip(prob.names, theta)
                  if n != PROCESS_NOISE and n not in unknowns}
         # two iterations at a catalogue bound end the fit: it is reported bound-limited
@@ -256,11 +269,27 @@ def fit_filter(effect, variant, kept, start_fit, ctx, setup, max_iter=MAX_ITER):
     out.bound_limited = [n for n, _ in _at_catalogue_bound(est, model, extra)]
     out.elapsed_s = time.perf_counter() - t0
     out.experiments, out.max_step, out.noise_rows = runs, max_step, rows
+    ctx.setdefault('filter_fits', []).append(out)
     return out
 
 
+def _earlier_fit(ctx, effect, variant, kept):
+    """
+    Return this effect's fit of an earlier step (beside fewer kept effects), or None.
+
+    The latest one, its stack a part of ``kept``: the model now fitted is that fit's with the
+    effects added since, so its estimate is a start from the other side of the same model.
+    """
+    stack = set(kept)
+    for fit in reversed(ctx.get('filter_fits', [])):
+        if (fit.effect, fit.variant) == (effect, variant) and fit.available \
+                and set(fit.prior) < stack:
+            return fit
+    return None
+
+
 def _best_filter_start(effect, job, model, runs, unknowns, guess, setup, max_step, est0,
-                       rows):
+                       rows, earlier=None):
     """
     Return (start, its filter problem, its θ): the most likely of output error's grid starts.
 
@@ -269,18 +298,30 @@ def _best_filter_start(effect, job, model, runs, unknowns, guess, setup, max_ste
     current σ_V, finds them most likely: from the neutral values the first scoring steps
     beside random inflow swing far (γ to twice its value, σ_V to its bound) and the fit ends,
     within its iterations, in whichever valley the path found.
+
+    ``earlier``: the effect's fit beside fewer of the kept effects (:func:`_earlier_fit`).
+    Its estimate, the effects added since at the current one's values, is one more start, at
+    its own σ_V: the same model approached from the other side. The current model's
+    parameters can sit in another valley than the effect needs (measured, inflow+blade+noise
+    seed 1000: beside random inflow and the blade the wake gained ΔJ 10.2 from the current
+    γ = 3.2, σ_V = 1.8e-3; the same three effects, the blade added to the wake's fit at
+    γ = 3.9, reached 120 more).
     """
-    starts = [guess] + (grid_starts(job, model, guess, unknowns) or [])
+    sigma0 = max(_sigma_v(est0), 1e-12)
+    starts = [(g, sigma0) for g in [guess] + (grid_starts(job, model, guess, unknowns) or [])]
     if effect == 'dynamic_inflow':
         # and no wake gain (L = 0, the current model's likelihood): a fit from there never
         # ends below the model it extends, where the grid's starts are all less likely
-        starts.insert(1, {**guess, 'AL_over_tau': 0.0})
+        starts.insert(1, ({**guess, 'AL_over_tau': 0.0}, sigma0))
+    if earlier is not None:
+        before = earlier.estimate.model_parameters
+        starts.append(({**guess, **{n: before[n] for n in unknowns if n in before}},
+                       max(_sigma_v(earlier.estimate), 1e-12)))
     best, best_cost = None, math.inf
-    for start in starts:
+    for start, sigma in starts:
         try:
-            prob, theta = _problem(runs, unknowns, start, job.known, setup, _sigma_v(est0),
-                                   max_step, est0, process_sigma=max(_sigma_v(est0), 1e-12),
-                                   rows=rows)
+            prob, theta = _problem(runs, unknowns, start, job.known, setup, sigma,
+                                   max_step, est0, process_sigma=sigma, rows=rows)
         except FAILURES:
             continue
         if len(starts) == 1:
@@ -532,7 +573,7 @@ def add_deterministic(noise_fit, noise_row, ctx):
                                              _step_row)
     setup = _setup(ctx)
     notes = []
-    ctx['noisy_trace'] = []
+    ctx['noisy_trace'], ctx['filter_fits'] = [], []
     current = noise_fit
     current.experiments, current.noise_rows, shape = _random_inflow_states(
         setup.experiments, ctx['record'])
