@@ -121,13 +121,16 @@ def _sigma_v(est):
 
 
 def _problem(runs, unknowns, guess, known, setup, sigma_v, max_step, start_est,
-             process_sigma=None, rows=None):
+             process_sigma=None, rows=None, refit_states=False):
     """
     Filter problem of a candidate and its θ at the current estimate (extra parts neutral).
 
     Every θ entry the current estimate has (model unknowns, initial states, measurement σ's)
     is taken from it; the candidate's extra parameters stay at their neutral values and its
     extra initial states at their output-error fit. σ_V² is ``process_sigma``² if given.
+    ``refit_states``: a fit's start away from the current estimate; its initial states are
+    the current ones or all refitted there, whichever the filter finds more likely (a score
+    test is at the current estimate, where they are already the current model's optimum).
     """
     prob = _FilterProblem(runs, unknowns, guess, known, setup.noise_std, sigma_v, True,
                           setup.rows if rows is None else rows, 'white', 'auto', max_step)
@@ -172,11 +175,14 @@ def _problem(runs, unknowns, guess, known, setup, sigma_v, max_step, start_est,
     # η(t0) = -256 rad at the optimum; every start of the wake beside them cost 1e8-1e9)
     refitted = theta.copy()
     refitted[len(base.param_index):prob.n_base] = fitted_states[len(base.param_index):]
-    if not np.array_equal(refitted, theta):
+    if refit_states and not np.array_equal(refitted, theta):
         tries.append(refitted)
+    prob.start_cost = None          # the filter's cost at θ, when it was evaluated here
     if len(tries) > 1:
         costs = [_cost(prob.evaluate(th, sensitivities=False)) for th in tries]
-        theta = tries[int(np.nanargmin(np.where(np.isfinite(costs), costs, np.inf)))]
+        costs = np.where(np.isfinite(costs), costs, np.inf)
+        best = int(np.argmin(costs))
+        theta, prob.start_cost = tries[best], float(costs[best])
     return prob, theta
 
 
@@ -321,13 +327,16 @@ def _best_filter_start(effect, job, model, runs, unknowns, guess, setup, max_ste
     for start, sigma in starts:
         try:
             prob, theta = _problem(runs, unknowns, start, job.known, setup, sigma,
-                                   max_step, est0, process_sigma=sigma, rows=rows)
+                                   max_step, est0, process_sigma=sigma, rows=rows,
+                                   refit_states=True)
         except FAILURES:
             continue
         if len(starts) == 1:
             return start, prob, theta
         try:
-            cost = _cost(prob.evaluate(theta, sensitivities=False))
+            cost = prob.start_cost
+            if cost is None:
+                cost = _cost(prob.evaluate(theta, sensitivities=False))
         except FAILURES:
             continue
         if math.isfinite(cost) and (best is None or cost < best_cost):
