@@ -129,8 +129,9 @@ def _problem(runs, unknowns, guess, known, setup, sigma_v, max_step, start_est,
     is taken from it; the candidate's extra parameters stay at their neutral values and its
     extra initial states at their output-error fit. σ_V² is ``process_sigma``² if given.
     ``refit_states``: a fit's start away from the current estimate; its initial states are
-    the current ones or all refitted there, whichever the filter finds more likely (a score
+    the current ones unless they make the start absurd, then all refitted there (a score
     test is at the current estimate, where they are already the current model's optimum).
+    ``prob.start_cost`` is the filter's cost at the returned θ when it was evaluated here.
     """
     prob = _FilterProblem(runs, unknowns, guess, known, setup.noise_std, sigma_v, True,
                           setup.rows if rows is None else rows, 'white', 'auto', max_step)
@@ -168,7 +169,7 @@ def _problem(runs, unknowns, guess, known, setup, sigma_v, max_step, start_est,
         rest = theta.copy()
         rest[new] = 0.0
         tries.append(rest)
-    prob.start_cost = None          # the filter's cost at θ, when it was evaluated here
+    prob.start_cost = None
     if len(tries) > 1 or refit_states:
         costs = [_cost(prob.evaluate(th, sensitivities=False)) for th in tries]
         costs = np.where(np.isfinite(costs), costs, np.inf)
