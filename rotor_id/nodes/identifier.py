@@ -161,6 +161,7 @@ class Identifier(Node):
             read_only=False)
         self.points = None
         self.window_checked = 0           # test point whose window length was checked
+        self.origin_reported = 0          # test point whose lost first sample was logged
         for name, reason in (('target_std', self._targets_reason(self.d['target_std'])),
                              ('window_s', self._window_reason(self.d['window_s']))):
             if reason:
@@ -507,6 +508,13 @@ class Identifier(Node):
 
     def _report_state(self):
         latest = self.points.latest
+        if (latest is not None and latest.origin_received_ns is not None
+                and self.origin_reported != latest.number):
+            self.origin_reported = latest.number
+            self.get_logger().info(
+                f'{latest.describe()}: its first flap sample was lost (the first received is '
+                f'{(latest.origin_received_ns - latest.stamp0_ns) / 1e6:.1f} ms later); its '
+                'window starts from where the sample grid puts it')
         self.diagnostics.set_value('test_point', latest.describe() if latest else 'none yet')
         self.diagnostics.set_value('test_point_phase', self.points.phase.name.lower())
         # between test points quiet inputs are STALE, not a fault (never received: ERROR)

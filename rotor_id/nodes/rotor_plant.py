@@ -24,6 +24,10 @@ from rotor_id.physics.stirring import multiblade_from_blade_pitch
 from sensor_msgs.msg import JointState
 
 TWO_PI = 2.0 * math.pi
+#: With wait_for_commands and no command yet: one more free sample this often (s), so that a
+#: stirring node that matched after the last one, or lost it (best effort on a loaded
+#: machine), locks onto the next instead of both waiting for each other for ever.
+LOCK_ON_PERIOD_S = 0.25
 
 
 class RotorPlant(Node):
@@ -52,6 +56,7 @@ class RotorPlant(Node):
         self.last_cmd_ns = None
         self.commands = 0
         self.published = 0              # samples published
+        self.offered_ns = None          # when the last free sample (no command yet) was due
         blades = rig.description.rotor.blades
         self.pending = (np.empty(0), np.empty((0, blades)), np.empty((0, blades)))
         self.ahead = int(round(d['simulate_ahead_s'] * self.rate))
@@ -185,10 +190,17 @@ class RotorPlant(Node):
         due = int(elapsed * self.rate)
         simulate_to = due
         if self.d['wait_for_commands']:
-            # the first sample is free (the stirring node locks onto it), then follow commands
-            newest = self.stepper.cmd_t[-1] if self.commands else self.stepper.t
-            commanded = max(1, int((newest - self.d['initial_azimuth_rad']) /
-                                   self.stepper.step + 1e-9))
+            # a free sample now and then until the first command (the stirring node locks onto
+            # the first it receives), then follow the commands
+            if self.commands:
+                commanded = max(1, int((self.stepper.cmd_t[-1] - self.d['initial_azimuth_rad'])
+                                       / self.stepper.step + 1e-9))
+            elif due > self.published and (self.offered_ns is None or
+                                           now - self.offered_ns >= LOCK_ON_PERIOD_S * NS):
+                self.offered_ns = now
+                commanded = self.published + 1
+            else:
+                commanded = self.published
             due = min(due, commanded)
             self.diagnostics.set_value('waiting_for_commands', due < int(elapsed * self.rate))
             # the samples up to the newest command do not depend on when they are computed:

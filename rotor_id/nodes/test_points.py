@@ -182,6 +182,27 @@ def sampling_period_ns(stamps):
     return float(np.median(np.diff(stamps[-min(stamps.size, 2001):])))
 
 
+def grid_stamp(before_ns, after_ns, at_ns, period_ns, regularity=0.25):
+    """
+    Stamp of the first sample sent at or after ``at_ns``, from the received ones around it.
+
+    ``before_ns`` < ``at_ns`` <= ``after_ns`` are consecutive received samples of a stream
+    sampled every ``period_ns``. When their step is a whole number n >= 2 of periods (within
+    ``regularity`` of a period: a regular stream that lost n - 1 samples), the lost samples lay
+    evenly between them and the first of them at or after ``at_ns`` is returned; otherwise
+    ``after_ns`` (nothing can be inferred about where an irregular stream's samples lay).
+    """
+    before_ns, after_ns, at_ns = int(before_ns), int(after_ns), int(at_ns)
+    if not period_ns > 0:
+        return after_ns
+    n = round((after_ns - before_ns) / period_ns)
+    if n < 2 or abs(after_ns - before_ns - n * period_ns) > regularity * period_ns:
+        return after_ns
+    step = (after_ns - before_ns) / n
+    k = math.ceil((at_ns - before_ns) / step - 1e-6)      # first grid point at or after at_ns
+    return min(after_ns, before_ns + int(round(max(k, 1) * step)))
+
+
 def channel_coverage(name, stamps, lo_ns, hi_ns, period_ns=None, factor=1.5):
     """
     Coverage of [lo_ns, hi_ns] by one channel's sorted stamps.
@@ -290,8 +311,10 @@ class TestPoint:
     phase: Phase = Phase.ARMED
     reason: Reason = Reason.NONE
     detail: str = ''
-    stamp0_ns: int = None            # its first flap sample: the origin of window_s
+    stamp0_ns: int = None            # its first flap sample: the origin of window_s (when
+    #                                  lost, where the regular sample grid puts it)
     origin_late_ns: int = 0          # its first flap sample's stamp after armed_from_ns
+    origin_received_ns: int = None   # the first one received, when that one was not (lost)
     next_update: float = None        # growing-window schedule (s after stamp0)
     first_update: float = None
     requested_until: float = -math.inf
@@ -535,6 +558,11 @@ class TestPointSequence:
             if i == stamps.size:
                 return
             first = int(stamps[i])
+            if i > 0:       # its first flap sample lost? the stream's grid says where it lay
+                sent = grid_stamp(stamps[i - 1], first, point.armed_from_ns,
+                                  sampling_period_ns(stamps[:i]))
+                if sent != first:
+                    point.origin_received_ns, first = first, sent
             point.origin_late_ns = first - point.armed_from_ns
         point.stamp0_ns = first
         point.phase = Phase.RECORDING

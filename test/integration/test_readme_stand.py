@@ -35,6 +35,36 @@ def blocks(section):
     return dict(re.findall(r'<!-- stand: (\S+) -->\n```\w*\n(.*?)```', section, re.S))
 
 
+RETRIES = 2        # further test points after one that lost samples in transport
+
+
+def finals(estimates):
+    """Return the final estimates received, in order (one per test point)."""
+    from rotor_id_msgs.msg import ParameterEstimate
+    return [e for e in estimates if e.kind == ParameterEstimate.KIND_FINAL]
+
+
+def lost_in_transport(estimate):
+    """Say whether a final estimate is INCOMPLETE because samples of its window were lost."""
+    from rotor_id_msgs.msg import ParameterEstimate
+    return (estimate.status == ParameterEstimate.STATUS_INCOMPLETE
+            and sum(estimate.missing_samples) > 0)
+
+
+def settled(estimates):
+    """
+    Return the final estimate the stand settled on: its last test point's.
+
+    Every earlier one must have lost samples in transport and said so (INCOMPLETE, the
+    missing samples counted), never a converged or failed result left behind.
+    """
+    got = finals(estimates)
+    assert got, 'no final estimate'
+    for earlier in got[:-1]:
+        assert lost_in_transport(earlier), earlier.message
+    return got[-1]
+
+
 def _parameter_value(text):
     import yaml
     return yaml.safe_load(text)
@@ -111,11 +141,35 @@ def stand(tmp_path_factory):
         (start,) = blocks(section)['start'].split('\n')[:1]
         words = shlex.split(start)
         assert words[:3] == ['ros2', 'service', 'call'] and words[4] == 'std_srvs/srv/Trigger'
-        out['start'] = call(words[3], Trigger, Trigger.Request())
-        out['start2'] = call(words[3].replace('/stand1/', '/stand2/'), Trigger, Trigger.Request())
-        finals = (out['estimates'], out['estimates2'])
-        out['final'] = spin_until(lambda: all(
-            any(e.kind == ParameterEstimate.KIND_FINAL for e in got) for got in finals), 120.0)
+        service = words[3]
+
+        def start_next(srv, timeout=90.0):
+            """Call start until the stirring of the last test point has ended and it is taken."""
+            import time
+            deadline = time.monotonic() + timeout
+            while time.monotonic() < deadline:
+                if call(srv, Trigger, Trigger.Request()).success:
+                    return True
+                spin_until(lambda: False, 0.5)
+            return False
+
+        out['start'] = call(service, Trigger, Trigger.Request())
+        out['start2'] = call(service.replace('/stand1/', '/stand2/'), Trigger, Trigger.Request())
+        # a window that lost samples in transport (best-effort sensor data on a loaded
+        # machine) is INCOMPLETE with the samples named: the engineer runs the next test point
+        stands = ((service, out['estimates']),
+                  (service.replace('/stand1/', '/stand2/'), out['estimates2']))
+        for _ in range(RETRIES + 1):
+            out['final'] = spin_until(lambda: all(finals(got) for _, got in stands), 120.0)
+            again = [(srv, got) for srv, got in stands
+                     if out['final'] and lost_in_transport(finals(got)[-1])
+                     and len(finals(got)) <= RETRIES]
+            if not again:
+                break
+            for srv, got in again:
+                count = len(finals(got))
+                assert start_next(srv), f'{srv}: the next test point could not be started'
+                spin_until(lambda: len(finals(got)) > count, 120.0)
         out['logs'] = {n: procs.log(n) for n in procs.procs}
         # "changing settings while running": the README's own examples
         out['param_sets'] = []
@@ -140,27 +194,28 @@ def test_the_test_point_is_identified_on_an_unlike_stand(stand):
     from rotor_id_msgs.msg import ParameterEstimate
     assert stand['start'].success and 'test point 1' in stand['start'].message
     assert stand['final'], stand.get('logs', {}).get('identifier', '')[-3000:]
-    final = next(e for e in stand['estimates'] if e.kind == ParameterEstimate.KIND_FINAL)
+    final = settled(stand['estimates'])
     assert final.status == ParameterEstimate.STATUS_CONVERGED, final.message
-    assert final.test_point == 1
+    assert final.test_point == len(finals(stand['estimates']))
     ok, text = within_sigma(final.values, final.std, TRUTH, final.names)
     assert ok, text
 
 
 def test_two_stands_on_one_graph_share_nothing(stand):
-    """Each stand's identifier finds its own rotor: 0.1 apart in A is 6σ, no mixing passes."""
+    """Each stand's identifier finds its own rotor, not the other's: no mixing passes."""
     from rotor_id_msgs.msg import ParameterEstimate
     assert stand['start2'].success and 'test point 1' in stand['start2'].message
-    final = next((e for e in stand['estimates2'] if e.kind == ParameterEstimate.KIND_FINAL),
-                 None)
-    assert final is not None, stand.get('logs', {}).get('identifier_2', '')[-3000:]
+    assert finals(stand['estimates2']), stand.get('logs', {}).get('identifier_2', '')[-3000:]
+    final = settled(stand['estimates2'])
     assert final.status == ParameterEstimate.STATUS_CONVERGED, final.message
-    first = next(e for e in stand['estimates'] if e.kind == ParameterEstimate.KIND_FINAL)
+    first = settled(stand['estimates'])
     ok, text = within_sigma(final.values, final.std, TRUTH2, final.names)
     other = within_sigma(first.values, first.std, TRUTH, first.names)[1]
     assert ok, f'{text} | stand1: {other}'
-    a1, a2 = first.values[first.names.index('A')], final.values[final.names.index('A')]
-    assert abs(a2 - a1) > 3 * max(first.std[0], final.std[0])
+    # neither is the other stand's rotor: 0.1 in A alone is ~6σ, so an estimate from mixed-up
+    # data would lie within 3σ of the other truth in every parameter
+    assert not within_sigma(final.values, final.std, TRUTH, final.names, k=3.0)[0], text
+    assert not within_sigma(first.values, first.std, TRUTH2, first.names, k=3.0)[0], other
     reported = {s.hardware_id for s in stand['diagnostics']}
     assert {'/stand2/identifier', '/stand2/stirring_input', '/stand2/rotor_plant'} <= reported
 

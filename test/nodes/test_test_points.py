@@ -217,6 +217,38 @@ def test_a_first_sample_not_received_makes_every_result_incomplete(stream):
     assert requests[-1].stamp0_ns == stream['stamps'][30]
 
 
+def test_a_first_sample_lost_from_a_regular_stream_is_placed_by_its_grid(stream):
+    """
+    Test point 2's first 30 flap samples are lost (a best-effort stream on a loaded machine).
+
+    The samples before them (test point 1's) and after them lie on one 1 ms grid, so the lost
+    first sample's stamp is known: the window starts exactly where it would have, its samples
+    are all there, and the result may claim convergence.
+    """
+    drop = {'flap': set(range(LENGTH, LENGTH + 30))}
+    finals = _finals(_feed(_machine(), stream, drop=drop, excitation=_schedules(2)))
+    whole = _finals(_feed(_machine(), stream, excitation=_schedules(2)))
+    assert [r.test_point for r in finals] == [1, 2]
+    lost, kept = finals[1], whole[1]
+    assert lost.stamp0_ns == stream['stamps'][LENGTH] == kept.stamp0_ns
+    assert lost.check.complete, lost.check.describe()
+    window, reference = lost.record.window(*WINDOW), kept.record.window(*WINDOW)
+    assert np.array_equal(window.time_s, reference.time_s)
+    assert np.array_equal(window.blade_flap, reference.blade_flap)
+
+
+def test_a_first_sample_lost_from_an_irregular_stream_is_not_placed(stream):
+    """Where the step over the loss is not a whole number of periods, nothing is inferred."""
+    data = dict(stream)
+    data['stamps'] = stream['stamps'].copy()
+    data['stamps'][LENGTH + 30:] += MS // 2        # 30.5 periods from the last sample before
+    drop = {'flap': set(range(LENGTH, LENGTH + 30))}
+    finals = _finals(_feed(_machine(), data, drop=drop, excitation=_schedules(2)))
+    assert finals[1].stamp0_ns == data['stamps'][LENGTH + 30]
+    assert not finals[1].check.complete
+    assert 'first flap sample' in finals[1].check.describe()
+
+
 def test_a_starved_consumer_loses_the_oldest_samples_and_says_so(stream):
     """
     A subscriber's queue keeps the newest ``depth`` samples (DDS keep-last); the consumer stalls.
