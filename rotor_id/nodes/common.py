@@ -7,6 +7,7 @@ QoS by kind of data (§4), header stamps from the node clock (§5), /diagnostics
 (§9).
 """
 
+import faulthandler
 import math
 import os
 from pathlib import Path
@@ -541,6 +542,9 @@ def spin_node(node_factory, args=None, executor_factory=None, after_stop=None,
     and exit code 2 as well.
     """
     rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
+    # SIGUSR1: every thread's stack on stderr (a supervisor sends it to a node that did not
+    # stop in time, before killing it, so that its log says where it hung)
+    faulthandler.register(signal.SIGUSR1, all_threads=True)
     stop = []
     for signum in (signal.SIGINT, signal.SIGTERM):
         signal.signal(signum, lambda number, _frame: stop.append(number))

@@ -56,6 +56,8 @@ QUICK_DISCOVERY_XML = """<?xml version="1.0" encoding="UTF-8" ?>
   </participant>
 </profiles>
 """
+#: Seconds a node that did not stop in time gets to write its threads' stacks before SIGKILL.
+STACK_DUMP_WAIT_S = 2.0
 _PROFILE_VARS = ('FASTRTPS_DEFAULT_PROFILES_FILE', 'FASTDDS_DEFAULT_PROFILES_FILE')
 
 
@@ -184,6 +186,12 @@ class NodeProcesses:
             try:
                 proc.wait(timeout)
             except subprocess.TimeoutExpired:
+                # where it hangs, into its log (rotor_id.nodes.common.spin_node), then kill
+                proc.send_signal(signal.SIGUSR1)
+                try:
+                    proc.wait(STACK_DUMP_WAIT_S)
+                except subprocess.TimeoutExpired:
+                    pass
                 proc.kill()
                 proc.wait()
             self.stop_s[name] = time.monotonic() - self._signalled.get(name, time.monotonic())
