@@ -255,6 +255,47 @@ def test_streaming_kalman_compiled_batches_equal_the_library_filter(name, mu):
     assert compiled.t == library.t
 
 
+@pytest.mark.parametrize('path', ['update', 'advance'])
+def test_streaming_kalman_takes_a_gap_at_the_cost_of_its_own_substeps(path, monkeypatch):
+    """
+    A batch with lost samples (100 periods missing) filters as the library does over that grid.
+
+    The library discretises a grid with the substeps its longest step needs on every interval;
+    the streaming filter steps across the gap alone, so the batch costs its regular intervals'
+    substeps plus the gap's (seen live: one such batch held a state estimator for > 30 s).
+    """
+    from rotor_id.estimation import simulate as simulation
+    from rotor_id.nodes import live
+    model = build_model('multiblade_wake', RotorConstants(advance_ratio=0.0))
+    p = model.parameter_vector(WAKE)
+    schedule = StirringSchedule(0.0, 0.03, -0.1 / math.pi, 2.0, 0.0)
+    t = np.delete(np.arange(0.0, 50.0, 0.094), np.arange(200, 300))
+    sim = simulate(model, p, schedule, t, np.zeros(6))
+    y = sim.y + np.random.default_rng(3).normal(0, 1e-3, sim.y.shape)
+    x0, P0 = np.zeros(6), np.eye(6) * 1e-4
+    batch = kalman_filter(discretize(model, p, schedule, t, [4, 5], 0.01), y, x0, P0,
+                          np.full(2, 1e-6))
+    cost = []
+
+    def counting(model, p, inputs, grid, *args, **kw):
+        cost.append((len(grid) - 1) * simulation.substeps_for(grid))
+        return discretize(model, p, inputs, grid, *args, **kw)
+
+    monkeypatch.setattr(live, 'discretize', counting)
+    stream = StreamingKalman(model, p, np.full(2, 1e-3), x0, P0, process_noise_std=0.01)
+    split = [150] if path == 'update' else [1, 150]
+    for chunk in np.array_split(np.arange(t.size), split):
+        x, P = getattr(stream, path)(t[chunk], schedule, y[chunk])
+    x, P = (x[-1], P[-1]) if path == 'update' else (x, P)
+    # equal up to RK4's step error: the library's grid takes the gap's substeps everywhere
+    std = np.sqrt(np.diag(batch.P_filt[-1]))
+    assert np.max(np.abs(x - batch.x_filt[-1]) / std) < 1e-4
+    assert np.max(np.abs(P - batch.P_filt[-1]) / np.outer(std, std)) < 1e-4
+    regular, gap = simulation.substeps_for(t[:2]), simulation.substeps_for(t[199:201])
+    assert gap > 50 * regular
+    assert sum(cost) <= (t.size - 1) * regular + 2 * gap, cost
+
+
 def test_batches_into_the_buffers_keep_what_sample_by_sample_keeps():
     """extend() / add_batch() (the state estimator's intake) hold append() / add()'s samples."""
     rng = np.random.default_rng(4)
