@@ -43,11 +43,15 @@ def late_reader(tmp_path_factory):
             assert time.monotonic() < deadline, procs.log('rotor_plant')[-2000:]
             time.sleep(0.05)
         time.sleep(0.5)                      # the first free sample went to nobody
-        session.node.create_subscription(
+        reader = session.node.create_subscription(
             JointState, '/rotor/azimuth',
             lambda m: got['stamps'].append(m.header.stamp.sec * 10**9 + m.header.stamp.nanosec),
             SENSOR_QOS)
-        end = time.monotonic() + 2.0          # about 2 s / LOCK_ON_PERIOD_S offers
+        # matched (2.3 s after subscribing on a loaded machine): then about 2 s / period offers
+        while reader.get_publisher_count() < 1:
+            assert time.monotonic() < deadline, 'the test never matched the plant'
+            rclpy.spin_once(session.node, timeout_sec=0.05)
+        end = time.monotonic() + 2.0
         while time.monotonic() < end:
             rclpy.spin_once(session.node, timeout_sec=0.05)
         got['log'] = procs.log('rotor_plant')
