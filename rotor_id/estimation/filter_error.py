@@ -332,12 +332,12 @@ class _FilterProblem:
         p = self.base.full_parameters(base)
         t = exp.t
         substeps = substeps_for(t, self.max_step)
+        if not _equal_steps(np.diff(t) / substeps, t):
+            return None                 # time-stamp jitter or lost samples: uneven steps
         tf = _fine_grid(t, substeps)
         u = exp.inputs(tf)
         F, g = model.system(tf, p, u)
         h = np.repeat(np.diff(t) / substeps, substeps)
-        if not _equal_steps(h, t):
-            return None                 # time-stamp jitter: one step length per step
         constant = _time_invariant(F, h, t)
         n, m, T = model.n_states, self.m, t.size
         k = len(theta) if sensitivities else 0

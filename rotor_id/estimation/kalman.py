@@ -30,7 +30,7 @@ import math
 import numpy as np
 from rotor_id.estimation.simulate import (_fine_grid, _rk4_constant_forcing, _rk4_maps,
                                           _rk4_transition, _time_invariant, DEFAULT_MAX_STEP,
-                                          substeps_for)
+                                          gap_refinement, substeps_for)
 import scipy.linalg
 
 NOISE_MODELS = ('held', 'white')
@@ -138,6 +138,12 @@ def discretize(model, p, inputs, t, rows=(), noise_std=0.0, noise_model='white',
     p = np.asarray(p, dtype=float)
     if t.ndim != 1 or t.size < 2 or np.any(np.diff(t) <= 0):
         raise ValueError('the Kalman filter needs at least two strictly increasing sample times')
+    refined = gap_refinement(t, max_step)
+    if refined is not None:
+        # lost samples: discretise over the gaps' filled grid, compose back to the samples
+        fine, index = refined
+        dm = discretize(model, p, inputs, fine, rows, noise_std, noise_model, max_step)
+        return _compose_intervals(dm, index, t, noise_std)
     rows = noise_rows(model, rows)
     sigma = np.broadcast_to(np.asarray(noise_std, dtype=float), (len(rows),))
     n = model.n_states
@@ -182,6 +188,34 @@ def discretize(model, p, inputs, t, rows=(), noise_std=0.0, noise_model='white',
     H = model.output_matrix(t)
     d = model.output_offset(t, p)
     return DiscreteModel(t=t, Phi=Phi, c=c, Q=Q, H=H, d=d, G=G)
+
+
+def _compose_intervals(dm, index, t, noise_std):
+    """
+    Return the DiscreteModel at the samples ``t`` = ``dm.t[index]`` of one over a finer grid.
+
+    The intervals between two samples are composed: Φ = Φ_k ⋯ Φ_1, c and the noise carried
+    through them (white noise: Q = Σ Φ_(k..i+1) Q_i Φ_(k..i+1)ᵀ; held noise, one value held
+    over the whole sample interval: G = Σ Φ_(k..i+1) G_i, Q = G diag(σ²) Gᵀ).
+    """
+    Phi = np.array(dm.Phi[index[:-1]])
+    c = np.array(dm.c[index[:-1]])
+    Q = np.array(dm.Q[index[:-1]])
+    G = None if dm.G is None else np.array(dm.G[index[:-1]])
+    for j in np.flatnonzero(np.diff(index) > 1):
+        for i in range(index[j] + 1, index[j + 1]):
+            step = dm.Phi[i]
+            Phi[j] = step @ Phi[j]
+            c[j] = step @ c[j] + dm.c[i]
+            if G is None:
+                Q[j] = step @ Q[j] @ step.T + dm.Q[i]
+            else:
+                G[j] = step @ G[j] + dm.G[i]
+        if G is not None:
+            sigma = np.broadcast_to(np.asarray(noise_std, dtype=float), (G.shape[-1],))
+            Q[j] = (G[j] * sigma**2) @ G[j].T
+    return DiscreteModel(t=t, Phi=Phi, c=c, Q=Q, H=np.asarray(dm.H)[index],
+                         d=np.asarray(dm.d)[index], G=G)
 
 
 def varying_noise_covariance(F, Fmid, t, substeps, rows, sigma, noise_model):

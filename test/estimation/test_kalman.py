@@ -251,3 +251,62 @@ def test_remembered_noise_covariance_is_the_one_of_each_discretisation():
     for k in range(2 * kalman._Q_MEMO_SIZE):        # bounded however many models come
         kalman.discretize(model, p * (1 + 1e-3 * k), schedule, t, [4, 5], 0.01)
     assert len(kalman._Q_MEMO) <= kalman._Q_MEMO_SIZE
+
+
+@pytest.mark.parametrize('noise_model', ['white', 'held'])
+@pytest.mark.parametrize('case', ['wake', 'periodic'])
+def test_lost_samples_are_discretised_at_the_cost_of_their_own_substeps(
+        case, noise_model, monkeypatch):
+    """
+    A grid with 100 periods of samples lost is the whole grid with those samples unused.
+
+    Φ, c and Q over the gap are the whole record's intervals composed (x, the noise response
+    and, for held noise, the one value held over the gap carried through them), every other
+    interval is the whole record's; the work is that of the whole record, not 100 times it
+    (every interval given the gap's substeps). Φ and c agree with that costly grid to the RK4
+    step error (its Q is cruder for white noise on a periodic model: F frozen at the gap's
+    midpoint).
+    """
+    if case == 'wake':
+        model, schedule, t0, p = WAKE, WAKE_INPUT, 70.0, WAKE.nominal()
+    else:
+        model = SingleBlade(RotorConstants(), collective='delta', angle_unit='deg')
+        schedule, t0, p = StirringSchedule(t0=12.0), 12.0, np.array([5.0, 10.0])
+    rows = kalman.default_noise_rows(model)
+    sigma = 0.01
+    whole = t0 + 0.094 * np.arange(400)
+    lost = np.arange(150, 250)
+    t = np.delete(whole, lost)
+    steps = []
+    grid = kalman._fine_grid
+    monkeypatch.setattr(kalman, '_fine_grid',
+                        lambda ts, m: steps.append(len(ts) * m) or grid(ts, m))
+    dm = kalman.discretize(model, p, schedule, t, rows, sigma, noise_model)
+    cost = sum(steps)
+    steps.clear()
+    full = kalman.discretize(model, p, schedule, whole, rows, sigma, noise_model)
+    assert cost <= 1.1 * sum(steps)
+    # the whole record's intervals 149..249 composed into the gap's one
+    Phi, c, Q = np.eye(model.n_states), np.zeros(model.n_states), np.zeros_like(full.Q[0])
+    G = None if full.G is None else np.zeros_like(full.G[0])
+    for i in range(lost[0] - 1, lost[-1] + 1):
+        Phi, c = full.Phi[i] @ Phi, full.Phi[i] @ c + full.c[i]
+        if G is None:
+            Q = full.Phi[i] @ Q @ full.Phi[i].T + full.Q[i]
+        else:
+            G = full.Phi[i] @ G + full.G[i]
+    if G is not None:
+        Q = sigma**2 * G @ G.T
+    keep = np.delete(np.arange(whole.size - 1), lost)
+    for what, gap in (('Phi', Phi), ('c', c), ('Q', Q)):
+        want = np.array(getattr(full, what)[keep])
+        want[lost[0] - 1] = gap
+        got = getattr(dm, what)
+        assert np.max(np.abs(got - want)) < 1e-9 * np.max(np.abs(want)), what
+    monkeypatch.setattr(kalman, 'gap_refinement', lambda *a: None)
+    steps.clear()
+    costly = kalman.discretize(model, p, schedule, t, rows, sigma, noise_model)
+    assert sum(steps) > 20 * cost
+    for what in ('Phi', 'c'):
+        got, want = getattr(dm, what), getattr(costly, what)
+        assert np.max(np.abs(got - want)) < 1e-5 * np.max(np.abs(want)), what

@@ -138,3 +138,44 @@ def test_reference_point_test_on_lists_is_numpys():
         assert plan.affine_along(ref, index.tolist()) == bool(affine[index].all())
         verdicts.add(expected)
     assert verdicts == {True, False}
+
+
+@pytest.mark.parametrize('name', ['multiblade_periodic', 'wake'])
+def test_lost_samples_cost_their_own_substeps_not_the_whole_records(name, monkeypatch):
+    """
+    A record with 100 periods of samples lost integrates as the record without the loss does.
+
+    Every RK4 substep count along a sample grid is that of its longest interval; a gap would
+    give it to every interval (100 times the work here). The gap is integrated over a filled
+    grid instead: states and sensitivities at the samples equal those of the gap's substeps
+    everywhere to the RK4 step error, at the cost of the record with its samples.
+    """
+    from rotor_id.estimation import simulate as simulation
+    model, schedule, t0 = CASES[name]
+    p = model.nominal()
+    x0 = 0.3 * np.cos(np.arange(1, model.n_states + 1))                # a generic state
+    whole = t0 + 0.094 * np.arange(400)
+    t = np.delete(whole, np.arange(150, 250))
+    index = list(range(len(model.parameters)))
+    steps = []
+    grid = simulation._fine_grid
+    monkeypatch.setattr(simulation, '_fine_grid',
+                        lambda ts, m: steps.append(len(ts) * m) or grid(ts, m))
+    sim = simulate(model, p, schedule, t, x0, index)
+    cost = sum(steps)
+    steps.clear()
+    regular = simulate(model, p, schedule, whole, x0, index)
+    assert cost <= 1.1 * sum(steps)
+    monkeypatch.setattr(simulation, 'gap_refinement', lambda *a: None)
+    steps.clear()
+    reference = simulate(model, p, schedule, t, x0, index)
+    assert sum(steps) > 20 * cost                  # the substeps of the gap on every interval
+    # the reference takes steps of 1/200 interval: its error is negligible beside RK4's at the
+    # regular step, the error of the record without the loss
+    fine = simulate(model, p, schedule, whole, x0, index, max_step=5e-4)
+    kept = np.isin(whole, t)
+    for what in ('x', 'dy'):
+        error = np.abs(getattr(sim, what) - getattr(reference, what))
+        rk4 = np.abs(getattr(regular, what)[kept] - getattr(fine, what)[kept])
+        axes = (0,) if what == 'x' else (0, 1)
+        assert np.all(np.max(error, axis=axes) <= 2.0 * np.max(rk4, axis=axes) + 1e-12), what
