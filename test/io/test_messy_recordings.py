@@ -160,6 +160,16 @@ def _flap_late(samples):
     return inject
 
 
+def _lost(samples):
+    def inject(record, window_s):
+        i = _in_window(record, window_s)[40]
+        keep = np.delete(np.arange(record.time_s.size), np.arange(i, i + samples))
+        return replace(record, time_s=record.time_s[keep], t=record.t[keep],
+                       rotor_speed_rad_s=record.rotor_speed_rad_s[keep],
+                       blade_flap=record.blade_flap[keep], blade_pitch=record.blade_pitch[keep])
+    return inject
+
+
 #: name -> (what it is, injection, class, text the warning or error must contain or None)
 FAULTS = {
     'flap_spike_20sigma': ('one flap sample of blade 2 +20σ (0.017 rad)',
@@ -197,6 +207,8 @@ FAULTS = {
                            _short_window_stuck, WITHIN, 'adequacy was not checked'),
     'nan_in_one_message': ('blade 1 flap NaN in one message', _nan_message, WITHIN,
                            'position is NaN'),
+    'samples_lost_30': ('30 samples of every topic lost inside the window (a recorder stall)',
+                        _lost(30), WITHIN, 'gap(s) in the samples'),
     'flap_late_2': ('flap read 2 samples late (all blades)', _flap_late(2), WRONG, None),
 }
 #: Faults still confidently wrong, with the reason (asserted to stay so: xfail strict)
