@@ -139,6 +139,10 @@ KNOWN = {
                      'what': 'live window value checks (spikes, dead flap) CPU vs the final fit'},
     'messy_sweep': {'long': False, 'target': False,  # 59 s, 9 s CPU at load 10
                     'what': 'identify on one injected recording fault at a time (8 seeds)'},
+    'gap_cost': {'long': False, 'target': False,  # 20 s
+                 'what': 'fit CPU with lost samples (a gap) over the same fit on the whole '
+                         'record',
+                 'quick': ['bench/gap_cost.py', '--repeat', '1', '--no-write']},
     'forward_stop_cost': {'target': False,
                           'what': 'diagnose: CPU of always a last selection step vs the '
                                   'omnibus stop'},
