@@ -281,7 +281,7 @@ def whiteness_null(estimate, experiments, n_draws=NULL_DRAWS, seed=0, directions
     rng = np.random.default_rng(seed)
     z = rng.standard_normal((J.shape[0], n_draws))
     # einsum, not BLAS: on a loaded machine a threaded GEMM this small waits for its threads
-    # (200-500 ms measured at load 10, against 4-35 ms)
+    # (bench/results/blas_threads.md)
     z -= np.einsum('ik,kj->ij', basis, np.einsum('ik,ij->kj', basis, z))
     out, start = [], 0
     for dy in dys:

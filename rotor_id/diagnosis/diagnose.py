@@ -217,8 +217,8 @@ def _run_jobs(function, jobs, workers, on_done):
             results.append(res)
         return results
     # load the compiled kernel once, here, so that the forked workers inherit it: each would
-    # otherwise run numpy until the auto switch and load it again (0.4-1 s of CPU per worker
-    # and pool; 1.1 s of the 4.8 s of CPU of diagnose on dx_dynamic_inflow)
+    # otherwise run numpy until the auto switch and load it again (a noticeable part of a short
+    # diagnosis' CPU, per worker and pool)
     kernels.prefer()
     ctx = multiprocessing.get_context('fork')
     with ctx.Pool(processes=workers) as pool:

@@ -28,7 +28,7 @@ from rotor_id.estimation.output_error import _fit_initial_states, _Problem, eval
 from rotor_id.estimation.simulate import DEFAULT_MAX_STEP
 from rotor_id.physics.stirring import INPUT_NAMES
 # the χ² and normal tails that scipy.stats.chi2/norm evaluate (bit-identical), without the
-# 0.25-0.45 s CPU of importing scipy.stats at every command's start
+# CPU of importing scipy.stats at every command's start
 from scipy.special import chdtrc, ndtr, ndtri
 
 

@@ -621,7 +621,7 @@ def _running_median(values, span, block=1 << 16):
 
     The same numbers as scipy.ndimage.median_filter(values, span, mode='nearest') along the
     first axis (each column of a 2-D array on its own), without importing scipy.ndimage at
-    every command's start (0.1 s CPU); ``block`` samples at a time so that memory stays at the
+    every command's start; ``block`` samples at a time so that memory stays at the
     window's, not span times it.
     """
     half = span // 2

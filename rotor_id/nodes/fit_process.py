@@ -4,8 +4,8 @@ The identifier's fits, ROS-free: in the caller's thread or in a separate process
 :func:`fit_window` is one fit of a :class:`rotor_id.nodes.test_points.FitRequest` (its own copy
 of the window's data) with the data-length verdict. :class:`FitProcess` runs it in a child
 process, so that a fit never waits for the interpreter lock behind the node's subscription
-callbacks (121 µs of Python per sample at 1 kHz x 3 topics; bench/results/live*.md): the
-request goes down a pipe (about 20 kB pickled in 0.1 ms for the demo's window), each
+callbacks (Python for every sample at 1 kHz x 3 topics; bench/results/live*.md): the
+request goes down a pipe (the window's arrays pickled, a small cost beside a fit), each
 Gauss-Newton iteration comes back as it is done (the node publishes it and keeps the iterate as
 the next warm start) and the caller can ask, through shared flags, for the fit to stop after its
 current iteration (publish what it has) or to be abandoned (a final fit waits).
@@ -45,10 +45,10 @@ def live_model(description):
     ``model_for(description)``, built once per model structure for the live fits.
 
     A test point fits one run description again and again with only its starting values
-    changed (the warm start); building the model was about 0.8 ms of a final fit's ~4.5 ms of
-    CPU. Keyed on the description without ``initial_guess``, i.e. on everything
-    :func:`rotor_id.pipeline.model_for` reads. A fit does not change its model; the diagnosis
-    augmentations do, so this cache serves the live fit path only.
+    changed (the warm start); building the model was more than half of a final fit's CPU
+    (bench/results/final_fit_cpu.md). Keyed on the description without ``initial_guess``,
+    i.e. on everything :func:`rotor_id.pipeline.model_for` reads. A fit does not change its
+    model; the diagnosis augmentations do, so this cache serves the live fit path only.
     """
     key = repr(replace(description, initial_guess={}))
     model = _LIVE_MODELS.get(key)

@@ -37,8 +37,8 @@ Each estimate carries the Cramér-Rao covariance and the data-length verdict of 
 published on ``/rotor_id/progress``. Fits run in a separate process (or a worker thread), so
 the subscriptions keep up. The sensor topics are taken in batches by a polling thread
 (:mod:`rotor_id.nodes.polling`: every ``sensor_poll_period_s``, every ``sensor_poll_fast_s`` in a
-window's last 10 ms), decoded and checked with numpy: 46 µs of CPU per message against 112 µs
-for one executor callback each (bench/results/sensor_intake.md); with the per-sample checks the
+window's last 10 ms), decoded and checked with numpy: less than half the CPU per message of
+one executor callback each (bench/results/sensor_intake.md); with the per-sample checks the
 callbacks took half a core at 1 kHz x 3 topics, and the fits waited for that core.
 """
 
@@ -134,8 +134,8 @@ class Identifier(Node):
              'node is busy (10 s at 1 kHz); older ones are lost, and the window says so',
              1, 1000000),
             ('sensor_poll_period_s', 0.005, 'the sensor topics are taken in batches this '
-             'often (s): 46 µs of CPU per message, against 112 µs for one executor callback '
-             'each', 1e-4, 0.1),
+             'often (s), not one executor callback each (less than half the CPU per message)',
+             1e-4, 0.1),
             ('sensor_poll_fast_s', 0.0002, 'and this often in the last few milliseconds of a '
              'window, so its last sample is taken promptly (s)', 1e-5, 0.1),
             ('frame_id', 'rotor', 'header.frame_id of the published messages'),

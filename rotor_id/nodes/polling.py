@@ -2,8 +2,8 @@
 Sensor subscriptions taken in batches by a thread of the node, not one executor callback each.
 
 At 1 kHz x 3 topics an rclpy executor wakes, rebuilds its wait set and runs a Python callback
-for every message: 112 µs of CPU each on this project's 2-core machine, a third of a core for a
-node that reads the three sensor topics; taken and decoded in batches 46 µs
+for every message: a third of a core for a node that reads the three sensor topics on this
+project's 2-core machine; taken and decoded in batches, less than half of that
 (bench/results/sensor_intake.md). A :class:`SensorPoller`
 keeps the subscriptions out of the executor's wait set and takes whatever they queued, as
 serialized CDR bytes, every ``period_s`` (or faster while the caller needs a prompt sample, e.g.

@@ -81,7 +81,7 @@ class StateEstimator(Node):
                                                RESULT_QOS)
         self.diagnostics = Diagnostics(self, 'state reconstruction')
         # the sensor topics are taken in batches at each tick (rotor_id.nodes.polling), not by
-        # one executor callback per message (112 µs of CPU each, at 3 kHz;
+        # one executor callback per message (several times the CPU per message at 3 kHz;
         # bench/results/sensor_intake.md)
         self.poller = SensorPoller(self, on_error=lambda exc: self.diagnostics.count(
             'sensor_batch_error', f'{type(exc).__name__}: {exc}'))

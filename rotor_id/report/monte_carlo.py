@@ -128,9 +128,8 @@ def run_case(case_name, seeds, pool=None, progress=None):
             if progress and (i % 50 == 0 or i == len(args)):
                 progress(case_name, i, len(args), time.perf_counter() - start)
     else:
-        # 16 tasks keep two to four workers evenly busy; chunks of 8 draws spent a quarter
-        # of the CPU on passing tasks (1000 wake draws: 0.93 s of CPU against 0.69 s serial,
-        # chunks of 64: 0.75 s)
+        # 16 tasks keep two to four workers evenly busy; much smaller chunks spend a large
+        # part of the CPU on passing tasks
         chunk = max(8, len(args) // 16)
         for i, r in enumerate(pool.imap(_fit_draw_star, args, chunksize=chunk), 1):
             results.append(r)
