@@ -225,35 +225,9 @@ class StreamingKalman:
         self.x = np.asarray(x0, dtype=float)
         self.P = np.asarray(P0, dtype=float)
 
-    #: A step longer than this many times the batch's median step is a gap (samples lost).
-    GAP_STEPS = 1.5
-
-    def _segments(self, t):
-        """
-        Split a batch's sample indices so that each step across a gap is a batch of its own.
-
-        The discretisation takes as many RK4 substeps on every interval of a batch as its
-        longest step needs: one gap of lost samples (hundreds of sample periods) would
-        multiply the cost of the whole batch by that much. Alone, it costs its own substeps.
-        """
-        steps = np.diff(t if self.t is None else np.concatenate([[self.t], t]))
-        if steps.size == 0:
-            return [slice(0, t.size)]
-        gaps = np.flatnonzero(steps > self.GAP_STEPS * np.median(steps))
-        # the sample after each gap alone: index of that sample in t
-        after = gaps + (1 if self.t is None else 0)
-        cuts = sorted({int(c) for a in after for c in (a, a + 1) if 0 < c < t.size})
-        edges = [0] + cuts + [t.size]
-        return [slice(a, b) for a, b in zip(edges[:-1], edges[1:]) if b > a]
-
     def update(self, t, inputs, y):
         """Filter the batch (t (k,), y (k, m)); return filtered x (k, n) and P (k, n, n)."""
         t = np.asarray(t, dtype=float)
-        parts = [self._update(t[part], inputs, y[part]) for part in self._segments(t)]
-        return (np.concatenate([x for x, _ in parts]), np.concatenate([P for _, P in parts]))
-
-    def _update(self, t, inputs, y):
-        """:meth:`update` of a batch without gaps."""
         if self.t is None:
             grid = t
             dm = discretize(self.model, self.p, inputs, grid, self.rows, self.q) \
@@ -286,16 +260,10 @@ class StreamingKalman:
         its covariance update is P − K B Kᵀ where :func:`kalman_filter` takes the Joseph form
         (equal to rounding). Without the compiled kernels this is :meth:`update`.
         """
-        t = np.asarray(t, dtype=float)
-        for part in self._segments(t):
-            x, P = self._advance(t[part], inputs, y[part])
-        return x, P
-
-    def _advance(self, t, inputs, y):
-        """:meth:`advance` of a batch without gaps."""
         scan = kernels.filter_kernel()
+        t = np.asarray(t, dtype=float)
         if scan is None or self.t is None:          # the first batch: the library's filter
-            x, P = self._update(t, inputs, y)
+            x, P = self.update(t, inputs, y)
             return x[-1], P[-1]
         grid = np.concatenate([[self.t], t])
         dm = discretize(self.model, self.p, inputs, grid, self.rows, self.q)
