@@ -202,6 +202,8 @@ def _compose_intervals(dm, index, t, noise_std):
     c = np.array(dm.c[index[:-1]])
     Q = np.array(dm.Q[index[:-1]])
     G = None if dm.G is None else np.array(dm.G[index[:-1]])
+    if G is not None:
+        variance = np.broadcast_to(np.asarray(noise_std, dtype=float), (G.shape[-1],))**2
     for j in np.flatnonzero(np.diff(index) > 1):
         for i in range(index[j] + 1, index[j + 1]):
             step = dm.Phi[i]
@@ -212,8 +214,7 @@ def _compose_intervals(dm, index, t, noise_std):
             else:
                 G[j] = step @ G[j] + dm.G[i]
         if G is not None:
-            sigma = np.broadcast_to(np.asarray(noise_std, dtype=float), (G.shape[-1],))
-            Q[j] = (G[j] * sigma**2) @ G[j].T
+            Q[j] = (G[j] * variance) @ G[j].T
     return DiscreteModel(t=t, Phi=Phi, c=c, Q=Q, H=np.asarray(dm.H)[index],
                          d=np.asarray(dm.d)[index], G=G)
 

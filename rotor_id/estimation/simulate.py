@@ -108,18 +108,16 @@ def gap_refinement(t, max_step=DEFAULT_MAX_STEP):
     """
     t = np.asarray(t, dtype=float)
     dt = np.diff(t)
-    if dt.size < 2:
-        return None
+    if dt.size < 2 or dt.max() <= GAP_INTERVALS * dt.min():
+        return None                     # no gap (the cheap test: this runs in every simulation)
     median = float(np.median(dt))
     regular = dt <= GAP_INTERVALS * median
-    if regular.all():
-        return None
     regular_substeps = _substeps(dt[regular].max(), max_step)
+    if regular.all() or _substeps(dt.max(), max_step) <= regular_substeps:
+        return None                     # no gap, or none that raises the substep count
     longest = regular_substeps * max_step
     pieces = np.maximum(np.rint(dt / median), np.ceil(dt / longest - 1e-9)).astype(int)
     pieces[regular] = 1
-    if _substeps(dt.max(), max_step) <= regular_substeps:
-        return None                     # the gaps do not raise the substep count
     index = np.concatenate([[0], np.cumsum(pieces)])
     owner = np.repeat(np.arange(dt.size), pieces)
     part = np.arange(index[-1]) - index[:-1][owner]
