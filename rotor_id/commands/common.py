@@ -47,6 +47,8 @@ def capture_warnings():
     """
     Within the block, Python warnings are printed by :func:`print_warning` (once each).
 
+    Deprecation notices (a library's, for its developers) are not printed.
+
     The input layer's warnings (:class:`~rotor_id.io.errors.BagWarning`,
     :class:`~rotor_id.io.errors.RunDescriptionWarning`) are also returned as values (a Record's
     and a RunDescription's ``warnings``), which the commands print item by item; the Python
@@ -56,6 +58,11 @@ def capture_warnings():
     _printed.clear()
     with warnings.catch_warnings():
         warnings.simplefilter('always')
+        # a library's deprecation notices are for its developers, not for a test engineer
+        # (a dependency importing a deprecated module printed 'warning: module ... is
+        # deprecated' at every demo)
+        warnings.simplefilter('ignore', DeprecationWarning)
+        warnings.simplefilter('ignore', PendingDeprecationWarning)
         warnings.simplefilter('ignore', BagWarning)
         warnings.simplefilter('ignore', RunDescriptionWarning)
 

@@ -312,3 +312,12 @@ def test_python_warnings_print_once_as_warning_lines(capsys):
         common.print_warning('warning: another')
     err = capsys.readouterr().err.splitlines()
     assert err == ['warning: the same remark', 'warning: another']
+
+
+def test_a_librarys_deprecation_notice_is_not_a_warning_line(capsys):
+    import warnings
+    with common.capture_warnings():
+        warnings.warn("module 'sre_parse' is deprecated", DeprecationWarning)
+        warnings.warn('going away', PendingDeprecationWarning)
+        warnings.warn('the fit is doubtful', UserWarning)
+    assert capsys.readouterr().err.splitlines() == ['warning: the fit is doubtful']
