@@ -22,6 +22,8 @@ import yaml
 CASES = ('wake', 'multiblade', 'single_blade')
 #: Rotor time simulated after the identification window (s).
 MARGIN_S = 0.05
+#: how long the demo waits to hear the nodes' publishers before it starts the rotor
+DISCOVERY_TIMEOUT_S = 30.0
 
 
 def add_arguments(parser):
@@ -112,6 +114,15 @@ def run_live(case, out, storage, domain_id, timeout, seed=None, stream=sys.stdou
         procs.start('state_estimator', params_file)
         procs.start('recorder', params_file, {'output': str(bag), 'storage': storage})
         procs.start('stirring_input', params_file)
+        # the rotor starts once this display hears the nodes' outputs: otherwise a slow
+        # discovery can hide the first estimates (or the whole short run) from it
+        late = watcher.wait_for_publishers(('estimate', 'progress', 'state', 'stirring'),
+                                           DISCOVERY_TIMEOUT_S,
+                                           alive=lambda: not procs.dead() and not interrupted)
+        if late and not procs.dead() and not interrupted:
+            print(f'  note: no {", ".join(late)} publisher heard within '
+                  f'{DISCOVERY_TIMEOUT_S:.0f} s; starting the rotor anyway (the recorder '
+                  'records what it hears)', file=stream, flush=True)
         procs.start('rotor_plant', params_file, plant_params)
         print(f'identifying {", ".join(description.unknowns)} ({description.model}) over the '
               f'window {description.window_s[0]:.4f}-{description.window_s[1]:.4f} s after the '

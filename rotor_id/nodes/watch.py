@@ -36,12 +36,14 @@ class RunWatcher:
         self.node = node
         self.messages = {kind: [] for kind in TOPICS}
         self.on_message = on_message
+        self.subscriptions = {}
         topics = dict(TOPICS)
         if sensors:
             topics.update(SENSOR_TOPICS)
             self.messages.update({kind: [] for kind in SENSOR_TOPICS})
         for kind, (topic, cls, qos) in topics.items():
-            node.create_subscription(cls, topic, self._callback(kind), qos)
+            self.subscriptions[kind] = node.create_subscription(cls, topic, self._callback(kind),
+                                                                qos)
 
     def _callback(self, kind):
         def callback(msg):
@@ -61,6 +63,21 @@ class RunWatcher:
         """Return the statuses on /diagnostics whose name starts with ``name_prefix``."""
         return [status for array in self.messages['diagnostics'] for status in array.status
                 if status.name.startswith(name_prefix)]
+
+    def unmatched(self, kinds):
+        """Return the kinds among ``kinds`` whose subscription has no matched publisher yet."""
+        return [kind for kind in kinds if self.subscriptions[kind].get_publisher_count() == 0]
+
+    def wait_for_publishers(self, kinds, timeout, alive=None):
+        """
+        Spin until each of ``kinds`` has a matched publisher; return the kinds still without.
+
+        Start a run only after this: a node's publisher that this reader discovers late (DDS
+        endpoint discovery on a busy machine can take seconds) delivers only what it still
+        keeps, and a plant started at once can finish a short run before that.
+        """
+        self.spin_until(lambda: not self.unmatched(kinds), timeout, alive)
+        return self.unmatched(kinds)
 
     def spin_until(self, condition, timeout, alive=None):
         """Spin until ``condition()`` is true; False on timeout or when ``alive()`` is false."""

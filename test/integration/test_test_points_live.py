@@ -89,6 +89,9 @@ def three_points(tmp_path_factory):
         # a stirring input without ~/start runs one endless schedule: it is restarted for each
         # test point instead, and the rotor holds the last command meanwhile
         restart = not start.wait_for_service(timeout_sec=10.0)
+        late = watcher.wait_for_publishers(('estimate', 'progress', 'stirring'), 60.0,
+                                           alive=lambda: not procs.dead())
+        assert not late, f'no {late} publisher matched; exited: {procs.dead()}'
         procs.start('rotor_plant', params_file, {'duration_s': 300.0, 'seed': 11,
                                                  'wait_for_subscribers': 3,
                                                  'wait_for_commands': not restart})
