@@ -874,9 +874,7 @@ def _confounds(kept_names, ctx):
     out = {k: [] for k in kept_names}
     if len(trace) < 2 or tuple(trace[-1]['after']) != tuple(kept_names):
         return out              # the final model's step was not run (MAX_EFFECTS reached)
-    covered = set(kept_names)
-    for k in kept_names:
-        covered.update(equivalent(k, ctx.get('mu', 0.0)))
+    covered = _covered(kept_names, ctx)
     for effect in dict.fromkeys(e for row in trace[:-1] for e in row['gains']):
         given = trace[-1]['gains'].get(effect)
         # the first step at which C passed the criterion (its gain given the effects kept then)
@@ -904,9 +902,21 @@ def _confounds(kept_names, ctx):
             'criterion_alone': float(alone['criterion']),
             'two_delta_loglik_given': float(given['two_delta_loglik']),
             'criterion_given': float(given['criterion']), 'how_given': given['how'],
-            'reproduced_fraction': float(1.0 - max(given['two_delta_loglik'], 0.0)
-                                         / alone['two_delta_loglik'])})
+            'reproduced_fraction': _reproduced(alone, given)})
     return out
+
+
+def _covered(kept_names, ctx):
+    """Return the kept effects and their first-order equivalents in this record."""
+    covered = set(kept_names)
+    for k in kept_names:
+        covered.update(equivalent(k, ctx.get('mu', 0.0)))
+    return covered
+
+
+def _reproduced(alone, given):
+    """Return the share of an effect's gain alone that the kept effects take away."""
+    return float(1.0 - max(given['two_delta_loglik'], 0.0) / alone['two_delta_loglik'])
 
 
 def _confound_text(kept, c):
@@ -1158,7 +1168,7 @@ def _look_ahead(current, kept, steps, ctx):
     if len(kept) >= MAX_EFFECTS - 1 or _adequate(current, ctx['floors'], ctx['u'], ctx['t']):
         return None
     names = [e for e, _ in kept]
-    covered = set(names) | {eq for e in names for eq in equivalent(e, ctx['mu'])}
+    covered = _covered(names, ctx)
     gains = ctx['trace'][-1]['gains'] if ctx['trace'] else {}
     fitted = [e for e, g in gains.items() if e not in covered and g['how'] == 'fit'
               and g['two_delta_loglik'] > EXCHANGE_MIN_GAIN]
@@ -1249,7 +1259,7 @@ def _exchange(current, kept, ctx):
     """
     names = [e for e, _ in kept]
     out = {'fit': None, 'ties': []}
-    covered = set(names) | {eq for e in names for eq in equivalent(e, ctx['mu'])}
+    covered = _covered(names, ctx)
     # what each effect gained at its best: on the final model, or at any earlier step where
     # it passed the criterion (an effect a stand-in absorbed gains little at the end)
     best = {}
@@ -1340,9 +1350,7 @@ def _partial_stand_ins(kept_names, ctx):
     trace = ctx['trace']
     if len(trace) < 2 or tuple(trace[-1]['after']) != tuple(kept_names):
         return []
-    covered = set(kept_names)
-    for k in kept_names:
-        covered.update(equivalent(k, ctx.get('mu', 0.0)))
+    covered = _covered(kept_names, ctx)
     out = []
     for effect, alone in trace[0]['gains'].items():
         given = trace[-1]['gains'].get(effect)
@@ -1350,11 +1358,11 @@ def _partial_stand_ins(kept_names, ctx):
                 or not 0.0 < alone['criterion'] <= CRITERION_THRESHOLD \
                 or given['criterion'] > CRITERION_THRESHOLD:
             continue
-        reproduced = 1.0 - max(given['two_delta_loglik'], 0.0) / alone['two_delta_loglik']
+        reproduced = _reproduced(alone, given)
         if reproduced >= PARTIAL_REPRODUCED:
             out.append({'effect': effect, 'criterion_alone': float(alone['criterion']),
                         'two_delta_loglik_alone': float(alone['two_delta_loglik']),
-                        'reproduced_fraction': float(reproduced)})
+                        'reproduced_fraction': reproduced})
     return out
 
 
