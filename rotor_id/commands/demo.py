@@ -73,7 +73,7 @@ def run_live(case, out, storage, domain_id, timeout, seed=None, stream=sys.stdou
     import rclpy
     from rclpy.signals import SignalHandlerOptions
     from rotor_id.nodes.processes import isolated_env, NodeProcesses
-    from rotor_id.nodes.watch import RunWatcher
+    from rotor_id.nodes.watch import RESULT_KINDS, RunWatcher
     from rotor_id.io.run_description import load_run_description
 
     params_file, description_path, _ = case_files(case)
@@ -116,8 +116,7 @@ def run_live(case, out, storage, domain_id, timeout, seed=None, stream=sys.stdou
         procs.start('stirring_input', params_file)
         # the rotor starts once this display hears the nodes' outputs: otherwise a slow
         # discovery can hide the first estimates (or the whole short run) from it
-        late = watcher.wait_for_publishers(('estimate', 'progress', 'state', 'stirring'),
-                                           DISCOVERY_TIMEOUT_S,
+        late = watcher.wait_for_publishers(RESULT_KINDS, DISCOVERY_TIMEOUT_S,
                                            alive=lambda: not procs.dead() and not interrupted)
         if late and not procs.dead() and not interrupted:
             print(f'  note: no {", ".join(late)} publisher heard within '

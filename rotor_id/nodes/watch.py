@@ -21,6 +21,9 @@ TOPICS = {
     'stirring': ('/rotor/stirring', StirringCommand, RESULT_QOS),
     'diagnostics': ('/diagnostics', DiagnosticArray, DIAGNOSTICS_QOS),
 }
+#: The run's outputs of the nodes, one publisher each (not /diagnostics, which every node
+#: shares): a display or test waits for these before starting the rotor.
+RESULT_KINDS = ('estimate', 'progress', 'state', 'stirring')
 SENSOR_TOPICS = {
     'blade_flap': ('/rotor/blade_flap', JointState, SENSOR_QOS),
     'blade_pitch': ('/rotor/blade_pitch', JointState, SENSOR_QOS),

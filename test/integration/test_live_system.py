@@ -27,7 +27,7 @@ def live_run(tmp_path_factory):
     from rotor_id.commands.demo import case_files
     from rotor_id.io.run_description import load_run_description
     from rotor_id.nodes.processes import isolated_env, NodeProcesses
-    from rotor_id.nodes.watch import RunWatcher
+    from rotor_id.nodes.watch import RESULT_KINDS, RunWatcher
     from rotor_id_msgs.srv import Identify
 
     params_file, description_path, _ = case_files('wake')
@@ -58,8 +58,7 @@ def live_run(tmp_path_factory):
         procs.start('stirring_input', params_file)
         # this process hears every node's outputs before the rotor starts: a late match heard
         # only the last states (or none: the run is 1 s, the fixture over 4 s later)
-        late = watcher.wait_for_publishers(('estimate', 'progress', 'state', 'stirring'),
-                                           60.0, alive=lambda: not procs.dead())
+        late = watcher.wait_for_publishers(RESULT_KINDS, 60.0, alive=lambda: not procs.dead())
         assert not late, f'no {late} publisher matched; exited: {procs.dead()}'
         # 5 subscribers of the azimuth: the four nodes and this test
         procs.start('rotor_plant', params_file, {'duration_s': description.window_s[1] + 0.05,

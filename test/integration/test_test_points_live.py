@@ -70,7 +70,7 @@ def three_points(tmp_path_factory):
     from rotor_id.commands.demo import case_files
     from rotor_id.io.run_description import load_run_description
     from rotor_id.nodes.processes import isolated_env, NodeProcesses
-    from rotor_id.nodes.watch import RunWatcher
+    from rotor_id.nodes.watch import RESULT_KINDS, RunWatcher
     from std_srvs.srv import Trigger
 
     params_file, description_path, _ = case_files('wake')
@@ -89,8 +89,9 @@ def three_points(tmp_path_factory):
         # a stirring input without ~/start runs one endless schedule: it is restarted for each
         # test point instead, and the rotor holds the last command meanwhile
         restart = not start.wait_for_service(timeout_sec=10.0)
-        late = watcher.wait_for_publishers(('estimate', 'progress', 'stirring'), 60.0,
-                                           alive=lambda: not procs.dead())
+        late = watcher.wait_for_publishers(
+            [kind for kind in RESULT_KINDS if kind != 'state'],     # no state estimator here
+            60.0, alive=lambda: not procs.dead())
         assert not late, f'no {late} publisher matched; exited: {procs.dead()}'
         procs.start('rotor_plant', params_file, {'duration_s': 300.0, 'seed': 11,
                                                  'wait_for_subscribers': 3,
