@@ -561,7 +561,10 @@ def damped_gauss_newton_step(theta, grad, M, lo, hi, cost, trial_cost, lm, free=
             step[fi] = -np.linalg.lstsq(A, grad[fi] / scale, rcond=None)[0] / scale
         for _halving in range(halvings):
             trial = np.clip(theta + step, lo, hi)
-            new_cost, payload = trial_cost(trial)
+            # a trial far out may make the model blow up: numpy's overflow is no news to the
+            # user, the trial's non-finite cost rejects it and the step is halved
+            with np.errstate(over='ignore', invalid='ignore', divide='ignore'):
+                new_cost, payload = trial_cost(trial)
             if math.isfinite(new_cost) and new_cost <= cost + 1e-12 * abs(cost):
                 return True, trial, new_cost, payload, (lm / 10.0 if lm > 1e-6 else 0.0)
             step = 0.5 * step

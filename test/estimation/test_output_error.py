@@ -226,3 +226,29 @@ def test_the_kept_layout_follows_new_parameter_bounds_and_starts():
     finally:
         model.parameters = saved
     np.testing.assert_array_equal(wider.lo[:len(unknowns)], first.lo[:len(unknowns)] - 1.0)
+
+
+def test_a_diverging_trial_step_is_rejected_without_a_numeric_warning():
+    """
+    A trial far out (a simulation that blows up) costs inf and is halved back, silently.
+
+    Before, numpy's overflow in the trial's residual sum reached the user as
+    ``warning: overflow encountered in square`` from `rotor-id diagnose` (a catalogue
+    candidate's first Gauss-Newton step at a large concealed lag), a line that said nothing
+    about the result, which was right.
+    """
+    import warnings
+    from rotor_id.estimation.output_error import damped_gauss_newton_step
+
+    def trial_cost(trial):          # (t − 1)², but the "simulation" overflows beyond |t| = 2
+        t = float(trial[0])
+        blown = np.array([1e200 if abs(t) > 2 else t - 1.0])
+        return float(np.sum(blown ** 2)), t
+
+    with warnings.catch_warnings():
+        warnings.simplefilter('error')
+        # M = 0.1: the Gauss-Newton step from 0 is 20; halved to 1.25 it lowers the cost
+        accepted, trial, cost, payload, _ = damped_gauss_newton_step(
+            np.zeros(1), np.array([-2.0]), np.array([[0.1]]), np.array([-100.0]),
+            np.array([100.0]), 1.0, trial_cost, 0.0)
+    assert accepted and trial[0] == pytest.approx(1.25) and cost == pytest.approx(0.0625)
