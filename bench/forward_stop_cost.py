@@ -47,10 +47,23 @@ def _inputs():
     return out
 
 
+def _residuals_are_noise(fit, ctx):
+    """Return the old rule's test: white residuals at the floor with a mean within noise."""
+    from rotor_id.diagnosis import residuals as rs
+    if not SELECTION._adequate(fit, ctx['floors'], ctx['u'], ctx['t']):
+        return False
+    res = SELECTION._residual_matrix(fit.estimate)
+    for j, floor in enumerate(ctx['floors']):
+        n_eff = res.shape[0] * rs.effective_fraction(res[:, j])
+        if abs(float(np.mean(res[:, j]))) > 3.0 * floor / np.sqrt(n_eff):
+            return False
+    return True
+
+
 def _omnibus_stop(step):
     """Return the forward step with the old rule: no step once the residuals look like noise."""
-    def stopped(current, cur_val, kept, ctx, residuals_noise=False):
-        return None if residuals_noise else step(current, cur_val, kept, ctx, residuals_noise)
+    def stopped(current, cur_val, kept, ctx):
+        return None if _residuals_are_noise(current, ctx) else step(current, cur_val, kept, ctx)
     return stopped
 
 

@@ -365,6 +365,29 @@ def test_two_effects_each_short_of_the_criterion_are_not_hidden_behind_a_third()
         assert result['explanation']['confidence'] == 'low'
 
 
+def test_effects_without_a_score_test_are_fitted_when_the_residuals_look_white():
+    # μ = 0.4, the wake's inflow gain 3× its concealed size beside the periodic coefficients
+    # (the baseline has constant ones). After the wake the residuals passed the omnibus tests
+    # (white, near the floor), and the periodic coefficients, which have no score test, were
+    # then not fitted: the wake was named alone with high confidence, γ and θ0 4.5σ off.
+    # Fitted, they gain far past the criterion (~10 s CPU)
+    from dataclasses import replace
+    from diagnosis_scenarios import CONCEALED_MU04, mu04_case
+    from rotor_id.diagnosis.diagnose import diagnose
+    knobs = dict(CONCEALED_MU04['dynamic_inflow'])
+    knobs['wake_L'] *= 3.0
+    scenario = replace(BY_NAME['inflow+periodic'], name='inflow (3x) + periodic',
+                       make=lambda seed: mu04_case(seed=seed, wake=True, **knobs))
+    record, description = scenario.record_and_description(3000)
+    result = diagnose(record, description, workers=1).as_json()
+    out = evaluate(scenario, result)
+    assert out['right_named'] and not out['extra_names'], out['named']
+    assert out['original_within_3sigma'], out['original_bias_after']
+    periodic = [e for e in result['explanation']['effects']
+                if e['effect'] == 'periodic_coefficients']
+    assert periodic and periodic[0]['criterion'] > CRITERION_THRESHOLD, periodic
+
+
 def _lr_passes(candidate):
     from scipy.stats import chi2
     lr = 2.0 * candidate['delta_loglik'] * candidate['n_eff_fraction']
