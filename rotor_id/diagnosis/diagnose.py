@@ -1098,20 +1098,41 @@ def _forward_selection(first, steps, ctx):
                 'together')
             current, kept, steps = alt['fit'], alt['kept'], alt['steps']
     names = [e for e, _ in kept]
-    confounds = _confounds(names, ctx)
+    confounds = _with_ties(_confounds(names, ctx), ties, names, ctx)
+    for st in steps:
+        st['parameters'] = current.effect_parameters.get(st['effect'], {})
+        st['confounds'] = confounds.get(st['effect'], [])
+    return current, steps, dropped
+
+
+def _with_ties(confounds, ties, names, ctx):
+    """
+    Add the near ties of the exchanges to the kept effects' confounds; return the confounds.
+
+    ``confounds``: kept effect -> its confounds (:func:`_confounds`); ``names``: the kept
+    effects. A two-for-one tie whose loser is a confound already goes to
+    ``ctx['two_for_one_ties']`` (its note, and the confidence it takes away).
+    """
     for tie in ties:
         if tie['winner'] not in confounds or tie['effect'] in names:
             continue
-        if not any(c['effect'] == tie['effect'] for cs in confounds.values() for c in cs):
+        if tie['how_given'] == 'exchange':
+            # a whole model with the loser in the winner's place fits within the gap: closer
+            # evidence than what the loser gains beside the kept effects, so it replaces that
+            # (and takes the confidence away). Kept with the step's figures instead, the wake
+            # that lost an exchange by a criterion of 1.3 left sensor offsets named with high
+            # confidence and γ 17σ off (inflow+periodic, seed 1001)
+            for winner in confounds:
+                confounds[winner] = [c for c in confounds[winner]
+                                     if c['effect'] != tie['effect']]
+            confounds[tie['winner']].append(tie)
+        elif not any(c['effect'] == tie['effect'] for cs in confounds.values() for c in cs):
             confounds[tie['winner']].append(tie)
         elif tie['how_given'] == 'two_for_one':
             # already a confound of a kept effect: the two-effect alternative still gets its
             # note and still takes the confidence away
             ctx['two_for_one_ties'].append(tie)
-    for st in steps:
-        st['parameters'] = current.effect_parameters.get(st['effect'], {})
-        st['confounds'] = confounds.get(st['effect'], [])
-    return current, steps, dropped
+    return confounds
 
 
 def _exchange_round(current, cur_val, kept, steps, dropped, ctx):

@@ -388,6 +388,28 @@ def test_effects_without_a_score_test_are_fitted_when_the_residuals_look_white()
     assert periodic and periodic[0]['criterion'] > CRITERION_THRESHOLD, periodic
 
 
+def test_an_exchange_near_tie_replaces_what_the_loser_gained_beside_the_kept_effects():
+    # inflow+periodic seed 1001: the wake lost an exchange to sensor offsets by a criterion of
+    # 1.3 and, refitted beside the offsets, gained 2Δlog L 8.7: a confound either way. The
+    # step's figures were kept, the exchange's tie dropped, and the offsets were named with
+    # high confidence (γ 17σ off). The whole-model comparison is the closer evidence
+    step = {'effect': 'W', 'given': ['P', 'B'], 'how_given': 'fit', 'criterion_given': -20.8}
+    other = {'effect': 'F', 'given': ['P', 'B'], 'how_given': 'score test'}
+    tie = {'effect': 'W', 'winner': 'B', 'given': ['P', 'W'], 'how_given': 'exchange',
+           'criterion_difference': 1.3, 'two_delta_loglik_difference': 7.0}
+    ctx = {'two_for_one_ties': []}
+    out = DIAGNOSE._with_ties({'P': [step], 'B': [other]}, [tie], ['P', 'B'], ctx)
+    assert out == {'P': [], 'B': [other, tie]}
+    assert 'fits within 1.3 of it' in DIAGNOSE._confound_text('B', tie)
+    # a two-for-one tie of a confound already named keeps the confound and its own note
+    two = {'effect': 'F', 'winner': 'B', 'how_given': 'two_for_one'}
+    out = DIAGNOSE._with_ties({'P': [], 'B': [other]}, [two], ['P', 'B'], ctx)
+    assert out == {'P': [], 'B': [other]} and ctx['two_for_one_ties'] == [two]
+    # a tie of an effect not yet a confound joins its winner; one of a kept effect is ignored
+    out = DIAGNOSE._with_ties({'P': [], 'B': []}, [dict(tie, effect='P')], ['P', 'B'], ctx)
+    assert out == {'P': [], 'B': []}
+
+
 def _lr_passes(candidate):
     from scipy.stats import chi2
     lr = 2.0 * candidate['delta_loglik'] * candidate['n_eff_fraction']
