@@ -228,6 +228,38 @@ def _run_jobs(function, jobs, workers, on_done):
     return results
 
 
+def _fit_selection_jobs(jobs, ctx):
+    """
+    :func:`fit_candidate` of the selection's jobs, each model fitted once per diagnosis.
+
+    The forward steps, the exchanges and the two-for-one search revisit kept sets (an
+    exchange that ends where it started, a two-for-one whose selection drops the stand-in
+    again). The same augmented model on the same data within the same catalogue bounds is
+    the same fit, so one already made is reused (``ctx['fitted']``) instead of repeated:
+    the wake, fitted again beside an azimuth offset after a two-for-one that came back to
+    it, dominated a single-effect record's time. Returns the fits in the jobs' order.
+    """
+    memo = ctx.setdefault('fitted', {})
+
+    def key(job):
+        return (job.effect, job.variant, frozenset(job.prior),
+                tuple(sorted((job.bounds or {}).items())))
+    todo = list({key(j): j for j in jobs if key(j) not in memo}.values())
+    if ctx['workers'] <= 1 or len(todo) <= 1:
+        fits = [fit_candidate(job) for job in todo]
+    else:
+        kernels.prefer()
+        with multiprocessing.get_context('fork').Pool(processes=ctx['workers']) as pool:
+            fits = pool.map(fit_candidate, todo)        # in the jobs' order
+    memo.update(zip(map(key, todo), fits))
+    return [memo[key(j)] for j in jobs]
+
+
+def _fit_once(ctx, job):
+    """Return :func:`fit_candidate` of one job of the selection (:func:`_fit_selection_jobs`)."""
+    return _fit_selection_jobs([job], ctx)[0]
+
+
 def _run_validation(jobs, workers, on_done):
     """
     :func:`validate_candidate` of every job: [(effect, variant, RMS)], in completion order.
@@ -948,7 +980,7 @@ def _forward_step(current, cur_val, kept, ctx):
         return None
     _say_t(ctx, f'step {len(kept) + 1}: fitting {len(jobs)} effect(s) on top of '
                 f'{" + ".join(e for e, _ in kept)}')
-    fits = _run_jobs(fit_candidate, jobs, ctx['workers'], lambda f: None)
+    fits = _fit_selection_jobs(jobs, ctx)
     cur = current.estimate
     scored = []
     for fit in fits:
@@ -996,7 +1028,7 @@ def _without(effect, fit, kept, ctx):
     others = [ev for ev in rest if ev != new]
     start = {n: fit.estimate.model_parameters[n] for n in fit.unknowns}
     job = _ctx_job(ctx, new[0], new[1], prior=tuple(others), start=start)
-    out = fit_candidate(job)
+    out = _fit_once(ctx, job)
     return out if out.available else None
 
 
@@ -1184,9 +1216,9 @@ def _look_ahead(current, kept, steps, ctx):
     _say_t(ctx, f'look-ahead: the residuals are structured; {best} added past the criterion '
                 f'(2Δlog L = {gains[best]["two_delta_loglik"]:.1f}) to see what follows')
     start = {n: current.estimate.model_parameters[n] for n in current.unknowns}
-    fit = fit_candidate(_ctx_job(ctx, best, '', verbose=ctx['verbose'], start=start,
-                                 prior=tuple(kept),
-                                 baseline_nll=current.estimate.neg_log_likelihood))
+    fit = _fit_once(ctx, _ctx_job(ctx, best, '', verbose=ctx['verbose'], start=start,
+                                  prior=tuple(kept),
+                                  baseline_nll=current.estimate.neg_log_likelihood))
     if not fit.available or fit.bound_limited:
         return None
     two_dll, crit = _criterion_over(fit, current, ctx['n_obs'])
@@ -1232,8 +1264,8 @@ def _backward(current, kept, steps, dropped, ctx):
 def _refit(kept, ctx, like):
     """Fit the model of the kept effects [(effect, variant)], started from ``like``."""
     start = {n: like.estimate.model_parameters[n] for n in like.unknowns}
-    out = fit_candidate(_ctx_job(ctx, kept[-1][0], kept[-1][1], prior=tuple(kept[:-1]),
-                                 start=start))
+    out = _fit_once(ctx, _ctx_job(ctx, kept[-1][0], kept[-1][1], prior=tuple(kept[:-1]),
+                                  start=start))
     return out if out.available else None
 
 
@@ -1286,7 +1318,7 @@ def _exchange(current, kept, ctx):
     _say_t(ctx, f'exchange: fitting {", ".join(contenders)} in place of each of '
                 f'{" + ".join(names)}')
     scored = []
-    for fit in _run_jobs(fit_candidate, jobs, ctx['workers'], lambda f: None):
+    for fit in _fit_selection_jobs(jobs, ctx):
         if not fit.available or fit.bound_limited:
             _say_t(ctx, f'  {fit.effect} after {" + ".join(p for p, _ in fit.prior)}: '
                         f'{fit.reason or "bound-limited"}, not compared')
@@ -1313,7 +1345,7 @@ def _exchange(current, kept, ctx):
     # what the swapped-in effect adds to the others alone (its own backward check)
     others = [ev for ev in kept if ev[0] != replaced]
     rest = _ctx_job(ctx, others[-1][0], others[-1][1], prior=tuple(others[:-1]), start=start)
-    base = fit_candidate(rest)
+    base = _fit_once(ctx, rest)
     if not base.available:
         out['ties'] = kept_tie
         return out
@@ -1416,9 +1448,9 @@ def _two_for_one(current, kept, steps, ctx):
         start = {n: current.estimate.model_parameters[n] for n in current.unknowns}
         _say_t(ctx, f'two-for-one: {stand_in} in place of {replaced}, then the selection '
                     'again')
-        fit = fit_candidate(_ctx_job(ctx, stand_in, '', verbose=ctx['verbose'], start=start,
-                                     prior=tuple(others),
-                                     baseline_nll=current.estimate.neg_log_likelihood))
+        fit = _fit_once(ctx, _ctx_job(ctx, stand_in, '', verbose=ctx['verbose'],
+                                      start=start, prior=tuple(others),
+                                      baseline_nll=current.estimate.neg_log_likelihood))
         if not fit.available or fit.bound_limited:
             continue
         # the stand-in's own row: what it adds to the effects kept beside it (the baseline's

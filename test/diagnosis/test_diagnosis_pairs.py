@@ -568,3 +568,41 @@ def test_a_wake_beside_turbulence_and_an_odd_blade_is_named_whatever_came_first(
     assert blade['blade']['value'] == 3.0, blade
     assert 0.0 < blade['dgamma_rel']['value'] < 0.06 + 5.0 * blade['dgamma_rel']['std']
     assert out['original_bias_after'] < 3.0, out
+
+
+def test_a_model_the_selection_revisits_is_fitted_once(monkeypatch):
+    # a two-for-one that drops its stand-in again comes back to a kept set it has fitted
+    # beside already: the same augmented model within the same bounds is not fitted again,
+    # a different kept set, variant or widened bound is
+    from rotor_id.diagnosis.catalogue import Job
+    calls = []
+
+    def fake_fit(job):
+        calls.append((job.effect, job.variant, job.prior, job.bounds))
+        return ('fit', len(calls))
+    monkeypatch.setattr(DIAGNOSE, 'fit_candidate', fake_fit)
+
+    def job(effect, prior, variant='', bounds=None, start=None):
+        return Job(effect, variant, None, None, {}, [], {}, (0.0, 1.0), prior=prior,
+                   bounds=bounds, start=start)
+    ctx = {'workers': 1}
+    first = DIAGNOSE._fit_selection_jobs(
+        [job('dynamic_inflow', (('azimuth_offset', ''),)),
+         job('sensor_gain', (('azimuth_offset', ''),))], ctx)
+    assert first == [('fit', 1), ('fit', 2)]
+    # the same model again, from another start; then other models
+    again = DIAGNOSE._fit_selection_jobs(
+        [job('dynamic_inflow', (('azimuth_offset', ''),), start={'A': 0.4}),
+         job('sensor_gain', (('azimuth_offset', ''),)),
+         job('sensor_gain', (('flap_frequency', ''), ('azimuth_offset', ''))),
+         job('sensor_gain', (('azimuth_offset', ''),), variant='blade 2'),
+         job('dynamic_inflow', (('azimuth_offset', ''),), bounds={'inv_tau': (0.0, 20.0)})],
+        ctx)
+    assert again[:2] == first
+    assert [r[1] for r in again[2:]] == [3, 4, 5]
+    assert len(calls) == 5
+    assert DIAGNOSE._fit_once(ctx, job('sensor_gain', (('azimuth_offset', ''),))) == first[1]
+    # the kept effects in another order are the same model
+    assert DIAGNOSE._fit_once(ctx, job('sensor_gain', (('azimuth_offset', ''),
+                                                       ('flap_frequency', '')))) == again[2]
+    assert len(calls) == 5
