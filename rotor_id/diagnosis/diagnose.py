@@ -966,6 +966,38 @@ def _confound_text(kept, c):
             f'{c["effect"]} may be present too; both are named')
 
 
+def _step_gain(fit, current, ctx):
+    """
+    Return what ``fit`` gains on top of ``current`` as a trace entry, or None.
+
+    {'two_delta_loglik', 'criterion', 'how'}: 'fit' for a fit that is compared; a fit at a
+    catalogue bound is not (issue 16, item 3), unless it is no better than ``current``:
+    then it asks for none of the effect beside the kept ones (the current model is the limit
+    beyond the bound, e.g. a lag → 0), so it gains nothing here. That entry is for the
+    confounds, never for a choice: a pitch-actuator lag that passed alone (criterion 49) and
+    ran to τ_a's bound beside a sensor lag was otherwise left out of every note while the
+    sensor lag was named with high confidence.
+    """
+    if not fit.available:
+        return None
+    cur = current.estimate
+    k = max(fit.n_extra - current.n_extra, 0)
+    choices = 2.0 * math.log(n_choices(fit.effect, ctx['n_blades']))
+    if fit.bound_limited:
+        if fit.estimate.neg_log_likelihood < cur.neg_log_likelihood:
+            return None
+        _say_t(ctx, f'  + {fit.effect}: at its catalogue bound and no better than without '
+                    'it, no gain')
+        return {'two_delta_loglik': 0.0, 'criterion': -k * math.log(ctx['n_obs']) - choices,
+                'how': 'fit, at its catalogue bound: no gain'}
+    dll = float(cur.neg_log_likelihood - fit.estimate.neg_log_likelihood)
+    res = np.concatenate(fit.estimate.residuals, axis=0)
+    rho = rs.channels_effective_fraction(res)
+    crit = 2.0 * dll * rho - k * math.log(ctx['n_obs'] * rho) - choices
+    _say_t(ctx, f'  + {fit.effect}: Δlog L = {dll:.1f}, criterion {crit:.1f}')
+    return {'two_delta_loglik': 2.0 * dll, 'criterion': crit, 'how': 'fit'}
+
+
 def _forward_step(current, cur_val, kept, ctx):
     """
     Return the best effect to add to ``current`` as (row, fit), or None.
@@ -981,23 +1013,14 @@ def _forward_step(current, cur_val, kept, ctx):
     _say_t(ctx, f'step {len(kept) + 1}: fitting {len(jobs)} effect(s) on top of '
                 f'{" + ".join(e for e, _ in kept)}')
     fits = _fit_selection_jobs(jobs, ctx)
-    cur = current.estimate
     scored = []
     for fit in fits:
-        if not fit.available or fit.bound_limited:
+        gain = _step_gain(fit, current, ctx)
+        if gain is None:
             continue
-        dll = float(cur.neg_log_likelihood - fit.estimate.neg_log_likelihood)
-        res = np.concatenate(fit.estimate.residuals, axis=0)
-        rho = rs.channels_effective_fraction(res)
-        k = max(fit.n_extra - current.n_extra, 0)
-        crit = 2.0 * dll * rho - k * math.log(ctx['n_obs'] * rho)
-        if n_choices(fit.effect, ctx['n_blades']) > 1:
-            crit -= 2.0 * math.log(n_choices(fit.effect, ctx['n_blades']))
-        _say_t(ctx, f'  + {fit.effect}: Δlog L = {dll:.1f}, criterion {crit:.1f}')
-        ctx['trace'][-1]['gains'][fit.effect] = {'two_delta_loglik': 2.0 * dll,
-                                                 'criterion': crit, 'how': 'fit'}
-        if crit > CRITERION_THRESHOLD:
-            scored.append((crit, dll, fit))
+        ctx['trace'][-1]['gains'][fit.effect] = gain
+        if gain['how'] == 'fit' and gain['criterion'] > CRITERION_THRESHOLD:
+            scored.append((gain['criterion'], 0.5 * gain['two_delta_loglik'], fit))
     scored.sort(key=lambda c: -c[0])
     scored = scored[:MAX_VALIDATED]
     if not scored:

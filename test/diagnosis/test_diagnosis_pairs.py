@@ -606,3 +606,36 @@ def test_a_model_the_selection_revisits_is_fitted_once(monkeypatch):
     assert DIAGNOSE._fit_once(ctx, job('sensor_gain', (('azimuth_offset', ''),
                                                        ('flap_frequency', '')))) == again[2]
     assert len(calls) == 5
+
+
+def test_a_fit_at_its_bound_that_gains_nothing_beside_the_kept_effects_is_a_confound():
+    # a pitch-actuator lag passes alone (criterion 49); beside the kept sensor lag its fit
+    # runs to τ_a's catalogue bound and is worse than the sensor lag alone: it asks for no
+    # actuator lag there. That is a gain of 0 given the kept effect (a confound of it, both
+    # named), never a candidate; a fit at a bound that does beat the current model has a
+    # capped likelihood and is not recorded at all (item 3)
+    from types import SimpleNamespace as NS
+    import numpy as np
+    rng = np.random.default_rng(0)
+    current = NS(n_extra=1, estimate=NS(neg_log_likelihood=-5000.0))
+
+    def fit(effect, nll, bound_limited=()):
+        return NS(effect=effect, available=True, n_extra=2, bound_limited=list(bound_limited),
+                  estimate=NS(neg_log_likelihood=nll,
+                              residuals=[rng.standard_normal((400, 2))]))
+    ctx = {'n_obs': 800, 'n_blades': 4, 'progress': None, 't_start': 0.0}
+    at_bound = DIAGNOSE._step_gain(fit('pitch_actuator_lag', -4971.0, ['actuator_lag_rad']),
+                                   current, ctx)
+    assert at_bound['two_delta_loglik'] == 0.0
+    assert at_bound['criterion'] == -math.log(800)
+    assert at_bound['how'] != 'fit'
+    assert DIAGNOSE._step_gain(fit('sensor_gain', -5020.0, ['gain_1']), current, ctx) is None
+    free = DIAGNOSE._step_gain(fit('azimuth_offset', -5003.5), current, ctx)
+    assert free['how'] == 'fit' and abs(free['two_delta_loglik'] - 7.0) < 1e-9
+    assert free['criterion'] < 7.0
+    trace = [_trace_row((), {'pitch_actuator_lag': (75.3, 49.3), 'sensor_lag': (195.8, 184.4)}),
+             {'after': ('sensor_lag',), 'gains': {'pitch_actuator_lag': at_bound}}]
+    confounds = DIAGNOSE._confounds(['sensor_lag'], {'trace': trace, 'mu': 0.4})
+    (c,) = confounds['sensor_lag']
+    assert c['effect'] == 'pitch_actuator_lag' and c['reproduced_fraction'] == 1.0
+    assert 'catalogue bound' in DIAGNOSE._confound_text('sensor_lag', c)
