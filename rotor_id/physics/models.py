@@ -335,6 +335,7 @@ class RotorModel(LinearModel):
         self._nq, self._nf = nq, 2 * nq + ni
         self._cache = {}
         self._constant = None
+        self._harmonics = None
         self._build_parameters(collective, angle_unit)
         self._select_states(interleave)
         self._build_terms()
@@ -615,7 +616,7 @@ class RotorModel(LinearModel):
         """
         model = copy.copy(self)
         model.rotor = replace(self.rotor, **constants).check()
-        model._cache, model._constant = {}, None
+        model._cache, model._constant, model._harmonics = {}, None, None
         return model
 
     # -- evaluation ---------------------------------------------------------------------------
@@ -646,10 +647,11 @@ class RotorModel(LinearModel):
                 self._constant = {k: v for k, v in one.items() if k in self._SYSTEM_KEYS}
             return self._constant
 
-        def compute():
-            full = self._restrict(self._full_pieces(t))
-            return {k: v for k, v in full.items() if k in self._SYSTEM_KEYS}
-        return self._cached('system', t, compute)
+        if self._harmonics is None:
+            full = self._restrict(self._full_pieces(self._sample_times()))
+            self._harmonics = _Harmonics({k: v for k, v in full.items()
+                                          if k in self._SYSTEM_KEYS})
+        return self._cached('system', t, lambda: self._harmonics.at(t))
 
     def _blade_pieces(self, t):
         """Return the blade matrices (flap, rate, inflow, moment, T⁻¹) at times t, periodic."""
@@ -862,6 +864,70 @@ def _drop_rounding(block):
     """
     scale = np.max(np.abs(block)) if block.size else 0.0
     block[np.abs(block) < 1e-14 * scale] = 0.0
+
+
+class _Harmonics:
+    """
+    Periodic coefficient blocks as trigonometric polynomials in ψ, evaluated on any time grid.
+
+    Every block is a finite Fourier series in ψ: the blade coefficients are polynomials in
+    μ sin ψ and cos ψ (rotor_id.physics.aerodynamics) and the multiblade transforms are first
+    harmonics of the blade azimuths. So the series found from one revolution of samples
+    (:meth:`RotorModel._sample_times`, more samples than twice the highest harmonic) is the
+    block itself at every ψ, and evaluating it costs a product with a few harmonics instead of
+    rebuilding every blade's matrices: an azimuth-offset fit evaluates the rotor on a newly
+    shifted grid at every iteration. Coefficients that are rounding residue of exact zeros
+    are zeroed, per block as in :func:`_drop_rounding` and below 1e-14 of the largest of all
+    blocks, so an exact zero stays exactly zero.
+    """
+
+    def __init__(self, pieces):
+        self._layout, columns = [], []
+        for key, value in pieces.items():
+            blocks = value if isinstance(value, tuple) else (value,)
+            self._layout.append((key, isinstance(value, tuple),
+                                 [block.shape[1:] for block in blocks]))
+            columns += [block.reshape(block.shape[0], -1) for block in blocks]
+        samples = columns[0].shape[0]
+        spectra = []
+        for column in columns:               # c_h = (1/n) Σ_k x(2πk/n) e^{-ihψ_k}
+            spectrum = np.fft.rfft(column, axis=0) / samples
+            _drop_rounding(spectrum)
+            spectra.append(spectrum)
+        spectrum = np.concatenate(spectra, axis=1)
+        # and a block that is all rounding residue (a sum that vanishes for this N) is zero
+        spectrum[np.abs(spectrum) < 1e-14 * np.max(np.abs(spectrum), initial=0.0)] = 0.0
+        present = np.flatnonzero(np.any(spectrum != 0.0, axis=1))
+        if present.size and present[-1] >= samples // 4:
+            raise ValueError(f'a coefficient block has harmonic {present[-1]} of ψ, too close '
+                             f'to the {samples} samples per revolution to be resolved')
+        self._orders = present[present > 0]
+        # x(ψ) = c_0 + Σ_h 2 Re(c_h) cos hψ − 2 Im(c_h) sin hψ
+        rows = [spectrum[0].real] if 0 in present else [np.zeros(spectrum.shape[1])]
+        for h in self._orders:
+            rows += [2.0 * spectrum[h].real, -2.0 * spectrum[h].imag]
+        coefficients = np.array(rows)
+        self._columns = np.flatnonzero(np.any(coefficients != 0.0, axis=0))
+        self._coefficients = coefficients[:, self._columns]
+        self._width = spectrum.shape[1]
+
+    def at(self, t):
+        """Return the blocks at times t (dict like the pieces given, arrays of length t.size)."""
+        angle = np.multiply.outer(t, self._orders)
+        basis = np.empty((t.size, 1 + 2 * self._orders.size))
+        basis[:, 0] = 1.0
+        basis[:, 1::2], basis[:, 2::2] = np.cos(angle), np.sin(angle)
+        flat = np.zeros((t.size, self._width))
+        flat[:, self._columns] = basis @ self._coefficients
+        out, start = {}, 0
+        for key, is_tuple, shapes in self._layout:
+            blocks = []
+            for shape in shapes:
+                size = int(np.prod(shape))
+                blocks.append(flat[:, start:start + size].reshape((t.size,) + shape))
+                start += size
+            out[key] = tuple(blocks) if is_tuple else blocks[0]
+        return out
 
 
 def _mean_pieces(pieces):
