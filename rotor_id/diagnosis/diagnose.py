@@ -133,7 +133,8 @@ def _effect_json(step):
             'excess_over_floor': step['excess_over_floor'],
             'residuals_are_noise': bool(step['adequate']),
             'confounded_with': [c['effect'] for c in step.get('confounds', [])],
-            'confounds': [dict(c) for c in step.get('confounds', [])]}
+            'confounds': [dict(c) for c in step.get('confounds', [])],
+            'equivalents': [dict(e) for e in step.get('equivalents', [])]}
 
 
 def _say(progress, text):
@@ -624,11 +625,16 @@ def diagnose(record, description, progress=None, workers=2, effects=EFFECTS, win
                 or context.get('two_for_one_ties'):
             # another description of the record fits as well: not a confident name
             confidence = 'low'
-        for one in [st['effect'] for st in steps] or [effect]:
-            for eq in equivalent(one, mu):
-                if any(t['effect'] == eq for t in eligible):
-                    notes.append(f'{one} and {eq} are the same physics to first order at this '
-                                 'size; both explain the data')
+        for st in steps or [{'effect': effect}]:
+            one = st['effect']
+            same = _equivalents_here(one, eligible, context['trace'], mu)
+            st['equivalents'] = [dict(e) for e in same]
+            for e in same:
+                against = '' if e['criterion_named'] is None \
+                    else f' against {e["criterion_named"]:.1f}'
+                notes.append(f'{one} and {e["effect"]} are the same physics to first order at '
+                             f'this size; both explain the data ({e["how"]}: criterion '
+                             f'{e["criterion"]:.1f}{against})')
         if effect == 'blade_dissimilarity' and ident.model.name == 'multiblade_wake':
             notes.append('the (β1−β3)/2, (β2−β4)/2 channels see blade j and blade j+2 alike '
                          '(the mirror blade with the opposite static offset dtheta_static); '
@@ -920,6 +926,39 @@ def _confounds(kept_names, ctx):
             'criterion_given': float(given['criterion']), 'how_given': given['how'],
             'reproduced_fraction': _reproduced(alone, given)})
     return out
+
+
+def _equivalents_here(one, eligible, trace, mu):
+    """
+    First-order equivalents of the named effect ``one`` that explain this record as well.
+
+    An equivalent counts where it is eligible alone (the first table), or at a step of the
+    selection where ``one`` is compared too, when it passes the criterion there within
+    :data:`CONFIDENCE_GAP` of ``one`` (or above it): the catalogue names one of the two, and
+    the other is the same physics in this record. A δ3 beside a sensor lag in hover gained
+    more than the flap-frequency change named for it at step 2 and appeared in no note.
+    Returns [{'effect', 'criterion', 'criterion_named', 'how'}], one per equivalent.
+    """
+    out = {}
+    table = {t['effect']: t['criterion'] for t in eligible}
+    for eq in equivalent(one, mu):
+        if eq in table:
+            out[eq] = {'effect': eq, 'criterion': float(table[eq]),
+                       'criterion_named': (float(table[one]) if one in table else None),
+                       'how': 'alone at the baseline'}
+            continue
+        for row in trace:
+            mine, theirs = row['gains'].get(one), row['gains'].get(eq)
+            if mine is None or theirs is None or theirs['how'] != 'fit' \
+                    or theirs['criterion'] <= CRITERION_THRESHOLD \
+                    or theirs['criterion'] < mine['criterion'] - CONFIDENCE_GAP:
+                continue
+            after = ' + '.join(row['after'])
+            out[eq] = {'effect': eq, 'criterion': float(theirs['criterion']),
+                       'criterion_named': float(mine['criterion']),
+                       'how': f'on top of {after}' if after else 'alone at the baseline'}
+            break
+    return list(out.values())
 
 
 def _covered(kept_names, ctx):

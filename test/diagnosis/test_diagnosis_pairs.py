@@ -639,3 +639,28 @@ def test_a_fit_at_its_bound_that_gains_nothing_beside_the_kept_effects_is_a_conf
     (c,) = confounds['sensor_lag']
     assert c['effect'] == 'pitch_actuator_lag' and c['reproduced_fraction'] == 1.0
     assert 'catalogue bound' in DIAGNOSE._confound_text('sensor_lag', c)
+
+
+def test_a_rig_effect_named_through_its_first_order_equivalent_is_said():
+    # hover with the wake, a δ3 of 0.1 and a sensor lag of 0.05 rad: beside the lag, δ3 and
+    # a flap-frequency change both pass the criterion (δ3 by 71.8, P by 66.8 at this seed)
+    # and the established effect is named. δ3 was then in no note and no JSON entry, so the
+    # answer read "sensor lag + flap frequency" with high confidence. Whichever of the two is
+    # named, the other is listed with its figures where the selection compared them.
+    from diagnosis_scenarios import Scenario, WAKE, WAKE_TRUTH
+    from rotor_id.diagnosis.diagnose import diagnose
+    from truth_generator import wake_case
+    scenario = Scenario('coupling+lag', 'pitch_flap_coupling',
+                        lambda s: wake_case(seed=s, pitch_flap_coupling=0.1, sensor_lag=0.05),
+                        WAKE, original_truth=WAKE_TRUTH)
+    record, description = scenario.record_and_description(4000)
+    result = diagnose(record, description, workers=2).as_json()
+    effects = result['explanation']['effects']
+    said = {e['effect'] for e in effects}
+    said |= {q['effect'] for e in effects for q in e['equivalents']}
+    assert {'pitch_flap_coupling', 'sensor_lag'} <= said, effects
+    for e in effects:
+        for q in e['equivalents']:
+            assert q['criterion'] > CRITERION_THRESHOLD
+            assert q['criterion_named'] is None or \
+                q['criterion'] >= q['criterion_named'] - DIAGNOSE.CONFIDENCE_GAP
