@@ -69,9 +69,9 @@ from rotor_id.estimation import kalman, kernels
 from rotor_id.estimation.output_error import (_fit_initial_states, _Problem,
                                               damped_gauss_newton_step, dependence_warnings,
                                               Estimate, IdentificationError, STOP)
-from rotor_id.estimation.simulate import (_equal_steps, _fine_grid, _rk4_step_derivative,
-                                          _rk4_transition, _time_invariant, DEFAULT_MAX_STEP,
-                                          substeps_for)
+from rotor_id.estimation.simulate import (_equal_steps, _fine_grid, _rk4_transition,
+                                          _rk4_transition_derivative, _time_invariant,
+                                          DEFAULT_MAX_STEP, substeps_for)
 
 PROCESS_NOISE = 'process_noise_std'
 _FD_STEP = 1e-5
@@ -264,9 +264,8 @@ class _FilterProblem:
         n = Fs.shape[-1]
         dt = float(t[1] - t[0])
         Phi_s = _rk4_transition(Fs, np.array([step]))[0]
-        dPhi_s = np.moveaxis(_rk4_step_derivative(
-            Fs, np.zeros((1, n)), np.full(n, step), dF, np.zeros((1, kp, n)),
-            np.eye(n)), 0, -1) if kp else np.zeros((0, n, n))             # (kp, n, n)
+        dPhi_s = _rk4_transition_derivative(Fs, dF, np.array([step]))[0] if kp \
+            else np.zeros((0, n, n))                                        # (kp, n, n)
         Phi = np.eye(n)
         dPhi = np.zeros((k, n, n))
         for _ in range(substeps):
@@ -286,12 +285,8 @@ class _FilterProblem:
         M = (T - 1) * substeps
         h = np.full(M, step)
         Phi_s = _rk4_transition(Fs, h).reshape(T - 1, substeps, n, n)
-        dPhi_s = np.zeros((M, kp, n, n))
-        for c in range(n if kp else 0):         # ∂Φ_s e_c: the step's derivative from e_c
-            unit = np.zeros((M, n))
-            unit[:, c] = 1.0
-            dPhi_s[..., c] = _rk4_step_derivative(Fs, np.zeros((1, n)), h, dF,
-                                                  np.zeros((1, kp, n)), unit)
+        dPhi_s = np.broadcast_to(_rk4_transition_derivative(Fs, dF, h), (M, kp, n, n)) if kp \
+            else np.zeros((M, 0, n, n))
         dPhi_s = dPhi_s.reshape(T - 1, substeps, kp, n, n)
         Phi = np.broadcast_to(np.eye(n), (T - 1, n, n))
         dPhi = np.zeros((T - 1, k, n, n))

@@ -179,3 +179,28 @@ def test_lost_samples_cost_their_own_substeps_not_the_whole_records(name, monkey
         rk4 = np.abs(getattr(regular, what)[kept] - getattr(fine, what)[kept])
         axes = (0,) if what == 'x' else (0, 1)
         assert np.all(np.max(error, axis=axes) <= 2.0 * np.max(rk4, axis=axes) + 1e-12), what
+
+
+@pytest.mark.parametrize('varying', [(True, True), (True, False), (False, False)])
+def test_rk4_step_derivatives_equal_finite_differences_of_the_step(varying):
+    # the filter's ∂Φ of every RK4 step (all state columns at once) and the batched
+    # matrix-vector products under it: central differences of Φ along dF, for a varying
+    # (periodic) or constant F and ∂F
+    from rotor_id.estimation import simulate as sim
+    rng = np.random.default_rng(11)
+    M, k, n = 6, 3, 4
+    F = rng.standard_normal((2 * M + 1 if varying[0] else 1, n, n))
+    dF = rng.standard_normal((2 * M + 1 if varying[1] else 1, k, n, n))
+    h = rng.uniform(0.05, 0.2, M)
+    got = np.broadcast_to(sim._rk4_transition_derivative(F, dF, h), (M, k, n, n))
+    eps = 1e-6
+    for i in range(k):
+        fd = (sim._rk4_transition(F + eps * dF[:, i], h)
+              - sim._rk4_transition(F - eps * dF[:, i], h)) / (2 * eps)
+        assert np.max(np.abs(got[:, i] - fd)) < 1e-8 * np.max(np.abs(fd))
+    # column c of ∂Φ is the step derivative from the unit state e_c (the per-column form)
+    for c in range(n):
+        unit = np.zeros((M, n))
+        unit[:, c] = 1.0
+        column = sim._rk4_step_derivative(F, np.zeros((1, n)), h, dF, np.zeros((1, k, n)), unit)
+        assert np.allclose(column, got[..., c], rtol=0, atol=1e-13)
