@@ -192,8 +192,8 @@ def _rk4_transition_derivative(F, dF, h):
     ∂Φ/∂p (M, k, n, n) of the RK4 step maps of :func:`_rk4_transition` along dF (…, k, n, n).
 
     The stage matrices of :func:`_rk4_transition` differentiated by the product rule, as
-    matrices: ∂Φ e_c for every c at once (a pass per state column cost 2.7× as much on a
-    periodic model's filter). Shapes as in :func:`_rk4_step_derivative`.
+    matrices: ∂Φ e_c for every c at once, where :func:`_rk4_step_derivative` takes one pass
+    per state column. Shapes as in :func:`_rk4_step_derivative`.
     """
     F0, Fm, F1 = _stages(F)
     dF0, dFm, dF1 = _stages(dF)
