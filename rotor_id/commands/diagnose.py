@@ -74,6 +74,10 @@ def format_summary(diagnosis):
                          f'{e["criterion"]:7.1f}, held-out RMS {_fmt(e["validation_rms"])} rad, '
                          f'residual RMS {e["residual_rms"]:.4g} rad '
                          f'({e["excess_over_floor"]:+.1%} of the floor)')
+            if 'test' in e:
+                t = e['test']
+                lines.append(f'       added by its {t["name"]}: 2ΔJ·ρ {t["statistic"]:.1f} > '
+                             f'χ²_{t["parameters"]} {t["critical"]:.1f} (level {t["level"]:.2g})')
             for pname, p in e['parameters'].items():
                 lines.append(f'       {pname:<14} {p["value"]:12.5g} ± {p["std"]:.3g}')
     elif d['explanation']['parameters']:

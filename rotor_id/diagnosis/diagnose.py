@@ -102,6 +102,7 @@ class Diagnosis:
 
     def as_json(self):
         """JSON of ``rotor-id diagnose`` (issue 4 keys; more allowed)."""
+        from rotor_id.diagnosis import noisy
         return {
             'mismatch': bool(self.mismatch),
             'location': self.location,
@@ -120,7 +121,10 @@ class Diagnosis:
             'channels_augmented': [s.as_dict() for s in self.stats_augmented],
             'noise_floor_blades_rad': [float(s) for s in self.blade_floor],
             'criterion': {'name': 'BIC difference with autocorrelation-corrected sample size',
-                          'threshold': CRITERION_THRESHOLD},
+                          'threshold': CRITERION_THRESHOLD,
+                          'beside_random_inflow': {
+                              'name': 'likelihood-ratio test, Bonferroni over the step',
+                              'family_level': noisy.STEP_LEVEL}},
             'notes': list(self.notes),
             'elapsed_s': float(self.elapsed_s),
         }
@@ -137,7 +141,8 @@ def _effect_json(step):
             'residuals_are_noise': bool(step['adequate']),
             'confounded_with': [c['effect'] for c in step.get('confounds', [])],
             'confounds': [dict(c) for c in step.get('confounds', [])],
-            'equivalents': [dict(e) for e in step.get('equivalents', [])]}
+            'equivalents': [dict(e) for e in step.get('equivalents', [])],
+            **({'test': dict(step['test'])} if 'test' in step else {})}
 
 
 def _say(progress, text):
@@ -918,10 +923,8 @@ def _confounds(kept_names, ctx):
         given = trace[-1]['gains'].get(effect)
         # the first step at which C passed the criterion (its gain given the effects kept then)
         first = next((i for i, row in enumerate(trace[:-1])
-                      if row['gains'].get(effect, {}).get('criterion', -math.inf)
-                      > CRITERION_THRESHOLD), None)
-        if effect in covered or given is None or first is None \
-                or given['criterion'] > CRITERION_THRESHOLD:
+                      if effect in row['gains'] and _passed(row['gains'][effect])), None)
+        if effect in covered or given is None or first is None or _passed(given):
             continue
         alone = trace[first]['gains'][effect]
         culprit, largest, previous = kept_names[min(first, len(kept_names) - 1)], -math.inf, \
@@ -967,7 +970,7 @@ def _equivalents_here(one, eligible, trace, mu):
         for row in trace:
             mine, theirs = row['gains'].get(one), row['gains'].get(eq)
             if mine is None or theirs is None or theirs['how'] != 'fit' \
-                    or theirs['criterion'] <= CRITERION_THRESHOLD \
+                    or not _passed(theirs) \
                     or theirs['criterion'] < mine['criterion'] - CONFIDENCE_GAP:
                 continue
             after = ' + '.join(row['after'])
@@ -976,6 +979,16 @@ def _equivalents_here(one, eligible, trace, mu):
                        'how': f'on top of {after}' if after else 'alone at the baseline'}
             break
     return list(out.values())
+
+
+def _passed(gain):
+    """
+    Whether an effect's gain at a step of the selection passed that step's test.
+
+    The criterion's threshold; beside random inflow the step's likelihood-ratio test
+    (``passes``, :func:`rotor_id.diagnosis.noisy.step_test`).
+    """
+    return bool(gain.get('passes', gain['criterion'] > CRITERION_THRESHOLD))
 
 
 def _covered(kept_names, ctx):
