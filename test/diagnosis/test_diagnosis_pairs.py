@@ -11,12 +11,11 @@ from itertools import combinations
 import math
 import sys
 
-import numpy as np
-
 from diagnosis_scenarios import (BY_NAME, catalogue_pairs, CONCEALED, diagnosed, effect_classes,
                                  evaluate, groups_without_generator)
-from rotor_id.diagnosis.catalogue import EFFECTS, EQUIVALENT
+import numpy as np
 from rotor_id.diagnosis import noisy as NOISY
+from rotor_id.diagnosis.catalogue import EFFECTS, EQUIVALENT
 from rotor_id.diagnosis.diagnose import CRITERION_THRESHOLD
 
 DIAGNOSE = sys.modules['rotor_id.diagnosis.diagnose']
@@ -103,6 +102,11 @@ def test_the_step_test_beside_random_inflow_holds_its_family_wise_level():
         assert not test['passes'] and NOISY.step_test(test['critical'] + 1e-9, k, m)['passes']
     # far less strict than the criterion's 2ΔJ ≈ 17.5 for one parameter of 1796 samples
     assert NOISY.step_test(0.0, 1, 12)['critical'] < 17.5 - 5.0
+    # but an effect the criterion does not favour at all is not added (four parameters
+    # passing χ²_4 on a noise model that is nearly the record's: periodic+noise seed 1002)
+    four = NOISY.step_test(23.4, 4, 14, criterion=-5.4)
+    assert four['statistic'] > four['critical'] and not four['passes']
+    assert NOISY.step_test(23.4, 4, 14, criterion=0.5)['passes']
 
 
 def test_a_lag_under_a_sensor_gain_is_still_named():
