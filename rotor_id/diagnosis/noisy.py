@@ -18,9 +18,10 @@ filter-error model wins nothing was added to it. Here the two are put together:
   An effect is added when its likelihood-ratio test, 2ΔJ·ρ against the χ²_k quantile at a
   family-wise level over the step's alternatives, passes with a positive criterion
   (:func:`step_test`), and its one-step prediction of the unfitted half of the window
-  (innovation RMS, both ways) beats the current model's. Candidates are ranked by the criterion 2ΔJ·ρ − k log(nρ) (as output
-  error's). A backward check follows each addition, and at the end random inflow itself
-  must still earn its place against the output-error fit of the same deterministic model.
+  (innovation RMS, both ways) beats the current model's. Candidates are ranked by the
+  criterion 2ΔJ·ρ − k log(nρ) (as output error's). A backward check follows each addition,
+  and at the end random inflow itself must still earn its place against the output-error
+  fit of the same deterministic model.
 * **random inflow on top of deterministic effects** (:func:`add_random_inflow`): after the
   output-error selection, the score test of σ_V² at 0 on the final model (one filter pass:
   at σ_V = 0 the filter is output error, so the model's own gradient vanishes and only σ_V²'s
