@@ -6,20 +6,19 @@ domain of its own with loopback-only discovery; the test process itself is one m
 participant (no mocks of rclpy).
 """
 
-import itertools
 import math
 import os
 from pathlib import Path
 
 import pytest
+from ros_domains import next_domain
 
 REPO_ROOT = Path(__file__).resolve().parents[2]
-_domains = itertools.count()
 
 
 def domain_id():
-    """Return a ROS_DOMAIN_ID for this test: 101..200, away from the conftest's 1..100."""
-    return 101 + (os.getpid() * 7 + next(_domains)) % 100
+    """Return a ROS_DOMAIN_ID for this test, unique in the run (ros_domains.next_domain)."""
+    return next_domain()
 
 
 def require_workspace():

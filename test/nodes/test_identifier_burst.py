@@ -13,6 +13,7 @@ import os
 import time
 
 import pytest
+from ros_domains import next_domain
 
 rclpy = pytest.importorskip('rclpy', reason='rclpy not importable')
 msgs = pytest.importorskip('rotor_id_msgs.msg', reason='rotor_id_msgs not built')
@@ -61,7 +62,7 @@ def _burst(wait_s):
     data = _stream(points=1)
     os.environ['ROS_AUTOMATIC_DISCOVERY_RANGE'] = 'LOCALHOST'
     context = rclpy.context.Context()
-    rclpy.init(context=context, domain_id=151 + os.getpid() % 20,
+    rclpy.init(context=context, domain_id=next_domain(),
                signal_handler_options=SignalHandlerOptions.NO)
     node = Identifier(context=context, parameter_overrides=[
         Parameter('run_description', value='demo_wake.yaml'),

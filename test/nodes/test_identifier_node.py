@@ -17,6 +17,7 @@ import os
 
 import numpy as np
 import pytest
+from ros_domains import next_domain
 
 rclpy = pytest.importorskip('rclpy', reason='rclpy not importable')
 msgs = pytest.importorskip('rotor_id_msgs.msg', reason='rotor_id_msgs not built')
@@ -199,7 +200,7 @@ def test_state_estimator_buffers_are_bounded(buffer_s, tick_every):
     from rotor_id.nodes.state_estimator import StateEstimator
     data = _stream(points=3)
     context = rclpy.context.Context()
-    rclpy.init(context=context, domain_id=201 + os.getpid() % 30,
+    rclpy.init(context=context, domain_id=next_domain(),
                signal_handler_options=SignalHandlerOptions.NO)
     node = StateEstimator(context=context, parameter_overrides=[
         Parameter('run_description', value='demo_wake.yaml'),

@@ -11,9 +11,9 @@ estimator a model the rotor cannot have (multiblade_wake of a 2-bladed rotor, wh
 identifier used to accept and fit).
 """
 
-import os
 
 import pytest
+from ros_domains import next_domain
 
 rclpy = pytest.importorskip('rclpy', reason='rclpy not importable')
 pytest.importorskip('rotor_id_msgs.msg', reason='rotor_id_msgs not built')
@@ -50,7 +50,7 @@ def _construct(name, path, tmp_path):
            'stirring_input': 'StirringInput', 'rotor_plant': 'RotorPlant',
            'recorder': 'Recorder'}[name]
     context = rclpy.context.Context()
-    rclpy.init(context=context, domain_id=210 + os.getpid() % 20,   # Fast DDS: at most 232
+    rclpy.init(context=context, domain_id=next_domain(),   # Fast DDS: at most 232
                signal_handler_options=SignalHandlerOptions.NO)
     params = [Parameter('run_description', value=str(path))]
     if name == 'recorder':
