@@ -56,7 +56,7 @@ class Identification:
 
     def as_json(self):
         """
-        Return the JSON of ``rotor-id identify`` (keys fixed by issue 3; more allowed).
+        Return the JSON of ``rotor-id identify`` (its keys are stable; more may be added).
 
         With several recordings, ``window_s`` and ``omega_rad_s`` are the first run's,
         ``noise_std`` is pooled over the runs (sample-weighted variances), and ``runs`` holds

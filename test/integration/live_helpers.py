@@ -1,5 +1,5 @@
 """
-Shared pieces of the multi-process tests: isolated domains, an rclpy session, bag checks.
+Shared pieces of the multi-process tests: isolated domains, an rclpy node, bag checks.
 
 Each test runs the installed executables (like ``ros2 run``) in their own processes on a DDS
 domain of its own with loopback-only discovery; the test process itself is one more real DDS
@@ -32,7 +32,7 @@ def require_workspace():
         pytest.skip(f'rclpy or rotor_id_msgs not importable ({exc}); run through `make test`')
 
 
-class RosSession:
+class RosClient:
     """rclpy initialised on one domain for the test process, with one node."""
 
     def __init__(self, domain, name='rotor_id_test'):

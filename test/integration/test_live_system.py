@@ -12,7 +12,7 @@ included) and, identified offline, agrees with the live result; every node exits
 
 import math
 
-from live_helpers import (domain_id, mcap_messages, require_workspace, RosSession,
+from live_helpers import (domain_id, mcap_messages, require_workspace, RosClient,
                           within_sigma)
 import numpy as np
 import pytest
@@ -46,8 +46,8 @@ def live_run(tmp_path_factory):
     for attempt in (1, 2):
         tmp = tmp_path_factory.mktemp('live')
         domain = domain_id()
-        session = RosSession(domain)
-        watcher = RunWatcher(session.node, sensors=True)
+        ros = RosClient(domain)
+        watcher = RunWatcher(ros.node, sensors=True)
         env = isolated_env(domain, tmp / 'ros_log')
         procs = NodeProcesses(env, tmp / 'logs')
         bag = tmp / 'bag'
@@ -71,10 +71,10 @@ def live_run(tmp_path_factory):
         print('no final estimate reached the test process; identifier log:\n'
               + procs.log('identifier'), flush=True)
         procs.stop_all()
-        session.close()
+        ros.close()
     try:
         assert done, f'no final estimate; exited: {procs.dead()}\n' + procs.log('identifier')
-        client = session.node.create_client(Identify, '/identifier/identify')
+        client = ros.node.create_client(Identify, '/identifier/identify')
         assert client.wait_for_service(timeout_sec=20.0), 'no Identify service'
         answers = []
         for start, end in ((description.window_s[0], description.window_s[1]), (0.5, 99.0)):
@@ -98,7 +98,7 @@ def live_run(tmp_path_factory):
         run['exits'] = procs.exit_summary()
         mark('stopped')
         run['logs'] = {name: procs.log(name) for name in procs.procs}
-        session.close()
+        ros.close()
     return run
 
 

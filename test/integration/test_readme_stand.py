@@ -17,7 +17,7 @@ import math
 import re
 import shlex
 
-from live_helpers import domain_id, REPO_ROOT, require_workspace, RosSession, within_sigma
+from live_helpers import domain_id, REPO_ROOT, require_workspace, RosClient, within_sigma
 import pytest
 
 TRUTH = {'A': 0.5, 'AL_over_tau': 0.25, 'inv_tau': 0.125}    # rotor_plant's defaults
@@ -88,8 +88,8 @@ def stand(tmp_path_factory):
     work = tmp_path_factory.mktemp('stand')
     (work / 'my_stand.yaml').write_text(code['my_stand.yaml'])
     domain = domain_id()
-    session = RosSession(domain)
-    node = session.node
+    ros = RosClient(domain)
+    node = ros.node
     env = isolated_env(domain, work / 'ros_log')
     procs = NodeProcesses(env, work / 'logs')
     out = {'work': work, 'section': section, 'estimates': [], 'estimates2': [],
@@ -187,7 +187,7 @@ def stand(tmp_path_factory):
     finally:
         out['codes'] = procs.stop_all()
         out['exits'] = procs.exit_summary()
-        session.close()
+        ros.close()
     return out
 
 
