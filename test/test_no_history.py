@@ -17,6 +17,7 @@ Found and reported per file:
 This file names what it looks for and is not checked itself.
 """
 
+import functools
 import io
 from pathlib import Path
 import re
@@ -42,9 +43,12 @@ TEMPORARY_ALLOWLIST = (
 SESSION = re.compile(r'session', re.I)
 #: Names of Python and pytest that use the word in their own sense.
 SESSION_API = re.compile(r"start_new_session|scope\s*=\s*['\"]session['\"]")
-ISSUE = re.compile(r'\bissues?\s*#?\s*\d+|(?<![\w#&/])#\d+\b', re.I)
+ISSUE = re.compile(r'\bissues?\s*#?\s*\d+', re.I)
+#: "#16"; in Markdown not inside fenced code, where it is a program's output ("candidate #5")
+ISSUE_HASH = re.compile(r'(?<![\w#&/])#\d+\b')
+FENCED = re.compile(r'^```.*?^```', re.S | re.M)
 TEST_TAG = re.compile(r'\bpins #\d+\b')
-COMMIT = re.compile(r'(?<![\w.+-])(?=[0-9a-f]*[a-f])(?=[0-9a-f]*\d)[0-9a-f]{7,40}(?![\w.+-])')
+HEX_WORD = re.compile(r'(?<![\w.+-])[0-9a-f]{7,40}(?![\w.+-])')
 TEXT_SUFFIXES = {'.md', '.py', '.json', '.yaml', '.yml', '.txt', '.csv', '.msg', '.srv', '.xml',
                  '.cfg', '.ini'}
 
@@ -80,12 +84,24 @@ def findings(path, kind):
     if kind == 'code':
         text = prose_of_code(text)
     found = [f'session: {m.group(0)!r}' for m in SESSION.finditer(SESSION_API.sub('', text))]
-    issue_text = TEST_TAG.sub('', text) if path.is_relative_to(REPO_ROOT / 'test') else text
+    issue_text = TEST_TAG.sub('', text) if _is_test(path) else text
     found += [f'issue reference: {m.group(0)!r}' for m in ISSUE.finditer(issue_text)]
-    found += [f'commit hash: {m.group(0)!r}' for m in COMMIT.finditer(text)]
+    hash_text = FENCED.sub('', issue_text) if path.suffix == '.md' else issue_text
+    found += [f'issue reference: {m.group(0)!r}' for m in ISSUE_HASH.finditer(hash_text)]
+    found += [f'commit hash: {m.group(0)!r}' for m in HEX_WORD.finditer(text)
+              if not m.group(0).isdigit() and not m.group(0).isalpha()]
     return found
 
 
+def _is_test(path):
+    try:
+        path.relative_to(REPO_ROOT / 'test')
+    except ValueError:
+        return False
+    return True
+
+
+@functools.lru_cache(maxsize=1)
 def scan():
     """Return {relative path: findings} for every checked file with history in it."""
     out = {}
