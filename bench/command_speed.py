@@ -1,5 +1,5 @@
 """
-Issue 15 items 2 and 4: whole ``rotor-id identify`` commands, as a user waits for them.
+Whole ``rotor-id identify`` commands, as a user waits for them.
 
 Three commands on the practice recording ``id_wake_progressing`` (the repository's sibling
 ``shared/recordings``), each as a fresh process, timed interleaved (median of ``--repeat``):
@@ -11,7 +11,7 @@ Three commands on the practice recording ``id_wake_progressing`` (the repository
   (analytic sensitivities through the filter, compiled), with ``ROTOR_ID_KERNELS=numpy``
   (the same equations in numpy; the two must give the same estimates and bounds to 1e-9
   relative), and with finite-difference sensitivities (``gradients='finite-difference'``: the
-  filter run 2k+1 times per iteration, compiled; the method before issue 15 item 2), whose
+  filter run 2k+1 times per iteration, compiled: the peer of the analytic sensitivities), whose
   optimum may differ by the convergence tolerance (printed in σ);
 * filter error on the periodic practice record ``id_multiblade_mu04`` (its own window), with
   analytic and with finite-difference sensitivities.
@@ -214,7 +214,7 @@ def main(argv=None):
             f'{import_table}\n')
     print(body)
     if not args.no_write:
-        write_results('command_speed', 'Whole identify commands (issue 15 items 2 and 4)', body,
+        write_results('command_speed', 'Whole identify commands', body,
                       'python bench/command_speed.py')
     if agreement > AGREEMENT:
         print(f'ERROR: compiled and numpy filter error differ by {agreement:.1e}',

@@ -1,5 +1,5 @@
 """
-The adequacy check after every identification (issue 12, item 2).
+The adequacy check after every identification (pins #12).
 
 Recordings are made here: by the library's planning simulator (the model is right: the check
 must stay quiet at its family-wise level) and by the independent blade-by-blade generator of

@@ -1,5 +1,5 @@
 """
-`rotor-id identify` on the shared test-stand recordings (issue 3, Offline).
+`rotor-id identify` on the shared test-stand recordings (pins #3).
 
 Each id_* recording has an answer (shared/recordings/answers.json); the identified parameters
 must lie within 3σ of it, where σ is our own Cramér-Rao bound — so a biased estimator or a

@@ -1,5 +1,5 @@
 """
-Filter-error maximum likelihood (issue 5): the likelihood, its sensitivities, and its statistics.
+Filter-error maximum likelihood (pins #5): the likelihood, its sensitivities, and its statistics.
 
 What is proved here:
 * the eq.-26 likelihood of our filter equals statsmodels' independent state-space Kalman filter

@@ -1,5 +1,5 @@
 """
-Nodes keep running through bad messages, count them on /diagnostics and recover (issue 7 item 2).
+Nodes keep running through bad messages, count them on /diagnostics and recover (pins #7).
 
 Plant, stirring input, identifier and state estimator run as separate processes. Before the rotor
 starts, this test publishes malformed messages on every topic they read: NaN, wrong joint names,

@@ -1,5 +1,5 @@
 """
-Lab network: plant and identifier on two "hosts" discover each other over DDS (issue 7 item 5).
+Lab network: plant and identifier on two "hosts" discover each other over DDS (pins #7).
 
 Two network namespaces joined by a veth pair, an address on each end and a multicast route
 224.0.0.0/4 on each side (TOOLCHAIN.md §11), made and deleted by this test. The plant and the

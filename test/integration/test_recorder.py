@@ -1,5 +1,5 @@
 """
-The recorder loses nothing and survives being stopped (issue 7 item 3, CI-sized).
+The recorder loses nothing and survives being stopped (CI-sized; pins #7).
 
 This process publishes the test-stand topics (JointState, best effort, ~1 kHz) and every
 rotor_id_msgs type plus a latched topic to a recorder running as its own process. Stopped with

@@ -7,8 +7,8 @@ raise a ValueError (rotor_id.nodes.common.spin_node prints it as one line and ex
 file, the line and the problem, before any subscription or fit: a blade joint list whose length
 is not ``rotor.blades``, a joint name repeated, the azimuth joint also a blade's, an unknown
 azimuth convention, the pitch command on the pitch sensor's topic; and the identifier and state
-estimator a model the rotor cannot have (multiblade_wake of a 2-bladed rotor, which the
-identifier used to accept and fit).
+estimator a model the rotor cannot have (multiblade_wake of a 2-bladed rotor: it has no
+cyclic modes to fit).
 """
 
 
