@@ -49,6 +49,8 @@ ISSUE_HASH = re.compile(r'(?<![\w#&/])#\d+\b')
 FENCED = re.compile(r'^```.*?^```', re.S | re.M)
 TEST_TAG = re.compile(r'\bpins #\d+\b')
 HEX_WORD = re.compile(r'(?<![\w.+-])[0-9a-f]{7,40}(?![\w.+-])')
+_HASH_SCREEN = re.compile(r'(?<![\w.+-])(?=[0-9a-f]{0,39}[a-f])(?=[0-9a-f]{0,39}\d)'
+                          r'[0-9a-f]{7,40}(?![\w.+-])')
 TEXT_SUFFIXES = {'.md', '.py', '.json', '.yaml', '.yml', '.txt', '.csv', '.msg', '.srv', '.xml',
                  '.cfg', '.ini'}
 
@@ -78,19 +80,30 @@ def prose_of_code(text):
     return '\n'.join(parts)
 
 
-def findings(path, kind):
+def findings(path, kind, in_tests=None):
     """Return the history found in one file: a list of short excerpts with their kind."""
     text = path.read_text(encoding='utf-8', errors='replace')
+    if not _may_hold_history(text):
+        return []
     if kind == 'code':
         text = prose_of_code(text)
     found = [f'session: {m.group(0)!r}' for m in SESSION.finditer(SESSION_API.sub('', text))]
-    issue_text = TEST_TAG.sub('', text) if _is_test(path) else text
+    in_tests = _is_test(path) if in_tests is None else in_tests
+    issue_text = TEST_TAG.sub('', text) if in_tests else text
     found += [f'issue reference: {m.group(0)!r}' for m in ISSUE.finditer(issue_text)]
     hash_text = FENCED.sub('', issue_text) if path.suffix == '.md' else issue_text
     found += [f'issue reference: {m.group(0)!r}' for m in ISSUE_HASH.finditer(hash_text)]
     found += [f'commit hash: {m.group(0)!r}' for m in HEX_WORD.finditer(text)
               if not m.group(0).isdigit() and not m.group(0).isalpha()]
     return found
+
+
+def _may_hold_history(text):
+    """Cheap screen before tokenizing: could any pattern match anywhere in the file."""
+    lowered = text.lower()
+    return ('session' in lowered or ('issue' in lowered and ISSUE.search(text) is not None)
+            or ('#' in text and ISSUE_HASH.search(text) is not None)
+            or _HASH_SCREEN.search(text) is not None)
 
 
 def _is_test(path):
@@ -141,11 +154,20 @@ def test_allowlisted_paths_still_to_clean():
     ('see issue 16 and #15', 2),
     ('a JointState of 3 blades at 1.234567e-05 rad, seed 1234567', 0),
     ('the session bag', 1),
+    ('```\nrecommended: #5 progressing\n```\n', 0),
+    ('recommended: #5 progressing\n', 1),
 ])
 def test_the_check_finds_what_it_should(tmp_path, text, expected):
     path = tmp_path / 'note.md'
     path.write_text(text)
     assert len(findings(path, 'text')) == expected
+
+
+def test_a_test_may_carry_the_short_tag_only(tmp_path):
+    path = tmp_path / 'test_x.py'
+    path.write_text('"""The JSON keys (pins #3); issue 3 says why."""\n')
+    assert findings(path, 'text', in_tests=True) == ["issue reference: 'issue 3'"]
+    assert len(findings(path, 'text', in_tests=False)) == 2
 
 
 def test_code_is_checked_in_its_comments_and_strings_only(tmp_path):
