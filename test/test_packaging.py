@@ -283,7 +283,7 @@ def test_fresh_workspace_builds_with_documented_command(venv_prefix, tmp_path):
     shutil.copytree(REPO_ROOT, ws / 'src' / 'rotor_id', ignore=_copy_ignore, symlinks=True)
     env = _colcon_env(venv_prefix, tmp_path)
 
-    # What README.md says: colcon's crawl stops at the root package ...
+    # What docs/install.md says: colcon's crawl stops at the root package ...
     assert _listed(_colcon(['list', '--names-only', '--base-paths', 'src'], ws, env)) == \
         ['rotor_id']
     # ... so msg_defs is named as a second base path.
