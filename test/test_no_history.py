@@ -22,12 +22,13 @@ import io
 from pathlib import Path
 import re
 import tokenize
+import warnings
 
 import pytest
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
 
-#: Paths other work is still cleaning; the check lists them but does not fail on them.
+#: Paths other work is still cleaning; the check lists them (a warning) but does not fail on them.
 #: TEMPORARY: remove once those areas are merged and cleaned.
 TEMPORARY_ALLOWLIST = (
     'rotor_id/io/',
@@ -137,16 +138,13 @@ def _report(offending):
 
 
 def test_no_development_history_in_the_product():
+    """Fail on history outside the temporary allowlist; list what the allowlist hides."""
     offending = scan()
     failing = {p: f for p, f in offending.items() if not _allowed(p)}
-    assert not failing, 'development history in the product:\n' + _report(failing)
-
-
-def test_allowlisted_paths_still_to_clean():
-    """List what the temporary allowlist hides (xfail while any is left; see its comment)."""
-    waiting = {p: f for p, f in scan().items() if _allowed(p)}
+    waiting = {p: f for p, f in offending.items() if _allowed(p)}
     if waiting:
-        pytest.xfail('still to clean (temporary allowlist):\n' + _report(waiting))
+        warnings.warn('still to clean (TEMPORARY_ALLOWLIST):\n' + _report(waiting))
+    assert not failing, 'development history in the product:\n' + _report(failing)
 
 
 @pytest.mark.parametrize('text, expected', [
