@@ -1,0 +1,598 @@
+"""
+Directional frequency responses from stirring sweeps, CIFER's cost and a frequency-domain fit.
+
+In complex fixed-frame coordinates the cyclic pitch θ_c = θI + iθII and the cyclic flap
+β_c = βI + iβII (docs/models.md §0, §8) turn a progressing stirring into positive and a
+regressing one into negative frequencies; their ratio is the directional frequency response
+(dFRF) of :func:`rotor_id.physics.models.directional_frequency_response`. Frequencies are in
+per rev (the nondimensional time t is the azimuth), so a record whose rotor speed drifts keeps
+its frequency axis.
+
+The estimate (docs/frequency_response.md gives the reasons)
+-------------------------------------------------------------
+Each run's transform window starts with the rotor steady (the recording convention starts in
+trim) and its spectra are those of the time derivatives of θ_c and β_c,
+
+    Θ(ω) = Σ_j (θ_c,j − θ_c,j−1) e^{−iω t_j−½},      B(ω) likewise,
+
+which is the Fourier transform of the whole transient with the end-point terms included: a
+record that starts steady needs no taper at its start and no detrending. Auto- and
+cross-spectra are averaged over n_s neighbouring independent frequencies (spacing 2π/T of the
+run, Daniell) and over the runs whose stirring swept that frequency (n_d = the number of
+products averaged):
+
+    H = Σ Θ* B / Σ |Θ|²,   γ² = |Σ Θ* B|² / (Σ|Θ|² Σ|B|²),
+    ε_r = √(1 − γ²) / (|γ| √(2 n_d))          (Bendat & Piersol, random error of |H| and ∠H)
+
+The estimate is linear in the flap record, so the same operator applied to a model's simulated
+flap gives the model's response exactly as this estimate sees it (:meth:`Spectra.of`): the
+transient of a stirring that is cut off at the end of the record is then in both, which the
+fit (:func:`fit_frequency_response`) relies on.
+
+CIFER's cost (Tischler & Remple, eq. 11.x)
+------------------------------------------
+    J = (20/n_ω) Σ W_γ [W_g (|T_c| − |T_m|)² + W_p (∠T_c − ∠T_m)²]
+    W_γ = [1.58 (1 − exp(−γ²))]²,  W_g = 1,  W_p = 0.01745,  |·| in dB, ∠ in degrees
+
+over the points with γ² ≥ 0.6; J ≤ 100 is an acceptable fit.
+"""
+
+from dataclasses import dataclass, field
+import math
+import time
+
+import numpy as np
+
+from rotor_id.estimation.output_error import Estimate, IdentificationError
+from rotor_id.estimation.simulate import simulate
+from rotor_id.physics.multiblade import multiblade_coordinates
+from rotor_id.physics.stirring import multiblade_from_blade_pitch, SampledInput
+
+#: Neighbouring frequencies averaged per point (Daniell): 3 keeps the resolution of the short
+#: stirring sweeps and gives n_d = 3 averages per run for the coherence.
+SMOOTHING_BINS = 3
+#: CIFER's coherence threshold for a point to enter the cost and the fit.
+COHERENCE_MIN = 0.6
+#: CIFER's weights: magnitude (dB) and phase (deg), W_p/W_g = 1 dB per 7.57 deg.
+MAGNITUDE_WEIGHT = 1.0
+PHASE_WEIGHT = 0.01745
+#: CIFER's rule: an average J up to 100 is an acceptable fit.
+ACCEPTABLE_COST = 100.0
+DB = 20.0 / math.log(10.0)          # dB per neper
+DEG = 180.0 / math.pi
+
+
+@dataclass
+class Sweep:
+    """
+    One run's cyclic pitch and flap in complex fixed-frame coordinates over its window.
+
+    ``t`` nondimensional time (rad of azimuth), ``pitch`` θ_c = θI + iθII, ``flap``
+    β_c = βI + iβII, ``omega_rad_s`` the mean rotor speed, ``band`` the signed frequencies
+    (per rev) the stirring swept, ``inputs`` the measured [θ0, θI, θII] (for simulation).
+    """
+
+    name: str
+    t: np.ndarray
+    pitch: np.ndarray
+    flap: np.ndarray
+    omega_rad_s: float
+    band: tuple
+    inputs: object
+    stirring_t: tuple
+    window_s: tuple
+
+
+def cyclic_signals(t, blade_pitch, blade_flap):
+    """Return θ_c = θI + iθII and β_c = βI + iβII (docs/models.md §0, §8) from blade data."""
+    u = multiblade_from_blade_pitch(t, blade_pitch)
+    coords = multiblade_coordinates(blade_flap, t)
+    if 'cos' not in coords:
+        raise ValueError(f'a {np.shape(blade_flap)[1]}-bladed rotor has no fixed-frame cyclic '
+                         'flap: its directional frequency response is not defined')
+    return u[:, 1] + 1j * u[:, 2], coords['cos'] + 1j * coords['sin'], u
+
+
+def stirring_frequency(t, pitch, smoothing=1.0):
+    """
+    Instantaneous stirring frequency (per rev, signed) of θ_c, and where the cyclic is on.
+
+    θ_c = i a e^{−iφ} (docs/models.md §0): its phase advances at −dφ/dt, positive for
+    progressing stirring. The derivative is a central difference over ``smoothing`` rad of
+    azimuth; samples with less than half the largest cyclic amplitude count as off.
+    """
+    amplitude = np.abs(pitch)
+    on = amplitude >= 0.5 * np.max(amplitude, initial=0.0)
+    if np.count_nonzero(on) < 3 or not np.any(amplitude > 0):
+        return np.zeros(t.size), on
+    phase = np.interp(t, t[on], np.unwrap(np.angle(pitch[on])))
+    ahead = np.interp(t + 0.5 * smoothing, t, phase)
+    behind = np.interp(t - 0.5 * smoothing, t, phase)
+    span = np.interp(t + 0.5 * smoothing, t, t) - np.interp(t - 0.5 * smoothing, t, t)
+    rate = (ahead - behind) / np.maximum(span, 1e-12)
+    return np.where(on, rate, 0.0), on
+
+
+def sweep_from_record(record, name='run', window_s=None):
+    """
+    Return the :class:`Sweep` of a record, its window defaulting to the whole stirring test.
+
+    The stirring part is found in the measured pitch (:func:`stirring_frequency`): the samples
+    where the cyclic turns faster than 5 % of its fastest rate. The default window runs from
+    the record's first sample (the rotor in trim, the recording convention) to its last, so
+    that the transform starts from a steady rotor; ``window_s`` (seconds after the first
+    sample) overrides it. Raises ValueError, before any spectrum, when the window holds no
+    stirring.
+    """
+    if window_s is not None:
+        record = record.window(*window_s)
+    t = np.asarray(record.t, dtype=float)
+    if t.size < 16:
+        raise ValueError(f'{name}: the window holds {t.size} samples; a frequency response '
+                         'needs the stirring part of the record (widen --window-s)')
+    pitch, flap, u = cyclic_signals(t, record.blade_pitch, record.blade_flap)
+    rate, _ = stirring_frequency(t, pitch)
+    fastest = float(np.max(np.abs(rate), initial=0.0))
+    stirring = np.abs(rate) > 0.05 * fastest
+    turned = float(np.sum(np.abs(rate[stirring]) * np.gradient(t)[stirring]))
+    if fastest <= 0.0 or turned < math.pi:
+        raise ValueError(f'{name}: no pitch stirring in the window (the cyclic pitch turns '
+                         f'{turned:.2g} rad); give a record with a stirring sweep, or a '
+                         '--window-s that holds it')
+    idx = np.flatnonzero(stirring)
+    band = (float(np.min(rate[idx])), float(np.max(rate[idx])))
+    return Sweep(name=name, t=t, pitch=pitch, flap=flap,
+                 omega_rad_s=float(np.mean(record.rotor_speed_rad_s)), band=band,
+                 inputs=SampledInput(t, u), stirring_t=(float(t[idx[0]]), float(t[idx[-1]])),
+                 window_s=(float(record.time_s[0]), float(record.time_s[-1])))
+
+
+def _derivative_transform_matrix(t, omega):
+    """E (F, T−1): the transform of the first differences at the interval midpoints."""
+    mid = 0.5 * (t[1:] + t[:-1])
+    return np.exp(-1j * np.multiply.outer(omega, mid - t[0]))
+
+
+@dataclass
+class Spectra:
+    """
+    The averaged spectra of one or more sweeps on a frequency grid, and the linear estimator.
+
+    ``frequency`` per rev (signed), ``guu``, ``gyy``, ``guy`` the averaged auto- and
+    cross-spectra, ``averages`` n_d per point. :meth:`of` applies the same estimator
+    H = Σ Θ* B / Σ|Θ|² to other flap signals (a model's simulation and its sensitivities).
+    """
+
+    frequency: np.ndarray
+    guu: np.ndarray
+    gyy: np.ndarray
+    guy: np.ndarray
+    averages: np.ndarray
+    operators: list = field(default_factory=list)    # per sweep: (F, T−1) weights on Δβ_c
+
+    def of(self, flaps):
+        """Return the estimator applied to one flap signal per sweep, (F,) or (F, k)."""
+        out = 0.0
+        for weights, flap in zip(self.operators, flaps):
+            out = out + weights @ np.diff(flap, axis=0)
+        return out
+
+
+def estimate_spectra(sweeps, smoothing_bins=SMOOTHING_BINS, frequency=None):
+    """
+    Average the derivative spectra of ``sweeps`` over neighbouring frequencies and runs.
+
+    The grid (``frequency``, per rev, signed) defaults to the finest spacing 2π/T of the runs,
+    over the union of the bands they swept; a run contributes to a point only when its
+    stirring swept it, so a progressing run never enters the negative frequencies.
+    """
+    if not sweeps:
+        raise ValueError('no sweep to estimate a frequency response from')
+    spacing = [2.0 * math.pi / (s.t[-1] - s.t[0]) for s in sweeps]
+    if frequency is None:
+        step = min(spacing)
+        half = 0.5 * (smoothing_bins - 1)
+        points = []
+        for s, d in zip(sweeps, spacing):
+            lo, hi = s.band
+            k_lo, k_hi = math.ceil(lo / step), math.floor(hi / step)
+            ks = np.arange(k_lo, k_hi + 1)
+            # the lowest points need their neighbours on the same side of zero
+            ks = ks[np.abs(ks * step) > half * d + 0.5 * d]
+            points.append(ks)
+        frequency = np.unique(np.concatenate(points)) * step
+    frequency = np.asarray(frequency, dtype=float)
+    offsets = np.arange(smoothing_bins) - 0.5 * (smoothing_bins - 1)
+    guu = np.zeros(frequency.size)
+    gyy = np.zeros(frequency.size)
+    guy = np.zeros(frequency.size, dtype=complex)
+    averages = np.zeros(frequency.size, dtype=int)
+    parts = []
+    for s, d in zip(sweeps, spacing):
+        inside = (frequency >= s.band[0] - 1e-12) & (frequency <= s.band[1] + 1e-12)
+        grid = (frequency[:, None] + d * offsets[None, :]).ravel()
+        E = _derivative_transform_matrix(s.t, grid).reshape(frequency.size, smoothing_bins, -1)
+        E[~inside] = 0.0
+        U = E @ np.diff(s.pitch)
+        Y = E @ np.diff(s.flap)
+        guu += np.sum(np.abs(U) ** 2, axis=1)
+        gyy += np.sum(np.abs(Y) ** 2, axis=1)
+        guy += np.sum(np.conj(U) * Y, axis=1)
+        averages += inside * smoothing_bins
+        parts.append(np.einsum('fb,fbt->ft', np.conj(U), E))
+    keep = averages > 0
+    with np.errstate(invalid='ignore', divide='ignore'):
+        operators = [np.where(guu[:, None] > 0, part / guu[:, None], 0.0)[keep]
+                     for part in parts]
+    return Spectra(frequency=frequency[keep], guu=guu[keep], gyy=gyy[keep], guy=guy[keep],
+                   averages=averages[keep], operators=operators)
+
+
+@dataclass
+class FrequencyResponse:
+    """
+    An estimated directional FRF β_c/θ_c with its coherence and random error per point.
+
+    Frequencies per rev (signed: + progressing, − regressing) and in Hz at the runs' mean
+    rotor speed; ``response`` complex (rad/rad); ``random_error`` ε_r of Bendat & Piersol
+    (relative error of the magnitude, and the phase error in rad).
+    """
+
+    frequency_per_rev: np.ndarray
+    response: np.ndarray
+    coherence: np.ndarray
+    random_error: np.ndarray
+    averages: np.ndarray
+    omega_rad_s: float
+    smoothing_bins: int
+    runs: list
+    spectra: Spectra = None
+
+    @property
+    def frequency_hz(self):
+        """Frequencies in Hz at the mean rotor speed (the per-rev value times Ω/2π)."""
+        return self.frequency_per_rev * self.omega_rad_s / (2.0 * math.pi)
+
+    @property
+    def magnitude(self):
+        """|H|, rad/rad."""
+        return np.abs(self.response)
+
+    @property
+    def phase_deg(self):
+        """∠H in degrees, in (−180, 180]."""
+        return np.degrees(np.angle(self.response))
+
+    def usable(self, coherence_min=COHERENCE_MIN):
+        """Return the points with γ² at least ``coherence_min`` (CIFER: 0.6)."""
+        return self.coherence >= coherence_min
+
+    def as_json(self):
+        """Return the JSON of ``rotor-id frequency-response`` (keys fixed by issue 37)."""
+        return {
+            'frequency_per_rev': [float(v) for v in self.frequency_per_rev],
+            'frequency_hz': [float(v) for v in self.frequency_hz],
+            'magnitude': [float(v) for v in self.magnitude],
+            'phase_deg': [float(v) for v in self.phase_deg],
+            'coherence': [float(v) for v in self.coherence],
+            'random_error': [float(v) for v in self.random_error],
+            'averages': [int(v) for v in self.averages],
+            'smoothing_bins': int(self.smoothing_bins),
+            'omega_rad_s': float(self.omega_rad_s),
+            'runs': list(self.runs),
+        }
+
+
+def random_error(coherence, averages):
+    """ε_r = √(1 − γ²)/(|γ| √(2 n_d)) (Bendat & Piersol), for |H| (relative) and ∠H (rad)."""
+    gamma2 = np.clip(np.asarray(coherence, dtype=float), 1e-12, 1.0)
+    return np.sqrt(1.0 - gamma2) / (np.sqrt(gamma2) * np.sqrt(2.0 * np.asarray(averages)))
+
+
+def estimate_frequency_response(sweeps, smoothing_bins=SMOOTHING_BINS, frequency=None):
+    """Estimate the dFRF of one or more :class:`Sweep` (module docstring)."""
+    spectra = estimate_spectra(sweeps, smoothing_bins, frequency)
+    if spectra.frequency.size == 0:
+        raise ValueError('the stirring swept no frequency the records resolve (each needs '
+                         'a few revolutions of stirring); record a longer sweep')
+    with np.errstate(invalid='ignore', divide='ignore'):
+        response = spectra.guy / spectra.guu
+        coherence = np.clip(np.abs(spectra.guy) ** 2 / (spectra.guu * spectra.gyy), 0.0, 1.0)
+    coherence = np.nan_to_num(coherence)
+    return FrequencyResponse(
+        frequency_per_rev=spectra.frequency, response=response, coherence=coherence,
+        random_error=random_error(coherence, spectra.averages), averages=spectra.averages,
+        omega_rad_s=float(np.mean([s.omega_rad_s for s in sweeps])),
+        smoothing_bins=int(smoothing_bins), runs=[s.name for s in sweeps], spectra=spectra)
+
+
+# ------------------------------------------------------------------------------ CIFER's cost
+def coherence_weight(coherence):
+    """W_γ = [1.58 (1 − exp(−γ²))]² (Tischler & Remple)."""
+    return (1.58 * (1.0 - np.exp(-np.asarray(coherence, dtype=float)))) ** 2
+
+
+def response_errors(measured, model):
+    """Return the magnitude (dB) and phase (deg, within ±180) errors of ``model``."""
+    ratio = np.asarray(model) / np.asarray(measured)
+    return DB * np.log(np.abs(ratio)), DEG * np.angle(ratio)
+
+
+def cifer_cost(measured, model, coherence):
+    """J = (20/n) Σ W_γ [W_g Δ|H|dB² + W_p Δ∠H deg²] over the points given (NaN if none)."""
+    if np.size(measured) == 0:
+        return float('nan')
+    mag, phase = response_errors(measured, model)
+    terms = coherence_weight(coherence) * (MAGNITUDE_WEIGHT * mag ** 2
+                                           + PHASE_WEIGHT * phase ** 2)
+    return float(20.0 / np.size(measured) * np.sum(terms))
+
+
+@dataclass
+class BandCost:
+    """CIFER's J over one band of frequencies (per rev, signed)."""
+
+    low: float
+    high: float
+    points: int
+    cost: float
+
+    @property
+    def acceptable(self):
+        """J ≤ 100 (CIFER)."""
+        return bool(self.points) and self.cost <= ACCEPTABLE_COST
+
+    def as_json(self):
+        """Band limits, points and J."""
+        return {'frequency_per_rev': [float(self.low), float(self.high)],
+                'points': int(self.points), 'cost': float(self.cost),
+                'acceptable': self.acceptable}
+
+
+def band_costs(estimate, model_response, bands_per_side=3, coherence_min=COHERENCE_MIN):
+    """
+    J per band: each direction's usable points split into ``bands_per_side`` equal bands.
+
+    Returns the list of :class:`BandCost` and the J over all usable points.
+    """
+    use = estimate.usable(coherence_min)
+    f = estimate.frequency_per_rev
+    out = []
+    for side in (f < 0, f > 0):
+        idx = np.flatnonzero(use & side)
+        if idx.size == 0:
+            continue
+        for chunk in np.array_split(idx, min(bands_per_side, idx.size)):
+            out.append(BandCost(low=float(f[chunk].min()), high=float(f[chunk].max()),
+                                points=int(chunk.size),
+                                cost=cifer_cost(estimate.response[chunk],
+                                                model_response[chunk],
+                                                estimate.coherence[chunk])))
+    idx = np.flatnonzero(use)
+    total = cifer_cost(estimate.response[idx], model_response[idx], estimate.coherence[idx])
+    return out, total
+
+
+# ------------------------------------------------------------------ the model as estimated
+def model_start(model, p, sweep, collective):
+    """State at the sweep's first sample: steady at the held input (trim for a periodic model)."""
+    u0 = sweep.inputs(sweep.t[:1])
+    if model.time_invariant:
+        return model.equilibrium(sweep.t[:1], p, u0)
+    return model.trim_state(p, collective, t=float(sweep.t[0]))
+
+
+def _start_jacobian(model, p, sweep, collective, index):
+    if model.time_invariant:
+        u0 = sweep.inputs(sweep.t[:1])
+        return model.equilibrium_jacobian(sweep.t[:1], p, u0)[:, index]
+    columns = []
+    for i in index:
+        h = 1e-6 * max(1.0, abs(p[i]))
+        up, down = p.copy(), p.copy()
+        up[i] += h
+        down[i] -= h
+        columns.append((model_start(model, up, sweep, collective)
+                        - model_start(model, down, sweep, collective)) / (2.0 * h))
+    return np.column_stack(columns)
+
+
+def model_flap(model, p, sweep, collective, index=()):
+    """
+    Simulate β_c of ``model`` at ``p`` on the sweep's samples and measured pitch.
+
+    With ``index`` also ∂β_c/∂p_i (T, k). The run starts steady (:func:`model_start`).
+    """
+    p = np.asarray(p, dtype=float)
+    x0 = model_start(model, p, sweep, collective)
+    names = list(model.state_names)
+    iI, iII = names.index('beta_I'), names.index('beta_II')
+    index = list(index)
+    jac = _start_jacobian(model, p, sweep, collective, index) if index else None
+    sim = simulate(model, p, sweep.inputs, sweep.t, x0, param_index=index, x0_jacobian=jac)
+    flap = sim.x[:, iI] + 1j * sim.x[:, iII]
+    if not index:
+        return flap, None
+    return flap, sim.dx[:, iI, :] + 1j * sim.dx[:, iII, :]
+
+
+def estimated_model_response(model, p, sweeps, spectra, collective, index=()):
+    """Return the model's dFRF as the estimator sees it on these sweeps (and ∂/∂p_i)."""
+    flaps, sens = [], []
+    for sweep in sweeps:
+        flap, dflap = model_flap(model, p, sweep, collective, index)
+        flaps.append(flap)
+        sens.append(dflap)
+    response = spectra.of(flaps)
+    return response, (spectra.of(sens) if index else None)
+
+
+# ------------------------------------------------------------------------------ the fit
+@dataclass
+class FrequencyFit:
+    """A frequency-domain estimate: values, covariance, J, and the points it used."""
+
+    names: list
+    values: np.ndarray
+    covariance: np.ndarray
+    cost: float
+    iterations: int
+    converged: bool
+    message: str
+    points: int
+    model_response: np.ndarray
+    chi2_per_dof: float
+
+
+def _residuals(measured, model, weights):
+    mag, phase = response_errors(measured, model)
+    return np.concatenate([weights[0] * mag, weights[1] * phase])
+
+
+def fit_frequency_response(model, sweeps, estimate, unknowns, guess, known, collective,
+                           coherence_min=COHERENCE_MIN, max_iter=40, step_tol=1e-6,
+                           progress=None):
+    """
+    Fit ``unknowns`` by minimising CIFER's J between the estimate and the model's estimate.
+
+    The model side is the same estimator applied to the model's simulated flap on the
+    measured pitch (:func:`estimated_model_response`), so the end of a stirring cut off by the
+    record and the periodic terms of a μ > 0 model are in both sides alike. Points: γ² ≥
+    ``coherence_min``, every ``smoothing_bins``-th (independent for white noise). Bounds: the
+    linearised covariance of the J minimiser with each point's magnitude and phase error
+    ε_r (dB: 8.69 ε_r, deg: 57.3 ε_r), inflated by the residual χ²/dof when it exceeds 1.
+    """
+    p = model.parameter_vector({**known, **guess})
+    index = [model.parameter_names.index(n) for n in unknowns]
+    usable = np.flatnonzero(estimate.usable(coherence_min))
+    step = max(1, int(estimate.smoothing_bins))
+    chosen = usable[::step]
+    if chosen.size * 2 < len(unknowns) + 1:
+        raise IdentificationError(
+            f'only {chosen.size} independent frequencies have coherence ≥ {coherence_min:g}: '
+            f'too few to fit {len(unknowns)} parameters in the frequency domain; record a '
+            'longer or slower stirring sweep, or use --method output-error')
+    measured = estimate.response[chosen]
+    gamma2 = estimate.coherence[chosen]
+    w_gamma = coherence_weight(gamma2)
+    weights = (np.sqrt(w_gamma * MAGNITUDE_WEIGHT), np.sqrt(w_gamma * PHASE_WEIGHT))
+    scale = 20.0 / chosen.size
+    sub = _SubSpectra(estimate.spectra, chosen)
+    lower = np.array([model.parameter(n).lower for n in unknowns])
+    upper = np.array([model.parameter(n).upper for n in unknowns])
+    started = time.perf_counter()
+
+    def evaluate(values, jacobian):
+        q = p.copy()
+        q[index] = values
+        response, sens = estimated_model_response(model, q, sweeps, sub, collective,
+                                                  index if jacobian else ())
+        r = _residuals(measured, response, weights)
+        if not jacobian:
+            return r, response, None
+        rel = sens / response[:, None]
+        A = np.concatenate([weights[0][:, None] * DB * rel.real,
+                            weights[1][:, None] * DEG * rel.imag])
+        return r, response, A
+
+    theta = p[index].copy()
+    lm, converged, message, iteration = 1e-3, False, 'iteration limit reached', 0
+    r, response, A = evaluate(theta, True)
+    cost = scale * float(r @ r)
+    for iteration in range(1, max_iter + 1):
+        N = A.T @ A
+        g = A.T @ r
+        while True:
+            step_vec = np.linalg.solve(N + lm * np.diag(np.diag(N) + 1e-300), g)
+            trial = np.clip(theta + step_vec, lower, upper)
+            r_t, resp_t, _ = evaluate(trial, False)
+            cost_t = scale * float(r_t @ r_t)
+            if cost_t <= cost or lm > 1e8:
+                break
+            lm *= 10.0
+        if cost_t > cost:
+            message = 'no further decrease of J'
+            converged = True
+            break
+        moved = trial - theta
+        theta = trial
+        lm = max(lm / 10.0, 1e-9)
+        r, response, A = evaluate(theta, True)
+        cost = scale * float(r @ r)
+        if progress is not None:
+            progress({'iteration': iteration, 'rms': math.sqrt(cost / 20.0),
+                      'names': list(unknowns), 'values': theta.tolist(),
+                      'elapsed': time.perf_counter() - started, 'label': 'frequency-response J'})
+        try:
+            spread = np.sqrt(np.clip(np.diag(np.linalg.inv(A.T @ A)), 0.0, None))
+        except np.linalg.LinAlgError:
+            spread = np.full(theta.size, np.inf)
+        if np.all(np.abs(moved) <= step_tol * np.maximum(spread * math.sqrt(cost), 1e-12)
+                  + 1e-12 * np.abs(theta)):
+            converged, message = True, 'converged'
+            break
+    covariance, chi2 = _covariance(A, weights, estimate.random_error[chosen], r)
+    return FrequencyFit(names=list(unknowns), values=theta, covariance=covariance, cost=cost,
+                        iterations=iteration, converged=converged, message=message,
+                        points=int(chosen.size), model_response=response,
+                        chi2_per_dof=chi2)
+
+
+def _covariance(A, weights, eps, r):
+    """Sandwich covariance of the weighted least-squares minimiser, scaled by χ²/dof ≥ 1."""
+    eps = np.maximum(eps, 1e-9)
+    sigma = np.concatenate([weights[0] * DB * eps, weights[1] * DEG * eps])   # of each residual
+    N = A.T @ A
+    try:
+        Ninv = np.linalg.inv(N)
+    except np.linalg.LinAlgError:
+        k = A.shape[1]
+        return np.full((k, k), np.nan), float('nan')
+    meat = (A * (sigma ** 2)[:, None]).T @ A
+    covariance = Ninv @ meat @ Ninv
+    dof = max(r.size - A.shape[1], 1)
+    chi2 = float(np.sum((r / sigma) ** 2) / dof)
+    return covariance * max(1.0, chi2), chi2
+
+
+class _SubSpectra:
+    """The estimator restricted to some points (for the fit)."""
+
+    def __init__(self, spectra, points):
+        self.operators = [op[points] for op in spectra.operators]
+
+    def of(self, flaps):
+        out = 0.0
+        for weights, flap in zip(self.operators, flaps):
+            out = out + weights @ np.diff(flap, axis=0)
+        return out
+
+
+def as_estimate(fit, time_domain, method='frequency-response'):
+    """
+    Return an output-error :class:`Estimate` carrying the frequency-domain values and bounds.
+
+    ``time_domain`` is the output-error evaluation at the frequency-domain values (no
+    iteration): its residuals, fitted outputs and noise verify the estimate in the time domain.
+    """
+    names = list(time_domain.names)
+    values = np.array(time_domain.values, dtype=float)
+    covariance = np.zeros((len(names), len(names)))
+    where = [names.index(n) for n in fit.names]
+    values[where] = fit.values
+    covariance[np.ix_(where, where)] = fit.covariance
+    rest = [i for i in range(len(names)) if i not in where]
+    td_cov = np.asarray(time_domain.covariance)
+    covariance[np.ix_(rest, rest)] = td_cov[np.ix_(rest, rest)]
+    with np.errstate(divide='ignore', invalid='ignore'):
+        information = np.linalg.pinv(covariance)
+    est = Estimate(names=names, values=values, covariance=covariance, information=information,
+                   noise_std=time_domain.noise_std, channel_names=time_domain.channel_names,
+                   cost=fit.cost, neg_log_likelihood=time_domain.neg_log_likelihood,
+                   iterations=fit.iterations, converged=fit.converged, message=fit.message,
+                   n_samples=time_domain.n_samples, residuals=time_domain.residuals,
+                   fitted=time_domain.fitted, initial_states=time_domain.initial_states,
+                   warnings=list(time_domain.warnings), method=method,
+                   model_parameters=time_domain.model_parameters,
+                   run_noise_std=time_domain.run_noise_std)
+    return est
