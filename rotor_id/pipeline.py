@@ -779,10 +779,15 @@ def identify_frequency_response(runs, progress=None, max_iter=40, window_s=None)
     sweeps = _frequency_runs(runs, window_s)
     estimate = estimate_frequency_response(sweeps)
     analysis = FrequencyAnalysis(estimate=estimate, sweeps=sweeps)
+    # a constant input is not in a frequency response: θ0 is held at the measured collective
+    # for the frequency-domain fit and fitted alone in the time domain afterwards
+    fitted = [n for n in unknowns if n != 'theta0']
+    held = {n: guess[n] for n in unknowns if n not in fitted}
     with np.errstate(over='ignore', invalid='ignore', divide='ignore'):
-        fit = fit_frequency_response(model, sweeps, estimate, unknowns, guess, known,
+        fit = fit_frequency_response(model, sweeps, estimate, fitted,
+                                     {n: guess[n] for n in fitted}, {**known, **held},
                                      collective, max_iter=max_iter, progress=progress)
-    values = dict(zip(unknowns, fit.values))
+    values = {**held, **dict(zip(fitted, fit.values))}
     analysis.overlay = model_overlay(model, model.parameter_vector({**known, **values}),
                                      sweeps, estimate, collective, 'the frequency-domain fit')
     experiments, parts = [], []
@@ -795,11 +800,19 @@ def identify_frequency_response(runs, progress=None, max_iter=40, window_s=None)
                          window_s=tuple(desc.window_s),
                          omega_rad_s=near.window(*desc.window_s).omega_mean,
                          experiments=list(range(first, len(experiments)))))
+    notes = [w for w in [defaults_warning(defaults, sources)] if w]
     with np.errstate(over='ignore', invalid='ignore', divide='ignore'):
+        if held:
+            alone = fit_output_error(experiments, list(held), guess=held,
+                                     known={**known, **values})
+            values.update({n: alone.value(n) for n in held})
+            notes.append(f'{", ".join(held)}: a constant input does not enter a frequency '
+                         'response; fitted alone by output error over window_s with the other '
+                         'parameters at their frequency-domain values (its σ is the joint '
+                         'Cramér-Rao bound there)')
         time_domain = fit_output_error(experiments, unknowns, guess=values, known=known,
                                        max_iter=0)
     est = as_estimate(fit, time_domain)
-    notes = [w for w in [defaults_warning(defaults, sources)] if w]
     if fit.chi2_per_dof > 4.0:
         notes.append(f'the frequency-domain fit leaves χ²/dof = {fit.chi2_per_dof:.3g} of its '
                      'random errors: the bounds are widened by that; the model or the sweep '

@@ -43,7 +43,8 @@ import time
 
 import numpy as np
 
-from rotor_id.estimation.output_error import Estimate, IdentificationError
+from rotor_id.estimation.output_error import (dependence_warnings, Estimate,
+                                              IdentificationError)
 from rotor_id.estimation.simulate import simulate
 from rotor_id.physics.multiblade import multiblade_coordinates
 from rotor_id.physics.stirring import multiblade_from_blade_pitch, SampledInput
@@ -503,7 +504,7 @@ def fit_frequency_response(model, sweeps, estimate, unknowns, guess, known, coll
         N = A.T @ A
         g = A.T @ r
         while True:
-            step_vec = np.linalg.solve(N + lm * np.diag(np.diag(N) + 1e-300), g)
+            step_vec = -np.linalg.solve(N + lm * np.diag(np.diag(N) + 1e-300), g)
             trial = np.clip(theta + step_vec, lower, upper)
             r_t, resp_t, _ = evaluate(trial, False)
             cost_t = scale * float(r_t @ r_t)
@@ -586,13 +587,22 @@ def as_estimate(fit, time_domain, method='frequency-response'):
     covariance[np.ix_(rest, rest)] = td_cov[np.ix_(rest, rest)]
     with np.errstate(divide='ignore', invalid='ignore'):
         information = np.linalg.pinv(covariance)
+    # the time-domain evaluation stopped on purpose (no iteration): its stop warnings do not
+    # apply; the frequency-domain fit says how its parameters are determined
+    warnings, _ = dependence_warnings(list(fit.names), np.linalg.pinv(fit.covariance))
+    spread = np.sqrt(np.clip(np.diag(fit.covariance), 0.0, None))
+    for name, value, sigma in zip(fit.names, fit.values, spread):
+        if sigma > abs(value):
+            warnings.append(f'{name}: the frequency response holds almost no information on it '
+                            f'(σ = {sigma:.3g} for {value:.4g}); identify it by output error '
+                            'or hold it known')
     est = Estimate(names=names, values=values, covariance=covariance, information=information,
                    noise_std=time_domain.noise_std, channel_names=time_domain.channel_names,
                    cost=fit.cost, neg_log_likelihood=time_domain.neg_log_likelihood,
                    iterations=fit.iterations, converged=fit.converged, message=fit.message,
                    n_samples=time_domain.n_samples, residuals=time_domain.residuals,
                    fitted=time_domain.fitted, initial_states=time_domain.initial_states,
-                   warnings=list(time_domain.warnings), method=method,
+                   warnings=warnings, method=method,
                    model_parameters=time_domain.model_parameters,
                    run_noise_std=time_domain.run_noise_std)
     return est
