@@ -690,8 +690,7 @@ def overlay_warnings(estimate, overlay):
     return out
 
 
-def frequency_analysis(runs, window_s=None, parameters=None, source=None,
-                       smoothing_bins=None):
+def frequency_analysis(runs, window_s=None, parameters=None, source=None):
     """
     Estimate the dFRF of ``runs`` [(record, description, name)], with the model overlaid.
 
@@ -700,10 +699,9 @@ def frequency_analysis(runs, window_s=None, parameters=None, source=None,
     nominal values (θ0: the mean measured collective pitch). None of the runs' models needs
     β_I, β_II to estimate; without them (a single blade, N = 2) no model is drawn.
     """
-    from rotor_id.estimation.frequency_response import (estimate_frequency_response,
-                                                        SMOOTHING_BINS)
+    from rotor_id.estimation.frequency_response import estimate_frequency_response
     sweeps = _frequency_runs(runs, window_s)
-    estimate = estimate_frequency_response(sweeps, smoothing_bins or SMOOTHING_BINS)
+    estimate = estimate_frequency_response(sweeps)
     analysis = FrequencyAnalysis(estimate=estimate, sweeps=sweeps)
     record, description, _ = runs[0]
     model = model_for(description)
@@ -742,7 +740,7 @@ class FrequencyIdentification:
         return {'cost_J': float(self.fit.cost), 'points': int(self.fit.points),
                 'chi2_per_dof': float(self.fit.chi2_per_dof),
                 'windows_s': [list(s.window_s) for s in self.analysis.sweeps],
-                'smoothing_bins': int(self.analysis.estimate.smoothing_bins)}
+                'noise_bins': int(self.analysis.estimate.noise_bins)}
 
 
 def identify_frequency_response(runs, progress=None, max_iter=40, window_s=None):

@@ -16,13 +16,17 @@ trim) and its spectra are those of the time derivatives of θ_c and β_c,
     Θ(ω) = Σ_j (θ_c,j − θ_c,j−1) e^{−iω t_j−½},      B(ω) likewise,
 
 which is the Fourier transform of the whole transient with the end-point terms included: a
-record that starts steady needs no taper at its start and no detrending. Auto- and
-cross-spectra are averaged over n_s neighbouring independent frequencies (spacing 2π/T of the
-run, Daniell) and over the runs whose stirring swept that frequency (n_d = the number of
-products averaged):
+record that starts steady needs no taper at its start and no detrending. At each frequency of
+the grid (spacing 2π/T, independent for white noise) the runs whose stirring swept it are
+pooled (n_d = their number):
 
-    H = Σ Θ* B / Σ |Θ|²,   γ² = |Σ Θ* B|² / (Σ|Θ|² Σ|B|²),
+    H = Σ Θ* B / Σ |Θ|²,   γ² = |H|² Σ|Θ|² / (|H|² Σ|Θ|² + Σ σ²),
     ε_r = √(1 − γ²) / (|γ| √(2 n_d))          (Bendat & Piersol, random error of |H| and ∠H)
+
+with σ² the flap-noise power at that frequency, estimated from the residual of a response
+linear across the ``NOISE_BINS`` neighbouring frequencies (Pintelon & Schoukens' local
+method). γ² is then the ordinary coherence Σ|Θ* B|²/(Σ|Θ|² Σ|B|²) in expectation, without
+the bias a smoothing over neighbouring frequencies has near a lightly damped mode.
 
 The estimate is linear in the flap record, so the same operator applied to a model's simulated
 flap gives the model's response exactly as this estimate sees it (:meth:`Spectra.of`): the
@@ -49,9 +53,9 @@ from rotor_id.estimation.simulate import simulate
 from rotor_id.physics.multiblade import multiblade_coordinates
 from rotor_id.physics.stirring import multiblade_from_blade_pitch, SampledInput
 
-#: Neighbouring frequencies averaged per point (Daniell): 3 keeps the resolution of the short
-#: stirring sweeps and gives n_d = 3 averages per run for the coherence.
-SMOOTHING_BINS = 3
+#: Independent neighbouring frequencies (spacing 2π/T) over which the flap noise of a point is
+#: estimated: five give three degrees of freedom after the local linear response.
+NOISE_BINS = 5
 #: CIFER's coherence threshold for a point to enter the cost and the fit.
 COHERENCE_MIN = 0.6
 #: CIFER's weights: magnitude (dB) and phase (deg), W_p/W_g = 1 dB per 7.57 deg.
@@ -69,8 +73,10 @@ class Sweep:
     One run's cyclic pitch and flap in complex fixed-frame coordinates over its window.
 
     ``t`` nondimensional time (rad of azimuth), ``pitch`` θ_c = θI + iθII, ``flap``
-    β_c = βI + iβII, ``omega_rad_s`` the mean rotor speed, ``band`` the signed frequencies
-    (per rev) the stirring swept, ``inputs`` the measured [θ0, θI, θII] (for simulation).
+    β_c = βI + iβII over the transform window; ``omega_rad_s`` the mean rotor speed, ``band``
+    the signed frequencies (per rev) the stirring swept. ``record_t`` and ``inputs`` (the
+    measured [θ0, θI, θII]) cover the whole record from its first sample, where the rotor is in
+    trim, so that a model is simulated from there; ``start`` is the window's first sample in it.
     """
 
     name: str
@@ -79,7 +85,9 @@ class Sweep:
     flap: np.ndarray
     omega_rad_s: float
     band: tuple
+    record_t: np.ndarray
     inputs: object
+    start: int
     stirring_t: tuple
     window_s: tuple
 
@@ -116,36 +124,45 @@ def stirring_frequency(t, pitch, smoothing=1.0):
 
 def sweep_from_record(record, name='run', window_s=None):
     """
-    Return the :class:`Sweep` of a record, its window defaulting to the whole stirring test.
+    Return the :class:`Sweep` of a record: its stirring band and its transform window.
 
     The stirring part is found in the measured pitch (:func:`stirring_frequency`): the samples
-    where the cyclic turns faster than 5 % of its fastest rate. The default window runs from
-    the record's first sample (the rotor in trim, the recording convention) to its last, so
-    that the transform starts from a steady rotor; ``window_s`` (seconds after the first
-    sample) overrides it. Raises ValueError, before any spectrum, when the window holds no
-    stirring.
+    where the cyclic turns faster than 5 % of its fastest rate; the frequencies it swept are
+    the band of the estimate. The transform window defaults to the whole record, which starts
+    in trim (the recording convention) and so needs no start taper, and whose length sets the
+    frequency resolution 2π/T (a window of the stirring alone would resolve a quarter as much
+    in the report's tests); ``window_s`` (seconds after the first sample) overrides it.
+    Raises ValueError, before any spectrum, when the window holds no stirring.
     """
-    if window_s is not None:
-        record = record.window(*window_s)
-    t = np.asarray(record.t, dtype=float)
-    if t.size < 16:
-        raise ValueError(f'{name}: the window holds {t.size} samples; a frequency response '
-                         'needs the stirring part of the record (widen --window-s)')
-    pitch, flap, u = cyclic_signals(t, record.blade_pitch, record.blade_flap)
-    rate, _ = stirring_frequency(t, pitch)
+    t_all = np.asarray(record.t, dtype=float)
+    pitch_all, flap_all, u = cyclic_signals(t_all, record.blade_pitch, record.blade_flap)
+    rate, _ = stirring_frequency(t_all, pitch_all)
     fastest = float(np.max(np.abs(rate), initial=0.0))
     stirring = np.abs(rate) > 0.05 * fastest
-    turned = float(np.sum(np.abs(rate[stirring]) * np.gradient(t)[stirring]))
+    if window_s is not None:
+        inside = ((record.time_s >= window_s[0] - 1e-9) & (record.time_s <= window_s[1] + 1e-9))
+    else:
+        inside = np.ones(t_all.size, dtype=bool)
+    keep = np.flatnonzero(inside)
+    if keep.size < 16:
+        raise ValueError(f'{name}: the window holds {keep.size} samples; a frequency response '
+                         'needs the stirring part of the record (widen --window-s)')
+    window = slice(int(keep[0]), int(keep[-1]) + 1)
+    swept = stirring[window]
+    dt = np.gradient(t_all)[window]
+    turned = float(np.sum(np.abs(rate[window][swept]) * dt[swept]))
     if fastest <= 0.0 or turned < math.pi:
         raise ValueError(f'{name}: no pitch stirring in the window (the cyclic pitch turns '
                          f'{turned:.2g} rad); give a record with a stirring sweep, or a '
                          '--window-s that holds it')
-    idx = np.flatnonzero(stirring)
+    idx = np.flatnonzero(swept) + window.start
     band = (float(np.min(rate[idx])), float(np.max(rate[idx])))
-    return Sweep(name=name, t=t, pitch=pitch, flap=flap,
-                 omega_rad_s=float(np.mean(record.rotor_speed_rad_s)), band=band,
-                 inputs=SampledInput(t, u), stirring_t=(float(t[idx[0]]), float(t[idx[-1]])),
-                 window_s=(float(record.time_s[0]), float(record.time_s[-1])))
+    return Sweep(name=name, t=t_all[window], pitch=pitch_all[window], flap=flap_all[window],
+                 omega_rad_s=float(np.mean(record.rotor_speed_rad_s[window])), band=band,
+                 record_t=t_all, inputs=SampledInput(t_all, u), start=window.start,
+                 stirring_t=(float(t_all[idx[0]]), float(t_all[idx[-1]])),
+                 window_s=(float(record.time_s[window.start]),
+                           float(record.time_s[window.stop - 1])))
 
 
 def _derivative_transform_matrix(t, omega):
@@ -157,19 +174,25 @@ def _derivative_transform_matrix(t, omega):
 @dataclass
 class Spectra:
     """
-    The averaged spectra of one or more sweeps on a frequency grid, and the linear estimator.
+    The spectra of one or more sweeps at the points of a frequency grid, and the estimator.
 
-    ``frequency`` per rev (signed), ``guu``, ``gyy``, ``guy`` the averaged auto- and
-    cross-spectra, ``averages`` n_d per point. :meth:`of` applies the same estimator
-    H = Σ Θ* B / Σ|Θ|² to other flap signals (a model's simulation and its sensitivities).
+    ``frequency`` per rev (signed); ``guu`` = Σ_r |Θ_r|², ``gyy`` = Σ_r |B_r|², ``guy`` =
+    Σ_r Θ_r* B_r over the runs r whose stirring swept the point (``averages`` of them);
+    ``noise`` = Σ_r σ_r², the flap-noise power at the point (:func:`estimate_spectra`).
+    :meth:`of` applies the same estimator H = Σ Θ* B / Σ|Θ|² to other flap signals (a model's
+    simulation and its sensitivities).
     """
 
     frequency: np.ndarray
     guu: np.ndarray
     gyy: np.ndarray
     guy: np.ndarray
+    noise: np.ndarray
     averages: np.ndarray
     operators: list = field(default_factory=list)    # per sweep: (F, T−1) weights on Δβ_c
+    #: Σ_r |Θ_r(−ω)|² / Σ_r |Θ_r(ω)|²: the input a rotor that is not axisymmetric (μ > 0)
+    #: turns into response at ω through its mirror response (physics DirectionalResponse)
+    mirror_input: np.ndarray = None
 
     def of(self, flaps):
         """Return the estimator applied to one flap signal per sweep, (F,) or (F, k)."""
@@ -178,55 +201,87 @@ class Spectra:
             out = out + weights @ np.diff(flap, axis=0)
         return out
 
+    def restricted(self, points):
+        """Return the estimator at some of the points only (for a fit)."""
+        return Spectra(frequency=self.frequency[points], guu=self.guu[points],
+                       gyy=self.gyy[points], guy=self.guy[points], noise=self.noise[points],
+                       averages=self.averages[points],
+                       operators=[op[points] for op in self.operators],
+                       mirror_input=self.mirror_input[points])
 
-def estimate_spectra(sweeps, smoothing_bins=SMOOTHING_BINS, frequency=None):
+
+def _local_noise(U, Y):
     """
-    Average the derivative spectra of ``sweeps`` over neighbouring frequencies and runs.
+    σ² of the flap noise at each point from its neighbourhood (U, Y: (F, b) spectra).
 
-    The grid (``frequency``, per rev, signed) defaults to the finest spacing 2π/T of the runs,
+    B = (a + b·δ) Θ + noise is fitted over the b neighbouring independent frequencies δ
+    (a response linear across them); the residual power over b − 2 degrees of freedom
+    estimates the noise power of one frequency.
+    """
+    F, b = U.shape
+    delta = np.arange(b) - 0.5 * (b - 1)
+    A = np.stack([U, U * delta[None, :]], axis=2)                     # (F, b, 2)
+    noise = np.zeros(F)
+    for f in range(F):
+        coef, *_ = np.linalg.lstsq(A[f], Y[f], rcond=None)
+        residual = Y[f] - A[f] @ coef
+        noise[f] = float(np.sum(np.abs(residual) ** 2)) / (b - 2)
+    return noise
+
+
+def estimate_spectra(sweeps, noise_bins=NOISE_BINS, frequency=None):
+    """
+    Return the :class:`Spectra` of ``sweeps`` at each point of the grid.
+
+    The estimate at a point uses the point's own frequency only (no smoothing: its bias near a
+    lightly damped mode would be that of the smoothing width); the flap noise there is
+    estimated from ``noise_bins`` independent neighbouring frequencies (:func:`_local_noise`).
+    The grid (``frequency``, per rev, signed) defaults to the finest spacing 2π/T of the runs
     over the union of the bands they swept; a run contributes to a point only when its
     stirring swept it, so a progressing run never enters the negative frequencies.
     """
     if not sweeps:
         raise ValueError('no sweep to estimate a frequency response from')
+    if noise_bins < 3:
+        raise ValueError(f'noise_bins must be at least 3, got {noise_bins}')
     spacing = [2.0 * math.pi / (s.t[-1] - s.t[0]) for s in sweeps]
     if frequency is None:
         step = min(spacing)
-        half = 0.5 * (smoothing_bins - 1)
         points = []
-        for s, d in zip(sweeps, spacing):
-            lo, hi = s.band
-            k_lo, k_hi = math.ceil(lo / step), math.floor(hi / step)
-            ks = np.arange(k_lo, k_hi + 1)
-            # the lowest points need their neighbours on the same side of zero
-            ks = ks[np.abs(ks * step) > half * d + 0.5 * d]
-            points.append(ks)
+        for s in sweeps:
+            ks = np.arange(math.ceil(s.band[0] / step), math.floor(s.band[1] / step) + 1)
+            points.append(ks[ks != 0])
         frequency = np.unique(np.concatenate(points)) * step
     frequency = np.asarray(frequency, dtype=float)
-    offsets = np.arange(smoothing_bins) - 0.5 * (smoothing_bins - 1)
+    offsets = np.arange(noise_bins) - 0.5 * (noise_bins - 1)
+    centre = noise_bins // 2
     guu = np.zeros(frequency.size)
     gyy = np.zeros(frequency.size)
     guy = np.zeros(frequency.size, dtype=complex)
+    noise = np.zeros(frequency.size)
+    mirror = np.zeros(frequency.size)
     averages = np.zeros(frequency.size, dtype=int)
     parts = []
     for s, d in zip(sweeps, spacing):
         inside = (frequency >= s.band[0] - 1e-12) & (frequency <= s.band[1] + 1e-12)
         grid = (frequency[:, None] + d * offsets[None, :]).ravel()
-        E = _derivative_transform_matrix(s.t, grid).reshape(frequency.size, smoothing_bins, -1)
-        E[~inside] = 0.0
+        E = _derivative_transform_matrix(s.t, grid).reshape(frequency.size, noise_bins, -1)
         U = E @ np.diff(s.pitch)
         Y = E @ np.diff(s.flap)
-        guu += np.sum(np.abs(U) ** 2, axis=1)
-        gyy += np.sum(np.abs(Y) ** 2, axis=1)
-        guy += np.sum(np.conj(U) * Y, axis=1)
-        averages += inside * smoothing_bins
-        parts.append(np.einsum('fb,fbt->ft', np.conj(U), E))
-    keep = averages > 0
-    with np.errstate(invalid='ignore', divide='ignore'):
-        operators = [np.where(guu[:, None] > 0, part / guu[:, None], 0.0)[keep]
-                     for part in parts]
+        U0, Y0 = np.where(inside, U[:, centre], 0.0), np.where(inside, Y[:, centre], 0.0)
+        guu += np.abs(U0) ** 2
+        gyy += np.abs(Y0) ** 2
+        guy += np.conj(U0) * Y0
+        noise += np.where(inside, _local_noise(U, Y), 0.0)
+        mirror += np.where(inside, np.abs(_derivative_transform_matrix(s.t, -frequency)
+                                          @ np.diff(s.pitch)) ** 2, 0.0)
+        averages += inside
+        parts.append(np.conj(U0)[:, None] * E[:, centre])
+    keep = (averages > 0) & (guu > 0)
+    operators = [part[keep] / guu[keep, None] for part in parts]
     return Spectra(frequency=frequency[keep], guu=guu[keep], gyy=gyy[keep], guy=guy[keep],
-                   averages=averages[keep], operators=operators)
+                   noise=noise[keep], averages=averages[keep], operators=operators,
+                   mirror_input=mirror[keep] / guu[keep])
 
 
 @dataclass
@@ -245,7 +300,7 @@ class FrequencyResponse:
     random_error: np.ndarray
     averages: np.ndarray
     omega_rad_s: float
-    smoothing_bins: int
+    noise_bins: int
     runs: list
     spectra: Spectra = None
 
@@ -278,7 +333,8 @@ class FrequencyResponse:
             'coherence': [float(v) for v in self.coherence],
             'random_error': [float(v) for v in self.random_error],
             'averages': [int(v) for v in self.averages],
-            'smoothing_bins': int(self.smoothing_bins),
+            'mirror_input': [float(v) for v in self.spectra.mirror_input],
+            'noise_bins': int(self.noise_bins),
             'omega_rad_s': float(self.omega_rad_s),
             'runs': list(self.runs),
         }
@@ -290,21 +346,21 @@ def random_error(coherence, averages):
     return np.sqrt(1.0 - gamma2) / (np.sqrt(gamma2) * np.sqrt(2.0 * np.asarray(averages)))
 
 
-def estimate_frequency_response(sweeps, smoothing_bins=SMOOTHING_BINS, frequency=None):
+def estimate_frequency_response(sweeps, noise_bins=NOISE_BINS, frequency=None):
     """Estimate the dFRF of one or more :class:`Sweep` (module docstring)."""
-    spectra = estimate_spectra(sweeps, smoothing_bins, frequency)
+    spectra = estimate_spectra(sweeps, noise_bins, frequency)
     if spectra.frequency.size == 0:
         raise ValueError('the stirring swept no frequency the records resolve (each needs '
                          'a few revolutions of stirring); record a longer sweep')
+    response = spectra.guy / spectra.guu
+    signal = np.abs(response) ** 2 * spectra.guu             # the flap power explained
     with np.errstate(invalid='ignore', divide='ignore'):
-        response = spectra.guy / spectra.guu
-        coherence = np.clip(np.abs(spectra.guy) ** 2 / (spectra.guu * spectra.gyy), 0.0, 1.0)
-    coherence = np.nan_to_num(coherence)
+        coherence = np.nan_to_num(signal / (signal + spectra.noise))
     return FrequencyResponse(
         frequency_per_rev=spectra.frequency, response=response, coherence=coherence,
         random_error=random_error(coherence, spectra.averages), averages=spectra.averages,
         omega_rad_s=float(np.mean([s.omega_rad_s for s in sweeps])),
-        smoothing_bins=int(smoothing_bins), runs=[s.name for s in sweeps], spectra=spectra)
+        noise_bins=int(noise_bins), runs=[s.name for s in sweeps], spectra=spectra)
 
 
 # ------------------------------------------------------------------------------ CIFER's cost
@@ -376,17 +432,17 @@ def band_costs(estimate, model_response, bands_per_side=3, coherence_min=COHEREN
 
 # ------------------------------------------------------------------ the model as estimated
 def model_start(model, p, sweep, collective):
-    """State at the sweep's first sample: steady at the held input (trim for a periodic model)."""
-    u0 = sweep.inputs(sweep.t[:1])
+    """State at the record's first sample: in trim at the held input (the convention)."""
+    u0 = sweep.inputs(sweep.record_t[:1])
     if model.time_invariant:
-        return model.equilibrium(sweep.t[:1], p, u0)
-    return model.trim_state(p, collective, t=float(sweep.t[0]))
+        return model.equilibrium(sweep.record_t[:1], p, u0)
+    return model.trim_state(p, collective, t=float(sweep.record_t[0]))
 
 
 def _start_jacobian(model, p, sweep, collective, index):
     if model.time_invariant:
-        u0 = sweep.inputs(sweep.t[:1])
-        return model.equilibrium_jacobian(sweep.t[:1], p, u0)[:, index]
+        u0 = sweep.inputs(sweep.record_t[:1])
+        return model.equilibrium_jacobian(sweep.record_t[:1], p, u0)[:, index]
     columns = []
     for i in index:
         h = 1e-6 * max(1.0, abs(p[i]))
@@ -400,9 +456,11 @@ def _start_jacobian(model, p, sweep, collective, index):
 
 def model_flap(model, p, sweep, collective, index=()):
     """
-    Simulate β_c of ``model`` at ``p`` on the sweep's samples and measured pitch.
+    Simulate β_c of ``model`` at ``p`` on the measured pitch; return it over the window.
 
-    With ``index`` also ∂β_c/∂p_i (T, k). The run starts steady (:func:`model_start`).
+    The simulation starts at the record's first sample (:func:`model_start`), so a window
+    that starts before the rotor has settled is simulated alike. With ``index`` also
+    ∂β_c/∂p_i (T, k).
     """
     p = np.asarray(p, dtype=float)
     x0 = model_start(model, p, sweep, collective)
@@ -410,11 +468,13 @@ def model_flap(model, p, sweep, collective, index=()):
     iI, iII = names.index('beta_I'), names.index('beta_II')
     index = list(index)
     jac = _start_jacobian(model, p, sweep, collective, index) if index else None
-    sim = simulate(model, p, sweep.inputs, sweep.t, x0, param_index=index, x0_jacobian=jac)
-    flap = sim.x[:, iI] + 1j * sim.x[:, iII]
+    t = sweep.record_t[:sweep.start + sweep.t.size]
+    sim = simulate(model, p, sweep.inputs, t, x0, param_index=index, x0_jacobian=jac)
+    part = slice(sweep.start, None)
+    flap = sim.x[part, iI] + 1j * sim.x[part, iII]
     if not index:
         return flap, None
-    return flap, sim.dx[:, iI, :] + 1j * sim.dx[:, iII, :]
+    return flap, sim.dx[part, iI, :] + 1j * sim.dx[part, iII, :]
 
 
 def estimated_model_response(model, p, sweeps, spectra, collective, index=()):
@@ -459,15 +519,14 @@ def fit_frequency_response(model, sweeps, estimate, unknowns, guess, known, coll
     The model side is the same estimator applied to the model's simulated flap on the
     measured pitch (:func:`estimated_model_response`), so the end of a stirring cut off by the
     record and the periodic terms of a μ > 0 model are in both sides alike. Points: γ² ≥
-    ``coherence_min``, every ``smoothing_bins``-th (independent for white noise). Bounds: the
+    ``coherence_min`` (independent for white noise: one frequency each). Bounds: the
     linearised covariance of the J minimiser with each point's magnitude and phase error
     ε_r (dB: 8.69 ε_r, deg: 57.3 ε_r), inflated by the residual χ²/dof when it exceeds 1.
     """
     p = model.parameter_vector({**known, **guess})
     index = [model.parameter_names.index(n) for n in unknowns]
     usable = np.flatnonzero(estimate.usable(coherence_min))
-    step = max(1, int(estimate.smoothing_bins))
-    chosen = usable[::step]
+    chosen = usable
     if chosen.size * 2 < len(unknowns) + 1:
         raise IdentificationError(
             f'only {chosen.size} independent frequencies have coherence ≥ {coherence_min:g}: '
@@ -478,7 +537,7 @@ def fit_frequency_response(model, sweeps, estimate, unknowns, guess, known, coll
     w_gamma = coherence_weight(gamma2)
     weights = (np.sqrt(w_gamma * MAGNITUDE_WEIGHT), np.sqrt(w_gamma * PHASE_WEIGHT))
     scale = 20.0 / chosen.size
-    sub = _SubSpectra(estimate.spectra, chosen)
+    sub = estimate.spectra.restricted(chosen)
     lower = np.array([model.parameter(n).lower for n in unknowns])
     upper = np.array([model.parameter(n).upper for n in unknowns])
     started = time.perf_counter()
@@ -554,19 +613,6 @@ def _covariance(A, weights, eps, r):
     dof = max(r.size - A.shape[1], 1)
     chi2 = float(np.sum((r / sigma) ** 2) / dof)
     return covariance * max(1.0, chi2), chi2
-
-
-class _SubSpectra:
-    """The estimator restricted to some points (for the fit)."""
-
-    def __init__(self, spectra, points):
-        self.operators = [op[points] for op in spectra.operators]
-
-    def of(self, flaps):
-        out = 0.0
-        for weights, flap in zip(self.operators, flaps):
-            out = out + weights @ np.diff(flap, axis=0)
-        return out
 
 
 def as_estimate(fit, time_domain, method='frequency-response'):
