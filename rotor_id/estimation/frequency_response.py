@@ -54,8 +54,8 @@ from rotor_id.physics.multiblade import multiblade_coordinates
 from rotor_id.physics.stirring import multiblade_from_blade_pitch, SampledInput
 
 #: Independent neighbouring frequencies (spacing 2π/T) over which the flap noise of a point is
-#: estimated: five give three degrees of freedom after the local linear response.
-NOISE_BINS = 5
+#: estimated: seven give three degrees of freedom after the local response and transient.
+NOISE_BINS = 7
 #: CIFER's coherence threshold for a point to enter the cost and the fit.
 COHERENCE_MIN = 0.6
 #: CIFER's weights: magnitude (dB) and phase (deg), W_p/W_g = 1 dB per 7.57 deg.
@@ -90,6 +90,8 @@ class Sweep:
     start: int
     stirring_t: tuple
     window_s: tuple
+    #: samples at the window's start and end over which the pitch is steady (≥ 1)
+    ends: tuple = (1, 1)
 
 
 def cyclic_signals(t, blade_pitch, blade_flap):
@@ -162,7 +164,34 @@ def sweep_from_record(record, name='run', window_s=None):
                  record_t=t_all, inputs=SampledInput(t_all, u), start=window.start,
                  stirring_t=(float(t_all[idx[0]]), float(t_all[idx[-1]])),
                  window_s=(float(record.time_s[window.start]),
-                           float(record.time_s[window.stop - 1])))
+                           float(record.time_s[window.stop - 1])),
+                 ends=steady_ends(t_all[window], pitch_all[window]))
+
+
+def steady_ends(t, pitch, longest=2.0 * math.pi, tolerance=0.01):
+    """
+    Samples at each end of the window over which the cyclic pitch holds still (at least 1).
+
+    At most ``longest`` rad of azimuth, within ``tolerance`` of the largest cyclic amplitude.
+    The end values of a transform of the derivative enter every frequency alike; taken as the
+    mean over these samples, their noise does not swamp the lowest frequencies.
+    """
+    scale = tolerance * max(float(np.max(np.abs(pitch), initial=0.0)), 1e-300)
+    out = []
+    for order in (slice(None), slice(None, None, -1)):
+        p, tt = pitch[order], t[order]
+        moved = (np.abs(p - p[0]) > scale) | (np.abs(tt - tt[0]) > longest)
+        out.append(int(np.argmax(moved)) if moved.any() else p.size)
+    return max(out[0], 1), max(out[1], 1)
+
+
+def _with_steady_ends(x, ends):
+    """Return x with its first and last samples replaced by their steady means (linear)."""
+    x = np.array(x, copy=True)
+    head, tail = ends
+    x[0] = x[:head].mean(axis=0)
+    x[-1] = x[x.shape[0] - tail:].mean(axis=0)
+    return x
 
 
 def _derivative_transform_matrix(t, omega):
@@ -190,6 +219,7 @@ class Spectra:
     noise: np.ndarray
     averages: np.ndarray
     operators: list = field(default_factory=list)    # per sweep: (F, T−1) weights on Δβ_c
+    ends: list = field(default_factory=list)         # per sweep: its steady ends
     #: Σ_r |Θ_r(−ω)|² / Σ_r |Θ_r(ω)|²: the input a rotor that is not axisymmetric (μ > 0)
     #: turns into response at ω through its mirror response (physics DirectionalResponse)
     mirror_input: np.ndarray = None
@@ -197,8 +227,8 @@ class Spectra:
     def of(self, flaps):
         """Return the estimator applied to one flap signal per sweep, (F,) or (F, k)."""
         out = 0.0
-        for weights, flap in zip(self.operators, flaps):
-            out = out + weights @ np.diff(flap, axis=0)
+        for weights, ends, flap in zip(self.operators, self.ends, flaps):
+            out = out + weights @ np.diff(_with_steady_ends(flap, ends), axis=0)
         return out
 
     def restricted(self, points):
@@ -206,7 +236,7 @@ class Spectra:
         return Spectra(frequency=self.frequency[points], guu=self.guu[points],
                        gyy=self.gyy[points], guy=self.guy[points], noise=self.noise[points],
                        averages=self.averages[points],
-                       operators=[op[points] for op in self.operators],
+                       operators=[op[points] for op in self.operators], ends=self.ends,
                        mirror_input=self.mirror_input[points])
 
 
@@ -214,18 +244,21 @@ def _local_noise(U, Y):
     """
     σ² of the flap noise at each point from its neighbourhood (U, Y: (F, b) spectra).
 
-    B = (a + b·δ) Θ + noise is fitted over the b neighbouring independent frequencies δ
-    (a response linear across them); the residual power over b − 2 degrees of freedom
-    estimates the noise power of one frequency.
+    B = (a + b·δ) Θ + c + d·δ + noise is fitted over the b neighbouring independent
+    frequencies δ: a response linear across them, and a transient term (the record's end
+    values, a stirring cut off by its end) that is smooth in frequency whatever the input
+    (Pintelon & Schoukens' local polynomial method). The residual power over b − 4 degrees of
+    freedom estimates the noise power of one frequency.
     """
     F, b = U.shape
     delta = np.arange(b) - 0.5 * (b - 1)
-    A = np.stack([U, U * delta[None, :]], axis=2)                     # (F, b, 2)
+    ones = np.ones((F, b))
+    A = np.stack([U, U * delta[None, :], ones, ones * delta[None, :]], axis=2)   # (F, b, 4)
     noise = np.zeros(F)
     for f in range(F):
         coef, *_ = np.linalg.lstsq(A[f], Y[f], rcond=None)
         residual = Y[f] - A[f] @ coef
-        noise[f] = float(np.sum(np.abs(residual) ** 2)) / (b - 2)
+        noise[f] = float(np.sum(np.abs(residual) ** 2)) / (b - A.shape[2])
     return noise
 
 
@@ -266,21 +299,23 @@ def estimate_spectra(sweeps, noise_bins=NOISE_BINS, frequency=None):
         inside = (frequency >= s.band[0] - 1e-12) & (frequency <= s.band[1] + 1e-12)
         grid = (frequency[:, None] + d * offsets[None, :]).ravel()
         E = _derivative_transform_matrix(s.t, grid).reshape(frequency.size, noise_bins, -1)
-        U = E @ np.diff(s.pitch)
-        Y = E @ np.diff(s.flap)
+        U = E @ np.diff(_with_steady_ends(s.pitch, s.ends))
+        Y = E @ np.diff(_with_steady_ends(s.flap, s.ends))
         U0, Y0 = np.where(inside, U[:, centre], 0.0), np.where(inside, Y[:, centre], 0.0)
         guu += np.abs(U0) ** 2
         gyy += np.abs(Y0) ** 2
         guy += np.conj(U0) * Y0
         noise += np.where(inside, _local_noise(U, Y), 0.0)
         mirror += np.where(inside, np.abs(_derivative_transform_matrix(s.t, -frequency)
-                                          @ np.diff(s.pitch)) ** 2, 0.0)
+                                          @ np.diff(_with_steady_ends(s.pitch, s.ends))) ** 2,
+                           0.0)
         averages += inside
         parts.append(np.conj(U0)[:, None] * E[:, centre])
     keep = (averages > 0) & (guu > 0)
     operators = [part[keep] / guu[keep, None] for part in parts]
     return Spectra(frequency=frequency[keep], guu=guu[keep], gyy=gyy[keep], guy=guy[keep],
                    noise=noise[keep], averages=averages[keep], operators=operators,
+                   ends=[s.ends for s in sweeps],
                    mirror_input=mirror[keep] / guu[keep])
 
 

@@ -183,7 +183,7 @@ def _scatter_ratio(draws, seed0):
     observed, stated, count = 0.0, 0.0, 0
     for d in range(draws):
         noisy = sweep_record(WAKE, p, -0.02 / math.pi, t_end=220.0, stirring=120.0,
-                             noise=0.01, seed=seed0 + d)
+                             noise=0.003, seed=seed0 + d)
         est = estimate_frequency_response([sweep_from_record(noisy)],
                                           frequency=reference.frequency_per_rev)
         observed += np.sum(np.abs(est.response / reference.response - 1.0) ** 2)
@@ -199,7 +199,9 @@ def test_scatter_matches_the_stated_random_error_ci():
     Each |Ĥ/H₀ − 1|²/(2ε²) is an exponential draw (mean 1, variance 1) for a complex Gaussian
     error, so the ratio of sums over n points has a standard deviation of about 1/√n; the
     stated ε̂ itself is estimated with three degrees of freedom, which adds about as much again.
-    The bound is four of those.
+    The bound is four of those. The noise (0.003 rad per blade against a 0.026 rad cyclic)
+    keeps ε_r near 5 %, where Bendat & Piersol's first-order formula applies (at ε_r ≈ 20 % the
+    noise in |Ĥ|² of its denominator overstates ε_r² by about 10 %).
     """
     ratio, n = _scatter_ratio(40, 100)
     assert abs(ratio - 1.0) < 4.0 * math.sqrt(2.0 / n), (ratio, n)
