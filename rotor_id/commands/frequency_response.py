@@ -88,9 +88,76 @@ def format_table(analysis):
     return '\n'.join(lines)
 
 
+def _figure_worker(connection):
+    """Import matplotlib, draw the figure sent through ``connection``, answer None or the error."""
+    from rotor_id.estimation.frequency_response_plot import bode_figure
+    import matplotlib.backends.backend_agg  # noqa: F401  (the import is the slow part)
+    try:
+        job = connection.recv()
+        if job is not None:
+            bode_figure(*job)
+        connection.send(None)
+    except Exception as error:  # noqa: B902 - handed back to the command, which reports it
+        connection.send(f'{type(error).__name__}: {error}')
+    finally:
+        connection.close()
+
+
+class FigureProcess:
+    """
+    A forked process that imports matplotlib while the command reads and estimates.
+
+    On two cores the plotting library's import (most of a short command's time) then runs
+    beside the work instead of after it; without fork (or if it fails) the figure is drawn
+    here.
+    """
+
+    def __init__(self):
+        import multiprocessing
+        self.process = None
+        try:
+            context = multiprocessing.get_context('fork')
+            self.connection, child = context.Pipe()
+            self.process = context.Process(target=_figure_worker, args=(child,), daemon=True)
+            self.process.start()
+            child.close()
+        except (ValueError, OSError):
+            self.process = None
+
+    def draw(self, analysis, path, title):
+        """Draw the figure (in the process when it runs); raise RuntimeError on a failure."""
+        if self.process is None:
+            from rotor_id.estimation.frequency_response_plot import bode_figure
+            bode_figure(analysis, path, title)
+            return
+        self.connection.send((analysis, path, title))
+        error = self.connection.recv()
+        self.process.join()
+        if error is not None:
+            raise RuntimeError(f'the figure {path} could not be drawn: {error}')
+
+    def cancel(self):
+        """End the process without a figure (the command failed before it)."""
+        if self.process is not None and self.process.is_alive():
+            try:
+                self.connection.send(None)
+                self.connection.recv()
+            except (OSError, EOFError):
+                pass
+            self.process.join(timeout=5)
+
+
 def run(args):
     """Estimate, overlay, write; exit 0 (1 when the model's J exceeds 100)."""
     started = time.perf_counter()
+    figure_process = FigureProcess()
+    try:
+        return _run(args, started, figure_process)
+    finally:
+        figure_process.cancel()
+
+
+def _run(args, started, figure_process):
     configs = configs_for(args.bag, args.config)
     parameters = parse_parameters(args.parameters)
     source = '--parameters' if parameters else None
@@ -115,9 +182,8 @@ def run(args):
     data = analysis.as_json()
     data['bags'] = [str(b) for b in args.bag]
     data['elapsed_s'] = time.perf_counter() - started
-    from rotor_id.estimation.frequency_response_plot import bode_figure
     figure = out / 'frequency_response.png'
-    bode_figure(analysis, figure, title=', '.join(names))
+    figure_process.draw(analysis, figure, ', '.join(names))
     data['elapsed_s'] = time.perf_counter() - started
     (out / 'frequency_response.json').write_text(json.dumps(data, indent=1))
     print(f'JSON: {out / "frequency_response.json"}')
