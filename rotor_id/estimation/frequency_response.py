@@ -262,6 +262,25 @@ def _local_noise(U, Y):
     return noise
 
 
+def _end_noise(sweep, frequency, local):
+    """
+    Noise power the two end values add at every frequency, which the local model cannot see.
+
+    The end values (means over ``sweep.ends`` samples) enter the transform of every frequency
+    alike; the local model's transient term takes them for signal. Their variance is
+    σ²(1/head + 1/tail), σ² the flap noise of one sample, found from the local noise powers:
+    the differences of white noise have the power σ² (T − 1)·2(1 − cos ωΔt) at ω.
+    """
+    dt = float(np.mean(np.diff(sweep.t)))
+    shape = (sweep.t.size - 1) * 2.0 * (1.0 - np.cos(frequency * dt))
+    usable = (shape > 0) & (local > 0)
+    if not np.any(usable):
+        return np.zeros(frequency.size)
+    sigma2 = float(np.median(local[usable] / shape[usable]))
+    head, tail = sweep.ends
+    return np.full(frequency.size, sigma2 * (1.0 / head + 1.0 / tail))
+
+
 def estimate_spectra(sweeps, noise_bins=NOISE_BINS, frequency=None):
     """
     Return the :class:`Spectra` of ``sweeps`` at each point of the grid.
@@ -305,7 +324,8 @@ def estimate_spectra(sweeps, noise_bins=NOISE_BINS, frequency=None):
         guu += np.abs(U0) ** 2
         gyy += np.abs(Y0) ** 2
         guy += np.conj(U0) * Y0
-        noise += np.where(inside, _local_noise(U, Y), 0.0)
+        local = _local_noise(U, Y)
+        noise += np.where(inside, local + _end_noise(s, frequency, local), 0.0)
         mirror += np.where(inside, np.abs(_derivative_transform_matrix(s.t, -frequency)
                                           @ np.diff(_with_steady_ends(s.pitch, s.ends))) ** 2,
                            0.0)
