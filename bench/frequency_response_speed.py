@@ -134,7 +134,7 @@ def main(argv=None):
         'frequencies with 7 neighbours each, coherence and random error;\n'
         '* peer: `scipy.signal.csd` and `welch` of the same complex θ_c, β_c (two-sided, '
         '256-sample Hann segments, all 256 frequencies);\n'
-        '* overlay: estimate + the model\'s transfer function, its simulation through the same '
+        "* overlay: estimate + the model's transfer function, its simulation through the same "
         'estimate and J;\n'
         '* figure: the Bode figure (Agg, no pyplot).\n\n'
         f'Estimate / peer (CPU): **{ratio:.2f}**.\n')

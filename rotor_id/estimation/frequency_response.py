@@ -170,7 +170,7 @@ def sweep_from_record(record, name='run', window_s=None):
 
 def steady_ends(t, pitch, longest=2.0 * math.pi, tolerance=0.01):
     """
-    Samples at each end of the window over which the cyclic pitch holds still (at least 1).
+    Count the samples at each end of the window where the cyclic pitch holds still (≥ 1).
 
     At most ``longest`` rad of azimuth, within ``tolerance`` of the largest cyclic amplitude.
     The end values of a transform of the derivative enter every frequency alike; taken as the

@@ -23,7 +23,7 @@ KEYS = ('frequency_per_rev', 'frequency_hz', 'magnitude', 'phase_deg', 'coherenc
 
 @pytest.fixture(scope='module')
 def bags(tmp_path_factory):
-    """A progressing and a regressing recording of the generator, with a run description."""
+    """Write a progressing and a regressing recording of the generator, and a description."""
     root = tmp_path_factory.mktemp('frequency_bags')
     out = {}
     for name, omegadot in (('progressing', -0.1 / math.pi), ('regressing', 0.1 / math.pi)):
@@ -73,8 +73,8 @@ def test_a_record_without_stirring_is_one_line_before_any_spectrum(tmp_path, cap
     model = build_model('multiblade_wake', RotorConstants(advance_ratio=0.0))
     record = sweep_record(model, model.nominal(), -0.1 / math.pi, t_end=60.0, stirring=1.0,
                           t0=50.0)
-    bag = write_record_bag(tmp_path / 'still', replace(record.window(0.0, 0.5),
-                                                        stamp0_ns=STAMP0))
+    still = replace(record.window(0.0, 0.5), stamp0_ns=STAMP0)
+    bag = write_record_bag(tmp_path / 'still', still)
     config = tmp_path / 'still.yaml'
     config.write_text(run_description_text(wake_case(), 'multiblade_wake', ['A'],
                                            window_s=(0.1, 0.3)))

@@ -130,7 +130,7 @@ def test_noise_free_sweep_matches_the_transfer_function(model, omegadot):
 
 @pytest.fixture(scope='module')
 def truncated_wake():
-    """The report's μ = 0 wake case by the blade-by-blade generator: stirring cut off at 24."""
+    """Return the report's μ = 0 wake case by the blade-by-blade generator (cut off at 24)."""
     return generate(wake_case(flap_noise=0.0, pitch_noise=0.0, seed=3))
 
 
