@@ -20,17 +20,12 @@ Run: ``python bench/frequency_response_speed.py [--repeat N]``.
 import argparse
 import os
 from pathlib import Path
-import resource
-import subprocess
 import sys
 import tempfile
-import time
 
-os.environ.setdefault('OPENBLAS_NUM_THREADS', '1')     # before numpy: see blas_threads.md
-import numpy as np  # noqa: E402
-
-from common import (fmt_time, markdown_table, REPO_ROOT, say, time_interleaved,  # noqa: E402,I100
+from common import (fmt_time, markdown_table, REPO_ROOT, run_command, say, time_interleaved,
                     write_results)
+import numpy as np  # noqa: I100 - after common, which sets one BLAS thread
 
 #: the repository's sibling shared/recordings (of a worktree one level further down too)
 RECORDINGS = next((root / 'shared' / 'recordings' for root in REPO_ROOT.parents[:2]
@@ -41,21 +36,11 @@ DESCRIPTION = RECORDINGS / 'id_wake_progressing.yaml'
 TARGET_S = 1.0
 
 
-def _children_cpu():
-    usage = resource.getrusage(resource.RUSAGE_CHILDREN)
-    return usage.ru_utime + usage.ru_stime
-
-
-def run(argv, quiet_ok=False):
-    """Run a command; return (wall s, CPU s of the child)."""
-    cpu = _children_cpu()
-    start = time.perf_counter()
-    out = subprocess.run(argv, capture_output=True, text=True, cwd=REPO_ROOT,
-                         env={**os.environ, 'PYTHONDONTWRITEBYTECODE': '1'})
-    wall = time.perf_counter() - start
-    if out.returncode not in (0, 1) or not (quiet_ok or out.stdout):
-        raise RuntimeError(f'{" ".join(map(str, argv))} failed:\n{out.stderr[-2000:]}')
-    return wall, _children_cpu() - cpu
+def run(argv):
+    """Run a command (exit 1 is J > 100, still a run); return (wall s, CPU s of the child)."""
+    wall, cpu, _ = run_command(argv, env={**os.environ, 'PYTHONDONTWRITEBYTECODE': '1'},
+                               ok_codes=(0, 1))
+    return wall, cpu
 
 
 def in_process(repeat):
@@ -108,7 +93,7 @@ def main(argv=None):
     run(commands['rotor-id frequency-response (whole command)'])       # warm the caches
     for _ in range(args.repeat):
         for name, argv_ in commands.items():
-            times[name].append(run(argv_, quiet_ok=name == 'python -c pass'))
+            times[name].append(run(argv_))
     rows = []
     for name, values in times.items():
         walls, cpus = np.array([v[0] for v in values]), np.array([v[1] for v in values])

@@ -481,6 +481,16 @@ def check_runs_agree(descriptions, names):
                     'same ' + key + ' or identify them separately')
 
 
+def _shared_model(description):
+    """Return the model and unknowns of runs identified together (A, not γ, for the wake)."""
+    model = model_for(description)
+    unknowns = list(description.unknowns)
+    if model.name == 'multiblade_wake' and 'gamma' in unknowns:
+        raise IdentificationError('the wake model is identified in A = γB⁴/8 (Ch.2 eq. 27); '
+                                  'list A instead of gamma among the unknowns')
+    return model, unknowns
+
+
 def identify_runs(runs, method=None, progress=None, multi_start=True, max_iter=50,
                   step_tol=None):
     """
@@ -517,11 +527,7 @@ def identify_runs(runs, method=None, progress=None, multi_start=True, max_iter=5
             f'{", ".join(sorted(methods))}); drop method from the run descriptions or use '
             '--method output-error')
     description = descriptions[0]
-    model = model_for(description)
-    unknowns = list(description.unknowns)
-    if model.name == 'multiblade_wake' and 'gamma' in unknowns:
-        raise IdentificationError('the wake model is identified in A = γB⁴/8 (Ch.2 eq. 27); '
-                                  'list A instead of gamma among the unknowns')
+    model, unknowns = _shared_model(description)
     experiments, parts, noise_std, known, measured = [], [], [], None, []
     for index, (record, desc, name) in enumerate(zip(records, descriptions, names)):
         window_s = tuple(desc.window_s)
@@ -756,11 +762,7 @@ def identify_frequency_response(runs, progress=None, max_iter=40, window_s=None)
     records, descriptions, names = (list(x) for x in zip(*runs))
     check_runs_agree(descriptions, names)
     description = descriptions[0]
-    model = model_for(description)
-    unknowns = list(description.unknowns)
-    if model.name == 'multiblade_wake' and 'gamma' in unknowns:
-        raise IdentificationError('the wake model is identified in A = γB⁴/8 (Ch.2 eq. 27); '
-                                  'list A instead of gamma among the unknowns')
+    model, unknowns = _shared_model(description)
     if 'beta_I' not in model.state_names or 'beta_II' not in model.state_names:
         raise IdentificationError(f'{model.name} has no fixed-frame cyclic flap (beta_I, '
                                   'beta_II): identify it with --method output-error')
