@@ -96,9 +96,9 @@ def _figure_worker(connection):
         job = connection.recv()
         if job is not None:
             bode_figure(*job)
-        connection.send(None)
+        connection.send((None, time.process_time()))
     except Exception as error:  # noqa: B902 - handed back to the command, which reports it
-        connection.send(f'{type(error).__name__}: {error}')
+        connection.send((f'{type(error).__name__}: {error}', time.process_time()))
     finally:
         connection.close()
 
@@ -125,16 +125,21 @@ class FigureProcess:
             self.process = None
 
     def draw(self, analysis, path, title):
-        """Draw the figure (in the process when it runs); raise RuntimeError on a failure."""
+        """
+        Draw the figure (in the process when it runs); raise RuntimeError on a failure.
+
+        Returns the figure process's CPU time, s (0 when drawn here).
+        """
         if self.process is None:
             from rotor_id.estimation.frequency_response_plot import bode_figure
             bode_figure(analysis, path, title)
-            return
+            return 0.0
         self.connection.send((analysis, path, title))
-        error = self.connection.recv()
+        error, cpu = self.connection.recv()
         self.process.join()
         if error is not None:
             raise RuntimeError(f'the figure {path} could not be drawn: {error}')
+        return cpu
 
     def cancel(self):
         """End the process without a figure (the command failed before it)."""
@@ -142,7 +147,7 @@ class FigureProcess:
             try:
                 self.connection.send(None)
                 self.connection.recv()
-            except (OSError, EOFError):
+            except (OSError, EOFError, ValueError):
                 pass
             self.process.join(timeout=5)
 
@@ -183,8 +188,9 @@ def _run(args, started, figure_process):
     data['bags'] = [str(b) for b in args.bag]
     data['elapsed_s'] = time.perf_counter() - started
     figure = out / 'frequency_response.png'
-    figure_process.draw(analysis, figure, ', '.join(names))
+    data['figure_process_cpu_s'] = figure_process.draw(analysis, figure, ', '.join(names))
     data['elapsed_s'] = time.perf_counter() - started
+    data['cpu_s'] = time.process_time()
     (out / 'frequency_response.json').write_text(json.dumps(data, indent=1))
     print(f'JSON: {out / "frequency_response.json"}')
     print(f'figure: {figure}')
