@@ -608,6 +608,14 @@ class ModelOverlay:
     cost_transfer_function: float
 
     @property
+    def sideband_ratios(self):
+        """{n: largest |H_n|/|H_0| over the band} of a periodic model's sidebands (n per rev)."""
+        tf = self.transfer_function
+        scale = np.maximum(np.abs(tf.principal), 1e-300)
+        return {n: float(np.max(np.abs(h) / scale)) for n, h in sorted(tf.sidebands.items())
+                if np.max(np.abs(h) / scale) > 1e-6}
+
+    @property
     def transient_error(self):
         """|as estimated / transfer function − 1|: the estimate's deterministic error here."""
         return np.abs(self.as_estimated / self.at_points - 1.0)
@@ -622,6 +630,7 @@ class ModelOverlay:
             'cost_J_transfer_function': float(self.cost_transfer_function),
             'bands_transfer_function': [b.as_json() for b in self.bands_transfer_function],
             'transient_error': [float(v) for v in self.transient_error],
+            'sidebands': {str(n): r for n, r in self.sideband_ratios.items()},
             'model_magnitude': [float(v) for v in np.abs(self.at_points)],
             'model_phase_deg': [float(v) for v in np.degrees(np.angle(self.at_points))],
         }

@@ -70,6 +70,12 @@ def draw_frequency_response(ax_magnitude, ax_phase, estimate, overlay=None, ax_c
                                       else None)
         ax_magnitude.plot(f, _db(overlay.as_estimated), 's', mfc='none', ms=5, color='C1',
                           label=f'{overlay.name} through the same estimate')
+        ratios = getattr(overlay, 'sideband_ratios', {})
+        if ratios:
+            n, ratio = max(ratios.items(), key=lambda item: item[1])
+            ax_magnitude.text(0.01, 0.02, f'periodic model: largest sideband {n:+d}/rev, '
+                              f'{100 * ratio:.2g} % of the principal response',
+                              transform=ax_magnitude.transAxes, fontsize=7, color='C2')
         ax_phase.plot(f, np.degrees(np.angle(overlay.as_estimated)), 's', mfc='none', ms=5,
                       color='C1')
     ax_magnitude.set_ylabel('|β_c/θ_c| [dB]')
