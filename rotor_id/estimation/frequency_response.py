@@ -56,6 +56,9 @@ from rotor_id.physics.stirring import multiblade_from_blade_pitch, SampledInput
 #: Independent neighbouring frequencies (spacing 2π/T) over which the flap noise of a point is
 #: estimated: seven give three degrees of freedom after the local response and transient.
 NOISE_BINS = 7
+#: Largest (frequencies × samples) of the estimator (complex, 16 bytes each): 160 MB, a
+#: stirring test of a minute at 1 kHz; a longer window is a session, not one test.
+OPERATOR_LIMIT = 10_000_000
 #: CIFER's coherence threshold for a point to enter the cost and the fit.
 COHERENCE_MIN = 0.6
 #: CIFER's weights: magnitude (dB) and phase (deg), W_p/W_g = 1 dB per 7.57 deg.
@@ -305,6 +308,14 @@ def estimate_spectra(sweeps, noise_bins=NOISE_BINS, frequency=None):
             points.append(ks[ks != 0])
         frequency = np.unique(np.concatenate(points)) * step
     frequency = np.asarray(frequency, dtype=float)
+    size = sum(frequency.size * s.t.size for s in sweeps)
+    if size > OPERATOR_LIMIT:
+        longest = max(sweeps, key=lambda s: s.t.size)
+        raise ValueError(
+            f'{longest.name}: the window {longest.window_s[0]:.4g}-{longest.window_s[1]:.4g} s '
+            f'holds {longest.t.size} samples and resolves {frequency.size} frequencies: too '
+            'long for a frequency response of one stirring test; give --window-s around the '
+            'test (from trim before the stirring to the end of its settling)')
     offsets = np.arange(noise_bins) - 0.5 * (noise_bins - 1)
     centre = noise_bins // 2
     guu = np.zeros(frequency.size)
@@ -316,21 +327,28 @@ def estimate_spectra(sweeps, noise_bins=NOISE_BINS, frequency=None):
     parts = []
     for s, d in zip(sweeps, spacing):
         inside = (frequency >= s.band[0] - 1e-12) & (frequency <= s.band[1] + 1e-12)
-        grid = (frequency[:, None] + d * offsets[None, :]).ravel()
-        E = _derivative_transform_matrix(s.t, grid).reshape(frequency.size, noise_bins, -1)
-        U = E @ np.diff(_with_steady_ends(s.pitch, s.ends))
-        Y = E @ np.diff(_with_steady_ends(s.flap, s.ends))
+        du = np.diff(_with_steady_ends(s.pitch, s.ends))
+        dy = np.diff(_with_steady_ends(s.flap, s.ends))
+        U = np.empty((frequency.size, noise_bins), dtype=complex)
+        Y = np.empty_like(U)
+        centre_rows = np.empty((frequency.size, du.size), dtype=complex)
+        chunk = max(1, OPERATOR_LIMIT // (10 * noise_bins * max(du.size, 1)))
+        for first in range(0, frequency.size, chunk):       # bounded memory
+            rows = slice(first, first + chunk)
+            grid = (frequency[rows, None] + d * offsets[None, :]).ravel()
+            E = _derivative_transform_matrix(s.t, grid).reshape(-1, noise_bins, du.size)
+            U[rows], Y[rows] = E @ du, E @ dy
+            centre_rows[rows] = E[:, centre]
         U0, Y0 = np.where(inside, U[:, centre], 0.0), np.where(inside, Y[:, centre], 0.0)
         guu += np.abs(U0) ** 2
         gyy += np.abs(Y0) ** 2
         guy += np.conj(U0) * Y0
         local = _local_noise(U, Y)
         noise += np.where(inside, local + _end_noise(s, frequency, local), 0.0)
-        mirror += np.where(inside, np.abs(_derivative_transform_matrix(s.t, -frequency)
-                                          @ np.diff(_with_steady_ends(s.pitch, s.ends))) ** 2,
-                           0.0)
+        mirror += np.where(inside, np.abs(np.conj(centre_rows) @ du) ** 2, 0.0)   # Θ(−ω)
         averages += inside
-        parts.append(np.conj(U0)[:, None] * E[:, centre])
+        centre_rows *= np.conj(U0)[:, None]
+        parts.append(centre_rows)
     keep = (averages > 0) & (guu > 0)
     operators = [part[keep] / guu[keep, None] for part in parts]
     return Spectra(frequency=frequency[keep], guu=guu[keep], gyy=gyy[keep], guy=guy[keep],

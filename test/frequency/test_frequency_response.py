@@ -212,3 +212,16 @@ def test_scatter_matches_the_stated_random_error_study():
     """The same at 400 draws: a bound ten times tighter in variance."""
     ratio, n = _scatter_ratio(400, 10_000)
     assert abs(ratio - 1.0) < 4.0 * math.sqrt(2.0 / n), (ratio, n)
+
+
+def test_a_session_long_window_is_one_line_before_any_spectrum():
+    """An hour-like window would need gigabytes: refused at once, naming the window."""
+    import time
+    record = sweep_record(WAKE, WAKE.nominal(), -0.01 / math.pi, t_end=4000.0, stirring=240.0,
+                          dt=0.2)
+    sweep = sweep_from_record(record)
+    started = time.process_time()
+    with pytest.raises(ValueError, match='too long for a frequency response') as err:
+        estimate_frequency_response([sweep])
+    assert '\n' not in str(err.value) and '--window-s' in str(err.value)
+    assert time.process_time() - started < 1.0
