@@ -26,13 +26,11 @@ import argparse
 import json
 import os
 from pathlib import Path
-import resource
 import subprocess
 import sys
 import tempfile
-import time
 
-from common import fmt_time, markdown_table, REPO_ROOT, say, write_results
+from common import fmt_time, markdown_table, REPO_ROOT, run_command, say, write_results
 
 RECORDINGS = REPO_ROOT.parent / 'shared' / 'recordings'
 BAG = RECORDINGS / 'id_wake_progressing'
@@ -41,22 +39,6 @@ DESCRIPTION = RECORDINGS / 'id_wake_progressing.yaml'
 SHORT_TARGET_S = 0.5
 FILTER_TARGET_S = 2.0
 AGREEMENT = 1e-9
-
-
-def _children_cpu():
-    usage = resource.getrusage(resource.RUSAGE_CHILDREN)
-    return usage.ru_utime + usage.ru_stime
-
-
-def run(argv, env=None):
-    """Run a command; return (wall s, CPU s of the child, stdout)."""
-    cpu = _children_cpu()
-    start = time.perf_counter()
-    out = subprocess.run(argv, capture_output=True, text=True, env=env, cwd=REPO_ROOT)
-    wall = time.perf_counter() - start
-    if out.returncode != 0:
-        raise RuntimeError(f'{" ".join(map(str, argv))} failed:\n{out.stderr[-2000:]}')
-    return wall, _children_cpu() - cpu, out.stdout
 
 
 def whole_record_description(directory):
@@ -158,7 +140,7 @@ def main(argv=None):
     cpus = {name: [] for name in commands}
     for round_ in range(args.repeat):
         for name, (command, env) in commands.items():
-            wall, cpu, _ = run(command, env)
+            wall, cpu, _ = run_command(command, env)
             times[name].append(wall)
             cpus[name].append(cpu)
             say(f'round {round_ + 1}: {name}: {fmt_time(wall)} wall, {fmt_time(cpu)} CPU')

@@ -100,6 +100,24 @@ def run_in_workdir(workdir, prefix, measure):
     return measure(workdir)
 
 
+def children_cpu():
+    """CPU time (user + system) of this process's waited-for children so far, s."""
+    import resource
+    usage = resource.getrusage(resource.RUSAGE_CHILDREN)
+    return usage.ru_utime + usage.ru_stime
+
+
+def run_command(argv, env=None, ok_codes=(0,)):
+    """Run a command from the repository root; return (wall s, CPU s of the child, stdout)."""
+    cpu = children_cpu()
+    start = time.perf_counter()
+    out = subprocess.run(argv, capture_output=True, text=True, env=env, cwd=REPO_ROOT)
+    wall = time.perf_counter() - start
+    if out.returncode not in ok_codes:
+        raise RuntimeError(f'{" ".join(map(str, argv))} failed:\n{out.stderr[-2000:]}')
+    return wall, children_cpu() - cpu, out.stdout
+
+
 def machine_markdown():
     """Machine description as a markdown list."""
     return '\n'.join(f'* {k}: {v}' for k, v in machine_description().items())

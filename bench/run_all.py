@@ -83,6 +83,10 @@ KNOWN = {
         'long': False,
         'what': 'whole identify commands (127-sample OE ≤ 0.5 s; 1065-sample FE ≤ 2 s)',
         'quick': ['bench/command_speed.py', '--repeat', '1', '--no-write']},
+    'frequency_response_speed': {
+        'long': False,
+        'what': 'rotor-id frequency-response per 1-second 4-blade record (issue 37: ≤ 1 s)',
+        'quick': ['bench/frequency_response_speed.py', '--repeat', '1', '--no-write']},
     'diagnose_speed': {
         'long': False,
         'what': 'rotor-id diagnose per 1-second 4-blade recording (≤ 3 s)',

@@ -33,7 +33,7 @@ from rotor_id.io.bag import may_read_by_parts, read_messages, read_record
 from rotor_id.io.errors import BagError
 from rotor_id.io.run_description import check_against_record, load_run_description
 
-METHODS = ('output-error', 'filter-error', 'equation-error')
+METHODS = ('output-error', 'filter-error', 'equation-error', 'frequency-response')
 
 
 def add_arguments(parser):
@@ -241,9 +241,13 @@ def run_several(args, configs):
     if not args.quiet:
         print(f'fitting {label} to {len(names)} runs together: {", ".join(names)}',
               file=sys.stderr, flush=True)
-    result = pipeline.identify_runs(
-        [(record, desc, name) for (desc, record), name in zip(loaded, names)],
-        method=args.method, progress=None if args.quiet else progress_printer(method))
+    runs = [(record, desc, name) for (desc, record), name in zip(loaded, names)]
+    if args.method == 'frequency-response':      # docs/frequency_response.md
+        result = pipeline.identify_frequency_response(
+            runs, progress=None if args.quiet else progress_printer(method))
+    else:
+        result = pipeline.identify_runs(
+            runs, method=args.method, progress=None if args.quiet else progress_printer(method))
     print(format_table(result))
     print(format_runs(result))
     write_outputs(result, [record for _, record in loaded], args, [str(b) for b in args.bag],
