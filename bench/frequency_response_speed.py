@@ -1,5 +1,5 @@
 """
-Issue 37 item 6: ``rotor-id frequency-response`` on a 1-second 4-blade 1 kHz record, ≤ 1 s.
+``rotor-id frequency-response`` on a 1-second 4-blade 1 kHz record, ≤ 1 s.
 
 On the practice recording ``id_wake_progressing`` (1065 samples of four blades at 1 kHz, the
 repository's sibling ``shared/recordings``), timed interleaved (median of ``--repeat``):
@@ -142,7 +142,7 @@ def main(argv=None):
     print(body)
     if not args.no_write:
         write_results('frequency_response_speed',
-                      'rotor-id frequency-response on a 1-second 4-blade 1 kHz record (issue 37)',
+                      'rotor-id frequency-response on a 1-second 4-blade 1 kHz record',
                       body, 'python bench/frequency_response_speed.py')
     return 0 if met else 1
 

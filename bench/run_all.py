@@ -85,7 +85,7 @@ KNOWN = {
         'quick': ['bench/command_speed.py', '--repeat', '1', '--no-write']},
     'frequency_response_speed': {
         'long': False,
-        'what': 'rotor-id frequency-response per 1-second 4-blade record (issue 37: ≤ 1 s)',
+        'what': 'rotor-id frequency-response per 1-second 4-blade record (target ≤ 1 s)',
         'quick': ['bench/frequency_response_speed.py', '--repeat', '1', '--no-write']},
     'diagnose_speed': {
         'long': False,

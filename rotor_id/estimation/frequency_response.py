@@ -57,7 +57,7 @@ from rotor_id.physics.stirring import multiblade_from_blade_pitch, SampledInput
 #: estimated: seven give three degrees of freedom after the local response and transient.
 NOISE_BINS = 7
 #: Largest (frequencies × samples) of the estimator (complex, 16 bytes each): 160 MB, a
-#: stirring test of a minute at 1 kHz; a longer window is a session, not one test.
+#: stirring test of a minute at 1 kHz; a longer window spans several tests.
 OPERATOR_LIMIT = 10_000_000
 #: CIFER's coherence threshold for a point to enter the cost and the fit.
 COHERENCE_MIN = 0.6
@@ -397,7 +397,7 @@ class FrequencyResponse:
         return self.coherence >= coherence_min
 
     def as_json(self):
-        """Return the JSON of ``rotor-id frequency-response`` (keys fixed by issue 37)."""
+        """Return the JSON of ``rotor-id frequency-response`` (keys other tools read: keep them stable)."""
         return {
             'frequency_per_rev': [float(v) for v in self.frequency_per_rev],
             'frequency_hz': [float(v) for v in self.frequency_hz],

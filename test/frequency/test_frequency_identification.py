@@ -1,5 +1,5 @@
 """
-``identify --method frequency-response`` beside output error (issue 37 item 3).
+``identify --method frequency-response`` beside output error (pins #37).
 
 On the report's wake case (config/report_wake_*.yaml, the package's simulator) and on a
 recording of the independent blade-by-blade generator the two estimates agree within their

@@ -1,5 +1,5 @@
 """
-The directional frequency response (issue 37): the model's transfer function, the estimate.
+The directional frequency response (pins #37): the model's transfer function, the estimate.
 
 * the transfer function of the linear model in complex coordinates is the steady response to
   a rotating cyclic pitch, time-invariant and periodic (harmonic transfer function);
@@ -214,7 +214,7 @@ def test_scatter_matches_the_stated_random_error_study():
     assert abs(ratio - 1.0) < 4.0 * math.sqrt(2.0 / n), (ratio, n)
 
 
-def test_a_session_long_window_is_one_line_before_any_spectrum():
+def test_a_window_of_several_tests_is_one_line_before_any_spectrum():
     """An hour-like window would need gigabytes: refused at once, naming the window."""
     import time
     record = sweep_record(WAKE, WAKE.nominal(), -0.01 / math.pi, t_end=4000.0, stirring=240.0,
