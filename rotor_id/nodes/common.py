@@ -1,10 +1,10 @@
 """
 What every rotor_id node shares: QoS, parameters with descriptors, diagnostics, adapters.
 
-CONVENTIONS.md §2-§9: parameters declared with descriptors (units in the description, ranges),
-QoS by kind of data (§4), header stamps from the node clock (§5), /diagnostics at ~1 Hz by hand
-(diagnostic_updater is not a wheel here, §7), main() that shuts down cleanly on SIGINT/SIGTERM
-(§9).
+Parameters declared with descriptors (units in the description, ranges), QoS by kind of data
+and header stamps as docs/ros_interfaces.md tabulates them, /diagnostics at ~1 Hz by hand
+(diagnostic_updater is not among the installed wheels), main() that shuts down cleanly on
+SIGINT/SIGTERM.
 """
 
 import faulthandler
@@ -531,7 +531,7 @@ def wait_for_acks(publishers, timeout_s=ACK_WAIT_S):
 def spin_node(node_factory, args=None, executor_factory=None, after_stop=None,
               runtime_errors=()):
     """
-    Run a node as main() does in demo_nodes_py (Jazzy, CONVENTIONS.md §2/§9); returns exit code.
+    Run a node as main() does in demo_nodes_py (Jazzy); returns exit code.
 
     A configuration error while constructing the node (ValueError) is one line on stderr and
     exit code 2, never a traceback. SIGINT and SIGTERM only set a flag that the spin loop checks
