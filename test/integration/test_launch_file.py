@@ -24,6 +24,7 @@ import ast
 import importlib.util
 import os
 from pathlib import Path
+import re
 import signal
 import subprocess
 import sys
@@ -521,3 +522,7 @@ def test_real_launch_under_a_namespace(tmp_path):
     assert code == 0, output[-3000:]
     # every node stopped on SIGINT itself: launch had to escalate to none
     assert "sending signal 'SIGTERM'" not in output and 'SIGKILL' not in output, output[-3000:]
+    # log_level:=warn reached the nodes: none logged at INFO (at info the recorder logs where
+    # it records, the identifier its test points)
+    info = re.findall(r'\[INFO\] \[[0-9.]+\] \[rigx\.\w+\]: .*', output)
+    assert not info, info[:3]
