@@ -11,6 +11,7 @@ The package as ROS users meet it: executables, interfaces, and a colcon build.
 """
 
 import ast
+import functools
 import json
 import os
 from pathlib import Path
@@ -331,6 +332,7 @@ DECLARED_NOT_IMPORTED = {
 }
 
 
+@functools.lru_cache(maxsize=1)
 def imported_modules():
     """Return {top-level module: [files]} imported by rotor_id/ and launch/ (stdlib left out)."""
     found = {}
