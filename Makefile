@@ -9,7 +9,7 @@
 # Nothing has to be installed or sourced by hand: missing system tools (cmake, g++, Python
 # 3.11 venv/headers) are installed with apt-get, the Python packages come from the pins in
 # requirements-jazzy.in + constraints-jazzy.txt (installed with uv, pip as fallback).
-# See docs/install.md and shared TOOLCHAIN.md for the why.
+# See docs/install.md for the why.
 
 SHELL := /bin/bash
 .SHELLFLAGS := -eu -o pipefail -c

@@ -224,6 +224,21 @@ def test_recorded_bag_is_complete_and_decoded_by_mcap(live_run):
     assert len(estimate.covariance) == 9
 
 
+def test_estimates_are_stamped_with_their_data_time(live_run):
+    # issue 35: header.stamp = the window's end, a flap sample of the recording; computed_at,
+    # the identifier's clock when it was made, comes after it
+    decoded = mcap_messages(live_run['bag'])
+    flap_stamps = {_stamp(m) for m in decoded['/rotor/blade_flap']}
+    final = live_run['watcher'].final_estimate()
+    assert _stamp(final) == (final.window_end.sec, final.window_end.nanosec)
+    assert _stamp(final) in flap_stamps
+    for estimate in decoded['/rotor_id/estimate']:
+        assert _stamp(estimate) in flap_stamps
+        delay = ((estimate.computed_at.sec - estimate.header.stamp.sec)
+                 + (estimate.computed_at.nanosec - estimate.header.stamp.nanosec) * 1e-9)
+        assert 0 < delay < 60, delay
+
+
 def test_offline_identification_of_the_bag_agrees(live_run):
     from rotor_id.io.bag import read_record
     from rotor_id.pipeline import identify

@@ -60,7 +60,7 @@ def rig(request, tmp_path_factory):
     require_workspace()
     import rclpy
     from rotor_id.commands.demo import case_files
-    from rotor_id.nodes.common import RESULT_QOS
+    from rotor_id.nodes.common import RESULT_QOS, STATE_QOS
     from rotor_id.nodes.processes import isolated_env, NodeProcesses
     from rotor_id_msgs.msg import ParameterEstimate, StateEstimate
 
@@ -76,9 +76,9 @@ def rig(request, tmp_path_factory):
            'load': os.getloadavg()[0], 'name': request.param}
     ros.node.create_subscription(ParameterEstimate, f'{namespace}/results/estimate',
                                  out['estimates'].append, RESULT_QOS)
-    # latched as the state estimator offers them: a late discovery still gets the states
+    # volatile, as the state estimator offers them: the states after discovery
     ros.node.create_subscription(StateEstimate, f'{namespace}/results/state',
-                                 out['states'].append, RESULT_QOS)
+                                 out['states'].append, STATE_QOS)
     procs = NodeProcesses(isolated_env(domain, work / 'ros_log'), work / 'logs')
     given = {'run_description': str(config)}
     try:
