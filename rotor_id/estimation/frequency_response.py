@@ -397,7 +397,7 @@ class FrequencyResponse:
         return self.coherence >= coherence_min
 
     def as_json(self):
-        """Return the JSON of ``rotor-id frequency-response`` (keys other tools read: keep them stable)."""
+        """Return the JSON of ``rotor-id frequency-response`` (other tools read its keys)."""
         return {
             'frequency_per_rev': [float(v) for v in self.frequency_per_rev],
             'frequency_hz': [float(v) for v in self.frequency_hz],

@@ -489,7 +489,7 @@ sys.exit(service.run())
 def test_real_launch_under_a_namespace(tmp_path):
     """What ``ros2 launch rotor_id rotor_id.launch.py use_namespace:=true ...`` does."""
     _real_launch()
-    from live_helpers import domain_id, require_workspace, RosSession
+    from live_helpers import domain_id, require_workspace, RosClient
     require_workspace()
     domain = domain_id()
     env = dict(os.environ, ROS_DOMAIN_ID=str(domain), ROS_AUTOMATIC_DISCOVERY_RANGE='LOCALHOST',
@@ -499,14 +499,14 @@ def test_real_launch_under_a_namespace(tmp_path):
         [sys.executable, '-c', LAUNCH_SCRIPT, str(LAUNCH_FILE), 'use_namespace:=true',
          'namespace:=rigx', 'log_level:=warn', f'bag:={tmp_path / "bag"}'],
         env=env, stdout=log, stderr=subprocess.STDOUT, start_new_session=True)
-    session = RosSession(domain, 'launch_watcher')
+    ros = RosClient(domain, 'launch_watcher')
     expected = {(name, '/rigx') for name in NODES}
     seen = set()
     try:
         deadline = time.monotonic() + 120
         while not expected <= seen and time.monotonic() < deadline and process.poll() is None:
             time.sleep(0.5)
-            seen = set(session.node.get_node_names_and_namespaces())
+            seen = set(ros.node.get_node_names_and_namespaces())
         assert expected <= seen, (sorted(seen), (tmp_path / 'launch.out').read_text()[-3000:])
         started = time.monotonic() - (deadline - 120)
         os.killpg(process.pid, signal.SIGINT)       # Ctrl-C: the terminal's whole group
@@ -515,7 +515,7 @@ def test_real_launch_under_a_namespace(tmp_path):
         if process.poll() is None:
             os.killpg(process.pid, signal.SIGKILL)
             process.wait()
-        session.close()
+        ros.close()
         log.close()
     output = (tmp_path / 'launch.out').read_text()
     print(f'five nodes in /rigx after {started:.1f} s')

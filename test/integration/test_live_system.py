@@ -225,7 +225,7 @@ def test_recorded_bag_is_complete_and_decoded_by_mcap(live_run):
 
 
 def test_estimates_are_stamped_with_their_data_time(live_run):
-    # issue 35: header.stamp = the window's end, a flap sample of the recording; computed_at,
+    # pins #35: header.stamp = the window's end, a flap sample of the recording; computed_at,
     # the identifier's clock when it was made, comes after it
     decoded = mcap_messages(live_run['bag'])
     flap_stamps = {_stamp(m) for m in decoded['/rotor/blade_flap']}

@@ -181,7 +181,7 @@ def test_aborted_test_point_is_published_as_aborted(run):
 
 
 def test_estimates_are_stamped_with_the_time_of_their_data(run):
-    # issue 35: header.stamp = the end of the window the estimate is computed from (data time,
+    # pins #35: header.stamp = the end of the window the estimate is computed from (data time,
     # here the test's stand-in clock of 2023); computed_at = the node's clock when it was made
     stamps = run['data']['stamps']
     assert run['estimates']
