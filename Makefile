@@ -79,6 +79,37 @@ PYTEST_ARGS ?= -n 2 --durations=25
 test: build
 	@echo "== test: pytest $(PYTEST_ARGS)"
 	@$(WS_ENV) && python -m pytest $(PYTEST_ARGS)
+	@$(MAKE) test-stock
+
+# The library's tests again on the stack of a stock Jazzy install (Ubuntu 24.04: Python 3.12,
+# numpy 1.26, scipy 1.11; no ROS, no numba) in their own venv, .venv-stock (never the main
+# .venv), keyed like the main venv. Only the library's fast tests: the ROS tests (marker ros)
+# need rclpy, whose wheels exist for Python 3.11 only; the tests of the compiled kernels
+# (marker numba) compare them with numpy, so they need numba.
+PYTHON_STOCK ?= python3.12
+VENV_STOCK := .venv-stock
+REQS_STOCK := requirements-stock.txt
+MAKE_VENV_STOCK := tools/make_stock_venv.sh
+VENV_STOCK_KEY := $(shell { cat $(REQS_STOCK) $(MAKE_VENV_STOCK); \
+                    echo '$(CURDIR) $(PYTHON_STOCK)'; } | sha256sum | cut -c1-16)
+VENV_STOCK_STAMP := $(VENV_STOCK)/.stamp-$(VENV_STOCK_KEY)
+STOCK_TESTS := test/physics test/estimation test/io test/commands test/report \
+               test/test_adequacy.py test/test_excitation.py test/test_planning.py
+
+.PHONY: venv-stock test-stock
+
+venv-stock: $(VENV_STOCK_STAMP)
+
+$(VENV_STOCK_STAMP):
+	@$(call locked,.venv-stock.lock) bash $(MAKE_VENV_STOCK) $(PYTHON_STOCK) $(VENV_STOCK) $@ \
+	  $(INSTALLER)
+
+test-stock: venv-stock
+	@echo "== test-stock: pytest on $$($(VENV_STOCK)/bin/python -c 'import sys, numpy, scipy; \
+	  print(f"Python {sys.version.split()[0]}, numpy {numpy.__version__}, scipy {scipy.__version__}")')"
+	@env -u PYTHONPATH -u AMENT_PREFIX_PATH PYTHONPATH=$(CURDIR) \
+	  $(VENV_STOCK)/bin/python -m pytest -q -m 'not slow and not ros and not numba' \
+	    $(STOCK_TESTS)
 
 # Only the ament linters (flake8, pep257), one run each, ~30 s: run before committing.
 lint: venv

@@ -34,6 +34,7 @@ import numpy as np
 from rotor_id.estimation.output_error import (_fit_initial_states, _Problem, evaluate,
                                               IdentificationError)
 from rotor_id.estimation.simulate import DEFAULT_MAX_STEP
+from rotor_id.numpy_compat import trapezoid
 
 
 @dataclass
@@ -384,7 +385,7 @@ def continuous_bound(experiment, p_full, unknown_names, noise_std=1.0, x0=None,
     sens = sensitivities(experiment, p_full, unknown_names, x0, max_step)
     var = _noise_var(noise_std, experiment.model.n_outputs)
     dt = float(np.mean(np.diff(sens.t)))
-    integral = np.trapezoid(_information(sens.dy, var), sens.t, axis=0)
+    integral = trapezoid(_information(sens.dy, var), sens.t, axis=0)
     return Bound(names=sens.names, values=sens.values, information=integral / dt,
                  covariance=inverse_or_nan(integral / dt))
 

@@ -38,6 +38,7 @@ from rotor_id.io.streams import (
     stuck_channels,
 )
 from rotor_id.io.timebase import interpolate_columns, nondimensional_time, TWO_PI, wrap_azimuth
+from rotor_id.numpy_compat import trapezoid
 import yaml
 
 __all__ = [
@@ -1074,7 +1075,7 @@ def _azimuth(ctx, topic, joint=DEFAULT_AZIMUTH_JOINT, convention='wrapped'):
     psi_u = nondimensional_time(time_s, position, velocity)
     if len(stamps) > 1 and time_s[-1] > 0:
         rate = (psi_u[-1] - psi_u[0]) / time_s[-1]
-        mean_speed = float(np.trapezoid(velocity, time_s) / time_s[-1])
+        mean_speed = float(trapezoid(velocity, time_s) / time_s[-1])
         if abs(rate - mean_speed) > RATE_TOLERANCE * mean_speed:
             raise BagError(f'{topic}: the azimuth advances at {rate:.4g} rad/s but the rotor '
                            f'speed (velocity) says {mean_speed:.4g} rad/s; position must be '

@@ -20,6 +20,8 @@ from rotor_id.physics.stirring import StirringSchedule
 MU04 = RotorConstants(advance_ratio=0.4)
 HOVER = RotorConstants(advance_ratio=0.0)
 STIR12 = StirringSchedule(t0=12.0)
+# the compiled kernels against numpy: nothing to compare where numba is absent
+pytestmark = pytest.mark.numba
 CASES = {
     'single_blade': (SingleBlade(MU04, 'delta', 'deg'), STIR12, 12.0),
     'multiblade_periodic': (Multiblade(MU04, 'theta0', 'rad'), STIR12, 12.0),

@@ -174,6 +174,7 @@ def test_estimated_noise_is_the_residual_rms():
     np.testing.assert_allclose(known.covariance, est.covariance, rtol=1e-6)
 
 
+@pytest.mark.numba
 def test_refits_of_a_record_keep_only_what_their_layout_shares():
     # the compiled fit keeps the initial-state map (free states, x0_base, S0) on the record's
     # plan by initial-state mode and θ's layout: refits of one record with other modes and

@@ -91,6 +91,7 @@ def test_malformed_bytes_raise_value_error(raw):
         decode_one(raw)
 
 
+@pytest.mark.ros
 @pytest.mark.parametrize('fields', [('position',), ('position', 'velocity'),
                                     ('position', 'effort'), ('position', 'velocity', 'effort')])
 @pytest.mark.parametrize('frame_id', ['', 'hub', 'a_longer_frame'])
