@@ -87,6 +87,10 @@ KNOWN = {
         'long': False,
         'what': 'rotor-id frequency-response per 1-second 4-blade record (target ≤ 1 s)',
         'quick': ['bench/frequency_response_speed.py', '--repeat', '1', '--no-write']},
+    'startup': {
+        'long': False,
+        'what': 'imports of rotor-id identify against python -c pass (≤ 0.25 s)',
+        'quick': ['bench/startup.py', '--repeat', '1', '--no-write']},
     'diagnose_speed': {
         'long': False,
         'what': 'rotor-id diagnose per 1-second 4-blade recording (≤ 3 s)',

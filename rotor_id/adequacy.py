@@ -45,7 +45,6 @@ import math
 import numpy as np
 from rotor_id.diagnosis import residuals as rs
 from rotor_id.estimation.validation import chi2_sf, normal_sf
-from scipy.fft import next_fast_len
 
 #: Family-wise false-alarm probability of the adequacy check on a recording the model explains.
 FAMILY_ALPHA = 0.01
@@ -291,7 +290,7 @@ def whiteness_null(estimate, experiments, n_draws=NULL_DRAWS, seed=0, directions
         run_out = []
         lags = min(rs.LAGS, T // 4)
         k = np.arange(1, lags + 1)
-        size = next_fast_len(2 * T)
+        size = 1 << (2 * T - 2).bit_length()   # a power of 2 ≥ 2T − 1: linear correlation
         for j in range(m):
             r = np.ascontiguousarray(run[:, j, :].T)
             r -= r.mean(axis=1, keepdims=True)
