@@ -23,9 +23,11 @@ With K_P = 0 and λ = 0 the moment coefficients are the report's C(ψ), K(ψ), m
 """
 
 import numpy as np
+import numpy.typing as npt
 
 
-def blade_aerodynamics(psi, tip_loss, advance_ratio):
+def blade_aerodynamics(psi: npt.ArrayLike, tip_loss: float,
+                       advance_ratio: float) -> dict[str, np.ndarray]:
     """
     Return the moment and lift coefficients of the blade at azimuths ``psi`` (module docstring).
 
@@ -68,17 +70,18 @@ def blade_aerodynamics(psi, tip_loss, advance_ratio):
     }
 
 
-def flap_damping(lock_number, tip_loss):
+def flap_damping(lock_number: float, tip_loss: float) -> float:
     """Return A = γB⁴/8, the hover flap damping per unit rate and pitch gain (Ch.2 eq. 27)."""
     return lock_number * tip_loss**4 / 8.0
 
 
-def lock_number_from_damping(damping, tip_loss):
+def lock_number_from_damping(damping: float, tip_loss: float) -> float:
     """Invert :func:`flap_damping`: γ = 8A/B⁴."""
     return 8.0 * damping / tip_loss**4
 
 
-def hover_coning(lock_number, collective, flap_frequency, tip_loss, pitch_flap_coupling=0.0):
+def hover_coning(lock_number: float, collective: float, flap_frequency: float, tip_loss: float,
+                 pitch_flap_coupling: float = 0.0) -> float:
     """
     Steady coning of the hovering rotor without inflow: β0 = Aθ0 / (P² + A K_P), A = γB⁴/8.
 

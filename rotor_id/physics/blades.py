@@ -13,10 +13,17 @@ docs/models.md §8): β_k = β0 + Σ_h (β_hc cos hψ_k + β_hs sin hψ_k) + (�
   (see :func:`blade_flap_from_states`).
 """
 
+from typing import Sequence, TYPE_CHECKING
+
 import numpy as np
+import numpy.typing as npt
+
+if TYPE_CHECKING:
+    from rotor_id.physics.models import RotorModel
 
 
-def blade_flap_from_multiblade_state(model, t, x, coning=0.0):
+def blade_flap_from_multiblade_state(model: 'RotorModel', t: npt.ArrayLike, x: npt.ArrayLike,
+                                     coning: float = 0.0) -> np.ndarray:
     """Per-blade flap (T, N) of a multiblade model's state ``x`` (T, n) at times ``t``."""
     if getattr(model, 'blade', 1) is not None or not hasattr(model, 'blade_flap_matrix'):
         raise ValueError(f'model {model.name!r} has no multiblade state')
@@ -27,7 +34,8 @@ def blade_flap_from_multiblade_state(model, t, x, coning=0.0):
     return flap
 
 
-def blade_flap_from_states(models, t, states, coning=0.0):
+def blade_flap_from_states(models: Sequence['RotorModel'], t: npt.ArrayLike,
+                           states: Sequence[npt.ArrayLike], coning: float = 0.0) -> np.ndarray:
     """
     Per-blade flap (T, N) from one multiblade model or N single-blade models.
 

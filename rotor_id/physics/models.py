@@ -24,8 +24,10 @@ inflow). The report's four models are instances with the report's choices (:func
 import copy
 from dataclasses import dataclass, replace
 import math
+from typing import Any, Callable, Mapping, TypeVar
 
 import numpy as np
+import numpy.typing as npt
 
 from rotor_id.physics.aerodynamics import blade_aerodynamics, flap_damping, hover_coning
 from rotor_id.physics.multiblade import (blade_from_multiblade_matrix, coordinate_harmonics,
@@ -60,7 +62,7 @@ class RotorConstants:
     tip_loss: float = 0.97
     pitch_flap_coupling: float = 0.0
 
-    def check(self):
+    def check(self) -> 'RotorConstants':
         """Raise ValueError naming the first rotor constant no model can be built for."""
         if int(self.n_blades) != self.n_blades or self.n_blades < 2:
             raise ValueError(f'a rotor needs a whole number of blades >= 2, got {self.n_blades}')
@@ -76,25 +78,29 @@ class RotorConstants:
         return self
 
 
-def via_compact(method):
+_Method = TypeVar('_Method', bound=Callable[..., Any])
+
+
+def via_compact(method: _Method) -> _Method:
     """
     Mark a ``system`` or ``system_jacobian`` computed as its ``*_compact`` form, broadcast.
 
     :func:`compact` calls the compact form only where the model's class computes the method
     that way: a subclass that overrides ``system`` gets its own, full arrays.
     """
-    method.via_compact = True
+    method.via_compact = True  # type: ignore[attr-defined]
     return method
 
 
-def full_along_time(A, T):
+def full_along_time(A: np.ndarray, T: int) -> np.ndarray:
     """Return A (F or ∂F of :func:`compact`) with T entries along time (a copy if it had one)."""
     if A.shape[0] == T:
         return A
     return np.broadcast_to(A, (T,) + A.shape[1:]).copy()
 
 
-def compact(model, method, t, p, u):
+def compact(model: 'LinearModel', method: str, t: npt.ArrayLike, p: np.ndarray,
+            u: npt.ArrayLike) -> tuple[np.ndarray, np.ndarray]:
     """
     Return ``model.system`` or ``system_jacobian`` (``method``), constant F of length 1 in time.
 
@@ -116,19 +122,19 @@ class LinearModel:
     """
 
     name = 'linear'
-    state_names = ()
-    output_names = ()
-    parameters = ()
+    state_names: tuple[str, ...] = ()
+    output_names: tuple[str, ...] = ()
+    parameters: tuple[Parameter, ...] = ()
     #: True when F and g do not depend on t for constant u (allows equilibrium starts).
     time_invariant = False
 
     # -- parameters ---------------------------------------------------------------------------
     @property
-    def parameter_names(self):
+    def parameter_names(self) -> tuple[str, ...]:
         """Names of all parameters, in the order of the vector ``p``."""
         return tuple(par.name for par in self.parameters)
 
-    def parameter(self, name):
+    def parameter(self, name: str) -> Parameter:
         """Return the :class:`Parameter` called ``name``."""
         for par in self.parameters:
             if par.name == name:
@@ -136,11 +142,11 @@ class LinearModel:
         raise KeyError(f'model {self.name!r} has no parameter {name!r}; '
                        f'its parameters are {", ".join(self.parameter_names)}')
 
-    def nominal(self):
+    def nominal(self) -> np.ndarray:
         """Vector of nominal parameter values."""
         return np.array([par.nominal for par in self.parameters], dtype=float)
 
-    def parameter_vector(self, values=None):
+    def parameter_vector(self, values: Mapping[str, float] | None = None) -> np.ndarray:
         """Full parameter vector from a mapping of overrides on the nominal values."""
         p = self.nominal()
         for name, value in (values or {}).items():
@@ -148,46 +154,49 @@ class LinearModel:
         return p
 
     @property
-    def n_states(self):
+    def n_states(self) -> int:
         """Dimension of x."""
         return len(self.state_names)
 
     @property
-    def n_outputs(self):
+    def n_outputs(self) -> int:
         """Dimension of y."""
         return len(self.output_names)
 
     # -- dynamics -----------------------------------------------------------------------------
-    def system(self, t, p, u):
+    def system(self, t: npt.ArrayLike, p: np.ndarray,
+               u: npt.ArrayLike) -> tuple[np.ndarray, np.ndarray]:
         """Return ``F`` of shape (T, n, n) and ``g`` of shape (T, n) at times t."""
         raise NotImplementedError
 
-    def system_jacobian(self, t, p, u):
+    def system_jacobian(self, t: npt.ArrayLike, p: np.ndarray,
+                        u: npt.ArrayLike) -> tuple[np.ndarray, np.ndarray]:
         """Return ``dF`` (T, P, n, n) and ``dg`` (T, P, n): derivatives w.r.t. every parameter."""
         raise NotImplementedError
 
-    def output_matrix(self, t):
+    def output_matrix(self, t: npt.ArrayLike) -> np.ndarray:
         """Return ``H`` of shape (T, m, n)."""
         raise NotImplementedError
 
-    def output_offset(self, t, p):
+    def output_offset(self, t: npt.ArrayLike, p: np.ndarray) -> np.ndarray:
         """Return the output offset ``d`` (T, m) (zero unless a model adds sensor biases)."""
         return np.zeros((np.size(t), self.n_outputs))
 
-    def output_offset_jacobian(self, t, p):
+    def output_offset_jacobian(self, t: npt.ArrayLike, p: np.ndarray) -> np.ndarray:
         """Return ``∂d/∂p`` of shape (T, m, P)."""
         return np.zeros((np.size(t), self.n_outputs, len(self.parameters)))
 
-    def observe_blades(self, t, blade_flap):
+    def observe_blades(self, t: npt.ArrayLike, blade_flap: npt.ArrayLike) -> np.ndarray:
         """Map measured per-blade flap (T, N) to this model's output channels (T, m)."""
         raise NotImplementedError
 
-    def equilibrium(self, t, p, u):
+    def equilibrium(self, t: npt.ArrayLike, p: np.ndarray, u: npt.ArrayLike) -> np.ndarray:
         """Steady state x = −F⁻¹ g at one time for a held input (time-invariant models only)."""
         F, g = self.system(np.atleast_1d(t)[:1], p, np.atleast_2d(u)[:1])
         return -np.linalg.solve(F[0], g[0])
 
-    def equilibrium_jacobian(self, t, p, u):
+    def equilibrium_jacobian(self, t: npt.ArrayLike, p: np.ndarray,
+                             u: npt.ArrayLike) -> np.ndarray:
         """∂x_eq/∂p = −F⁻¹ (∂F/∂p x_eq + ∂g/∂p), shape (n, P)."""
         t1 = np.atleast_1d(t)[:1]
         u1 = np.atleast_2d(u)[:1]
@@ -298,9 +307,11 @@ class RotorModel(LinearModel):
 
     """
 
-    def __init__(self, rotor=RotorConstants(), *, blade=None, periodic=True, inflow=None,
-                 collective='theta0', damping_parameter=False, outputs='multiblade',
-                 interleave=False, all_coordinates=False, angle_unit='rad', name='rotor'):
+    def __init__(self, rotor: RotorConstants = RotorConstants(), *, blade: int | None = None,
+                 periodic: bool = True, inflow: str | None = None, collective: str = 'theta0',
+                 damping_parameter: bool = False, outputs: str = 'multiblade',
+                 interleave: bool = False, all_coordinates: bool = False,
+                 angle_unit: str = 'rad', name: str = 'rotor') -> None:
         self.rotor = rotor.check()
         self.all_coordinates = bool(all_coordinates)
         self.name = name
@@ -317,10 +328,10 @@ class RotorModel(LinearModel):
             if inflow is not None:
                 raise ValueError('a dynamic inflow couples all blades: model the rotor in '
                                  'multiblade coordinates (blade=None)')
-            self.blade = int(blade)
-            self.blade_offset = 2.0 * math.pi * (self.blade - 1) / N
-            self.blades = (self.blade,)
-            self._coords = (('beta', 'blade', 0, 'blade'),)
+            self.blade: int | None = int(blade)
+            self.blade_offset = 2.0 * math.pi * (int(blade) - 1) / N
+            self.blades: tuple[int, ...] = (int(blade),)
+            self._coords: tuple[tuple[str, str, int, str], ...] = (('beta', 'blade', 0, 'blade'),)
         else:
             if outputs not in OUTPUTS:
                 raise ValueError(f"outputs must be one of {', '.join(OUTPUTS)}, not {outputs!r}")
@@ -333,7 +344,7 @@ class RotorModel(LinearModel):
         self._inflow_names = INFLOW_STATES[inflow]
         nq, ni = len(self._coords), len(self._inflow_names)
         self._nq, self._nf = nq, 2 * nq + ni
-        self._cache = {}
+        self._cache: dict[Any, Any] = {}
         self._constant = None
         self._harmonics = None
         self._build_parameters(collective, angle_unit)
@@ -607,7 +618,7 @@ class RotorModel(LinearModel):
             self.output_names = tuple(names[i] for i in self._kept_coords
                                       if i in self._measured)
 
-    def with_rotor(self, **constants):
+    def with_rotor(self, **constants: Any) -> 'RotorModel':
         """
         Return a copy with some rotor constants changed (e.g. ``flap_frequency``).
 
@@ -676,11 +687,13 @@ class RotorModel(LinearModel):
         return pieces[key][2]
 
     @via_compact
-    def system(self, t, p, u):
+    def system(self, t: npt.ArrayLike, p: np.ndarray,
+               u: npt.ArrayLike) -> tuple[np.ndarray, np.ndarray]:
         F, g = self.system_compact(t, p, u)
         return full_along_time(F, g.shape[0]), g
 
-    def system_compact(self, t, p, u):
+    def system_compact(self, t: npt.ArrayLike, p: np.ndarray,
+                       u: npt.ArrayLike) -> tuple[np.ndarray, np.ndarray]:
         """:meth:`system` with F of length 1 along time where it is constant (time-invariant)."""
         t = np.atleast_1d(np.asarray(t, dtype=float))
         p = np.asarray(p, dtype=float)
@@ -697,11 +710,13 @@ class RotorModel(LinearModel):
         return F, g
 
     @via_compact
-    def system_jacobian(self, t, p, u):
+    def system_jacobian(self, t: npt.ArrayLike, p: np.ndarray,
+                        u: npt.ArrayLike) -> tuple[np.ndarray, np.ndarray]:
         dF, dg = self.system_jacobian_compact(t, p, u)
         return full_along_time(dF, dg.shape[0]), dg
 
-    def system_jacobian_compact(self, t, p, u):
+    def system_jacobian_compact(self, t: npt.ArrayLike, p: np.ndarray,
+                                u: npt.ArrayLike) -> tuple[np.ndarray, np.ndarray]:
         """:meth:`system_jacobian` with ∂F/∂p of length 1 along time where F is constant."""
         t = np.atleast_1d(np.asarray(t, dtype=float))
         p = np.asarray(p, dtype=float)
@@ -720,14 +735,14 @@ class RotorModel(LinearModel):
         return dF, dg
 
     # -- blades and channels ------------------------------------------------------------------
-    def lock_number(self, p):
+    def lock_number(self, p: np.ndarray) -> tuple[float, np.ndarray]:
         """γ at the parameter vector p, and ∂γ/∂p."""
         d = np.zeros(len(self.parameters))
         scale = 2.0 * self._aero_factor                # γ = 2·(γ/2)
         d[0] = scale
         return scale * float(p[0]), d
 
-    def blade_azimuth(self, t):
+    def blade_azimuth(self, t: npt.ArrayLike) -> np.ndarray:
         """(T, Nb) azimuths of the modelled blades."""
         t = np.atleast_1d(np.asarray(t, dtype=float))
         if self.blade is not None:
@@ -735,19 +750,19 @@ class RotorModel(LinearModel):
         N = int(self.rotor.n_blades)
         return t[:, None] + 2.0 * math.pi * np.arange(N) / N
 
-    def blade_flap_matrix(self, t):
+    def blade_flap_matrix(self, t: npt.ArrayLike) -> np.ndarray:
         """Hb (T, Nb, n): flap of each modelled blade, β_k = Hb x."""
         return self._blade_pieces(t)['Eb'].copy()
 
-    def blade_flap_rate_matrix(self, t):
+    def blade_flap_rate_matrix(self, t: npt.ArrayLike) -> np.ndarray:
         """Hbr (T, Nb, n): flap rate of each modelled blade, β_k′ = Hbr x."""
         return self._blade_pieces(t)['Ebr'].copy()
 
-    def blade_inflow_matrix(self, t):
+    def blade_inflow_matrix(self, t: npt.ArrayLike) -> np.ndarray:
         """Hl (T, Nb, n): first-harmonic inflow at each blade, λ_k = λI cos ψ_k + λII sin ψ_k."""
         return self._blade_pieces(t)['Elh'].copy()
 
-    def blade_force_matrix(self, t):
+    def blade_force_matrix(self, t: npt.ArrayLike) -> np.ndarray:
         """G (T, n, Nb): change of x′ for a unit flapping acceleration of blade k alone."""
         Tinv = self._blade_pieces(t)['Tinv']
         nq = self._nq
@@ -755,7 +770,7 @@ class RotorModel(LinearModel):
         full[:, nq:2 * nq] = Tinv
         return full[:, self._keep]
 
-    def blade_moment(self, t):
+    def blade_moment(self, t: npt.ArrayLike) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """
         Return the blades' aerodynamic moment per γ/2 (module aerodynamics): linear in x, u, θ0.
 
@@ -764,7 +779,7 @@ class RotorModel(LinearModel):
         Mx, Mu, M0 = self._blade_pieces(t)['moment']
         return Mx.copy(), Mu.copy(), M0.copy()
 
-    def channel_matrix(self, t):
+    def channel_matrix(self, t: npt.ArrayLike) -> np.ndarray:
         """C (T, m, N): the model's output channels from the N blades' flap, y = C β."""
         t = np.atleast_1d(np.asarray(t, dtype=float))
         N = int(self.rotor.n_blades)
@@ -782,7 +797,7 @@ class RotorModel(LinearModel):
         names = [c[0] for c in self._coords]
         return Tinv[:, [names.index(n) for n in self.output_names]]
 
-    def output_matrix(self, t):
+    def output_matrix(self, t: npt.ArrayLike) -> np.ndarray:
         t = np.atleast_1d(np.asarray(t, dtype=float))
         if self.outputs in ('blade', 'blades'):
             return self.blade_flap_matrix(t)
@@ -796,16 +811,17 @@ class RotorModel(LinearModel):
             H[:, row, self.state_names.index(name)] = 1.0
         return H
 
-    def observe_blades(self, t, blade_flap):
+    def observe_blades(self, t: npt.ArrayLike, blade_flap: npt.ArrayLike) -> np.ndarray:
         blade_flap = np.asarray(blade_flap, dtype=float)
         if self.outputs == 'blade':
-            return blade_flap[:, self.blade - 1:self.blade]
+            return blade_flap[:, self.blade - 1:self.blade]  # type: ignore[operator, index]
         if self.outputs == 'blades':
             return blade_flap
         return np.einsum('tij,tj->ti', self.channel_matrix(t), blade_flap)
 
     # -- trim ---------------------------------------------------------------------------------
-    def trim_state(self, p, collective, t=0.0, steps_per_rev=512):
+    def trim_state(self, p: np.ndarray, collective: float, t: float = 0.0,
+                   steps_per_rev: int = 512) -> np.ndarray:
         """
         State at time t of the rotor trimmed at collective pitch only (no cyclic).
 
@@ -833,7 +849,7 @@ class RotorModel(LinearModel):
             Z = Z + (h / 6.0) * (k1 + 2 * k2 + 2 * k3 + k4)
         return np.linalg.solve(np.eye(n) - Z[:n, :n], Z[:n, n])
 
-    def coning(self, p, collective):
+    def coning(self, p: np.ndarray, collective: float) -> float:
         """
         Steady coning β0 = Aθ0/(P² + A K_P) to add to blades of a model without a β0 state.
 
@@ -846,7 +862,7 @@ class RotorModel(LinearModel):
         return hover_coning(self.lock_number(p)[0], collective, r.flap_frequency, r.tip_loss,
                             r.pitch_flap_coupling)
 
-    def describe(self):
+    def describe(self) -> str:
         """One-line description for tables and logs."""
         r = self.rotor
         return (f'{self.name}: N = {r.n_blades}, mu = {r.advance_ratio:g}, '
@@ -881,7 +897,7 @@ class _Harmonics:
     blocks, so an exact zero stays exactly zero.
     """
 
-    def __init__(self, pieces):
+    def __init__(self, pieces: Mapping[str, np.ndarray]) -> None:
         self._layout, columns = [], []
         for key, value in pieces.items():
             blocks = value if isinstance(value, tuple) else (value,)
@@ -911,7 +927,7 @@ class _Harmonics:
         self._coefficients = coefficients[:, self._columns]
         self._width = spectrum.shape[1]
 
-    def at(self, t):
+    def at(self, t: np.ndarray) -> dict[str, Any]:
         """Return the blocks at times t (dict like the pieces given, arrays of length t.size)."""
         angle = np.multiply.outer(t, self._orders)
         basis = np.empty((t.size, 1 + 2 * self._orders.size))
@@ -953,7 +969,8 @@ class SingleBlade(RotorModel):
     States x = [β, β′], output y = β of blade ``blade``; parameters γ and θ0 (or δ = γθ0).
     """
 
-    def __init__(self, rotor=RotorConstants(), collective='theta0', angle_unit='rad', blade=1):
+    def __init__(self, rotor: RotorConstants = RotorConstants(), collective: str = 'theta0',
+                 angle_unit: str = 'rad', blade: int = 1) -> None:
         super().__init__(rotor, blade=blade, collective=collective, angle_unit=angle_unit,
                          name='single_blade')
         self.state_names = ('beta', 'beta_dot')
@@ -967,8 +984,8 @@ class Multiblade(RotorModel):
     ``outputs='blades'`` every blade's flap, ``outputs='eq30'`` the tilt in blade 1's frame.
     """
 
-    def __init__(self, rotor=RotorConstants(), collective='theta0', angle_unit='rad',
-                 outputs='multiblade'):
+    def __init__(self, rotor: RotorConstants = RotorConstants(), collective: str = 'theta0',
+                 angle_unit: str = 'rad', outputs: str = 'multiblade') -> None:
         super().__init__(rotor, collective=collective, angle_unit=angle_unit, outputs=outputs,
                          all_coordinates=True, name='multiblade')
 
@@ -983,8 +1000,8 @@ class MultibladeConstant(RotorModel):
     Time-invariant.
     """
 
-    def __init__(self, rotor=RotorConstants(), collective='theta0', angle_unit='rad',
-                 outputs='multiblade'):
+    def __init__(self, rotor: RotorConstants = RotorConstants(), collective: str = 'theta0',
+                 angle_unit: str = 'rad', outputs: str = 'multiblade') -> None:
         super().__init__(rotor, periodic=False, collective=collective, angle_unit=angle_unit,
                          outputs=outputs, name='multiblade_constant')
 
@@ -1000,8 +1017,9 @@ class MultibladeWake(RotorModel):
     whenever it reaches a modelled state (μ > 0, or coning measured).
     """
 
-    def __init__(self, rotor=RotorConstants(advance_ratio=0.0), collective='theta0',
-                 angle_unit='rad', outputs='eq30', inflow='cyclic'):
+    def __init__(self, rotor: RotorConstants = RotorConstants(advance_ratio=0.0),
+                 collective: str = 'theta0', angle_unit: str = 'rad', outputs: str = 'eq30',
+                 inflow: str = 'cyclic') -> None:
         if inflow not in ('cyclic', 'three_state'):
             raise ValueError(f"inflow must be 'cyclic' or 'three_state', not {inflow!r}")
         super().__init__(rotor, inflow=inflow, collective=collective, damping_parameter=True,
@@ -1009,13 +1027,13 @@ class MultibladeWake(RotorModel):
                          name='multiblade_wake')
 
 
-def multiblade_from_blade_flap(t, blade_flap):
+def multiblade_from_blade_flap(t: npt.ArrayLike, blade_flap: npt.ArrayLike) -> np.ndarray:
     """Return the multiblade coordinates (T, N) of N blade flap angles (docs/models.md §8)."""
     coords = multiblade_coordinates(blade_flap, np.atleast_1d(np.asarray(t, dtype=float)))
     return np.column_stack(list(coords.values()))
 
 
-def lock_number_from_known(known, model):
+def lock_number_from_known(known: Mapping[str, float], model: RotorModel) -> dict[str, float]:
     """Translate a known Lock number into the model's aerodynamic parameter (γ, or A = γB⁴/8)."""
     known = dict(known)
     if getattr(model, 'damping_parameter', False) and 'gamma' in known and 'A' not in known:
@@ -1026,7 +1044,8 @@ def lock_number_from_known(known, model):
 MODEL_NAMES = ('single_blade', 'multiblade', 'multiblade_constant', 'multiblade_wake')
 
 
-def build_model(name, rotor=RotorConstants(), collective='theta0', angle_unit='rad', **options):
+def build_model(name: str, rotor: RotorConstants = RotorConstants(), collective: str = 'theta0',
+                angle_unit: str = 'rad', **options: Any) -> RotorModel:
     """
     Model by its run-description name (docs/run_description.md).
 

@@ -18,12 +18,15 @@ For pitch (report Ch.2 eq. 3), θ_k = θ0 − θI sin ψ_k + θII cos ψ_k, so t
 the blade pitches is the lateral cyclic θII and the 'sin' coordinate is −θI.
 """
 
+from typing import Mapping
+
 import numpy as np
+import numpy.typing as npt
 
 TWO_PI = 2.0 * np.pi
 
 
-def blade_azimuths(psi, n_blades):
+def blade_azimuths(psi: npt.ArrayLike, n_blades: int) -> np.ndarray:
     """
     Return the azimuth of every blade.
 
@@ -43,7 +46,7 @@ def blade_azimuths(psi, n_blades):
     return psi[:, None] + TWO_PI * np.arange(n_blades) / n_blades
 
 
-def coordinate_harmonics(n_blades):
+def coordinate_harmonics(n_blades: int) -> tuple[tuple[str, str, int, str], ...]:
     """
     Return the multiblade coordinates of an N-bladed rotor as (name, key, harmonic, kind) tuples.
 
@@ -67,12 +70,13 @@ def coordinate_harmonics(n_blades):
     return tuple(coords)
 
 
-def coordinate_names(n_blades):
+def coordinate_names(n_blades: int) -> tuple[str, ...]:
     """State names of the N multiblade coordinates, in transform order (β0, βI, βII, ..., βd)."""
     return tuple(c[0] for c in coordinate_harmonics(n_blades))
 
 
-def blade_from_multiblade_matrix(psi, n_blades, derivative=0):
+def blade_from_multiblade_matrix(psi: npt.ArrayLike, n_blades: int,
+                                 derivative: int = 0) -> np.ndarray:
     """
     Return T (n, N, N) with β = T q (blade flaps from multiblade coordinates), or its d/dψ.
 
@@ -95,7 +99,7 @@ def blade_from_multiblade_matrix(psi, n_blades, derivative=0):
     return np.stack(columns, axis=2)
 
 
-def multiblade_from_blade_matrix(psi, n_blades):
+def multiblade_from_blade_matrix(psi: npt.ArrayLike, n_blades: int) -> np.ndarray:
     """Return T⁻¹ (n, N, N) with q = T⁻¹ β: (1/N) rows for β0 and βd, (2/N) cos/sin rows."""
     azimuths = blade_azimuths(psi, n_blades)
     k = np.arange(1, n_blades + 1)
@@ -123,7 +127,7 @@ def _check_blades(values, psi):
     return values, psi
 
 
-def multiblade_coordinates(values, psi):
+def multiblade_coordinates(values: npt.ArrayLike, psi: npt.ArrayLike) -> dict[str, np.ndarray]:
     """
     Transform blade quantities to multiblade coordinates (docs/models.md §8).
 
@@ -146,7 +150,8 @@ def multiblade_coordinates(values, psi):
     return {key: q[:, i] for i, (_, key, _, _) in enumerate(coordinate_harmonics(n_blades))}
 
 
-def blade_values(coords, psi, n_blades=4):
+def blade_values(coords: Mapping[str, npt.ArrayLike], psi: npt.ArrayLike,
+                 n_blades: int = 4) -> np.ndarray:
     """
     Inverse of :func:`multiblade_coordinates`: β_k = β0 + Σ_h (...) + (−1)^k βd.
 
@@ -176,7 +181,7 @@ def blade_values(coords, psi, n_blades=4):
     return values
 
 
-def azimuth_offset_matrix(n_blades, offset):
+def azimuth_offset_matrix(n_blades: int, offset: float) -> np.ndarray:
     """
     Return S (N, N): multiblade coordinates referred to an azimuth read ``offset`` ahead.
 

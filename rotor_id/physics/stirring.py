@@ -17,6 +17,7 @@ from dataclasses import dataclass
 import math
 
 import numpy as np
+import numpy.typing as npt
 
 from rotor_id.physics.multiblade import blade_azimuths, multiblade_coordinates
 
@@ -53,51 +54,51 @@ class StirringSchedule:
     t_step: float = 0.0
 
     @property
-    def direction(self):
+    def direction(self) -> str:
         """'progressing' for ω̇ < 0, 'regressing' for ω̇ > 0."""
         return 'progressing' if self.omegadot < 0 else 'regressing'
 
-    def phase(self, t):
+    def phase(self, t: npt.ArrayLike) -> np.ndarray:
         """Stirring phase φ(t) = ω̇ (t − t0)² for t > t0, else 0 (eq. 2)."""
         t = np.asarray(t, dtype=float)
         tau = np.maximum(t - self.t0, 0.0)
         return self.omegadot * tau * tau
 
-    def stirring_rate(self, t):
+    def stirring_rate(self, t: npt.ArrayLike) -> np.ndarray:
         """dφ/dt = 2 ω̇ (t − t0) for t > t0 (per unit nondimensional time)."""
         t = np.asarray(t, dtype=float)
         return 2.0 * self.omegadot * np.maximum(t - self.t0, 0.0)
 
-    def multiblade(self, t):
+    def multiblade(self, t: npt.ArrayLike) -> tuple[np.ndarray, np.ndarray]:
         """Return ``(θI, θII)`` at times t (eqs 4-5, step at ``t_step``)."""
         t = np.asarray(t, dtype=float)
         on = (t >= self.t_step).astype(float) * self.amplitude
         phi = self.phase(t)
         return on * np.sin(phi), on * np.cos(phi)
 
-    def inputs(self, t):
+    def inputs(self, t: npt.ArrayLike) -> np.ndarray:
         """Model input ``u = [θ0, θI, θII]`` at times t, shape ``(len(t), 3)``."""
         t = np.atleast_1d(np.asarray(t, dtype=float))
         theta_i, theta_ii = self.multiblade(t)
         return np.column_stack([np.full_like(t, self.collective), theta_i, theta_ii])
 
-    def blade_pitch(self, t, n_blades=4):
+    def blade_pitch(self, t: npt.ArrayLike, n_blades: int = 4) -> np.ndarray:
         """Per-blade pitch θ_k(t), shape ``(len(t), n_blades)`` (eq. 3)."""
         return blade_pitch_from_multiblade(np.atleast_1d(t), self.inputs(t), n_blades)
 
-    def __call__(self, t):
+    def __call__(self, t: npt.ArrayLike) -> np.ndarray:
         """Alias of :meth:`inputs` so a schedule can be used wherever an input signal is."""
         return self.inputs(t)
 
 
-def blade_pitch_from_multiblade(t, u, n_blades):
+def blade_pitch_from_multiblade(t: npt.ArrayLike, u: npt.ArrayLike, n_blades: int) -> np.ndarray:
     """θ_k = θ0 − θI sin ψ_k + θII cos ψ_k for the inputs ``u = [θ0, θI, θII]`` (eq. 3)."""
     psi = blade_azimuths(t, n_blades)
     u = np.asarray(u, dtype=float)
     return u[:, :1] - u[:, 1:2] * np.sin(psi) + u[:, 2:3] * np.cos(psi)
 
 
-def multiblade_from_blade_pitch(t, blade_pitch):
+def multiblade_from_blade_pitch(t: npt.ArrayLike, blade_pitch: npt.ArrayLike) -> np.ndarray:
     """
     Invert eq. 3: ``u = [θ0, θI, θII]`` from per-blade pitch.
 
@@ -130,7 +131,7 @@ class SampledInput:
 
     """
 
-    def __init__(self, t, u):
+    def __init__(self, t: npt.ArrayLike, u: npt.ArrayLike) -> None:
         self.t = np.asarray(t, dtype=float)
         self.u = np.asarray(u, dtype=float)
         if self.t.ndim != 1 or self.u.shape != (self.t.size, len(INPUT_NAMES)):
@@ -140,18 +141,19 @@ class SampledInput:
             raise ValueError('SampledInput needs at least two strictly increasing sample times')
 
     @classmethod
-    def from_blade_pitch(cls, t, blade_pitch):
+    def from_blade_pitch(cls, t: npt.ArrayLike, blade_pitch: npt.ArrayLike) -> 'SampledInput':
         """Build from measured per-blade pitch (eq. 3 inverted at each sample)."""
         return cls(t, multiblade_from_blade_pitch(t, blade_pitch))
 
-    def __call__(self, t):
+    def __call__(self, t: npt.ArrayLike) -> np.ndarray:
         """``u`` at times t, shape ``(len(t), 3)``."""
         t = np.atleast_1d(np.asarray(t, dtype=float))
         return np.column_stack([np.interp(t, self.t, self.u[:, j])
                                 for j in range(self.u.shape[1])])
 
 
-def measured_stirring(t, u, min_turn=math.pi / 2):
+def measured_stirring(t: npt.ArrayLike, u: npt.ArrayLike,
+                      min_turn: float = math.pi / 2) -> tuple[str, float]:
     """
     Direction and mean rate of the stirring in a measured input (eqs 4-5 inverted).
 
