@@ -27,14 +27,13 @@ Run: ``python bench/startup.py [--repeat N]``.
 import argparse
 import os
 from pathlib import Path
-import resource
 import statistics
 import subprocess
 import sys
 import tempfile
 import time
 
-from common import fmt_time, markdown_table, REPO_ROOT, say, write_results
+from common import children_cpu, fmt_time, markdown_table, REPO_ROOT, say, write_results
 
 RECORDINGS = REPO_ROOT.parent / 'shared' / 'recordings'
 BAG = RECORDINGS / 'id_wake_progressing'
@@ -42,11 +41,6 @@ DESCRIPTION = RECORDINGS / 'id_wake_progressing.yaml'
 TARGET_S = 0.25
 #: Packages ``rotor-id identify`` needs not (diagnosis, statistics, figures, compiled kernels).
 NOT_NEEDED = ('rotor_id.diagnosis', 'scipy', 'scipy.stats', 'matplotlib', 'numba')
-
-
-def _children_cpu():
-    usage = resource.getrusage(resource.RUSAGE_CHILDREN)
-    return usage.ru_utime + usage.ru_stime
 
 
 def top_level_imports(stderr):
@@ -69,13 +63,13 @@ def all_imports(stderr):
 
 def run(argv, env):
     """Run a command; return (wall s, CPU s, stderr)."""
-    cpu = _children_cpu()
+    cpu = children_cpu()
     start = time.perf_counter()
     out = subprocess.run(argv, capture_output=True, text=True, env=env, cwd=REPO_ROOT)
     wall = time.perf_counter() - start
     if out.returncode != 0:
         raise RuntimeError(f'{" ".join(map(str, argv))} failed:\n{out.stderr[-2000:]}')
-    return wall, _children_cpu() - cpu, out.stderr
+    return wall, children_cpu() - cpu, out.stderr
 
 
 def import_cpu(modules, env):

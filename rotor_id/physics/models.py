@@ -1132,8 +1132,9 @@ def _fourier_blocks(model, p, with_jacobian):
     return tuple(out) + ((None, None) if not with_jacobian else ())
 
 
-def directional_frequency_response(model, p, frequency, jacobian=False,
-                                   orders=HARMONIC_ORDERS) -> DirectionalResponse:
+def directional_frequency_response(model: LinearModel, p: np.ndarray, frequency: npt.ArrayLike,
+                                   jacobian: bool = False,
+                                   orders: int = HARMONIC_ORDERS) -> DirectionalResponse:
     """
     Return the directional FRF β_c/θ_c of ``model`` at ``p`` (see :class:`DirectionalResponse`).
 
@@ -1193,7 +1194,7 @@ def directional_frequency_response(model, p, frequency, jacobian=False,
         if jacobian:
             rhs = np.column_stack([dF_big[j] @ x + dB[j] for j in range(len(p))])
             dx = np.linalg.solve(A, rhs)[centre * n:(centre + 1) * n]
-            dH[f] = dx[iI] + 1j * dx[iII]
+            dH[f] = dx[iI] + 1j * dx[iII]  # type: ignore[index]
     principal = X[:, centre, iI] + 1j * X[:, centre, iII]
     sidebands, mirrors = {}, {}
     for a, s in enumerate(shifts):
