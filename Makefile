@@ -117,7 +117,7 @@ STOCK_DESELECT := \
   test/io/test_io_fuzz.py::test_random_mappings_parse_or_raise_run_description_error \
   test/io/test_io_window.py::test_memory_and_reading_follow_the_window_not_the_bag
 
-.PHONY: venv-stock test-stock
+.PHONY: venv-stock test-stock typecheck
 
 venv-stock: $(VENV_STOCK_STAMP)
 
@@ -132,6 +132,10 @@ test-stock: venv-stock
 	@env -u PYTHONPATH -u AMENT_PREFIX_PATH PYTHONPATH=$(CURDIR) \
 	  $(VENV_STOCK)/bin/python -m pytest -q -m 'not slow and not ros and not numba' \
 	    $(addprefix --deselect ,$(STOCK_DESELECT)) $(STOCK_TESTS)
+
+# mypy over the annotated library modules (mypy.ini); needs mypy in the venv.
+typecheck: venv
+	@$(VENV_ENV) && python -m mypy
 
 # Only the ament linters (flake8, pep257), one run each, ~30 s: run before committing.
 lint: venv

@@ -28,11 +28,13 @@ Public functions
 """
 
 from dataclasses import dataclass
+from typing import Mapping, Sequence
 
 import numpy as np
+import numpy.typing as npt
 
 from rotor_id.estimation.output_error import (_fit_initial_states, _Problem, evaluate,
-                                              IdentificationError)
+                                              Experiment, IdentificationError)
 from rotor_id.estimation.simulate import DEFAULT_MAX_STEP
 from rotor_id.numpy_compat import trapezoid
 
@@ -85,11 +87,11 @@ class Bound:
     covariance: np.ndarray
 
     @property
-    def std(self):
+    def std(self) -> np.ndarray:
         """Cramér-Rao standard deviations √diag(M⁻¹)."""
         return np.sqrt(np.diag(self.covariance))
 
-    def sub(self, names):
+    def sub(self, names: Sequence[str]) -> np.ndarray:
         """Return the block of M⁻¹ for the named parameters, shape (len(names), len(names))."""
         idx = [self.names.index(n) for n in names]
         return self.covariance[np.ix_(idx, idx)]
@@ -117,16 +119,16 @@ class InformationHistory:
     information: np.ndarray
     covariance: np.ndarray
 
-    def variance(self, name):
+    def variance(self, name: str) -> np.ndarray:
         """M⁻¹(t_f)(i, i) of parameter ``name`` for every t_f, shape (T,)."""
         i = self.names.index(name)
         return self.covariance[:, i, i]
 
-    def std(self):
+    def std(self) -> np.ndarray:
         """Cramér-Rao σ of every parameter for every t_f, shape (T, k)."""
         return np.sqrt(np.einsum('tii->ti', self.covariance))
 
-    def at(self, t_f):
+    def at(self, t_f: float) -> np.ndarray:
         """M⁻¹ of the record ending at the last sample not later than ``t_f``."""
         j = int(np.searchsorted(self.t, t_f + 1e-9 * max(1.0, abs(t_f)), side='right')) - 1
         if j < 0:
@@ -157,9 +159,9 @@ class RecordLength:
     """
 
     met: bool
-    t_f: float
-    index: int
-    duration: float
+    t_f: float | None
+    index: int | None
+    duration: float | None
     std_at_end: np.ndarray
     limiting: str
 
@@ -226,7 +228,9 @@ def _noise_var(noise_std, m):
     return var
 
 
-def sensitivities(experiment, p_full, unknown_names, x0=None, max_step=DEFAULT_MAX_STEP):
+def sensitivities(experiment: Experiment, p_full: npt.ArrayLike, unknown_names: Sequence[str],
+                  x0: npt.ArrayLike | None = None,
+                  max_step: float = DEFAULT_MAX_STEP) -> Sensitivities:
     """
     Output sensitivities S_j = ∂ŷ_j/∂θ of one experiment at the full parameter vector p.
 
@@ -261,7 +265,7 @@ def _information(dy, noise_var):
     return np.einsum('tmi,m,tmj->tij', dy, 1.0 / noise_var, dy)
 
 
-def inverse_or_nan(M):
+def inverse_or_nan(M: npt.ArrayLike) -> np.ndarray:
     """
     Return M⁻¹ of an information matrix, or all-NaN when M is (numerically) singular.
 
@@ -280,7 +284,7 @@ def inverse_or_nan(M):
 _safe_inverse = inverse_or_nan       # the name rotor_id.planning imports
 
 
-def inverses_or_nan(M):
+def inverses_or_nan(M: npt.ArrayLike) -> np.ndarray:
     """
     Apply :func:`inverse_or_nan` to a stack of information matrices M (T, k, k).
 
@@ -302,8 +306,10 @@ def inverses_or_nan(M):
     return out
 
 
-def cramer_rao_bound(experiments, p_full, unknown_names, noise_std=1.0, x0=None,
-                     max_step=DEFAULT_MAX_STEP):
+def cramer_rao_bound(experiments: Experiment | Sequence[Experiment], p_full: npt.ArrayLike,
+                     unknown_names: Sequence[str], noise_std: npt.ArrayLike = 1.0,
+                     x0: npt.ArrayLike | None = None,
+                     max_step: float = DEFAULT_MAX_STEP) -> Bound:
     """
     M and M⁻¹ of one or more experiments at p, without fitting (Ch.3 eq. 19).
 
@@ -336,8 +342,10 @@ def cramer_rao_bound(experiments, p_full, unknown_names, noise_std=1.0, x0=None,
                  covariance=inverse_or_nan(M))
 
 
-def information_history(experiment, p_full, unknown_names, noise_std=1.0, x0=None,
-                        max_step=DEFAULT_MAX_STEP):
+def information_history(experiment: Experiment, p_full: npt.ArrayLike,
+                        unknown_names: Sequence[str], noise_std: npt.ArrayLike = 1.0,
+                        x0: npt.ArrayLike | None = None,
+                        max_step: float = DEFAULT_MAX_STEP) -> InformationHistory:
     """
     M⁻¹(t_f) as the record grows, from the cumulative information (Ch.3 eqs 19-22).
 
@@ -373,8 +381,10 @@ def information_history(experiment, p_full, unknown_names, noise_std=1.0, x0=Non
                               covariance=inverses_or_nan(M))
 
 
-def continuous_bound(experiment, p_full, unknown_names, noise_std=1.0, x0=None,
-                     max_step=DEFAULT_MAX_STEP):
+def continuous_bound(experiment: Experiment, p_full: npt.ArrayLike,
+                     unknown_names: Sequence[str], noise_std: npt.ArrayLike = 1.0,
+                     x0: npt.ArrayLike | None = None,
+                     max_step: float = DEFAULT_MAX_STEP) -> Bound:
     """
     Continuous approximation M⁻¹ ≈ Δt·[∫ SᵀR⁻¹S dt]⁻¹ over the record (Ch.3 eq. 21).
 
@@ -390,7 +400,8 @@ def continuous_bound(experiment, p_full, unknown_names, noise_std=1.0, x0=None,
                  covariance=inverse_or_nan(integral / dt))
 
 
-def shortest_record(history, target_std):
+def shortest_record(history: InformationHistory,
+                    target_std: Mapping[str, float] | npt.ArrayLike) -> 'RecordLength':
     """
     Shortest record meeting stipulated standard deviations (Ch.3 eq. 23).
 
@@ -438,8 +449,10 @@ def shortest_record(history, target_std):
                         std_at_end=history.std()[j], limiting=limiting)
 
 
-def information_density(experiment, p_full, unknown_names, noise_std=1.0, x0=None,
-                        max_step=DEFAULT_MAX_STEP):
+def information_density(experiment: Experiment, p_full: npt.ArrayLike,
+                        unknown_names: Sequence[str], noise_std: npt.ArrayLike = 1.0,
+                        x0: npt.ArrayLike | None = None,
+                        max_step: float = DEFAULT_MAX_STEP) -> 'InformationDensity':
     """
     Which samples carry the information: per-sample contributions (Ch.3 eqs 19, 22).
 

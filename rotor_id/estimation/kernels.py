@@ -30,6 +30,8 @@ writable place numba compiles at every start (about 2 s) and still gives the sam
 
 import os
 import time
+from types import ModuleType
+from typing import Any, Callable
 
 import numpy as np
 
@@ -37,11 +39,11 @@ MODES = ('auto', 'numba', 'numpy')
 #: CPU seconds of numpy simulation after which ``auto`` loads the kernel (about its load cost).
 AUTO_SWITCH_SECONDS = 0.5
 
-_state = {'kernel': None, 'tried': False, 'error': None, 'numpy_seconds': 0.0,
-          'load_seconds': None, 'module': None}
+_state: dict[str, Any] = {'kernel': None, 'tried': False, 'error': None, 'numpy_seconds': 0.0,
+                          'load_seconds': None, 'module': None}
 
 
-def mode():
+def mode() -> str:
     """Return the kernel mode from ``ROTOR_ID_KERNELS`` (auto, numba or numpy)."""
     value = os.environ.get('ROTOR_ID_KERNELS', 'auto').strip().lower() or 'auto'
     if value not in MODES:
@@ -49,18 +51,18 @@ def mode():
     return value
 
 
-def status():
+def status() -> dict[str, Any]:
     """Return a dict: mode, kernel loaded?, why not, its load time, numpy seconds so far."""
     return {'mode': mode(), 'loaded': _state['kernel'] is not None, 'error': _state['error'],
             'load_seconds': _state['load_seconds'], 'numpy_seconds': _state['numpy_seconds']}
 
 
-def note_numpy_seconds(seconds):
+def note_numpy_seconds(seconds: float) -> None:
     """Account CPU time spent in the numpy recursions (drives the ``auto`` switch)."""
     _state['numpy_seconds'] += seconds
 
 
-def rk4_kernel():
+def rk4_kernel() -> Callable[..., Any] | None:
     """Return the compiled RK4 scan, or None when the numpy path is to be used now."""
     if _state['kernel'] is not None:
         return _state['kernel']
@@ -76,7 +78,7 @@ def rk4_kernel():
 _FILTER_INPUTS = 9
 
 
-def filter_kernel():
+def filter_kernel() -> Callable[..., Any] | None:
     """
     Return the compiled Kalman filter of stacked models, or None (as :func:`rk4_kernel`).
 
@@ -97,21 +99,21 @@ def filter_kernel():
     return canonical_scan
 
 
-def affine_kernels():
+def affine_kernels() -> ModuleType | None:
     """Return the module with the time-invariant kernels (interval_map, affine_scan), or None."""
     if rk4_kernel() is None:
         return None
     return _state['module']
 
 
-def initial_state_kernel():
+def initial_state_kernel() -> Callable[..., Any] | None:
     """Return the compiled ∂ν/∂x(t0) recursion of filter error, or None."""
     if rk4_kernel() is None:
         return None
     return _state['module'].initial_state_innovations
 
 
-def filter_sensitivity_kernel():
+def filter_sensitivity_kernel() -> Callable[..., Any] | None:
     """
     Return the compiled filter with analytic sensitivities (filter error), or None (numpy).
 
@@ -130,7 +132,7 @@ def filter_sensitivity_kernel():
     return _state['sensitivity']
 
 
-def load():
+def load() -> Callable[..., Any] | None:
     """Import numba and compile (or load from the cache) the kernel; None if that fails."""
     if _state['kernel'] is not None or _state['tried']:
         return _state['kernel']
@@ -152,7 +154,7 @@ def load():
     return kernel
 
 
-def prefer():
+def prefer() -> Callable[..., Any] | None:
     """
     Load the kernel now unless ``ROTOR_ID_KERNELS=numpy``: for callers about to simulate a lot.
 
@@ -165,7 +167,7 @@ def prefer():
     return load()
 
 
-def main():
+def main() -> int:
     """
     Load (compile or read from the cache) the kernel and print how long that took.
 

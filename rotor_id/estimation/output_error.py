@@ -23,12 +23,16 @@ on the functions below.
 from dataclasses import dataclass, field
 import math
 import time
+from typing import TYPE_CHECKING
 import weakref
 
 import numpy as np
 
 from rotor_id.estimation.simulate import (DEFAULT_MAX_STEP, simulate, Simulation,
                                           TimeInvariantPlan)
+
+if TYPE_CHECKING:
+    from rotor_id.physics.models import LinearModel
 
 INITIAL_STATE_MODES = ('estimate', 'positions', 'equilibrium', 'zero')
 
@@ -68,7 +72,7 @@ class Experiment:
 
     """
 
-    model: object
+    model: 'LinearModel'
     inputs: object
     t: np.ndarray
     y: np.ndarray = None
