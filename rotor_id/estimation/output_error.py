@@ -23,7 +23,7 @@ on the functions below.
 from dataclasses import dataclass, field
 import math
 import time
-from typing import TYPE_CHECKING
+from typing import Callable, TYPE_CHECKING
 import weakref
 
 import numpy as np
@@ -73,7 +73,7 @@ class Experiment:
     """
 
     model: 'LinearModel'
-    inputs: object
+    inputs: Callable[[np.ndarray], np.ndarray]
     t: np.ndarray
     y: np.ndarray = None
     initial_state: object = 'estimate'

@@ -22,11 +22,16 @@ periodic terms, wake, sensor lag) even when the fit looks good.
 
 from dataclasses import dataclass, field, replace
 import math
+from typing import Any, Sequence, TYPE_CHECKING
 
 import numpy as np
+import numpy.typing as npt
 from rotor_id.estimation.output_error import _fit_initial_states, _Problem, evaluate
 from rotor_id.estimation.simulate import DEFAULT_MAX_STEP
 from rotor_id.physics.stirring import INPUT_NAMES
+
+if TYPE_CHECKING:
+    from rotor_id.estimation.output_error import Estimate, Experiment
 
 #: Relative size of the last term (series) or correction (continued fraction) that ends the
 #: evaluation of the incomplete gamma function Q(a, x).
@@ -88,12 +93,12 @@ _chi2_tail = np.frompyfunc(lambda q, dof: _gamma_q(0.5 * dof, 0.5 * q), 2, 1)
 _normal_tail = np.frompyfunc(lambda z: 0.5 * math.erfc(z / math.sqrt(2.0)), 1, 1)
 
 
-def chi2_sf(q, dof):
+def chi2_sf(q: npt.ArrayLike, dof: npt.ArrayLike) -> Any:
     """Return P(χ²(dof) > q), the upper tail of the χ² distribution (dof > 0, real)."""
     return _as_float(_chi2_tail(np.asarray(q, dtype=float), np.asarray(dof, dtype=float)))
 
 
-def normal_sf(z):
+def normal_sf(z: npt.ArrayLike) -> Any:
     """Return P(N(0, 1) > z), the upper tail of the standard normal."""
     return _as_float(_normal_tail(np.asarray(z, dtype=float)))
 
@@ -103,7 +108,7 @@ def _as_float(values):
     return float(values) if np.ndim(values) == 0 else np.asarray(values, dtype=float)
 
 
-def normal_isf(p):
+def normal_isf(p: npt.ArrayLike) -> Any:
     """Return z with P(N(0, 1) > z) = p, the inverse upper tail of the standard normal."""
     from scipy.special import ndtri        # here, not at import: see chi2_sf
     return -ndtri(np.asarray(p, dtype=float))
@@ -163,15 +168,15 @@ class ChannelValidation:
     ljung_box_dof: int
     ljung_box_p: float
     input_names: list = field(default_factory=list)
-    cross_lags: np.ndarray = None
-    cross_correlation: np.ndarray = None
+    cross_lags: np.ndarray | None = None
+    cross_correlation: np.ndarray | None = None
     max_cross_correlation: float = float('nan')
 
-    def white(self, alpha=0.05):
+    def white(self, alpha: float = 0.05) -> bool:
         """Whether the Ljung-Box test accepts whiteness at level ``alpha``."""
         return bool(self.ljung_box_p >= alpha)
 
-    def cross_correlation_limit(self, alpha=0.05):
+    def cross_correlation_limit(self, alpha: float = 0.05) -> float:
         """
         Return the limit of |cross-correlation| for a residual independent of the input.
 
@@ -182,13 +187,13 @@ class ChannelValidation:
         count = max(1, 0 if self.cross_correlation is None else self.cross_correlation.size)
         return float(normal_isf(alpha / (2.0 * count)) / math.sqrt(self.n_samples))
 
-    def uncorrelated_with_input(self, alpha=0.05):
+    def uncorrelated_with_input(self, alpha: float = 0.05) -> bool:
         """Whether every input cross-correlation stays inside :meth:`cross_correlation_limit`."""
         if self.cross_correlation is None or self.cross_correlation.size == 0:
             return True
         return bool(self.max_cross_correlation <= self.cross_correlation_limit(alpha))
 
-    def as_dict(self):
+    def as_dict(self) -> dict[str, Any]:
         """JSON-ready summary (without the full correlation functions)."""
         return {'channel': self.channel, 'n_samples': self.n_samples, 'rms': self.rms,
                 'mean': self.mean, 'theil': self.theil, 'band': self.band,
@@ -226,14 +231,14 @@ class RunValidation:
     initial_state: np.ndarray
     channels: list
 
-    def as_dict(self):
+    def as_dict(self) -> dict[str, Any]:
         """JSON-ready summary."""
         return {'name': self.name, 'held_out': self.held_out,
                 'initial_state': [float(v) for v in self.initial_state],
                 'channels': [c.as_dict() for c in self.channels]}
 
 
-def autocorrelation(x, max_lag):
+def autocorrelation(x: np.ndarray, max_lag: int) -> np.ndarray:
     """
     Normalised autocorrelation r_k = c_k / c_0 of a sequence for lags 1 … max_lag.
 
@@ -247,7 +252,7 @@ def autocorrelation(x, max_lag):
     return np.array([np.dot(x[k:], x[:n - k]) / n / c0 for k in range(1, max_lag + 1)])
 
 
-def ljung_box(r, n):
+def ljung_box(r: npt.ArrayLike, n: int) -> tuple[float, int, float]:
     """Ljung-Box Q = N(N+2) Σ r_k²/(N−k) for autocorrelations r_1…r_L, its dof L and p-value."""
     r = np.asarray(r, dtype=float)
     k = np.arange(1, r.size + 1)
@@ -255,7 +260,7 @@ def ljung_box(r, n):
     return q, int(r.size), float(chi2_sf(q, r.size))
 
 
-def cross_correlation(residual, signal, max_lag):
+def cross_correlation(residual: np.ndarray, signal: np.ndarray, max_lag: int) -> np.ndarray:
     """
     Normalised cross-correlation ρ_k of residual ε and input u for lags k = −L … L.
 
@@ -276,7 +281,7 @@ def cross_correlation(residual, signal, max_lag):
     return out
 
 
-def theil_inequality(measured, predicted):
+def theil_inequality(measured: npt.ArrayLike, predicted: npt.ArrayLike) -> float:
     """Theil's U = rms(y − ŷ) / (rms(y) + rms(ŷ)); 0 for ŷ = y, 1 for ŷ = 0 or ŷ = −y."""
     y = np.asarray(measured, dtype=float)
     yh = np.asarray(predicted, dtype=float)
@@ -284,13 +289,15 @@ def theil_inequality(measured, predicted):
     return float(math.sqrt(np.mean((y - yh)**2)) / den) if den > 0 else 0.0
 
 
-def default_max_lag(n_samples):
+def default_max_lag(n_samples: int) -> int:
     """Lags tested: min(20, N/4), at least 1 (Ljung-Box needs L well below N)."""
     return max(1, min(20, n_samples // 4))
 
 
-def channel_statistics(measured, predicted, channel='y', inputs=None, input_names=None,
-                       max_lag=None):
+def channel_statistics(measured: npt.ArrayLike, predicted: npt.ArrayLike, channel: str = 'y',
+                       inputs: npt.ArrayLike | None = None,
+                       input_names: Sequence[str] | None = None,
+                       max_lag: int | None = None) -> 'ChannelValidation':
     """
     Residual statistics of one channel (see the module docstring).
 
@@ -348,7 +355,8 @@ def channel_statistics(measured, predicted, channel='y', inputs=None, input_name
         max_cross_correlation=float(np.max(np.abs(cross))) if cross.size else float('nan'))
 
 
-def predict(experiment, p_full, x0=None, max_step=DEFAULT_MAX_STEP):
+def predict(experiment: 'Experiment', p_full: npt.ArrayLike, x0: npt.ArrayLike | None = None,
+            max_step: float = DEFAULT_MAX_STEP) -> tuple[np.ndarray, np.ndarray]:
     """
     Simulate a run at fixed parameters; its free initial states fitted by least squares.
 
@@ -386,8 +394,10 @@ def predict(experiment, p_full, x0=None, max_step=DEFAULT_MAX_STEP):
     return x_start, sim.y
 
 
-def validate_run(experiment, p_full, held_out=True, x0=None, predicted=None, max_lag=None,
-                 max_step=DEFAULT_MAX_STEP):
+def validate_run(experiment: 'Experiment', p_full: npt.ArrayLike, held_out: bool = True,
+                 x0: npt.ArrayLike | None = None, predicted: npt.ArrayLike | None = None,
+                 max_lag: int | None = None,
+                 max_step: float = DEFAULT_MAX_STEP) -> 'RunValidation':
     """
     Validate one run: predict it (unless ``predicted`` is given) and compute the statistics.
 
@@ -432,7 +442,9 @@ def validate_run(experiment, p_full, held_out=True, x0=None, predicted=None, max
                          initial_state=x_start, channels=channels)
 
 
-def validate(estimate, experiments, held_out=(), max_lag=None, max_step=DEFAULT_MAX_STEP):
+def validate(estimate: 'Estimate', experiments: Sequence['Experiment'],
+             held_out: Sequence['Experiment'] = (), max_lag: int | None = None,
+             max_step: float = DEFAULT_MAX_STEP) -> 'list[RunValidation]':
     """
     Validate an estimate on its identification runs and on held-out runs.
 
