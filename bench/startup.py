@@ -33,11 +33,9 @@ import sys
 import tempfile
 import time
 
+from command_speed import BAG, DESCRIPTION, RECORDINGS
 from common import children_cpu, fmt_time, markdown_table, REPO_ROOT, say, write_results
 
-RECORDINGS = REPO_ROOT.parent / 'shared' / 'recordings'
-BAG = RECORDINGS / 'id_wake_progressing'
-DESCRIPTION = RECORDINGS / 'id_wake_progressing.yaml'
 TARGET_S = 0.25
 #: Packages ``rotor-id identify`` needs not (diagnosis, statistics, figures, compiled kernels).
 NOT_NEEDED = ('rotor_id.diagnosis', 'scipy', 'scipy.stats', 'matplotlib', 'numba')
