@@ -135,7 +135,7 @@ test-stock: venv-stock
 	  $(VENV_STOCK)/bin/python -m pytest -q -n 2 -m 'not slow and not ros and not numba' \
 	    $(addprefix --deselect ,$(STOCK_DESELECT)) $(STOCK_TESTS)
 
-# mypy over the annotated library modules (mypy.ini); needs mypy in the venv.
+# mypy over the annotated library modules (mypy.ini).
 typecheck: venv
 	@$(VENV_ENV) && python -m mypy
 
