@@ -26,12 +26,17 @@ with parameter values that may be wrong (report Ch.2, "updated Kalman filter").
 
 from dataclasses import dataclass
 import math
+from typing import Callable, Sequence, TYPE_CHECKING
 
 import numpy as np
+import numpy.typing as npt
 from rotor_id.estimation.simulate import (_fine_grid, _rk4_constant_forcing, _rk4_maps,
                                           _rk4_transition, _time_invariant, DEFAULT_MAX_STEP,
                                           gap_refinement, substeps_for)
 import scipy.linalg
+
+if TYPE_CHECKING:
+    from rotor_id.physics.models import LinearModel
 
 NOISE_MODELS = ('held', 'white')
 
@@ -64,17 +69,17 @@ class DiscreteModel:
     Q: np.ndarray
     H: np.ndarray
     d: np.ndarray
-    G: np.ndarray = None
+    G: np.ndarray | None = None
 
     @property
-    def time_invariant(self):
+    def time_invariant(self) -> bool:
         """Tell whether Φ, Q and H are the same at every sample (a steady-state gain exists)."""
         def constant(a):
             return a.shape[0] <= 1 or bool(np.allclose(a, a[:1], rtol=1e-12, atol=1e-14))
         return constant(self.Phi) and constant(self.Q) and constant(self.H)
 
 
-def noise_rows(model, rows):
+def noise_rows(model: 'LinearModel', rows: Sequence[str | int]) -> list[int]:
     """State indices of the process-noise rows, from names or indices."""
     out = []
     for row in rows:
@@ -88,7 +93,7 @@ def noise_rows(model, rows):
     return out
 
 
-def default_noise_rows(model):
+def default_noise_rows(model: 'LinearModel') -> list[int]:
     """
     Rows driven by system noise when the user does not say (documented choice).
 
@@ -101,8 +106,9 @@ def default_noise_rows(model):
     return rows
 
 
-def discretize(model, p, inputs, t, rows=(), noise_std=0.0, noise_model='white',
-               max_step=DEFAULT_MAX_STEP):
+def discretize(model: 'LinearModel', p: npt.ArrayLike, inputs: Callable[[np.ndarray], np.ndarray],
+               t: npt.ArrayLike, rows: Sequence[str | int] = (), noise_std: npt.ArrayLike = 0.0,
+               noise_model: str = 'white', max_step: float = DEFAULT_MAX_STEP) -> DiscreteModel:
     """
     Discretise ``model`` at the sample times with the simulator's RK4 maps.
 
@@ -219,7 +225,9 @@ def _compose_intervals(dm, index, t, noise_std):
                          d=np.asarray(dm.d)[index], G=G)
 
 
-def varying_noise_covariance(F, Fmid, t, substeps, rows, sigma, noise_model):
+def varying_noise_covariance(F: np.ndarray, Fmid: np.ndarray | None, t: np.ndarray,
+                             substeps: int, rows: Sequence[int], sigma: np.ndarray,
+                             noise_model: str) -> tuple[np.ndarray, np.ndarray | None]:
     """
     Return Q (T-1, n, n) and G (T-1, n, q) or None of a model whose F varies (periodic).
 
@@ -235,6 +243,7 @@ def varying_noise_covariance(F, Fmid, t, substeps, rows, sigma, noise_model):
     if noise_model == 'white':
         Qc = np.zeros((n, n))
         Qc[rows, rows] = sigma**2
+        assert Fmid is not None                 # discretize gives the midpoints' F for 'white'
         return van_loan(Fmid, Qc, np.diff(t))[1], None
     h = np.repeat(np.diff(t) / substeps, substeps)
     Phi_s = _rk4_transition(F, h).reshape(T - 1, substeps, n, n)
@@ -249,7 +258,8 @@ def varying_noise_covariance(F, Fmid, t, substeps, rows, sigma, noise_model):
     return np.einsum('jak,k,jbk->jab', G, sigma**2, G), G
 
 
-def held_noise_response(F, dt, substeps, rows):
+def held_noise_response(F: np.ndarray, dt: float, substeps: int,
+                        rows: Sequence[int]) -> np.ndarray:
     """
     Return G (n, q) of one sample interval of a time-invariant model (``'held'`` noise).
 
@@ -272,7 +282,8 @@ def held_noise_response(F, dt, substeps, rows):
     return G
 
 
-def constant_noise_covariance(F, dt, substeps, rows, sigma, noise_model):
+def constant_noise_covariance(F: np.ndarray, dt: float, substeps: int, rows: Sequence[int],
+                              sigma: np.ndarray, noise_model: str) -> np.ndarray:
     """
     Return Q (n, n) of one sample interval of a time-invariant model.
 
@@ -295,7 +306,7 @@ def constant_noise_covariance(F, dt, substeps, rows, sigma, noise_model):
 #: Q of the time-invariant discretisations done last, by their exact arguments: a stream cut
 #: into batches (the live state estimator, 50 a second) discretises the same F and Δt each
 #: time, and Van Loan's exponential was a third of its discretisation.
-_Q_MEMO = {}
+_Q_MEMO: dict = {}
 _Q_MEMO_SIZE = 32
 
 
@@ -313,7 +324,7 @@ def _constant_noise_covariance_memo(F, dt, substeps, rows, sigma, noise_model):
     return Q
 
 
-def expm_batch(A):
+def expm_batch(A: np.ndarray) -> np.ndarray:
     """
     Matrix exponentials of a stack of small matrices (scaling and squaring, Taylor order 12).
 
@@ -344,7 +355,7 @@ def expm_batch(A):
     return E
 
 
-def van_loan(F, Qc, dt):
+def van_loan(F: np.ndarray, Qc: np.ndarray, dt: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """
     Van Loan (1978): Φ = e^{FΔt} and Q_d = ∫₀^Δt e^{Fs} Qc e^{Fᵀs} ds for F held constant.
 
@@ -414,7 +425,7 @@ def _symmetric(P):
     return 0.5 * (P + np.swapaxes(P, -1, -2))
 
 
-def steady_state_covariance(dm, R):
+def steady_state_covariance(dm: DiscreteModel, R: np.ndarray) -> np.ndarray:
     """Predicted covariance P of the steady-state filter (discrete algebraic Riccati equation)."""
     Phi, Q, H = dm.Phi[0], dm.Q[0], dm.H[0]
     n = Phi.shape[0]
@@ -424,7 +435,8 @@ def steady_state_covariance(dm, R):
     return _symmetric(P)
 
 
-def kalman_filter(dm, y, x0, P0, R, gain='time-varying'):
+def kalman_filter(dm: DiscreteModel, y: npt.ArrayLike, x0: npt.ArrayLike, P0: npt.ArrayLike,
+                  R: npt.ArrayLike, gain: str = 'time-varying') -> 'FilterResult':
     """
     Kalman filter over the samples of a discretised model.
 
@@ -534,7 +546,7 @@ class SmootherResult:
     C: np.ndarray
 
 
-def rts_smoother(dm, filtered):
+def rts_smoother(dm: DiscreteModel, filtered: 'FilterResult') -> 'SmootherResult':
     """
     Rauch-Tung-Striebel fixed-interval smoother (report Ch.1 ref. 8).
 
@@ -566,7 +578,9 @@ def rts_smoother(dm, filtered):
     return SmootherResult(xs, Ps, C)
 
 
-def state_derivatives(model, p, inputs, t, x):
+def state_derivatives(model: 'LinearModel', p: npt.ArrayLike,
+                      inputs: Callable[[np.ndarray], np.ndarray], t: npt.ArrayLike,
+                      x: np.ndarray) -> np.ndarray:
     """Model state derivatives x′ = F(t,p) x + g(t,p,u) at the samples, shape (T, n)."""
     t = np.asarray(t, dtype=float)
     F, g = model.system(t, np.asarray(p, dtype=float), inputs(t))
@@ -586,8 +600,13 @@ class Reconstruction:
     discrete: DiscreteModel
 
 
-def reconstruct_states(model, p, inputs, t, y, R, x0, P0, rows=None, noise_std=0.0,
-                       noise_model='white', max_step=DEFAULT_MAX_STEP, smooth=True):
+def reconstruct_states(model: 'LinearModel', p: npt.ArrayLike,
+                       inputs: Callable[[np.ndarray], np.ndarray], t: npt.ArrayLike,
+                       y: npt.ArrayLike, R: npt.ArrayLike, x0: npt.ArrayLike,
+                       P0: npt.ArrayLike, rows: Sequence[str | int] | None = None,
+                       noise_std: npt.ArrayLike = 0.0, noise_model: str = 'white',
+                       max_step: float = DEFAULT_MAX_STEP,
+                       smooth: bool = True) -> 'Reconstruction':
     """
     Filter and smooth noisy outputs into all states and their derivatives.
 
