@@ -33,14 +33,19 @@ computed, with a warning, and must not be read as a confidence measure.
 from dataclasses import dataclass, field
 import math
 import time
+from typing import Any, Callable, Mapping, Sequence, TYPE_CHECKING
 
 import numpy as np
+import numpy.typing as npt
 from rotor_id.estimation import kalman
 from rotor_id.estimation.filter_error import difference_noise_std
 from rotor_id.estimation.output_error import (_fit_initial_states, _Problem, Estimate, Experiment,
                                               IdentificationError)
 from rotor_id.estimation.simulate import DEFAULT_MAX_STEP
 import scipy.signal
+
+if TYPE_CHECKING:
+    from rotor_id.physics.models import LinearModel
 
 COVARIANCE_WARNING = ('equation-error covariance: the regression covariance P_θ (report Ch.2 eq. '
                       '13) is computed from smoothed, correlated states and is NOT a confidence '
@@ -72,7 +77,9 @@ class Regression:
     weights: np.ndarray
 
 
-def regression(model, p, inputs, t, x, xdot, unknown_index):
+def regression(model: 'LinearModel', p: np.ndarray, inputs: Callable[[np.ndarray], np.ndarray],
+               t: npt.ArrayLike, x: np.ndarray, xdot: np.ndarray,
+               unknown_index: Sequence[int]) -> 'Regression':
     """Build the eq.-8 regression from states ``x`` and derivatives ``xdot``, both (T, n)."""
     t = np.asarray(t, dtype=float)
     u = inputs(t)
@@ -97,7 +104,9 @@ def _row_weight(W, r):
     return np.diag(W) if W.ndim == 1 else W
 
 
-def global_estimate(reg, W=None, prior_mean=None, prior_cov=None):
+def global_estimate(reg: 'Regression', W: npt.ArrayLike | None = None,
+                    prior_mean: npt.ArrayLike | None = None,
+                    prior_cov: npt.ArrayLike | None = None) -> tuple[np.ndarray, np.ndarray]:
     """
     Global estimate, report Ch.2 eqs 12-13.
 
@@ -140,7 +149,8 @@ class SequentialResult:
     P: np.ndarray
 
 
-def sequential_estimate(reg, t, theta0, P0, W=None):
+def sequential_estimate(reg: 'Regression', t: npt.ArrayLike, theta0: npt.ArrayLike,
+                        P0: npt.ArrayLike, W: npt.ArrayLike | None = None) -> 'SequentialResult':
     """
     Sequential linear estimator, report Ch.2 eqs 10-11 (Ch.1 eqs 43-46).
 
@@ -189,7 +199,7 @@ def sequential_estimate(reg, t, theta0, P0, W=None):
     return SequentialResult(np.asarray(t, dtype=float), thetas, Ps)
 
 
-def lowpass(t, y, cutoff, order=4):
+def lowpass(t: npt.ArrayLike, y: npt.ArrayLike, cutoff: float, order: int = 4) -> np.ndarray:
     """
     Zero-phase Butterworth low-pass (the report's digital prefilter), cutoff in rad per unit t.
 
@@ -231,10 +241,14 @@ def _parameter_rows(model, p, inputs, t):
     return [i for i in range(model.n_states) if dep[i]]
 
 
-def fit_equation_error_experiments(experiments, unknowns, guess=None, known=None, progress=None,
-                                   max_iter=10, noise_std=None, process_noise_std=None,
-                                   prefilter_cutoff=None, step_tol=1e-3,
-                                   max_step=DEFAULT_MAX_STEP):
+def fit_equation_error_experiments(experiments: Sequence[Experiment], unknowns: Sequence[str],
+                                   guess: Mapping[str, float] | None = None,
+                                   known: Mapping[str, float] | None = None,
+                                   progress: Callable[..., Any] | None = None,
+                                   max_iter: int = 10, noise_std: npt.ArrayLike | None = None,
+                                   process_noise_std: float | None = None,
+                                   prefilter_cutoff: float | None = None, step_tol: float = 1e-3,
+                                   max_step: float = DEFAULT_MAX_STEP) -> Estimate:
     """
     Estimate by iterated equation error with an updated Kalman filter (report Ch.2).
 
@@ -307,9 +321,14 @@ def fit_equation_error_experiments(experiments, unknowns, guess=None, known=None
         model_parameters=dict(zip(model.parameter_names, p_final)), method='equation-error')
 
 
-def fit_equation_error(experiments, unknowns, guess=None, known=None, progress=None,
-                       max_iter=10, noise_std=None, process_noise_std=None,
-                       prefilter_cutoff=None, step_tol=1e-3, max_step=DEFAULT_MAX_STEP):
+def fit_equation_error(experiments: Sequence[Experiment], unknowns: Sequence[str],
+                       guess: Mapping[str, float] | None = None,
+                       known: Mapping[str, float] | None = None,
+                       progress: Callable[..., Any] | None = None, max_iter: int = 10,
+                       noise_std: npt.ArrayLike | None = None,
+                       process_noise_std: float | None = None,
+                       prefilter_cutoff: float | None = None, step_tol: float = 1e-3,
+                       max_step: float = DEFAULT_MAX_STEP) -> 'EquationErrorResult':
     """
     Run the iteration behind :func:`fit_equation_error_experiments` (same parameters).
 
@@ -399,6 +418,7 @@ def fit_equation_error(experiments, unknowns, guess=None, known=None, progress=N
             break
     recs = reconstruct(p, process_noise_std)
     return EquationErrorResult(names=list(unknowns), values=p[idx].copy(), covariance=P,
-                               process_noise_std=float(process_noise_std), history=history,
+                               process_noise_std=float(process_noise_std),  # type: ignore
+                               history=history,
                                reconstructions=recs, regressions=regs, iterations=iteration,
                                converged=converged)
