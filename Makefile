@@ -139,9 +139,10 @@ test-stock: venv-stock
 typecheck: venv
 	@$(VENV_ENV) && python -m mypy
 
-# Only the ament linters (flake8, pep257), one run each, ~30 s: run before committing.
+# The ament linters (flake8, pep257, one run each) and mypy, ~1 min: run before committing.
 lint: venv
 	@$(VENV_ENV) && python -m pytest -q -m linter test/test_flake8.py test/test_pep257.py
+	@$(MAKE) typecheck
 
 demo: build
 	./rotor-id demo
