@@ -18,7 +18,7 @@ TOPICS = {
     'estimate': ('/rotor_id/estimate', ParameterEstimate, RESULT_QOS),
     'progress': ('/rotor_id/progress', IdentificationProgress, STATE_QOS),
     'state': ('/rotor_id/state', StateEstimate, RESULT_QOS),
-    'stirring': ('/rotor/stirring', StirringCommand, RESULT_QOS),
+    'stirring': ('/rotor/stirring', StirringCommand, STATE_QOS),   # volatile, as offered
     'diagnostics': ('/diagnostics', DiagnosticArray, DIAGNOSTICS_QOS),
 }
 #: The run's outputs of the nodes, one publisher each (not /diagnostics, which every node

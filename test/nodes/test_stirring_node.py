@@ -2,10 +2,12 @@
 The stirring_input node itself, in this process, on a rig unlike the built-in plant.
 
 What it proves, on a 3-bladed rig with its own topic and joint names, hub joint ``hub`` and an
-unwrapped azimuth, fed through DDS by a test publisher at the clock's pace: a test point runs
+unwrapped azimuth, fed through DDS by a test publisher at the clock's pace: until ``~/start`` is
+called the node commands trim only (collective on every blade, PHASE_DONE); a test point runs
 trim, cyclic step, stirring, then ends by itself (its duration) with a ramp back to trim and
 PHASE_DONE, and holds trim after; ``~/start`` runs a second one and ``~/abort`` ends it the same
 way, the answer naming the test point; after either the pitch commands are collective only.
+(The process-level contract, signals, deactivate and a stale azimuth: test_actuator_live.py.)
 Settings are checked at run time (an amplitude above the limit is refused with the reason, a
 read-only limit cannot be changed), and the pitch commands are offered keep-last with a small
 depth and a lifespan: no stale backlog.
@@ -41,8 +43,8 @@ def run(tmp_path_factory):
     from rclpy.parameter import Parameter
     from rclpy.signals import SignalHandlerOptions
     from rcl_interfaces.srv import SetParameters
-    from rotor_id.nodes.common import joint_state, RESULT_QOS, SENSOR_OFFER_QOS, SENSOR_QOS
-    from rotor_id.nodes.stirring_input import StirringInput
+    from rotor_id.nodes.common import joint_state, SENSOR_OFFER_QOS, SENSOR_QOS
+    from rotor_id.nodes.stirring_input import EXCITATION_QOS, StirringInput
     from rotor_id_msgs.msg import StirringCommand
     from sensor_msgs.msg import JointState
     from std_srvs.srv import Trigger
@@ -66,7 +68,7 @@ def run(tmp_path_factory):
     shaft = test.create_publisher(JointState, '/rig7/stand/shaft', SENSOR_OFFER_QOS)
     phases, commands = [], []
     test.create_subscription(StirringCommand, '/rig7/stand/excitation',
-                             lambda m: phases.append((m.phase, m.header.stamp)), RESULT_QOS)
+                             lambda m: phases.append((m.phase, m.header.stamp)), EXCITATION_QOS)
     test.create_subscription(JointState, '/rig7/stand/pitch_setpoint', commands.append,
                              SENSOR_QOS)
     clients = {name: test.create_client(Trigger, f'/rig7/stirring_input/{name}')
@@ -96,10 +98,15 @@ def run(tmp_path_factory):
         return future.result()
 
     def done_count():
-        return sum(1 for p, _ in phases if p == StirringCommand.PHASE_DONE)
+        # PHASE_DONE after a test point (the first is the trim held before any start)
+        return _sequence(phases)[1:].count(StirringCommand.PHASE_DONE)
 
     out = {'phases': phases, 'commands': commands, 'answers': {}}
     try:
+        # nobody asked for a test point: trim only, for 1 s of commands
+        spin(1.0)
+        out['before_start'] = (list(commands), list(phases))
+        out['answers']['first_start'] = call(clients['start'], Trigger.Request())
         # test point 1: t0 + duration = 2 + 10 + 8 = 20 rad after the start: 0.21 s, ramp 0.05 s
         out['first_done'] = spin(10.0, lambda: done_count() > 0)
         spin(0.2)
@@ -139,10 +146,22 @@ def _sequence(phases):
     return seq
 
 
+def test_only_trim_until_a_start_is_asked_for(run):
+    from rotor_id_msgs.msg import StirringCommand as S
+    commands, phases = run['before_start']
+    assert len(commands) >= 50, len(commands)            # 200 Hz for 1 s, on a busy machine
+    np.testing.assert_allclose([c.position for c in commands], COLLECTIVE, atol=1e-12)
+    assert phases and {p for p, _ in phases} == {S.PHASE_DONE}
+    assert run['answers']['first_start'].success, run['answers']['first_start'].message
+    assert 'test point 1' in run['answers']['first_start'].message
+
+
 def test_a_test_point_ends_by_itself_and_holds_trim(run):
     from rotor_id_msgs.msg import StirringCommand as S
     assert run['first_done']
     first = run['phases'][:run['n_first']]
+    while first and first[0][0] == S.PHASE_DONE:      # holding trim before the start
+        first = first[1:]
     assert _sequence(first) == [S.PHASE_TRIM, S.PHASE_CYCLIC_STEP, S.PHASE_STIRRING,
                                 S.PHASE_RAMP_DOWN, S.PHASE_DONE]
     stamp = {p: s.sec + s.nanosec * 1e-9 for p, s in reversed(first)}   # first stamp of each
