@@ -281,7 +281,7 @@ class StirringInput(LifecycleNode):
         return TransitionCallbackReturn.SUCCESS
 
     def on_error(self, state):
-        """A transition failed with an exception: trim if still commanding, then unconfigured."""
+        """Handle a transition that raised: trim if still commanding, then unconfigured."""
         self.ramp_to_trim('error in a transition')
         self.commanding = False
         self._destroy_entities()
@@ -477,7 +477,7 @@ class StirringInput(LifecycleNode):
         return self.ramp
 
     def _inputs(self, t, at_s):
-        """(u = [θ0, θI, θII], phase, φ, dφ/dt) commanded at azimuth ``t``, steady time ``at_s``."""
+        """Return (u = [θ0, θI, θII], phase, φ, dφ/dt) at azimuth ``t``, steady time ``at_s``."""
         ramp = self.ramp
         if ramp is not None:
             scale = ramp.scale(at_s)
@@ -574,7 +574,7 @@ class StirringInput(LifecycleNode):
                 [collective] * len(self.joints), frame_id=self.d['frame_id']))
             self.published += 1
         wait_for_acks([self.pub_command, self.pub_stirring], FINAL_FLUSH_S)
-        self.get_logger().info(f'trim published ({self.published} pitch commands in all)')
+        self.get_logger().info(f'at trim: final command sent, {self.published} in all')
 
     def close(self):
         """On exit (signal or exception): ramp to trim, publish and flush it, then report."""
