@@ -39,11 +39,13 @@ import sys
 import time
 
 from diagnostic_msgs.msg import DiagnosticStatus
+import numpy as np
 from rclpy.duration import Duration
 from rclpy.lifecycle import LifecycleNode, TransitionCallbackReturn
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
-from rotor_id.excitation import (check_excitation_limits, PHASE_DONE, PHASE_NAMES,
-                                 PHASE_RAMP_DOWN, StirringTestPoint)
+from rotor_id.excitation import (check_excitation_limits, PHASE_CYCLIC_STEP, PHASE_DONE,
+                                 PHASE_NAMES, PHASE_RAMP_DOWN, PHASE_STIRRING, PHASE_TRIM,
+                                 StirringTestPoint)
 from rotor_id.nodes.common import (allow_runtime_changes, declare, Diagnostics, joint_state,
                                    node_run_description, Rig, RUN_DESCRIPTION_HELP, SENSOR_QOS,
                                    spin_node, time_msg, wait_for_acks)
@@ -98,6 +100,7 @@ class StopRamp:
     """The cyclic shrinking linearly to zero on the steady clock (the collective unchanged)."""
 
     start_s: float            # time.monotonic() at the ramp's start
+    start_ns: int             # and on the node clock
     duration_s: float
     collective: float         # θ0, rad
     cyclic: tuple             # (θI, θII) at the start, rad
@@ -195,9 +198,12 @@ class StirringInput(LifecycleNode):
         self.test_point = None           # StirringTestPoint of the current or last test point
         self.holding = True              # trim, whatever the test point's schedule says
         self.start_requested = False
+        self.requested_ns = None         # when the start was asked for (node clock)
+        self.start_stamp = None          # the schedule's start, for its first StirringCommand
         self.ramp = None                 # StopRamp in progress
         self.azimuth = AzimuthTracker()
         self.last_stamp = None           # stamp of the last command (ns)
+        self.previous_stamp = None       # and of the one before
         self.last_u = None               # its (θ0, θI, θII)
         self.last_phase = None
         self.trim_collective = self.d['collective_rad']
@@ -321,6 +327,7 @@ class StirringInput(LifecycleNode):
                                 f'({self._phase_name()}); abort it first')
         else:
             self.start_requested = True
+            self.requested_ns = self.get_clock().now().nanoseconds
             response.success = True
             response.message = (f'test point {self.test_points + 1} starts with the next pitch '
                                 'command' + ('' if self._azimuth_fresh() else
@@ -443,9 +450,23 @@ class StirringInput(LifecycleNode):
         if not fresh and self.ramp is None and (applied or not self.holding):
             self._on_stale(now)
         if self.start_requested and fresh and self.ramp is None:
-            self._start(float(self.azimuth.t_at([stamp])[0]), self.azimuth.omega)
+            self.start_stamp = self._start_stamp(now)
+            self._start(float(self.azimuth.t_at([self.start_stamp])[0]), self.azimuth.omega)
         self.command(stamp, time.monotonic() + self.d['lead_s'])
         self.diagnostics.set_value('commands_published', self.published)
+
+    def _start_stamp(self, now):
+        """
+        Return when a test point asked for starts: the first azimuth sample since the request.
+
+        A start asked for before the rotor turned thus begins with its first sample (as a
+        recording's first sample, docs/run_description.md), one asked for while it turns
+        begins at once; never more than ``azimuth_timeout_s`` before now.
+        """
+        stamps = self.azimuth.series.stamps
+        i = int(np.searchsorted(stamps, self.requested_ns))
+        first = int(stamps[i]) if i < len(stamps) else now
+        return max(first, now - int(self.d['azimuth_timeout_s'] * NS))
 
     def _on_stale(self, now):
         age = ((now - self.azimuth.series.last_stamp) / NS if self.azimuth.ready
@@ -469,7 +490,8 @@ class StirringInput(LifecycleNode):
                 phi = self.test_point.stirring_phase(t)
             except Exception:                # noqa: B902 - the ramp must start regardless
                 pass
-        self.ramp = StopRamp(time.monotonic(), self.d['stop_ramp_s'], float(u[0]),
+        self.ramp = StopRamp(time.monotonic(), self.get_clock().now().nanoseconds,
+                             self.d['stop_ramp_s'], float(u[0]),
                              (float(u[1]), float(u[2])), float(phi), reason)
         self.holding = True
         self.trim_collective = float(u[0])
@@ -494,9 +516,34 @@ class StirringInput(LifecycleNode):
         u = point.inputs([t])[0]
         return (list(u), point.phase(t), point.stirring_phase(t), point.stirring_rate(t))
 
+    def _phase_began(self, phase, t, applies, ramp):
+        """
+        Return when ``phase``, first commanded at ``applies``, began (ns): at most ``applies``.
+
+        A test point's phases begin at its schedule's boundaries (azimuth, back to the node
+        clock with the test point's Ω), the stop ramp's at its start and end; the first TRIM
+        of a test point at its start. Not later than the first command of the phase, not
+        earlier than the command before it.
+        """
+        began = applies
+        point = self.test_point
+        if ramp is not None:
+            began = ramp.start_ns + (int(ramp.duration_s * NS) if phase == PHASE_DONE else 0)
+        elif phase == PHASE_TRIM and self.start_stamp is not None:
+            began, self.start_stamp = self.start_stamp, None
+        elif point is not None and t is not None:
+            boundary = {PHASE_CYCLIC_STEP: point.schedule.t_step,
+                        PHASE_STIRRING: point.schedule.t0, PHASE_RAMP_DOWN: point.t_ramp,
+                        PHASE_DONE: point.t_done}.get(phase)
+            if boundary is not None:
+                began = applies - int((t - boundary) / point.omega_rad_s * NS)
+        earliest = self.previous_stamp if self.previous_stamp is not None else began
+        return int(min(applies, max(began, earliest)))
+
     def command(self, applies, at_s):
         """Publish the pitch command, and every n-th StirringCommand, for time ``applies``."""
         t = float(self.azimuth.t_at([applies])[0]) if self.azimuth.ready else None
+        ramp = self.ramp
         u, phase, phi, rate = self._inputs(t, at_s)
         if phase == PHASE_DONE and self.test_point is not None and not self.holding:
             self.holding = True           # the test point ended by itself: hold its trim
@@ -506,6 +553,7 @@ class StirringInput(LifecycleNode):
         self.pub_command.publish(joint_state(applies, self.joints, pitch,
                                              frame_id=self.d['frame_id']))
         self.published += 1
+        self.previous_stamp = self.last_stamp
         self.last_stamp, self.last_u = applies, tuple(float(v) for v in u)
         changed = phase != self.last_phase
         self.last_phase = phase
@@ -515,6 +563,8 @@ class StirringInput(LifecycleNode):
             return
         cmd = StirringCommand()
         cmd.header.stamp = time_msg(applies)
+        if changed:            # stamped with the time the phase began (docs/actuator.md)
+            cmd.header.stamp = time_msg(self._phase_began(phase, t, applies, ramp))
         cmd.header.frame_id = self.d['frame_id']
         cmd.collective, cmd.cyclic_forward, cmd.cyclic_left = (float(v) for v in u)
         cmd.stirring_phase = float(phi)
