@@ -15,6 +15,7 @@ depth and a lifespan: no stale backlog.
 
 import math
 import os
+import time
 
 import numpy as np
 import pytest
@@ -217,3 +218,75 @@ def test_pitch_commands_cannot_queue_a_stale_backlog(run):
     assert qos.history == HistoryPolicy.KEEP_LAST and qos.depth <= 21       # 0.1 s at 200 Hz
     (offer,) = run['offers']                                 # what readers see, through DDS
     assert 0 < offer.qos_profile.lifespan.nanoseconds <= 0.2e9             # lead_s + 0.1 s
+
+
+@pytest.mark.parametrize('broken', ['schedule', 'pitch_conversion'])
+def test_an_exception_mid_stirring_ends_on_trim(tmp_path, monkeypatch, broken):
+    """The command tick raises mid-stirring; close() (what spin_node runs next) ends on trim."""
+    from rclpy.executors import SingleThreadedExecutor
+    from rclpy.parameter import Parameter
+    from rclpy.signals import SignalHandlerOptions
+    from rotor_id.nodes import stirring_input as module
+    from rotor_id.nodes.common import joint_state, SENSOR_OFFER_QOS, SENSOR_QOS
+    from sensor_msgs.msg import JointState
+    from std_srvs.srv import Trigger
+
+    description = tmp_path / 'rig.yaml'
+    description.write_text(RIG)
+    context = rclpy.context.Context()
+    rclpy.init(context=context, domain_id=201 + (os.getpid() + 3) % 30,
+               signal_handler_options=SignalHandlerOptions.NO)
+    params = [Parameter('run_description', value=str(description)),
+              Parameter('t0', value=5.0), Parameter('step_after_rad', value=1.0),
+              Parameter('duration_rad', value=1e5), Parameter('omegadot', value=-0.01),
+              Parameter('max_stirring_rate_rad_s', value=1e4),
+              Parameter('azimuth_timeout_s', value=5.0)]
+    node = module.StirringInput(parameter_overrides=params, context=context, namespace='/rig8')
+    test = rclpy.create_node('test_exception', context=context)
+    executor = SingleThreadedExecutor(context=context)
+    executor.add_node(node)
+    executor.add_node(test)
+    shaft = test.create_publisher(JointState, '/rig8/stand/shaft', SENSOR_OFFER_QOS)
+    commands = []
+    test.create_subscription(JointState, '/rig8/stand/pitch_setpoint',
+                             lambda m: commands.append(np.array(m.position)), SENSOR_QOS)
+    test.create_timer(0.002, lambda: shaft.publish(joint_state(
+        test.get_clock().now().nanoseconds, ['hub'],
+        [OMEGA * test.get_clock().now().nanoseconds / 1e9], [OMEGA])))
+    amplitude = math.radians(1.5)
+
+    def spin_until(condition, seconds=20.0):
+        end = time.monotonic() + seconds
+        while time.monotonic() < end and not condition():
+            executor.spin_once(timeout_sec=0.01)
+        return condition()
+
+    raised = None
+    try:
+        assert spin_until(lambda: len(commands) > 10)
+        assert node.on_start(Trigger.Request(), Trigger.Response()).success
+        assert spin_until(lambda: np.ptp(commands[-1]) > 0.5 * amplitude), 'never stirred'
+
+        def fail(*_args, **_kwargs):
+            raise RuntimeError('a bug')
+        if broken == 'schedule':
+            monkeypatch.setattr(node.test_point, 'inputs', fail)
+        else:
+            monkeypatch.setattr(module, 'blade_pitch_from_multiblade', fail)
+        with pytest.raises(RuntimeError, match='a bug') as raised:
+            spin_until(lambda: False, 5.0)
+        n = len(commands)
+        node.close()                                 # spin_node's clean-up
+        spin_until(lambda: False, 0.5)               # take what is in flight
+    finally:
+        executor.shutdown()
+        node.destroy_node()
+        test.destroy_node()
+        rclpy.try_shutdown(context=context)
+    assert raised is not None
+    after = commands[n:]
+    assert after, 'nothing published after the exception'
+    np.testing.assert_allclose(after[-1], COLLECTIVE, atol=1e-12)
+    if broken == 'schedule':      # the stop ramp ran (its own arithmetic): shrinking spreads
+        spreads = [np.ptp(c) for c in after]
+        assert len(after) >= 3 and max(spreads) <= 2 * amplitude + 1e-9
