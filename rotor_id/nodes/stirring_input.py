@@ -280,18 +280,17 @@ class StirringInput(LifecycleNode):
 
     def on_shutdown(self, state):
         """From active: ramp to trim and publish it first."""
-        self.ramp_to_trim('shutdown requested')
-        self.commanding = False
-        self._destroy_entities()
-        self._lifecycle_diagnostics('finalized')
-        return TransitionCallbackReturn.SUCCESS
+        return self._end_on_trim('shutdown requested', 'finalized')
 
     def on_error(self, state):
         """Handle a transition that raised: trim if still commanding, then unconfigured."""
-        self.ramp_to_trim('error in a transition')
+        return self._end_on_trim('error in a transition', 'unconfigured')
+
+    def _end_on_trim(self, reason, label):
+        self.ramp_to_trim(reason)
         self.commanding = False
         self._destroy_entities()
-        self._lifecycle_diagnostics('unconfigured')
+        self._lifecycle_diagnostics(label)
         return TransitionCallbackReturn.SUCCESS
 
     def _destroy_entities(self):
@@ -490,8 +489,9 @@ class StirringInput(LifecycleNode):
                 phi = self.test_point.stirring_phase(t)
             except Exception:                # noqa: B902 - the ramp must start regardless
                 pass
+        applied = bool(u[1] or u[2])            # no cyclic: nothing to ramp, trim at once
         self.ramp = StopRamp(time.monotonic(), self.get_clock().now().nanoseconds,
-                             self.d['stop_ramp_s'], float(u[0]),
+                             self.d['stop_ramp_s'] if applied else 0.0, float(u[0]),
                              (float(u[1]), float(u[2])), float(phi), reason)
         self.holding = True
         self.trim_collective = float(u[0])
@@ -508,7 +508,6 @@ class StirringInput(LifecycleNode):
                 return u, PHASE_RAMP_DOWN, ramp.stirring_phase, 0.0
             self.ramp = None
             self.diagnostics.set_value('last_end', f'stopped ({ramp.reason})')
-            self.get_logger().warning(f'cyclic at trim after the stop ramp ({ramp.reason})')
             return u, PHASE_DONE, ramp.stirring_phase, 0.0
         point = self.test_point
         if point is None or self.holding or t is None:
@@ -522,8 +521,9 @@ class StirringInput(LifecycleNode):
 
         A test point's phases begin at its schedule's boundaries (azimuth, back to the node
         clock with the test point's Ω), the stop ramp's at its start and end; the first TRIM
-        of a test point at its start. Not later than the first command of the phase, not
-        earlier than the command before it.
+        of a test point at its start (:meth:`_start_stamp`, which may precede the command
+        before). Else not later than the first command of the phase, not earlier than the
+        command before it.
         """
         began = applies
         point = self.test_point
@@ -531,6 +531,7 @@ class StirringInput(LifecycleNode):
             began = ramp.start_ns + (int(ramp.duration_s * NS) if phase == PHASE_DONE else 0)
         elif phase == PHASE_TRIM and self.start_stamp is not None:
             began, self.start_stamp = self.start_stamp, None
+            return int(min(applies, began))
         elif point is not None and t is not None:
             boundary = {PHASE_CYCLIC_STEP: point.schedule.t_step,
                         PHASE_STIRRING: point.schedule.t0, PHASE_RAMP_DOWN: point.t_ramp,
@@ -558,7 +559,7 @@ class StirringInput(LifecycleNode):
         changed = phase != self.last_phase
         self.last_phase = phase
         if changed:
-            self._phase_changed(phase, t)
+            self._phase_changed(phase, t, ramp)
         if (self.published - 1) % self.d['stirring_every'] and not changed:
             return
         cmd = StirringCommand()
@@ -574,13 +575,14 @@ class StirringInput(LifecycleNode):
         if t is not None:
             self.diagnostics.set_value('t', f'{t:.4f}')
 
-    def _phase_changed(self, phase, t):
+    def _phase_changed(self, phase, t, ramp=None):
         self.diagnostics.set_value('state', PHASE_NAMES[phase])
         self.diagnostics.set_value('test_point', self.test_points)
         point = self.test_point
         if point is None or phase != PHASE_DONE:
             return
-        why = f'aborted ({point.aborted})' if point.aborted else point.end_reason
+        why = (f'stopped ({ramp.reason})' if ramp is not None else
+               f'aborted ({point.aborted})' if point.aborted else point.end_reason)
         self.diagnostics.set_value('last_end', why)
         self.diagnostics.idle = True
         at = '' if t is None else f' at t = {t:.4g}'
