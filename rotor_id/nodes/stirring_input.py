@@ -48,7 +48,7 @@ from rotor_id.excitation import (check_excitation_limits, PHASE_CYCLIC_STEP, PHA
                                  StirringTestPoint)
 from rotor_id.nodes.common import (allow_runtime_changes, declare, Diagnostics, joint_state,
                                    node_run_description, Rig, RUN_DESCRIPTION_HELP, SENSOR_QOS,
-                                   spin_node, time_msg, wait_for_acks)
+                                   spin_node, time_msg)
 from rotor_id.nodes.live import AzimuthTracker, BadSample, check_azimuth_sample
 from rotor_id.nodes.polling import checked_azimuth_batch, one_by_one, SensorPoller
 from rotor_id.physics.stirring import blade_pitch_from_multiblade, StirringSchedule
@@ -66,8 +66,8 @@ AZIMUTH_KEPT_S = 2.0
 #: Longest stop_ramp_s (s): the ramp on a signal must end well inside the 5 s a launch system
 #: leaves between its SIGINT and its SIGTERM (ros2 launch's sigterm_timeout default).
 MAX_STOP_RAMP_S = 2.0
-#: How long a stopping node waits for the readers to acknowledge its final trim (s): long
-#: enough for a reader on a busy machine, short enough that SIGINT → exit stays within 5 s.
+#: How long a stopping node waits for reliable readers of the pitch commands (a driver) to
+#: acknowledge its final trim (s): short enough that SIGINT → exit stays within 5 s.
 FINAL_FLUSH_S = 1.0
 #: The StirringCommand: reliable (a phase change must arrive: the identifier arms on it),
 #: volatile (a late or restarted reader never receives a past schedule), keep-last 20 (1 s at
@@ -625,8 +625,12 @@ class StirringInput(LifecycleNode):
                 self.get_clock().now().nanoseconds + lead_ns, self.joints,
                 [collective] * len(self.joints), frame_id=self.d['frame_id']))
             self.published += 1
-        wait_for_acks([self.pub_command, self.pub_stirring], FINAL_FLUSH_S)
         self.get_logger().info(f'at trim: final command sent, {self.published} in all')
+        if not self.pub_command.wait_for_all_acked(Duration(nanoseconds=int(FINAL_FLUSH_S * NS))):
+            self.get_logger().warning(
+                f'a reliable reader of {self.pub_command.topic_name} had not acknowledged the '
+                f'final trim within {FINAL_FLUSH_S:g} s (DDS may acknowledge only at its next '
+                'heartbeat: delivered most likely, but not confirmed)')
 
     def close(self):
         """On exit (signal or exception): ramp to trim, publish and flush it, then report."""
