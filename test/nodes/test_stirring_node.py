@@ -290,3 +290,51 @@ def test_an_exception_mid_stirring_ends_on_trim(tmp_path, monkeypatch, broken):
     if broken == 'schedule':      # the stop ramp ran (its own arithmetic): shrinking spreads
         spreads = [np.ptp(c) for c in after]
         assert len(after) >= 3 and max(spreads) <= 2 * amplitude + 1e-9
+
+
+def test_lifecycle_states_gate_the_commands(tmp_path):
+    """Unconfigured or inactive: nothing commanded, ~/start refused; configure checks the rig."""
+    from rclpy.lifecycle import TransitionCallbackReturn as R
+    from rclpy.parameter import Parameter
+    from rclpy.signals import SignalHandlerOptions
+    from rotor_id.nodes.stirring_input import StirringInput
+    from std_srvs.srv import Trigger
+
+    description = tmp_path / 'rig.yaml'
+    description.write_text(RIG)
+    context = rclpy.context.Context()
+    rclpy.init(context=context, domain_id=201 + (os.getpid() + 7) % 30,
+               signal_handler_options=SignalHandlerOptions.NO)
+    nodes = []
+
+    def make(state, rig):
+        nodes.append(StirringInput(context=context, parameter_overrides=[
+            Parameter('run_description', value=str(rig)),
+            Parameter('initial_state', value=state)]))
+        return nodes[-1]
+
+    def start(node):
+        return node.on_start(Trigger.Request(), Trigger.Response())
+    try:
+        missing = make('unconfigured', tmp_path / 'absent.yaml')
+        assert missing.pub_command is None and not missing.commanding
+        answer = start(missing)
+        assert not answer.success and 'unconfigured' in answer.message
+        assert missing.trigger_configure() == R.FAILURE      # stays unconfigured, says why
+        assert 'absent.yaml' in missing.configure_error
+        assert missing._state_label() == 'unconfigured'
+        inactive = make('inactive', description)
+        assert inactive.pub_command is not None and not inactive.commanding
+        assert not start(inactive).success
+        assert inactive.trigger_activate() == R.SUCCESS and inactive.commanding
+        assert start(inactive).success
+        assert inactive.trigger_deactivate() == R.SUCCESS and not inactive.commanding
+        assert not inactive.start_requested                  # a pending start does not survive
+        with pytest.raises(ValueError, match='initial_state'):
+            make('running', description)
+        with pytest.raises(ValueError, match='absent.yaml'):   # ros2 run: one line, exit 2
+            make('active', tmp_path / 'absent.yaml')
+    finally:
+        for node in nodes:
+            node.destroy_node()
+        rclpy.try_shutdown(context=context)
