@@ -9,7 +9,7 @@
 # Nothing has to be installed or sourced by hand: missing system tools (cmake, g++, Python
 # 3.11 venv/headers) are installed with apt-get, the Python packages come from the pins in
 # requirements-jazzy.in + constraints-jazzy.txt (installed with uv, pip as fallback).
-# See README.md and shared TOOLCHAIN.md for the why.
+# See docs/install.md for the why.
 
 SHELL := /bin/bash
 .SHELLFLAGS := -eu -o pipefail -c
@@ -72,11 +72,15 @@ build: venv | sysdeps
 	@# compile the numba kernel into its cache now (2-6 s once), not in a user's first study
 	@$(WS_ENV) && python -m rotor_id.estimation.kernels
 
-test: build
-	@echo "== test: pytest"
-	@$(WS_ENV) && python -m pytest
+# Both cores (pytest-xdist; tests take their ROS domains from test/ros_domains.py), and the
+# 25 slowest tests listed at the end, so that a slow newcomer is seen in every CI log.
+PYTEST_ARGS ?= -n 2 --durations=25
 
-# Only the ament linters (flake8, pep257), ~30 s: run before committing.
+test: build
+	@echo "== test: pytest $(PYTEST_ARGS)"
+	@$(WS_ENV) && python -m pytest $(PYTEST_ARGS)
+
+# Only the ament linters (flake8, pep257), one run each, ~30 s: run before committing.
 lint: venv
 	@$(VENV_ENV) && python -m pytest -q -m linter test/test_flake8.py test/test_pep257.py
 

@@ -1,6 +1,6 @@
 #!/usr/bin/env python3
 """
-False-alarm rate and detection of the adequacy check after every identification (issue 12).
+False-alarm rate and detection of the adequacy check after every identification.
 
 Every recording is identified by :func:`rotor_id.pipeline.identify` (as ``rotor-id identify``
 does) and the verdict of its residual check (:mod:`rotor_id.adequacy`) is counted:
@@ -60,7 +60,7 @@ SOURCES = {
     'truth:periodic_coefficients': ('truth', 'periodic_coefficients', True, 'output-error'),
     'truth:blade_lock_number': ('truth', 'blade_lock_number', True, 'output-error'),
     # the record's flap frequency is 2 % above the one its run description states
-    # (flap_freq_error, since 5b3bbe2): a misfit to detect
+    # (the generator's flap_freq_error): a misfit to detect
     'truth:flap_frequency': ('truth', 'flap_frequency', True, 'output-error'),
 }
 #: at most this many seeds for the slow sources (filter error takes ~30 s a fit under load,

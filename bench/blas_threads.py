@@ -1,6 +1,6 @@
 #!/usr/bin/env python3
 """
-One BLAS thread against OpenBLAS's default (one per core): why rotor_id sets one (issue 15).
+One BLAS thread against OpenBLAS's default (one per core): why rotor_id sets one.
 
 ``import rotor_id`` sets OPENBLAS_NUM_THREADS=1 unless the user set it. This benchmark shows
 what that buys on this machine. Each setting runs in its own child process (OpenBLAS reads the

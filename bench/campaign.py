@@ -1,5 +1,5 @@
 """
-Bench of ``rotor-id campaign`` (issue 17 item 4): a simulated tunnel entry of 120 bags.
+Bench of ``rotor-id campaign``: a simulated tunnel entry of 120 bags.
 
 The bench makes the recordings itself: test points of the μ = 0 wake rotor
 (test/commands/campaign_helpers.py: the planning module's simulation in the test-stand

@@ -1,5 +1,5 @@
 """
-Issue 15 items 2 and 4: whole ``rotor-id identify`` commands, as a user waits for them.
+Whole ``rotor-id identify`` commands, as a user waits for them.
 
 Three commands on the practice recording ``id_wake_progressing`` (the repository's sibling
 ``shared/recordings``), each as a fresh process, timed interleaved (median of ``--repeat``):
@@ -11,7 +11,7 @@ Three commands on the practice recording ``id_wake_progressing`` (the repository
   (analytic sensitivities through the filter, compiled), with ``ROTOR_ID_KERNELS=numpy``
   (the same equations in numpy; the two must give the same estimates and bounds to 1e-9
   relative), and with finite-difference sensitivities (``gradients='finite-difference'``: the
-  filter run 2k+1 times per iteration, compiled; the method before issue 15 item 2), whose
+  filter run 2k+1 times per iteration, compiled: the peer of the analytic sensitivities), whose
   optimum may differ by the convergence tolerance (printed in σ);
 * filter error on the periodic practice record ``id_multiblade_mu04`` (its own window), with
   analytic and with finite-difference sensitivities.
@@ -26,13 +26,11 @@ import argparse
 import json
 import os
 from pathlib import Path
-import resource
 import subprocess
 import sys
 import tempfile
-import time
 
-from common import fmt_time, markdown_table, REPO_ROOT, say, write_results
+from common import fmt_time, markdown_table, REPO_ROOT, run_command, say, write_results
 
 RECORDINGS = REPO_ROOT.parent / 'shared' / 'recordings'
 BAG = RECORDINGS / 'id_wake_progressing'
@@ -41,22 +39,6 @@ DESCRIPTION = RECORDINGS / 'id_wake_progressing.yaml'
 SHORT_TARGET_S = 0.5
 FILTER_TARGET_S = 2.0
 AGREEMENT = 1e-9
-
-
-def _children_cpu():
-    usage = resource.getrusage(resource.RUSAGE_CHILDREN)
-    return usage.ru_utime + usage.ru_stime
-
-
-def run(argv, env=None):
-    """Run a command; return (wall s, CPU s of the child, stdout)."""
-    cpu = _children_cpu()
-    start = time.perf_counter()
-    out = subprocess.run(argv, capture_output=True, text=True, env=env, cwd=REPO_ROOT)
-    wall = time.perf_counter() - start
-    if out.returncode != 0:
-        raise RuntimeError(f'{" ".join(map(str, argv))} failed:\n{out.stderr[-2000:]}')
-    return wall, _children_cpu() - cpu, out.stdout
 
 
 def whole_record_description(directory):
@@ -158,7 +140,7 @@ def main(argv=None):
     cpus = {name: [] for name in commands}
     for round_ in range(args.repeat):
         for name, (command, env) in commands.items():
-            wall, cpu, _ = run(command, env)
+            wall, cpu, _ = run_command(command, env)
             times[name].append(wall)
             cpus[name].append(cpu)
             say(f'round {round_ + 1}: {name}: {fmt_time(wall)} wall, {fmt_time(cpu)} CPU')
@@ -214,7 +196,7 @@ def main(argv=None):
             f'{import_table}\n')
     print(body)
     if not args.no_write:
-        write_results('command_speed', 'Whole identify commands (issue 15 items 2 and 4)', body,
+        write_results('command_speed', 'Whole identify commands', body,
                       'python bench/command_speed.py')
     if agreement > AGREEMENT:
         print(f'ERROR: compiled and numpy filter error differ by {agreement:.1e}',

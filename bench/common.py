@@ -3,8 +3,8 @@ Shared helpers of the benchmarks: machine description, side-by-side timing, tabl
 
 The machine is shared (2 cores, several engineers running tests), so single timings are noisy.
 Every benchmark therefore times the things it compares *interleaved* (A, B, C, A, B, C, ...)
-in one run and reports medians; ratios of medians taken that way are what the targets of
-issue 6 are about.
+in one run and reports medians; ratios of medians taken that way are what the speed targets are
+judged on.
 """
 
 import datetime
@@ -55,15 +55,6 @@ def _memory_gb():
     return float('nan')
 
 
-def _git_commit():
-    try:
-        out = subprocess.run(['git', '-C', str(REPO_ROOT), 'rev-parse', '--short', 'HEAD'],
-                             capture_output=True, text=True, timeout=10)
-        return out.stdout.strip() or 'unknown'
-    except (OSError, subprocess.SubprocessError):
-        return 'unknown'
-
-
 def machine_description():
     """Describe the machine, software and load (a dict) for the results files."""
     load = os.getloadavg() if hasattr(os, 'getloadavg') else (float('nan'),) * 3
@@ -78,7 +69,6 @@ def machine_description():
         'numpy': np.__version__,
         'scipy': scipy.__version__,
         'BLAS threads (OPENBLAS_NUM_THREADS)': os.environ.get('OPENBLAS_NUM_THREADS', 'default'),
-        'rotor_id commit': _git_commit(),
     }
 
 
@@ -108,6 +98,24 @@ def run_in_workdir(workdir, prefix, measure):
         with tempfile.TemporaryDirectory(prefix=prefix) as directory:
             return measure(directory)
     return measure(workdir)
+
+
+def children_cpu():
+    """CPU time (user + system) of this process's waited-for children so far, s."""
+    import resource
+    usage = resource.getrusage(resource.RUSAGE_CHILDREN)
+    return usage.ru_utime + usage.ru_stime
+
+
+def run_command(argv, env=None, ok_codes=(0,)):
+    """Run a command from the repository root; return (wall s, CPU s of the child, stdout)."""
+    cpu = children_cpu()
+    start = time.perf_counter()
+    out = subprocess.run(argv, capture_output=True, text=True, env=env, cwd=REPO_ROOT)
+    wall = time.perf_counter() - start
+    if out.returncode not in ok_codes:
+        raise RuntimeError(f'{" ".join(map(str, argv))} failed:\n{out.stderr[-2000:]}')
+    return wall, children_cpu() - cpu, out.stdout
 
 
 def machine_markdown():

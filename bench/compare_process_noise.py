@@ -42,7 +42,6 @@ import time
 os.environ.setdefault('OPENBLAS_NUM_THREADS', '1')
 os.environ.setdefault('OMP_NUM_THREADS', '1')
 
-from common import _git_commit  # noqa: E402 (bench/ is on sys.path when run as a script)
 import numpy as np  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]
@@ -198,7 +197,7 @@ def main(argv=None):
              f'--workers {args.workers} --sigma-m {args.sigma_m:g}` ({wall:.0f} s wall).', '',
              f'Machine: {machine()}; load average {load_start:.1f} at the start, '
              f'{os.getloadavg()[0]:.1f} at the end (2 cores shared: CPU times are the '
-             f'comparable figures); rotor_id commit {_git_commit()}.', '',
+             f'comparable figures).', '',
              'Report Ch.2 wake case (μ = 0, progressing, t = 70-82, Δt = 0.1, measurement '
              f'σ = {args.sigma_m:g}, true A/AL/τ/1/τ = .5/.25/.125, start .4/.2/.25). '
              'System noise σ_V: '

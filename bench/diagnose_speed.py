@@ -1,6 +1,6 @@
 #!/usr/bin/env python3
 """
-Time ``rotor-id diagnose`` per recording against its full-search peer (issue 15, item 1).
+Time ``rotor-id diagnose`` per recording against its full-search peer.
 
 For every dx_* practice recording (1-second, 4-blade, 1 kHz) the diagnosis is run three ways,
 interleaved round by round so that all see the same load:

@@ -1,6 +1,6 @@
 #!/usr/bin/env python3
 """
-Full-statistics study of ``rotor-id diagnose`` on concealed-effect recordings (issue 4).
+Full-statistics study of ``rotor-id diagnose`` on concealed-effect recordings.
 
 For every scenario of test/diagnosis/diagnosis_scenarios.py and every seed, the independent
 truth generator makes a recording, :func:`rotor_id.diagnosis.diagnose` diagnoses it, and the
@@ -11,7 +11,7 @@ bench/results/diagnosis.md (table) and bench/results/diagnosis.json (every run).
 
     python bench/diagnosis_stats.py                  # 10 seeds, all scenarios (hours)
     python bench/diagnosis_stats.py --seeds 3 --scenarios sensor_lag none_wake
-    python bench/diagnosis_stats.py --pairs --out bench/results/diagnosis_pairs   # issue 16
+    python bench/diagnosis_stats.py --pairs --out bench/results/diagnosis_pairs
 """
 
 import argparse
@@ -20,7 +20,6 @@ import math
 import multiprocessing
 import os
 from pathlib import Path
-import subprocess
 import sys
 import tempfile
 import time
@@ -36,9 +35,6 @@ import truth_generator  # noqa: E402
 from run_all import NOTES_MARK, notes_of  # noqa: E402,I100
 
 RESULTS = ROOT / 'bench' / 'results'
-#: the commit the study ran at (each run records it), '' outside a git checkout
-COMMIT = subprocess.run(['git', '-C', str(ROOT), 'rev-parse', '--short', 'HEAD'],
-                        capture_output=True, text=True, check=False).stdout.strip()
 
 
 def run_one(args):
@@ -48,7 +44,7 @@ def run_one(args):
     t0, c0 = time.perf_counter(), time.process_time()
     record, description = scenario.record_and_description(seed)
     generated = {'generate_s': time.perf_counter() - t0,
-                 'generate_cpu_s': time.process_time() - c0, 'commit': COMMIT}
+                 'generate_cpu_s': time.process_time() - c0}
     t0, c0 = time.perf_counter(), time.process_time()
     try:
         result = diagnose(record, description, workers=1).as_json()
@@ -78,7 +74,7 @@ def summarize(runs, seeds):
              'chosen model; `3σ` = extra parameters within 3σ of the truth; `orig z` = worst '
              '|estimate − truth|/σ of the original parameters, baseline → corrected. Pairs: '
              '`named right` counts an effect reported as confounded with a named one (the '
-             'same physics to first order in that record, issue 16), `both named` does not; '
+             'same physics to first order in that record), `both named` does not; '
              '`confounded` lists what was reported so. `s/run` wall (CPU) per run of the '
              "diagnosis alone (the truth's generation, or its read from the cache, is "
              '`generate_s` in the JSON).', '',
@@ -135,14 +131,12 @@ def summarize(runs, seeds):
 
 def results_markdown(runs, seeds, command, notes, load_at_start):
     """
-    Return the results file: the table, how it was made (command, commit, load), ``notes``.
+    Return the results file: the table, how it was made (command, load), ``notes``.
 
     ``notes`` are the hand-written notes of the file being replaced (from :data:`NOTES_MARK`
     on), so a re-run, or an interrupted one, keeps them; their figures are to be checked.
     """
-    commits = sorted({r.get('commit', '') for r in runs} - {''})
-    made = (f'Reproduce: `{command}` ({seeds} seed(s) per scenario; commit '
-            f'{", ".join(commits) or "unknown"}; load average (1/5/15 min) '
+    made = (f'Reproduce: `{command}` ({seeds} seed(s) per scenario; load average (1/5/15 min) '
             f'{" / ".join(f"{x:.2f}" for x in load_at_start)} at the start, '
             f'{" / ".join(f"{x:.2f}" for x in os.getloadavg())} at the last write).')
     text = summarize(runs, seeds) + '\n' + made + '\n'
@@ -166,7 +160,7 @@ def main(argv=None):
     parser.add_argument('--scenarios', nargs='*', default=[s.name for s in SCENARIOS])
     parser.add_argument('--pairs', action='store_true',
                         help='the catalogue pair study (every pair of effect groups a rig can '
-                             'produce together, issue 16) instead of --scenarios')
+                             'produce together) instead of --scenarios')
     parser.add_argument('--scenario-major', action='store_true',
                         help='all seeds of a scenario before the next (default: seed-major, '
                              'every scenario gets its first seed early)')

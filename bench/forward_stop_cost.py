@@ -2,9 +2,10 @@
 """
 What the forward selection's last step costs: the selection as it is against an omnibus stop.
 
-Issue 16: the selection used to stop as soon as the residuals looked like noise (white, at the
-floor, no mean); it now always runs the next step (score tests, and fits of what passes them),
-because a lag under a sensor gain passes the omnibus tests and still gains a criterion of ~100.
+The omnibus stop ends the selection as soon as the residuals look like noise (white, at the
+floor, no mean); the selection instead always runs the next step (score tests, and fits of what
+passes them), because a lag under a sensor gain passes the omnibus tests and still gains a
+criterion of ~100.
 This times ``diagnose()`` (one worker, record in memory) both ways on the practice recordings
 and on single-effect scenarios of the study, interleaved, and reports CPU time beside wall time
 (the machine is shared) with the same-run ratio and both verdicts. Writes

@@ -7,8 +7,8 @@ measurement noise, 450 samples. From it a run of samples is removed at a third o
 recorder stall or a network loss of ``GAPS`` samples). Output error and filter error (σ_V and
 the measurement σ's estimated) are timed interleaved on each record; the ratio is a fit's time
 with the gap over its time on the whole record (the peer). The same fits with every interval
-given the gap's RK4 substeps (the path before lost samples got their own, ``gap_refinement``
-off) are timed once for the smallest gap as "before".
+given the gap's RK4 substeps (``gap_refinement`` off: the lost samples do not get steps of
+their own) are timed once for the smallest gap, as a second peer.
 
 Run: ``python bench/gap_cost.py [--repeat N]``.
 """
@@ -73,7 +73,7 @@ def main(argv=None):
                  for kind, fn in fits(exp).items()}
     say(f'timing {len(functions)} fits interleaved, {args.repeat} round(s)')
     timed = time_interleaved({f'{a} | {b}': f for (a, b), f in functions.items()}, args.repeat)
-    # before: every interval given the gap's substeps, once (it is slow)
+    # peer: every interval given the gap's substeps, once (it is slow)
     smallest = f'{GAPS[0]} samples lost'
     saved = simulation.gap_refinement
     simulation.gap_refinement = kalman.gap_refinement = lambda *a: None
@@ -91,15 +91,15 @@ def main(argv=None):
                          f'{run["cpu"] / peer["cpu"]:.2f}',
                          f'{est.model_parameters["A"]:.4f} ± {est.std[0]:.4f}'])
         old = before[kind]
-        rows.append([kind, f'{smallest}, before (gap substeps everywhere)',
+        rows.append([kind, f'{smallest}, peer: gap substeps everywhere',
                      fmt_time(old['median']), fmt_time(old['cpu']),
                      f'{old["cpu"] / peer["cpu"]:.2f}',
                      f'{old["result"].model_parameters["A"]:.4f} ± {old["result"].std[0]:.4f}'])
     body = ('A 450-sample record (0.45 s at 1 kHz, μ = 0 wake model, A, AL/τ, 1/τ and the '
             'initial states estimated) with a run of samples removed at a third of it. '
             '"ratio" is the median CPU time of a fit over that of the same fit on the whole '
-            f'record, timed interleaved ({args.repeat} rounds); "before" rows are one run each '
-            'of the path that gave every interval the RK4 substeps of the gap. The estimates on '
+            f'record, timed interleaved ({args.repeat} rounds); "peer" rows are one run each '
+            'of fits that give every interval the RK4 substeps of the gap. The estimates on '
             'a record with a gap are those of its samples (fewer samples: a larger σ).\n\n'
             + markdown_table(['fit', 'record', 'wall', 'CPU', 'ratio (CPU)', 'A ± σ'], rows))
     print(body)

@@ -1,5 +1,5 @@
 """
-Issue 6 item 2: one Gauss-Newton iteration against (p + 1) plain simulations.
+One Gauss-Newton iteration against (p + 1) plain simulations.
 
 Any sensitivity method needs at least the information of p + 1 simulations per iteration (a
 one-sided finite-difference Jacobian is exactly that), so
@@ -122,7 +122,7 @@ def main(argv=None):
                                 if status['loaded'] else 'numpy only') + '.\n')
     print(body)
     if not args.no_write:
-        write_results('iteration_cost', 'Cost of one Gauss-Newton iteration (issue 6.2)', body,
+        write_results('iteration_cost', 'Cost of one Gauss-Newton iteration', body,
                       'python bench/iteration_cost.py')
     return 0 if np.all([r['ratio_cpu'] <= TARGET for r in results]) else 1
 

@@ -364,7 +364,7 @@ def main_duration(args):
         f'## Result\n\n'
         f'* rotor time simulated: {result["samples"] / 1000:.1f} s at 1 kHz x 4 blades '
         f'(requested {args.duration:g} s'
-        f'{"" if args.duration >= 600 else "; the issue asks for 600 s: this is a shorter run"})\n'
+        f'{"" if args.duration >= 600 else "; the full run is 600 s: this is a shorter one"})\n'
         f'* wall time {result["wall_s"]:.1f} s: the rotor ran at {rate:.2f} x real time\n'
         f'* estimate latency in the identifier (newest sample of the window taken -> its '
         f'estimate published): {lat_text}\n'

@@ -1,5 +1,5 @@
 """
-Issue 12 item 3: memory follows the window. ``rotor-id identify`` on a one-hour 1 kHz bag.
+Memory follows the window: ``rotor-id identify`` on a one-hour 1 kHz bag.
 
 The bag: one hour at 1 kHz of a four-bladed rotor (Ω = 2π·15 rad/s), 3 topics × 3 600 000
 JointState messages in one MCAP (about 1.5 GB, uncompressed 1 MB chunks with a message index,
@@ -353,7 +353,7 @@ def _measure(args, workdir):
             + ('converged' if data['converged'] else data['message']) + '.\n')
     if not args.no_write:
         write_results('long_bag_memory', 'Memory follows the window: identify on a one-hour '
-                      '1 kHz bag (issue 12.3)', body, 'python bench/long_bag_memory.py')
+                      '1 kHz bag', body, 'python bench/long_bag_memory.py')
     print(body)
     return 0 if rss <= TARGET_MB and code == 0 else 1
 

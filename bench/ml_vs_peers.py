@@ -1,5 +1,5 @@
 """
-Issue 6 item 1: output-error ML per report case against the two peers of :mod:`peers`.
+Output-error ML per report case against the two peers of :mod:`peers`.
 
 For each report case (single blade, constant-coefficient multiblade with identified deflections,
 3- and 7-parameter dynamic wake) one seeded noisy data set (σ of the report) is fitted from the
@@ -57,7 +57,7 @@ from rotor_id.estimation.output_error import fit_output_error  # noqa: E402
 from rotor_id.report import cases as C  # noqa: E402
 from rotor_id.report.reproduce import case_data, iteration_experiment  # noqa: E402
 
-#: (label, report iteration case) benchmarked, in the order of issue 6.
+#: (label, report iteration case) benchmarked, simplest first.
 CASES = (
     ('single blade (γ, δ)', 'single_blade_2par'),
     ('multiblade, const. coeff. (γ, δ, β0, βI, βII at t0)', 'multiblade_c'),
@@ -65,7 +65,7 @@ CASES = (
     ('wake, 7 parameters (+ βI, βII, λI, λII at t0)', 'wake_7par'),
 )
 AGREEMENT_SIGMA = 1e-3
-#: Issue 15 item 3: the 7-parameter wake fit.
+#: Targets of the 7-parameter wake fit: its time, and its speed against the peers.
 WAKE7_LIMIT_S = 1e-3
 WAKE7_VS_A = 500.0
 WAKE7_VS_B = 3.0
@@ -259,11 +259,11 @@ def report(results, seed, repeat, rate, kernel_status):
     else:
         kernel_text = f'numpy ({kernel_status["error"] or "ROTOR_ID_KERNELS=numpy"})'
 
-    verdict = (f'7-parameter wake case: ours is {ratio_a:.1f}× faster than (a) (issue 6 target '
+    verdict = (f'7-parameter wake case: ours is {ratio_a:.1f}× faster than (a) (target '
                f'≥ 20×: {"met" if ratio_a >= 20 else "MISSED"}) and {ratio_b:.2f}× faster than '
                f'(b) (target > 1: {"met" if ratio_b > 1 else "MISSED"}); on CPU time '
                f'{cpu_a:.1f}× and {cpu_b:.2f}×.\n\n'
-               f'Issue 15 targets: fit {fmt_time(ours7)} wall, {fmt_time(ours7_cpu)} CPU '
+               f'Targets of the fit: {fmt_time(ours7)} wall, {fmt_time(ours7_cpu)} CPU '
                f'(≤ {fmt_time(WAKE7_LIMIT_S)}: wall '
                f'{"met" if ours7 <= WAKE7_LIMIT_S else "MISSED"}, CPU '
                f'{"met" if ours7_cpu <= WAKE7_LIMIT_S else "MISSED"}), CPU {cpu_a:.0f}× (a) '
@@ -333,7 +333,7 @@ def main(argv=None):
     if not args.no_write:
         plot(results, figure_path('ml_vs_peers'))
         body += '\n![time per case](ml_vs_peers.png)\n'
-        write_results('ml_vs_peers', 'Output-error ML against least_squares peers (issue 6.1)',
+        write_results('ml_vs_peers', 'Output-error ML against least_squares peers',
                       body, 'python bench/ml_vs_peers.py')
     bad = [r['case'] for r in results
            if max(r['dev']['fd_ours'], r['dev']['afternoon']) > AGREEMENT_SIGMA]

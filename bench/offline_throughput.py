@@ -1,5 +1,5 @@
 """
-Issue 6 item 5: ``rotor-id identify`` on a 10-minute, 1 kHz, 4-blade bag.
+``rotor-id identify`` on a 10-minute, 1 kHz, 4-blade bag.
 
 The bag is made once (and reused from ``--workdir``): the dynamic-wake model (μ = 0, true
 A = 0.5, AL/τ = 0.25, 1/τ = 0.125) is simulated with the library simulator over 10 minutes at
@@ -367,8 +367,8 @@ def _measure(args, workdir):
         + '\n```\n')
     print(body)
     if not args.no_write:
-        write_results('offline_throughput', 'Offline identification of a 10-minute 1 kHz bag '
-                      '(issue 6.5)', body, 'python bench/offline_throughput.py')
+        write_results('offline_throughput', 'Offline identification of a 10-minute 1 kHz bag',
+                      body, 'python bench/offline_throughput.py')
     return 0 if not missed else 1
 
 

@@ -1,5 +1,5 @@
 """
-The two peers our output-error ML is measured against (issue 6 item 1).
+The two peers our output-error ML is measured against.
 
 (a) ``afternoon``: what a user writes in an afternoon. The right-hand side of each report model is
     typed in again here straight from the equations of docs/models.md (§1.2 single blade, §2.2

@@ -1,6 +1,6 @@
 #!/usr/bin/env python3
 """
-Out-of-catalogue proposals (issue 16 item 4): right term, coefficient within 3σ, false proposals.
+Out-of-catalogue proposals: right term, coefficient within 3σ, false proposals.
 
 For every seed, the independent truth generator makes a recording, the baseline is fitted
 (:func:`rotor_id.pipeline.identify`) and :func:`rotor_id.diagnosis.proposal.propose` is asked

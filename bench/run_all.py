@@ -5,8 +5,8 @@ Every ``bench/results/<name>.md`` says how it was made on its ``Reproduce:`` lin
 runs exactly that command for each (so a results file and its regeneration cannot drift
 apart), with the few corrections in :data:`KNOWN` (a command whose line leaves out an output
 path, and which runs are long). Each benchmark runs in its own process (timings and peak
-memory do not leak between them) and writes its results file with the machine, load, date and
-commit. A line per benchmark shows progress; the summary gives each one's verdict and time.
+memory do not leak between them) and writes its results file with the machine, load and
+date. A line per benchmark shows progress; the summary gives each one's verdict and time.
 
     python bench/run_all.py                    # everything (the long studies take hours)
     python bench/run_all.py --skip-long        # the short benchmarks only (~10-20 min)
@@ -65,7 +65,7 @@ class Benchmark:
 KNOWN = {
     'ml_vs_peers': {
         'long': False,
-        'what': 'wake fit vs least_squares peers (issue 15.3: ≤ 1 ms, ≥ 500×, ≥ 3×)',
+        'what': 'wake fit vs least_squares peers (≤ 1 ms, ≥ 500×, ≥ 3×)',
         'quick': ['bench/ml_vs_peers.py', '--repeat', '1', '--no-write']},
     'iteration_cost': {
         'long': False, 'what': 'GN iteration / (p+1) simulations',
@@ -81,14 +81,18 @@ KNOWN = {
                   '--workdir', '{tmp}/offline']},
     'command_speed': {
         'long': False,
-        'what': 'whole identify commands (issue 15.4: 127-sample OE ≤ 0.5 s; 15.2)',
+        'what': 'whole identify commands (127-sample OE ≤ 0.5 s; 1065-sample FE ≤ 2 s)',
         'quick': ['bench/command_speed.py', '--repeat', '1', '--no-write']},
+    'frequency_response_speed': {
+        'long': False,
+        'what': 'rotor-id frequency-response per 1-second 4-blade record (target ≤ 1 s)',
+        'quick': ['bench/frequency_response_speed.py', '--repeat', '1', '--no-write']},
     'diagnose_speed': {
         'long': False,
-        'what': 'rotor-id diagnose per 1-second 4-blade recording (issue 15.1: ≤ 3 s)',
+        'what': 'rotor-id diagnose per 1-second 4-blade recording (≤ 3 s)',
         'quick': ['bench/diagnose_speed.py', '--repeat', '1', '--no-write']},
     'monte_carlo_speed': {
-        'long': False, 'what': '1000-seed wake Monte Carlo on 2 cores (issue 15.4: ≤ 5 s)',
+        'long': False, 'what': '1000-seed wake Monte Carlo on 2 cores (≤ 5 s)',
         'quick': ['bench/monte_carlo_speed.py', '--seeds', '100', '--efficiency-seeds', '50',
                   '--no-write']},
     'blas_threads': {

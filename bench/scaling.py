@@ -1,5 +1,5 @@
 """
-Issue 6 item 3: cost against record length (should be linear) and against parameter count.
+Cost against record length (should be linear) and against parameter count.
 
 Record length: the report's 3-parameter dynamic-wake case (progressing stirring, σ = 0.1 deg,
 equilibrium start at t0 = 70) with windows of 12 … 768 units of t (121 … 7681 samples,
@@ -196,7 +196,7 @@ def main(argv=None):
     if not args.no_write:
         plot(lengths, params, figure_path('scaling'))
         body += '\n![scaling](scaling.png)\n'
-        write_results('scaling', 'Scaling with record length and parameter count (issue 6.3)',
+        write_results('scaling', 'Scaling with record length and parameter count',
                       body, 'python bench/scaling.py')
     return 0
 

@@ -21,6 +21,9 @@ COMMANDS = {
              'start the five nodes on the simulated rotor, identify it live and offline'),
     'identify': ('rotor_id.commands.identify',
                  'identify model parameters from a bag (output-error ML by default)'),
+    'frequency-response': ('rotor_id.commands.frequency_response',
+                           'directional frequency response of the flap to the stirring, with '
+                           'coherence and the model overlaid'),
     'diagnose': ('rotor_id.commands.diagnose',
                  'locate and explain where a recording and the model disagree'),
     'campaign': ('rotor_id.commands.campaign',

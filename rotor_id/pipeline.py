@@ -45,6 +45,8 @@ class Identification:
     adequacy: object = None
     #: remarks on the inputs (defaults taken), before the estimator's own warnings
     notes: list = field(default_factory=list)
+    #: ``--method frequency-response``: the :class:`FrequencyIdentification` behind the estimate
+    frequency_response: object = None
 
     @property
     def warnings(self):
@@ -56,7 +58,7 @@ class Identification:
 
     def as_json(self):
         """
-        Return the JSON of ``rotor-id identify`` (keys fixed by issue 3; more allowed).
+        Return the JSON of ``rotor-id identify`` (its keys are stable; more may be added).
 
         With several recordings, ``window_s`` and ``omega_rad_s`` are the first run's,
         ``noise_std`` is pooled over the runs (sample-weighted variances), and ``runs`` holds
@@ -98,6 +100,8 @@ class Identification:
             out['noise_parameters'] = noise
         if self.runs:
             out['runs'] = [run.as_json(est) for run in self.runs]
+        if self.frequency_response is not None:
+            out['frequency_response'] = self.frequency_response.as_json()
         return out
 
 
@@ -358,6 +362,9 @@ def identify(record, description, method=None, progress=None, window_s=None,
 
     """
     method = method or description.method or 'output-error'
+    if method == 'frequency-response':
+        return identify_frequency_response([(record, description, 'run')], progress=progress,
+                                           max_iter=max_iter)
     model = model if model is not None else model_for(description)
     window_s = tuple(window_s or description.window_s)
     record = _near_window(record, window_s)
@@ -474,6 +481,16 @@ def check_runs_agree(descriptions, names):
                     'same ' + key + ' or identify them separately')
 
 
+def _shared_model(description):
+    """Return the model and unknowns of runs identified together (A, not γ, for the wake)."""
+    model = model_for(description)
+    unknowns = list(description.unknowns)
+    if model.name == 'multiblade_wake' and 'gamma' in unknowns:
+        raise IdentificationError('the wake model is identified in A = γB⁴/8 (Ch.2 eq. 27); '
+                                  'list A instead of gamma among the unknowns')
+    return model, unknowns
+
+
 def identify_runs(runs, method=None, progress=None, multi_start=True, max_iter=50,
                   step_tol=None):
     """
@@ -510,11 +527,7 @@ def identify_runs(runs, method=None, progress=None, multi_start=True, max_iter=5
             f'{", ".join(sorted(methods))}); drop method from the run descriptions or use '
             '--method output-error')
     description = descriptions[0]
-    model = model_for(description)
-    unknowns = list(description.unknowns)
-    if model.name == 'multiblade_wake' and 'gamma' in unknowns:
-        raise IdentificationError('the wake model is identified in A = γB⁴/8 (Ch.2 eq. 27); '
-                                  'list A instead of gamma among the unknowns')
+    model, unknowns = _shared_model(description)
     experiments, parts, noise_std, known, measured = [], [], [], None, []
     for index, (record, desc, name) in enumerate(zip(records, descriptions, names)):
         window_s = tuple(desc.window_s)
@@ -569,3 +582,252 @@ def channel_noise(model, blade_noise):
     C = model.channel_matrix(t)
     sigma = blade_noise * np.sqrt(np.mean(np.sum(C * C, axis=2), axis=0))
     return float(sigma[0]) if np.allclose(sigma, sigma[0], rtol=1e-12) else sigma
+
+
+# ------------------------------------------------------------------------------------------------
+# Frequency responses (docs/frequency_response.md)
+# ------------------------------------------------------------------------------------------------
+
+#: A point's transient error is worth a warning when it exceeds this many random errors.
+TRANSIENT_ERROR_RANDOM_ERRORS = 2.0
+
+
+@dataclass
+class ModelOverlay:
+    """A model's dFRF beside an estimate: its transfer function and as the estimate sees it."""
+
+    name: str
+    parameters: dict
+    source: str
+    transfer_function: object          # physics.models.DirectionalResponse on a fine grid
+    at_points: np.ndarray              # transfer function at the estimate's points
+    as_estimated: np.ndarray           # the same estimator applied to the model's simulation
+    bands: list                        # BandCost against as_estimated
+    cost: float
+    bands_transfer_function: list      # BandCost against the transfer function
+    cost_transfer_function: float
+
+    @property
+    def sideband_ratios(self):
+        """{n: largest |H_n|/|H_0| over the band} of a periodic model's sidebands (n per rev)."""
+        tf = self.transfer_function
+        scale = np.maximum(np.abs(tf.principal), 1e-300)
+        return {n: float(np.max(np.abs(h) / scale)) for n, h in sorted(tf.sidebands.items())
+                if np.max(np.abs(h) / scale) > 1e-6}
+
+    @property
+    def transient_error(self):
+        """|as estimated / transfer function − 1|: the estimate's deterministic error here."""
+        return np.abs(self.as_estimated / self.at_points - 1.0)
+
+    def as_json(self):
+        """Return the overlay's JSON: parameters, J per band against both model curves."""
+        return {
+            'model': self.name, 'parameters': {k: float(v) for k, v in self.parameters.items()},
+            'parameters_from': self.source,
+            'cost_J': float(self.cost),
+            'bands': [b.as_json() for b in self.bands],
+            'cost_J_transfer_function': float(self.cost_transfer_function),
+            'bands_transfer_function': [b.as_json() for b in self.bands_transfer_function],
+            'transient_error': [float(v) for v in self.transient_error],
+            'sidebands': {str(n): r for n, r in self.sideband_ratios.items()},
+            'model_magnitude': [float(v) for v in np.abs(self.at_points)],
+            'model_phase_deg': [float(v) for v in np.degrees(np.angle(self.at_points))],
+        }
+
+
+@dataclass
+class FrequencyAnalysis:
+    """The dFRF of one or more runs, and optionally a model's beside it."""
+
+    estimate: object                   # estimation.frequency_response.FrequencyResponse
+    sweeps: list
+    overlay: ModelOverlay = None
+    warnings: list = field(default_factory=list)
+
+    def as_json(self):
+        """Return the JSON of ``rotor-id frequency-response``."""
+        out = self.estimate.as_json()
+        out['windows_s'] = [list(s.window_s) for s in self.sweeps]
+        out['stirring_band_per_rev'] = [list(s.band) for s in self.sweeps]
+        if self.overlay is not None:
+            out['model'] = self.overlay.as_json()
+        out['warnings'] = list(self.warnings)
+        return out
+
+
+def _frequency_runs(runs, window_s=None):
+    from rotor_id.estimation.frequency_response import sweep_from_record
+    return [sweep_from_record(record, name, window_s) for record, _, name in runs]
+
+
+def model_overlay(model, p, sweeps, estimate, collective, source, points_per_side=200):
+    """Return the :class:`ModelOverlay` of ``model`` at the full parameter vector ``p``."""
+    from rotor_id.estimation.frequency_response import band_costs, estimated_model_response
+    from rotor_id.physics.models import directional_frequency_response
+    f = estimate.frequency_per_rev
+    sides = [np.linspace(lo, hi, points_per_side) for lo, hi in
+             ((f[f < 0].min(), f[f < 0].max()) if np.any(f < 0) else (None, None),
+              (f[f > 0].min(), f[f > 0].max()) if np.any(f > 0) else (None, None))
+             if lo is not None]
+    fine = directional_frequency_response(model, p, np.concatenate(sides))
+    at_points = directional_frequency_response(model, p, f).principal
+    as_estimated, _ = estimated_model_response(model, p, sweeps, estimate.spectra, collective)
+    bands, cost = band_costs(estimate, as_estimated)
+    bands_tf, cost_tf = band_costs(estimate, at_points)
+    return ModelOverlay(name=model.name, parameters=dict(zip(model.parameter_names, p)),
+                        source=source, transfer_function=fine, at_points=at_points,
+                        as_estimated=as_estimated, bands=bands, cost=cost,
+                        bands_transfer_function=bands_tf, cost_transfer_function=cost_tf)
+
+
+def overlay_warnings(estimate, overlay):
+    """Say where the estimate's transient error exceeds its random error, with the figures."""
+    from rotor_id.estimation.frequency_response import ACCEPTABLE_COST, COHERENCE_MIN
+    out = []
+    use = estimate.usable(COHERENCE_MIN)
+    error = overlay.transient_error
+    bad = use & (error > TRANSIENT_ERROR_RANDOM_ERRORS * estimate.random_error) & (error > 0.01)
+    if np.any(bad):
+        out.append(
+            f'at {int(np.sum(bad))} of {int(np.sum(use))} usable points the estimate differs '
+            f'from the transfer function of the model by up to {100 * error[bad].max():.0f} % '
+            'for this record alone (the stirring is too short or is cut off by the end of the '
+            'record, so the response has not died out): compare the data with the model '
+            'through the same estimate (J = '
+            f'{overlay.cost:.3g}), not with its transfer function (J = '
+            f'{overlay.cost_transfer_function:.3g}); a longer sweep ending in trim removes it')
+    if math.isfinite(overlay.cost) and overlay.cost > ACCEPTABLE_COST:
+        worst = max(overlay.bands, key=lambda b: b.cost)
+        out.append(f'the model departs from the data: J = {overlay.cost:.3g} > '
+                   f'{ACCEPTABLE_COST:g} (CIFER), worst in {worst.low:+.3g}..{worst.high:+.3g} '
+                   f'per rev (J = {worst.cost:.3g})')
+    return out
+
+
+def frequency_analysis(runs, window_s=None, parameters=None, source=None):
+    """
+    Estimate the dFRF of ``runs`` [(record, description, name)], with the model overlaid.
+
+    ``parameters`` (name -> value) are the model's values to draw (from an identify JSON or the
+    command line); without them the run description's known values and guesses, else the
+    nominal values (θ0: the mean measured collective pitch). None of the runs' models needs
+    β_I, β_II to estimate; without them (a single blade, N = 2) no model is drawn.
+    """
+    from rotor_id.estimation.frequency_response import estimate_frequency_response
+    sweeps = _frequency_runs(runs, window_s)
+    estimate = estimate_frequency_response(sweeps)
+    analysis = FrequencyAnalysis(estimate=estimate, sweeps=sweeps)
+    record, description, _ = runs[0]
+    model = model_for(description)
+    if 'beta_I' not in model.state_names or 'beta_II' not in model.state_names:
+        analysis.warnings.append(f'{model.name} has no fixed-frame cyclic flap states: no '
+                                 'model drawn')
+        return analysis
+    known, defaults, sources = _known_values(description, model, record)
+    values = {**known, **description.initial_guess}
+    if parameters:
+        unknown = [n for n in parameters if n not in model.parameter_names]
+        if unknown:
+            raise IdentificationError(f'{", ".join(unknown)}: not parameters of {model.name} '
+                                      f'(its parameters: {", ".join(model.parameter_names)})')
+        values.update(parameters)
+    else:
+        source = source or 'the run description (known, initial_guess; else nominal values)'
+    check_values(description, model, {k: v for k, v in values.items()
+                                      if k in model.parameter_names}, 'parameters')
+    p = model.parameter_vector({k: v for k, v in values.items() if k in model.parameter_names})
+    collective = float(np.mean(_pitch_input(record)(record.t)[:, 0]))
+    analysis.overlay = model_overlay(model, p, sweeps, estimate, collective, source)
+    analysis.warnings += overlay_warnings(estimate, analysis.overlay)
+    return analysis
+
+
+@dataclass
+class FrequencyIdentification:
+    """What ``identify --method frequency-response`` fitted: the dFRF and the J fit."""
+
+    analysis: FrequencyAnalysis
+    fit: object
+
+    def as_json(self):
+        """Return J, points, χ²/dof and the windows of the frequency-domain fit."""
+        return {'cost_J': float(self.fit.cost), 'points': int(self.fit.points),
+                'chi2_per_dof': float(self.fit.chi2_per_dof),
+                'windows_s': [list(s.window_s) for s in self.analysis.sweeps],
+                'noise_bins': int(self.analysis.estimate.noise_bins)}
+
+
+def identify_frequency_response(runs, progress=None, max_iter=40, window_s=None):
+    """
+    Identify the run description's unknowns by CIFER's J on the dFRF (docs/frequency_response.md).
+
+    ``runs``: [(record, description, name)]. The dFRF uses each record's whole stirring test
+    (``window_s`` overrides it); the result is verified in the time domain over each run
+    description's ``window_s`` (output error evaluated at the frequency-domain values, no
+    iteration), which gives the residuals, the fitted outputs and the noise of the JSON.
+    """
+    from rotor_id.estimation.frequency_response import as_estimate, fit_frequency_response
+    records, descriptions, names = (list(x) for x in zip(*runs))
+    check_runs_agree(descriptions, names)
+    description = descriptions[0]
+    model, unknowns = _shared_model(description)
+    if 'beta_I' not in model.state_names or 'beta_II' not in model.state_names:
+        raise IdentificationError(f'{model.name} has no fixed-frame cyclic flap (beta_I, '
+                                  'beta_II): identify it with --method output-error')
+    check_values(description, model, given_values(description, model), 'known')
+    known, defaults, sources = _known_values(description, model, records[0])
+    guess = {n: model.parameter(n).nominal for n in unknowns}
+    if 'theta0' in unknowns:
+        guess['theta0'] = known.get('theta0', float(np.mean(
+            _pitch_input(records[0])(records[0].t)[:, 0])))
+    guess.update({k: v for k, v in description.initial_guess.items() if k in guess})
+    known = {k: v for k, v in known.items() if k not in unknowns}
+    collective = float(np.mean(_pitch_input(records[0])(records[0].t)[:, 0]))
+    from rotor_id.estimation.frequency_response import estimate_frequency_response
+    sweeps = _frequency_runs(runs, window_s)
+    estimate = estimate_frequency_response(sweeps)
+    analysis = FrequencyAnalysis(estimate=estimate, sweeps=sweeps)
+    # a constant input is not in a frequency response: θ0 is held at the measured collective
+    # for the frequency-domain fit and fitted alone in the time domain afterwards
+    fitted = [n for n in unknowns if n != 'theta0']
+    held = {n: guess[n] for n in unknowns if n not in fitted}
+    with np.errstate(over='ignore', invalid='ignore', divide='ignore'):
+        fit = fit_frequency_response(model, sweeps, estimate, fitted,
+                                     {n: guess[n] for n in fitted}, {**known, **held},
+                                     collective, max_iter=max_iter, progress=progress)
+    values = {**held, **dict(zip(fitted, fit.values))}
+    analysis.overlay = model_overlay(model, model.parameter_vector({**known, **values}),
+                                     sweeps, estimate, collective, 'the frequency-domain fit')
+    experiments, parts = [], []
+    for index, (record, desc, name) in enumerate(runs):
+        near = _near_window(record, tuple(desc.window_s))
+        first = len(experiments)
+        for exp in experiments_from_record(near, desc, model, tuple(desc.window_s)):
+            experiments.append(replace(exp, noise_group=index))
+        parts.append(Run(name=name, source=record.source, description=desc,
+                         window_s=tuple(desc.window_s),
+                         omega_rad_s=near.window(*desc.window_s).omega_mean,
+                         experiments=list(range(first, len(experiments)))))
+    notes = [w for w in [defaults_warning(defaults, sources)] if w]
+    with np.errstate(over='ignore', invalid='ignore', divide='ignore'):
+        if held:
+            alone = fit_output_error(experiments, list(held), guess=held,
+                                     known={**known, **values})
+            values.update({n: alone.value(n) for n in held})
+            notes.append(f'{", ".join(held)}: a constant input does not enter a frequency '
+                         'response; fitted alone by output error over window_s with the other '
+                         'parameters at their frequency-domain values (its σ is the joint '
+                         'Cramér-Rao bound there)')
+        time_domain = fit_output_error(experiments, unknowns, guess=values, known=known,
+                                       max_iter=0)
+    est = as_estimate(fit, time_domain)
+    if fit.chi2_per_dof > 4.0:
+        notes.append(f'the frequency-domain fit leaves χ²/dof = {fit.chi2_per_dof:.3g} of its '
+                     'random errors: the bounds are widened by that; the model or the sweep '
+                     'does not explain the data within the random error of the estimate')
+    return Identification(estimate=est, model=model, experiments=experiments,
+                          description=description, window_s=tuple(description.window_s),
+                          omega_rad_s=parts[0].omega_rad_s, unknowns=unknowns,
+                          runs=parts if len(runs) > 1 else [], defaults_used=defaults,
+                          notes=notes, frequency_response=FrequencyIdentification(analysis, fit))

@@ -1,5 +1,5 @@
 """
-Test planning: the accuracy candidate stirring transients can reach, before the run (issue 8).
+Test planning: the accuracy candidate stirring transients can reach, before the run.
 
 For each candidate transient the planned run is simulated with the library's one simulator in
 the test-stand convention (docs/run_description.md): the rotor in trim at collective pitch,
@@ -675,7 +675,7 @@ class CandidateResult:
     transient_index: int
 
     def as_json(self):
-        """Return the candidate's JSON (issue 8 keys first)."""
+        """Return the candidate's JSON (the stable keys first)."""
         out = self.candidate.as_json()
         out.update({
             'std': {k: float(v) for k, v in self.std.items()},
@@ -705,7 +705,7 @@ class PlanResult:
     warnings: list = field(default_factory=list)
 
     def as_json(self):
-        """Return ``{"candidates": [...], "recommended": index, ...}`` (issue 8)."""
+        """Return ``{"candidates": [...], "recommended": index, ...}``."""
         plan = self.plan
         return {
             'candidates': [c.as_json() for c in self.candidates],

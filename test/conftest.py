@@ -1,6 +1,5 @@
 """Shared pytest fixtures: repository paths, the built workspace, ROS isolation."""
 
-import itertools
 import os
 from pathlib import Path
 import sys
@@ -25,8 +24,6 @@ if settings is not None:
                               database=None)
     settings.load_profile(os.environ.get('HYPOTHESIS_PROFILE',
                                          'ci' if os.environ.get('CI') else 'rotor_id'))
-
-_domain_ids = itertools.count()
 
 
 @pytest.fixture(scope='session', autouse=True)
@@ -68,8 +65,9 @@ def install_prefix(repo_root):
 
 @pytest.fixture
 def ros_domain_id():
-    """Return a ROS_DOMAIN_ID unique to this test within the session (1..100)."""
-    return 1 + (os.getpid() + next(_domain_ids)) % 100
+    """Return a ROS_DOMAIN_ID that no other test of the run uses at the same time."""
+    from ros_domains import next_domain
+    return next_domain()
 
 
 @pytest.fixture
@@ -92,3 +90,14 @@ def pytest_collection_modifyitems(config, items):
     for item in items:
         if 'study' in item.keywords:
             item.add_marker(skip)
+
+
+def pytest_terminal_summary(terminalreporter):
+    """Count the tests skipped for want of the practice recordings, in a line of their own."""
+    from practice import RECORDINGS, SKIP_REASON
+    skipped = [r for r in terminalreporter.stats.get('skipped', [])
+               if SKIP_REASON in str(getattr(r, 'longrepr', ''))]
+    if skipped:
+        terminalreporter.write_line(
+            f'{len(skipped)} tests skipped: {SKIP_REASON} ({RECORDINGS}); their claims were '
+            'not checked', yellow=True, bold=True)

@@ -1,5 +1,5 @@
 """
-The adequacy check after every identification (issue 12, item 2).
+The adequacy check after every identification (pins #12).
 
 Recordings are made here: by the library's planning simulator (the model is right: the check
 must stay quiet at its family-wise level) and by the independent blade-by-blade generator of
@@ -14,6 +14,7 @@ from pathlib import Path
 import sys
 
 import numpy as np
+from practice import RECORDINGS, require_practice
 import pytest
 from rotor_id import adequacy, cli, pipeline, planning
 from rotor_id.io.bag import write_record_bag
@@ -24,7 +25,6 @@ sys.path.insert(0, str(REPO / 'test' / 'diagnosis'))
 from diagnosis_scenarios import BY_NAME  # noqa: E402,I100
 from truth_generator import run_description_text  # noqa: E402
 
-RECORDINGS = REPO.parent / 'shared' / 'recordings'
 #: CI variant of the false-alarm study: this many package-simulator records
 CI_SEEDS = 40
 
@@ -72,8 +72,7 @@ def test_sensor_offsets_on_the_wake_case_are_flagged(tmp_path, capsys):
 
 
 def test_shared_effect_free_recordings_pass():
-    if not (RECORDINGS / 'answers.json').is_file():
-        pytest.skip(f'shared recordings not found at {RECORDINGS}')
+    require_practice()
     from rotor_id.io.bag import read_record
     from rotor_id.io.run_description import load_run_description
     for name in ('id_wake_progressing', 'id_multiblade_mu04', 'dx_none_wake'):

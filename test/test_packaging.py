@@ -4,10 +4,14 @@ The package as ROS users meet it: executables, interfaces, and a colcon build.
 * every console script of setup.py is found the way ``ros2 run rotor_id <exe>`` finds it;
 * the rotor_id_msgs messages import, serialize and carry the documented fields, and rosbags
   (our bag library) reads the same definitions with the same type hash as rosidl;
-* a fresh workspace with the repository under ``src/`` builds with the documented command.
+* a fresh workspace with the repository under ``src/`` builds with the documented command;
+* package.xml declares every ROS package and every rosdep key of a Python library that the code
+  of rotor_id/ and launch/ imports, and no ROS package it does not use; the LICENSE is the
+  declared one.
 """
 
 import ast
+import functools
 import json
 import os
 from pathlib import Path
@@ -15,6 +19,7 @@ import re
 import shutil
 import subprocess
 import sys
+import xml.etree.ElementTree as ElementTree
 
 import pytest
 
@@ -25,8 +30,8 @@ SRV_DIR = REPO_ROOT / 'msg_defs' / 'srv'
 # The contract other parts of rotor_id (nodes, io, estimation) are written against.
 EXPECTED_FIELDS = {
     'ParameterEstimate': [
-        'header', 'model', 'names', 'units', 'values', 'std', 'covariance', 'correlation',
-        'noise_std', 'channel_names', 'cost', 'iteration', 'status', 'message',
+        'header', 'computed_at', 'model', 'names', 'units', 'values', 'std', 'covariance',
+        'correlation', 'noise_std', 'channel_names', 'cost', 'iteration', 'status', 'message',
         'window_start', 'window_end', 'window_s', 'test_point', 'kind', 'test_point_start',
         'window_requested_start_s', 'window_requested_end_s', 'time_base_consistent',
         'missing_channels', 'missing_samples', 'target_met', 'additional_data_s'],
@@ -283,7 +288,7 @@ def test_fresh_workspace_builds_with_documented_command(venv_prefix, tmp_path):
     shutil.copytree(REPO_ROOT, ws / 'src' / 'rotor_id', ignore=_copy_ignore, symlinks=True)
     env = _colcon_env(venv_prefix, tmp_path)
 
-    # What README.md says: colcon's crawl stops at the root package ...
+    # What docs/install.md says: colcon's crawl stops at the root package ...
     assert _listed(_colcon(['list', '--names-only', '--base-paths', 'src'], ws, env)) == \
         ['rotor_id']
     # ... so msg_defs is named as a second base path.
@@ -302,3 +307,105 @@ def test_fresh_workspace_builds_with_documented_command(venv_prefix, tmp_path):
         f'{sys.version_info[1]}' / 'site-packages' / 'rotor_id_msgs'
     assert (site / 'msg' / '_parameter_estimate.py').is_file()
     assert (site / 'srv' / '_identify.py').is_file()
+
+
+# --- (d) package.xml ---------------------------------------------------------------------
+
+#: Python modules that are no ROS package, by the rosdep key that installs them.
+ROSDEP_KEYS = {'numpy': 'python3-numpy', 'scipy': 'python3-scipy',
+               'matplotlib': 'python3-matplotlib', 'yaml': 'python3-yaml',
+               'rosbags': 'python3-rosbags-pip'}
+#: Imported, but installed by a declared dependency or optional (each with its reason).
+NOT_DECLARED = {
+    'lz4': 'a dependency of rosbags',
+    'backports': 'backports.zstd, a dependency of rosbags (before Python 3.14)',
+    'compression': 'compression.zstd, the standard library from Python 3.14',
+    'numba': 'optional: rotor_id.estimation.kernels falls back to numpy without it',
+    'llvmlite': "numba's own dependency, used by the optional kernels",
+}
+#: ROS packages that ship Python modules under the package's own name.
+ROS_PYTHON_PACKAGES = {'rclpy', 'launch', 'launch_ros', 'ament_index_python'}
+#: Declared, though not imported by name (each with its reason).
+DECLARED_NOT_IMPORTED = {
+    'std_msgs': 'the Header type of every rotor_id message and of sensor_msgs/JointState',
+    'ros2launch': '`ros2 launch rotor_id rotor_id.launch.py`',
+}
+
+
+@functools.lru_cache(maxsize=1)
+def imported_modules():
+    """Return {top-level module: [files]} imported by rotor_id/ and launch/ (stdlib left out)."""
+    found = {}
+    files = sorted((REPO_ROOT / 'rotor_id').rglob('*.py')) + \
+        sorted((REPO_ROOT / 'launch').rglob('*.py'))
+    for path in files:
+        for node in ast.walk(ast.parse(path.read_text(encoding='utf-8'))):
+            if isinstance(node, ast.Import):
+                names = [alias.name for alias in node.names]
+            elif isinstance(node, ast.ImportFrom) and node.level == 0:
+                names = [node.module]
+            else:
+                continue
+            for name in names:
+                top = name.split('.')[0]
+                if top not in sys.stdlib_module_names and top != 'rotor_id':
+                    found.setdefault(top, []).append(str(path.relative_to(REPO_ROOT)))
+    return found
+
+
+def is_ros_package(module):
+    """Say whether a module is a ROS package of the same name (interfaces or Python)."""
+    return (module in ROS_PYTHON_PACKAGES
+            or re.fullmatch(r'[a-z0-9_]+_(msgs|srvs|interfaces)', module) is not None)
+
+
+def declared_dependencies(kinds=('depend', 'exec_depend')):
+    """Return the package names of package.xml's dependencies of the given kinds."""
+    root = ElementTree.parse(REPO_ROOT / 'package.xml').getroot()
+    assert root.get('format') == '3'
+    return {element.text.strip() for kind in kinds for element in root.findall(kind)}
+
+
+def test_package_xml_declares_every_imported_package():
+    declared = declared_dependencies()
+    modules = imported_modules()
+    # the scan sees what it must: the nodes' and the launch file's imports
+    assert {'rclpy', 'rcl_interfaces', 'ament_index_python', 'launch', 'launch_ros',
+            'numpy'} <= set(modules)
+    missing = []
+    for module, files in sorted(modules.items()):
+        if is_ros_package(module):
+            key = module
+        elif module in ROSDEP_KEYS:
+            key = ROSDEP_KEYS[module]
+        else:
+            assert module in NOT_DECLARED, \
+                f'{module} (imported by {files[0]}) is neither a ROS package nor mapped to a ' \
+                'rosdep key here: declare it in package.xml and add it to ROSDEP_KEYS'
+            continue
+        if key not in declared:
+            missing.append(f'{key} (imported by {files[0]})')
+    assert not missing, f'package.xml does not declare: {", ".join(missing)}'
+    for module in NOT_DECLARED:
+        assert module in modules, f'{module} is no longer imported: drop it from NOT_DECLARED'
+
+
+def test_package_xml_declares_no_unused_ros_package():
+    imported = {m for m in imported_modules() if is_ros_package(m)}
+    python_keys = set(ROSDEP_KEYS.values())
+    unused = {d for d in declared_dependencies()
+              if d not in imported and d not in python_keys and d not in DECLARED_NOT_IMPORTED}
+    assert not unused, f'declared but never imported: {sorted(unused)}'
+
+
+def test_license_file_is_the_declared_license():
+    root = ElementTree.parse(REPO_ROOT / 'package.xml').getroot()
+    assert root.findtext('license') == 'Apache-2.0'
+    text = (REPO_ROOT / 'LICENSE').read_text(encoding='utf-8')
+    assert 'Apache License' in text and 'Version 2.0, January 2004' in text
+    assert 'END OF TERMS AND CONDITIONS' in text
+    # the full text: its nine sections, not a pointer to it
+    for section in range(1, 10):
+        assert re.search(rf'^\s*{section}\. [A-Z]', text, re.MULTILINE), section
+    setup = (REPO_ROOT / 'setup.py').read_text(encoding='utf-8')
+    assert "license='Apache-2.0'" in setup or 'license="Apache-2.0"' in setup

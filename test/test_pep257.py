@@ -1,8 +1,9 @@
 """
-ament_pep257 over our Python sources, one test per file.
+ament_pep257 over our Python sources, in one run.
 
 The ament_python template's test (ament convention: multi-line docstrings start their
-summary on the second line), scoped to the sources and split per file.
+summary on the second line), scoped to the sources. One run over every file: pydocstyle
+prints each error with its file and line.
 """
 
 from ament_pep257.main import main
@@ -12,7 +13,6 @@ import pytest
 
 @pytest.mark.linter
 @pytest.mark.pep257
-@pytest.mark.parametrize('path', sources())
-def test_pep257(path):
-    rc = main(argv=[str(REPO_ROOT / path)])
-    assert rc == 0, 'Found code style errors / warnings'
+def test_pep257():
+    rc = main(argv=[str(REPO_ROOT / path) for path in sources()])
+    assert rc == 0, 'Found code style errors / warnings (listed above with file and line)'

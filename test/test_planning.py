@@ -1,5 +1,5 @@
 """
-Test planning (issue 8): what rotor_id.planning predicts, checked against identify and the report.
+Test planning (pins #8): what rotor_id.planning predicts, checked against identify and the report.
 
 * The predicted Cramér-Rao σ agree with the spread of ``pipeline.identify`` on noisy simulated
   runs of the same candidate (report's wake and multiblade cases), judged with limits from the
@@ -302,7 +302,7 @@ def test_recommendation_rules():
 
 
 def test_a_dozen_candidates_plan_in_seconds():
-    """Smoke bound only (the measured time is in the report of issue 8): 12 candidates < 30 s."""
+    """Smoke bound only (speed is measured in bench/, not here): 12 candidates < 30 s."""
     plan = planning.load_plan(WAKE)
     assert len(plan.candidates) == 12
     started = time.perf_counter()

@@ -1,6 +1,7 @@
 #!/usr/bin/env bash
 # Check the system tools the build needs and install the missing ones with apt-get.
-#   python3.11 (+ venv, headers), cmake, g++, make        (TOOLCHAIN.md section 0)
+#   python3.11 (+ venv, headers), cmake, g++, make   (rclpy and the ros-* wheels are cp311;
+#   colcon builds rotor_id_msgs with CMake and a C++ compiler)
 # Does nothing (and needs no network) when everything is present.
 set -euo pipefail
 

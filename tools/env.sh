@@ -4,7 +4,7 @@
 #   . tools/env.sh              # venv + built workspace (needs `make build` first)
 #   . tools/env.sh --venv-only  # venv only: what `colcon build` needs
 #
-# Sets what install/local_setup.sh sets (TOOLCHAIN.md section 5) plus the venv:
+# Sets what install/local_setup.sh sets plus the venv:
 #   PATH, VIRTUAL_ENV       .venv/bin first, so `python`, `colcon`, `pytest` are the venv's
 #   AMENT_PREFIX_PATH       install/rotor_id, install/rotor_id_msgs, then .venv (the ros-* wheels)
 #   CMAKE_PREFIX_PATH       .venv (find_package(ament_cmake) etc. at build time)

@@ -15,7 +15,7 @@ std_msgs and builtin_interfaces) then fails at CMake generate time with::
 This script rewrites those paths, in ``<prefix>/share/*/cmake/*.cmake`` only, to
 ``sysconfig.get_paths()['include']`` and ``numpy.get_include()`` of the interpreter that runs
 it (run it with the venv's python). It is idempotent; re-run it after every install that
-(re)installs ros-* message wheels. See TOOLCHAIN.md section 3.
+(re)installs ros-* message wheels (tools/make_venv.sh runs it after every install).
 
 Usage::
 

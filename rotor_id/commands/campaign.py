@@ -1,7 +1,7 @@
 """
 ``rotor-id campaign DIR --out OUTDIR [--config RUN.yaml] [--diagnose] [--jobs N]``.
 
-A wind-tunnel entry, not one bag (issue 17): every bag in DIR (a rosbag2 directory, or a loose
+A wind-tunnel entry, not one bag: every bag in DIR (a rosbag2 directory, or a loose
 ``.mcap`` / ``.db3`` file) is identified with its run description ``NAME.yaml`` beside it (or
 the one ``--config``), with identify's adequacy check, and on request diagnosed, in parallel
 worker processes. A progress line on stderr counts the bags done, failed and up to date and

@@ -4,13 +4,14 @@
 Reads a bag in the test-stand convention (MCAP or sqlite3), converts to the report's
 nondimensional time from the measured rotor speed, forms the model's channels (multiblade
 coordinates or eq. 30 differences), runs the configured estimator over the configured window,
-prints a table (value, Cramér-Rao σ, correlation) and writes the stable JSON of issue 3.
+prints a table (value, Cramér-Rao σ, correlation) and writes the JSON with the stable keys of
+:meth:`rotor_id.pipeline.Identification.as_json`.
 
-Several bags are identified together (issue 17): one estimate of the shared parameters, each
+Several bags are identified together: one estimate of the shared parameters, each
 run with its own window (one ``--config`` per bag, or one for all), initial states and noise;
 the JSON adds a ``runs`` section and the figure a column per run.
 
-A session bag (several test points recorded straight through) is identified per test point
+A multi-point bag (several test points recorded straight through) is identified per test point
 with ``--test-point K`` or ``--test-point all``: ``window_s`` then counts from test point K's
 first flap sample, as in the live identifier. The test points are found in the bag from what
 the live identifier follows, by the same code (:func:`rotor_id.nodes.test_points.
@@ -32,7 +33,7 @@ from rotor_id.io.bag import may_read_by_parts, read_messages, read_record
 from rotor_id.io.errors import BagError
 from rotor_id.io.run_description import check_against_record, load_run_description
 
-METHODS = ('output-error', 'filter-error', 'equation-error')
+METHODS = ('output-error', 'filter-error', 'equation-error', 'frequency-response')
 
 
 def add_arguments(parser):
@@ -55,7 +56,7 @@ def add_arguments(parser):
                         'maximum-likelihood optimum')
     parser.add_argument('--quiet', action='store_true', help='no progress lines')
     parser.add_argument('--test-point', dest='test_point', default=None, metavar='K|all',
-                        help='a session bag of several test points: identify test point K '
+                        help='a multi-point bag of several test points: identify test point K '
                         '(1, 2, ... as the live identifier numbers them) or all of them, '
                         "window_s counting from the test point's first flap sample; the test "
                         "points are found from the bag's stirring phases, else its estimates")
@@ -240,9 +241,13 @@ def run_several(args, configs):
     if not args.quiet:
         print(f'fitting {label} to {len(names)} runs together: {", ".join(names)}',
               file=sys.stderr, flush=True)
-    result = pipeline.identify_runs(
-        [(record, desc, name) for (desc, record), name in zip(loaded, names)],
-        method=args.method, progress=None if args.quiet else progress_printer(method))
+    runs = [(record, desc, name) for (desc, record), name in zip(loaded, names)]
+    if args.method == 'frequency-response':      # docs/frequency_response.md
+        result = pipeline.identify_frequency_response(
+            runs, progress=None if args.quiet else progress_printer(method))
+    else:
+        result = pipeline.identify_runs(
+            runs, method=args.method, progress=None if args.quiet else progress_printer(method))
     print(format_table(result))
     print(format_runs(result))
     write_outputs(result, [record for _, record in loaded], args, [str(b) for b in args.bag],
@@ -298,9 +303,9 @@ def plot_runs(result, records, path, title=''):
     plt.close(fig)
 
 
-# ------------------------------------------------------------------------------ session bags
+# ------------------------------------------------------------------------------ multi-point bags
 NS = 1_000_000_000
-SESSION_SLICE_S = 30.0      # a long session bag is read this many seconds at a time
+MULTI_POINT_SLICE_S = 30.0      # a long multi-point bag is read this many seconds at a time
 CSV_FIXED = ('test_point', 'found_from', 'test_point_start_s', 'window_start_s', 'window_end_s',
              'status', 'converged', 'n_samples')
 
@@ -322,13 +327,13 @@ def _stamp_ns(stamp):
     return int(stamp.sec) * NS + int(stamp.nanosec)
 
 
-class SessionRecord:
+class MultiPointRecord:
     """
-    A session bag's record, read whole when the bag is small, else slice by slice.
+    A multi-point bag's record, read whole when the bag is small, else slice by slice.
 
-    A long bag is read ``SESSION_SLICE_S`` at a time with the windowed reader
+    A long bag is read ``MULTI_POINT_SLICE_S`` at a time with the windowed reader
     (:func:`rotor_id.io.bag.read_record` with ``window_s``), so memory follows a slice and the
-    session's time stamps, not the session. ``whole`` is the Record when the reader took the
+    bag's time stamps, not the bag. ``whole`` is the Record when the reader took the
     whole bag (small bags, bags without an index, clock trouble: as the plain read). The
     slices share the recording's origin, so their flap stamps, values and the window checks
     of the replay are those of the whole read; the unwrapped azimuth of each slice counts its
@@ -339,12 +344,12 @@ class SessionRecord:
         # slices and windows are read without the reader's dead-sensor check: a blade may
         # read one value between test points; each fitted window is checked by the caller
         self.bag, self.options = bag, {**options, 'window_s': None, 'check_dead_flap': False}
-        self.slice_s = float(SESSION_SLICE_S if slice_s is None else slice_s)
+        self.slice_s = float(MULTI_POINT_SLICE_S if slice_s is None else slice_s)
         first = None
         if options.get('run') is None and may_read_by_parts(bag):
             first = self._read(0.0)
         if first is None or not first.read_around_window:
-            # the whole session without a window, as before the slices: a fault anywhere in
+            # the whole bag without a window: a fault anywhere in
             # it is an error (a slice is judged as a window: each fault an error in its slice)
             first = read_record(bag, **self.options)
         self.whole = None if first.read_around_window else first
@@ -358,7 +363,7 @@ class SessionRecord:
             return read_record(self.bag, **{**self.options, 'window_s': (start, stop)})
         except BagError as err:
             raise BagError(f'{err} [window_s here is the slice {start:g}-{stop:g} s of the '
-                           f'session, read {self.slice_s:g} s at a time to find its test '
+                           f'bag, read {self.slice_s:g} s at a time to find its test '
                            'points]') from None
 
     def window(self, window_s):
@@ -389,9 +394,9 @@ class SessionRecord:
 
     def replay_record(self):
         """
-        Return the session as :func:`~rotor_id.nodes.test_points.replay_excitation` takes it.
+        Return the bag's record as :func:`~rotor_id.nodes.test_points.replay_excitation` takes it.
 
-        The Record when it was read whole, else the session's stamps and azimuth with its rows
+        The Record when it was read whole, else the bag's stamps and azimuth with its rows
         read slice by slice, forwards (two passes over the slices in all).
         """
         if self.whole is not None:
@@ -406,7 +411,7 @@ class SessionRecord:
         except _ReadWhole as whole:          # the reader took the whole bag after all
             self.whole = whole.record
             return self.whole
-        return _SlicedSession(self, np.concatenate(time_s), np.concatenate(t), counts)
+        return _SlicedRecord(self, np.concatenate(time_s), np.concatenate(t), counts)
 
 
 class _ReadWhole(Exception):
@@ -417,14 +422,14 @@ class _ReadWhole(Exception):
         self.record = record
 
 
-class _SlicedSession:
-    """A session record whose rows are read slice by slice, in index order (for the replay)."""
+class _SlicedRecord:
+    """A multi-point record whose rows are read slice by slice, in index order (for the replay)."""
 
-    def __init__(self, session, time_s, t, counts):
-        self.stamp0_ns, self.time_s, self.t = session.stamp0_ns, time_s, t
-        self.blade_names = list(session.blade_names)
+    def __init__(self, multi_point, time_s, t, counts):
+        self.stamp0_ns, self.time_s, self.t = multi_point.stamp0_ns, time_s, t
+        self.blade_names = list(multi_point.blade_names)
         self.n_blades = len(self.blade_names)
-        self._slices, self._ends = session.slices(), np.cumsum(counts)
+        self._slices, self._ends = multi_point.slices(), np.cumsum(counts)
         self._part, self._first, self._end = None, 0, 0
         self.blade_flap = _SliceRows(self, 'blade_flap')
         self.blade_pitch = _SliceRows(self, 'blade_pitch')
@@ -441,31 +446,31 @@ class _SlicedSession:
             self._first, self._end = self._end, self._end + len(self._part)
         if index < self._first:
             raise IndexError(f'row {index} is behind the slice read (rows {self._first}-'
-                             f'{self._end - 1}): a sliced session is read forwards only')
+                             f'{self._end - 1}): a sliced record is read forwards only')
         return getattr(self._part, name)[index - self._first]
 
 
 class _SliceRows:
-    """One column of a :class:`_SlicedSession`, indexed by row."""
+    """One column of a :class:`_SlicedRecord`, indexed by row."""
 
-    def __init__(self, session, name):
-        self.session, self.name = session, name
+    def __init__(self, multi_point, name):
+        self.multi_point, self.name = multi_point, name
 
     def __getitem__(self, index):
         """Return one row."""
-        return self.session.row(self.name, int(index))
+        return self.multi_point.row(self.name, int(index))
 
 
-def find_test_points(bag, description, session, found=None):
+def find_test_points(bag, description, multi_point, found=None):
     """
-    Find the test points of a session bag; return (RecordedTestPoints, found from, notes).
+    Find the test points of a multi-point bag; return (RecordedTestPoints, found from, notes).
 
     From the stirring phases (``topics.stirring``) by the live identifier's own state machine;
     else from the estimates (``topics.estimate``) tagged with a test point. Where both are in
     the bag, each test point found from the phases takes the live identifier's number (the
     estimates' ``test_point`` with the same first flap sample). Raises ValueError when the bag
-    holds neither, saying how to select a time window instead. ``session`` is a
-    :class:`SessionRecord` (or a Record); ``found`` the bag's messages on the two topics when
+    holds neither, saying how to select a time window instead. ``multi_point`` is a
+    :class:`MultiPointRecord` (or a Record); ``found`` the bag's messages on the two topics when
     already read.
     """
     from rotor_id.nodes.test_points import Phase, RecordedTestPoint, replay_excitation
@@ -481,7 +486,8 @@ def find_test_points(bag, description, session, found=None):
     notes = []
     if commands:
         excitation = [(_stamp_ns(m.header.stamp), int(m.phase)) for _, m in commands]
-        record = session.replay_record() if isinstance(session, SessionRecord) else session
+        record = multi_point.replay_record() if isinstance(multi_point, MultiPointRecord) \
+            else multi_point
         points = replay_excitation(record, excitation, description.window_s)
         live = {_stamp_ns(ms[0].test_point_start): n for n, ms in tagged.items()}
         for point in points:
@@ -520,27 +526,27 @@ def _live_windows(bag, description):
 
 
 def run_test_points(args, configs):
-    """Identify test point K (or all) of a session bag; exit 0 when all converged, else 1."""
+    """Identify test point K (or all) of a multi-point bag; exit 0 when all converged, else 1."""
     from rotor_id.nodes.test_points import Phase
     if args.test_point is None:
         raise ValueError('--csv is written with --test-point (one row per test point); give '
                          '--test-point K or --test-point all')
     wanted = parse_test_point(args.test_point)
     if len(args.bag) > 1:
-        raise ValueError('--test-point identifies the test points of one session bag; give one '
-                         'bag')
+        raise ValueError('--test-point identifies the test points of one multi-point bag; '
+                         'give one bag')
     check_output_paths(json=args.json_out, figure=args.figure, csv=args.csv_out)
     bag, config = args.bag[0], configs[0]
     started = time.perf_counter()
     description = load_run_description(config)
-    # the test points are found in the session first: a small bag is read whole, a long one
+    # the test points are found in the bag first: a small bag is read whole, a long one
     # a slice at a time, and then only each test point's window (memory follows the slice)
-    session = SessionRecord(bag, description.record_options())
-    print_warnings(list(description.warnings) + list(session.warnings))
-    printed = len(session.warnings)
-    points, source, notes = find_test_points(bag, description, session)
-    print_warnings(session.warnings[printed:] + notes)
-    printed = len(session.warnings)
+    multi_point = MultiPointRecord(bag, description.record_options())
+    print_warnings(list(description.warnings) + list(multi_point.warnings))
+    printed = len(multi_point.warnings)
+    points, source, notes = find_test_points(bag, description, multi_point)
+    print_warnings(multi_point.warnings[printed:] + notes)
+    printed = len(multi_point.warnings)
     numbers = [p.number for p in points]
     if not args.quiet:
         print(f'{bag}: {len(points)} test point(s) found from {source}: '
@@ -560,7 +566,7 @@ def run_test_points(args, configs):
         print(f'test point {head["test_point"]}: not identified ({reason})')
 
     for point in points:
-        shift = (point.stamp0_ns - session.stamp0_ns) / NS
+        shift = (point.stamp0_ns - multi_point.stamp0_ns) / NS
         head = {'test_point': point.number, 'found_from': source,
                 'test_point_start_ns': int(point.stamp0_ns), 'test_point_start_s': shift,
                 'window_s_test_point': list(point.window_s)}
@@ -580,9 +586,9 @@ def run_test_points(args, configs):
             continue
         window = (point.window_s[0] + shift, point.window_s[1] + shift)
         desc_k = replace(description, window_s=window)
-        record = session.window(window)
-        print_warnings(session.warnings[printed:])
-        printed = len(session.warnings)
+        record = multi_point.window(window)
+        print_warnings(multi_point.warnings[printed:])
+        printed = len(multi_point.warnings)
         dead = record.stuck_flap_blades(*window)
         if dead:
             # a dead sensor spoils this test point only: the others are still identified
@@ -645,7 +651,7 @@ def run_test_points(args, configs):
 
 
 def format_test_points(rows, unknowns):
-    """Plain-text summary of the test points of a session: start, status, value ± σ."""
+    """Plain-text summary of the test points of a multi-point bag: start, status, value ± σ."""
     lines = [f'{"test point":>10} {"start [s]":>10}  {"status":<15} '
              + ' '.join(f'{n:>20}' for n in unknowns)]
     for row in rows:

@@ -1,5 +1,5 @@
 """
-``rotor-id plan --config PLAN.yaml [--json OUT.json] [--figure OUT.png]`` (issue 8).
+``rotor-id plan --config PLAN.yaml [--json OUT.json] [--figure OUT.png]``.
 
 Predicts, before a run, the Cramér-Rao σ each candidate stirring transient would give the
 configured unknowns (initial states at the window start free, as ``identify`` faces them), the

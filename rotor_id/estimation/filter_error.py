@@ -1,5 +1,5 @@
 """
-Filter-error maximum likelihood: measurement *and* system noise (Ch.1 eqs 26-32, issue 5).
+Filter-error maximum likelihood: measurement *and* system noise (Ch.1 eqs 26-32).
 
 With system noise the predicted outputs come from a Kalman filter built from the model, and the
 negative log-likelihood of the samples is (Ch.1 eq. 26, halved, without the constant)

@@ -147,7 +147,7 @@ class Estimate:
         return np.sqrt(np.mean(res**2, axis=0))
 
     def as_dict(self):
-        """JSON-ready dictionary with the keys fixed by issue 3."""
+        """JSON-ready dictionary with the stable keys of ``rotor-id identify``."""
         return {
             'method': self.method,
             'parameters': {n: {'value': float(v), 'std': float(s)}

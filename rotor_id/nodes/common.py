@@ -1,10 +1,10 @@
 """
 What every rotor_id node shares: QoS, parameters with descriptors, diagnostics, adapters.
 
-CONVENTIONS.md §2-§9: parameters declared with descriptors (units in the description, ranges),
-QoS by kind of data (§4), header stamps from the node clock (§5), /diagnostics at ~1 Hz by hand
-(diagnostic_updater is not a wheel here, §7), main() that shuts down cleanly on SIGINT/SIGTERM
-(§9).
+Parameters declared with descriptors (units in the description, ranges), QoS by kind of data
+and header stamps as docs/ros_interfaces.md tabulates them, /diagnostics at ~1 Hz by hand
+(diagnostic_updater is not among the installed wheels), main() that shuts down cleanly on
+SIGINT/SIGTERM.
 """
 
 import faulthandler
@@ -34,8 +34,9 @@ from sensor_msgs.msg import JointState
 
 NS = 1_000_000_000
 
-#: Sensor streams (CONVENTIONS.md §4): best effort, volatile. Depth 1000 (1 s at 1 kHz), not 5: the
-#: plant publishes in bursts of a few ms of samples and a busy subscriber must not drop them.
+#: Sensor streams (REP-2003, as rclpy's qos_profile_sensor_data): best effort, volatile, keep last.
+#: Depth 1000 (1 s at 1 kHz), not 5: the plant publishes in bursts of a few ms of samples and a
+#: busy subscriber must not drop them.
 SENSOR_QOS = QoSProfile(reliability=ReliabilityPolicy.BEST_EFFORT,
                         history=HistoryPolicy.KEEP_LAST, depth=1000,
                         durability=DurabilityPolicy.VOLATILE)
@@ -50,15 +51,16 @@ SENSOR_BUFFER_QOS = QoSProfile(reliability=ReliabilityPolicy.BEST_EFFORT,
 SENSOR_OFFER_QOS = QoSProfile(reliability=ReliabilityPolicy.RELIABLE,
                               history=HistoryPolicy.KEEP_LAST, depth=10000,
                               durability=DurabilityPolicy.VOLATILE)
-#: Commands, estimates, states, events: reliable, volatile (depth 1000: a reader that fell
-#: behind, such as a recorder on a busy machine, still gets every message re-sent).
+#: Commands, states, progress, events: reliable, volatile (depth 1000: a reader that fell
+#: behind, such as a recorder on a busy machine, still gets every message re-sent). A volatile
+#: reader matches a volatile and a transient-local publisher alike.
 STATE_QOS = QoSProfile(reliability=ReliabilityPolicy.RELIABLE, history=HistoryPolicy.KEEP_LAST,
                        depth=1000, durability=DurabilityPolicy.VOLATILE)
-#: Results (parameter estimates, reconstructed states): as STATE_QOS but latched (transient
-#: local, the last 100 kept), like a map server's map: a reader that joins late (a dashboard
-#: started mid-run, a restarted state estimator, a recorder or test process whose discovery
-#: lagged on a loaded machine) still receives them. Volatile readers match it too, without the
-#: history. Commands stay volatile: a late plant must not act on old ones.
+#: Results (parameter estimates): as STATE_QOS but latched (transient local, the last 100
+#: kept), like a map server's map: a reader that joins late (a dashboard started mid-run, a
+#: restarted state estimator, a recorder or test process whose discovery lagged on a loaded
+#: machine) still receives them. Volatile readers match it too, without the history. States
+#: and commands stay volatile: a late reader must not act on old ones.
 RESULT_QOS = QoSProfile(reliability=ReliabilityPolicy.RELIABLE,
                         history=HistoryPolicy.KEEP_LAST, depth=100,
                         durability=DurabilityPolicy.TRANSIENT_LOCAL)
@@ -391,16 +393,21 @@ class Diagnostics:
 
 
 # ------------------------------------------------------------------------------ estimates
-def estimate_message(identification, stamp, status=None, target=(True, 0.0), frame_id='rotor',
-                     message=None):
-    """rotor_id_msgs/ParameterEstimate of an Identification's unknowns (SI, rad)."""
+def estimate_message(identification, computed_at, status=None, target=(True, 0.0),
+                     frame_id='rotor', message=None):
+    """
+    rotor_id_msgs/ParameterEstimate of an Identification's unknowns (SI, rad).
+
+    ``header.stamp`` is the data time, the end of the identified window (``window_end``);
+    ``computed_at`` (a builtin_interfaces/Time) is when the estimate was made.
+    """
     est = identification.estimate
     unknowns = list(identification.unknowns)
     idx = [est.names.index(n) for n in unknowns]
     cov = est.covariance[np.ix_(idx, idx)]
     model = identification.model
     msg = ParameterEstimate()
-    msg.header.stamp = stamp
+    msg.computed_at = computed_at
     msg.header.frame_id = frame_id
     msg.model = model.name
     msg.names = unknowns
@@ -423,6 +430,7 @@ def estimate_message(identification, stamp, status=None, target=(True, 0.0), fra
     omega = identification.omega_rad_s
     msg.window_start = time_msg(rec_ns + int(round(identification.window_s[0] * NS)))
     msg.window_end = time_msg(rec_ns + int(round(identification.window_s[1] * NS)))
+    msg.header.stamp = msg.window_end
     msg.window_s = float((part.t[-1] - part.t[0]) / omega) if omega > 0 else 0.0
     msg.target_met, msg.additional_data_s = bool(target[0]), float(target[1])
     return msg
@@ -531,7 +539,7 @@ def wait_for_acks(publishers, timeout_s=ACK_WAIT_S):
 def spin_node(node_factory, args=None, executor_factory=None, after_stop=None,
               runtime_errors=()):
     """
-    Run a node as main() does in demo_nodes_py (Jazzy, CONVENTIONS.md §2/§9); returns exit code.
+    Run a node as main() does in demo_nodes_py (Jazzy); returns exit code.
 
     A configuration error while constructing the node (ValueError) is one line on stderr and
     exit code 2, never a traceback. SIGINT and SIGTERM only set a flag that the spin loop checks

@@ -497,7 +497,11 @@ class Identifier(Node):
                                 kind=ParameterEstimate.KIND_FINAL, test_point=point.number,
                                 message=f'{point.describe()}: {point.detail}',
                                 additional_data_s=-1.0)
-        msg.header.stamp = self.get_clock().now().to_msg()
+        msg.computed_at = self.get_clock().now().to_msg()
+        # data time: the newest flap sample when it was aborted (none yet: the clock's time)
+        with self.lock:
+            newest = self.points.flap.last_stamp
+        msg.header.stamp = msg.computed_at if newest is None else time_msg(newest)
         msg.header.frame_id = self.d['frame_id']
         msg.model = self.description.model
         if point.stamp0_ns is not None:
@@ -788,7 +792,13 @@ class Identifier(Node):
             self.guess = guess
 
     def _annotate(self, msg, request, kind):
-        """Test point, window used and integrity fields of an estimate (from the request)."""
+        """
+        Test point, window used and integrity fields of an estimate (from the request).
+
+        ``header.stamp`` is the data time: the window's end (its last flap sample used, or with
+        none used the end of the window asked for), never the time of computation
+        (``computed_at``).
+        """
         check = request.check
         msg.kind = kind
         msg.test_point = request.test_point
@@ -799,6 +809,7 @@ class Identifier(Node):
         if first is not None:
             msg.window_start, msg.window_end = time_msg(first), time_msg(last)
             msg.window_s = (last - first) / NS
+        msg.header.stamp = msg.window_end if first is not None else time_msg(check.hi_ns)
         msg.time_base_consistent = check.time_base_consistent
         missing = check.missing
         msg.missing_channels = list(missing)
@@ -980,7 +991,7 @@ class Identifier(Node):
         self.get_logger().warning(f'identification over {request.window_s} s: {reason}')
         msg = ParameterEstimate(status=status, message=reason, names=self.unknowns,
                                 additional_data_s=-1.0)
-        msg.header.stamp = self.get_clock().now().to_msg()
+        msg.computed_at = self.get_clock().now().to_msg()
         msg.header.frame_id = self.d['frame_id']
         msg.model = self.description.model
         return self._annotate(msg, request, kind)

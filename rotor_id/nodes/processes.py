@@ -1,12 +1,12 @@
 """
 Start the installed nodes as separate processes on an isolated DDS domain, and stop them cleanly.
 
-What ``rotor-id demo`` and the multi-process tests share (launch/launch_ros are not installable
-here, CONVENTIONS.md §10-11): the executables are found like ``ros2 run`` finds them (ament index
-prefix + lib/rotor_id/<name>), every child gets its own session (so a terminal's Ctrl-C reaches
-the caller, which stops the children in order: the recorder last, after every publisher has had
-its messages acknowledged, so the bag holds everything and is finalised) and
-the same ROS_DOMAIN_ID with ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST.
+What ``rotor-id demo`` and the multi-process tests share (they run where only the rclpy wheels
+are installed, without launch/launch_ros): the executables are found like ``ros2 run`` finds
+them (ament index prefix + lib/rotor_id/<name>), every child leads its own process group (so a
+terminal's Ctrl-C reaches the caller, which stops the children in order: the recorder last,
+after every publisher has had its messages acknowledged, so the bag holds everything and is
+finalised) and the same ROS_DOMAIN_ID with ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST.
 """
 
 import os

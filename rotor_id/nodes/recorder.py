@@ -3,10 +3,11 @@ recorder: every topic of the run into a rosbag2 bag (``ros2 run rotor_id recorde
 
 A ``ros2 bag record`` for this workspace (rosbag2 itself is not a wheel): raw (serialized)
 subscriptions to every discovered topic (or the configured list), QoS adapted to the publishers
-as rosbag2 does (reliable / transient-local only if every publisher offers it, CONVENTIONS.md
-§4) but KEEP_ALL, the publishers' offered QoS stored in the bag, messages written with
-:func:`rotor_id.io.bag.open_writer` (rosbags; MCAP by default, sqlite3 on request) with every
-message definition embedded, rotor_id_msgs included, so mcap + mcap-ros2-support decode it.
+as rosbag2 does (reliable / transient-local only if every publisher offers it,
+docs/ros_interfaces.md) but KEEP_ALL, the publishers' offered QoS stored in the bag, messages
+written with :func:`rotor_id.io.bag.open_writer` (rosbags; MCAP by default, sqlite3 on request)
+with every message definition embedded, rotor_id_msgs included, so mcap + mcap-ros2-support
+decode it.
 
 With a run description (parameter ``run_description``, docs/run_description.md) it records the
 rig's topics (resolved in its namespace, so a recorder under ``/rig2`` records rig 2 only) and

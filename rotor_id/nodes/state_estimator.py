@@ -18,7 +18,8 @@ from rclpy.node import Node
 from rotor_id.estimation import kernels
 from rotor_id.nodes.common import (allow_runtime_changes, declare, Diagnostics,
                                    estimate_from_message, node_run_description, RESULT_QOS,
-                                   Rig, SENSOR_BUFFER_QOS, spin_node, stamp_ns, wait_for_acks)
+                                   Rig, SENSOR_BUFFER_QOS, spin_node, stamp_ns, STATE_QOS,
+                                   wait_for_acks)
 from rotor_id.nodes.live import (AzimuthTracker, BadSample, check_azimuth_sample,
                                  check_joint_sample, StampedSeries, StreamingKalman)
 from rotor_id.nodes.polling import (checked_azimuth_batch, checked_joint_batch, one_by_one,
@@ -77,8 +78,9 @@ class StateEstimator(Node):
         self.kalman = None
         self.updates = 0
         self.published = 0
+        # volatile, as robot_localization's state: a late reader starts from the next state
         self.pub_state = self.create_publisher(StateEstimate, self.rig.topics['state'],
-                                               RESULT_QOS)
+                                               STATE_QOS)
         self.diagnostics = Diagnostics(self, 'state reconstruction')
         # the sensor topics are taken in batches at each tick (rotor_id.nodes.polling), not by
         # one executor callback per message (several times the CPU per message at 3 kHz;
@@ -93,6 +95,7 @@ class StateEstimator(Node):
                 JointState, desc.topics[role],
                 lambda raws, _infos, role=role, series=series, joints=joints:
                 self._take_batch(role, series, joints, raws), SENSOR_BUFFER_QOS)
+        # transient local: a restarted state estimator takes the identifier's latched estimates
         self.create_subscription(ParameterEstimate, self.rig.topics['estimate'],
                                  self.on_estimate, RESULT_QOS)
         # the compiled filter scan now (0.4-1 s from numba's cache), not mid-run: each batch

@@ -659,10 +659,10 @@ class TestPointSequence:
         return origin, (first - origin) / NS, (last - origin) / NS
 
 
-# ------------------------------------------------------------------------------ recorded sessions
+# ------------------------------------------------------------------------------ multi-point bags
 @dataclass
 class RecordedTestPoint:
-    """A test point of a recorded session: where the live identifier's would have started."""
+    """A test point of a multi-point bag: where the live identifier's would have started."""
 
     __test__ = False                 # not a pytest class
 
@@ -687,7 +687,7 @@ class RecordedTestPoint:
 
 def replay_excitation(record, excitation, window_s, gap_factor=1.5, slip_tolerance_rad=0.1):
     """
-    Find the test points that excitation phases arm in a recorded session, as the live node.
+    Find the test points that excitation phases arm in a multi-point bag, as the live node.
 
     The record's samples (flap, pitch and azimuth on the flap stamps) and the excitation's
     phases are fed, in stamp order, to a :class:`TestPointSequence` with ``auto_start``
@@ -698,7 +698,7 @@ def replay_excitation(record, excitation, window_s, gap_factor=1.5, slip_toleran
     Parameters
     ----------
     record : rotor_id.io.record.Record
-        The whole session (``stamp0_ns`` + ``time_s`` are the flap stamps).
+        The whole multi-point record (``stamp0_ns`` + ``time_s`` are the flap stamps).
     excitation : iterable of (stamp_ns, phase)
         The excitation's phases (StirringCommand's ``header.stamp`` and ``phase``).
     window_s : (float, float)
@@ -720,7 +720,7 @@ def replay_excitation(record, excitation, window_s, gap_factor=1.5, slip_toleran
     # an event goes in before the first flap sample stamped at or after it
     at = np.searchsorted(stamps, [s for s, _ in events], side='left')
     points, checks, e = [], {}, 0
-    for i in range(stamps.size):          # (not stamps.tolist(): ~40 B a sample for a session)
+    for i in range(stamps.size):          # (not stamps.tolist(): ~40 B a sample over an hour)
         stamp = int(stamps[i])
         while e < len(events) and at[e] <= i:
             before = sequence.count

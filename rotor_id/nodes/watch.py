@@ -17,8 +17,9 @@ from sensor_msgs.msg import JointState
 TOPICS = {
     'estimate': ('/rotor_id/estimate', ParameterEstimate, RESULT_QOS),
     'progress': ('/rotor_id/progress', IdentificationProgress, STATE_QOS),
-    'state': ('/rotor_id/state', StateEstimate, RESULT_QOS),
-    'stirring': ('/rotor/stirring', StirringCommand, STATE_QOS),   # volatile, as offered
+    # volatile readers: they match a volatile and a transient-local publisher alike
+    'state': ('/rotor_id/state', StateEstimate, STATE_QOS),
+    'stirring': ('/rotor/stirring', StirringCommand, STATE_QOS),
     'diagnostics': ('/diagnostics', DiagnosticArray, DIAGNOSTICS_QOS),
 }
 #: The run's outputs of the nodes, one publisher each (not /diagnostics, which every node

@@ -1042,3 +1042,144 @@ def build_model(name, rotor=RotorConstants(), collective='theta0', angle_unit='r
     if name == 'multiblade_wake':
         return MultibladeWake(rotor, 'theta0', angle_unit, **options)
     raise ValueError(f'unknown model {name!r}; choose one of {", ".join(MODEL_NAMES)}')
+
+
+# ------------------------------------------------------------------------------------------------
+# Directional frequency response (harmonic transfer function) of the cyclic flapping
+# ------------------------------------------------------------------------------------------------
+
+#: Fourier orders of the periodic coefficients kept on each side of the input frequency: the
+#: periodic terms of a flapping rotor are N/2 or N per rev and their couplings fall fast with
+#: the order (μ² per step), so six steps either side converge to rounding for μ < 1.
+HARMONIC_ORDERS = 6
+
+
+@dataclass(frozen=True)
+class DirectionalResponse:
+    """
+    The directional frequency response of the fixed-frame cyclic flap to the cyclic pitch.
+
+    In complex coordinates β_c = βI + iβII and θ_c = θI + iθII (θI forward, θII lateral
+    cyclic, the report's eq. 3, docs/models.md §0), a cyclic pitch θ_c = e^{iωt} (ω in per
+    rev, signed: ω > 0 rotates with the rotor, progressing stirring) gives the flap
+
+        β_c(t) = Σ_n H_n(ω) e^{i(ω + n)t} + Σ_n M_n(ω) e^{-i(ω + n)t}
+
+    ``principal`` is H_0(ω) (what a frequency-response estimate at ω measures), ``sidebands``
+    the H_n for the orders n the periodic coefficients produce (none for a time-invariant
+    model: every μ = 0 rotor and the averaged models), ``mirrors`` the M_n (the response at
+    the mirrored frequency, zero for an axisymmetric rotor). ``jacobian`` is ∂H_0/∂p (F, P)
+    when asked for, else None.
+    """
+
+    frequency: np.ndarray
+    principal: np.ndarray
+    sidebands: dict
+    mirrors: dict
+    jacobian: object = None
+
+
+def _fourier_blocks(model, p, with_jacobian):
+    """
+    F, G (cyclic input columns) and their parameter derivatives as Fourier series in t.
+
+    Returns ``(orders, F_k, G_k, dF_k, dG_k)`` with F_k (K, n, n) the coefficients of
+    e^{i·orders[k]·t}; the dynamics of every model here are trigonometric polynomials of the
+    azimuth of period 2π, so the series from one revolution of samples is exact.
+    """
+    N = int(getattr(getattr(model, 'rotor', None), 'n_blades', 4))
+    samples = 8 * N + 32
+    t = 2.0 * math.pi * np.arange(samples) / samples
+    zero = np.zeros((samples, 3))
+    unit_I, unit_II = zero.copy(), zero.copy()
+    unit_I[:, 1], unit_II[:, 2] = 1.0, 1.0
+    F, g0 = model.system(t, p, zero)
+    G = np.stack([model.system(t, p, unit_I)[1] - g0,
+                  model.system(t, p, unit_II)[1] - g0], axis=-1)          # (T, n, 2)
+    blocks = [F, G]
+    if with_jacobian:
+        dF, dg0 = model.system_jacobian(t, p, zero)
+        dG = np.stack([model.system_jacobian(t, p, unit_I)[1] - dg0,
+                       model.system_jacobian(t, p, unit_II)[1] - dg0], axis=-1)   # (T, P, n, 2)
+        blocks += [dF, dG]
+    spectra = [np.fft.fft(b, axis=0) / samples for b in blocks]
+    scale = max(np.max(np.abs(s)) for s in spectra[:2])
+    present = np.zeros(samples, dtype=bool)
+    for s in spectra:
+        present |= np.any(np.abs(s.reshape(samples, -1)) > 1e-12 * scale, axis=1)
+    orders = np.fft.fftfreq(samples, 1.0 / samples).astype(int)
+    keep = np.flatnonzero(present & (np.abs(orders) < samples // 4))
+    out = [orders[keep]] + [s[keep] for s in spectra]
+    return tuple(out) + ((None, None) if not with_jacobian else ())
+
+
+def directional_frequency_response(model, p, frequency, jacobian=False,
+                                   orders=HARMONIC_ORDERS) -> DirectionalResponse:
+    """
+    Return the directional FRF β_c/θ_c of ``model`` at ``p`` (see :class:`DirectionalResponse`).
+
+    ``frequency`` is the input frequency in per rev (signed). A time-invariant model gives the
+    transfer function ½[1, i] C (iωI − F)⁻¹ G [1, −i]ᵀ exactly; a periodic model its harmonic
+    transfer function (Wereley), the state expanded as Σ_n X_n e^{i(ω + n)t} over the orders
+    n = d·(−orders … orders), d the base order of its periodic coefficients. The model must
+    carry βI and βII (every multiblade model of N ≥ 3 blades).
+    """
+    names = list(model.state_names)
+    if 'beta_I' not in names or 'beta_II' not in names:
+        raise ValueError(f'{model.name} has no fixed-frame cyclic flap states (beta_I, '
+                         'beta_II): its directional frequency response is not defined; use a '
+                         'multiblade model of a rotor with 3 or more blades')
+    p = np.asarray(p, dtype=float)
+    omega = np.atleast_1d(np.asarray(frequency, dtype=float))
+    k_orders, Fk, Gk, dFk, dGk = _fourier_blocks(model, p, jacobian)
+    periodic = k_orders[k_orders != 0]
+    base = int(np.gcd.reduce(np.abs(periodic))) if periodic.size else 0
+    shifts = base * np.arange(-orders, orders + 1) if base else np.zeros(1, dtype=int)
+    n, S = len(names), shifts.size
+    v = 0.5 * np.array([1.0, -1.0j])               # θ_c = e^{iωt}: [θI, θII] = v e^{iωt} + c.c.
+    lookup = {int(k): i for i, k in enumerate(k_orders)}
+
+    def toeplitz(blocks):                           # block (a, b) = blocks of order a − b
+        out = np.zeros((S * n, S * n) + blocks.shape[3:], dtype=complex)
+        for a, sa in enumerate(shifts):
+            for b, sb in enumerate(shifts):
+                k = lookup.get(int(sa - sb))
+                if k is not None:
+                    out[a * n:(a + 1) * n, b * n:(b + 1) * n] = blocks[k]
+        return out
+
+    def column(blocks):                             # forcing of harmonic s: order s
+        out = np.zeros((S * n,) + blocks.shape[2:], dtype=complex)
+        for a, sa in enumerate(shifts):
+            k = lookup.get(int(sa))
+            if k is not None:
+                out[a * n:(a + 1) * n] = blocks[k]
+        return out
+
+    F_big = toeplitz(Fk)
+    B = column(Gk) @ v
+    if jacobian:
+        P = dFk.shape[1]
+        dF_big = [toeplitz(dFk[:, j]) for j in range(P)]
+        dB = [column(dGk[:, j]) @ v for j in range(P)]
+    iI, iII = names.index('beta_I'), names.index('beta_II')
+    X = np.empty((omega.size, S, n), dtype=complex)
+    dH = np.empty((omega.size, len(p)), dtype=complex) if jacobian else None
+    centre = int(np.flatnonzero(shifts == 0)[0])
+    for f, w in enumerate(omega):
+        A = np.diag(np.repeat(1j * (w + shifts), n)) - F_big
+        lu = np.linalg.solve(A, np.column_stack([B] + ([] if not jacobian else [])))
+        x = lu[:, 0]
+        X[f] = x.reshape(S, n)
+        if jacobian:
+            rhs = np.column_stack([dF_big[j] @ x + dB[j] for j in range(len(p))])
+            dx = np.linalg.solve(A, rhs)[centre * n:(centre + 1) * n]
+            dH[f] = dx[iI] + 1j * dx[iII]
+    principal = X[:, centre, iI] + 1j * X[:, centre, iII]
+    sidebands, mirrors = {}, {}
+    for a, s in enumerate(shifts):
+        mirrors[int(s)] = np.conj(X[:, a, iI]) + 1j * np.conj(X[:, a, iII])
+        if s != 0:
+            sidebands[int(s)] = X[:, a, iI] + 1j * X[:, a, iII]
+    return DirectionalResponse(frequency=omega, principal=principal, sidebands=sidebands,
+                               mirrors=mirrors, jacobian=dH)

@@ -1,5 +1,5 @@
 """
-Small simulated test campaigns: bags and their run descriptions side by side (issue 17).
+Small simulated test campaigns: bags and their run descriptions side by side.
 
 Each test point is a planned run of the μ = 0 wake rotor (config/plan_wake.yaml) simulated by
 the library's planning path (:func:`rotor_id.planning.simulate_run`, the test-stand convention:

@@ -1,5 +1,5 @@
 """
-`rotor-id campaign` (issue 17): a small simulated tunnel entry, in parallel and resumed.
+`rotor-id campaign` (pins #17): a small simulated tunnel entry, in parallel and resumed.
 
 Five test points of the wake rotor at five "tunnel speeds" (a condition of the run
 descriptions), progressing and regressing stirring alternately; the one at 20 m/s has a

@@ -1,5 +1,5 @@
 """
-`rotor-id identify` on the shared test-stand recordings (issue 3, Offline).
+`rotor-id identify` on the shared test-stand recordings (pins #3).
 
 Each id_* recording has an answer (shared/recordings/answers.json); the identified parameters
 must lie within 3σ of it, where σ is our own Cramér-Rao bound — so a biased estimator or a
@@ -11,20 +11,19 @@ from pathlib import Path
 import re
 import subprocess
 
+from practice import RECORDINGS, require_practice
 import pytest
 
 from rotor_id import cli
 
 REPO = Path(__file__).resolve().parents[2]
-RECORDINGS = REPO.parent / 'shared' / 'recordings'
 ID_RECORDINGS = sorted(p.stem for p in RECORDINGS.glob('id_*.yaml'))
 JSON_KEYS = {'model', 'parameters', 'covariance', 'noise_std', 'iterations', 'converged',
              'window_s'}
 
 
 def _need_recordings():
-    if not (RECORDINGS / 'answers.json').is_file():
-        pytest.skip(f'shared recordings not found at {RECORDINGS}')
+    require_practice()
 
 
 @pytest.mark.parametrize('name', ID_RECORDINGS or ['none'])

@@ -1,5 +1,5 @@
 """
-Input checks of `rotor-id identify`, `diagnose`, `plan` before any fitting (issue 12, items 1, 4).
+Input checks of `rotor-id identify`, `diagnose`, `plan` before any fitting (pins #12).
 
 Every recording is made here: a test point of the μ = 0 wake rotor simulated by the library's
 planning path (campaign_helpers.write_test_point), or a hand-made 3-blade record. Each bad

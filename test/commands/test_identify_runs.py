@@ -1,5 +1,5 @@
 """
-`rotor-id identify BAG BAG ... --config ...`: several recordings in one estimate (issue 17).
+`rotor-id identify BAG BAG ... --config ...`: several recordings in one estimate (pins #17).
 
 Two stirring transients of the μ = 0 wake rotor, progressing and regressing, are simulated by
 the planning module (the library's simulator, the test-stand convention) at different sensor

@@ -1,5 +1,5 @@
 """
-`rotor-id plan` (issue 8): table, stable JSON, figure, exit codes, one-line errors.
+`rotor-id plan` (pins #8): table, stable JSON, figure, exit codes, one-line errors.
 
 The science (prediction vs Monte Carlo, the report's findings) is tested in test_planning.py;
 here the command's contract: the JSON keys of the issue, a recommendation consistent with the

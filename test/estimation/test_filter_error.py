@@ -1,5 +1,5 @@
 """
-Filter-error maximum likelihood (issue 5): the likelihood, its sensitivities, and its statistics.
+Filter-error maximum likelihood (pins #5): the likelihood, its sensitivities, and its statistics.
 
 What is proved here:
 * the eq.-26 likelihood of our filter equals statsmodels' independent state-space Kalman filter
@@ -293,13 +293,11 @@ def test_simultaneous_measurement_and_system_noise_output_error_converges():
 def test_identify_recording_with_each_method(method):
     """Run the `rotor-id identify --method ...` path on id_wake_progressing (answers.json)."""
     import json
-    from pathlib import Path
+    from practice import require_practice
     from rotor_id import pipeline
     from rotor_id.io.bag import read_record
     from rotor_id.io.run_description import load_run_description
-    recordings = Path(__file__).resolve().parents[3] / 'shared' / 'recordings'
-    if not (recordings / 'id_wake_progressing').is_dir():
-        pytest.skip(f'shared recordings not found at {recordings}')
+    recordings = require_practice()
     description = load_run_description(recordings / 'id_wake_progressing.yaml')
     record = read_record(recordings / 'id_wake_progressing', description.topics,
                          joint_names=description.joint_names)

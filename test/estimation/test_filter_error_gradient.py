@@ -1,5 +1,5 @@
 """
-Filter error's analytic sensitivities (issue 15 item 2) against finite differences.
+Filter error's analytic sensitivities against finite differences.
 
 * the gradient of the likelihood J(θ) from the analytic ∂ν, ∂B equals central differences of J
   itself (the filter run at θ ± h e_i) for every kind of unknown: model parameters (through

@@ -1,5 +1,5 @@
 """
-The compiled RK4 scan gives the numpy simulator's results (issue 15 item 5: within 1e-9).
+The compiled RK4 scan gives the numpy simulator's results (within 1e-9).
 
 Every model (periodic single blade and multiblade, constant-coefficient multiblade, dynamic
 wake), with sensitivities to every parameter and initial state and without, on equal and on

@@ -1,4 +1,4 @@
-"""Output-error ML on problems a user should be warned about (issue 7, item 1)."""
+"""Output-error ML on problems a user should be warned about (pins #7)."""
 
 import numpy as np
 import pytest

@@ -1,25 +1,24 @@
 """
-Shared pieces of the multi-process tests: isolated domains, an rclpy session, bag checks.
+Shared pieces of the multi-process tests: isolated domains, an rclpy node, bag checks.
 
 Each test runs the installed executables (like ``ros2 run``) in their own processes on a DDS
 domain of its own with loopback-only discovery; the test process itself is one more real DDS
 participant (no mocks of rclpy).
 """
 
-import itertools
 import math
 import os
 from pathlib import Path
 
 import pytest
+from ros_domains import next_domain
 
 REPO_ROOT = Path(__file__).resolve().parents[2]
-_domains = itertools.count()
 
 
 def domain_id():
-    """Return a ROS_DOMAIN_ID for this test: 101..200, away from the conftest's 1..100."""
-    return 101 + (os.getpid() * 7 + next(_domains)) % 100
+    """Return a ROS_DOMAIN_ID for this test, unique in the run (ros_domains.next_domain)."""
+    return next_domain()
 
 
 def require_workspace():
@@ -33,7 +32,7 @@ def require_workspace():
         pytest.skip(f'rclpy or rotor_id_msgs not importable ({exc}); run through `make test`')
 
 
-class RosSession:
+class RosClient:
     """rclpy initialised on one domain for the test process, with one node."""
 
     def __init__(self, domain, name='rotor_id_test'):

@@ -1,5 +1,5 @@
 """
-Nodes keep running through bad messages, count them on /diagnostics and recover (issue 7 item 2).
+Nodes keep running through bad messages, count them on /diagnostics and recover (pins #7).
 
 Plant, stirring input, identifier and state estimator run as separate processes. Before the rotor
 starts, this test publishes malformed messages on every topic they read: NaN, wrong joint names,
@@ -11,7 +11,7 @@ and return to OK.
 
 import math
 
-from live_helpers import domain_id, require_workspace, RosSession, within_sigma
+from live_helpers import domain_id, require_workspace, RosClient, within_sigma
 import pytest
 
 TRUTH = {'A': 0.5, 'AL_over_tau': 0.25, 'inv_tau': 0.125}
@@ -60,8 +60,8 @@ def bad_run(tmp_path_factory):
     tmp = tmp_path_factory.mktemp('bad')
     params_file, _, _ = case_files('wake')
     domain = domain_id()
-    session = RosSession(domain)
-    node = session.node
+    ros = RosClient(domain)
+    node = ros.node
     watcher = RunWatcher(node)
     procs = NodeProcesses(isolated_env(domain, tmp / 'ros_log'), tmp / 'logs')
     run = {'watcher': watcher}
@@ -109,7 +109,7 @@ def bad_run(tmp_path_factory):
         run['codes'] = procs.stop_all(last=())
         run['exits'] = procs.exit_summary()
         run['logs'] = {name: procs.log(name) for name in procs.procs}
-        session.close()
+        ros.close()
     return run
 
 

@@ -1,12 +1,12 @@
 """
-Lab network: plant and identifier on two "hosts" discover each other over DDS (issue 7 item 5).
+Lab network: plant and identifier on two "hosts" discover each other over DDS (pins #7).
 
 Two network namespaces joined by a veth pair, an address on each end and a multicast route
-224.0.0.0/4 on each side (TOOLCHAIN.md §11), made and deleted by this test. The plant and the
-stirring input run in one namespace, the identifier and a listener in the other, with default
-(subnet) discovery and UDP only (no shared-memory transport): nothing but the veth link connects
-them. The listener must receive a final
-estimate within 3σ of the truth. Skipped, with the reason, where namespaces cannot be made.
+224.0.0.0/4 on each side (discovery is multicast), made and deleted by this test. The plant
+and the stirring input run in one namespace, the identifier and a listener in the other, with
+default (subnet) discovery and UDP only (no shared-memory transport): nothing but the veth link
+connects them. The listener must receive a final estimate within 3σ of the truth. Skipped, with
+the reason, where namespaces cannot be made.
 """
 
 import json

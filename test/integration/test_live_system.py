@@ -12,7 +12,7 @@ included) and, identified offline, agrees with the live result; every node exits
 
 import math
 
-from live_helpers import (domain_id, mcap_messages, require_workspace, RosSession,
+from live_helpers import (domain_id, mcap_messages, require_workspace, RosClient,
                           within_sigma)
 import numpy as np
 import pytest
@@ -46,8 +46,8 @@ def live_run(tmp_path_factory):
     for attempt in (1, 2):
         tmp = tmp_path_factory.mktemp('live')
         domain = domain_id()
-        session = RosSession(domain)
-        watcher = RunWatcher(session.node, sensors=True)
+        ros = RosClient(domain)
+        watcher = RunWatcher(ros.node, sensors=True)
         env = isolated_env(domain, tmp / 'ros_log')
         procs = NodeProcesses(env, tmp / 'logs')
         bag = tmp / 'bag'
@@ -74,10 +74,10 @@ def live_run(tmp_path_factory):
         print('no final estimate reached the test process; identifier log:\n'
               + procs.log('identifier'), flush=True)
         procs.stop_all()
-        session.close()
+        ros.close()
     try:
         assert done, f'no final estimate; exited: {procs.dead()}\n' + procs.log('identifier')
-        client = session.node.create_client(Identify, '/identifier/identify')
+        client = ros.node.create_client(Identify, '/identifier/identify')
         assert client.wait_for_service(timeout_sec=20.0), 'no Identify service'
         answers = []
         for start, end in ((description.window_s[0], description.window_s[1]), (0.5, 99.0)):
@@ -101,7 +101,7 @@ def live_run(tmp_path_factory):
         run['exits'] = procs.exit_summary()
         mark('stopped')
         run['logs'] = {name: procs.log(name) for name in procs.procs}
-        session.close()
+        ros.close()
     return run
 
 
@@ -225,6 +225,21 @@ def test_recorded_bag_is_complete_and_decoded_by_mcap(live_run):
     estimate = decoded['/rotor_id/estimate'][-1]
     assert list(estimate.names) == ['A', 'AL_over_tau', 'inv_tau']
     assert len(estimate.covariance) == 9
+
+
+def test_estimates_are_stamped_with_their_data_time(live_run):
+    # pins #35: header.stamp = the window's end, a flap sample of the recording; computed_at,
+    # the identifier's clock when it was made, comes after it
+    decoded = mcap_messages(live_run['bag'])
+    flap_stamps = {_stamp(m) for m in decoded['/rotor/blade_flap']}
+    final = live_run['watcher'].final_estimate()
+    assert _stamp(final) == (final.window_end.sec, final.window_end.nanosec)
+    assert _stamp(final) in flap_stamps
+    for estimate in decoded['/rotor_id/estimate']:
+        assert _stamp(estimate) in flap_stamps
+        delay = ((estimate.computed_at.sec - estimate.header.stamp.sec)
+                 + (estimate.computed_at.nanosec - estimate.header.stamp.nanosec) * 1e-9)
+        assert 0 < delay < 60, delay
 
 
 def test_offline_identification_of_the_bag_agrees(live_run):

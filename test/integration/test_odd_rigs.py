@@ -21,7 +21,7 @@ import os
 import subprocess
 import time
 
-from live_helpers import domain_id, REPO_ROOT, require_workspace, RosSession, within_sigma
+from live_helpers import domain_id, REPO_ROOT, require_workspace, RosClient, within_sigma
 import pytest
 import yaml
 
@@ -60,7 +60,7 @@ def rig(request, tmp_path_factory):
     require_workspace()
     import rclpy
     from rotor_id.commands.demo import case_files
-    from rotor_id.nodes.common import RESULT_QOS
+    from rotor_id.nodes.common import RESULT_QOS, STATE_QOS
     from rotor_id.nodes.processes import isolated_env, NodeProcesses
     from rotor_id.nodes.watch import call_trigger
     from rotor_id_msgs.msg import ParameterEstimate, StateEstimate
@@ -72,14 +72,14 @@ def rig(request, tmp_path_factory):
                       encoding='utf-8')
     params_file = case_files('wake')[0]
     domain = domain_id()
-    session = RosSession(domain)
+    ros = RosClient(domain)
     out = {'config': config, 'bag': work / 'bag', 'estimates': [], 'states': [],
            'load': os.getloadavg()[0], 'name': request.param}
-    session.node.create_subscription(ParameterEstimate, f'{namespace}/results/estimate',
-                                     out['estimates'].append, RESULT_QOS)
-    # latched as the state estimator offers them: a late discovery still gets the states
-    session.node.create_subscription(StateEstimate, f'{namespace}/results/state',
-                                     out['states'].append, RESULT_QOS)
+    ros.node.create_subscription(ParameterEstimate, f'{namespace}/results/estimate',
+                                 out['estimates'].append, RESULT_QOS)
+    # volatile, as the state estimator offers them: the states after discovery
+    ros.node.create_subscription(StateEstimate, f'{namespace}/results/state',
+                                 out['states'].append, STATE_QOS)
     procs = NodeProcesses(isolated_env(domain, work / 'ros_log'), work / 'logs')
     given = {'run_description': str(config)}
     try:
@@ -96,16 +96,16 @@ def rig(request, tmp_path_factory):
         deadline = time.monotonic() + 150.0
         while (time.monotonic() < deadline and not procs.dead()
                and not any(m.kind == ParameterEstimate.KIND_FINAL for m in out['estimates'])):
-            rclpy.spin_once(session.node, timeout_sec=0.1)
+            rclpy.spin_once(ros.node, timeout_sec=0.1)
         settle = time.monotonic() + 2.0          # a few state estimates after the final one
         while time.monotonic() < settle:
-            rclpy.spin_once(session.node, timeout_sec=0.1)
+            rclpy.spin_once(ros.node, timeout_sec=0.1)
         out['load'] = max(out['load'], os.getloadavg()[0])
     finally:
         out['codes'] = procs.stop_all()
         out['exits'] = procs.exit_summary()
         out['logs'] = {name: procs.log(name) for name in procs.procs}
-        session.close()
+        ros.close()
     return out
 
 

@@ -14,7 +14,7 @@ started: samples keep coming, on the plant's sample grid, at about one per LOCK_
 
 import time
 
-from live_helpers import domain_id, require_workspace, RosSession
+from live_helpers import domain_id, require_workspace, RosClient
 import pytest
 
 
@@ -32,7 +32,7 @@ def late_reader(tmp_path_factory):
     tmp = tmp_path_factory.mktemp('lock_on')
     params_file, _, _ = case_files('wake')
     domain = domain_id()
-    session = RosSession(domain)
+    ros = RosClient(domain)
     procs = NodeProcesses(isolated_env(domain, tmp / 'ros_log'), tmp / 'logs')
     got = {'stamps': [], 'period_s': LOCK_ON_PERIOD_S}
     try:
@@ -43,21 +43,21 @@ def late_reader(tmp_path_factory):
             assert time.monotonic() < deadline, procs.log('rotor_plant')[-2000:]
             time.sleep(0.05)
         time.sleep(0.5)                      # the first free sample went to nobody
-        reader = session.node.create_subscription(
+        reader = ros.node.create_subscription(
             JointState, '/rotor/azimuth',
             lambda m: got['stamps'].append(m.header.stamp.sec * 10**9 + m.header.stamp.nanosec),
             SENSOR_QOS)
         # matched (2.3 s after subscribing on a loaded machine): then about 2 s / period offers
         while reader.get_publisher_count() < 1:
             assert time.monotonic() < deadline, 'the test never matched the plant'
-            rclpy.spin_once(session.node, timeout_sec=0.05)
+            rclpy.spin_once(ros.node, timeout_sec=0.05)
         end = time.monotonic() + 2.0
         while time.monotonic() < end:
-            rclpy.spin_once(session.node, timeout_sec=0.05)
+            rclpy.spin_once(ros.node, timeout_sec=0.05)
         got['log'] = procs.log('rotor_plant')
     finally:
         procs.stop_all()
-        session.close()
+        ros.close()
     return got
 
 

@@ -1,5 +1,5 @@
 """
-The recorder loses nothing and survives being stopped (issue 7 item 3, CI-sized).
+The recorder loses nothing and survives being stopped (CI-sized; pins #7).
 
 This process publishes the test-stand topics (JointState, best effort, ~1 kHz) and every
 rotor_id_msgs type plus a latched topic to a recorder running as its own process. Stopped with
@@ -13,7 +13,7 @@ import math
 import signal
 import time
 
-from live_helpers import domain_id, mcap_messages, require_workspace, RosSession
+from live_helpers import domain_id, mcap_messages, require_workspace, RosClient
 import numpy as np
 import pytest
 import yaml
@@ -79,8 +79,8 @@ class Stand:
 def _start(tmp, storage):
     from rotor_id.nodes.processes import isolated_env, NodeProcesses
     domain = domain_id()
-    session = RosSession(domain)
-    stand = Stand(session.node)
+    ros = RosClient(domain)
+    stand = Stand(ros.node)
     procs = NodeProcesses(isolated_env(domain, tmp / 'ros_log'), tmp / 'logs')
     procs.start('recorder', params={'output': str(tmp / 'bag'), 'storage': storage,
                                     'discovery_period_s': 0.1})
@@ -88,9 +88,9 @@ def _start(tmp, storage):
     deadline = time.monotonic() + 60.0
     while not all(p.get_subscription_count() >= 1 for p in stand.publishers()):
         assert time.monotonic() < deadline and not procs.dead(), procs.log('recorder')
-        rclpy.spin_once(session.node, timeout_sec=0.05)
+        rclpy.spin_once(ros.node, timeout_sec=0.05)
     time.sleep(0.5)
-    return session, stand, procs
+    return ros, stand, procs
 
 
 def _publish(stand, n, rate_hz=1000.0):
@@ -112,14 +112,14 @@ def _bag_counts(bag):
 def test_recorder_loses_nothing(tmp_path, storage):
     require_workspace()
     from rotor_id.io.bag import read_record
-    session, stand, procs = _start(tmp_path, storage)
+    ros, stand, procs = _start(tmp_path, storage)
     try:
         _publish(stand, 1500)
         time.sleep(0.5)
         code = procs.stop('recorder', signal.SIGINT)
     finally:
         procs.stop_all(last=())
-        session.close()
+        ros.close()
     assert code == 0, procs.log('recorder')
     meta, counts = _bag_counts(tmp_path / 'bag')
     assert meta['storage_identifier'] == storage
@@ -148,7 +148,7 @@ def test_recorder_loses_nothing(tmp_path, storage):
 def test_signal_mid_run_keeps_every_message_up_to_the_stop(tmp_path, signum):
     require_workspace()
     from rotor_id.io.bag import read_record
-    session, stand, procs = _start(tmp_path, 'mcap')
+    ros, stand, procs = _start(tmp_path, 'mcap')
     try:
         _publish(stand, 1000)
         published_before = stand.count
@@ -157,7 +157,7 @@ def test_signal_mid_run_keeps_every_message_up_to_the_stop(tmp_path, signum):
         code = procs.stop('recorder', signum)
     finally:
         procs.stop_all(last=())
-        session.close()
+        ros.close()
     assert code == 0, procs.log('recorder')
     decoded = mcap_messages(tmp_path / 'bag')
     seq = np.round([m.position[0] * 1e6 for m in decoded['/rotor/blade_flap']]).astype(int)

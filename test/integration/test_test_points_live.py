@@ -15,7 +15,7 @@ the three are; its window lies inside its own test point and the windows do not 
 identified offline from the recorded bag over the same stamps, each converged one agrees with
 the live result to 0.2σ (the live fit used exactly that window's data, nothing of another test
 point); every node exits with 0. (The state estimator adopting results: test_live_system.py.)
-The session bag is also identified per test point by ``rotor-id identify BAG --test-point all``
+The multi-point bag is also identified per test point by ``rotor-id identify BAG --test-point all``
 (test points found from the recorded stirring phases): each starts at the live test point's first
 flap sample and agrees with its live final estimate to 0.2σ where the live window was complete.
 On a machine loaded far beyond its cores (1-minute load above LOADED_PER_CORE per core during
@@ -34,7 +34,7 @@ import os
 import time
 import warnings
 
-from live_helpers import domain_id, require_workspace, RosSession, within_sigma
+from live_helpers import domain_id, require_workspace, RosClient, within_sigma
 import pytest
 
 pytestmark = pytest.mark.slow
@@ -76,8 +76,8 @@ def three_points(tmp_path_factory):
     params_file, description_path, _ = case_files('wake')
     tmp = tmp_path_factory.mktemp('points')
     domain = domain_id()
-    session = RosSession(domain)
-    watcher = RunWatcher(session.node)
+    ros = RosClient(domain)
+    watcher = RunWatcher(ros.node)
     procs = NodeProcesses(isolated_env(domain, tmp / 'ros_log'), tmp / 'logs')
     run = {'bag': tmp / 'bag', 'watcher': watcher, 'config': description_path,
            'description': load_run_description(description_path), 'load': os.getloadavg()[0]}
@@ -85,7 +85,7 @@ def three_points(tmp_path_factory):
         procs.start('identifier', params_file, {'target_std': [0.02, 0.02, 0.01]})
         procs.start('recorder', params_file, {'output': str(run['bag'])})
         procs.start('stirring_input', params_file)
-        start = session.node.create_client(Trigger, '/stirring_input/start')
+        start = ros.node.create_client(Trigger, '/stirring_input/start')
         # a stirring input without ~/start runs one endless schedule: it is restarted for each
         # test point instead, and the rotor holds the last command meanwhile
         restart = not start.wait_for_service(timeout_sec=10.0)
@@ -111,7 +111,7 @@ def three_points(tmp_path_factory):
         run['codes'] = procs.stop_all()
         run['exits'] = procs.exit_summary()
         run['logs'] = {name: procs.log(name) for name in procs.procs}
-        session.close()
+        ros.close()
     return run
 
 

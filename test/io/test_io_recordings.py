@@ -1,9 +1,9 @@
 """
 The six shared test-stand recordings read into Records that agree with what is known of them.
 
-Known facts (recordings/README.md, docs/models.md §0): 4 blades, 1 kHz, rotor at 900 rpm; the
-record starts in trim at collective pitch, the 1.5° lateral cyclic (θII) is stepped on at t = 2π,
-and stirring starts t0 later (t0 = 12 at μ = 0.4, 70 at μ = 0).
+Known facts (../shared/recordings/README.md, docs/models.md §0): 4 blades, 1 kHz, rotor at
+900 rpm; the record starts in trim at collective pitch, the 1.5° lateral cyclic (θII) is stepped
+on at t = 2π, and stirring starts t0 later (t0 = 12 at μ = 0.4, 70 at μ = 0).
 """
 
 import math

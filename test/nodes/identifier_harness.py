@@ -13,9 +13,14 @@ SENSORS = ('blade_flap', 'blade_pitch', 'azimuth')
 
 
 class InProcessIdentifier:
-    """The identifier with ``params`` (rclpy Parameters), its test node and executor."""
+    """
+    The identifier with ``params`` (rclpy Parameters), its test node and executor.
 
-    def __init__(self, name, params, domain):
+    The test node publishes the sensors with ``sensor_qos`` (default: reliable, as rotor_plant
+    offers them).
+    """
+
+    def __init__(self, name, params, domain, sensor_qos=None):
         import rclpy
         from rclpy.executors import SingleThreadedExecutor
         from rclpy.signals import SignalHandlerOptions
@@ -36,7 +41,8 @@ class InProcessIdentifier:
         self.executor.add_node(self.node)
         self.executor.add_node(self.test)
         self.pubs = {topic: self.test.create_publisher(JointState, f'/rotor/{topic}',
-                                                       SENSOR_OFFER_QOS) for topic in SENSORS}
+                                                       sensor_qos or SENSOR_OFFER_QOS)
+                     for topic in SENSORS}
         self.estimates = []
         self.test.create_subscription(ParameterEstimate, '/rotor_id/estimate',
                                       self.estimates.append, RESULT_QOS)

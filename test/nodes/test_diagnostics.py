@@ -8,9 +8,9 @@ the name and hardware_id carry the node's namespace; the thresholds are settable
 an ERROR threshold below the WARN one is refused with the reason.
 """
 
-import os
 
 import pytest
+from ros_domains import next_domain
 
 rclpy = pytest.importorskip('rclpy', reason='rclpy not importable')
 pytest.importorskip('diagnostic_msgs.msg', reason='diagnostic_msgs not importable')
@@ -24,7 +24,7 @@ def diag():
     from rclpy.signals import SignalHandlerOptions
     from rotor_id.nodes.common import Diagnostics
     context = rclpy.context.Context()
-    rclpy.init(context=context, domain_id=201 + (os.getpid() + 7) % 30,
+    rclpy.init(context=context, domain_id=next_domain(),
                signal_handler_options=SignalHandlerOptions.NO)
     node = rclpy.create_node('probe', namespace='/rig4', context=context, parameter_overrides=[
         Parameter('stale_warn_s', value=2.0), Parameter('stale_error_s', value=10.0),

@@ -14,9 +14,11 @@ whose blade 2 flap sensor reads 0.01 rad (11σ) high is a WARN on /diagnostics n
 
 import math
 import os
+import time
 
 import numpy as np
 import pytest
+from ros_domains import next_domain
 
 rclpy = pytest.importorskip('rclpy', reason='rclpy not importable')
 msgs = pytest.importorskip('rotor_id_msgs.msg', reason='rotor_id_msgs not built')
@@ -48,7 +50,7 @@ def run():
     node, estimates, spin_until, drain = rig.node, rig.estimates, rig.spin_until, rig.drain
     clients = {name: rig.test.create_client(Trigger, f'/identifier/{name}')
                for name in ('start_test_point', 'abort')}
-    out = {'answers': [], 'estimates': estimates, 'data': data}
+    out = {'answers': [], 'estimates': estimates, 'data': data, 'started_ns': time.time_ns()}
 
     def call(name):
         drain()                     # a test point starts at the next flap sample taken
@@ -100,6 +102,7 @@ def run():
         out['adequacy'][5] = (node.diagnostics.values.get('adequacy'),
                               node.diagnostics.problems.get('final_adequacy'),
                               node.diagnostics.values.get('adequacy_misfit_channels'))
+        out['ended_ns'] = time.time_ns()
         out['limits'] = {name: series.capacity for name, series in (
             ('flap', node.points.flap), ('pitch', node.points.pitch),
             ('azimuth', node.points.azimuth.series))}
@@ -177,6 +180,24 @@ def test_aborted_test_point_is_published_as_aborted(run):
                    for m in run['estimates'] if m.test_point in (2, 3, 4))
 
 
+def test_estimates_are_stamped_with_the_time_of_their_data(run):
+    # pins #35: header.stamp = the end of the window the estimate is computed from (data time,
+    # here the test's stand-in clock of 2023); computed_at = the node's clock when it was made
+    stamps = run['data']['stamps']
+    assert run['estimates']
+    for msg in run['estimates']:
+        computed = _ns(msg.computed_at)
+        assert run['started_ns'] <= computed <= run['ended_ns'], (msg.test_point, computed)
+        assert computed > _ns(msg.header.stamp)
+        if msg.status == msgs.ParameterEstimate.STATUS_ABORTED:
+            # test point 4, aborted after its first 100 samples: the newest one taken
+            assert _ns(msg.header.stamp) == stamps[3 * LENGTH + 99]
+        else:
+            assert _ns(msg.header.stamp) == _ns(msg.window_end) > 0, msg.test_point
+    final = _final(run, 1)
+    assert _ns(final.header.stamp) == stamps[math.floor(WINDOW[1] * 1000)]
+
+
 def test_buffers_are_bounded(run):
     need = (WINDOW[1] - WINDOW[0] + 2 * 3 * math.pi / OMEGA + 5.0) * 1000
     assert all(capacity <= 4 * need for capacity in run['limits'].values())
@@ -199,7 +220,7 @@ def test_state_estimator_buffers_are_bounded(buffer_s, tick_every):
     from rotor_id.nodes.state_estimator import StateEstimator
     data = _stream(points=3)
     context = rclpy.context.Context()
-    rclpy.init(context=context, domain_id=201 + os.getpid() % 30,
+    rclpy.init(context=context, domain_id=next_domain(),
                signal_handler_options=SignalHandlerOptions.NO)
     node = StateEstimator(context=context, parameter_overrides=[
         Parameter('run_description', value='demo_wake.yaml'),

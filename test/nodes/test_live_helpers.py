@@ -359,9 +359,9 @@ def test_window_coverage_reports_heavy_scattered_loss():
     """
     A loaded identifier losing a quarter of the samples, one here and there, must say so.
 
-    Gaps used to count only from 2.5 periods, so isolated losses (steps of two periods) were
-    never reported: under overload the identifier published fits on thinned windows without
-    a warning.
+    Isolated losses (steps of two periods) are gaps too: a threshold of 2.5 periods would
+    never report them, and under overload the identifier would publish fits on thinned
+    windows without a warning.
     """
     rng = np.random.default_rng(3)
     kept = np.flatnonzero(rng.random(3000) > 0.25)

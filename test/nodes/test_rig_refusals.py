@@ -7,13 +7,13 @@ raise a ValueError (rotor_id.nodes.common.spin_node prints it as one line and ex
 file, the line and the problem, before any subscription or fit: a blade joint list whose length
 is not ``rotor.blades``, a joint name repeated, the azimuth joint also a blade's, an unknown
 azimuth convention, the pitch command on the pitch sensor's topic; and the identifier and state
-estimator a model the rotor cannot have (multiblade_wake of a 2-bladed rotor, which the
-identifier used to accept and fit).
+estimator a model the rotor cannot have (multiblade_wake of a 2-bladed rotor: it has no
+cyclic modes to fit).
 """
 
-import os
 
 import pytest
+from ros_domains import next_domain
 
 rclpy = pytest.importorskip('rclpy', reason='rclpy not importable')
 pytest.importorskip('rotor_id_msgs.msg', reason='rotor_id_msgs not built')
@@ -50,7 +50,7 @@ def _construct(name, path, tmp_path):
            'stirring_input': 'StirringInput', 'rotor_plant': 'RotorPlant',
            'recorder': 'Recorder'}[name]
     context = rclpy.context.Context()
-    rclpy.init(context=context, domain_id=210 + os.getpid() % 20,   # Fast DDS: at most 232
+    rclpy.init(context=context, domain_id=next_domain(),   # Fast DDS: at most 232
                signal_handler_options=SignalHandlerOptions.NO)
     params = [Parameter('run_description', value=str(path))]
     if name == 'recorder':

@@ -12,12 +12,12 @@ subscription.
 """
 
 import math
-import os
 import threading
 import time
 
 import numpy as np
 import pytest
+from ros_domains import next_domain
 from rotor_id.nodes.live import (BadSample, check_azimuth_batch, check_azimuth_sample,
                                  check_joint_batch, check_joint_sample)
 
@@ -108,7 +108,7 @@ def test_poller_takes_every_message_and_leaves_the_executor_asleep():
     from sensor_msgs.msg import JointState
 
     context = rclpy.context.Context()
-    rclpy.init(context=context, domain_id=171 + os.getpid() % 20,
+    rclpy.init(context=context, domain_id=next_domain(),
                signal_handler_options=SignalHandlerOptions.NO)
     node = rclpy.create_node('polled', context=context)
     test = rclpy.create_node('polling_test', context=context)

@@ -1,5 +1,5 @@
 """
-``rotor-id identify BAG --test-point K|all``: the test points of a session bag, offline.
+``rotor-id identify BAG --test-point K|all``: the test points of a multi-point bag, offline.
 
 What it proves, on a bag of three test points of the wake plant recorded straight through (the
 plant's own stepper at 1 kHz, the stirring node's phases on ``rotor/stirring`` received 20 ms
@@ -48,7 +48,7 @@ def _time(store, ns):
 
 
 @pytest.fixture(scope='module')
-def session(tmp_path_factory):
+def recording(tmp_path_factory):
     """Return the stream of three test points as a Record, and a bag writer for it."""
     data = _stream(points=3)
     record = Record(time_s=(data['stamps'] - BASE) / 1e9, t=data['t'],
@@ -56,7 +56,7 @@ def session(tmp_path_factory):
                     blade_flap=data['flap'], blade_pitch=data['pitch'], blade_names=BLADES,
                     stamp0_ns=BASE)
     store = typestore_with_custom_types()
-    tmp = tmp_path_factory.mktemp('session')
+    tmp = tmp_path_factory.mktemp('multi_point')
 
     def bag(name, phases=(), estimates=(), storage='mcap', written=record):
         extra = []
@@ -107,15 +107,15 @@ def _cli(*argv):
     return main(['identify', *map(str, argv), '--quiet'])
 
 
-def test_each_test_point_of_a_session_agrees_with_the_live_fit_of_its_window(session, capsys):
+def test_each_test_point_agrees_with_the_live_fit_of_its_window(recording, capsys):
     phases = _schedules(3)
-    bag, _ = session['bag']('phases', phases)
-    out = session['tmp'] / 'all.json'
-    table = session['tmp'] / 'all.csv'
+    bag, _ = recording['bag']('phases', phases)
+    out = recording['tmp'] / 'all.json'
+    table = recording['tmp'] / 'all.csv'
     assert _cli(bag, '--config', CONFIG, '--test-point', 'all', '--json', out,
                 '--csv', table) == 0, capsys.readouterr().err
     results = json.loads(out.read_text())
-    live = _live_fits(session['data'], phases)
+    live = _live_fits(recording['data'], phases)
     assert [r['test_point'] for r in results] == [1, 2, 3] == sorted(live)
     rows = list(csv.DictReader(table.open()))
     assert [int(r['test_point']) for r in rows] == [1, 2, 3]
@@ -123,7 +123,7 @@ def test_each_test_point_of_a_session_agrees_with_the_live_fit_of_its_window(ses
         k = result['test_point']
         stamp0, live_values = live[k]
         # its start is its schedule's first flap sample, as live
-        assert result['test_point_start_ns'] == stamp0 == session['data']['stamps'][
+        assert result['test_point_start_ns'] == stamp0 == recording['data']['stamps'][
             (k - 1) * LENGTH]
         assert result['window_s_test_point'] == [0.80939, 0.93671]
         shift = (k - 1) * LENGTH * MS / 1e9
@@ -139,9 +139,9 @@ def test_each_test_point_of_a_session_agrees_with_the_live_fit_of_its_window(ses
         assert row['status'] == 'converged' and row['found_from'].startswith('/rotor/stirring')
 
 
-def test_one_test_point_by_number(session, capsys):
-    bag, _ = session['bag']('phases', _schedules(3))
-    out = session['tmp'] / 'two.json'
+def test_one_test_point_by_number(recording, capsys):
+    bag, _ = recording['bag']('phases', _schedules(3))
+    out = recording['tmp'] / 'two.json'
     assert _cli(bag, '--config', CONFIG, '--test-point', '2', '--json', out) == 0
     result = json.loads(out.read_text())
     assert result['test_point'] == 2 and result['converged']
@@ -149,34 +149,34 @@ def test_one_test_point_by_number(session, capsys):
     assert '-- test point 2 --' in capsys.readouterr().out
 
 
-def test_without_phases_the_estimates_tags_give_the_test_points(session):
+def test_without_phases_the_estimates_tags_give_the_test_points(recording):
     # the identifier numbered them 4, 5, 6 (it ran three before this recording started)
-    bag, _ = session['bag']('estimates', estimates=[(4 + k, k * LENGTH, 1) for k in range(3)])
-    out = session['tmp'] / 'tags.json'
+    bag, _ = recording['bag']('estimates', estimates=[(4 + k, k * LENGTH, 1) for k in range(3)])
+    out = recording['tmp'] / 'tags.json'
     assert _cli(bag, '--config', CONFIG, '--test-point', 'all', '--json', out) == 0
     results = json.loads(out.read_text())
     assert [r['test_point'] for r in results] == [4, 5, 6]
     assert all(r['found_from'].startswith('/rotor_id/estimate') for r in results)
     assert [r['test_point_start_ns'] for r in results] == [
-        session['data']['stamps'][k * LENGTH] for k in range(3)]
+        recording['data']['stamps'][k * LENGTH] for k in range(3)]
 
 
-def test_phases_take_the_live_numbers_where_the_estimates_give_them(session, capsys):
-    bag, _ = session['bag']('both', _schedules(3),
-                            estimates=[(7 + k, k * LENGTH, 1) for k in range(3)])
-    out = session['tmp'] / 'both.json'
+def test_phases_take_the_live_numbers_where_the_estimates_give_them(recording, capsys):
+    bag, _ = recording['bag']('both', _schedules(3),
+                              estimates=[(7 + k, k * LENGTH, 1) for k in range(3)])
+    out = recording['tmp'] / 'both.json'
     assert _cli(bag, '--config', CONFIG, '--test-point', '8', '--json', out) == 0
-    assert json.loads(out.read_text())['test_point_start_ns'] == session['data']['stamps'][
+    assert json.loads(out.read_text())['test_point_start_ns'] == recording['data']['stamps'][
         LENGTH]
     assert "the live identifier's test point 8" in capsys.readouterr().err
 
 
-def test_a_schedule_cut_short_is_not_identified(session, capsys):
+def test_a_schedule_cut_short_is_not_identified(recording, capsys):
     # test point 2's schedule is done at 0.85 s, before its window's end (0.937 s)
     phases = [p for p in _schedules(3) if p[0] != LENGTH + 960] + [(LENGTH + 850,
                                                                    Excitation.DONE)]
-    bag, _ = session['bag']('cut', sorted(phases, key=lambda p: p[0]))
-    table = session['tmp'] / 'cut.csv'
+    bag, _ = recording['bag']('cut', sorted(phases, key=lambda p: p[0]))
+    table = recording['tmp'] / 'cut.csv'
     assert _cli(bag, '--config', CONFIG, '--test-point', 'all', '--csv', table) == 1
     rows = list(csv.DictReader(table.open()))
     assert [(r['test_point'], r['status']) for r in rows] == [
@@ -195,15 +195,15 @@ def test_a_schedule_cut_short_is_not_identified(session, capsys):
     (('--test-point', 'first'), "give a test point number (1, 2, ...) or 'all'"),
     (('--csv', 'x.csv'), '--csv is written with --test-point'),
 ])
-def test_bad_selections_are_one_line(session, capsys, argv, words):
-    bag, _ = session['bag']('phases', _schedules(3))
+def test_bad_selections_are_one_line(recording, capsys, argv, words):
+    bag, _ = recording['bag']('phases', _schedules(3))
     assert _cli(bag, '--config', CONFIG, *argv) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and words in err[0], err
 
 
-def test_a_bag_without_test_points_says_how_to_select_a_window(session, capsys):
-    bag, _ = session['bag']('plain')
+def test_a_bag_without_test_points_says_how_to_select_a_window(recording, capsys):
+    bag, _ = recording['bag']('plain')
     assert _cli(bag, '--config', CONFIG, '--test-point', '1') == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and 'holds no test points' in err[0], err
@@ -211,14 +211,14 @@ def test_a_bag_without_test_points_says_how_to_select_a_window(session, capsys):
     assert math.isfinite(len(err))
 
 
-def test_a_long_session_read_slice_by_slice_gives_the_whole_reads_results(session, capsys,
-                                                                          monkeypatch):
+def test_a_long_bag_read_slice_by_slice_gives_the_whole_reads_results(recording, capsys,
+                                                                      monkeypatch):
     """
     A long bag's test points are found from slices and fitted from windowed reads only.
 
     The bag's reader is told to read parts of this small bag (sqlite3: read by its timestamp
     index, where a small MCAP has too few chunks) as it does of a long one (no size limit,
-    short margins) and the session to go 0.3 s at a time, so that slice boundaries fall
+    short margins) and the recording to go 0.3 s at a time, so that slice boundaries fall
     inside test points' windows; the whole reader is then never called, and every test point
     comes out as from the whole record: the same start, window check and CSV row, estimates
     equal to 1e-12 (the windowed records count the azimuth's revolutions from their own start).
@@ -228,10 +228,10 @@ def test_a_long_session_read_slice_by_slice_gives_the_whole_reads_results(sessio
     # test point 2's schedule is cut short: aborted in both
     phases = [p for p in _schedules(3) if p[0] != LENGTH + 960] + [(LENGTH + 850,
                                                                    Excitation.DONE)]
-    bag, _ = session['bag']('cut_sqlite3', sorted(phases, key=lambda p: p[0]), storage='sqlite3')
+    bag, _ = recording['bag']('cut_sqlite3', sorted(phases, key=lambda p: p[0]), storage='sqlite3')
 
     def identify_all(name):
-        out, table = session['tmp'] / f'{name}.json', session['tmp'] / f'{name}.csv'
+        out, table = recording['tmp'] / f'{name}.json', recording['tmp'] / f'{name}.csv'
         code = _cli(bag, '--config', CONFIG, '--test-point', 'all', '--json', out,
                     '--csv', table)
         err = capsys.readouterr().err
@@ -272,45 +272,45 @@ def test_a_long_session_read_slice_by_slice_gives_the_whole_reads_results(sessio
 
 
 def _read_in_slices(monkeypatch, slice_s=0.3):
-    """Make the bag reader read parts of small bags, and the session go ``slice_s`` at a time."""
+    """Make the bag reader read parts of small bags, and the recording go ``slice_s`` at a time."""
     from rotor_id.commands import identify as identify_command
     from rotor_id.io import bag as bag_module
     monkeypatch.setattr(bag_module, 'WINDOW_READ_MIN_BYTES', 0)
     monkeypatch.setattr(bag_module, 'WINDOW_READ_MARGIN_S', 0.2)
     monkeypatch.setattr(bag_module, 'WINDOW_READ_CLOCK_TOLERANCE_S', 0.01)
     monkeypatch.setattr(bag_module, 'WINDOW_READ_MAX_FRACTION', 10.0)
-    monkeypatch.setattr(identify_command, 'SESSION_SLICE_S', slice_s)
+    monkeypatch.setattr(identify_command, 'MULTI_POINT_SLICE_S', slice_s)
 
 
-def _dead_blade_bag(session, name, first, last):
-    """Write a session bag whose blade 3 reads 0.0 from sample ``first`` to ``last``."""
+def _dead_blade_bag(recording, name, first, last):
+    """Write a multi-point bag whose blade 3 reads 0.0 from sample ``first`` to ``last``."""
     from dataclasses import replace
-    dead = session['record'].blade_flap.copy()
+    dead = recording['record'].blade_flap.copy()
     dead[first:last, 2] = 0.0
-    bag, _ = session['bag'](name, _schedules(3), storage='sqlite3',
-                            written=replace(session['record'], blade_flap=dead))
+    bag, _ = recording['bag'](name, _schedules(3), storage='sqlite3',
+                              written=replace(recording['record'], blade_flap=dead))
     return bag
 
 
 @pytest.mark.parametrize('sliced', [False, True])
-def test_a_dead_flap_between_test_points_spoils_nothing(session, capsys, monkeypatch, sliced):
+def test_a_dead_flap_between_test_points_spoils_nothing(recording, capsys, monkeypatch, sliced):
     """
     Identify every test point when a blade reads one value only between them.
 
     A blade reading one value outside every window (sensors off between test points) is no
-    fault: read whole or slice by slice, the session's three test points are identified.
+    fault: read whole or slice by slice, the recording's three test points are identified.
     """
-    bag = _dead_blade_bag(session, 'dead_between_sqlite3', 1300, 1700)   # 1.3-1.7 s
+    bag = _dead_blade_bag(recording, 'dead_between_sqlite3', 1300, 1700)   # 1.3-1.7 s
     if sliced:
         _read_in_slices(monkeypatch, slice_s=0.2)
-    table = session['tmp'] / f'dead_between_{sliced}.csv'
+    table = recording['tmp'] / f'dead_between_{sliced}.csv'
     assert _cli(bag, '--config', CONFIG, '--test-point', 'all', '--csv', table) == 0
     capsys.readouterr()
     assert [r['status'] for r in csv.DictReader(table.open())] == ['converged'] * 3
 
 
 @pytest.mark.parametrize('sliced', [False, True])
-def test_a_dead_flap_in_a_window_spoils_that_test_point_only(session, capsys, monkeypatch,
+def test_a_dead_flap_in_a_window_spoils_that_test_point_only(recording, capsys, monkeypatch,
                                                              sliced):
     """
     Leave out only the test point whose window holds a dead flap sensor.
@@ -319,10 +319,10 @@ def test_a_dead_flap_in_a_window_spoils_that_test_point_only(session, capsys, mo
     point is not identified, with the blade and the value; the others are; exit 1. Asked
     for alone, it is one line and exit 2.
     """
-    bag = _dead_blade_bag(session, 'dead_in_window_sqlite3', 1750, 2000)
+    bag = _dead_blade_bag(recording, 'dead_in_window_sqlite3', 1750, 2000)
     if sliced:
         _read_in_slices(monkeypatch, slice_s=0.2)
-    table = session['tmp'] / f'dead_in_window_{sliced}.csv'
+    table = recording['tmp'] / f'dead_in_window_{sliced}.csv'
     assert _cli(bag, '--config', CONFIG, '--test-point', 'all', '--csv', table) == 1
     out = capsys.readouterr().out
     assert [r['status'] for r in csv.DictReader(table.open())] == [
@@ -334,12 +334,13 @@ def test_a_dead_flap_in_a_window_spoils_that_test_point_only(session, capsys, mo
     assert len(err) == 1 and 'dead flap sensor: blade_3 reads exactly 0 rad' in err[0], err
 
 
-def test_estimates_tags_of_a_long_session_need_only_its_first_slice(session, capsys,
-                                                                    monkeypatch):
+def test_estimates_tags_of_a_long_bag_need_only_its_first_slice(recording, capsys,
+                                                                monkeypatch):
     from rotor_id.commands import identify as identify_command
-    bag, _ = session['bag']('estimates_sqlite3', storage='sqlite3',
-                            estimates=[(4 + k, k * LENGTH, 1) for k in range(3)])
-    whole_out, sliced_out = session['tmp'] / 'tags_whole.json', session['tmp'] / 'tags_sliced.json'
+    bag, _ = recording['bag']('estimates_sqlite3', storage='sqlite3',
+                              estimates=[(4 + k, k * LENGTH, 1) for k in range(3)])
+    whole_out = recording['tmp'] / 'tags_whole.json'
+    sliced_out = recording['tmp'] / 'tags_sliced.json'
     assert _cli(bag, '--config', CONFIG, '--test-point', 'all', '--json', whole_out) == 0
     _read_in_slices(monkeypatch)
     reads = []

@@ -1,5 +1,5 @@
 """
-Memory of ``rotor-id identify BAG --test-point all`` on a long session bag: slices, not all.
+Memory of ``rotor-id identify BAG --test-point all`` on a long multi-point bag: slices, not all.
 
 The bag is bench/long_bag_memory.py's (1 kHz, four blades, Ω = 2π·15 rad/s, trimmed with noise,
 the simulated stirring transient of the dynamic-wake model in its last 30 s), made by its
@@ -11,11 +11,11 @@ end), whose window (the report's t0 … t0 + 12 after the test point's first fla
 
 Measured, each in a child process (peak memory as ``ru_maxrss`` of that child alone), in the
 same run: ``rotor-id identify BAG --config RUN.yaml --test-point all --json --csv --quiet`` as
-it is (a long bag read ``SESSION_SLICE_S`` at a time), and the same with the session read whole
-(``SESSION_SLICE_S`` set beyond the bag, which makes the reader take it all: the behaviour
-before the slices). Their JSON results are compared.
+it is (a long bag read ``MULTI_POINT_SLICE_S`` at a time), and the same with the bag read
+whole (``MULTI_POINT_SLICE_S`` set beyond the bag, which makes the reader take it all: the
+peer). Their JSON results are compared.
 
-Run: ``python bench/session_bag_memory.py [--duration-s S] [--workdir DIR]``.
+Run: ``python bench/multi_point_bag_memory.py [--duration-s S] [--workdir DIR]``.
 """
 
 import argparse
@@ -30,7 +30,7 @@ from long_bag_memory import (bag_size_mb, DURATION_S, OMEGA, RATE_HZ, STAMP0, T0
                              write_hour_bag)
 from offline_throughput import run_measured
 
-from rotor_id.commands.identify import SESSION_SLICE_S
+from rotor_id.commands.identify import MULTI_POINT_SLICE_S
 from rotor_id.excitation import (PHASE_CYCLIC_STEP, PHASE_DONE, PHASE_RAMP_DOWN,
                                  PHASE_STIRRING, PHASE_TRIM)
 from rotor_id.io.bag import message_with_defaults, typestore_with_custom_types
@@ -43,7 +43,7 @@ SAMPLE_NS = int(1e9 / RATE_HZ)
 def run_description():
     """Return the run description: the report's window, s after a test point's start."""
     return (
-        '# session benchmark record (bench/session_bag_memory.py)\n'
+        '# multi-point bag benchmark record (bench/multi_point_bag_memory.py)\n'
         'rotor: {blades: 4, advance_ratio: 0.0, flap_frequency: 1.2, tip_loss: 0.97}\n'
         'model: multiblade_wake\n'
         'unknowns: [A, AL_over_tau, inv_tau]\n'
@@ -51,7 +51,7 @@ def run_description():
 
 
 def stirring_phases(duration_s, spacing_s):
-    """(stamp ns, phase) of the session: aborted schedules, then the transient's."""
+    """(stamp ns, phase) of the bag: aborted schedules, then the transient's."""
     phases = []
     for start in range(int(spacing_s), int(duration_s - TRANSIENT_S - 2), int(spacing_s)):
         phases += [(start, PHASE_TRIM), (start + 0.5, PHASE_RAMP_DOWN)]
@@ -75,16 +75,16 @@ def stirring_messages(store, phases):
 
 
 def ensure_bag(workdir, duration_s, spacing_s):
-    """Session bag and run description in ``workdir``, made when missing; their paths."""
+    """Multi-point bag and run description in ``workdir``, made when missing; their paths."""
     workdir = Path(workdir)
     workdir.mkdir(parents=True, exist_ok=True)
-    bag = workdir / f'session_{duration_s:.0f}s_every_{spacing_s:.0f}s'
-    config = workdir / 'session.yaml'
+    bag = workdir / f'multi_point_{duration_s:.0f}s_every_{spacing_s:.0f}s'
+    config = workdir / 'multi_point.yaml'
     config.write_text(run_description())
     if (bag / 'metadata.yaml').exists():
         say(f'reusing {bag}')
         return bag, config
-    say(f'writing the {duration_s:.0f} s session bag')
+    say(f'writing the {duration_s:.0f} s multi-point bag')
     started = time.perf_counter()
     store = typestore_with_custom_types()
     write_hour_bag(bag, workdir, duration_s=duration_s, typestore=store,
@@ -98,7 +98,7 @@ def identify_all(bag, config, out, whole):
     argv = ['identify', str(bag), '--config', str(config), '--test-point', 'all', '--json',
             str(out), '--csv', str(out.with_suffix('.csv')), '--quiet']
     code = ('import sys; import rotor_id.commands.identify as m; '
-            + ('m.SESSION_SLICE_S = 1e12; ' if whole else '')
+            + ('m.MULTI_POINT_SLICE_S = 1e12; ' if whole else '')
             + f'from rotor_id.cli import main; sys.exit(main({argv!r}))')
     wall, rss, cpu, status, _ = run_measured([sys.executable, '-c', code])
     return wall, rss, cpu, status, json.loads(out.read_text())
@@ -118,10 +118,10 @@ def largest_difference(sliced, whole):
 
 
 def main(argv=None):
-    """Make the bag if needed, measure, write bench/results/session_bag_memory.md."""
+    """Make the bag if needed, measure, write bench/results/multi_point_bag_memory.md."""
     parser = argparse.ArgumentParser(description=__doc__.split('\n')[1])
     parser.add_argument('--duration-s', type=float, default=DURATION_S,
-                        help='length of the session (default an hour: the whole read needs '
+                        help='length of the bag (default an hour: the whole read needs '
                              '~4 GB)')
     parser.add_argument('--spacing-s', type=float, default=300.0,
                         help='an aborted schedule every this many seconds before the last')
@@ -130,7 +130,7 @@ def main(argv=None):
                              'fresh temporary directory, removed at the end)')
     parser.add_argument('--no-write', action='store_true')
     args = parser.parse_args(argv)
-    return run_in_workdir(args.workdir, 'rotor_id_session_bag_',
+    return run_in_workdir(args.workdir, 'rotor_id_multi_point_bag_',
                           lambda workdir: _measure(args, workdir))
 
 
@@ -138,7 +138,7 @@ def _measure(args, workdir):
     bag, config = ensure_bag(workdir, args.duration_s, args.spacing_s)
     runs = {}
     for name, whole in (('sliced', False), ('whole', True)):
-        say(f'identify --test-point all, session read {name}')
+        say(f'identify --test-point all, bag read {name}')
         runs[name] = identify_all(bag, config, Path(workdir) / f'{name}.json', whole)
         wall, rss, cpu, code, _ = runs[name]
         say(f'  {wall:.2f} s wall ({cpu:.2f} s CPU), peak RSS {rss:.0f} MB, exit {code}')
@@ -146,15 +146,15 @@ def _measure(args, workdir):
     results = sliced[4]
     fitted = [r for r in results if 'parameters' in r]
     rows = [
-        ['session', f'{args.duration_s:.0f} s at {RATE_HZ:.0f} Hz, 4 blades, 3 topics × '
-                    f'{int(args.duration_s * RATE_HZ)} JointState messages, MCAP '
-                    f'{bag_size_mb(bag):.0f} MB; {len(results)} test points '
-                    f'({len(fitted)} fitted, the others aborted by their schedule)'],
-        [f'read {SESSION_SLICE_S:.0f} s at a time (now)',
+        ['bag', f'{args.duration_s:.0f} s at {RATE_HZ:.0f} Hz, 4 blades, 3 topics × '
+                f'{int(args.duration_s * RATE_HZ)} JointState messages, MCAP '
+                f'{bag_size_mb(bag):.0f} MB; {len(results)} test points '
+                f'({len(fitted)} fitted, the others aborted by their schedule)'],
+        [f'read {MULTI_POINT_SLICE_S:.0f} s at a time (the command)',
          f'**{sliced[1]:.0f} MB** peak RSS, {sliced[0]:.1f} s wall, {sliced[2]:.1f} s CPU, '
          f'exit {sliced[3]}'],
-        ['read whole (before)', f'{whole[1]:.0f} MB peak RSS, {whole[0]:.1f} s wall, '
-                                f'{whole[2]:.1f} s CPU, exit {whole[3]}'],
+        ['read whole (peer)', f'{whole[1]:.0f} MB peak RSS, {whole[0]:.1f} s wall, '
+                              f'{whole[2]:.1f} s CPU, exit {whole[3]}'],
         ['whole / sliced: peak memory, CPU time',
          f'**{whole[1] / sliced[1]:.1f}×**, {whole[2] / sliced[2]:.2f}×'],
         ['largest relative difference of the estimates and σ (same test points, statuses, '
@@ -169,8 +169,8 @@ def _measure(args, workdir):
             + markdown_table(['test point', 'start [s]', 'estimate ± σ', 'status'], fit)
             + '\n')
     if not args.no_write:
-        write_results('session_bag_memory', 'Memory of identify --test-point all on a long '
-                      'session bag', body, 'python bench/session_bag_memory.py'
+        write_results('multi_point_bag_memory', 'Memory of identify --test-point all on a long '
+                      'multi-point bag', body, 'python bench/multi_point_bag_memory.py'
                       + ('' if args.duration_s == DURATION_S else
                          f' --duration-s {args.duration_s:.0f}'))
     print(body)

@@ -1,11 +1,11 @@
 """
-Follow README "On your own test stand" as a rig engineer would: its file, its commands, its calls.
+Follow docs/test_stand.md as a rig engineer would: its file, its commands, its calls.
 
-The run description is the README's YAML block, written to ``my_stand.yaml`` in a fresh working
-directory; the nodes are started with the README's ``ros2 run`` lines, exactly (the executables
+The run description is the guide's YAML block, written to ``my_stand.yaml`` in a fresh working
+directory; the nodes are started with the guide's ``ros2 run`` lines, exactly (the executables
 ``ros2 run`` would find, the same arguments, that directory as working directory); the test
-point is started with the README's ``ros2 service call`` and the settings changed with its
-``ros2 param set`` lines (through the same services the ros2 CLI calls). What the README
+point is started with the guide's ``ros2 service call`` and the settings changed with its
+``ros2 param set`` lines (through the same services the ros2 CLI calls). What the guide
 promises is then checked: a converged estimate on the topic it names, within 3σ of the
 simulated rotor's truth, on a stand whose names and azimuth convention are not the built-in
 plant's, while a second stand runs the same lines in /stand2 with another rotor (two rigs on
@@ -17,23 +17,34 @@ import math
 import re
 import shlex
 
-from live_helpers import domain_id, REPO_ROOT, require_workspace, RosSession, within_sigma
+from live_helpers import domain_id, REPO_ROOT, require_workspace, RosClient, within_sigma
 import pytest
 
 TRUTH = {'A': 0.5, 'AL_over_tau': 0.25, 'inv_tau': 0.125}    # rotor_plant's defaults
 TRUTH2 = {'A': 0.6, 'AL_over_tau': 0.3, 'inv_tau': 0.15}     # the second stand's rotor
 
 
-def readme_section():
-    """Return the text of README "On your own test stand"."""
-    text = (REPO_ROOT / 'README.md').read_text(encoding='utf-8')
-    start = text.index('### On your own test stand')
-    return text[start:text.index('\n### ', start + 10)]
+GUIDE = REPO_ROOT / 'docs' / 'test_stand.md'
+
+
+def guide_text():
+    """Return the text of the user guide "On your own test stand" (docs/test_stand.md)."""
+    return GUIDE.read_text(encoding='utf-8')
 
 
 def blocks(section):
-    """Return {label: code} of the blocks the README marks ``<!-- stand: label -->``."""
+    """Return {label: code} of the blocks the guide marks ``<!-- stand: label -->``."""
     return dict(re.findall(r'<!-- stand: (\S+) -->\n```\w*\n(.*?)```', section, re.S))
+
+
+def test_the_guide_holds_what_this_test_follows():
+    """The guide's marked blocks, result topic and run-time settings are where the test reads."""
+    section = guide_text()
+    code = blocks(section)
+    assert {'my_stand.yaml', 'commands', 'start'} <= set(code), sorted(code)
+    assert len([line for line in code['commands'].splitlines() if 'ros2 run' in line]) == 5
+    assert re.search(r'`(/stand1/rotor_id/estimate)`', section)
+    assert len(re.findall(r'ros2 param set (\S+) (\w+) "?([^`"]+)"?`', section)) >= 2
 
 
 RETRIES = 2        # further test points after one that lost samples in transport
@@ -73,7 +84,7 @@ def _parameter_value(text):
 
 @pytest.fixture(scope='module')
 def stand(tmp_path_factory):
-    """Do what the README says; return what came back."""
+    """Do what the guide says; return what came back."""
     require_workspace()
     from rcl_interfaces.srv import SetParameters
     from rclpy.parameter import Parameter
@@ -83,13 +94,13 @@ def stand(tmp_path_factory):
     from diagnostic_msgs.msg import DiagnosticArray
     from std_srvs.srv import Trigger
 
-    section = readme_section()
+    section = guide_text()
     code = blocks(section)
     work = tmp_path_factory.mktemp('stand')
     (work / 'my_stand.yaml').write_text(code['my_stand.yaml'])
     domain = domain_id()
-    session = RosSession(domain)
-    node = session.node
+    ros = RosClient(domain)
+    node = ros.node
     env = isolated_env(domain, work / 'ros_log')
     procs = NodeProcesses(env, work / 'logs')
     out = {'work': work, 'section': section, 'estimates': [], 'estimates2': [],
@@ -172,7 +183,7 @@ def stand(tmp_path_factory):
                 assert start_next(srv), f'{srv}: the next test point could not be started'
                 spin_until(lambda: len(finals(got)) > count, 120.0)
         out['logs'] = {n: procs.log(n) for n in procs.procs}
-        # "changing settings while running": the README's own examples
+        # "changing settings while running": the guide's own examples
         out['param_sets'] = []
         for target, name, value in re.findall(r'ros2 param set (\S+) (\w+) "?([^`"]+)"?`',
                                               section):
@@ -187,7 +198,7 @@ def stand(tmp_path_factory):
     finally:
         out['codes'] = procs.stop_all()
         out['exits'] = procs.exit_summary()
-        session.close()
+        ros.close()
     return out
 
 
@@ -234,13 +245,13 @@ def test_two_stands_on_one_graph_share_nothing(stand):
     assert {'/stand2/identifier', '/stand2/stirring_input', '/stand2/rotor_plant'} <= reported
 
 
-def test_health_is_reported_as_the_readme_says(stand):
+def test_health_is_reported_as_the_guide_says(stand):
     reported = {s.name.split(':')[0]: s.hardware_id for s in stand['diagnostics']}
     for name in ('identifier', 'state_estimator', 'recorder', 'stirring_input', 'rotor_plant'):
         assert reported.get(f'stand1/{name}') == f'/stand1/{name}', reported
 
 
-def test_settings_change_at_run_time_as_the_readme_says(stand):
+def test_settings_change_at_run_time_as_the_guide_says(stand):
     assert len(stand['param_sets']) >= 2, stand['section']
     for target, name, result in stand['param_sets']:
         assert result.successful, (target, name, result.reason)
