@@ -28,7 +28,7 @@ import signal
 import threading
 import time
 
-from live_helpers import domain_id, require_workspace, RosSession
+from live_helpers import domain_id, require_workspace, RosClient
 import numpy as np
 import pytest
 
@@ -168,7 +168,7 @@ def stands(tmp_path_factory):
     from rotor_id.nodes.processes import isolated_env, NodeProcesses
     tmp = tmp_path_factory.mktemp('actuator')
     domain = domain_id()
-    session = RosSession(domain)
+    ros = RosClient(domain)
     procs = NodeProcesses(isolated_env(domain, tmp / 'ros_log'), tmp / 'logs')
     out = {}
     try:
@@ -180,7 +180,7 @@ def stands(tmp_path_factory):
     finally:
         procs.stop_all(last=())
         out['logs'] = {name: procs.log(name) for name in procs.procs}
-        session.close()
+        ros.close()
     return out
 
 

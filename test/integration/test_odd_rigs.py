@@ -88,7 +88,7 @@ def rig(request, tmp_path_factory):
         procs.start('recorder', params_file, {**given, 'output': str(out['bag'])},
                     namespace=namespace)
         procs.start('stirring_input', params_file, given, namespace=namespace)
-        started = call_trigger(session.node, f'{namespace}/stirring_input/start', 60.0,
+        started = call_trigger(ros.node, f'{namespace}/stirring_input/start', 60.0,
                                alive=lambda: not procs.dead())
         assert started is not None and started.success, (started, procs.dead())
         procs.start('rotor_plant', params_file, {**given, 'sample_rate_hz': rate,
