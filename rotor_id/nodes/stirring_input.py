@@ -66,6 +66,9 @@ AZIMUTH_KEPT_S = 2.0
 #: Longest stop_ramp_s (s): the ramp on a signal must end well inside the 5 s a launch system
 #: leaves between its SIGINT and its SIGTERM (ros2 launch's sigterm_timeout default).
 MAX_STOP_RAMP_S = 2.0
+#: After the stop ramp, trim is repeated this long (s): a best-effort reader that lags (it
+#: has no acknowledgement to wait for) still receives trim last before the process exits.
+FINAL_HOLD_S = 0.2
 #: How long a stopping node waits for reliable readers of the pitch commands (a driver) to
 #: acknowledge its final trim (s): short enough that SIGINT → exit stays within 5 s.
 FINAL_FLUSH_S = 1.0
@@ -560,7 +563,10 @@ class StirringInput(LifecycleNode):
         self.last_phase = phase
         if changed:
             self._phase_changed(phase, t, ramp)
-        if (self.published - 1) % self.d['stirring_every'] and not changed:
+        # none but phase changes while a start is pending: the schedule's first (TRIM) is
+        # stamped with its start, and no message may carry a later stamp before it
+        if not changed and (self.start_requested
+                            or (self.published - 1) % self.d['stirring_every']):
             return
         cmd = StirringCommand()
         cmd.header.stamp = time_msg(applies)
@@ -596,8 +602,9 @@ class StirringInput(LifecycleNode):
         Runs in the caller's thread (a transition, or close() after the executor stopped):
         commands at ``rate_hz`` stamped with the node clock, the cyclic shrinking linearly
         over ``stop_ramp_s`` from what was last commanded (the azimuth only extrapolated,
-        never waited for), then one trim command; then the readers get up to FINAL_FLUSH_S
-        to acknowledge it. Bound: ``stop_ramp_s`` + one command period + FINAL_FLUSH_S.
+        never waited for), then trim for FINAL_HOLD_S; then reliable readers get up to
+        FINAL_FLUSH_S to acknowledge it. Bound: ``stop_ramp_s`` + FINAL_HOLD_S + one command
+        period + FINAL_FLUSH_S.
         Nothing happens unless the node is commanding (active).
         """
         if not self.commanding or self.pub_command is None:
@@ -615,7 +622,12 @@ class StirringInput(LifecycleNode):
                              now + self.d['lead_s'])
                 if self.ramp is not None:
                     time.sleep(max(0.0, min(period_s, self.ramp.end_s - now)))
-            self.command(self.get_clock().now().nanoseconds + lead_ns, time.monotonic())
+            hold_until = time.monotonic() + FINAL_HOLD_S
+            while True:
+                self.command(self.get_clock().now().nanoseconds + lead_ns, time.monotonic())
+                if time.monotonic() >= hold_until:
+                    break
+                time.sleep(period_s)
         except Exception as exc:              # noqa: B902 - trim must go out whatever failed
             self.get_logger().error(f'{type(exc).__name__} while ramping ({exc}): publishing '
                                     'trim directly')

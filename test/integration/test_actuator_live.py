@@ -3,7 +3,8 @@ The actuator contract of ``stirring_input`` (docs/actuator.md), on the live node
 
 The node runs as ``ros2 run`` starts it (installed executable, the wake case's parameter file,
 its own namespace per case); this process is the rig: it publishes the azimuth (wrapped, 500 Hz,
-stamped with the clock) and reads the pitch commands and StirringCommands. What it proves:
+stamped with the clock) and reads the pitch commands (reliable, as a driver that wants the
+final trim acknowledged) and StirringCommands. What it proves:
 
 * started with nobody calling ``~/start``, it commands trim only (every blade at the collective,
   PHASE_DONE) for seconds, at its command rate;
@@ -61,7 +62,7 @@ class Stand:
         import rclpy
         from rclpy.executors import SingleThreadedExecutor
         from rotor_id.commands.demo import case_files
-        from rotor_id.nodes.common import SENSOR_OFFER_QOS, SENSOR_QOS
+        from rotor_id.nodes.common import SENSOR_OFFER_QOS, STATE_QOS
         from rotor_id.nodes.stirring_input import EXCITATION_QOS
         from rotor_id_msgs.msg import StirringCommand
         from sensor_msgs.msg import JointState
@@ -76,7 +77,7 @@ class Stand:
         self.node.create_subscription(
             JointState, f'{self.ns}/rotor/pitch_command',
             lambda m: self.commands.append((time.monotonic(), _ns(m.header.stamp),
-                                            np.array(m.position))), SENSOR_QOS)
+                                            np.array(m.position))), STATE_QOS)
         self.node.create_subscription(
             StirringCommand, f'{self.ns}/rotor/stirring',
             lambda m: self.phases.append((time.monotonic(), _ns(m.header.stamp), m.phase)),
