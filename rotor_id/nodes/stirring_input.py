@@ -71,7 +71,7 @@ MAX_STOP_RAMP_S = 2.0
 FINAL_HOLD_S = 0.2
 #: How long a stopping node waits for reliable readers of the pitch commands (a driver) to
 #: acknowledge its final trim (s): short enough that SIGINT → exit stays within 5 s.
-FINAL_FLUSH_S = 1.0
+FINAL_FLUSH_S = 0.5
 #: The StirringCommand: reliable (a phase change must arrive: the identifier arms on it),
 #: volatile (a late or restarted reader never receives a past schedule), keep-last 20 (1 s at
 #: the default 200 Hz / stirring_every 10) for a reader that falls briefly behind.
