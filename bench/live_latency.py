@@ -158,7 +158,7 @@ def run(mode, test_points, out):
             if k > 1 and restart:
                 procs.stop('stirring_input')
                 procs.start('stirring_input', params_file)
-            elif k > 1 and not _start_next(watcher, start):
+            elif not restart and not _start_next(watcher, start):
                 raise RuntimeError('the stirring input never started the next schedule')
             done = watcher.spin_until(lambda: watcher.final_estimate(k) is not None, 120.0,
                                       alive=lambda: not procs.dead())
@@ -189,6 +189,8 @@ def run_duration(duration, out):
         procs.start('state_estimator', params_file)
         procs.start('recorder', params_file, {'output': str(live.bag)})
         procs.start('stirring_input', params_file)
+        if watcher.trigger('/stirring_input/start', 60.0, alive=lambda: not procs.dead()) is None:
+            raise RuntimeError('the stirring input never answered ~/start')
         procs.start('rotor_plant', params_file, {'duration_s': float(duration),
                                                  'wait_for_subscribers': 5})
         say(f'running {duration} s of rotor time (domain {live.domain})')

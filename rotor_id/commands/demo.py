@@ -88,6 +88,11 @@ def run_live(case, out, storage, domain_id, timeout, seed=None, stream=sys.stdou
     def show(kind, msg):
         if kind == 'estimate':
             print(_estimate_line(msg, t_start), file=stream, flush=True)
+        elif kind == 'stirring' and msg.phase == 3 and 0 not in phases:
+            if 'holding' not in phases:        # before the start: the trim held while active
+                phases['holding'] = True
+                print(f'  [{time.monotonic() - t_start:6.1f} s] stirring input active, holding '
+                      'trim until ~/start', file=stream, flush=True)
         elif kind == 'stirring' and msg.phase not in phases:
             phases[msg.phase] = True
             label = {0: 'rotor in trim (collective only)', 1: 'lateral cyclic step',
@@ -122,6 +127,15 @@ def run_live(case, out, storage, domain_id, timeout, seed=None, stream=sys.stdou
             print(f'  note: no {", ".join(late)} publisher heard within '
                   f'{DISCOVERY_TIMEOUT_S:.0f} s; starting the rotor anyway (the recorder '
                   'records what it hears)', file=stream, flush=True)
+        # the stirring node holds trim until asked: the test point starts with the rotor
+        answer = watcher.trigger('/stirring_input/start', DISCOVERY_TIMEOUT_S,
+                                 alive=lambda: not procs.dead() and not interrupted)
+        if answer is not None and answer.success:
+            print(f'  stirring_input: {answer.message}', file=stream, flush=True)
+        elif not procs.dead() and not interrupted:
+            print('  note: stirring_input did not accept ~/start ('
+                  + (answer.message if answer is not None else 'no answer') + '): the rotor '
+                  'will hold trim and nothing will be identified', file=stream, flush=True)
         procs.start('rotor_plant', params_file, plant_params)
         print(f'identifying {", ".join(description.unknowns)} ({description.model}) over the '
               f'window {description.window_s[0]:.4f}-{description.window_s[1]:.4f} s after the '

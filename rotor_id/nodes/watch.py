@@ -85,11 +85,46 @@ class RunWatcher:
 
     def spin_until(self, condition, timeout, alive=None):
         """Spin until ``condition()`` is true; False on timeout or when ``alive()`` is false."""
-        deadline = time.monotonic() + timeout
-        while time.monotonic() < deadline:
-            rclpy.spin_once(self.node, timeout_sec=0.05)
-            if condition():
-                return True
-            if alive is not None and not alive():
-                return False
-        return False
+        return _spin_until(self.node, condition, timeout, alive)
+
+    def trigger(self, service, timeout, alive=None):
+        """Call a std_srvs/Trigger service until it succeeds (:func:`call_trigger`)."""
+        return call_trigger(self.node, service, timeout, alive)
+
+
+def _spin_until(node, condition, timeout, alive=None):
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        rclpy.spin_once(node, timeout_sec=0.05)
+        if condition():
+            return True
+        if alive is not None and not alive():
+            return False
+    return False
+
+
+def call_trigger(node, service, timeout, alive=None):
+    """
+    Call a std_srvs/Trigger service until it succeeds; return its last answer (None: none).
+
+    For ``stirring_input``'s ``~/start``: it refuses while a test point runs and is the only
+    way one starts (docs/actuator.md), so a run asks for it explicitly. ``alive()`` false
+    stops the attempts.
+    """
+    from std_srvs.srv import Trigger
+    client = node.create_client(Trigger, service)
+    deadline = time.monotonic() + timeout
+    answer = None
+    try:
+        while time.monotonic() < deadline and (alive is None or alive()):
+            if not client.wait_for_service(timeout_sec=min(1.0, timeout)):
+                continue
+            future = client.call_async(Trigger.Request())
+            if _spin_until(node, future.done, max(0.1, deadline - time.monotonic()), alive):
+                answer = future.result()
+                if answer.success:
+                    return answer
+            _spin_until(node, lambda: False, 0.3)
+        return answer
+    finally:
+        node.destroy_client(client)

@@ -71,6 +71,8 @@ def bad_run(tmp_path_factory):
         procs.start('identifier', params_file, {'sensor_reliability': 'best_effort'})
         procs.start('state_estimator', params_file)
         procs.start('stirring_input', params_file)
+        started = watcher.trigger('/stirring_input/start', 60.0, alive=lambda: not procs.dead())
+        assert started is not None and started.success, (started, procs.dead())
         # the rotor starts only when this test subscribes to the azimuth (4th subscriber)
         procs.start('rotor_plant', params_file, {'duration_s': 0.99, 'wait_for_subscribers': 4})
         pubs = {topic: node.create_publisher(JointState, topic, SENSOR_QOS)

@@ -35,6 +35,8 @@ watcher = RunWatcher(node)
 # not be published before this listener has matched the identifier
 watcher.spin_until(lambda: node.count_publishers('/rotor_id/estimate') > 0, 60.0)
 watcher.spin_until(lambda: False, 1.0)
+# the stirring input (on the rig) holds trim until asked: the test point starts with the rotor
+watcher.trigger('/stirring_input/start', 60.0)
 node.create_subscription(JointState, '/rotor/azimuth', lambda _: None, SENSOR_QOS)
 ok = watcher.spin_until(lambda: watcher.final_estimate() is not None, float(sys.argv[1]))
 final = watcher.final_estimate()

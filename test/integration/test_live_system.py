@@ -60,6 +60,9 @@ def live_run(tmp_path_factory):
         # only the last states (or none: the run is 1 s, the fixture over 4 s later)
         late = watcher.wait_for_publishers(RESULT_KINDS, 60.0, alive=lambda: not procs.dead())
         assert not late, f'no {late} publisher matched; exited: {procs.dead()}'
+        # the stirring input holds trim until asked: the test point starts with the rotor
+        started = watcher.trigger('/stirring_input/start', 60.0, alive=lambda: not procs.dead())
+        assert started is not None and started.success, (started, procs.dead())
         # 5 subscribers of the azimuth: the four nodes and this test
         procs.start('rotor_plant', params_file, {'duration_s': description.window_s[1] + 0.05,
                                                  'wait_for_subscribers': 5, 'seed': 7})

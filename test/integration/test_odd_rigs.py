@@ -62,6 +62,7 @@ def rig(request, tmp_path_factory):
     from rotor_id.commands.demo import case_files
     from rotor_id.nodes.common import RESULT_QOS, STATE_QOS
     from rotor_id.nodes.processes import isolated_env, NodeProcesses
+    from rotor_id.nodes.watch import call_trigger
     from rotor_id_msgs.msg import ParameterEstimate, StateEstimate
 
     blades, convention, namespace, rate = RIGS[request.param]
@@ -87,6 +88,9 @@ def rig(request, tmp_path_factory):
         procs.start('recorder', params_file, {**given, 'output': str(out['bag'])},
                     namespace=namespace)
         procs.start('stirring_input', params_file, given, namespace=namespace)
+        started = call_trigger(ros.node, f'{namespace}/stirring_input/start', 60.0,
+                               alive=lambda: not procs.dead())
+        assert started is not None and started.success, (started, procs.dead())
         procs.start('rotor_plant', params_file, {**given, 'sample_rate_hz': rate,
                                                  'duration_s': 60.0}, namespace=namespace)
         deadline = time.monotonic() + 150.0

@@ -2,9 +2,9 @@
 Three test points in a row through the running nodes, without restarting the identifier.
 
 Plant, stirring input, identifier (its fits in a separate process) and recorder run as separate
-processes on the wake case; the stirring input runs three schedules (the first on
-its own, the next two on its ``~/start`` once the last one is done, or by a restart of a stirring
-input without that service), and the identifier arms a test point on each (StirringCommand phase
+processes on the wake case; the stirring input runs three schedules, each on its ``~/start``
+(the next once the last one is done; or by a restart of a stirring input without that service),
+and the identifier arms a test point on each (StirringCommand phase
 TRIM). What
 it proves: each test point gets exactly one final estimate, tagged with its number; it is
 converged exactly when its window is complete (every sample of every channel received: the
@@ -100,8 +100,8 @@ def three_points(tmp_path_factory):
             if k > 1 and restart:
                 procs.stop('stirring_input')
                 procs.start('stirring_input', params_file)
-            elif k > 1:     # the stirring node's next schedule, once the last one is done
-                assert _call_until_accepted(watcher, start), 'the stirring never restarted'
+            elif not restart:     # the stirring node's next schedule, once the last one is done
+                assert _call_until_accepted(watcher, start), f'test point {k} never started'
             done = watcher.spin_until(lambda: watcher.final_estimate(k) is not None, 150.0,
                                       alive=lambda: not procs.dead())
             run['load'] = max(run['load'], os.getloadavg()[0])

@@ -2,10 +2,12 @@
 The stirring_input node itself, in this process, on a rig unlike the built-in plant.
 
 What it proves, on a 3-bladed rig with its own topic and joint names, hub joint ``hub`` and an
-unwrapped azimuth, fed through DDS by a test publisher at the clock's pace: a test point runs
+unwrapped azimuth, fed through DDS by a test publisher at the clock's pace: until ``~/start`` is
+called the node commands trim only (collective on every blade, PHASE_DONE); a test point runs
 trim, cyclic step, stirring, then ends by itself (its duration) with a ramp back to trim and
 PHASE_DONE, and holds trim after; ``~/start`` runs a second one and ``~/abort`` ends it the same
 way, the answer naming the test point; after either the pitch commands are collective only.
+(The process-level contract, signals, deactivate and a stale azimuth: test_actuator_live.py.)
 Settings are checked at run time (an amplitude above the limit is refused with the reason, a
 read-only limit cannot be changed), and the pitch commands are offered keep-last with a small
 depth and a lifespan: no stale backlog.
@@ -13,6 +15,7 @@ depth and a lifespan: no stale backlog.
 
 import math
 import os
+import time
 
 import numpy as np
 import pytest
@@ -41,8 +44,8 @@ def run(tmp_path_factory):
     from rclpy.parameter import Parameter
     from rclpy.signals import SignalHandlerOptions
     from rcl_interfaces.srv import SetParameters
-    from rotor_id.nodes.common import joint_state, RESULT_QOS, SENSOR_OFFER_QOS, SENSOR_QOS
-    from rotor_id.nodes.stirring_input import StirringInput
+    from rotor_id.nodes.common import joint_state, SENSOR_OFFER_QOS, SENSOR_QOS
+    from rotor_id.nodes.stirring_input import EXCITATION_QOS, StirringInput
     from rotor_id_msgs.msg import StirringCommand
     from sensor_msgs.msg import JointState
     from std_srvs.srv import Trigger
@@ -66,7 +69,7 @@ def run(tmp_path_factory):
     shaft = test.create_publisher(JointState, '/rig7/stand/shaft', SENSOR_OFFER_QOS)
     phases, commands = [], []
     test.create_subscription(StirringCommand, '/rig7/stand/excitation',
-                             lambda m: phases.append((m.phase, m.header.stamp)), RESULT_QOS)
+                             lambda m: phases.append((m.phase, m.header.stamp)), EXCITATION_QOS)
     test.create_subscription(JointState, '/rig7/stand/pitch_setpoint', commands.append,
                              SENSOR_QOS)
     clients = {name: test.create_client(Trigger, f'/rig7/stirring_input/{name}')
@@ -96,10 +99,15 @@ def run(tmp_path_factory):
         return future.result()
 
     def done_count():
-        return sum(1 for p, _ in phases if p == StirringCommand.PHASE_DONE)
+        # PHASE_DONE after a test point (the first is the trim held before any start)
+        return _sequence(phases)[1:].count(StirringCommand.PHASE_DONE)
 
     out = {'phases': phases, 'commands': commands, 'answers': {}}
     try:
+        # nobody asked for a test point: trim only, for 1 s of commands
+        spin(1.0)
+        out['before_start'] = (list(commands), list(phases))
+        out['answers']['first_start'] = call(clients['start'], Trigger.Request())
         # test point 1: t0 + duration = 2 + 10 + 8 = 20 rad after the start: 0.21 s, ramp 0.05 s
         out['first_done'] = spin(10.0, lambda: done_count() > 0)
         spin(0.2)
@@ -139,10 +147,22 @@ def _sequence(phases):
     return seq
 
 
+def test_only_trim_until_a_start_is_asked_for(run):
+    from rotor_id_msgs.msg import StirringCommand as S
+    commands, phases = run['before_start']
+    assert len(commands) >= 50, len(commands)            # 200 Hz for 1 s, on a busy machine
+    np.testing.assert_allclose([c.position for c in commands], COLLECTIVE, atol=1e-12)
+    assert phases and {p for p, _ in phases} == {S.PHASE_DONE}
+    assert run['answers']['first_start'].success, run['answers']['first_start'].message
+    assert 'test point 1' in run['answers']['first_start'].message
+
+
 def test_a_test_point_ends_by_itself_and_holds_trim(run):
     from rotor_id_msgs.msg import StirringCommand as S
     assert run['first_done']
     first = run['phases'][:run['n_first']]
+    while first and first[0][0] == S.PHASE_DONE:      # holding trim before the start
+        first = first[1:]
     assert _sequence(first) == [S.PHASE_TRIM, S.PHASE_CYCLIC_STEP, S.PHASE_STIRRING,
                                 S.PHASE_RAMP_DOWN, S.PHASE_DONE]
     stamp = {p: s.sec + s.nanosec * 1e-9 for p, s in reversed(first)}   # first stamp of each
@@ -198,3 +218,123 @@ def test_pitch_commands_cannot_queue_a_stale_backlog(run):
     assert qos.history == HistoryPolicy.KEEP_LAST and qos.depth <= 21       # 0.1 s at 200 Hz
     (offer,) = run['offers']                                 # what readers see, through DDS
     assert 0 < offer.qos_profile.lifespan.nanoseconds <= 0.2e9             # lead_s + 0.1 s
+
+
+@pytest.mark.parametrize('broken', ['schedule', 'pitch_conversion'])
+def test_an_exception_mid_stirring_ends_on_trim(tmp_path, monkeypatch, broken):
+    """The command tick raises mid-stirring; close() (what spin_node runs next) ends on trim."""
+    from rclpy.executors import SingleThreadedExecutor
+    from rclpy.parameter import Parameter
+    from rclpy.signals import SignalHandlerOptions
+    from rotor_id.nodes import stirring_input as module
+    from rotor_id.nodes.common import joint_state, SENSOR_OFFER_QOS, SENSOR_QOS
+    from sensor_msgs.msg import JointState
+    from std_srvs.srv import Trigger
+
+    description = tmp_path / 'rig.yaml'
+    description.write_text(RIG)
+    context = rclpy.context.Context()
+    rclpy.init(context=context, domain_id=201 + (os.getpid() + 3) % 30,
+               signal_handler_options=SignalHandlerOptions.NO)
+    params = [Parameter('run_description', value=str(description)),
+              Parameter('t0', value=5.0), Parameter('step_after_rad', value=1.0),
+              Parameter('duration_rad', value=1e5), Parameter('omegadot', value=-0.01),
+              Parameter('max_stirring_rate_rad_s', value=1e4),
+              Parameter('azimuth_timeout_s', value=5.0)]
+    node = module.StirringInput(parameter_overrides=params, context=context, namespace='/rig8')
+    test = rclpy.create_node('test_exception', context=context)
+    executor = SingleThreadedExecutor(context=context)
+    executor.add_node(node)
+    executor.add_node(test)
+    shaft = test.create_publisher(JointState, '/rig8/stand/shaft', SENSOR_OFFER_QOS)
+    commands = []
+    test.create_subscription(JointState, '/rig8/stand/pitch_setpoint',
+                             lambda m: commands.append(np.array(m.position)), SENSOR_QOS)
+    test.create_timer(0.002, lambda: shaft.publish(joint_state(
+        test.get_clock().now().nanoseconds, ['hub'],
+        [OMEGA * test.get_clock().now().nanoseconds / 1e9], [OMEGA])))
+    amplitude = math.radians(1.5)
+
+    def spin_until(condition, seconds=20.0):
+        end = time.monotonic() + seconds
+        while time.monotonic() < end and not condition():
+            executor.spin_once(timeout_sec=0.01)
+        return condition()
+
+    raised = None
+    try:
+        assert spin_until(lambda: len(commands) > 10)
+        assert node.on_start(Trigger.Request(), Trigger.Response()).success
+        assert spin_until(lambda: np.ptp(commands[-1]) > 0.5 * amplitude), 'never stirred'
+
+        def fail(*_args, **_kwargs):
+            raise RuntimeError('a bug')
+        if broken == 'schedule':
+            monkeypatch.setattr(node.test_point, 'inputs', fail)
+        else:
+            monkeypatch.setattr(module, 'blade_pitch_from_multiblade', fail)
+        with pytest.raises(RuntimeError, match='a bug') as raised:
+            spin_until(lambda: False, 5.0)
+        n = len(commands)
+        node.close()                                 # spin_node's clean-up
+        spin_until(lambda: False, 0.5)               # take what is in flight
+    finally:
+        executor.shutdown()
+        node.destroy_node()
+        test.destroy_node()
+        rclpy.try_shutdown(context=context)
+    assert raised is not None
+    after = commands[n:]
+    assert after, 'nothing published after the exception'
+    np.testing.assert_allclose(after[-1], COLLECTIVE, atol=1e-12)
+    if broken == 'schedule':      # the stop ramp ran (its own arithmetic): shrinking spreads
+        spreads = [np.ptp(c) for c in after]
+        assert len(after) >= 3 and max(spreads) <= 2 * amplitude + 1e-9
+
+
+def test_lifecycle_states_gate_the_commands(tmp_path):
+    """Unconfigured or inactive: nothing commanded, ~/start refused; configure checks the rig."""
+    from rclpy.lifecycle import TransitionCallbackReturn as R
+    from rclpy.parameter import Parameter
+    from rclpy.signals import SignalHandlerOptions
+    from rotor_id.nodes.stirring_input import StirringInput
+    from std_srvs.srv import Trigger
+
+    description = tmp_path / 'rig.yaml'
+    description.write_text(RIG)
+    context = rclpy.context.Context()
+    rclpy.init(context=context, domain_id=201 + (os.getpid() + 7) % 30,
+               signal_handler_options=SignalHandlerOptions.NO)
+    nodes = []
+
+    def make(state, rig):
+        nodes.append(StirringInput(context=context, parameter_overrides=[
+            Parameter('run_description', value=str(rig)),
+            Parameter('initial_state', value=state)]))
+        return nodes[-1]
+
+    def start(node):
+        return node.on_start(Trigger.Request(), Trigger.Response())
+    try:
+        missing = make('unconfigured', tmp_path / 'absent.yaml')
+        assert missing.pub_command is None and not missing.commanding
+        answer = start(missing)
+        assert not answer.success and 'unconfigured' in answer.message
+        assert missing.trigger_configure() == R.FAILURE      # stays unconfigured, says why
+        assert 'absent.yaml' in missing.configure_error
+        assert missing._state_label() == 'unconfigured'
+        inactive = make('inactive', description)
+        assert inactive.pub_command is not None and not inactive.commanding
+        assert not start(inactive).success
+        assert inactive.trigger_activate() == R.SUCCESS and inactive.commanding
+        assert start(inactive).success
+        assert inactive.trigger_deactivate() == R.SUCCESS and not inactive.commanding
+        assert not inactive.start_requested                  # a pending start does not survive
+        with pytest.raises(ValueError, match='initial_state'):
+            make('running', description)
+        with pytest.raises(ValueError, match='absent.yaml'):   # ros2 run: one line, exit 2
+            make('active', tmp_path / 'absent.yaml')
+    finally:
+        for node in nodes:
+            node.destroy_node()
+        rclpy.try_shutdown(context=context)
