@@ -31,8 +31,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from rotor_id.estimation.output_error import (_fit_initial_states, _Problem, evaluate,
-                                              IdentificationError)
+from rotor_id.estimation.output_error import (
+    evaluate, fit_initial_states, IdentificationError, Problem)
 from rotor_id.estimation.simulate import DEFAULT_MAX_STEP
 
 
@@ -214,7 +214,7 @@ def _theta(problem, p_full, x0, max_step):
     missing = any(problem.free_states[r] and (x0 is None and exp.x0_guess is None)
                   for r, exp in enumerate(problem.experiments))
     if missing:
-        theta = _fit_initial_states(problem, theta, max_step)
+        theta = fit_initial_states(problem, theta, max_step)
     return theta
 
 
@@ -248,7 +248,7 @@ def sensitivities(experiment, p_full, unknown_names, x0=None, max_step=DEFAULT_M
     Sensitivities
 
     """
-    problem = _Problem([experiment], list(unknown_names), None, None)
+    problem = Problem([experiment], list(unknown_names), None, None)
     theta = _theta(problem, p_full, None if x0 is None else [x0], max_step)
     _, dy, sim = evaluate(problem, theta, max_step)[0]
     return Sensitivities(t=np.asarray(experiment.t, dtype=float), names=list(problem.names),
@@ -327,7 +327,7 @@ def cramer_rao_bound(experiments, p_full, unknown_names, noise_std=1.0, x0=None,
 
     """
     experiments = _as_list(experiments)
-    problem = _Problem(experiments, list(unknown_names), None, None)
+    problem = Problem(experiments, list(unknown_names), None, None)
     theta = _theta(problem, p_full, x0, max_step)
     var = _noise_var(noise_std, experiments[0].model.n_outputs)
     M = sum(_information(dy, var).sum(axis=0) for _, dy, _ in evaluate(problem, theta, max_step))

@@ -24,7 +24,7 @@ from dataclasses import dataclass, field, replace
 import math
 
 import numpy as np
-from rotor_id.estimation.output_error import _fit_initial_states, _Problem, evaluate
+from rotor_id.estimation.output_error import evaluate, fit_initial_states, Problem
 from rotor_id.estimation.simulate import DEFAULT_MAX_STEP
 from rotor_id.physics.stirring import INPUT_NAMES
 # the χ² and normal tails that scipy.stats.chi2/norm evaluate (bit-identical), without the
@@ -314,11 +314,11 @@ def predict(experiment, p_full, x0=None, max_step=DEFAULT_MAX_STEP):
     exp = replace(experiment, x0_guess=None)
     if x0 is not None:
         exp = replace(exp, initial_state=np.asarray(x0, dtype=float))
-    problem = _Problem([exp], [], None, None)
+    problem = Problem([exp], [], None, None)
     problem.p_base = np.asarray(p_full, dtype=float).copy()
     theta = np.zeros(len(problem.names))
     if theta.size:
-        theta = _fit_initial_states(problem, theta, max_step)
+        theta = fit_initial_states(problem, theta, max_step)
     _, _, sim = evaluate(problem, theta, max_step, sensitivities=False)[0]
     x_start = problem.initial_state(0, theta, problem.p_base)[0]
     return x_start, sim.y

@@ -1,0 +1,351 @@
+"""
+Model selection over explanations: score-test-guided forward steps, a backward check, posterior.
+
+One algorithm over the likelihood interface (:class:`rotor_id.diagnosis.likelihood.Likelihood`):
+it never asks whether a model is fitted by output error or by filter error.
+
+* **Evidence.** Each fitted explanation S has log p(data | S) ≈ ρ*·log L_S − ½ k_S log(Nρ*)
+  (:meth:`~rotor_id.diagnosis.likelihood.FitResult.log_evidence`), ρ* the effective fraction
+  of the residuals of the most likely fit (a quasi-likelihood: correlated residuals carry
+  less information per sample). Explanations only score-tested enter with log L ≈ log L_S +
+  LM/2 (the Gauss-Newton prediction of the fit).
+* **Prior.** Uniform over the sizes 0 … K, then uniform over the C(m, size) sets of a size,
+  and uniform over an effect's variants (the odd blade: one of N).
+* **Search.** At the current model every remaining effect is score-tested; those that could
+  hold :attr:`~rotor_id.diagnosis.policy.SelectionPolicy.fit_share` of the posterior (and the
+  effects without a score test) are fitted on top of it. The most probable is added when it
+  is more probable than the current model; then every earlier effect must stay (backward
+  check: the model without it is fitted and must be less probable). At most K effects.
+* **Posterior.** Normalised over every explanation fitted or score-tested on the way.
+"""
+
+from dataclasses import dataclass, field
+import math
+
+from rotor_id.diagnosis.catalogue import equivalent, FIRST_ORDER_START, n_choices
+from rotor_id.diagnosis.likelihood import canonical, FitResult, ScoreTest
+
+
+@dataclass
+class Candidate:
+    """One explanation of the table: fitted, or approximated by a score test at a parent."""
+
+    effects: tuple
+    result: FitResult = None
+    #: score-test approximation: the model it was tested at, and the test
+    parent: FitResult = None
+    test: ScoreTest = None
+
+    @property
+    def fitted(self):
+        """Return whether the explanation was fitted, not only score-tested."""
+        return self.result is not None
+
+    @property
+    def names(self):
+        """Return the effect ids."""
+        return tuple(e for e, _ in self.effects)
+
+    @property
+    def loglik(self):
+        """Return the fitted log-likelihood, or the score test's prediction of it."""
+        if self.result is not None:
+            return self.result.loglik
+        return self.parent.loglik + 0.5 * self.test.statistic
+
+    @property
+    def n_params(self):
+        """Return the parameters beyond the baseline."""
+        if self.result is not None:
+            return self.result.n_params
+        return self.parent.n_params + self.test.k
+
+
+@dataclass
+class Step:
+    """One move of the search: an effect added or dropped, with the log posterior odds."""
+
+    action: str                 # 'add', 'drop' or 'exchange'
+    effect: str
+    variant: str
+    #: log posterior odds of the model after the move against the one before
+    log_odds: float
+    #: 2Δlog L of the move (after − before)
+    two_delta_loglik: float
+    #: the explanation after the move
+    effects: tuple
+
+
+@dataclass
+class Selection:
+    """What the search fitted and tested, and where it stopped."""
+
+    candidates: dict
+    steps: list
+    final: FitResult
+    #: {explanation: {effect: ScoreTest}} of the score tests made at each fitted explanation
+    tests: dict = field(default_factory=dict)
+    #: catalogue effects the search could use (the prior's m), and the advance ratio
+    effects: tuple = ()
+    mu: float = 0.0
+
+
+class Prior:
+    """Uniform over sizes 0 … K, then over the sets of a size and an effect's variants."""
+
+    def __init__(self, n_effects, max_effects, n_blades):
+        self.m, self.k_max, self.n_blades = max(n_effects, 1), max_effects, n_blades
+
+    def log(self, effects):
+        """Return log P(S) of an explanation [(effect, variant)]."""
+        size = len(effects)
+        if size > self.k_max:
+            return -math.inf
+        return (-math.log(self.k_max + 1) - math.log(math.comb(self.m, size))
+                - sum(math.log(n_choices(e, self.n_blades)) for e, _ in effects))
+
+
+def shared_rho(candidates):
+    """Return ρ* of the fitted explanation with the highest likelihood."""
+    fitted = [c.result for c in candidates if c.fitted]
+    return max(fitted, key=lambda r: r.loglik).rho
+
+
+def log_posterior(candidate, rho, prior):
+    """Return the unnormalised log posterior of one explanation at the shared ρ."""
+    n_obs = candidate.result.n_obs if candidate.fitted else candidate.parent.n_obs
+    return (rho * candidate.loglik - 0.5 * candidate.n_params * math.log(n_obs * rho)
+            + prior.log(candidate.effects))
+
+
+def posterior(candidates, prior):
+    """
+    Return [(candidate, probability)] over the table, most probable first.
+
+    Score-test approximations enter the normalisation but are never ranked above a fit of
+    the same size that explains more: they are predictions, not fits.
+    """
+    rows = list(candidates)
+    rho = shared_rho(rows)
+    logs = [log_posterior(c, rho, prior) for c in rows]
+    top = max(logs)
+    weights = [math.exp(v - top) for v in logs]
+    total = sum(weights)
+    out = sorted(zip(rows, (w / total for w in weights)), key=lambda cp: -cp[1])
+    return out
+
+
+def _log_post(result, candidates, prior):
+    return log_posterior(Candidate(result.effects, result), shared_rho(candidates.values()),
+                         prior)
+
+
+def _open_effects(current, effects, mu):
+    """Return the effects that can be added to ``current``: not in it, nor its equivalents."""
+    taken = set(current.names)
+    for e in current.names:
+        taken.update(equivalent(e, mu))
+    return [e for e in effects if e not in taken]
+
+
+def _screen(space, current, effects, candidates, prior, policy, tests, mu, say):
+    """
+    Score-test every open effect at ``current``; return the requests worth fitting.
+
+    An effect is fitted when allowance·LM could give its explanation ``fit_share`` of the
+    posterior against ``current``; an effect without a score test, when it was fitted alone
+    and held that share against the baseline, or at the first step.
+    """
+    rho = shared_rho(candidates.values())
+    here = tests.setdefault(current.effects, {})
+    scored, unscored = [], []
+    for effect in _open_effects(current, effects, mu):
+        test = here.get(effect) or space.score(current, effect)
+        if test is None:
+            unscored.append(effect)
+            continue
+        here[effect] = test
+        key = canonical(current.effects + ((effect, test.variant),))
+        if key not in candidates:
+            candidates[key] = Candidate(key, parent=current, test=test)
+        odds = (0.5 * (policy.score_allowance * test.statistic * rho
+                       - test.k * math.log(current.n_obs * rho))
+                + prior.log(key) - prior.log(current.effects))
+        if odds >= math.log(policy.fit_share) and not candidates[key].fitted:
+            scored.append((test.statistic, effect, test.variant, key))
+    scored.sort(reverse=True)
+    if here:
+        ranked = sorted(here.items(), key=lambda et: -et[1].statistic)
+        say(f'score tests at {" + ".join(current.names) or "the baseline"}: '
+            + ', '.join(f'{e} {t.statistic:.1f}' for e, t in ranked))
+    noise = [s for s in scored if s[1] == 'process_noise' or current.likelihood != 'output error']
+    plain = [s for s in scored if s not in noise]
+    chosen = plain[:policy.max_fits_per_step] + noise[:policy.max_filter_fits_per_step]
+    requests = [(key, current) for _, _, _, key in chosen]
+    for effect in unscored:
+        key = canonical(current.effects + ((effect, ''),))
+        alone = candidates.get(canonical(((effect, ''),)))
+        earned = alone is not None and alone.fitted and (
+            _log_post(alone.result, candidates, prior)
+            - _log_post(candidates[()].result, candidates, prior) >= math.log(policy.fit_share))
+        if (not current.effects or earned) and not (key in candidates
+                                                    and candidates[key].fitted):
+            requests.append((key, current))
+    return requests
+
+
+def _restart_equivalents(space, fitted, candidates, policy):
+    """
+    Refit a lag or delay that ended below its first-order equivalent's likelihood.
+
+    Started from the equivalent's estimate (a lag τ is a delay d = τ to first order); the
+    better of the two fits is kept.
+    """
+    by_key = {r.effects: r for r in fitted if r is not None}
+    for res in list(by_key.values()):
+        for effect, variant in res.effects:
+            for other, (theirs, mine) in FIRST_ORDER_START.get(effect, {}).items():
+                twin = canonical(tuple(ev for ev in res.effects if ev[0] != effect)
+                                 + ((other, ''),))
+                rival = candidates.get(twin)
+                if rival is None or not rival.fitted \
+                        or rival.result.loglik - res.loglik <= policy.restart_margin:
+                    continue
+                values = rival.result.start_values()
+                if theirs not in values:
+                    continue
+                values[mine] = abs(values.pop(theirs))
+                better = space.refit_from(res.effects, values)
+                if better is not None and better.loglik > candidates[res.effects].loglik:
+                    candidates[res.effects] = Candidate(res.effects, better)
+
+
+def _backward(space, current, added, candidates, prior, steps):
+    """Drop every effect before ``added`` whose removal makes the model more probable."""
+    for effect, variant in [ev for ev in current.effects if ev != added]:
+        rest = tuple(ev for ev in current.effects if ev != (effect, variant))
+        smaller = candidates.get(rest)
+        res = smaller.result if smaller is not None and smaller.fitted else \
+            space.fit(rest, current)
+        if res is None:
+            continue
+        candidates[rest] = Candidate(rest, res)
+        odds = _log_post(res, candidates, prior) - _log_post(current, candidates, prior)
+        if odds > 0.0:
+            steps.append(Step('drop', effect, variant, float(odds),
+                              2.0 * (res.loglik - current.loglik), rest))
+            current = res
+    return current
+
+
+def _record(fitted, candidates, say):
+    """Enter fits into the table (None: a failed fit)."""
+    base = candidates[()].result
+    for res in fitted:
+        if res is not None:
+            candidates[res.effects] = Candidate(res.effects, res)
+            say(f'  {" + ".join(res.names)}: 2Δlog L {2.0 * (res.loglik - base.loglik):.1f} '
+                f'with {res.n_params} ({res.likelihood}, {res.elapsed_s:.1f} s)')
+
+
+def _exchange(space, best, candidates, prior, policy, steps, mu, say):
+    """
+    Swap each effect of the final explanation for each strong single effect not in it.
+
+    Strong: fitted alone, it beats the baseline by posterior odds of 1/fit_share or more (it
+    would be named alone); random inflow is not swapped in (its own score test is asked at
+    every step, and a filter tracks any unmodelled dynamics). Forward steps cannot undo an
+    effect that stands in for another (per-blade gains for per-blade offsets beside a lag);
+    the swap is kept when it is more probable, and the exchange repeated from there.
+    """
+    base = _log_post(candidates[()].result, candidates, prior)
+    for _ in range(policy.max_effects):
+        singles = [c.result for c in candidates.values() if c.fitted and len(c.effects) == 1
+                   and c.result.likelihood == candidates[()].result.likelihood
+                   and _log_post(c.result, candidates, prior) - base
+                   >= -math.log(policy.fit_share)]
+        requests = {}
+        for out in best.effects:
+            rest = tuple(ev for ev in best.effects if ev != out)
+            for single in singles:
+                new = single.effects[0]
+                if new[0] in best.names or any(new[0] in equivalent(e, mu) for e, _ in rest):
+                    continue
+                key = canonical(rest + (new,))
+                if key not in candidates or not candidates[key].fitted:
+                    requests.setdefault(key, (key, best))
+        if not requests:
+            return best
+        say(f'exchange: fitting {", ".join(" + ".join(e for e, _ in k) for k in requests)}')
+        _record(space.fit_many(list(requests.values())), candidates, say)
+        rival = max((candidates[k].result for k in requests if candidates.get(k) is not None
+                     and candidates[k].fitted), key=lambda r: _log_post(r, candidates, prior),
+                    default=None)
+        if rival is None or _log_post(rival, candidates, prior) <= _log_post(best, candidates,
+                                                                             prior):
+            return best
+        added = next(ev for ev in rival.effects if ev not in best.effects)
+        steps.append(Step('exchange', added[0], added[1],
+                          _log_post(rival, candidates, prior) - _log_post(best, candidates,
+                                                                          prior),
+                          2.0 * (rival.loglik - best.loglik), rival.effects))
+        best = rival
+    return best
+
+
+def search(space, effects, prior, policy, mu=0.0, say=None):
+    """
+    Forward steps guided by score tests, a backward check after each: :class:`Selection`.
+
+    ``space``: a :class:`~rotor_id.diagnosis.likelihood.Likelihood` with ``baseline()``,
+    ``fit_many`` and ``refit_from``; ``effects``: the catalogue ids it may use; ``mu``: the
+    advance ratio (which effects are first-order equivalents, never added together). Each
+    step extends the :attr:`~SelectionPolicy.beam_width` most probable explanations of the
+    last size; the search goes on while the best of the new size is the most probable yet.
+    """
+    say = say or (lambda text: None)
+    best = space.baseline()
+    candidates = {(): Candidate((), best)}
+    steps, tests, frontier = [], {}, [best]
+    for size in range(1, policy.max_effects + 1):
+        requests = {}
+        for current in frontier:
+            for key, start in _screen(space, current, effects, candidates, prior, policy,
+                                      tests, mu, say):
+                requests.setdefault(key, (key, start))
+        if not requests:
+            break
+        say(f'step {size}: fitting '
+            f'{", ".join(" + ".join(e for e, _ in k) for k in requests)}')
+        fitted = space.fit_many(list(requests.values()))
+        _record(fitted, candidates, say)
+        _restart_equivalents(space, fitted, candidates, policy)
+        ranked = sorted((c.result for c in candidates.values()
+                         if c.fitted and len(c.effects) == size),
+                        key=lambda r: -_log_post(r, candidates, prior))
+        if not ranked:
+            break
+        odds = _log_post(ranked[0], candidates, prior) - _log_post(best, candidates, prior)
+        say(f'step {size}: best {" + ".join(ranked[0].names)}, log posterior odds {odds:.1f}')
+        if odds <= 0.0:
+            break
+        parent = next((f for f in frontier if set(f.effects) < set(ranked[0].effects)), best)
+        added = next(ev for ev in ranked[0].effects if ev not in parent.effects)
+        steps.append(Step('add', added[0], added[1], float(odds),
+                          2.0 * (ranked[0].loglik - best.loglik), ranked[0].effects))
+        best = _backward(space, ranked[0], added, candidates, prior, steps)
+        frontier = ranked[:policy.beam_width]
+    best = _exchange(space, best, candidates, prior, policy, steps, mu, say)
+    return Selection(candidates=candidates, steps=steps, final=best, tests=tests,
+                     effects=tuple(effects), mu=mu)
+
+
+def tests_at(space, selection, result):
+    """Return the score tests of every open effect at a fitted explanation (cached)."""
+    here = selection.tests.setdefault(result.effects, {})
+    for effect in _open_effects(result, selection.effects, selection.mu):
+        if effect not in here:
+            test = space.score(result, effect)
+            if test is not None:
+                here[effect] = test
+    return here
