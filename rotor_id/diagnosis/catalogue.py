@@ -374,6 +374,12 @@ def bound_sides(values, model, extra):
     return out
 
 
+def parameter_range(model, name):
+    """Return (lower, upper) of an augmentation's extra parameter in a fitted model."""
+    par = _layer_of(model, name).parameter(name)
+    return par.lower, par.upper
+
+
 def _layer_of(model, name):
     """Return the augmentation layer that owns extra parameter ``name``."""
     for layer in layers(model):

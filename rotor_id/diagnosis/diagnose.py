@@ -327,8 +327,9 @@ def diagnose(record, description, progress=None, workers=2, effects=EFFECTS, win
     base = _baseline(record, description, window_s, say, t_start)
     space, usable, not_tried = _space(record, description, base, window_s, effects, workers,
                                       verbose_fits)
-    prior = Prior(len(usable), policy.max_effects, record.n_blades)
-    selection = search(space, usable, prior, policy, base.ident.model.rotor.advance_ratio, say)
+    mu = base.ident.model.rotor.advance_ratio
+    prior = Prior(usable, policy.max_effects, record.n_blades, mu)
+    selection = search(space, usable, prior, policy, mu, say)
     explanation, top, table = explain(
         space, selection, prior, policy, lambda r: residuals_are_noise(r, base, policy),
         lambda r: misfit_removed(r, base))

@@ -22,7 +22,8 @@ it never asks whether a model is fitted by output error or by filter error.
 from dataclasses import dataclass, field
 import math
 
-from rotor_id.diagnosis.catalogue import equivalent, FIRST_ORDER_START, n_choices
+from rotor_id.diagnosis.catalogue import (
+    equivalent, FIRST_ORDER_START, LAG_PARAMETER, n_choices, parameter_range)
 from rotor_id.diagnosis.likelihood import canonical, FitResult, ScoreTest
 
 
@@ -91,18 +92,34 @@ class Selection:
 
 
 class Prior:
-    """Uniform over sizes 0 … K, then over the sets of a size and an effect's variants."""
+    """
+    Uniform over sizes 0 … K, then over the sets of physics of a size, then over the forms.
 
-    def __init__(self, n_effects, max_effects, n_blades):
-        self.m, self.k_max, self.n_blades = max(n_effects, 1), max_effects, n_blades
+    Effects that are the same physics to first order in this record (a sensor lag, a delay
+    and a pitch-actuator lag; :func:`~rotor_id.diagnosis.catalogue.equivalent`) are one
+    physics: m counts the physics, and each form of one shares its weight. An effect's
+    variants (the odd blade: one of N) share it too.
+    """
+
+    def __init__(self, effects, max_effects, n_blades, mu=0.0):
+        groups = {}
+        for e in effects:
+            groups[e] = {e} | {o for o in equivalent(e, mu) if o in effects}
+        for e in effects:                   # close the groups (equivalence is transitive)
+            for o in list(groups[e]):
+                groups[e] |= groups[o]
+        self.forms = {e: len(g) for e, g in groups.items()}
+        self.m = max(len({frozenset(g) for g in groups.values()}), 1)
+        self.k_max, self.n_blades = max_effects, n_blades
 
     def log(self, effects):
         """Return log P(S) of an explanation [(effect, variant)]."""
         size = len(effects)
         if size > self.k_max:
             return -math.inf
-        return (-math.log(self.k_max + 1) - math.log(math.comb(self.m, size))
-                - sum(math.log(n_choices(e, self.n_blades)) for e, _ in effects))
+        return (-math.log(self.k_max + 1) - math.log(math.comb(self.m, min(size, self.m)))
+                - sum(math.log(n_choices(e, self.n_blades) * self.forms.get(e, 1))
+                      for e, _ in effects))
 
 
 def shared_rho(candidates):
@@ -159,7 +176,8 @@ def _screen(space, current, effects, candidates, prior, policy, tests, mu, say):
     rho = shared_rho(candidates.values())
     here = tests.setdefault(current.effects, {})
     scored, unscored = [], []
-    for effect in _open_effects(current, effects, mu):
+    open_effects = _open_effects(current, effects, mu)
+    for effect in open_effects:
         test = here.get(effect) or space.score(current, effect)
         if test is None:
             unscored.append(effect)
@@ -171,6 +189,12 @@ def _screen(space, current, effects, candidates, prior, policy, tests, mu, say):
         odds = (0.5 * (policy.score_allowance * test.statistic * rho
                        - test.k * math.log(current.n_obs * rho))
                 + prior.log(key) - prior.log(current.effects))
+        if effect in LAG_PARAMETER and 'time_delay' in open_effects:
+            # tested through the delay d = τ (one statistic): a lag is fitted beside the delay
+            # only where the delay would be added, so that they compete for the name
+            expected = (0.5 * (test.statistic * rho - test.k * math.log(current.n_obs * rho))
+                        + prior.log(key) - prior.log(current.effects))
+            odds = min(odds, expected + math.log(policy.fit_share))
         if odds >= math.log(policy.fit_share) and not candidates[key].fitted:
             scored.append((test.statistic, effect, test.variant, key))
     scored.sort(reverse=True)
@@ -215,6 +239,10 @@ def _restart_equivalents(space, fitted, candidates, policy):
                 if theirs not in values:
                     continue
                 values[mine] = abs(values.pop(theirs))
+                lower, upper = (-math.inf, math.inf) if res.fit.model is None else \
+                    parameter_range(res.fit.model, mine)
+                if not lower < values[mine] < upper:
+                    continue            # the equivalent's value is outside this effect's range
                 better = space.refit_from(res.effects, values)
                 if better is not None and better.loglik > candidates[res.effects].loglik:
                     candidates[res.effects] = Candidate(res.effects, better)

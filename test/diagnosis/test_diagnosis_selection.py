@@ -71,7 +71,7 @@ class TableSpace:
 
 def _run(table, effects=EFFECTS, policy=POLICY, adequate=lambda r: True, **options):
     space = TableSpace(table, **options)
-    prior = Prior(len(effects), policy.max_effects, 4)
+    prior = Prior(effects, policy.max_effects, 4)
     selection = search(space, list(effects), prior, policy)
     explanation, top, rows = explain(space, selection, prior, policy, adequate,
                                      lambda r: None)
@@ -90,8 +90,9 @@ def test_a_clear_single_effect_is_named_with_high_confidence():
 
 def test_the_posterior_odds_are_the_bic_evidence_with_the_prior():
     # one effect of k = 1 gaining Δlog L = g: log odds against none = g − ½ log N
-    # − log C(m, 1) (prior: sizes uniform, then sets)
-    m, g = len(EFFECTS), 10.0
+    # − log C(m, 1) (prior: sizes uniform, then sets of physics; the lag, the delay and the
+    # actuator lag are one physics in hover, so m = 4 for the six effects)
+    m, g = 4, 10.0
     explanation, selection, _ = _run({frozenset(['flap_frequency']): (g, 1)})
     odds = g - 0.5 * math.log(N_OBS) - math.log(m)
     expected = 1.0 / (1.0 + math.exp(-odds))
@@ -123,6 +124,9 @@ def test_false_alarms_on_null_tables_stay_under_two_percent():
     runs = 400
     for _ in range(runs):
         table = {frozenset([e]): (0.5 * rng.chisquare(1), 1) for e in EFFECTS}
+        # the lag, the delay and the actuator lag see one statistic (the delay's)
+        for lag in ('sensor_lag', 'pitch_actuator_lag'):
+            table[frozenset([lag])] = table[frozenset(['time_delay'])]
         explanation, _, _ = _run(table)
         named += bool(explanation.names)
     assert named / runs < 0.02
@@ -219,14 +223,28 @@ def test_detection_limit_is_the_size_found_with_the_policy_power():
     explanation, selection, space = _run({}, variance=4e-6)
     limit = next(d for d in explanation.detection_limits if d.effect == 'sensor_bias')
     lam = limit.noncentrality
-    # the search adds an effect of k = 1 when 2Δlog L > log N + 2 log C(m, 1) − 0 (sizes
-    # uniform: the prior odds of one effect against none are 1/m)
-    c = math.log(N_OBS) + 2.0 * math.log(len(EFFECTS))
+    # the search adds an effect of k = 1 when 2Δlog L > log N + 2 log m (sizes uniform: the
+    # prior odds of one effect against none are 1/m, m = 4 physics)
+    c = math.log(N_OBS) + 2.0 * math.log(4)
     assert ncx2.sf(c, 1, lam) == pytest.approx(POLICY.detection_power, abs=1e-6)
     assert limit.limits['sensor_bias_size'] == pytest.approx(math.sqrt(lam * 4e-6))
     # a stricter power asks for a larger effect
     test = ScoreTest('sensor_bias', '', 0.0, 1, {})
-    prior = Prior(len(EFFECTS), POLICY.max_effects, 4)
+    prior = Prior(EFFECTS, POLICY.max_effects, 4)
     half = acceptance_noncentrality(selection.final, test, prior,
                                     replace(POLICY, detection_power=0.5), 1.0)
     assert half < lam
+
+
+def test_the_prior_weighs_physics_and_shares_it_among_equivalent_forms():
+    # hover: lag, delay and actuator lag are one physics; flap frequency, bias, gain others
+    prior = Prior(EFFECTS, 3, 4)
+    one = [math.exp(prior.log(((e, ''),))) for e in EFFECTS]
+    assert sum(one) == pytest.approx(1.0 / 4)            # size 1: a quarter of the prior
+    forms = [math.exp(prior.log(((e, ''),)))
+             for e in ('sensor_lag', 'time_delay', 'pitch_actuator_lag')]
+    assert sum(forms) == pytest.approx(math.exp(prior.log((('sensor_bias', ''),))))
+    # an odd blade is one of N
+    blade = Prior(EFFECTS + ('blade_dissimilarity',), 3, 4)
+    assert math.exp(blade.log((('blade_dissimilarity', 'blade_2'),))) == pytest.approx(
+        math.exp(blade.log((('sensor_bias', ''),))) / 4)
