@@ -321,6 +321,37 @@ def _exchange(space, best, candidates, prior, policy, steps, mu, say):
     return best
 
 
+def same_physics(a, b, mu):
+    """Return whether two explanations differ only by first-order equivalents."""
+    mine, theirs = set(a), set(b)
+    if len(mine) != len(theirs):
+        return False
+    x, y = mine - theirs, theirs - mine
+    return all(any(v in equivalent(u, mu) for v in y) for u in x) \
+        and all(any(u in equivalent(v, mu) for u in x) for v in y)
+
+
+def _beam(ranked, policy, mu):
+    """
+    Return the explanations of one size to extend: the most probable ones, one per physics.
+
+    At most ``beam_width``, each of another physics than those before it (extending a delay
+    beside the lag it is equivalent to tests the same models again). However improbable the
+    second is, it is extended: a stand-in can hide the pair it stands in for by any margin.
+    Only explanations of the best one's likelihood are extended beside it (a compute budget:
+    a filter-error fit costs tens of output-error ones; random inflow is score-tested on top
+    of the best explanation at every step all the same).
+    """
+    beam = []
+    for res in ranked:
+        if len(beam) == policy.beam_width:
+            break
+        if res.likelihood == ranked[0].likelihood \
+                and not any(same_physics(res.names, b.names, mu) for b in beam):
+            beam.append(res)
+    return beam
+
+
 def search(space, effects, prior, policy, mu=0.0, say=None):
     """
     Forward steps guided by score tests, a backward check after each: :class:`Selection`.
@@ -362,7 +393,7 @@ def search(space, effects, prior, policy, mu=0.0, say=None):
         steps.append(Step('add', added[0], added[1], float(odds),
                           2.0 * (ranked[0].loglik - best.loglik), ranked[0].effects))
         best = _backward(space, ranked[0], added, candidates, prior, steps)
-        frontier = ranked[:policy.beam_width]
+        frontier = _beam(ranked, policy, mu)
     best = _exchange(space, best, candidates, prior, policy, steps, mu, say)
     return Selection(candidates=candidates, steps=steps, final=best, tests=tests,
                      effects=tuple(effects), mu=mu)

@@ -16,7 +16,7 @@ import math
 
 from rotor_id.diagnosis.catalogue import EFFECTS, equivalent
 from rotor_id.diagnosis.result import Alternative, DetectionLimit, Effect, Explanation, Share
-from rotor_id.diagnosis.selection import posterior, shared_rho, tests_at
+from rotor_id.diagnosis.selection import posterior, same_physics, shared_rho, tests_at
 from scipy.optimize import brentq
 from scipy.stats import ncx2
 
@@ -53,17 +53,7 @@ def _shares(top, effect, ranked, policy):
     return [Share(e, p / total) for e, p in same]
 
 
-def _equivalent_sets(a, b, mu):
-    """Return whether two explanations differ only by first-order equivalents."""
-    mine, theirs = set(a.names), set(b.names)
-    if len(mine) != len(theirs):
-        return False
-    x, y = mine - theirs, theirs - mine
-    return all(any(v in equivalent(u, mu) for v in y) for u in x) \
-        and all(any(u in equivalent(v, mu) for u in x) for v in y)
-
-
-def same_physics(top, ranked, policy, mu):
+def physics_of(top, ranked, policy, mu):
     """
     Return (the explanation to name, the probability of its physics).
 
@@ -74,7 +64,7 @@ def same_physics(top, ranked, policy, mu):
     1 − high_confidence of it), the one of the catalogue's established effects (the first in
     :data:`~rotor_id.diagnosis.catalogue.EFFECTS`) is named, the others with their shares.
     """
-    group = [(c, p) for c, p in ranked if c.fitted and _equivalent_sets(top, c, mu)]
+    group = [(c, p) for c, p in ranked if c.fitted and same_physics(top.names, c.names, mu)]
     total = sum(p for _, p in group)
     plausible = [c for c, p in group if p >= (1.0 - policy.high_confidence) * total]
     named = min(plausible, key=lambda c: sorted(EFFECTS.index(e) for e in c.names))
@@ -154,7 +144,7 @@ def explain(space, selection, prior, policy, adequate, misfit):
     ranked = posterior(selection.candidates.values(), prior)
     baseline = selection.candidates[()]
     top = next(c for c, p in ranked if c.fitted)
-    top, p_top = same_physics(top, ranked, policy, selection.mu)
+    top, p_top = physics_of(top, ranked, policy, selection.mu)
     table = alternatives(ranked, baseline, misfit)
     shown = [a for a, (c, p) in zip(table, ranked)
              if c is not top and p >= policy.alternative_share]

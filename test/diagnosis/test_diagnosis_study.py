@@ -1,9 +1,10 @@
 """
 Concealed effects from the independent generator are named right, with bounds that hold.
 
-CI part: three effects whose physics is not in any given recording (one blade's Lock number,
-a pitch/flap time skew, flap-sensor scale errors), one seed each, at a size where the
-baseline's residual RMS is at most ~10 % above the noise floor. Checked: the right effect (or
+CI part: two effects whose physics is not in any given recording (one blade's Lock number, a
+pitch/flap time skew), one seed each, at a size where the baseline's residual RMS is at most
+~10 % above the noise floor, and physics in no catalogue (``unexplained``); with the marker
+``study`` also flap-sensor scale errors, an azimuth offset at μ = 0.4 and a pair. Checked: the right effect (or
 its first-order equivalent), the augmented fit's RMS within 5 % of the floor, the extra
 parameters within 3σ of the truth, the original parameters back within 3σ of the truth. And
 two effects at once (a lagging sensor with offsets): both named, each within 3σ.
@@ -28,6 +29,7 @@ from rotor_id.diagnosis.diagnose import diagnose
 ROOT = Path(__file__).resolve().parents[2]
 
 
+@pytest.mark.study
 def test_two_concealed_effects_are_both_named():
     # a lagging flap sensor with offsets: both named, each with its parameters, and the fit
     # comes to the floor only with both
@@ -44,8 +46,9 @@ def test_two_concealed_effects_are_both_named():
     assert out['original_within_3sigma']
 
 
-@pytest.mark.parametrize('name', ['blade_lock_number', 'time_delay', 'sensor_gain',
-                                  'azimuth_offset'])
+@pytest.mark.parametrize('name', ['blade_lock_number', 'time_delay',
+                                  pytest.param('sensor_gain', marks=pytest.mark.study),
+                                  pytest.param('azimuth_offset', marks=pytest.mark.study)])
 def test_concealed_effect_named_with_bounds(name):
     scenario = BY_NAME[name]
     record, description = scenario.record_and_description(1)
