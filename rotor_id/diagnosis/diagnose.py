@@ -329,7 +329,8 @@ def diagnose(record, description, progress=None, workers=2, effects=EFFECTS, win
                                       verbose_fits)
     mu = base.ident.model.rotor.advance_ratio
     prior = Prior(usable, policy.max_effects, record.n_blades, mu)
-    selection = search(space, usable, prior, policy, mu, say)
+    selection = search(space, usable, prior, policy, mu, say,
+                       lambda r: residuals_are_noise(r, base, policy))
     explanation, top, table = explain(
         space, selection, prior, policy, lambda r: residuals_are_noise(r, base, policy),
         lambda r: misfit_removed(r, base))

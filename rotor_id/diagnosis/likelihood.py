@@ -20,7 +20,8 @@ import numpy as np
 from rotor_id import residuals as rs
 from rotor_id.diagnosis import noisy
 from rotor_id.diagnosis.catalogue import (
-    CandidateFit, COMPOSE_ORDER, EFFECTS, fit_candidate, screen_candidate, SCREENED)
+    CandidateFit, COMPOSE_ORDER, EFFECTS, fit_candidate, LAG_PARAMETER, screen_candidate,
+    SCREENED)
 from rotor_id.estimation import kernels
 from rotor_id.estimation.output_error import IdentificationError
 
@@ -122,6 +123,9 @@ class Likelihood(Protocol):
     def score(self, current: FitResult, effect: str) -> ScoreTest:
         """Score-test ``effect`` at the fitted ``current`` (None: not nested, fit it)."""
 
+    def score_many(self, current: FitResult, effects: list) -> dict:
+        """Score-test several effects at ``current``: {effect: ScoreTest or None}."""
+
 
 def _failed(effects, fit):
     return fit is None or not fit.available
@@ -136,6 +140,22 @@ def _best_variant(effect, tests):
     variant, lm, k, _ = max(tests, key=lambda v: v[1])
     var = {n: max(t[3].get(n, 0.0) for t in tests) for n in tests[0][3]}
     return ScoreTest(effect, variant, float(lm), int(k), var)
+
+
+def _screen_job(job_and_variance):
+    """Return screen_candidate of (job, noise variance), None where it fails (a worker)."""
+    try:
+        return screen_candidate(*job_and_variance)
+    except FAILURES:
+        return None
+
+
+def _as_lag(effect, test):
+    """Return a delay's score test as a lag's (d = τ to first order), its variance renamed."""
+    if effect not in LAG_PARAMETER:
+        return test
+    return ScoreTest(effect, test.variant, test.statistic, test.k,
+                     {LAG_PARAMETER[effect]: test.variance.get('delay_rad', math.nan)})
 
 
 class OutputError:
@@ -213,16 +233,32 @@ class OutputError:
 
     def score(self, current, effect):
         """Score-test a deterministic effect at an output-error fit (None: not nested)."""
-        if effect not in SCREENED:
-            return None
-        job = self.setting.job(effect, '', prior=current.effects,
-                               start=current.start_values())
+        return self.score_many(current, [effect])[effect]
+
+    def score_many(self, current, effects):
+        """
+        Score-test effects at an output-error fit: {effect: ScoreTest or None}.
+
+        In worker processes; the lags, tested through the delay d = τ, share its test.
+        """
         noise_var = np.asarray(current.estimate.noise_std, dtype=float)**2
-        try:
-            tests = screen_candidate(job, noise_var)
-        except FAILURES:
-            return None
-        return _best_variant(effect, tests)
+        tested = {e: ('time_delay' if e in LAG_PARAMETER else e) for e in effects
+                  if e in SCREENED}
+        jobs = {t: (self.setting.job(t, '', prior=current.effects,
+                                     start=current.start_values()), noise_var)
+                for t in set(tested.values())}
+        names = sorted(jobs)
+        if self.workers > 1 and len(names) > 1:
+            kernels.prefer()
+            with multiprocessing.get_context('fork').Pool(processes=self.workers) as pool:
+                found = dict(zip(names, pool.map(_screen_job, [jobs[n] for n in names])))
+        else:
+            found = {n: _screen_job(jobs[n]) for n in names}
+        out = {e: None for e in effects}
+        for effect, test in tested.items():
+            if found[test] is not None:
+                out[effect] = _as_lag(effect, _best_variant(effect, found[test]))
+        return out
 
 
 class FilterError:
@@ -330,6 +366,16 @@ class ModelSpace:
         """Fit an explanation again from ``values``; the better of the two (output error)."""
         owner = self._owner(effects)
         return owner.refit_from(effects, values) if hasattr(owner, 'refit_from') else None
+
+    def score_many(self, current, effects):
+        """Score-test effects at ``current``: {effect: ScoreTest or None}."""
+        plain = [e for e in effects
+                 if self._owner(current.effects + ((e, ''),)) is self.output_error]
+        out = self.output_error.score_many(current, plain) if plain else {}
+        for e in effects:
+            if e not in out:
+                out[e] = self.score(current, e)
+        return out
 
     def score(self, current, effect):
         """Score-test ``effect`` at ``current`` with the likelihood of ``current + effect``."""

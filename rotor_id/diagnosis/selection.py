@@ -177,8 +177,10 @@ def _screen(space, current, effects, candidates, prior, policy, tests, mu, say):
     here = tests.setdefault(current.effects, {})
     scored, unscored = [], []
     open_effects = _open_effects(current, effects, mu)
+    asked = [e for e in open_effects if e not in here]
+    fresh = space.score_many(current, asked) if asked else {}
     for effect in open_effects:
-        test = here.get(effect) or space.score(current, effect)
+        test = here.get(effect) or fresh.get(effect)
         if test is None:
             unscored.append(effect)
             continue
@@ -331,7 +333,7 @@ def same_physics(a, b, mu):
         and all(any(u in equivalent(v, mu) for u in x) for v in y)
 
 
-def _beam(ranked, policy, mu):
+def _beam(ranked, policy, mu, adequate):
     """
     Return the explanations of one size to extend: the most probable ones, one per physics.
 
@@ -340,8 +342,12 @@ def _beam(ranked, policy, mu):
     second is, it is extended: a stand-in can hide the pair it stands in for by any margin.
     Only explanations of the best one's likelihood are extended beside it (a compute budget:
     a filter-error fit costs tens of output-error ones; random inflow is score-tested on top
-    of the best explanation at every step all the same).
+    of the best explanation at every step all the same), and only when the best one leaves
+    residuals that are not noise (``adequate``): otherwise nothing is left that a pair
+    could explain better than the effect standing in for it.
     """
+    if adequate(ranked[0]):
+        return ranked[:1]
     beam = []
     for res in ranked:
         if len(beam) == policy.beam_width:
@@ -352,7 +358,7 @@ def _beam(ranked, policy, mu):
     return beam
 
 
-def search(space, effects, prior, policy, mu=0.0, say=None):
+def search(space, effects, prior, policy, mu=0.0, say=None, adequate=None):
     """
     Forward steps guided by score tests, a backward check after each: :class:`Selection`.
 
@@ -360,9 +366,11 @@ def search(space, effects, prior, policy, mu=0.0, say=None):
     ``fit_many`` and ``refit_from``; ``effects``: the catalogue ids it may use; ``mu``: the
     advance ratio (which effects are first-order equivalents, never added together). Each
     step extends the :attr:`~SelectionPolicy.beam_width` most probable explanations of the
-    last size; the search goes on while the best of the new size is the most probable yet.
+    last size (:func:`_beam`; ``adequate(result)``: whether a fit's residuals are noise);
+    the search goes on while the best of the new size is the most probable yet.
     """
     say = say or (lambda text: None)
+    adequate = adequate or (lambda result: False)
     best = space.baseline()
     candidates = {(): Candidate((), best)}
     steps, tests, frontier = [], {}, [best]
@@ -393,7 +401,7 @@ def search(space, effects, prior, policy, mu=0.0, say=None):
         steps.append(Step('add', added[0], added[1], float(odds),
                           2.0 * (ranked[0].loglik - best.loglik), ranked[0].effects))
         best = _backward(space, ranked[0], added, candidates, prior, steps)
-        frontier = _beam(ranked, policy, mu)
+        frontier = _beam(ranked, policy, mu, adequate)
     best = _exchange(space, best, candidates, prior, policy, steps, mu, say)
     return Selection(candidates=candidates, steps=steps, final=best, tests=tests,
                      effects=tuple(effects), mu=mu)
@@ -402,9 +410,8 @@ def search(space, effects, prior, policy, mu=0.0, say=None):
 def tests_at(space, selection, result):
     """Return the score tests of every open effect at a fitted explanation (cached)."""
     here = selection.tests.setdefault(result.effects, {})
-    for effect in _open_effects(result, selection.effects, selection.mu):
-        if effect not in here:
-            test = space.score(result, effect)
-            if test is not None:
-                here[effect] = test
+    asked = [e for e in _open_effects(result, selection.effects, selection.mu) if e not in here]
+    for effect, test in (space.score_many(result, asked) if asked else {}).items():
+        if test is not None:
+            here[effect] = test
     return here

@@ -61,6 +61,9 @@ class TableSpace:
         self.refits.append((canonical(effects), dict(values)))
         return self._result(effects, gain_shift=self.table.get('restart_gain', 0.0))
 
+    def score_many(self, current, effects):
+        return {e: self.score(current, e) for e in effects}
+
     def score(self, current, effect):
         new = self._result(current.effects + ((effect, ''),))
         lm = self.table.get(('score', frozenset(new.names)), 2.0 * (new.loglik - current.loglik))
