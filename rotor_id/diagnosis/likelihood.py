@@ -254,7 +254,7 @@ class OutputError:
                 found = dict(zip(names, pool.map(_screen_job, [jobs[n] for n in names])))
         else:
             found = {n: _screen_job(jobs[n]) for n in names}
-        out = {e: None for e in effects}
+        out = dict.fromkeys(effects)
         for effect, test in tested.items():
             if found[test] is not None:
                 out[effect] = _as_lag(effect, _best_variant(effect, found[test]))

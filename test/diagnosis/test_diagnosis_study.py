@@ -4,10 +4,10 @@ Concealed effects from the independent generator are named right, with bounds th
 CI part: two effects whose physics is not in any given recording (one blade's Lock number, a
 pitch/flap time skew), one seed each, at a size where the baseline's residual RMS is at most
 ~10 % above the noise floor, and physics in no catalogue (``unexplained``); with the marker
-``study`` also flap-sensor scale errors, an azimuth offset at μ = 0.4 and a pair. Checked: the right effect (or
-its first-order equivalent), the augmented fit's RMS within 5 % of the floor, the extra
-parameters within 3σ of the truth, the original parameters back within 3σ of the truth. And
-two effects at once (a lagging sensor with offsets): both named, each within 3σ.
+``study`` also flap-sensor scale errors, an azimuth offset at μ = 0.4 and a pair. Checked:
+the right effect (or its first-order equivalent), the augmented fit's RMS within 5 % of the
+floor, the extra parameters within 3σ of the truth, the original parameters back within 3σ
+of the truth; for the pair (a lagging sensor with offsets) both named, each within 3σ.
 
 Study part (marker ``study``, ROTOR_ID_SLOW=1; hours: 60+ scenarios with the catalogue
 pairs, 10 seeds each, 5-20 s CPU a run): the full study of bench/diagnosis_stats.py:
