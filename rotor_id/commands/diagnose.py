@@ -59,13 +59,13 @@ def _effect_lines(explanation):
     return lines
 
 
-def _limit_lines(explanation):
+def _limit_lines(explanation, power):
     limits = [d for d in explanation.detection_limits if d.limits]
     if not limits:
         return []
-    lines = [f'detection limits (the size this record would have revealed, '
-             f'{"none" if explanation.effect == "none" else "nothing else"} means nothing '
-             'above these limits):']
+    said = 'None' if explanation.effect == 'none' else 'No further effect'
+    lines = [f'detection limits (the size this record would have revealed with power {power:g}; '
+             f'{said} means nothing above these limits):']
     for d in limits:
         lines.append(f'  {d.effect:<22} ' + ', '.join(
             f'|{n}| {v:.3g}' for n, v in d.limits.items()))
@@ -109,7 +109,7 @@ def format_summary(diagnosis):
         lines.append(f'{name:<44} {a.probability:11.4f} {a.two_delta_loglik:9.1f} '
                      f'{a.n_params:3d} {_fmt(a.misfit_explained, ".0%"):>14}'
                      + ('' if a.fitted else '  (score test)'))
-    lines += _limit_lines(ex)
+    lines += _limit_lines(ex, diagnosis.policy.detection_power)
     lines.append(f'probability: BIC evidence with the autocorrelation-corrected sample size, '
                  f'prior uniform over sizes then sets; high confidence from '
                  f'{diagnosis.policy.high_confidence:g}; {diagnosis.elapsed_s:.1f} s')

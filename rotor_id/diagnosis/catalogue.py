@@ -1,5 +1,5 @@
 """
-Build and fit the catalogue's candidates on the baseline's data (issue 4, step 3).
+Build and fit the catalogue's candidates on the baseline's data.
 
 A candidate is an id of the issue (``sensor_lag``, ``dynamic_inflow`` …), the augmented model
 of :mod:`rotor_id.diagnosis.augmentations` for every run of the baseline, the unknowns (the
@@ -24,7 +24,7 @@ from rotor_id.estimation.output_error import (
 from rotor_id.estimation.simulate import DEFAULT_MAX_STEP
 from rotor_id.physics.aerodynamics import flap_damping
 
-#: Every effect of the catalogue, in the order they are tried (issue 4 ids first).
+#: Every effect of the catalogue, in the order they are tried.
 EFFECTS = ('dynamic_inflow', 'periodic_coefficients', 'sensor_lag', 'time_delay',
            'sensor_bias', 'blade_dissimilarity', 'process_noise', 'flap_frequency',
            'cubic_stiffness', 'pitch_flap_coupling', 'pitch_actuator_lag', 'sensor_gain',

@@ -1,5 +1,5 @@
 """
-Out of catalogue: propose a term of the flap equation from the equation error (issue 16, item 4).
+Out of catalogue: propose a term of the flap equation from the equation error.
 
 When no catalogue effect explains a recording (verdict ``unexplained``), the mismatch may still
 be structured dynamics. This module asks which small physical term, added to every blade's
