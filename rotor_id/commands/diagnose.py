@@ -63,7 +63,7 @@ def _limit_lines(explanation, power):
     limits = [d for d in explanation.detection_limits if d.limits]
     if not limits:
         return []
-    said = 'None' if explanation.effect == 'none' else 'No further effect'
+    said = '"none"' if explanation.effect == 'none' else 'no further effect'
     lines = [f'detection limits (the size this record would have revealed with power {power:g}; '
              f'{said} means nothing above these limits):']
     for d in limits:
