@@ -11,6 +11,7 @@ original parameters, the alternatives, and the detection limits of the effects n
 """
 
 import json
+import math
 from pathlib import Path
 import sys
 
@@ -68,7 +69,8 @@ def _limit_lines(explanation, power):
              f'{said} means nothing above these limits):']
     for d in limits:
         lines.append(f'  {d.effect:<22} ' + ', '.join(
-            f'|{n}| {v:.3g}' for n, v in d.limits.items()))
+            f'|{n}| {v:.3g}' if math.isfinite(v) else f'|{n}| any (not informed)'
+            for n, v in d.limits.items()))
     return lines
 
 

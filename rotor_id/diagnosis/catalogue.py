@@ -602,8 +602,14 @@ def score_statistic(runs, unknowns, guess, known, noise_var, max_step=None, extr
     grad = -sum(np.einsum('tmi,m,tm->i', dy, inv_var, res) for res, dy, _ in results)
     M = information_matrix([dy for _, dy, _ in results], noise_var)
     d = np.sqrt(np.maximum(np.diag(M), 1e-300))
-    cov = np.linalg.pinv(M / np.outer(d, d), rcond=1e-12) / np.outer(d, d)
-    var = {n: float(cov[problem.names.index(n), problem.names.index(n)])
+    s, V = np.linalg.eigh(M / np.outer(d, d))
+    kept = s > 1e-12 * s.max()
+    cov = (V[:, kept] / s[kept]) @ V[:, kept].T / np.outer(d, d)
+    # a parameter along a direction the data do not inform has no finite variance (its
+    # detection limit is unbounded), not the zero a truncated inverse would give it
+    unseen = np.sum(V[:, ~kept]**2, axis=1) > 1e-6
+    var = {n: math.inf if unseen[problem.names.index(n)]
+           else float(cov[problem.names.index(n), problem.names.index(n)])
            for n in extra if n in problem.names}
     return float(grad @ cov @ grad), var
 

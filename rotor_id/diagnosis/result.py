@@ -77,7 +77,8 @@ class DetectionLimit:
     """The size of an un-named effect that this record would have revealed."""
 
     effect: str
-    #: {parameter: smallest |value| detected with the policy's power}; empty when not nested
+    #: {parameter: smallest |value| detected with the policy's power}; empty when not nested,
+    #: infinite (JSON null) along a direction this record does not inform
     limits: dict
     #: the noncentrality (expected 2Δlog L) at that size, and the score statistic here
     noncentrality: float
@@ -86,7 +87,9 @@ class DetectionLimit:
 
     def as_json(self):
         """Return an entry of ``explanation.detection_limits``."""
-        return {'effect': self.effect, 'limits': {n: float(v) for n, v in self.limits.items()},
+        return {'effect': self.effect,
+                'limits': {n: float(v) if math.isfinite(v) else None
+                           for n, v in self.limits.items()},
                 'noncentrality': float(self.noncentrality),
                 'score_statistic': float(self.score_statistic), 'how': self.how}
 

@@ -118,7 +118,7 @@ def detection_limits(space, selection, top, prior, policy):
         if not math.isfinite(lam):
             continue
         limits = {n: math.sqrt(lam * v) for n, v in test.variance.items()
-                  if math.isfinite(v) and v >= 0.0}
+                  if v >= 0.0 and not math.isnan(v)}
         if effect == 'process_noise':          # the test is of σ_V², the limit of σ_V
             limits = {'process_noise_std': math.sqrt(v) for v in limits.values()}
         out.append(DetectionLimit(effect, limits, lam, test.statistic, 'score test'))
