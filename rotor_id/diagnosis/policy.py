@@ -51,8 +51,6 @@ class SelectionPolicy:
     #: Candidate fits of one step done in full when more pass the screen (a compute budget:
     #: the others enter the posterior by their score-test approximation).
     max_fits_per_step: int = 6
-    #: ... of which filter-error (random-inflow) fits, each tens of output-error fits' cost.
-    max_filter_fits_per_step: int = 2
 
 
 DEFAULT_POLICY = SelectionPolicy()

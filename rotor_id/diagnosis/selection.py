@@ -196,18 +196,16 @@ def _screen(space, current, effects, candidates, prior, policy, tests, mu, say):
             # only where the delay would be added, so that they compete for the name
             expected = (0.5 * (test.statistic * rho - test.k * math.log(current.n_obs * rho))
                         + prior.log(key) - prior.log(current.effects))
-            odds = min(odds, expected + math.log(policy.fit_share))
+            odds = odds if expected >= 0.0 else -math.inf
         if odds >= math.log(policy.fit_share) and not candidates[key].fitted:
-            scored.append((test.statistic, effect, test.variant, key))
-    scored.sort(reverse=True)
+            scored.append((odds, key))
     if here:
         ranked = sorted(here.items(), key=lambda et: -et[1].statistic)
         say(f'score tests at {" + ".join(current.names) or "the baseline"}: '
             + ', '.join(f'{e} {t.statistic:.1f}' for e, t in ranked))
-    noise = [s for s in scored if s[1] == 'process_noise' or current.likelihood != 'output error']
-    plain = [s for s in scored if s not in noise]
-    chosen = plain[:policy.max_fits_per_step] + noise[:policy.max_filter_fits_per_step]
-    requests = [(key, current) for _, _, _, key in chosen]
+    base = _log_post(current, candidates, prior)
+    scored.sort(reverse=True)
+    requests = [(base + odds, key, current) for odds, key in scored[:policy.max_fits_per_step]]
     for effect in unscored:
         key = canonical(current.effects + ((effect, ''),))
         alone = candidates.get(canonical(((effect, ''),)))
@@ -216,8 +214,35 @@ def _screen(space, current, effects, candidates, prior, policy, tests, mu, say):
             - _log_post(candidates[()].result, candidates, prior) >= math.log(policy.fit_share))
         if (not current.effects or earned) and not (key in candidates
                                                     and candidates[key].fitted):
-            requests.append((key, current))
+            requests.append((math.inf, key, current))
     return requests
+
+
+def _fit_step(space, requests, candidates, prior, policy, say):
+    """
+    Fit a step's requests [(upper bound of the log posterior, key, start)]; return the fits.
+
+    Branch and bound: the requests that could be the step's best (their bound within
+    ``fit_share`` of the highest bound, and those without a score test) first; then each
+    other whose bound still reaches ``fit_share`` of the best fit so far.
+    """
+    bounds = [ub for ub, _, _ in requests if math.isfinite(ub)]
+    top = max(bounds, default=-math.inf)
+    first = [r for r in requests if r[0] >= top + math.log(policy.fit_share)]
+    rest = [r for r in requests if r not in first]
+    say('  fitting ' + ', '.join(' + '.join(e for e, _ in k) for _, k, _ in first))
+    fitted = space.fit_many([(k, start) for _, k, start in first])
+    _record(fitted, candidates, say)
+    size = len(requests[0][1])
+    best = max((_log_post(c.result, candidates, prior) for c in candidates.values()
+                if c.fitted and len(c.effects) == size), default=-math.inf)
+    rest = [r for r in rest if r[0] >= best + math.log(policy.fit_share)]
+    if rest:
+        say('  then ' + ', '.join(' + '.join(e for e, _ in k) for _, k, _ in rest))
+        more = space.fit_many([(k, start) for _, k, start in rest])
+        _record(more, candidates, say)
+        fitted += more
+    return fitted
 
 
 def _restart_equivalents(space, fitted, candidates, policy):
@@ -377,15 +402,14 @@ def search(space, effects, prior, policy, mu=0.0, say=None, adequate=None):
     for size in range(1, policy.max_effects + 1):
         requests = {}
         for current in frontier:
-            for key, start in _screen(space, current, effects, candidates, prior, policy,
-                                      tests, mu, say):
-                requests.setdefault(key, (key, start))
+            for ub, key, start in _screen(space, current, effects, candidates, prior, policy,
+                                          tests, mu, say):
+                if ub > requests.get(key, (-math.inf,))[0]:
+                    requests[key] = (ub, key, start)
         if not requests:
             break
-        say(f'step {size}: fitting '
-            f'{", ".join(" + ".join(e for e, _ in k) for k in requests)}')
-        fitted = space.fit_many(list(requests.values()))
-        _record(fitted, candidates, say)
+        say(f'step {size}:')
+        fitted = _fit_step(space, list(requests.values()), candidates, prior, policy, say)
         _restart_equivalents(space, fitted, candidates, policy)
         ranked = sorted((c.result for c in candidates.values()
                          if c.fitted and len(c.effects) == size),

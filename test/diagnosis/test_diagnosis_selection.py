@@ -206,8 +206,9 @@ def test_a_fit_at_its_range_limit_is_still_compared():
 
 
 def test_a_worse_optimum_is_restarted_from_its_first_order_equivalent():
+    # the delay's score test predicts the lag's gain (one statistic), its fit stops at 15.6
     table = {frozenset(['sensor_lag']): (75.0, 1), frozenset(['time_delay']): (15.6, 1),
-             'restart_gain': 59.0}
+             ('score', frozenset(['time_delay'])): 150.0, 'restart_gain': 59.0}
     _, selection, space = _run(table)
     restarted = dict(space.refits)
     assert restarted[(('time_delay', ''),)]['delay_rad'] == pytest.approx(0.05)
