@@ -218,25 +218,39 @@ def _screen(space, current, effects, candidates, prior, policy, tests, mu, say):
     return requests
 
 
+def _bound(request, candidates, prior, policy):
+    """Return the upper bound of a request's log posterior at the table's shared ρ now."""
+    _, key, _ = request
+    cand = candidates.get(key)
+    if cand is None or cand.test is None:
+        return math.inf                      # no score test: always a contender
+    rho = shared_rho(candidates.values())
+    loglik = cand.parent.loglik + 0.5 * policy.score_allowance * cand.test.statistic
+    k = cand.parent.n_params + cand.test.k
+    return rho * loglik - 0.5 * k * math.log(cand.parent.n_obs * rho) + prior.log(key)
+
+
 def _fit_step(space, requests, candidates, prior, policy, say):
     """
-    Fit a step's requests [(upper bound of the log posterior, key, start)]; return the fits.
+    Fit a step's requests [(bound, key, start)]; return the fits.
 
-    Branch and bound: the requests that could be the step's best (their bound within
-    ``fit_share`` of the highest bound, and those without a score test) first; then each
-    other whose bound still reaches ``fit_share`` of the best fit so far.
+    Branch and bound on the score tests' bound of the posterior (:func:`_bound`, evaluated
+    at the shared ρ as it stands): the requests that could be the step's best (bound within
+    ``fit_share`` of the highest, and those without a score test) first; then each other
+    whose bound still reaches ``fit_share`` of the best fit.
     """
-    bounds = [ub for ub, _, _ in requests if math.isfinite(ub)]
-    top = max(bounds, default=-math.inf)
-    first = [r for r in requests if r[0] >= top + math.log(policy.fit_share)]
-    rest = [r for r in requests if r not in first]
+    bounds = {r[1]: _bound(r, candidates, prior, policy) for r in requests}
+    top = max((b for b in bounds.values() if math.isfinite(b)), default=-math.inf)
+    first = [r for r in requests if bounds[r[1]] >= top + math.log(policy.fit_share)]
+    rest = [r for r in requests if bounds[r[1]] < top + math.log(policy.fit_share)]
     say('  fitting ' + ', '.join(' + '.join(e for e, _ in k) for _, k, _ in first))
     fitted = space.fit_many([(k, start) for _, k, start in first])
     _record(fitted, candidates, say)
     size = len(requests[0][1])
     best = max((_log_post(c.result, candidates, prior) for c in candidates.values()
                 if c.fitted and len(c.effects) == size), default=-math.inf)
-    rest = [r for r in rest if r[0] >= best + math.log(policy.fit_share)]
+    rest = [r for r in rest
+            if _bound(r, candidates, prior, policy) >= best + math.log(policy.fit_share)]
     if rest:
         say('  then ' + ', '.join(' + '.join(e for e, _ in k) for _, k, _ in rest))
         more = space.fit_many([(k, start) for _, k, start in rest])
