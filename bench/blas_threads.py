@@ -7,7 +7,7 @@ what that buys on this machine. Each setting runs in its own child process (Open
 variable when numpy loads it), interleaved round by round so both see the same load, and times
 
 * ``lstsq``: the initial-state least squares of the wake candidate of dx_dynamic_inflow, a
-  4260 x 10 problem (``output_error._fit_initial_states``; a random matrix of that shape);
+  4260 x 10 problem (``output_error.fit_initial_states``; a random matrix of that shape);
 * ``diagnose``: ``diagnose()`` of the dx_dynamic_inflow practice recording, one worker, record
   in memory (skipped without /work/shared recordings).
 

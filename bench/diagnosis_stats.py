@@ -55,8 +55,9 @@ def run_one(args):
     out.update(generated)
     out.update(seed=seed, elapsed_s=time.perf_counter() - t0, cpu_s=time.process_time() - c0,
                parameters=result['explanation']['parameters'],
-               candidates=[{k: c.get(k) for k in ('effect', 'variant', 'delta_loglik',
-                                                  'criterion', 'validation_rms', 'eligible')}
+               probability=result['explanation']['probability'],
+               candidates=[{k: c.get(k) for k in ('effects', 'probability', 'two_delta_loglik',
+                                                  'n_params', 'fitted')}
                            for c in result['candidates']])
     return out
 

@@ -151,9 +151,6 @@ KNOWN = {
                  'what': 'fit CPU with lost samples (a gap) over the same fit on the whole '
                          'record',
                  'quick': ['bench/gap_cost.py', '--repeat', '1', '--no-write']},
-    'forward_stop_cost': {'target': False,
-                          'what': 'diagnose: CPU of always a last selection step vs the '
-                                  'omnibus stop'},
 }
 
 #: Hand-written notes on a results file's figures go after this line; a re-run keeps them.

@@ -23,7 +23,7 @@ checks). After each fit :func:`check` tests, for every run and output channel:
   first;
 * **noise level** (output and equation error): the residual mean square against the model-free
   noise floor of the flap sensors (their third differences,
-  :func:`rotor_id.diagnosis.residuals.blade_noise_floor`), one-sided z with the standard error
+  :func:`rotor_id.residuals.blade_noise_floor`), one-sided z with the standard error
   of both mean squares. Filter error's residuals are innovations, whose variance legitimately
   exceeds the sensor noise (the state prediction's own uncertainty), so for it only the two
   tests above apply: innovations of an adequate model are white even when process noise colours
@@ -43,7 +43,7 @@ import enum
 import math
 
 import numpy as np
-from rotor_id.diagnosis import residuals as rs
+from rotor_id import residuals as rs
 from rotor_id.estimation.validation import chi2_sf, normal_sf
 
 #: Family-wise false-alarm probability of the adequacy check on a recording the model explains.
@@ -189,12 +189,12 @@ def fitted_directions(estimate, experiments):
     A filter-error fit's noise parameters are not model parameters: then the unknowns and
     initial states it shares with output error are used.
     """
-    from rotor_id.estimation.output_error import _Problem, evaluate
+    from rotor_id.estimation.output_error import Problem, evaluate
     model = experiments[0].model
     values = dict(zip(estimate.names, estimate.values))
     unknowns = [n for n in estimate.names if n in model.parameter_names]
     try:
-        problem = _Problem(experiments, unknowns, None, dict(estimate.model_parameters))
+        problem = Problem(experiments, unknowns, None, dict(estimate.model_parameters))
         if any(n not in values for n in problem.names):
             return None
         theta = np.array([values[n] for n in problem.names], dtype=float)

@@ -399,7 +399,7 @@ def adequacy_of(ident, record):
     ``identify`` runs it unless told not to; the live identifier runs it on its final estimate
     after publishing it, off the latency path.
     """
-    from rotor_id import adequacy as adequacy_check   # imports diagnosis, which imports us
+    from rotor_id import adequacy as adequacy_check   # scipy.fft: loaded when checked
     part = record.window(*ident.window_s)
     return adequacy_check.check(ident.estimate, ident.experiments,
                                 [(part.blade_flap, part.time_s)] * len(ident.experiments))
@@ -561,7 +561,7 @@ def identify_runs(runs, method=None, progress=None, multi_start=True, max_iter=5
         estimate = _fit_guarded('output-error', experiments, unknowns, guess, known,
                                 description, model, progress, max_iter, 'marginal', step_tol,
                                 noise_std=noise_std)
-    from rotor_id import adequacy as adequacy_check   # imports diagnosis, which imports us
+    from rotor_id import adequacy as adequacy_check   # scipy.fft: loaded when checked
     return Identification(estimate=estimate, model=experiments[0].model,
                           experiments=experiments, description=description,
                           window_s=parts[0].window_s, omega_rad_s=parts[0].omega_rad_s,

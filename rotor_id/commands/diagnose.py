@@ -2,15 +2,16 @@
 ``rotor-id diagnose BAG --config RUN.yaml [--json OUT.json] [--report DIR] [--workers N]``.
 
 Fits the run description's model, locates where the residuals depart from the model-free noise
-floor (channels, band per rev, time span), fits every candidate of the catalogue of missing
-physics as an augmented model by the same output-error ML, chooses by an autocorrelation-
-corrected BIC difference and cross-validation, and prints what it found: the effect (or
-``none`` / ``unexplained``), its parameters with Cramér-Rao bounds, the corrected original
-parameters, residual RMS of baseline and augmented model against the floor, whiteness before
-and after. ``--json`` writes the stable keys of issue 4, ``--report`` the figures.
+floor (channels, band per rev, time span), searches the catalogue of missing physics for the
+explanation (a set of effects) of highest posterior probability (docs/diagnosis.md), and
+prints what it found: the effect (or ``none`` / ``unexplained``) with its probability, the
+effects the record cannot tell apart, its parameters with Cramér-Rao bounds, the corrected
+original parameters, the alternatives, and the detection limits of the effects not named.
+``--json`` writes the same as JSON, ``--report`` the figures.
 """
 
 import json
+import math
 from pathlib import Path
 import sys
 
@@ -43,20 +44,52 @@ def _fmt(value, spec='.4g'):
     return 'n/a' if value is None else format(value, spec)
 
 
+def _effect_lines(explanation):
+    lines = []
+    for e in explanation.effects:
+        name = e.effect + (f' ({e.variant})' if e.variant else '')
+        gain = '' if e.two_delta_loglik is None else f', 2Δlog L {e.two_delta_loglik:.1f}'
+        lines.append(f'  {name}: inclusion probability {e.inclusion_probability:.3f}{gain}'
+                     + (f'; at its range limit: {", ".join(e.at_bound)}' if e.at_bound else ''))
+        if len(e.shares) > 1:
+            lines.append('    the record cannot tell it from: ' + ', '.join(
+                f'{s.effect} {s.share:.0%}' for s in e.shares if s.effect != e.effect)
+                + f' (itself {e.shares[0].share:.0%})')
+        for pname, (value, std) in e.parameters.items():
+            lines.append(f'    {pname:<16} {value:12.5g} ± {std:.3g}')
+    return lines
+
+
+def _limit_lines(explanation, power):
+    limits = [d for d in explanation.detection_limits if d.limits]
+    if not limits:
+        return []
+    said = '"none"' if explanation.effect == 'none' else 'no further effect'
+    lines = [f'detection limits (the size this record would have revealed with power {power:g}; '
+             f'{said} means nothing above these limits):']
+    for d in limits:
+        lines.append(f'  {d.effect:<22} ' + ', '.join(
+            f'|{n}| {v:.3g}' if math.isfinite(v) else f'|{n}| any (not informed)'
+            for n, v in d.limits.items()))
+    return lines
+
+
 def format_summary(diagnosis):
     """Plain-text summary of a diagnosis."""
-    d = diagnosis.as_json()
-    fit = d['fit']
-    loc = d['location']
-    lines = [f'effect: {d["explanation"]["effect"]} ({d["explanation"]["confidence"]} '
-             f'confidence); mismatch: {"yes" if d["mismatch"] else "no"}']
-    if d['mismatch']:
+    ex = diagnosis.explanation
+    fit = diagnosis.fit
+    loc = diagnosis.location
+    lines = [f'effect: {ex.effect} ({ex.confidence} confidence, probability '
+             f'{ex.probability:.3f}); mismatch: {"yes" if diagnosis.mismatch else "no"}']
+    if ex.reason:
+        lines.append(f'why: {ex.reason}')
+    if diagnosis.mismatch:
         lines.append(f'location: channels {", ".join(loc["channels"]) or "(none singly)"}; '
                      f'band {loc["band_per_rev"][0]:.2f}-{loc["band_per_rev"][1]:.2f} per rev; '
                      f'time {loc["window_s"][0]:.3f}-{loc["window_s"][1]:.3f} s')
-    if 'proposal' in d['explanation']:
+    if diagnosis.proposal is not None:
         from rotor_id.diagnosis.proposal import summary_line
-        lines.append(summary_line(d['explanation']['proposal']))
+        lines.append(summary_line(diagnosis.proposal))
     lines.append(f'residual RMS [rad]: baseline {fit["baseline_rms"]:.4g}, augmented '
                  f'{fit["augmented_rms"]:.4g}, noise floor {fit["noise_floor"]:.4g} '
                  f'(baseline {fit["baseline_rms"] / fit["noise_floor"] - 1:+.1%}, augmented '
@@ -64,49 +97,24 @@ def format_summary(diagnosis):
     lines.append(f'whiteness p (Ljung-Box, Bonferroni): baseline '
                  f'{fit["whiteness_p_baseline"]:.2g}, augmented '
                  f'{fit["whiteness_p_augmented"]:.2g}')
-    effects = d['explanation'].get('effects', [])
-    if len(effects) > 1:
-        lines.append(f'effects, added one at a time (residual RMS above the floor: baseline '
-                     f'{fit["baseline_rms"] / fit["noise_floor"] - 1:+.1%}):')
-        for i, e in enumerate(effects, 1):
-            name = e['effect'] + (f' ({e["variant"]})' if e.get('variant') else '')
-            lines.append(f'  {i}. + {name:<28} Δlog L {e["delta_loglik"]:8.1f}, criterion '
-                         f'{e["criterion"]:7.1f}, held-out RMS {_fmt(e["validation_rms"])} rad, '
-                         f'residual RMS {e["residual_rms"]:.4g} rad '
-                         f'({e["excess_over_floor"]:+.1%} of the floor)')
-            if 'test' in e:
-                t = e['test']
-                lines.append(f'       added by its {t["name"]}: 2ΔJ·ρ {t["statistic"]:.1f} > '
-                             f'χ²_{t["parameters"]} {t["critical"]:.1f} (level {t["level"]:.2g})')
-            for pname, p in e['parameters'].items():
-                lines.append(f'       {pname:<14} {p["value"]:12.5g} ± {p["std"]:.3g}')
-    elif d['explanation']['parameters']:
-        lines.append('extra parameters (Cramér-Rao σ):')
-        for name, p in d['explanation']['parameters'].items():
-            lines.append(f'  {name:<14} {p["value"]:12.5g} ± {p["std"]:.3g}')
+    lines += _effect_lines(ex)
     lines.append('original parameters: baseline -> corrected (σ)')
-    for name, p in d['parameters'].items():
+    for name, p in diagnosis.parameters.items():
         lines.append(f'  {name:<14} {p["baseline_value"]:12.5g} ± {p["baseline_std"]:.2g}  ->  '
                      f'{p["value"]:12.5g} ± {p["std"]:.2g}')
-    lines.append(f'{"candidate":<30} {"Δlog L":>9} {"criterion":>10} {"valid. RMS":>11}  '
-                 'eligible')
-    for c in d['candidates']:
-        name = c['effect'] + (f' ({c["variant"]})' if c.get('variant') else '')
-        if not c['available']:
-            lines.append(f'{name:<30} {"":>9} {"":>10} {"":>11}  {c.get("reason", "")}')
+    lines.append(f'{"explanation":<44} {"probability":>11} {"2Δlog L":>9} {"k":>3} '
+                 f'{"misfit removed":>14}')
+    for a in diagnosis.candidates:
+        if a.probability < 1e-4 and a.effects:
             continue
-        if c.get('bound_limited'):
-            lines.append(f'{name:<30} {_fmt(c["delta_loglik"], ".1f"):>9} {"":>10} {"":>11}  '
-                         f'no: {c["reason"]}')
-            continue
-        lines.append(f'{name:<30} {_fmt(c["delta_loglik"], ".1f"):>9} '
-                     f'{_fmt(c["criterion"], ".1f"):>10} {_fmt(c["validation_rms"]):>11}  '
-                     f'{"yes" if c["eligible"] else "no"}')
-    lines.append(f'baseline validation RMS {_fmt(fit["validation_rms_baseline"])} rad; '
-                 f'criterion = BIC difference with autocorrelation-corrected sample size, '
-                 f'threshold {d["criterion"]["threshold"]:g}; {d["elapsed_s"]:.1f} s')
-    for note in d['notes']:
-        lines.append(f'note: {note}')
+        name = ' + '.join(a.effects) or '(none)'
+        lines.append(f'{name:<44} {a.probability:11.4f} {a.two_delta_loglik:9.1f} '
+                     f'{a.n_params:3d} {_fmt(a.misfit_explained, ".0%"):>14}'
+                     + ('' if a.fitted else '  (score test)'))
+    lines += _limit_lines(ex, diagnosis.policy.detection_power)
+    lines.append(f'probability: BIC evidence with the autocorrelation-corrected sample size, '
+                 f'prior uniform over sizes then sets; high confidence from '
+                 f'{diagnosis.policy.high_confidence:g}; {diagnosis.elapsed_s:.1f} s')
     return '\n'.join(lines)
 
 

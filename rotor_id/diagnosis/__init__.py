@@ -1,19 +1,26 @@
 """
-Model-mismatch diagnosis (issue 4): locate, explain and prove what a model leaves out.
+Model-mismatch diagnosis: locate, explain and prove what a model leaves out.
 
-``diagnose(record, description)`` is the library entry (also for the identifier node on a
-live window: pass ``window_s`` and ``workers=1``); ``rotor-id diagnose`` is its command.
+``diagnose(record, description)`` is the library entry; ``rotor-id diagnose`` is its command.
 
-* :mod:`.residuals`: model-free noise floor and residual tests (whiteness, input correlation,
-  spectrum per rev, energy over time) that locate a mismatch;
 * :mod:`.augmentations`: the catalogue's augmented models (each a LinearModel wrapping the
   baseline, with analytic derivatives);
-* :mod:`.catalogue`: building and fitting the candidates, cross-validation;
-* :mod:`.diagnose`: the procedure and the choice (autocorrelation-corrected BIC + validation);
-* :mod:`.figures`: the report's figures.
+* :mod:`.catalogue`: building, fitting and score-testing one candidate (output error);
+* :mod:`.noisy`: the same with random inflow (filter error);
+* :mod:`.likelihood`: both behind one interface (fit → FitResult, score test → ScoreTest);
+* :mod:`.selection`: the search and the posterior over explanations;
+* :mod:`.policy`: every threshold, with its statistical reason;
+* :mod:`.verdict`: probability, shares, detection limits, ``unexplained``;
+* :mod:`.result`: the typed result (Diagnosis, Explanation, Effect, ...);
+* :mod:`.diagnose`: the procedure; :mod:`.figures`: the report's figures;
+* :mod:`.proposal`: an out-of-catalogue term proposed from the equation error.
+
+The selection and its statistics are stated in docs/diagnosis.md.
 """
 
 from rotor_id.diagnosis.catalogue import EFFECTS, EQUIVALENT
-from rotor_id.diagnosis.diagnose import diagnose, Diagnosis
+from rotor_id.diagnosis.diagnose import diagnose
+from rotor_id.diagnosis.policy import SelectionPolicy
+from rotor_id.diagnosis.result import Diagnosis
 
-__all__ = ['Diagnosis', 'EFFECTS', 'EQUIVALENT', 'diagnose']
+__all__ = ['Diagnosis', 'EFFECTS', 'EQUIVALENT', 'SelectionPolicy', 'diagnose']

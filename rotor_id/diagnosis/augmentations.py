@@ -1,5 +1,5 @@
 """
-The catalogue of candidate physics: each an augmented model built from the baseline (issue 4).
+The catalogue of candidate physics: each an augmented model built from the baseline.
 
 Every augmentation is a :class:`~rotor_id.physics.models.LinearModel` that wraps the baseline
 model, adds states, parameters, inputs or output offsets, and gives analytic derivatives of all

@@ -1,5 +1,5 @@
 """
-Build and fit the catalogue's candidates on the baseline's data (issue 4, step 3).
+Build and fit the catalogue's candidates on the baseline's data.
 
 A candidate is an id of the issue (``sensor_lag``, ``dynamic_inflow`` …), the augmented model
 of :mod:`rotor_id.diagnosis.augmentations` for every run of the baseline, the unknowns (the
@@ -19,12 +19,12 @@ import numpy as np
 
 from rotor_id.diagnosis import augmentations as aug
 from rotor_id.estimation.output_error import (
-    _fit_initial_states, _Problem, evaluate, Experiment, fit_output_error, IdentificationError,
-    information_matrix, STOP)
+    evaluate, Experiment, fit_initial_states, fit_output_error, IdentificationError,
+    information_matrix, Problem, STOP)
 from rotor_id.estimation.simulate import DEFAULT_MAX_STEP
 from rotor_id.physics.aerodynamics import flap_damping
 
-#: Every effect of the catalogue, in the order they are tried (issue 4 ids first).
+#: Every effect of the catalogue, in the order they are tried.
 EFFECTS = ('dynamic_inflow', 'periodic_coefficients', 'sensor_lag', 'time_delay',
            'sensor_bias', 'blade_dissimilarity', 'process_noise', 'flap_frequency',
            'cubic_stiffness', 'pitch_flap_coupling', 'pitch_actuator_lag', 'sensor_gain',
@@ -109,9 +109,8 @@ class Job:
     unknowns: list
     known: dict
     window_s: tuple
-    validate: bool = False
     verbose: bool = False
-    #: starting values of the augmented model (validation of an already fitted candidate)
+    #: starting values of the augmented model (a bigger or smaller model's estimate)
     start: dict = None
     #: the baseline's −log L (a fit at a bound that does not beat it is not widened)
     baseline_nll: float = math.inf
@@ -119,8 +118,6 @@ class Job:
     bounds: dict = None
     #: effects already kept, [(effect, variant)], fitted together with this one
     prior: tuple = ()
-    #: cross-validation of one direction only: fit on this half (0 or 1), predict the other
-    half: int = None
 
 
 @dataclass
@@ -138,8 +135,6 @@ class CandidateFit:
     extra_names: list = field(default_factory=list)
     n_extra: int = 0
     parameters: dict = field(default_factory=dict)
-    validation_rms: float = None
-    validation_ms: list = None
     elapsed_s: float = 0.0
     #: {effect: its parameters {name: (value, std)}} of every effect in the fitted model
     effect_parameters: dict = field(default_factory=dict)
@@ -152,6 +147,27 @@ class CandidateFit:
     bound_limited: list = field(default_factory=list)
 
 
+@dataclass
+class Setting:
+    """What every candidate fit of one diagnosis shares: the record, the run and the values."""
+
+    record: object
+    description: object
+    #: the baseline's estimate of the unknowns, and the known parameters
+    values: dict
+    unknowns: list
+    known: dict
+    window_s: tuple
+    verbose: bool = False
+    #: the filter-error fits made so far (later ones start from an earlier one's values)
+    filter_fits: list = field(default_factory=list)
+
+    def job(self, effect, variant='', **options):
+        """Return a candidate :class:`Job` on this record, description and values."""
+        return Job(effect, variant, self.record, self.description, self.values,
+                   self.unknowns, self.known, self.window_s, verbose=self.verbose, **options)
+
+
 def _free_of(exp, model, extra_free):
     free = list(exp.free_states())
     mode = exp.initial_state
@@ -160,7 +176,7 @@ def _free_of(exp, model, extra_free):
     return free
 
 
-def _augment_runs(experiments, make, record, extra_inputs=None):
+def augment_runs(experiments, make, record, extra_inputs=None):
     """One augmented experiment per baseline run; returns (experiments, model of run 1)."""
     runs = []
     for exp in experiments:
@@ -219,15 +235,6 @@ def applicable(effect, model_name, rotor, unknowns):
     return ''
 
 
-def variants(effect, model_name, n_blades):
-    """
-    Return the sub-candidates of one effect (one each).
-
-    The odd blade of a dissimilarity is screened inside the fit (:func:`_screen_blade`).
-    """
-    return ['']
-
-
 def n_choices(effect, n_blades):
     """How many alternatives the fit chose among (the odd blade: N), for the criterion."""
     return n_blades if effect == 'blade_dissimilarity' else 1
@@ -252,35 +259,35 @@ def _augment_one(effect, variant, record, experiments, unknowns=()):
     collective pitch is one).
     """
     if effect == 'sensor_lag':
-        return _augment_runs(experiments, aug.SensorLag, record)
+        return augment_runs(experiments, aug.SensorLag, record)
     if effect == 'time_delay':
-        return _augment_runs(experiments, aug.TimeDelay, record, _pitch_rates)
+        return augment_runs(experiments, aug.TimeDelay, record, _pitch_rates)
     if effect == 'sensor_bias':
         t_all = np.concatenate([e.t for e in experiments])
-        return _augment_runs(
+        return augment_runs(
             experiments, lambda m: aug.SensorBias(
                 m, t_all, collective_fitted=aug.BladeView(m).model.collective in unknowns),
             record)
     if effect == 'flap_frequency':
-        return _augment_runs(experiments, aug.FlapFrequency, record)
+        return augment_runs(experiments, aug.FlapFrequency, record)
     if effect == 'cubic_stiffness':
-        return _augment_runs(experiments, aug.CubicStiffness, record, _measured_flap(record))
+        return augment_runs(experiments, aug.CubicStiffness, record, _measured_flap(record))
     if effect == 'dynamic_inflow':
-        return _augment_runs(experiments, aug.DynamicInflow, record)
+        return augment_runs(experiments, aug.DynamicInflow, record)
     if effect == 'blade_dissimilarity':
         blade = int((variant or 'blade_1').split('_')[1])
-        return _augment_runs(experiments, lambda m: aug.BladeDissimilarity(m, blade), record)
+        return augment_runs(experiments, lambda m: aug.BladeDissimilarity(m, blade), record)
     if effect == 'pitch_flap_coupling':
-        return _augment_runs(experiments, aug.PitchFlapCoupling, record)
+        return augment_runs(experiments, aug.PitchFlapCoupling, record)
     if effect == 'pitch_actuator_lag':
-        return _augment_runs(experiments, aug.PitchActuatorLag, record, _pitch_rates)
+        return augment_runs(experiments, aug.PitchActuatorLag, record, _pitch_rates)
     if effect == 'sensor_gain':
         def gain(m):
             blades = [b - 1 for b in aug.BladeView(m).blades]
             return aug.SensorGain(m, record.t, record.blade_flap[:, blades])
-        return _augment_runs(experiments, gain, record)
+        return augment_runs(experiments, gain, record)
     if effect == 'azimuth_offset':
-        return _augment_runs(experiments, aug.AzimuthOffset, record)
+        return augment_runs(experiments, aug.AzimuthOffset, record)
     if effect == 'periodic_coefficients':
         if any(isinstance(e.model, aug.Augmented) for e in experiments):
             raise IdentificationError('periodic_coefficients replaces the rotor model and is '
@@ -303,7 +310,7 @@ def layers(model):
     return out
 
 
-def _build(job, baseline_model, experiments):
+def build(job, baseline_model, experiments):
     """
     Experiments, unknowns, guesses and RK4 step of a candidate.
 
@@ -348,12 +355,12 @@ def _build(job, baseline_model, experiments):
 MAX_WIDENINGS = 2
 
 
-def _at_catalogue_bound(est, model, extra):
+def at_catalogue_bound(est, model, extra):
     """[(name, 'lower'|'upper')] of extra parameters at a catalogue (not physical) bound."""
-    return _at_catalogue_bound_values(est.model_parameters, model, extra)
+    return bound_sides(est.model_parameters, model, extra)
 
 
-def _at_catalogue_bound_values(values, model, extra):
+def bound_sides(values, model, extra):
     """[(name, side)] of the extra parameters in ``values`` at a catalogue bound."""
     out = []
     for name in extra:
@@ -367,6 +374,12 @@ def _at_catalogue_bound_values(values, model, extra):
     return out
 
 
+def parameter_range(model, name):
+    """Return (lower, upper) of an augmentation's extra parameter in a fitted model."""
+    par = _layer_of(model, name).parameter(name)
+    return par.lower, par.upper
+
+
 def _layer_of(model, name):
     """Return the augmentation layer that owns extra parameter ``name``."""
     for layer in layers(model):
@@ -375,7 +388,7 @@ def _layer_of(model, name):
     raise KeyError(name)
 
 
-def _stop_at_bound(model, extra, show):
+def stop_at_bound(model, extra, show):
     """
     Progress callback: print, and stop a fit whose extra parameter stays at a catalogue bound.
 
@@ -389,10 +402,22 @@ def _stop_at_bound(model, extra, show):
         if show is not None:
             show(info)
         values = dict(zip(info['names'], info['values']))
-        streak[0] = streak[0] + 1 if _at_catalogue_bound_values(values, model, extra) else 0
+        streak[0] = streak[0] + 1 if bound_sides(values, model, extra) else 0
         return STOP if streak[0] >= 2 else None
     return check
 
+
+#: Starts of a lag or delay from its first-order equivalent's fit: {effect: {equivalent:
+#: (its parameter, this effect's parameter)}}. A lag τ and a delay d = τ give the same flap to
+#: O(τ²), so one's estimate is a start of the other's fit near its optimum.
+FIRST_ORDER_START = {
+    'time_delay': {'sensor_lag': ('lag_rad', 'delay_rad'),
+                   'pitch_actuator_lag': ('actuator_lag_rad', 'delay_rad')},
+    'sensor_lag': {'time_delay': ('delay_rad', 'lag_rad'),
+                   'pitch_actuator_lag': ('actuator_lag_rad', 'lag_rad')},
+    'pitch_actuator_lag': {'time_delay': ('delay_rad', 'actuator_lag_rad'),
+                           'sensor_lag': ('lag_rad', 'actuator_lag_rad')},
+}
 
 #: The time constant of each lag effect (not nested: τ > 0; started from several values).
 LAG_PARAMETER = {'sensor_lag': 'lag_rad', 'pitch_actuator_lag': 'actuator_lag_rad'}
@@ -449,10 +474,10 @@ def _start_cost(runs, unknowns, start, known, max_step):
     likelihood of a fit stopped at the start, from plain simulations (no sensitivities).
     """
     try:
-        problem = _Problem(runs, unknowns, start, known)
+        problem = Problem(runs, unknowns, start, known)
         theta = np.concatenate([problem.p_base[problem.param_index],
                                 np.zeros(len(problem.names) - len(problem.param_index))])
-        theta = _fit_initial_states(problem, theta, max_step)
+        theta = fit_initial_states(problem, theta, max_step)
         results = evaluate(problem, theta, max_step, sensitivities=False)
         cost = 0.5 * sum(res.shape[0] * float(np.sum(np.log(np.mean(res**2, axis=0))))
                          for res, _, _ in results)
@@ -485,101 +510,6 @@ def _printer(label, verbose):
     return show
 
 
-def _split_runs(runs, half):
-    """Return the runs cut to the first (half=0) or second (half=1) half of their samples."""
-    return _block_runs(runs, [half], 2)
-
-
-def _block_runs(runs, blocks, k):
-    """
-    Return the runs cut to ``blocks`` (indices) of ``k`` equal blocks of their samples.
-
-    Adjacent blocks stay one run; each separate span is a run of its own (its own initial
-    states), named after the run and its first block.
-    """
-    spans = []
-    for b in sorted(blocks):
-        if spans and spans[-1][1] == b:
-            spans[-1][1] = b + 1
-        else:
-            spans.append([b, b + 1])
-    out = []
-    for exp in runs:
-        n = exp.t.size
-        for a, b in spans:
-            sl = slice(a * n // k, b * n // k)
-            name = exp.name if len(spans) == 1 else f'{exp.name} (block {a + 1}/{k})'
-            kwargs = {'initial_state': exp.initial_state, 'name': name}
-            if isinstance(exp, AugmentedExperiment):
-                out.append(AugmentedExperiment(exp.model, exp.inputs, exp.t[sl], exp.y[sl],
-                                               free=exp.free, **kwargs))
-            else:
-                out.append(Experiment(exp.model, exp.inputs, exp.t[sl], exp.y[sl], **kwargs))
-    return out
-
-
-def cross_validate(runs, unknowns, guess, known, max_step=None, halves=(0, 1)):
-    """
-    Fit on one half of the window, predict the other (initial states refitted), both ways.
-
-    Returns the mean-square prediction error per channel, averaged over the directions
-    ``halves`` (the half fitted: 0 the first, 1 the second).
-    """
-    kw = {'max_step': max_step} if max_step else {}
-    ms = []
-    for fit_half in halves:
-        fit_runs = _split_runs(runs, fit_half)
-        est = fit_output_error(fit_runs, unknowns, guess=guess, known=known, max_iter=15, **kw)
-        params = dict(est.model_parameters)
-        pred_runs = _split_runs(runs, 1 - fit_half)
-        pred = fit_output_error(pred_runs, [], known=params, max_iter=3, **kw)
-        res = np.concatenate(pred.residuals, axis=0)
-        ms.append(np.mean(res**2, axis=0))
-    return np.mean(ms, axis=0)
-
-
-def validate_candidate(job):
-    """
-    Cross-validated RMS of a fitted candidate (``job.start`` = its estimate), or None.
-
-    Both directions, or only ``job.half``'s (:func:`combine_halves` joins the two RMS).
-    """
-    from rotor_id.pipeline import experiments_from_record, model_for
-    base_model = model_for(job.description)
-    halves = (0, 1) if job.half is None else (job.half,)
-    try:
-        if job.effect == 'baseline':
-            runs = experiments_from_record(job.record, job.description, base_model,
-                                           job.window_s)
-            ms = cross_validate(runs, job.unknowns, job.start or job.baseline_values, job.known,
-                                halves=halves)
-        else:
-            experiments = experiments_from_record(job.record, job.description, base_model,
-                                                  job.window_s)
-            runs, _, unknowns, _, guess, max_step = _build(job, base_model, experiments)
-            ms = cross_validate(runs, unknowns, guess, job.known, max_step, halves=halves)
-    except (IdentificationError, np.linalg.LinAlgError, FloatingPointError):
-        return job.effect, job.variant, None
-    return job.effect, job.variant, float(math.sqrt(np.mean(ms)))
-
-
-def validation_halves(job):
-    """Return the two one-direction jobs of a validation job (one per worker)."""
-    return [_replace(job, half=0), _replace(job, half=1)]
-
-
-def combine_halves(rms_first, rms_second):
-    """
-    Return the RMS of both directions from each direction's RMS (None if either failed).
-
-    The RMS is over channels of the mean square averaged over the directions, and averages
-    are linear: √((r0² + r1²)/2).
-    """
-    if rms_first is None or rms_second is None:
-        return None
-    return float(math.sqrt(0.5 * (rms_first**2 + rms_second**2)))
-
-
 def fit_candidate(job):
     """Fit one candidate (runs in a worker process); never raises for a failed fit."""
     from rotor_id.pipeline import experiments_from_record, model_for
@@ -592,8 +522,6 @@ def fit_candidate(job):
         out.available, out.reason = False, reason
         return out
     try:
-        if job.effect == 'process_noise':
-            return _fit_process_noise(job, out, t_start)
         experiments = experiments_from_record(job.record, job.description, base_model,
                                               job.window_s)
         if job.effect == 'blade_dissimilarity':
@@ -601,16 +529,16 @@ def fit_candidate(job):
             out.variant = job.variant
             label = f'{job.effect} {job.variant}'
         for widening in range(MAX_WIDENINGS + 1):
-            runs, model, unknowns, extra, guess, max_step = _build(job, base_model,
-                                                                   experiments)
+            runs, model, unknowns, extra, guess, max_step = build(job, base_model,
+                                                                  experiments)
             kw = {'max_step': max_step} if max_step else {}
             starts = grid_starts(job, model, guess, unknowns)
             if starts is not None:
                 guess = _best_start(runs, unknowns, starts, job.known, max_step) or guess
             fit_kw = dict(known=job.known, label=label, **kw,
-                          progress=_stop_at_bound(model, extra, _printer(label, job.verbose)))
+                          progress=stop_at_bound(model, extra, _printer(label, job.verbose)))
             est = fit_output_error(runs, unknowns, guess=guess, max_iter=40, **fit_kw)
-            at_bound = _at_catalogue_bound(est, model, extra)
+            at_bound = at_catalogue_bound(est, model, extra)
             out.bounds = dict(job.bounds or {})
             out.bound_limited = [name for name, _ in at_bound]
             wider = {name: _layer_of(model, name).widened(name, side)
@@ -632,13 +560,6 @@ def fit_candidate(job):
     out.n_extra = len(est.names) - len(job.unknowns) - _n_initial(experiments)
     out.effect_parameters.update(effect_parameters(est, model))
     out.parameters = out.effect_parameters.get(job.effect, {})
-    if job.validate:
-        try:
-            start = {n: est.model_parameters[n] for n in unknowns}
-            out.validation_ms = cross_validate(runs, unknowns, start, job.known, max_step)
-            out.validation_rms = float(math.sqrt(np.mean(out.validation_ms)))
-        except (IdentificationError, np.linalg.LinAlgError, FloatingPointError):
-            out.validation_rms = None
     out.elapsed_s = time.perf_counter() - t_start
     if job.verbose:
         import sys
@@ -658,52 +579,67 @@ SCREENED = ('sensor_lag', 'time_delay', 'sensor_bias', 'blade_dissimilarity',
             'sensor_gain', 'azimuth_offset')
 
 
-def score_statistic(runs, unknowns, guess, known, noise_var, max_step=None):
+def score_statistic(runs, unknowns, guess, known, noise_var, max_step=None, extra=()):
     """
-    Score (Lagrange-multiplier) statistic of extra parameters at the baseline estimate.
+    Score (Lagrange-multiplier) test of extra parameters at the current estimate: (LM, var).
 
     LM = gᵀ M⁻¹ g with g the gradient of the output-error cost ½Σ r²/σ² and M the information
-    matrix, both at ``guess`` (baseline estimate, extra parameters at their neutral values,
-    initial states refitted); σ² is the baseline's. LM is the Gauss-Newton prediction of
+    matrix, both at ``guess`` (current estimate, extra parameters at their neutral values,
+    initial states refitted); σ² is the current model's. LM is the Gauss-Newton prediction of
     2Δlog L of the full fit and is χ²(k) under the null of no effect (Rao's score test), from
-    one sensitivity simulation and no refitting.
+    one sensitivity simulation and no refitting. ``var`` = {name: (M⁻¹)_jj} of the ``extra``
+    parameters: the variance their estimate would have here (the others profiled), from
+    which a detection limit follows.
     """
     max_step = max_step or DEFAULT_MAX_STEP
-    problem = _Problem(runs, unknowns, guess, known)
+    problem = Problem(runs, unknowns, guess, known)
     k = len(problem.names)
     theta = np.concatenate([problem.p_base[problem.param_index],
                             np.zeros(k - len(problem.param_index))])
-    theta = _fit_initial_states(problem, theta, max_step)
+    theta = fit_initial_states(problem, theta, max_step)
     results = evaluate(problem, theta, max_step)
     inv_var = 1.0 / np.asarray(noise_var, dtype=float)
     grad = -sum(np.einsum('tmi,m,tm->i', dy, inv_var, res) for res, dy, _ in results)
     M = information_matrix([dy for _, dy, _ in results], noise_var)
-    return float(grad @ np.linalg.lstsq(M, grad, rcond=1e-12)[0])
+    d = np.sqrt(np.maximum(np.diag(M), 1e-300))
+    s, V = np.linalg.eigh(M / np.outer(d, d))
+    kept = s > 1e-12 * s.max()
+    cov = (V[:, kept] / s[kept]) @ V[:, kept].T / np.outer(d, d)
+    # a parameter along a direction the data do not inform has no finite variance (its
+    # detection limit is unbounded), not the zero a truncated inverse would give it
+    unseen = np.sum(V[:, ~kept]**2, axis=1) > 1e-6
+    var = {n: math.inf if unseen[problem.names.index(n)]
+           else float(cov[problem.names.index(n), problem.names.index(n)])
+           for n in extra if n in problem.names}
+    return float(grad @ cov @ grad), var
 
 
 def screen_candidate(job, noise_var):
     """
-    Return [(variant, LM, k)] of a screened effect's score tests at the baseline.
+    Return [(variant, LM, k, var)] of a screened effect's score tests at the current model.
 
     k counts the extra parameters and estimated extra initial states (the test's degrees of
-    freedom). A blade dissimilarity is tested per blade; a sensor lag, which is not nested
-    (τ_s > 0), by its first-order equivalent, the delay d = τ_s nested at d = 0.
+    freedom); var = {extra parameter: its variance here}. A blade dissimilarity is tested
+    per blade; a lag, which is not nested (τ > 0), by its first-order equivalent, the delay
+    d = τ nested at d = 0 (var then under the lag's parameter name).
     """
     from rotor_id.pipeline import experiments_from_record, model_for
     base_model = model_for(job.description)
     experiments = experiments_from_record(job.record, job.description, base_model,
                                           job.window_s)
     effect = job.effect
-    if effect in ('sensor_lag', 'pitch_actuator_lag'):
+    if effect in LAG_PARAMETER:
         job = _replace(job, effect='time_delay')
     blades = _blades_of(base_model, job.record) if effect == 'blade_dissimilarity' else [None]
     out = []
     for blade in blades:
         trial = job if blade is None else _replace(job, variant=f'blade_{blade}')
-        runs, model, unknowns, extra, guess, max_step = _build(trial, base_model, experiments)
-        lm = score_statistic(runs, unknowns, guess, job.known, noise_var, max_step)
+        runs, model, unknowns, extra, guess, max_step = build(trial, base_model, experiments)
+        lm, var = score_statistic(runs, unknowns, guess, job.known, noise_var, max_step, extra)
+        if effect in LAG_PARAMETER:
+            var = {LAG_PARAMETER[effect]: var['delay_rad']}
         k = len(extra) + _n_initial(runs) - _n_initial(experiments)
-        out.append(('' if blade is None else f'blade_{blade}', lm, k))
+        out.append(('' if blade is None else f'blade_{blade}', lm, k, var))
     return out
 
 
@@ -725,7 +661,7 @@ def _screen_blade(job, base_model, experiments):
         for eps in DISSIMILARITY_STARTS:
             trial = _replace(job, variant=f'blade_{blade}',
                              start={**(job.start or {}), 'dgamma_rel': eps})
-            runs, _, unknowns, _, guess, max_step = _build(trial, base_model, experiments)
+            runs, _, unknowns, _, guess, max_step = build(trial, base_model, experiments)
             try:
                 est = fit_output_error(runs, unknowns, guess=guess, known=job.known,
                                        max_iter=2)
@@ -769,36 +705,3 @@ def _full_covariance(est, model):
         for j, b in idx:
             cov[i, j] = est.covariance[a, b]
     return cov
-
-
-def _fit_process_noise(job, out, t_start):
-    try:
-        import rotor_id.estimation.filter_error  # noqa: F401
-    except ImportError:
-        out.available = False
-        out.reason = ('unavailable: the filter-error likelihood '
-                      '(rotor_id.estimation.filter_error) is not installed in this build')
-        return out
-    from rotor_id.diagnosis import noisy
-    try:
-        # the joint ML optimum: its likelihood is what the Δlog L test compares; random
-        # inflow as every filter-error fit of the diagnosis models it (noisy.fit_alone)
-        est, model, unknowns = noisy.fit_alone(job)
-    except Exception as exc:  # noqa: B902 - another module's failure must not end diagnosis
-        out.available = False
-        out.reason = f'filter-error fit failed: {type(exc).__name__}: {exc}'
-        out.elapsed_s = time.perf_counter() - t_start
-        return out
-    out.estimate, out.model, out.unknowns = est, model, unknowns
-    extra = [n for n in est.names if n not in job.unknowns and '(t0)' not in n]
-    out.extra_names = extra
-    # the measurement σ's are no extra parameters: the output-error baseline estimates them
-    # too (as every filter-error fit beside it, noisy: k = σ_V and τ_w). Counted, they cost
-    # random inflow alone 4 log(nρ) ≈ 29 at μ = 0.4 (process_noise_mu04 seed 1003: 2ΔJ = 51.5,
-    # ρ 0.74, criterion −5.1 with 6 extra, 23.7 with 2)
-    from rotor_id.estimation.filter_error import measurement_noise_name
-    measured = {measurement_noise_name(c) for c in model.output_names}
-    out.n_extra = len([n for n in extra if n not in measured])
-    out.parameters = {n: (est.value(n), est.std_of(n)) for n in extra}
-    out.elapsed_s = time.perf_counter() - t_start
-    return out

@@ -18,7 +18,7 @@ from pathlib import Path
 
 import numpy as np
 
-from rotor_id.diagnosis import residuals as rs
+from rotor_id import residuals as rs
 from rotor_id.diagnosis.proposal import MIN_IMPROVEMENT
 
 
@@ -78,7 +78,7 @@ def plot_fits(diagnosis, path):
 
 
 def _effect_names(diagnosis):
-    return ' + '.join(st['effect'] for st in diagnosis.steps) or diagnosis.effect
+    return ' + '.join(diagnosis.explanation.names) or diagnosis.effect
 
 
 def _title(diagnosis):
@@ -161,13 +161,11 @@ def plot_effects(diagnosis, path):
     floors = [c.floor for c in chans]
     floor = math.sqrt(np.mean(np.square(floors)))
     series = [('baseline', [c.residual for c in chans])]
-    label = ''
-    for st in diagnosis.steps:
-        est = st['fit'].estimate
+    for added, result in diagnosis.path:
+        est = result.estimate
         res = [r[:, 0] for r in est.residuals] if len(est.residuals) > 1 else \
             [est.residuals[0][:, j] for j in range(est.residuals[0].shape[1])]
-        label = f'{label} + {st["effect"]}' if label else f'+ {st["effect"]}'
-        series.append((label, res))
+        series.append((added, res))
     fig, (ax_bar, ax) = plt.subplots(1, 2, figsize=(12, 3.8),
                                      gridspec_kw={'width_ratios': [1, 2]})
     excess = [math.sqrt(np.mean([np.mean(r**2) for r in res])) / floor - 1.0
@@ -175,10 +173,13 @@ def plot_effects(diagnosis, path):
     ax_bar.bar(range(len(series)), [100 * e for e in excess],
                color=['C0'] + [f'C{i + 1}' for i in range(len(series) - 1)])
     ax_bar.set_xticks(range(len(series)))
-    # an effect a kept one reproduces in this record is named under it (confounded_with)
+    # an effect the record cannot tell from a named one is named under it, with its share
+    shares = {e.effect: [s for s in e.shares if s.effect != e.effect]
+              for e in diagnosis.explanation.effects}
     ax_bar.set_xticklabels(['baseline'] + [
-        f'+ {st["effect"]}' + ''.join(f'\n(or {c["effect"]})' for c in st.get('confounds', []))
-        for st in diagnosis.steps], rotation=20, fontsize=7)
+        f'+ {added}' + ''.join(f'\n(or {s.effect} {s.share:.0%})'
+                               for s in shares.get(added, []))
+        for added, _ in series[1:]], rotation=20, fontsize=7)
     ax_bar.axhline(0.0, color='k', lw=0.8)
     ax_bar.set_ylabel('residual RMS above the floor [%]')
     for i, (name, res) in enumerate(series):
@@ -187,7 +188,7 @@ def plot_effects(diagnosis, path):
             centres, ms = rs.windowed_energy(r, t)
             total = ms / f**2 if total is None else total + ms / f**2
         ax.plot(np.interp(centres, part.t, part.time_s), total / len(res), 'o-', ms=3,
-                color=f'C{i}', label=name)
+                color=f'C{i}', label=name if i == 0 else f'+ {name}')
     ax.axhline(1.0, color='k', ls=':', lw=0.8, label='noise floor')
     ax.set_xlabel('time since first sample [s]')
     ax.set_ylabel('mean square / floor² (per rev)')

@@ -1,5 +1,5 @@
 """
-Out of catalogue: propose a term of the flap equation from the equation error (issue 16, item 4).
+Out of catalogue: propose a term of the flap equation from the equation error.
 
 When no catalogue effect explains a recording (verdict ``unexplained``), the mismatch may still
 be structured dynamics. This module asks which small physical term, added to every blade's
@@ -295,12 +295,12 @@ def refine(experiments, unknowns, values, known, terms):
     Fit the baseline with the proposed terms by output-error ML; return the estimate.
 
     The runs are the baseline's with every term stacked on the model (the catalogue's
-    :func:`~rotor_id.diagnosis.catalogue._augment_runs`).
+    :func:`~rotor_id.diagnosis.catalogue.augment_runs`).
     """
-    from rotor_id.diagnosis.catalogue import _augment_runs
+    from rotor_id.diagnosis.catalogue import augment_runs
     runs = experiments
     for term in terms:
-        runs, _ = _augment_runs(runs, lambda m, term=term: LibraryTerm(m, term), None)
+        runs, _ = augment_runs(runs, lambda m, term=term: LibraryTerm(m, term), None)
     extra = [f'xi[{term}]' for term in terms]
     guess = {**values, **dict.fromkeys(extra, 0.0)}
     return fit_output_error(runs, list(unknowns) + extra, guess=guess, known=known,

@@ -27,8 +27,8 @@ import numpy as np
 
 from rotor_id.estimation import kalman
 from rotor_id.estimation.filter_error import difference_noise_std
-from rotor_id.estimation.output_error import (_fit_initial_states, _Problem, Estimate, Experiment,
-                                              IdentificationError)
+from rotor_id.estimation.output_error import (
+    Estimate, Experiment, fit_initial_states, IdentificationError, Problem)
 from rotor_id.estimation.simulate import _fine_grid, _rk4_maps, DEFAULT_MAX_STEP, substeps_for
 
 COVARIANCE_WARNING = ('augmented-state EKF: the parameter covariance comes from an arbitrary '
@@ -182,9 +182,9 @@ def augmented_ekf(model, inputs, t, y, unknowns, guess=None, known=None, R=None,
     Rm = np.diag(difference_noise_std(y)**2) if R is None else np.asarray(R, dtype=float)
     Rm = np.diag(Rm) if Rm.ndim == 1 else Rm
     if x0 is None:
-        prob = _Problem([Experiment(model, inputs, t, y, 'estimate')], [], None,
-                        dict(zip(names_all, p)))
-        x0 = _fit_initial_states(prob, np.zeros(n), max_step)
+        prob = Problem([Experiment(model, inputs, t, y, 'estimate')], [], None,
+                       dict(zip(names_all, p)))
+        x0 = fit_initial_states(prob, np.zeros(n), max_step)
     P0x = np.eye(n) * 10.0 * float(np.mean(np.diag(Rm))) if P0_states is None else P0_states
     P0p = np.diag((0.5 * np.abs(p[idx]) + 1e-12)**2) if P0_parameters is None else \
         np.asarray(P0_parameters, dtype=float)

@@ -39,8 +39,8 @@ import numpy as np
 import numpy.typing as npt
 from rotor_id.estimation import kalman
 from rotor_id.estimation.filter_error import difference_noise_std
-from rotor_id.estimation.output_error import (_fit_initial_states, _Problem, Estimate, Experiment,
-                                              IdentificationError)
+from rotor_id.estimation.output_error import (
+    Estimate, Experiment, fit_initial_states, IdentificationError, Problem)
 from rotor_id.estimation.simulate import DEFAULT_MAX_STEP
 import scipy.signal
 
@@ -341,8 +341,8 @@ def fit_equation_error(experiments: Sequence[Experiment], unknowns: Sequence[str
     """
     if isinstance(experiments, Experiment):
         experiments = [experiments]
-    problem = _Problem([Experiment(e.model, e.inputs, e.t, e.y, 'estimate', None, e.name)
-                        for e in experiments], unknowns, guess, known)
+    problem = Problem([Experiment(e.model, e.inputs, e.t, e.y, 'estimate', None, e.name)
+                       for e in experiments], unknowns, guess, known)
     model = problem.model
     idx = problem.param_index
     m = model.n_outputs
@@ -365,7 +365,7 @@ def fit_equation_error(experiments: Sequence[Experiment], unknowns: Sequence[str
     def reconstruct(p, q_std):
         recs = []
         theta = np.concatenate([p[idx], np.zeros(len(problem.names) - len(idx))])
-        theta = _fit_initial_states(problem, theta, max_step)
+        theta = fit_initial_states(problem, theta, max_step)
         for r, (exp, y, R) in enumerate(data):
             x0 = theta[problem.state_slices[r]]
             P0 = np.eye(model.n_states) * max(scale**2, float(np.max(np.diag(R))))

@@ -66,9 +66,9 @@ import time
 import numpy as np
 
 from rotor_id.estimation import kalman, kernels
-from rotor_id.estimation.output_error import (_fit_initial_states, _Problem,
-                                              damped_gauss_newton_step, dependence_warnings,
-                                              Estimate, IdentificationError, STOP)
+from rotor_id.estimation.output_error import (
+    damped_gauss_newton_step, dependence_warnings, Estimate, fit_initial_states,
+    IdentificationError, Problem, STOP)
 from rotor_id.estimation.simulate import (_equal_steps, _fine_grid, _rk4_transition,
                                           _rk4_transition_derivative, _time_invariant,
                                           DEFAULT_MAX_STEP, substeps_for)
@@ -96,13 +96,13 @@ def difference_noise_std(y):
     return np.sqrt(np.mean(d2**2, axis=0) / 6.0)
 
 
-class _FilterProblem:
+class FilterProblem:
     """θ = [model unknowns, free initial states (per run), process σ?, measurement σ's?]."""
 
     def __init__(self, experiments, unknowns, guess, known, noise_std, process_noise_std,
                  estimate_process_noise, rows, noise_model, gain, max_step,
                  gradients='analytic'):
-        self.base = _Problem(experiments, unknowns, guess, known)
+        self.base = Problem(experiments, unknowns, guess, known)
         self.gradients = gradients
         self.cheap_sensitivities = False        # set by evaluate: all runs analytic
         self.experiments = experiments
@@ -586,12 +586,12 @@ def _reported(prob, theta):
     return out
 
 
-def _cost(results):
+def innovations_cost(results):
     """½ Σ (νᵀB⁻¹ν + log|B|) over all runs (eq. 26 halved)."""
     return 0.5 * float(sum(r[4] for r in results))
 
 
-def _gradient_information(results, k):
+def gradient_information(results, k):
     """Gradient of J and the expected (Fisher) information over all runs."""
     g = np.zeros(k)
     M = np.zeros((k, k))
@@ -694,15 +694,15 @@ def fit_filter_error_ml(experiments, unknowns, guess=None, known=None, noise_std
                                       'drop those samples before identifying')
     if process_noise_std is not None and process_noise_std < 0:
         raise IdentificationError('process_noise_std must be ≥ 0')
-    prob = _FilterProblem(experiments, unknowns, guess, known, noise_std, process_noise_std,
-                          estimate_process_noise, rows, noise_model, gain, max_step,
-                          gradients)
+    prob = FilterProblem(experiments, unknowns, guess, known, noise_std, process_noise_std,
+                         estimate_process_noise, rows, noise_model, gain, max_step,
+                         gradients)
     names = prob.names
     k = len(names)
     base = prob.base
     theta = np.zeros(k)
     theta[:len(base.param_index)] = base.p_base[base.param_index]
-    theta[:prob.n_base] = _fit_initial_states(base, theta[:prob.n_base].copy(), max_step)
+    theta[:prob.n_base] = fit_initial_states(base, theta[:prob.n_base].copy(), max_step)
     y_all = np.concatenate([exp.y for exp in experiments])
     meas0 = np.maximum(difference_noise_std(y_all), 1e-6 * max(1e-300, np.abs(y_all).max()))
     if prob.i_meas is not None:
@@ -719,7 +719,7 @@ def fit_filter_error_ml(experiments, unknowns, guess=None, known=None, noise_std
             for factor in (0.0, 0.01, 0.03, 0.1, 0.3, 1.0, 3.0):
                 trial = theta.copy()
                 trial[prob.i_process] = (factor * float(np.mean(meas_scale)))**2
-                c = _cost(prob.evaluate(trial, sensitivities=False))
+                c = innovations_cost(prob.evaluate(trial, sensitivities=False))
                 if c < best:
                     best, theta = c, trial
     for name, value in (_start or {}).items():
@@ -727,7 +727,7 @@ def fit_filter_error_ml(experiments, unknowns, guess=None, known=None, noise_std
     t_start = time.perf_counter()
     history = []
     results = prob.evaluate(theta)
-    cost = _cost(results)
+    cost = innovations_cost(results)
     if not math.isfinite(cost):
         raise IdentificationError('the filter likelihood at the starting values is not finite; '
                                   'check the starting values and the run description')
@@ -740,12 +740,12 @@ def fit_filter_error_ml(experiments, unknowns, guess=None, known=None, noise_std
         # them with it, so the accepted point need not be filtered again
         if prob.cheap_sensitivities:
             results = prob.evaluate(trial)
-            return _cost(results), results
-        return _cost(prob.evaluate(trial, sensitivities=False)), None
+            return innovations_cost(results), results
+        return innovations_cost(prob.evaluate(trial, sensitivities=False)), None
     iteration = 0
     previous = None
     for iteration in range(1, max_iter + 1):
-        grad, M = _gradient_information(results, k)
+        grad, M = gradient_information(results, k)
         # active set: a parameter on a bound that the gradient pushes outwards stays there
         free = ~(((theta <= prob.lo) & (grad > 0)) | ((theta >= prob.hi) & (grad < 0)))
         if loglik_tol is not None and _newton_decrement(grad, M, free) < loglik_tol:
@@ -767,12 +767,12 @@ def fit_filter_error_ml(experiments, unknowns, guess=None, known=None, noise_std
             mid_cost, mid_payload = trial_cost(mid)
             if payload is None:
                 payload = prob.evaluate(trial)
-            if math.isfinite(mid_cost) and mid_cost <= _cost(payload):
+            if math.isfinite(mid_cost) and mid_cost <= innovations_cost(payload):
                 trial, payload, applied = mid, mid_payload, 0.5 * applied
         previous = applied
         theta = trial
         results = payload if payload is not None else prob.evaluate(theta)
-        cost = _cost(results)
+        cost = innovations_cost(results)
         sigma = np.sqrt(np.clip(np.diag(np.linalg.pinv(M)), 0.0, None))
         rms = math.sqrt(np.mean(np.concatenate([r[0] for r in results])**2))
         info = {'iteration': iteration, 'cost': float(cost), 'rms': rms, 'names': names,
@@ -786,7 +786,7 @@ def fit_filter_error_ml(experiments, unknowns, guess=None, known=None, noise_std
             converged = True
             message = 'converged'
             break
-    grad, M = _gradient_information(results, k)
+    grad, M = gradient_information(results, k)
     warnings = []
     # Cramér-Rao bound in the optimised coordinates (q = σ² for the process noise)
 

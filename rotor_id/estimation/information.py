@@ -33,8 +33,8 @@ from typing import Mapping, Sequence
 import numpy as np
 import numpy.typing as npt
 
-from rotor_id.estimation.output_error import (_fit_initial_states, _Problem, evaluate,
-                                              Experiment, IdentificationError)
+from rotor_id.estimation.output_error import (
+    evaluate, Experiment, fit_initial_states, IdentificationError, Problem)
 from rotor_id.estimation.simulate import DEFAULT_MAX_STEP
 from rotor_id.numpy_compat import trapezoid
 
@@ -217,7 +217,7 @@ def _theta(problem, p_full, x0, max_step):
     missing = any(problem.free_states[r] and (x0 is None and exp.x0_guess is None)
                   for r, exp in enumerate(problem.experiments))
     if missing:
-        theta = _fit_initial_states(problem, theta, max_step)
+        theta = fit_initial_states(problem, theta, max_step)
     return theta
 
 
@@ -253,7 +253,7 @@ def sensitivities(experiment: Experiment, p_full: npt.ArrayLike, unknown_names: 
     Sensitivities
 
     """
-    problem = _Problem([experiment], list(unknown_names), None, None)
+    problem = Problem([experiment], list(unknown_names), None, None)
     theta = _theta(problem, p_full, None if x0 is None else [x0], max_step)
     _, dy, sim = evaluate(problem, theta, max_step)[0]
     return Sensitivities(t=np.asarray(experiment.t, dtype=float), names=list(problem.names),
@@ -334,7 +334,7 @@ def cramer_rao_bound(experiments: Experiment | Sequence[Experiment], p_full: npt
 
     """
     experiments = _as_list(experiments)
-    problem = _Problem(experiments, list(unknown_names), None, None)
+    problem = Problem(experiments, list(unknown_names), None, None)
     theta = _theta(problem, p_full, x0, max_step)
     var = _noise_var(noise_std, experiments[0].model.n_outputs)
     M = sum(_information(dy, var).sum(axis=0) for _, dy, _ in evaluate(problem, theta, max_step))

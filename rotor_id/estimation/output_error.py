@@ -186,7 +186,7 @@ _layouts = {}
 
 def _layout(experiments, unknowns, guess, known):
     """
-    Return θ's layout for these runs as a dict of :class:`_Problem`'s attributes (read only).
+    Return θ's layout for these runs as a dict of :class:`Problem`'s attributes (read only).
 
     Kept per model object (runs of one model), by the unknowns, the guess and known values,
     each run's free states and the model's parameter tuple (which ``with_bounds`` replaces):
@@ -257,7 +257,7 @@ def _new_layout(experiments, unknowns, guess, known, free_states):
             'lo': np.array(bounds_lo), 'hi': np.array(bounds_hi)}
 
 
-class _Problem:
+class Problem:
     """Bookkeeping of θ = [free model parameters, free initial states of each run]."""
 
     def __init__(self, experiments, unknowns, guess, known):
@@ -336,7 +336,7 @@ class _Problem:
         return x0
 
 
-def _fit_initial_states(problem, theta, max_step):
+def fit_initial_states(problem, theta, max_step):
     """Least-squares initial states at fixed model parameters (y is linear in x0)."""
     p = None                            # the model parameters, once a run needs them
     for r, exp in enumerate(problem.experiments):
@@ -377,8 +377,8 @@ def evaluate(problem, theta, max_step=DEFAULT_MAX_STEP, sensitivities=True):
     Residuals and output sensitivities of every run at θ.
 
     Returns a list of (residual (T, m), dy/dθ (T, m, len(θ)) or None, simulation) per run.
-    Runs with a prepared plan (:meth:`_Problem.prepare`) also carry the residuals' sums in
-    ``simulation.residual_sums`` (run-local columns, :meth:`_Problem.run_columns`).
+    Runs with a prepared plan (:meth:`Problem.prepare`) also carry the residuals' sums in
+    ``simulation.residual_sums`` (run-local columns, :meth:`Problem.run_columns`).
     """
     p = problem.full_parameters(theta)
     k_par = len(problem.param_index)
@@ -621,7 +621,7 @@ def fit_output_error(experiments, unknowns, guess=None, known=None, noise_std=No
     Estimate
 
     """
-    problem = _Problem(experiments, unknowns, guess, known)
+    problem = Problem(experiments, unknowns, guess, known)
     names = problem.names
     k = len(names)
     p_base = problem.p_base.tolist()
@@ -644,7 +644,7 @@ def fit_output_error(experiments, unknowns, guess=None, known=None, noise_std=No
                                       'drop those samples before identifying')
         largest = max(largest, peak)
     problem.prepare(max_step)
-    theta = _fit_initial_states(problem, theta, max_step)
+    theta = fit_initial_states(problem, theta, max_step)
     n_total = sum(exp.t.size for exp in experiments)
     prior_mean = np.zeros(k)
     prior_info = np.zeros(k)
@@ -858,7 +858,7 @@ class _CompiledIteration:
         self.p_ref = p_ref
         self.p_base = problem.p_base
         self.index = index
-        # x0(θ) = x0_base + S0 θ: _Problem.initial_state of a run whose x0 is not 'equilibrium'
+        # x0(θ) = x0_base + S0 θ: Problem.initial_state of a run whose x0 is not 'equilibrium'
         self.free, self.x0_base, self.S0 = self._initial_state_map(problem, plan, index.size)
         self.y = np.ascontiguousarray(exp.y, dtype=float)
         self.lo, self.hi = problem.lo, problem.hi

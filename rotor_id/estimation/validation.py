@@ -26,7 +26,7 @@ from typing import Any, Sequence, TYPE_CHECKING
 
 import numpy as np
 import numpy.typing as npt
-from rotor_id.estimation.output_error import _fit_initial_states, _Problem, evaluate
+from rotor_id.estimation.output_error import evaluate, fit_initial_states, Problem
 from rotor_id.estimation.simulate import DEFAULT_MAX_STEP
 from rotor_id.physics.stirring import INPUT_NAMES
 
@@ -384,11 +384,11 @@ def predict(experiment: 'Experiment', p_full: npt.ArrayLike, x0: npt.ArrayLike |
     exp = replace(experiment, x0_guess=None)
     if x0 is not None:
         exp = replace(exp, initial_state=np.asarray(x0, dtype=float))
-    problem = _Problem([exp], [], None, None)
+    problem = Problem([exp], [], None, None)
     problem.p_base = np.asarray(p_full, dtype=float).copy()
     theta = np.zeros(len(problem.names))
     if theta.size:
-        theta = _fit_initial_states(problem, theta, max_step)
+        theta = fit_initial_states(problem, theta, max_step)
     _, _, sim = evaluate(problem, theta, max_step, sensitivities=False)[0]
     x_start = problem.initial_state(0, theta, problem.p_base)[0]
     return x_start, sim.y

@@ -66,6 +66,7 @@ def test_nested_candidates_equal_finite_differences():
         four_blades.check_sensitivities(model, _inputs(3), rng)
 
 
+@pytest.mark.study
 def test_diagnose_names_the_wake_of_a_three_bladed_rotor_in_forward_flight():
     """Independent truth (N = 3, μ = 0.3, δ3), wake-free baseline: the wake is named, in bounds."""
     from rotor_id.diagnosis.diagnose import diagnose
@@ -86,6 +87,7 @@ def test_diagnose_names_the_wake_of_a_three_bladed_rotor_in_forward_flight():
         assert abs(estimate['value'] - value) < 4 * estimate['std'], (name, estimate, value)
 
 
+@pytest.mark.study
 def test_a_three_bladed_rotors_sensor_offsets_in_forward_flight_are_not_a_pitch_flap_coupling():
     """
     N = 3, μ = 0.4, periodic terms and per-blade sensor biases with a common part: both named.

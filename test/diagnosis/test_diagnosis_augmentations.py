@@ -384,7 +384,8 @@ def test_innovations_of_the_true_filter_in_forward_flight_turbulence_are_white()
     # fractions (0.48, 2000 draws of 449 samples). Measured: 0.96 (β_I; the others 1.0), and
     # 0.36 on β0 without w0's column. ~4 s CPU
     from rotor_id.diagnosis import noisy
-    from rotor_id.diagnosis.residuals import effective_fraction
+    from rotor_id.diagnosis.catalogue import Setting
+    from rotor_id.residuals import effective_fraction
     from rotor_id.estimation.filter_error import fit_filter_error_ml
     from rotor_id.io.run_description import parse_run_description
     from truth_generator import generate, mu04_case, run_description_text
@@ -392,9 +393,9 @@ def test_innovations_of_the_true_filter_in_forward_flight_turbulence_are_white()
     record = generate(cfg)
     description = parse_run_description(run_description_text(cfg, 'multiblade',
                                                              ('gamma', 'theta0')))
-    ctx = {'description': description, 'record': record, 'window_s': description.window_s}
-    setup = noisy._setup(ctx)
-    runs, rows, _ = noisy._random_inflow_states(setup.experiments, record)
+    setting = Setting(record, description, {}, [], {}, description.window_s)
+    setup = noisy.setup_for(setting)
+    runs, rows, _ = noisy.random_inflow_states(setup.experiments, record)
     truth = {'gamma': cfg.gamma, 'theta0': cfg.theta0,
              'turbulence_corr_rad': cfg.turbulence_corr}
     sigma_v = cfg.turbulence * math.sqrt(2.0 / cfg.turbulence_corr)   # white-noise intensity

@@ -13,7 +13,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from rotor_id.diagnosis.residuals import blade_noise_floor, ljung_box
+from rotor_id.residuals import blade_noise_floor, ljung_box
 from truth_generator import generate, TruthConfig, wake_case
 
 RECORDINGS = Path('/work/shared/recordings')

@@ -98,14 +98,13 @@ def test_diagnose_attaches_the_proposal_to_an_unexplained_verdict(tmp_path):
 
 @pytest.mark.slow
 def test_random_inflow_gives_way_to_unexplained_when_a_deterministic_term_predicts():
-    # the filter-error fit tracks the once-per-rev stiffness as random inflow; the proposal
-    # finds the deterministic term on held-out blocks, so the verdict is out of catalogue
-    # (`unexplained`, low confidence) with the term as a proposal, and a note says why
-    # (~30 s CPU: one filter-error fit)
+    # the filter-error fit tracks the once-per-rev stiffness as random inflow; the verdict is
+    # out of catalogue (`unexplained`, low confidence), no catalogue name, and the proposal
+    # finds the deterministic term on held-out blocks (one filter-error fit)
     scenario = BY_NAME['flap_stiffness_1c']
     record, description = scenario.record_and_description(1)
     out = diagnose(record, description, workers=1, effects=('process_noise',)).as_json()
     assert out['explanation']['effect'] == 'unexplained'
     assert out['explanation']['confidence'] == 'low'
     assert out['explanation']['proposal']['terms'][0]['term'] == 'beta*cos(psi)'
-    assert any('deterministic term (beta*cos(psi))' in n for n in out['notes'])
+    assert out['explanation']['effects'] == []

@@ -90,19 +90,29 @@ def test_json_keys_and_figures(diagnoses):
     for key in ('mismatch', 'location', 'explanation', 'fit', 'candidates', 'parameters'):
         assert key in result
     assert set(result['location']) >= {'channels', 'band_per_rev', 'window_s'}
-    assert set(result['explanation']) >= {'effect', 'parameters', 'effects'}
-    effects = result['explanation']['effects']
-    assert effects and effects[0]['effect'] == result['explanation']['effect']
+    explanation = result['explanation']
+    assert set(explanation) >= {'effect', 'parameters', 'effects', 'confidence', 'probability',
+                                'alternatives', 'detection_limits'}
+    effects = explanation['effects']
+    assert effects and effects[0]['effect'] == explanation['effect']
+    assert explanation['confidence'] == 'high' and explanation['probability'] >= 0.95
     for entry in effects:
-        assert set(entry) >= {'effect', 'parameters', 'delta_loglik', 'validation_rms',
-                              'residual_rms'}
+        assert set(entry) >= {'effect', 'parameters', 'inclusion_probability', 'shares'}
+    # the first-order equivalents of a lag are named beside it with their shares
+    shares = {s['effect']: s['share'] for s in effects[0]['shares']}
+    assert abs(sum(shares.values()) - 1.0) < 1e-9
+    for alternative in explanation['alternatives']:
+        assert set(alternative) >= {'effects', 'probability'}
+    # every effect not named has the size this record would have revealed
+    limits = explanation['detection_limits']
+    assert limits['sensor_bias']['limits']['bias_pattern_1'] > 0.0
     assert set(result['fit']) >= {'noise_floor', 'baseline_rms', 'augmented_rms',
                                   'whiteness_p_baseline', 'whiteness_p_augmented'}
     for cand in result['candidates']:
-        assert set(cand) >= {'effect', 'delta_loglik', 'criterion', 'validation_rms'}
-    ids = {c['effect'] for c in result['candidates']}
-    assert {'dynamic_inflow', 'periodic_coefficients', 'sensor_lag', 'time_delay',
-            'sensor_bias', 'blade_dissimilarity', 'process_noise', 'flap_frequency'} <= ids
+        assert set(cand) >= {'effects', 'probability', 'two_delta_loglik', 'fitted'}
+    ids = {e for c in result['candidates'] for e in c['effects']}
+    assert {'sensor_lag', 'time_delay', 'sensor_bias', 'blade_dissimilarity', 'process_noise',
+            'flap_frequency'} <= ids
     for name in ('fits.png', 'residual_spectra.png', 'residual_energy.png', 'effects.png'):
         path = work / 'report' / name
         assert path.is_file() and path.stat().st_size > 10_000

@@ -2,7 +2,7 @@
 
 import numpy as np
 
-from rotor_id.diagnosis import residuals as rs
+from rotor_id import residuals as rs
 
 
 def _ar1(rng, n, a, burn=200):

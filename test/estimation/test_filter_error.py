@@ -106,8 +106,8 @@ def test_sensitivities_equal_output_error_at_zero_process_noise():
     exp = Experiment(WAKE, PROGRESSING, T_WAKE, y, initial_state='positions')
     theta_p = np.array([0.48, 0.26, 0.13])
     guess = dict(zip(UNKNOWNS, theta_p))
-    prob = fe._FilterProblem([exp], UNKNOWNS, guess, None, 0.1, 0.0, False, None, 'white',
-                             'auto', 0.05)
+    prob = fe.FilterProblem([exp], UNKNOWNS, guess, None, 0.1, 0.0, False, None, 'white',
+                            'auto', 0.05)
     theta = np.concatenate([theta_p, X0[[0, 2, 4, 5]]])
     prob.scale = np.maximum(np.abs(theta), 0.01)
     (nu, B, dnu, dB, _), = prob.evaluate(theta)
@@ -116,7 +116,7 @@ def test_sensitivities_equal_output_error_at_zero_process_noise():
     assert np.max(np.abs(nu - res)) < 1e-12
     assert np.allclose(B, 0.01 * np.eye(2), rtol=0, atol=1e-15)
     assert np.max(np.abs(dnu + dy)) < 1e-7 * np.max(np.abs(dy))
-    _, M = fe._gradient_information([(nu, B, dnu, dB, 0.0)], len(theta))
+    _, M = fe.gradient_information([(nu, B, dnu, dB, 0.0)], len(theta))
     M_oe = information_matrix([dy], np.full(2, 0.01))
     assert np.allclose(M, M_oe, rtol=1e-6, atol=1e-9 * np.max(np.abs(M_oe)))
 

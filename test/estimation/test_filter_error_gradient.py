@@ -25,8 +25,8 @@ from test_filter_error import GUESS, PROGRESSING, T_WAKE, UNKNOWNS, WAKE, wake_d
 def _wake_problem(noise_model, initial_state, noise_std=None):
     exp = Experiment(WAKE, PROGRESSING, T_WAKE, wake_data(3, 0.1, 0.05),
                      initial_state=initial_state)
-    prob = fe._FilterProblem([exp], UNKNOWNS, GUESS, None, noise_std, None, True, None,
-                             noise_model, 'auto', 0.05)
+    prob = fe.FilterProblem([exp], UNKNOWNS, GUESS, None, noise_std, None, True, None,
+                            noise_model, 'auto', 0.05)
     theta = np.zeros(len(prob.names))
     theta[:3] = [0.45, 0.22, 0.2]
     if initial_state == 'positions':
@@ -49,8 +49,8 @@ def _constant_problem():
     x0 = model.equilibrium(t[:1], p, sched(t[:1]))
     y = simulate(model, p, sched, t, x0, forcing=forcing).y + 0.05 * rng.standard_normal((121, 3))
     exp = Experiment(model, sched, t, y, initial_state='equilibrium')
-    prob = fe._FilterProblem([exp], ['gamma', 'delta'], {'gamma': 4.5, 'delta': 9.0}, None,
-                             None, None, True, None, 'held', 'auto', 0.05)
+    prob = fe.FilterProblem([exp], ['gamma', 'delta'], {'gamma': 4.5, 'delta': 9.0}, None,
+                            None, None, True, None, 'held', 'auto', 0.05)
     theta = np.array([4.5, 9.0, 0.25**2, 0.05, 0.04, 0.06])
     prob.scale = np.maximum(np.abs(theta), 1e-3)
     return prob, theta
@@ -69,8 +69,8 @@ def _periodic_problem(noise_model):
     y = y + 0.05 * rng.standard_normal(y.shape)
     exp = Experiment(model, sched, t, y, initial_state='equilibrium')
     names = list(model.parameter_names[:2])
-    prob = fe._FilterProblem([exp], names, None, None, None, None, True, None, noise_model,
-                             'auto', 0.05)
+    prob = fe.FilterProblem([exp], names, None, None, None, None, True, None, noise_model,
+                            'auto', 0.05)
     theta = np.zeros(len(prob.names))
     theta[:2] = 1.1 * p[:2]
     theta[prob.i_process] = 0.2**2
@@ -82,15 +82,15 @@ def _periodic_problem(noise_model):
 def _gradient_check(prob, theta):
     """Largest |analytic − central difference| of ∂J/∂θ_i, relative to |∂J/∂θ_i|."""
     results = prob.evaluate(theta)
-    grad, M = fe._gradient_information(results, len(theta))
+    grad, M = fe.gradient_information(results, len(theta))
     worst = 0.0
     for i in range(len(theta)):
         h = 1e-5 * max(abs(theta[i]), prob.scale[i])
         up, down = theta.copy(), theta.copy()
         up[i] += h
         down[i] -= h
-        fd = (fe._cost(prob.evaluate(up, sensitivities=False))
-              - fe._cost(prob.evaluate(down, sensitivities=False))) / (2 * h)
+        fd = (fe.innovations_cost(prob.evaluate(up, sensitivities=False))
+              - fe.innovations_cost(prob.evaluate(down, sensitivities=False))) / (2 * h)
         worst = max(worst, abs(grad[i] - fd) / max(abs(fd), 1e-3 * np.sqrt(M[i, i])))
     return worst, results
 
@@ -181,8 +181,8 @@ def test_analytic_gradient_with_output_offsets_and_two_runs():
     assert biases
     runs = [Experiment(model, PROGRESSING, T_WAKE, wake_data(seed, 0.1, 0.05) + [0.02, -0.01],
                        initial_state='positions', name=f'run{seed}') for seed in (3, 4)]
-    prob = fe._FilterProblem(runs, UNKNOWNS + biases, GUESS, None, None, None, True, None,
-                             'held', 'auto', 0.05)
+    prob = fe.FilterProblem(runs, UNKNOWNS + biases, GUESS, None, None, None, True, None,
+                            'held', 'auto', 0.05)
     theta = np.zeros(len(prob.names))
     theta[:3] = [0.45, 0.22, 0.2]
     theta[3:3 + len(biases)] = 0.01

@@ -108,12 +108,12 @@ def test_equilibrium_start_and_two_runs_have_exact_sensitivities():
     The equilibrium start x0 = −F⁻¹g depends on the parameters (equilibrium_jacobian); the
     second run's initial states are named with the run index.
     """
-    from rotor_id.estimation.output_error import _Problem, evaluate
+    from rotor_id.estimation.output_error import Problem, evaluate
     prog, regr = C.SCENARIOS['wake_progressing'], C.SCENARIOS['wake_regressing']
     t = C.sample_times(70.0, 82.0)
     runs = [C.make_experiment(prog, y=C.noisy_outputs(prog, t, 1), initial_state='equilibrium'),
             C.make_experiment(regr, y=C.noisy_outputs(regr, t, 2), initial_state='positions')]
-    problem = _Problem(runs, list(C.WAKE), None, None)
+    problem = Problem(runs, list(C.WAKE), None, None)
     assert problem.names[3:] == ['beta_I(t0)[2]', 'beta_II(t0)[2]', 'lambda_I(t0)[2]',
                                  'lambda_II(t0)[2]']
     theta = np.array([0.45, 0.22, 0.14, 0.5, 0.2, -0.8, -0.3])
@@ -208,22 +208,22 @@ def test_the_kept_layout_follows_new_parameter_bounds_and_starts():
     # θ's layout is kept per model object: new bounds (a new parameter tuple, as with_bounds
     # makes) and another guess give their own layout, the same arguments the kept one
     import dataclasses
-    from rotor_id.estimation.output_error import _Problem
+    from rotor_id.estimation.output_error import Problem
     from rotor_id.report.reproduce import case_data, iteration_experiment
     case = next(c for c in C.ITERATION_CASES if c.name == 'wake_7par')
     exp = iteration_experiment(case, case_data(case, 1))
     model, unknowns = exp.model, list(case.unknowns)
-    first = _Problem([exp], unknowns, dict(case.start), None)
-    again = _Problem([exp], unknowns, dict(case.start), None)
+    first = Problem([exp], unknowns, dict(case.start), None)
+    again = Problem([exp], unknowns, dict(case.start), None)
     assert again.lo is first.lo and again.names == first.names      # kept
-    moved = _Problem([exp], unknowns, {**case.start, unknowns[0]: 0.123}, None)
+    moved = Problem([exp], unknowns, {**case.start, unknowns[0]: 0.123}, None)
     assert moved.p_base[moved.param_index[0]] == 0.123
     assert first.p_base[first.param_index[0]] == case.start[unknowns[0]]
     saved = model.parameters
     try:
         model.parameters = tuple(dataclasses.replace(par, lower=par.lower - 1.0)
                                  for par in saved)
-        wider = _Problem([exp], unknowns, dict(case.start), None)
+        wider = Problem([exp], unknowns, dict(case.start), None)
     finally:
         model.parameters = saved
     np.testing.assert_array_equal(wider.lo[:len(unknowns)], first.lo[:len(unknowns)] - 1.0)

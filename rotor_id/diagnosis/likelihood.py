@@ -1,0 +1,385 @@
+"""
+The likelihood interface of the selection: fit a model, score-test an effect at it.
+
+An explanation is a set of catalogue effects (possibly empty). :class:`OutputError` fits the
+deterministic ones by output-error ML (:func:`rotor_id.diagnosis.catalogue.fit_candidate`, the
+compiled Gauss-Newton path); :class:`FilterError` fits those with random inflow
+(``process_noise``) by filter-error ML (:mod:`rotor_id.diagnosis.noisy`). Both give a
+:class:`FitResult` whose criteria are properties, and a :class:`ScoreTest` of an effect at a
+fitted model. :class:`ModelSpace` sends each explanation to the likelihood that owns it, so
+the search (:mod:`rotor_id.diagnosis.selection`) never asks which one it has.
+"""
+
+from dataclasses import dataclass, field, replace
+import math
+import multiprocessing
+from typing import Protocol
+
+import numpy as np
+
+from rotor_id import residuals as rs
+from rotor_id.diagnosis import noisy
+from rotor_id.diagnosis.catalogue import (
+    CandidateFit, COMPOSE_ORDER, EFFECTS, fit_candidate, LAG_PARAMETER, screen_candidate,
+    SCREENED)
+from rotor_id.estimation import kernels
+from rotor_id.estimation.output_error import IdentificationError
+
+NOISE = 'process_noise'
+FAILURES = (IdentificationError, np.linalg.LinAlgError, FloatingPointError, ValueError)
+
+
+def canonical(effects):
+    """Return an explanation's effects [(effect, variant)] in the catalogue's order."""
+    return tuple(sorted(effects, key=lambda ev: (EFFECTS.index(ev[0]), ev[1])))
+
+
+@dataclass
+class FitResult:
+    """A fitted explanation: likelihood, size, effective sample size, bounds (MLEResults-like)."""
+
+    effects: tuple
+    loglik: float
+    #: parameters beyond the baseline's (extra parameters and estimated extra initial states)
+    n_params: int
+    #: observations (samples × channels) and the residuals' effective fraction ρ = N_eff/N
+    n_obs: int
+    rho: float
+    converged: bool
+    #: extra parameters at a limit of their range after widening (the fit is still compared)
+    at_bound: tuple
+    fit: object
+    likelihood: str
+    #: the fit's time, s (CPU where run in a worker)
+    elapsed_s: float = 0.0
+
+    @property
+    def names(self):
+        """Return the effect ids."""
+        return tuple(e for e, _ in self.effects)
+
+    @property
+    def n_eff(self):
+        """Return the autocorrelation-corrected number of observations N·ρ."""
+        return self.n_obs * self.rho
+
+    @property
+    def estimate(self):
+        """Return the fit's estimate: residuals, covariance, parameters."""
+        return self.fit.estimate
+
+    @property
+    def covariance(self):
+        """Return the Cramér-Rao covariance of the estimate."""
+        return self.fit.estimate.covariance
+
+    def log_evidence(self, rho=None):
+        """
+        BIC approximation of log p(data | explanation) up to a shared constant.
+
+        ρ·log L − ½ k log(Nρ): the log-likelihood tempered by the residuals' effective
+        fraction ρ (a quasi-likelihood for correlated residuals) and the Laplace/BIC charge
+        per parameter with the effective sample size. ``rho``: the shared ρ of a comparison.
+        """
+        rho = self.rho if rho is None else rho
+        return rho * self.loglik - 0.5 * self.n_params * math.log(self.n_obs * rho)
+
+    @property
+    def bic(self):
+        """Return the BIC with the autocorrelation-corrected sample size (lower is better)."""
+        return -2.0 * self.log_evidence()
+
+    @property
+    def aic(self):
+        """Return the AIC of the tempered likelihood (lower is better)."""
+        return -2.0 * self.rho * self.loglik + 2.0 * self.n_params
+
+    def start_values(self):
+        """Return the estimate's model parameters (a start for a bigger or smaller model)."""
+        est = self.fit.estimate
+        return {n: est.model_parameters[n] for n in self.fit.unknowns
+                if n in est.model_parameters}
+
+
+@dataclass
+class ScoreTest:
+    """Rao's score test of one effect at a fitted model."""
+
+    effect: str
+    variant: str
+    #: LM = gᵀ M⁻¹ g, the Gauss-Newton prediction of 2Δlog L (χ²_k where the effect is absent)
+    statistic: float
+    k: int
+    #: {extra parameter: its variance at the fitted model} (M⁻¹)_jj, others profiled
+    variance: dict = field(default_factory=dict)
+
+
+class Likelihood(Protocol):
+    """What the search needs of a likelihood: fits of explanations and score tests."""
+
+    def fit(self, effects: tuple, start: FitResult) -> FitResult:
+        """Fit the explanation ``effects`` started from ``start``'s values (None: failed)."""
+
+    def score(self, current: FitResult, effect: str) -> ScoreTest:
+        """Score-test ``effect`` at the fitted ``current`` (None: not nested, fit it)."""
+
+    def score_many(self, current: FitResult, effects: list) -> dict:
+        """Score-test several effects at ``current``: {effect: ScoreTest or None}."""
+
+
+def _failed(effects, fit):
+    return fit is None or not fit.available
+
+
+def _best_variant(effect, tests):
+    """
+    Return the ScoreTest of the variant with the largest statistic [(variant, LM, k, var)].
+
+    The variances are the largest over the variants: a detection limit that holds for each.
+    """
+    variant, lm, k, _ = max(tests, key=lambda v: v[1])
+    var = {n: max(t[3].get(n, 0.0) for t in tests) for n in tests[0][3]}
+    return ScoreTest(effect, variant, float(lm), int(k), var)
+
+
+def _screen_job(job_and_variance):
+    """Return screen_candidate of (job, noise variance), None where it fails (a worker)."""
+    try:
+        return screen_candidate(*job_and_variance)
+    except FAILURES:
+        return None
+
+
+def _as_lag(effect, test):
+    """Return a delay's score test as a lag's (d = τ to first order), its variance renamed."""
+    if effect not in LAG_PARAMETER:
+        return test
+    return ScoreTest(effect, test.variant, test.statistic, test.k,
+                     {LAG_PARAMETER[effect]: test.variance.get('delay_rad', math.nan)})
+
+
+class OutputError:
+    """Deterministic explanations by output-error ML; the baseline is the run's own fit."""
+
+    name = 'output error'
+
+    def __init__(self, setting, ident, n_obs, workers=1):
+        self.setting, self.ident, self.n_obs, self.workers = setting, ident, n_obs, workers
+        self.model = ident.model
+        self._memo = {}
+
+    def baseline(self):
+        """Return the run's own fit (the empty explanation)."""
+        est = self.ident.estimate
+        fit = CandidateFit(effect='baseline', estimate=est, model=self.model,
+                           unknowns=list(self.setting.unknowns))
+        return self._result((), fit)
+
+    def _result(self, effects, fit):
+        res = np.concatenate(fit.estimate.residuals, axis=0)
+        return FitResult(effects=effects, loglik=-float(fit.estimate.neg_log_likelihood),
+                         n_params=max(int(fit.n_extra), 0), n_obs=self.n_obs,
+                         rho=rs.channels_effective_fraction(res),
+                         converged=bool(fit.estimate.converged),
+                         at_bound=tuple(fit.bound_limited), fit=fit, likelihood=self.name,
+                         elapsed_s=float(fit.elapsed_s))
+
+    def _job(self, effects, start):
+        """Return the job of ``effects``: its own effect the one ``start`` lacks (last added)."""
+        have = () if start is None else start.effects
+        new = [ev for ev in effects if ev not in have] or \
+            [max(effects, key=lambda ev: COMPOSE_ORDER.index(ev[0]))]
+        last = new[-1]
+        prior = tuple(ev for ev in effects if ev != last)
+        return self.setting.job(last[0], last[1], prior=prior,
+                                start=None if start is None else start.start_values(),
+                                baseline_nll=-start.loglik if start is not None else math.inf)
+
+    def fit_many(self, requests):
+        """Fit [(effects, start)] (in worker processes); returns results, None where failed."""
+        keys = [canonical(effects) for effects, _ in requests]
+        todo = {k: self._job(k, start) for k, (_, start) in zip(keys, requests)
+                if k and k not in self._memo}
+        jobs = list(todo.values())
+        if self.workers > 1 and len(jobs) > 1:
+            kernels.prefer()
+            with multiprocessing.get_context('fork').Pool(processes=self.workers) as pool:
+                fits = pool.map(fit_candidate, jobs)
+        else:
+            fits = [fit_candidate(job) for job in jobs]
+        for key, fit in zip(todo, fits):
+            self._memo[key] = None if _failed(key, fit) else self._result(key, fit)
+        return [self.baseline() if not k else self._memo[k] for k in keys]
+
+    def fit(self, effects, start):
+        """Fit one explanation (see :class:`Likelihood`)."""
+        return self.fit_many([(effects, start)])[0]
+
+    def refit_from(self, effects, values):
+        """
+        Fit an explanation again from the start ``values``; keep it if its likelihood is higher.
+
+        Returns the better of the two results.
+        """
+        key = canonical(effects)
+        job = replace(self._job(key, None), start=dict(values))
+        fit = fit_candidate(job)
+        old = self._memo.get(key)
+        if not _failed(key, fit):
+            new = self._result(key, fit)
+            if old is None or new.loglik > old.loglik:
+                self._memo[key] = new
+        return self._memo.get(key)
+
+    def score(self, current, effect):
+        """Score-test a deterministic effect at an output-error fit (None: not nested)."""
+        return self.score_many(current, [effect])[effect]
+
+    def score_many(self, current, effects):
+        """
+        Score-test effects at an output-error fit: {effect: ScoreTest or None}.
+
+        In worker processes; the lags, tested through the delay d = τ, share its test.
+        """
+        noise_var = np.asarray(current.estimate.noise_std, dtype=float)**2
+        tested = {e: ('time_delay' if e in LAG_PARAMETER else e) for e in effects
+                  if e in SCREENED}
+        jobs = {t: (self.setting.job(t, '', prior=current.effects,
+                                     start=current.start_values()), noise_var)
+                for t in set(tested.values())}
+        names = sorted(jobs)
+        if self.workers > 1 and len(names) > 1:
+            kernels.prefer()
+            with multiprocessing.get_context('fork').Pool(processes=self.workers) as pool:
+                found = dict(zip(names, pool.map(_screen_job, [jobs[n] for n in names])))
+        else:
+            found = {n: _screen_job(jobs[n]) for n in names}
+        out = dict.fromkeys(effects)
+        for effect, test in tested.items():
+            if found[test] is not None:
+                out[effect] = _as_lag(effect, _best_variant(effect, found[test]))
+        return out
+
+
+class FilterError:
+    """Explanations with random inflow, by filter-error ML (innovations likelihood)."""
+
+    name = 'filter error'
+
+    def __init__(self, setting, n_obs, baseline_names):
+        self.setting, self.n_obs = setting, n_obs
+        self.base_names = set(baseline_names)
+        self._setup = None
+        self._memo = {}
+
+    @property
+    def setup(self):
+        """Return the filter problem's shared parts (built on first use)."""
+        if self._setup is None:
+            self._setup = noisy.setup_for(self.setting)
+        return self._setup
+
+    def _result(self, effects, fit):
+        est = fit.estimate
+        measured = {noisy.measurement_noise_name(c) for c in fit.model.output_names}
+        inflow_states = tuple(noisy.INFLOW_STATES)
+        k = len([n for n in est.names if n not in self.base_names and n not in measured
+                 and not n.startswith(inflow_states)])
+        res = np.concatenate(est.residuals, axis=0)
+        return FitResult(effects=effects, loglik=-float(est.neg_log_likelihood), n_params=k,
+                         n_obs=self.n_obs, rho=rs.channels_effective_fraction(res, True),
+                         converged=bool(est.converged), at_bound=tuple(fit.bound_limited),
+                         fit=fit, likelihood=self.name, elapsed_s=float(fit.elapsed_s))
+
+    def fit(self, effects, start):
+        """Fit one explanation with random inflow in it (see :class:`Likelihood`)."""
+        key = canonical(effects)
+        if key in self._memo:
+            return self._memo[key]
+        kept = [ev for ev in key if ev[0] != NOISE]
+        try:
+            if not kept:
+                fit = noisy.fit_alone(self.setting, self.setup)
+            elif start is not None and start.likelihood == self.name:
+                new = [ev for ev in kept if ev not in start.effects] or kept[-1:]
+                rest = [ev for ev in kept if ev != new[0]]
+                fit = noisy.fit_filter(new[0][0], new[0][1], rest, start.fit, self.setting,
+                                       self.setup)
+            else:
+                fit = noisy.fit_filter(None, None, kept, start.fit, self.setting, self.setup)
+        except FAILURES:
+            fit = None
+        self._memo[key] = None if _failed(key, fit) else self._result(key, fit)
+        return self._memo[key]
+
+    def score(self, current, effect):
+        """Score-test an effect at a fitted model (random inflow itself at an OE model)."""
+        kept = [ev for ev in current.effects if ev[0] != NOISE]
+        try:
+            if effect == NOISE:
+                lm, var = noisy.noise_score(current.fit, kept, self.setting, self.setup)
+                return ScoreTest(NOISE, '', float(lm), 1 + len(noisy.SHAPE), var)
+            if effect not in SCREENED:
+                return None
+            tests = noisy.screen(effect, kept, current.fit, self.setting, self.setup)
+        except FAILURES:
+            return None
+        return _best_variant(effect, tests)
+
+
+class ModelSpace:
+    """
+    The explanations of one record, each fitted by the likelihood that owns it.
+
+    Random inflow in an explanation: :class:`FilterError`; otherwise :class:`OutputError`.
+    Implements :class:`Likelihood` for the search.
+    """
+
+    def __init__(self, output_error, filter_error, effects):
+        self.output_error, self.filter_error = output_error, filter_error
+        self.effects = tuple(effects)
+
+    def _owner(self, effects):
+        return self.filter_error if any(e == NOISE for e, _ in effects) else self.output_error
+
+    def baseline(self):
+        """Return the fit of the empty explanation."""
+        return self.output_error.baseline()
+
+    def fit_many(self, requests):
+        """Fit [(effects, start)]: output error in parallel, filter error in turn."""
+        out = [None] * len(requests)
+        plain = [i for i, (effects, _) in enumerate(requests)
+                 if self._owner(effects) is self.output_error]
+        for i, res in zip(plain, self.output_error.fit_many([requests[i] for i in plain])):
+            out[i] = res
+        for i, (effects, start) in enumerate(requests):
+            if i not in plain and self.filter_error is not None:
+                out[i] = self.filter_error.fit(effects, start)
+        return out
+
+    def fit(self, effects, start):
+        """Fit one explanation (see :class:`Likelihood`)."""
+        return self.fit_many([(effects, start)])[0]
+
+    def refit_from(self, effects, values):
+        """Fit an explanation again from ``values``; the better of the two (output error)."""
+        owner = self._owner(effects)
+        return owner.refit_from(effects, values) if hasattr(owner, 'refit_from') else None
+
+    def score_many(self, current, effects):
+        """Score-test effects at ``current``: {effect: ScoreTest or None}."""
+        plain = [e for e in effects
+                 if self._owner(current.effects + ((e, ''),)) is self.output_error]
+        out = self.output_error.score_many(current, plain) if plain else {}
+        for e in effects:
+            if e not in out:
+                out[e] = self.score(current, e)
+        return out
+
+    def score(self, current, effect):
+        """Score-test ``effect`` at ``current`` with the likelihood of ``current + effect``."""
+        owner = self._owner(current.effects + ((effect, ''),))
+        if owner is None:
+            return None
+        return owner.score(current, effect)

@@ -1,0 +1,56 @@
+"""
+Every threshold of the model selection, each with its statistical reason.
+
+The selection (:mod:`rotor_id.diagnosis.selection`) compares explanations (sets of catalogue
+effects) by an approximate posterior probability; the values here are levels, prior weights
+and budgets, never tuned to a particular record. ``docs/diagnosis.md`` states the rules.
+"""
+
+from dataclasses import dataclass
+
+
+@dataclass(frozen=True)
+class SelectionPolicy:
+    """The thresholds of the selection and the verdict, each with its reason."""
+
+    #: Most effects in one explanation. The prior is uniform over the sizes 0 … max_effects,
+    #: then uniform over the sets of each size, so a set of two among m effects starts with
+    #: prior weight 1/C(m, 2) of its size's share: the multiplicity of pairs is paid for.
+    max_effects: int = 3
+    #: Posterior probability of the top explanation that a verdict calls "high confidence".
+    high_confidence: float = 0.95
+    #: An explanation is listed among the alternatives (and an effect that can stand in for
+    #: a named one is named beside it, with its share) from this posterior probability on.
+    alternative_share: float = 0.01
+    #: Power at which a detection limit is stated: an effect of that size would have been
+    #: added by the search in this share of records like this one.
+    detection_power: float = 0.95
+    #: A candidate is fitted when its score test says it could hold at least this posterior
+    #: probability against the current model: a fifth of the 5 % that separates a
+    #: high-confidence verdict from a low one. Below it, it still enters the normalisation by
+    #: its score-test approximation.
+    fit_share: float = 0.01
+    #: The score statistic is the Gauss-Newton (quadratic) prediction of 2Δlog L; where the
+    #: effect is not small the fit gains more. A candidate is fitted when this multiple of its
+    #: score statistic could reach ``fit_share``.
+    score_allowance: float = 2.0
+    #: Level of the whiteness test (Ljung-Box, Bonferroni over channels) at which the best
+    #: explanation's residuals are judged not noise: the verdict is then ``unexplained``.
+    adequacy_level: float = 1e-3
+    #: ... or when a channel's residual RMS exceeds its model-free noise floor by this many
+    #: standard errors (a one-sided z; 4 is a level of 3e-5 per channel).
+    adequacy_excess_z: float = 4.0
+    #: A first-order equivalent whose fit ends below the other's log-likelihood by more than
+    #: half the χ²₁ 5 % point (1.92) is at a worse optimum of the same physics and is restarted
+    #: from the other's values (a lag τ is a delay d = τ to first order).
+    restart_margin: float = 1.92
+    #: Explanations of each size extended at the next step. Greedy forward selection (one)
+    #: can keep first an effect that stands in for parts of two others, and then neither of
+    #: them passes beside it; the second most probable explanation is extended too.
+    beam_width: int = 2
+    #: Candidate fits of one step done in full when more pass the screen (a compute budget:
+    #: the others enter the posterior by their score-test approximation).
+    max_fits_per_step: int = 6
+
+
+DEFAULT_POLICY = SelectionPolicy()

@@ -1,0 +1,164 @@
+"""
+The verdict from the selection's table: probabilities, shares, detection limits, adequacy.
+
+* The verdict's explanation is the most probable fitted one; "high confidence" iff its
+  posterior probability is at least :attr:`SelectionPolicy.high_confidence`.
+* Effects the record cannot tell apart (an explanation with one effect swapped for another
+  holds at least :attr:`SelectionPolicy.alternative_share`) are named together with shares.
+* A detection limit per un-named effect: the size at which its likelihood-ratio statistic,
+  noncentral χ²_k with noncentrality δᵀ(I⁻¹)_ee⁻¹δ at the fitted model, would pass the
+  search's acceptance point with :attr:`SelectionPolicy.detection_power`.
+* When the verdict's model leaves residuals that are not noise, the verdict is
+  ``unexplained`` (low confidence) with what each explanation removes of the misfit.
+"""
+
+import math
+
+from rotor_id.diagnosis.catalogue import EFFECTS, equivalent
+from rotor_id.diagnosis.result import Alternative, DetectionLimit, Effect, Explanation, Share
+from rotor_id.diagnosis.selection import posterior, same_physics, shared_rho, tests_at
+from scipy.optimize import brentq
+from scipy.stats import ncx2
+
+
+def alternatives(ranked, baseline, misfit=None):
+    """Return :class:`Alternative` rows of [(candidate, probability)]."""
+    out = []
+    for cand, prob in ranked:
+        res = cand.result
+        out.append(Alternative(
+            effects=cand.names, probability=prob, fitted=cand.fitted,
+            two_delta_loglik=2.0 * (cand.loglik - baseline.loglik), n_params=cand.n_params,
+            likelihood=res.likelihood if res is not None else cand.parent.likelihood,
+            misfit_explained=None if misfit is None or res is None else misfit(res)))
+    return out
+
+
+def _swapped(top, cand):
+    """Return (effect of ``top``, effect of ``cand``) when they differ by one swap, else None."""
+    mine, theirs = set(top.names), set(cand.names)
+    if len(mine) != len(theirs) or len(mine - theirs) != 1:
+        return None
+    return next(iter(mine - theirs)), next(iter(theirs - mine))
+
+
+def _shares(top, effect, ranked, policy):
+    """Effects that stand in for ``effect`` in the top explanation, with their shares."""
+    same = [(effect[0], p) for cand, p in ranked if cand is top]
+    for cand, p in ranked:
+        swap = _swapped(top, cand)
+        if swap is not None and swap[0] == effect[0] and p >= policy.alternative_share:
+            same.append((swap[1], p))
+    total = sum(p for _, p in same)
+    return [Share(e, p / total) for e, p in same]
+
+
+def physics_of(top, ranked, policy, mu):
+    """
+    Return (the explanation to name, the probability of its physics).
+
+    Explanations that differ from the top one only by effects that are the same physics to
+    first order in this record (a lag and a delay,
+    :func:`~rotor_id.diagnosis.catalogue.equivalent`) are one physical explanation: their
+    probabilities add. Where the record cannot tell them apart (several hold more than
+    1 − high_confidence of it), the one of the catalogue's established effects (the first in
+    :data:`~rotor_id.diagnosis.catalogue.EFFECTS`) is named, the others with their shares.
+    """
+    group = [(c, p) for c, p in ranked if c.fitted and same_physics(top.names, c.names, mu)]
+    total = sum(p for _, p in group)
+    plausible = [c for c, p in group if p >= (1.0 - policy.high_confidence) * total]
+    named = min(plausible, key=lambda c: sorted(EFFECTS.index(e) for e in c.names))
+    return named, total
+
+
+def _effect(top, effect, ranked, candidates, policy):
+    name, variant = effect
+    rest = tuple(ev for ev in top.effects if ev != effect)
+    without = candidates.get(rest)
+    gain = None
+    if without is not None and without.fitted:
+        gain = 2.0 * (top.result.loglik - without.result.loglik)
+    fit = top.result.fit
+    params = fit.effect_parameters.get(name, {})
+    layer_bound = [n for n in top.result.at_bound if n in params]
+    return Effect(effect=name, variant=variant, parameters=params,
+                  inclusion_probability=sum(p for c, p in ranked if name in c.names),
+                  two_delta_loglik=gain, shares=_shares(top, effect, ranked, policy),
+                  at_bound=layer_bound)
+
+
+def acceptance_noncentrality(result, test, prior, policy, rho):
+    """
+    Return λ such that an effect of that noncentrality is added with the policy's power.
+
+    The search adds the effect when ρ·2Δlog L > k log(Nρ) − 2 log(prior odds) (posterior odds
+    above 1); 2Δlog L is noncentral χ²_k(λ) under the effect. λ solves
+    P(χ²_k(λ) > c) = power with c that acceptance point.
+    """
+    key = result.effects + ((test.effect, test.variant),)
+    c = (test.k * math.log(result.n_obs * rho)
+         - 2.0 * (prior.log(key) - prior.log(result.effects))) / rho
+    k = max(test.k, 1)
+    if not math.isfinite(c):            # the model is as large as the policy allows
+        return math.inf
+
+    def miss(lam):
+        return ncx2.sf(c, k, lam) - policy.detection_power
+    if c <= 0.0 or miss(0.0) >= 0.0:
+        return 0.0
+    return float(brentq(miss, 0.0, 100.0 * c + 100.0))
+
+
+def detection_limits(space, selection, top, prior, policy):
+    """Return :class:`DetectionLimit` of every open effect at the verdict's model."""
+    rho = shared_rho(selection.candidates.values())
+    out = []
+    for effect, test in sorted(tests_at(space, selection, top.result).items()):
+        lam = acceptance_noncentrality(top.result, test, prior, policy, rho)
+        if not math.isfinite(lam):
+            continue
+        limits = {n: math.sqrt(lam * v) for n, v in test.variance.items()
+                  if v >= 0.0 and not math.isnan(v)}
+        if effect == 'process_noise':          # the test is of σ_V², the limit of σ_V
+            limits = {'process_noise_std': math.sqrt(v) for v in limits.values()}
+        out.append(DetectionLimit(effect, limits, lam, test.statistic, 'score test'))
+    named = set(top.names) | {e for n in top.names for e in equivalent(n, selection.mu)}
+    for effect in selection.effects:
+        if effect in named or any(d.effect == effect for d in out):
+            continue
+        alone = [c for c in selection.candidates.values() if c.names == (effect,)]
+        if alone and alone[0].fitted:
+            gain = 2.0 * (alone[0].loglik - selection.candidates[()].loglik)
+            out.append(DetectionLimit(effect, {}, math.nan, gain,
+                                      'not nested: fitted alone, 2Δlog L given'))
+    return out
+
+
+def explain(space, selection, prior, policy, adequate, misfit):
+    """
+    Return (Explanation, the verdict's Candidate, every alternative) from the search.
+
+    ``adequate(result)``: whether a fit's residuals are noise; ``misfit(result)``: the share
+    of the baseline's excess over the noise floor it removes.
+    """
+    ranked = posterior(selection.candidates.values(), prior)
+    baseline = selection.candidates[()]
+    top = next(c for c, p in ranked if c.fitted)
+    top, p_top = physics_of(top, ranked, policy, selection.mu)
+    table = alternatives(ranked, baseline, misfit)
+    shown = [a for a, (c, p) in zip(table, ranked)
+             if c is not top and p >= policy.alternative_share]
+    limits = detection_limits(space, selection, top, prior, policy)
+    if not adequate(top.result):
+        why = ('the most probable explanation' + (f' ({" + ".join(top.names)})'
+                                                  if top.effects else ' (none)')
+               + ' leaves residuals that are not noise')
+        return Explanation('unexplained', 'low', p_top, [], shown, limits, False, why), \
+            top, table
+    effects = [_effect(top, ev, ranked, selection.candidates, policy) for ev in top.effects]
+    main = 'none'
+    if effects:
+        main = max(effects, key=lambda e: e.two_delta_loglik
+                   if e.two_delta_loglik is not None else -math.inf).effect
+    confidence = 'high' if p_top >= policy.high_confidence else 'low'
+    return Explanation(main, confidence, p_top, effects, shown, limits, True), top, table
