@@ -458,39 +458,3 @@ def test_velocity_missing_takes_speed_from_azimuth_rate(tmp_path):
     np.testing.assert_allclose(got.t, record.t, atol=1e-9)
     np.testing.assert_allclose(got.rotor_speed_rad_s, record.rotor_speed_rad_s, rtol=1e-4)
     assert any('no velocity' in w for w in got.warnings)
-
-
-@pytest.mark.parametrize('compression', ['none', 'zstd', 'lz4'])
-def test_indexed_mcap_read_in_place_and_decompressed_agree(tmp_path, compression):
-    """
-    The vectorised MCAP reader gives the same messages from uncompressed and compressed chunks.
-
-    Uncompressed chunks are read where they lie in the file (no copy); compressed ones are
-    decompressed and concatenated. Small chunks, so messages span many of them.
-    """
-    from mcap.writer import CompressionType, Writer
-    from rotor_id.io.mcap_recover import read_indexed_mcap
-    record = make_record(n=300)
-    streams = record_streams(record)
-    path = tmp_path / f'{compression}.mcap'
-    with open(path, 'wb') as stream:
-        writer = Writer(stream, chunk_size=2048,
-                        compression=getattr(CompressionType, compression.upper()))
-        writer.start(profile='ros2', library='rotor_id test')
-        schema = writer.register_schema(name=JOINT_STATE, encoding='ros2msg', data=b'')
-        sent = {}
-        for topic, (stamps, names, position, velocity) in streams.items():
-            channel = writer.register_channel(topic=topic, message_encoding='cdr',
-                                              schema_id=schema)
-            sent[topic] = encode_batch(stamps, names, position, velocity, frame_id='rotor')
-            for stamp, data in zip(np.asarray(stamps).tolist(), sent[topic]):
-                writer.add_message(channel, log_time=stamp, data=data, publish_time=stamp)
-        writer.finish()
-    read = read_indexed_mcap(path, set(streams))
-    assert read is not None, 'a healthy indexed MCAP must take the vectorised path'
-    types, messages = read
-    assert set(messages) == set(streams) and set(types.values()) == {JOINT_STATE}
-    for topic, (stamps, *_rest) in streams.items():
-        log_ns, packed = messages[topic]
-        np.testing.assert_array_equal(log_ns, np.asarray(stamps))
-        assert [bytes(m) for m in packed] == [bytes(m) for m in sent[topic]]
