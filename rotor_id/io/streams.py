@@ -629,7 +629,7 @@ def stuck_channels(values):
 
 def _cores(size, outside):
     """
-    The stretches of ``outside`` cut to their cores, and each core's peak of ``size``.
+    Cut the stretches of ``outside`` to their cores; return them and each core's peak.
 
     A core runs from the first to the last sample of a stretch that reaches half the
     stretch's peak: a spike on a signal whose own excursions about the running median pass
@@ -665,7 +665,8 @@ def _isolated(stretches, peaks, j):
 
 def _cubic_guess(column, start, end, times=None):
     """
-    The cubic through column's two neighbours either side of [start, end) (a line at ends).
+    Return the cubic through column's two neighbours either side of [start, end) (a line
+    at the record's ends).
 
     On ``times`` (the samples' times) when given, else on the sample numbers.
     """
@@ -680,7 +681,7 @@ def _cubic_guess(column, start, end, times=None):
 
 def _local_noise(column, start, end):
     """
-    Robust noise σ of one column around [start, end), the stretch itself left out.
+    Return the robust noise σ of one column around [start, end), the stretch left out.
 
     :func:`noise_scale` on the second differences within ``LOCAL_SPAN`` samples either side
     that do not touch the stretch.
@@ -695,7 +696,7 @@ def _local_noise(column, start, end):
 
 
 def _excursion(column, start, end):
-    """How far column[start:end] leaves the cubic through its neighbours (0 at the ends)."""
+    """Return how far column[start:end] leaves the cubic through its neighbours (0 at ends)."""
     if start == 0 or end >= column.size:
         return 0.0
     return float(np.max(np.abs(column[start:end] - _cubic_guess(column, start, end))))
