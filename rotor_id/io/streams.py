@@ -665,8 +665,9 @@ def _isolated(stretches, peaks, j):
 
 def _cubic_guess(column, start, end, times=None):
     """
-    Return the cubic through column's two neighbours either side of [start, end) (a line
-    at the record's ends).
+    Return the cubic through column's two neighbours either side of [start, end).
+
+    A line between the nearest neighbours at the record's ends.
 
     On ``times`` (the samples' times) when given, else on the sample numbers.
     """
