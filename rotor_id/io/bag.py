@@ -16,6 +16,7 @@ counted in ``record.warnings`` and announced once as a :class:`BagWarning`.
 
 from contextlib import suppress
 from dataclasses import dataclass, field
+from io import BytesIO
 from pathlib import Path
 import re
 import warnings
@@ -23,6 +24,7 @@ import xml.etree.ElementTree as ElementTree
 
 import numpy as np
 from rosbags.rosbag2 import Reader, StoragePlugin, Writer
+from rosbags.rosbag2.storage_mcap import Channel, McapWriter, write_channel, write_string
 from rosbags.typesys import get_types_from_msg, get_typestore, Stores
 from rotor_id.io.errors import BagError, BagWarning
 from rotor_id.io.jointstate_cdr import decode_batch, encode_batch, JOINT_STATE
@@ -1322,9 +1324,42 @@ class BagWriter:
         return False
 
 
+class _McapWriter(McapWriter):
+    """
+    rosbags' MCAP storage writer, with the channel metadata rosbag2 (Jazzy) writes.
+
+    rosbag2_storage_mcap stores two keys in each channel's metadata: ``offered_qos_profiles``
+    (the publishers' QoS, YAML) and ``topic_type_hash``, the RIHS01 hash of the message type
+    (REP-2011: ``RIHS01_`` and the SHA-256 of the type description), which its reader takes
+    back as the topic's ``type_description_hash``. rosbags writes the first only.
+    """
+
+    def add_connection(self, connection, offered_qos_profiles):
+        """Add a channel whose metadata holds the QoS profiles and the type hash."""
+        metadata = BytesIO()
+        for key, value in (('offered_qos_profiles', offered_qos_profiles),
+                           ('topic_type_hash', connection.digest)):
+            write_string(metadata, key)
+            write_string(metadata, value)
+        self.channels.append(Channel(
+            connection.id, connection.msgtype, connection.topic,
+            connection.ext.serialization_format, metadata.getvalue()))
+        self.channel_stats[connection.id] = 0
+        write_channel(self.chunk.bio, self.channels[-1], self.schemas)
+
+
+class _Writer(Writer):
+    """rosbags' bag writer with :class:`_McapWriter` for MCAP."""
+
+    STORAGE_PLUGINS = {**Writer.STORAGE_PLUGINS, StoragePlugin.MCAP: _McapWriter}
+
+
 def open_writer(path, storage='mcap', typestore=None):
     """
     Create a rosbag2 bag as Jazzy writes it (metadata version 9).
+
+    MCAP channels carry their offered QoS profiles and ``topic_type_hash`` (see
+    :class:`_McapWriter`).
 
     Parameters
     ----------
@@ -1350,7 +1385,7 @@ def open_writer(path, storage='mcap', typestore=None):
     if Path(path).exists():
         raise BagError(f'{path} exists already; rosbag2 bags are not overwritten, choose a '
                        'new path')
-    writer = Writer(path, version=9, storage_plugin=STORAGES[storage])
+    writer = _Writer(path, version=9, storage_plugin=STORAGES[storage])
     writer.open()
     return BagWriter(writer, typestore or get_typestore(Stores.ROS2_JAZZY))
 
