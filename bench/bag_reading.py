@@ -67,7 +67,7 @@ def rosbags_window(bag):
 
 
 def mcap_window(bag):
-    """The same messages through the mcap package's indexed reader."""
+    """Return the same messages through the mcap package's indexed reader."""
     from mcap.reader import make_reader
     first, last = (STAMP0 + int(s * 1e9) for s in WINDOW_S)
     with open(next(bag.glob('*.mcap')), 'rb') as stream:
@@ -76,13 +76,13 @@ def mcap_window(bag):
 
 
 def decode_vectorised(messages):
-    """Stamps and flap positions with the vectorised codec."""
+    """Return stamps and flap positions decoded with the vectorised codec."""
     batch = decode_batch([data for _, data in messages])
     return batch.stamps_ns, batch.position
 
 
 def decode_per_message(messages):
-    """Stamps and flap positions with rosbags' deserializer, one message at a time."""
+    """Return stamps and flap positions from rosbags' deserializer, one message at a time."""
     from rosbags.typesys import get_typestore, Stores
     store = get_typestore(Stores.ROS2_JAZZY)
     decoded = [store.deserialize_cdr(data, JOINT_STATE) for _, data in messages]
@@ -92,7 +92,7 @@ def decode_per_message(messages):
 
 
 def damaged_counts(bag, workdir):
-    """Messages read from the cut copy: (rosbags, error text), salvage scan."""
+    """Count the messages read from the cut copy: (rosbags, its error, salvage scan, why)."""
     from rosbags.rosbag2 import Reader
     cut = Path(workdir) / 'cut.mcap'
     source = next(bag.glob('*.mcap'))
