@@ -248,8 +248,6 @@ _LAST_RECEIVE_NS = 2**63 - 1
 def _drop_impossible_receive_times(raw, storage_file):
     """Drop messages whose receive time cannot be a time (damaged records), with a note."""
     for topic, times in raw.log_ns.items():
-        if isinstance(times, np.ndarray):
-            continue                # read from an index as int64: in range by construction
         bad = [k for k, ns in enumerate(times)
                if not isinstance(ns, int) or not 0 <= ns <= _LAST_RECEIVE_NS]
         if not bad:
