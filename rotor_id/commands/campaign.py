@@ -206,6 +206,7 @@ def process_point(point, out_dir, options, key):
     """
     import warnings
     from rotor_id import pipeline
+    from rotor_id.commands.common import repairs_json
     from rotor_id.commands.identify import load_inputs, plot_fit
     started = time.perf_counter()
     folder = Path(out_dir) / 'points' / point.name
@@ -225,6 +226,7 @@ def process_point(point, out_dir, options, key):
             result = pipeline.identify(record, description)
         data = result.as_json()
         data['bag'] = str(point.bag)
+        data['repairs'] = repairs_json([record])
         _write_json(folder / 'identify.json', data)
         if options.get('figures', True):
             plot_fit(result, record, folder / 'fit.png', title=f'{point.name}: '
@@ -241,10 +243,12 @@ def process_point(point, out_dir, options, key):
             'iterations': data['iterations'],
             'adequacy': adequacy.get('verdict', 'not_checked'),
             'warnings': [str(w.message) for w in caught] + list(data.get('warnings', [])),
+            'repairs': data['repairs'],
         })
         if options.get('diagnose'):
             from rotor_id.diagnosis.diagnose import diagnose
             diagnosis = diagnose(record, description, workers=1).as_json()
+            diagnosis['repairs'] = data['repairs']
             _write_json(folder / 'diagnose.json', diagnosis)
             summary['diagnosis'] = diagnosis['explanation']['effect']
             summary['diagnosis_confidence'] = diagnosis['explanation']['confidence']

@@ -36,6 +36,11 @@ def print_warning(text, stream=None):
     print(f'warning: {text}', file=stream or sys.stderr, flush=True)
 
 
+def repairs_json(records) -> list:
+    """Every reading the records' reader replaced, as the commands' JSON ``repairs`` lists it."""
+    return [repair.as_json() for record in records for repair in record.repairs]
+
+
 def print_warnings(texts, stream=None):
     """Print each of ``texts`` with :func:`print_warning`."""
     for text in texts:

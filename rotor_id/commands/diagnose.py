@@ -16,7 +16,7 @@ from pathlib import Path
 import sys
 
 from rotor_id import pipeline
-from rotor_id.commands.common import check_output_paths, print_warnings
+from rotor_id.commands.common import check_output_paths, print_warnings, repairs_json
 from rotor_id.commands.identify import load_inputs
 from rotor_id.diagnosis.catalogue import EFFECTS
 from rotor_id.diagnosis.diagnose import diagnose
@@ -137,6 +137,7 @@ def run(args):
     print(format_summary(result))
     data = result.as_json()
     data['bag'] = str(args.bag)
+    data['repairs'] = repairs_json([record])
     data['defaults_used'] = {k: float(v) for k, v in defaults.items()}
     if args.json_out:
         Path(args.json_out).parent.mkdir(parents=True, exist_ok=True)

@@ -28,7 +28,7 @@ import time
 import numpy as np
 
 from rotor_id import pipeline
-from rotor_id.commands.common import check_output_paths, print_warnings
+from rotor_id.commands.common import check_output_paths, print_warnings, repairs_json
 from rotor_id.io.bag import may_read_by_parts, read_messages, read_record
 from rotor_id.io.errors import BagError
 from rotor_id.io.run_description import check_against_record, load_run_description
@@ -180,6 +180,7 @@ def write_outputs(result, records, args, bag, started, title):
     print_warnings(result.warnings)
     data = result.as_json()
     data['bag'] = bag
+    data['repairs'] = repairs_json(records)
     data['elapsed_s'] = time.perf_counter() - started
     if args.json_out:
         Path(args.json_out).parent.mkdir(parents=True, exist_ok=True)
@@ -616,7 +617,7 @@ def run_test_points(args, configs):
         print(f'-- test point {point.number} --')
         print(format_table(result))
         print_warnings(result.warnings)
-        data = {**head, **result.as_json(), 'bag': str(bag)}
+        data = {**head, **result.as_json(), 'bag': str(bag), 'repairs': repairs_json([record])}
         if point.check is not None:
             data['window_complete_in_bag'] = point.check.complete
         all_converged &= bool(result.estimate.converged)

@@ -11,26 +11,42 @@ The convention (recordings/README.md): three ``sensor_msgs/msg/JointState`` topi
 :func:`read_record` turns such a bag into a :class:`~rotor_id.io.record.Record` on the flap
 stamps. Damaged input raises :class:`BagError` with a message that says what to do; what can be
 repaired (NaN samples, out-of-order or repeated stamps, a recording cut short) is repaired,
-counted in ``record.warnings`` and announced once as a :class:`BagWarning`.
+counted in ``record.warnings`` and announced once as a :class:`BagWarning`; each reading
+replaced is listed in ``record.repairs``.
+
+Every read goes through the rosbags Reader: a bag directory of one or several storage files
+(a split bag: ``ros2 bag record --max-bag-duration/--max-bag-size``), MCAP or sqlite3, and a
+window of a long bag as a receive-time range from rosbag2's own index (the MCAP chunk index,
+the sqlite3 timestamp index). Two parts stay hand-written, each because a measurement shows
+the library cannot do its job (bench/results/bag_reading.md, ``python bench/bag_reading.py``):
+
+* decoding JointState messages into arrays (:func:`rotor_id.io.jointstate_cdr.decode_batch`,
+  vectorised): 22× less CPU than rosbags' ``deserialize_cdr`` one message at a time, which
+  would take most of a 10-minute bag's 200×-real-time budget;
+* salvaging a damaged MCAP (:func:`rotor_id.io.mcap_recover.scan_mcap`): of a recording cut
+  at 60 % of its bytes, rosbags reads 0 messages ("File end magic is invalid"), the scan
+  108 177 of the 180 000.
+
+(The ``mcap`` package reads the same window 4.4× slower than rosbags, so rosbags is the one
+library used.)
 """
 
 from contextlib import suppress
 from dataclasses import dataclass, field
+from io import BytesIO
 from pathlib import Path
 import re
-import struct
 import warnings
 import xml.etree.ElementTree as ElementTree
 
 import numpy as np
 from rosbags.rosbag2 import Reader, StoragePlugin, Writer
+from rosbags.rosbag2.storage_mcap import Channel, McapWriter, write_channel, write_string
 from rosbags.typesys import get_types_from_msg, get_typestore, Stores
 from rotor_id.io.errors import BagError, BagWarning
 from rotor_id.io.jointstate_cdr import decode_batch, encode_batch, JOINT_STATE
-from rotor_id.io.mcap_recover import (
-    read_indexed_mcap, read_mcap_chunks, read_mcap_summary, scan_mcap, zstd,
-)
-from rotor_id.io.record import Record
+from rotor_id.io.mcap_recover import scan_mcap, zstd
+from rotor_id.io.record import Record, Repair
 from rotor_id.io.run_description import (DEFAULT_AZIMUTH_JOINT, DEFAULT_TOPICS,
                                          normalize_joint_names, recorded_topic, validate_window)
 from rotor_id.io.streams import (
@@ -59,7 +75,7 @@ WINDOW_READ_HEAD_S = 0.5             # receive time read at the start to find th
 WINDOW_READ_MARGIN_S = 2.0           # read this much either side of the window
 WINDOW_READ_CLOCK_TOLERANCE_S = 1.0  # stamp-to-receive offset drift allowed over the bag
 WINDOW_READ_MAX_FRACTION = 0.5       # a window needing more of the bag reads it all
-WINDOW_READ_TAIL_MESSAGES = 1000     # last flap messages of a sqlite3 bag checked for the clock
+WINDOW_READ_TAIL_S = 1.0             # receive time read at the end to check the clock
 STORAGES = {'mcap': StoragePlugin.MCAP, 'sqlite3': StoragePlugin.SQLITE3}
 SUFFIXES = {'.mcap': 'mcap', '.db3': 'sqlite3'}
 COMPRESSION_FORMATS = ('zstd',)    # what rosbag2's file/message compression may use here
@@ -69,16 +85,36 @@ _NS = 1_000_000_000
 
 # --------------------------------------------------------------------------- locating the bag
 
+@dataclass
+class _Bag:
+    """A located bag: what rosbags opens, its storage files and what metadata.yaml says."""
+
+    open_path: Path             # the directory (with metadata.yaml) or the storage file
+    storage: str                # 'mcap' or 'sqlite3'
+    files: list                 # storage files, in recording order
+    counts: dict = field(default_factory=dict)   # topic -> messages listed in metadata.yaml
+    facts: dict = field(default_factory=dict)    # 'compression', 'publishers'
+
+    @property
+    def label(self):
+        """Name the storage file, or the directory and its number of files (split bags)."""
+        if len(self.files) == 1:
+            return self.files[0]
+        return f'{self.open_path} ({len(self.files)} {self.storage} files)'
+
+    @property
+    def size(self):
+        """Bytes of all storage files."""
+        return sum(f.stat().st_size for f in self.files)
+
+    @property
+    def compressed_whole(self):
+        """Tell whether the storage files are compressed whole (rosbag2 file compression)."""
+        return any('.zstd' in f.suffixes for f in self.files)
+
+
 def _resolve(bag_path):
-    """
-    Locate the bag.
-
-    Returns
-    -------
-    (path to open with rosbags, storage id, storage file, expected message counts, metadata
-    facts: 'compression' (mode, format) and 'publishers' topic -> number of publishers).
-
-    """
+    """Locate the bag (a directory with metadata.yaml, its metadata.yaml, or one file)."""
     path = Path(bag_path)
     if not path.exists():
         raise BagError(f'bag {path} does not exist; give a bag directory (with metadata.yaml) '
@@ -93,14 +129,14 @@ def _resolve(bag_path):
             raise BagError(
                 f'{path} is not a bag: no metadata.yaml and {len(files)} .mcap/.db3 files '
                 f'({[p.name for p in files]}); give the bag directory written by ros2 bag '
-                'record or the storage file itself')
+                'record (a split bag needs its metadata.yaml) or the storage file itself')
         path = files[0]
     if path.suffix not in SUFFIXES:
         raise BagError(f'{path} is not a bag: expected a directory, metadata.yaml, or a '
                        f'.mcap / .db3 file, got suffix {path.suffix!r}')
     if path.stat().st_size == 0:
         raise BagError(f'bag file {path} is empty (0 bytes); the recording wrote nothing')
-    return path, SUFFIXES[path.suffix], path, {}, {}
+    return _Bag(path, SUFFIXES[path.suffix], [path])
 
 
 def _publisher_count(topic_metadata):
@@ -137,14 +173,16 @@ def _resolve_metadata(directory):
         raise BagError(f'{meta_path}: rosbag2 {mode}-level compression with format {fmt!r} is '
                        f'not supported (only {", ".join(COMPRESSION_FORMATS)}); decompress the '
                        'bag first, e.g. ros2 bag convert with an output without compression')
-    missing = [str(f) for f in files if not f.is_file()]
-    if missing or len(files) != 1:
+    missing = [f.name for f in files if not f.is_file()]
+    if missing or not files:
         raise BagError(f'{meta_path} lists storage files {[f.name for f in files]}; '
-                       f'missing: {missing}. Only complete single-file bags are read: give '
-                       'the directory holding the file(s) listed in metadata.yaml')
-    if files[0].stat().st_size == 0:
-        raise BagError(f'bag file {files[0]} is empty (0 bytes); the recording wrote nothing')
-    return directory, storage, files[0], counts, facts
+                       f'missing: {missing}. Copy the whole bag directory (every file a split '
+                       'recording wrote), or give one storage file to read it alone')
+    empty = [f.name for f in files if f.stat().st_size == 0]
+    if empty:
+        raise BagError(f'bag file(s) {empty} of {directory} are empty (0 bytes); the recording '
+                       'wrote nothing there')
+    return _Bag(directory, storage, files, counts, facts)
 
 
 # -------------------------------------------------------------------------- raw messages
@@ -160,36 +198,27 @@ class _Raw:
         self.bag_start_ns = None   # first receive time of the bag, when only a part is read
 
 
-def _read_raw(open_path, storage, storage_file, wanted, omega_rad_s):
-    if storage == 'mcap':
-        # A healthy chunked MCAP is read vectorised from its message index (no Python step per
-        # message); anything unusual (unindexed, no footer, bad checksum) goes through rosbags
-        # and, if that fails, the recovery scan.
-        try:
-            indexed = read_indexed_mcap(storage_file, _WantedTopics(wanted.values()))
-        except (OSError, ValueError, IndexError, struct.error):
-            indexed = None          # not readable this way: the general readers decide
-        if indexed is not None:
-            raw = _Raw()
-            raw.available, found = indexed
-            _check_topics(raw, wanted, storage_file, omega_rad_s)
-            for topic in wanted.values():
-                raw.log_ns[topic], raw.data[topic] = found.get(topic, ([], []))
-            return raw
+def _read_raw(bag, wanted, omega_rad_s):
+    """
+    Read every message of the wanted topics with rosbags (all files of a split bag).
+
+    A damaged MCAP (cut short, bad checksums) is salvaged by scanning its files
+    (:mod:`rotor_id.io.mcap_recover`) when that recovers more than rosbags read.
+    """
     raw = _Raw()
     try:
-        reader = Reader(open_path)
+        reader = Reader(bag.open_path)
         reader.open()
     except Exception as err:  # noqa: B902 - rosbags/apsw raise many types for bad files
-        if storage == 'mcap':
-            return _recover_mcap(storage_file, wanted, err, omega_rad_s)
-        raise BagError(f'{storage_file} cannot be opened as a {storage} bag '
+        if bag.storage == 'mcap':
+            return _recover_mcap(bag, wanted, err, omega_rad_s)
+        raise BagError(f'{bag.label} cannot be opened as a {bag.storage} bag '
                        f'({type(err).__name__}: {err}); the file is not a rosbag2 recording '
                        'or is damaged (a damaged .db3 may be salvaged into a new file with the '
                        '.recover command of the sqlite3 shell)') from None
     try:
         raw.available = {c.topic: c.msgtype for c in reader.connections}
-        _check_topics(raw, wanted, storage_file, omega_rad_s)
+        _check_topics(raw, wanted, bag.label, omega_rad_s)
         connections = [c for c in reader.connections if c.topic in wanted.values()]
         buckets = {c.id: raw.data.setdefault(c.topic, []) for c in connections}
         times = {c.id: raw.log_ns.setdefault(c.topic, []) for c in connections}
@@ -200,12 +229,12 @@ def _read_raw(open_path, storage, storage_file, wanted, omega_rad_s):
                 times[connection.id].append(log_ns)
                 count += 1
         except Exception as err:  # noqa: B902 - damaged storage; keep what was read
-            if storage == 'mcap':
-                recovered = _recover_mcap(storage_file, wanted, err, omega_rad_s)
+            if bag.storage == 'mcap':
+                recovered = _recover_mcap(bag, wanted, err, omega_rad_s)
                 if sum(map(len, recovered.data.values())) > count:
                     return recovered
             raw.notes.append(
-                f'{storage_file} is damaged after {count} messages ({type(err).__name__}: '
+                f'{bag.label} is damaged after {count} messages ({type(err).__name__}: '
                 f'{err}); the {count} messages read before the damage are used')
     finally:
         with suppress(Exception):
@@ -220,8 +249,6 @@ _LAST_RECEIVE_NS = 2**63 - 1
 def _drop_impossible_receive_times(raw, storage_file):
     """Drop messages whose receive time cannot be a time (damaged records), with a note."""
     for topic, times in raw.log_ns.items():
-        if isinstance(times, np.ndarray):
-            continue                # read from an index as int64: in range by construction
         bad = [k for k, ns in enumerate(times)
                if not isinstance(ns, int) or not 0 <= ns <= _LAST_RECEIVE_NS]
         if not bad:
@@ -234,34 +261,34 @@ def _drop_impossible_receive_times(raw, storage_file):
             f'outside the 64-bit range (first at message {bad[0]}): damaged records, dropped')
 
 
-def _recover_mcap(storage_file, wanted, error, omega_rad_s):
-    """Read what a damaged MCAP still holds (see :mod:`rotor_id.io.mcap_recover`)."""
-    try:
-        scan = scan_mcap(storage_file)
-    except (OSError, ValueError) as err:
-        raise BagError(f'{storage_file} cannot be opened as an MCAP bag ({error}) and is not '
-                       f'recoverable ({err}); the file is not a rosbag2 recording') from None
-    raw = _raw_from_scan(scan, wanted, storage_file, omega_rad_s)
-    if not any(raw.data.values()):
-        raise BagError(f'{storage_file} is damaged ({error}; {scan.problem}) and no message of '
-                       f'{sorted(wanted.values())} could be recovered') from None
-    raw.notes.append(
-        f'{storage_file} is damaged ({error}); {scan.problem or "no index"}: recovered '
-        f'{sum(map(len, raw.data.values()))} messages by scanning the file'
-        + (f', skipped {scan.skipped_chunks} chunk(s) with bad checksums'
-           if scan.skipped_chunks else ''))
-    return raw
-
-
-def _raw_from_scan(scan, wanted, storage_file, omega_rad_s):
-    """Return the wanted topics' raw messages from a linear MCAP scan."""
+def _recover_mcap(bag, wanted, error, omega_rad_s):
+    """Read what a damaged MCAP still holds, file by file (:mod:`rotor_id.io.mcap_recover`)."""
+    scans = []
+    for storage_file in bag.files:
+        try:
+            scans.append(scan_mcap(storage_file))
+        except (OSError, ValueError) as err:
+            raise BagError(f'{bag.label} cannot be opened as an MCAP bag ({error}) and '
+                           f'{storage_file.name} is not recoverable ({err}); the file is not a '
+                           'rosbag2 recording') from None
     raw = _Raw()
-    raw.available = scan.topics()
-    _check_topics(raw, wanted, storage_file, omega_rad_s)
+    for scan in scans:
+        raw.available.update(scan.topics())
+    _check_topics(raw, wanted, bag.label, omega_rad_s)
     for topic in wanted.values():
-        messages = scan.topic_messages(topic)
+        messages = [m for scan in scans for m in scan.topic_messages(topic)]
         raw.log_ns[topic] = [m[0] for m in messages]
         raw.data[topic] = [m[1] for m in messages]
+    problems = '; '.join(f'{f.name}: {scan.problem}' for f, scan in zip(bag.files, scans)
+                         if scan.problem) or 'no index'
+    if not any(raw.data.values()):
+        raise BagError(f'{bag.label} is damaged ({error}; {problems}) and no message of '
+                       f'{sorted(wanted.values())} could be recovered') from None
+    skipped = sum(scan.skipped_chunks for scan in scans)
+    raw.notes.append(
+        f'{bag.label} is damaged ({error}); {problems}: recovered '
+        f'{sum(map(len, raw.data.values()))} messages by scanning the file'
+        + (f', skipped {skipped} chunk(s) with bad checksums' if skipped else ''))
     return raw
 
 
@@ -310,6 +337,7 @@ class _Context:
     faults: list = field(default_factory=list)   # (stamp_ns, message): judged by the window
     frame_ids: dict = field(default_factory=dict)  # topic -> {header.frame_id: messages}
     origin_ns: object = None            # first flap stamp, for times in messages
+    repairs: list = field(default_factory=list)  # (topic, joint, stamp_ns, old, new, why)
 
     def when(self, stamp_ns):
         """Format a stamp as seconds of record time (after the first flap stamp)."""
@@ -527,10 +555,12 @@ def _repair_value_spikes(ctx, topic, role, stamps, position, names):
         joint = names[repair.column] if repair.column < len(names) else f'column {repair.column}'
         said.append(f'{joint}: {repair.count}, e.g. {repair.value:.4g} rad '
                     f'among {repair.neighbours:.4g} at {ctx.when(int(stamps[repair.index]))}')
+        ctx.repairs.extend((topic, joint, int(stamps[i]), float(old), float(new), 'value_spike')
+                           for i, old, new in zip(repair.indices, repair.old, repair.new))
     ctx.issues.append(
-        f'{topic} ({role}): sample(s) jump away from their neighbours and back (a spike: a bit '
-        f'flip or a dropped reading) in {"; ".join(said)}; replaced by interpolation. Check '
-        'the sensor if this recurs')
+        f'{topic} ({role}): sample(s) of one blade jump away from their neighbours and back (a '
+        f'spike: a bit flip or a dropped reading) in {"; ".join(said)}; replaced by the cubic '
+        'through their neighbours (listed in repairs). Check the sensor if this recurs')
 
 
 def _check_one_stream(ctx, topic, role, stamps, position):
@@ -662,21 +692,21 @@ def read_record(bag_path, topics=None, joint_names=None, *, n_blades=None, omega
     if run is not None and (isinstance(run, bool) or not isinstance(run, (int, np.integer))
                             or run < 1):
         raise BagError(f'run must be a positive integer (1 = the first run), got {run!r}')
-    open_path, storage, storage_file, counts, facts = _resolve(bag_path)
+    bag = _resolve(bag_path)
     wanted = {role: topic for role, topic in topics.items() if topic}
     if 'azimuth' not in wanted and omega_rad_s is None:
         raise BagError('no azimuth topic given: pass omega_rad_s (the rotor speed) so that the '
                        'nondimensional time can be formed')
     raw = origin_ns = None
-    if window_s is not None and run is None and '.zstd' not in storage_file.suffixes:
-        raw, origin_ns = _read_window(storage_file, storage, wanted, window_s)
+    if window_s is not None and run is None and not bag.compressed_whole:
+        raw, origin_ns = _read_window(bag, wanted, window_s)
     if raw is None:
-        raw = _read_raw(open_path, storage, storage_file, wanted, omega_rad_s)
+        raw = _read_raw(bag, wanted, omega_rad_s)
         _decompress_messages(raw)
-    _drop_impossible_receive_times(raw, storage_file)
+    _drop_impossible_receive_times(raw, bag.label)
     ctx = _Context(raw=raw, issues=list(raw.notes), run=run,
-                   publishers=facts.get('publishers', {}), origin_ns=origin_ns)
-    for topic, expected in ({} if origin_ns is not None else counts).items():
+                   publishers=bag.facts.get('publishers', {}), origin_ns=origin_ns)
+    for topic, expected in ({} if origin_ns is not None else bag.counts).items():
         got = len(raw.data.get(topic, []))
         if topic in raw.data and got < expected:
             ctx.issues.append(f'{topic}: {got} of the {expected} messages listed in '
@@ -689,11 +719,11 @@ def read_record(bag_path, topics=None, joint_names=None, *, n_blades=None, omega
     if origin_ns is not None:
         part = (f', read {record.time_s[0]:.3f}-{record.time_s[-1]:.3f} s around window_s '
                 'only')
-    record.source = (f'{storage_file} ({storage}; flap {wanted["blade_flap"]}, pitch '
+    record.source = (f'{bag.label} ({bag.storage}; flap {wanted["blade_flap"]}, pitch '
                      f'{wanted["blade_pitch"]}, azimuth {wanted.get("azimuth")}'
                      + (f', run {run}' if run is not None else '') + part + ')')
     if record.warnings:
-        warnings.warn(f'{storage_file}: ' + '; '.join(record.warnings), BagWarning,
+        warnings.warn(f'{bag.label}: ' + '; '.join(record.warnings), BagWarning,
                       stacklevel=2)
     return record
 
@@ -702,115 +732,75 @@ def may_read_by_parts(bag_path):
     """
     Say whether :func:`read_record` may read only the part of this bag around a window.
 
-    True for a bag of at least WINDOW_READ_MIN_BYTES whose storage file is not compressed whole
-    (it may still read it all: no index, clocks that disagree); False: every read takes the
-    whole bag, whatever the window.
+    True for a bag of at least WINDOW_READ_MIN_BYTES whose storage files are not compressed
+    whole (it may still read it all: clocks that disagree, a damaged file); False: every read
+    takes the whole bag, whatever the window.
     """
-    storage_file = _resolve(bag_path)[2]
-    return (storage_file.stat().st_size >= WINDOW_READ_MIN_BYTES
-            and '.zstd' not in storage_file.suffixes)
+    bag = _resolve(bag_path)
+    return bag.size >= WINDOW_READ_MIN_BYTES and not bag.compressed_whole
 
 
-class _McapParts:
-    """Parts of an indexed MCAP by receive time, read chunk by chunk (see _read_window)."""
+class _Parts:
+    """
+    The bag read by receive time through rosbags (every file of a split bag).
 
-    def __init__(self, storage_file, topics):
-        self.file, self.topics = storage_file, topics
-        self.summary = read_mcap_summary(storage_file)
-        self.chunks = self.summary.topic_chunks(topics) if self.summary else []
-        self.available = ({topic: self.summary.schemas.get(schema, '')
-                           for topic, schema in self.summary.channels.values()}
-                          if self.summary else {})
-        if len(self.chunks) < 3:
-            raise ValueError('not an indexed MCAP with several chunks')
-        self.start_ns = min(c.start_ns for c in self.chunks)
-        self.end_ns = max(c.end_ns for c in self.chunks)
+    rosbags reads a receive-time range from rosbag2's own indexes: the chunk index of an
+    MCAP file (only the chunks that overlap are read and decompressed), the timestamp index of
+    a sqlite3 file.
+    """
+
+    def __init__(self, bag, topics):
+        self.reader = Reader(bag.open_path)
+        self.reader.open()
+        self.available = {c.topic: c.msgtype for c in self.reader.connections}
+        self.connections = [c for c in self.reader.connections if c.topic in topics]
+        if not self.connections:
+            raise ValueError('none of the topics is in the bag')
+        self.start_ns, self.end_ns = self.reader.start_time, self.reader.end_time
 
     def read(self, topics, first, last):
         """Return (topic -> type, topic -> (receive times, messages)) received in [first, last]."""
-        selected = [c for c in self.chunks if c.end_ns >= first and c.start_ns <= last]
-        part = read_mcap_chunks(self.file, topics, self.summary, selected, (first, last))
-        if part is None:
-            raise ValueError('a chunk is not as the index says')
-        return part
-
-    def last(self, topic):
-        """Return topic -> (receive times, messages) of the last chunk holding ``topic``."""
-        chunks = self.summary.topic_chunks({topic})
-        return self.read({topic}, chunks[-1].start_ns, chunks[-1].end_ns)[1]
-
-
-class _SqliteParts:
-    """Parts of a rosbag2 sqlite3 file by receive time, queried on its timestamp index."""
-
-    def __init__(self, storage_file, topics):
-        import sqlite3
-        self.connection = sqlite3.connect(f'file:{storage_file}?mode=ro', uri=True)
-        rows = self.connection.execute('SELECT id, name, type FROM topics').fetchall()
-        self.ids = {name: topic_id for topic_id, name, _ in rows if name in topics}
-        self.available = {name: msgtype for _, name, msgtype in rows}
-        self.names = {topic_id: name for name, topic_id in self.ids.items()}
-        marks = ','.join('?' * len(self.ids))
-        self.start_ns, self.end_ns = self.connection.execute(
-            f'SELECT MIN(timestamp), MAX(timestamp) FROM messages WHERE topic_id IN ({marks})',
-            list(self.ids.values())).fetchone()
-        if self.start_ns is None:
-            raise ValueError('no messages')
-
-    def _collect(self, rows):
         found = {}
-        for topic_id, stamp, data in rows:
-            log, messages = found.setdefault(self.names[topic_id], ([], []))
-            log.append(stamp)
+        wanted = [c for c in self.connections if c.topic in topics]
+        for connection, log_ns, data in self.reader.messages(wanted, start=int(first),
+                                                             stop=int(last) + 1):
+            log, messages = found.setdefault(connection.topic, ([], []))
+            log.append(log_ns)
             messages.append(data)
-        return found
-
-    def read(self, topics, first, last):
-        """Return (topic -> type, topic -> (receive times, messages)) received in [first, last]."""
-        ids = [self.ids[t] for t in topics if t in self.ids]
-        rows = self.connection.execute(
-            f'SELECT topic_id, timestamp, data FROM messages WHERE timestamp BETWEEN ? AND ? '
-            f'AND topic_id IN ({",".join("?" * len(ids))}) ORDER BY timestamp, id',
-            [int(first), int(last)] + ids)
-        return self.available, self._collect(rows)
+        return self.available, found
 
     def last(self, topic):
-        """Return topic -> (receive times, messages) of the last messages of ``topic``."""
-        rows = self.connection.execute(
-            'SELECT topic_id, timestamp, data FROM messages WHERE topic_id = ? '
-            'ORDER BY timestamp DESC LIMIT ?', (self.ids[topic], WINDOW_READ_TAIL_MESSAGES))
-        return self._collect(reversed(rows.fetchall()))
+        """Return topic -> (receive times, messages) of the last WINDOW_READ_TAIL_S of it."""
+        return self.read({topic}, self.end_ns - WINDOW_READ_TAIL_S * _NS, self.end_ns)[1]
 
     def close(self):
-        """Close the database."""
-        self.connection.close()
+        """Close the reader."""
+        self.reader.close()
 
 
-def _read_window(storage_file, storage, wanted, window_s):
+def _read_window(bag, wanted, window_s):
     """
     Read only the part of a long bag around the window (memory follows the window).
 
     window_s counts from the first flap stamp, so the first WINDOW_READ_HEAD_S of receive
-    time give that origin and the offset from stamps to receive times; the last messages
-    check that the offset holds to the end (no clock reset, no second run). Then only the
-    messages received within the window (plus WINDOW_READ_MARGIN_S) are read: for MCAP the
-    chunks the chunk index places there, each read and decompressed on its own; for sqlite3
-    a query on the timestamp index.
+    time give that origin and the offset from stamps to receive times; the last
+    WINDOW_READ_TAIL_S check that the offset holds to the end (no clock reset, no second run).
+    Then only the messages received within the window (plus WINDOW_READ_MARGIN_S) are read
+    (:class:`_Parts`: rosbags on the bag's index).
 
     Returns
     -------
-    (_Raw, origin ns) or (None, None): the bag is small, has no index to read a part by, or
-    its clocks disagree; then the whole bag is read with every check.
+    (_Raw, origin ns) or (None, None): the bag is small, cannot be read by parts, or its
+    clocks disagree; then the whole bag is read with every check.
 
     """
     none = None, None
-    if storage_file.stat().st_size < WINDOW_READ_MIN_BYTES:
+    if bag.size < WINDOW_READ_MIN_BYTES:
         return none
     tolerance = WINDOW_READ_CLOCK_TOLERANCE_S * _NS
     parts = None
     try:
-        parts = (_McapParts if storage == 'mcap' else _SqliteParts)(
-            storage_file, _WantedTopics(wanted.values()))
+        parts = _Parts(bag, _WantedTopics(wanted.values()))
         for role, topic in wanted.items():     # relative names: root, else the one namespace
             wanted[role] = recorded_topic(topic, parts.available) or topic
         topics = set(wanted.values())
@@ -868,7 +858,7 @@ def _read_window(storage_file, storage, wanted, window_s):
     raw = _Raw()
     raw.available = available
     raw.bag_start_ns = parts.start_ns
-    _check_topics(raw, wanted, storage_file, None)
+    _check_topics(raw, wanted, bag.label, None)
     for topic in wanted.values():
         raw.log_ns[topic], raw.data[topic] = found.get(topic, ([], []))
     _decompress_messages(raw)
@@ -958,10 +948,12 @@ def _assemble(ctx, wanted, joint_names, n_blades, omega_rad_s, window_s,
         # (samples dropped as glitches were sampled: they are no gap)
         _gaps(az_sampled_ns, omega_mean, wanted['azimuth'], issues,
               'azimuth is interpolated across')
+    repairs = [Repair(topic, joint, (stamp - stamp0) / _NS, old, new, why)
+               for topic, joint, stamp, old, new, why in ctx.repairs]
     return Record(time_s=time_s, t=t, rotor_speed_rad_s=speed, blade_flap=flap,
                   blade_pitch=pitch, blade_names=blade_names,
                   warnings=list(dict.fromkeys(issues)), stamp0_ns=stamp0,
-                  flap_joints=flap_s.names, pitch_joints=pitch_s.names)
+                  flap_joints=flap_s.names, pitch_joints=pitch_s.names, repairs=repairs)
 
 
 def _in_window(time_s, window_s, margin_s):
@@ -1058,7 +1050,7 @@ def _azimuth(ctx, topic, joint=DEFAULT_AZIMUTH_JOINT, convention='wrapped'):
         steps = np.diff(np.unwrap(position))
         rate = np.full(len(stamps), float(np.median(steps / np.diff(time_s))))
     else:
-        _repair_speed_spikes(ctx, topic, stamps, velocity)
+        _repair_speed_spikes(ctx, topic, joint, stamps, velocity)
         rate = velocity
     if not (rate > 0).all():
         bad = rate[~(rate > 0)]
@@ -1067,7 +1059,8 @@ def _azimuth(ctx, topic, joint=DEFAULT_AZIMUTH_JOINT, convention='wrapped'):
                        f'{ctx.when(int(stamps[np.argmax(~(rate > 0))]))}; t = ψ needs a turning '
                        'rotor in the positive sense: cut the recording to where the rotor turns')
     sampled = stamps
-    stamps, position, rate, time_s = _repair_phase(ctx, topic, stamps, position, rate, time_s)
+    stamps, position, rate, time_s = _repair_phase(ctx, topic, joint, stamps, position, rate,
+                                                   time_s)
     if velocity is None:
         velocity = np.gradient(np.unwrap(position), time_s) if len(stamps) > 1 else rate
     else:
@@ -1084,7 +1077,7 @@ def _azimuth(ctx, topic, joint=DEFAULT_AZIMUTH_JOINT, convention='wrapped'):
     return stamps, psi_u, velocity, sampled
 
 
-def _repair_speed_spikes(ctx, topic, stamps, velocity):
+def _repair_speed_spikes(ctx, topic, joint, stamps, velocity):
     """Replace isolated rotor-speed samples far from their neighbours (in place)."""
     typical = float(np.median(np.abs(velocity)))
     spiky = spikes(velocity, SPEED_SPIKE_FRACTION * typical)
@@ -1094,6 +1087,8 @@ def _repair_speed_spikes(ctx, topic, stamps, velocity):
     good[spiky] = False
     smooth = np.interp(stamps[spiky], stamps[good], velocity[good])
     worst = int(np.argmax(np.abs(velocity[spiky] - smooth)))
+    ctx.repairs.extend((topic, joint, int(stamps[i]), float(velocity[i]), float(new),
+                        'speed_spike') for i, new in zip(spiky, smooth))
     ctx.issues.append(
         f'{topic}: {spiky.size} rotor-speed (velocity) sample(s) jump away from their '
         f'neighbours and back (e.g. {velocity[spiky][worst]:.4g} rad/s among '
@@ -1102,7 +1097,7 @@ def _repair_speed_spikes(ctx, topic, stamps, velocity):
     velocity[spiky] = smooth
 
 
-def _repair_phase(ctx, topic, stamps, position, rate, time_s):
+def _repair_phase(ctx, topic, joint, stamps, position, rate, time_s):
     """Drop azimuth samples off the phase the rotor speed predicts; record lasting slips."""
     if len(stamps) < 3:
         return stamps, position, rate, time_s
@@ -1122,6 +1117,9 @@ def _repair_phase(ctx, topic, stamps, position, rate, time_s):
     expected = np.interp(stamps[bad], stamps[good], np.unwrap(position[good]))
     off = np.mod(position[bad] - expected + np.pi, TWO_PI) - np.pi
     worst = int(np.argmax(np.abs(off)))
+    ctx.repairs.extend((topic, joint, int(stamps[i]), float(position[i]),
+                        float(np.mod(new, TWO_PI)), 'azimuth_glitch')
+                       for i, new in zip(bad, expected))
     ctx.issues.append(
         f'{topic}: dropped {bad.size} azimuth sample(s) off the phase the rotor speed predicts '
         f'(e.g. {position[bad][worst]:.4g} rad at {ctx.when(int(stamps[bad][worst]))}, '
@@ -1223,14 +1221,14 @@ def read_messages(bag_path, topics):
     order)}; a topic not in the bag has None and an empty list.
 
     """
-    open_path, _storage, storage_file, _counts, _facts = _resolve(bag_path)
+    bag = _resolve(bag_path)
     store = typestore_with_custom_types()
     out = {}
     try:
-        reader = Reader(open_path)
+        reader = Reader(bag.open_path)
         reader.open()
     except Exception as err:  # noqa: B902 - rosbags/apsw raise many types for bad files
-        raise BagError(f'{storage_file} cannot be opened ({type(err).__name__}: {err})'
+        raise BagError(f'{bag.label} cannot be opened ({type(err).__name__}: {err})'
                        ) from None
     try:
         available = {c.topic: c.msgtype for c in reader.connections}
@@ -1242,7 +1240,7 @@ def read_messages(bag_path, topics):
                 messages[connection.topic].append(
                     (int(log_ns), store.deserialize_cdr(data, connection.msgtype)))
         except Exception as err:  # noqa: B902 - damaged storage or unknown type
-            raise BagError(f'{storage_file}: {", ".join(m for m in found.values() if m)} '
+            raise BagError(f'{bag.label}: {", ".join(m for m in found.values() if m)} '
                            f'cannot be read ({type(err).__name__}: {err})') from None
         for name, topic in found.items():
             out[name] = (topic, messages.get(topic, []))
@@ -1342,9 +1340,42 @@ class BagWriter:
         return False
 
 
+class _McapWriter(McapWriter):
+    """
+    rosbags' MCAP storage writer, with the channel metadata rosbag2 (Jazzy) writes.
+
+    rosbag2_storage_mcap stores two keys in each channel's metadata: ``offered_qos_profiles``
+    (the publishers' QoS, YAML) and ``topic_type_hash``, the RIHS01 hash of the message type
+    (REP-2011: ``RIHS01_`` and the SHA-256 of the type description), which its reader takes
+    back as the topic's ``type_description_hash``. rosbags writes the first only.
+    """
+
+    def add_connection(self, connection, offered_qos_profiles):
+        """Add a channel whose metadata holds the QoS profiles and the type hash."""
+        metadata = BytesIO()
+        for key, value in (('offered_qos_profiles', offered_qos_profiles),
+                           ('topic_type_hash', connection.digest)):
+            write_string(metadata, key)
+            write_string(metadata, value)
+        self.channels.append(Channel(
+            connection.id, connection.msgtype, connection.topic,
+            connection.ext.serialization_format, metadata.getvalue()))
+        self.channel_stats[connection.id] = 0
+        write_channel(self.chunk.bio, self.channels[-1], self.schemas)
+
+
+class _Writer(Writer):
+    """rosbags' bag writer with :class:`_McapWriter` for MCAP."""
+
+    STORAGE_PLUGINS = {**Writer.STORAGE_PLUGINS, StoragePlugin.MCAP: _McapWriter}
+
+
 def open_writer(path, storage='mcap', typestore=None):
     """
     Create a rosbag2 bag as Jazzy writes it (metadata version 9).
+
+    MCAP channels carry their offered QoS profiles and ``topic_type_hash`` (see
+    :class:`_McapWriter`).
 
     Parameters
     ----------
@@ -1370,7 +1401,7 @@ def open_writer(path, storage='mcap', typestore=None):
     if Path(path).exists():
         raise BagError(f'{path} exists already; rosbag2 bags are not overwritten, choose a '
                        'new path')
-    writer = Writer(path, version=9, storage_plugin=STORAGES[storage])
+    writer = _Writer(path, version=9, storage_plugin=STORAGES[storage])
     writer.open()
     return BagWriter(writer, typestore or get_typestore(Stores.ROS2_JAZZY))
 

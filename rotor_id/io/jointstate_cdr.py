@@ -237,7 +237,7 @@ def decode_batch(raws):
     Parameters
     ----------
     raws
-        Sequence of CDR byte strings, or a PackedMessages (read without a per-message copy).
+        Sequence of CDR byte strings.
 
     Returns
     -------
@@ -245,11 +245,7 @@ def decode_batch(raws):
 
     """
     n = len(raws)
-    packed = hasattr(raws, 'rows')       # rotor_id.io.mcap_recover.PackedMessages
-    if packed:
-        lengths = raws.lengths
-    else:
-        lengths = np.fromiter((len(r) for r in raws), dtype=np.int64, count=n)
+    lengths = np.fromiter((len(r) for r in raws), dtype=np.int64, count=n)
     stamps = np.zeros(n, dtype=np.int64)
     ok = np.zeros(n, dtype=bool)
     sent = np.zeros(n, dtype=bool)
@@ -294,11 +290,8 @@ def decode_batch(raws):
     sizes, counts = np.unique(lengths, return_counts=True)
     for size in sizes[np.argsort(-counts, kind='stable')]:
         index = np.flatnonzero(lengths == size)
-        if packed:
-            rows = raws.rows(index, int(size))
-        else:
-            rows = np.frombuffer(b''.join([bytes(raws[i]) for i in index]), dtype=np.uint8)
-            rows = rows.reshape(len(index), int(size))
+        rows = np.frombuffer(b''.join([bytes(raws[i]) for i in index]), dtype=np.uint8)
+        rows = rows.reshape(len(index), int(size))
         try:
             layout = parse_layout(rows[0].tobytes())
         except ValueError:

@@ -11,6 +11,41 @@ from rotor_id.io.timebase import blade_azimuths, multiblade_coordinates
 _WINDOW_TOL_S = 1e-9
 
 
+@dataclass(frozen=True)
+class Repair:
+    """
+    One reading that was replaced before the fit: where, what it read, what replaced it, why.
+
+    Attributes
+    ----------
+    topic
+        Topic of the reading (a role such as 'blade_flap' when no bag was read).
+    blade
+        Joint name of the reading (blade_k, or the azimuth joint).
+    time_s
+        Record time of the sample, s after the first flap stamp.
+    old, new
+        The reading as received and its replacement (rad, or rad/s for a rotor speed).
+    why
+        'value_spike' (a flap or pitch sample of one blade out and back: a bit flip or a
+        dropped reading), 'speed_spike' (a rotor-speed sample out and back) or
+        'azimuth_glitch' (an azimuth sample off the phase the rotor speed predicts, and back).
+
+    """
+
+    topic: str
+    blade: str
+    time_s: float
+    old: float
+    new: float
+    why: str
+
+    def as_json(self) -> dict:
+        """Return the repair as the commands' JSON lists it."""
+        return {'topic': self.topic, 'blade': self.blade, 'time': self.time_s,
+                'old': self.old, 'new': self.new, 'why': self.why}
+
+
 @dataclass
 class Record:
     """
@@ -46,6 +81,9 @@ class Record:
     read_around_window
         True when only the part of the bag around a window was read (a long bag, see
         :func:`rotor_id.io.bag.read_record`), False when the whole recording was read.
+    repairs
+        Every reading replaced by the reader or by :meth:`repair_value_spikes`
+        (:class:`Repair`, in the order made); the commands list them in their JSON.
 
     """
 
@@ -61,6 +99,7 @@ class Record:
     flap_joints: tuple = ()
     pitch_joints: tuple = ()
     read_around_window: bool = False
+    repairs: list = field(default_factory=list)
 
     def __post_init__(self):
         """Convert to float arrays and check that the shapes agree."""
@@ -144,7 +183,9 @@ class Record:
         is formed; the live identifier calls this on each window's record.
         """
         both = np.hstack([self.blade_flap, self.blade_pitch])    # one call: half the CPU
-        repairs = repair_value_spikes(self.time_s, both)
+        blades = list(range(self.n_blades))
+        repairs = repair_value_spikes(self.time_s, both,
+                                      [blades, [k + self.n_blades for k in blades]])
         if repairs:
             self.blade_flap[:] = both[:, :self.n_blades]
             self.blade_pitch[:] = both[:, self.n_blades:]
@@ -153,6 +194,10 @@ class Record:
             quantity, blade = divmod(r.column, self.n_blades)
             found.append((('flap', 'pitch')[quantity], self.blade_names[blade], replace(
                 r, column=blade)))
+            self.repairs.extend(
+                Repair(f'blade_{("flap", "pitch")[quantity]}', self.blade_names[blade],
+                       float(self.time_s[i]), float(old), float(new), 'value_spike')
+                for i, old, new in zip(r.indices, r.old, r.new))
         return found
 
     def stuck_flap_blades(self, t0_s, t1_s):
@@ -191,4 +236,4 @@ class Record:
             rotor_speed_rad_s=self.rotor_speed_rad_s[keep],
             blade_flap=self.blade_flap[keep], blade_pitch=self.blade_pitch[keep],
             source=f'{self.source} [window {t0_s}..{t1_s} s]',
-            warnings=list(self.warnings))
+            warnings=list(self.warnings), repairs=list(self.repairs))

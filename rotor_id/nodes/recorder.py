@@ -7,7 +7,8 @@ as rosbag2 does (reliable / transient-local only if every publisher offers it,
 docs/ros_interfaces.md) but KEEP_ALL, the publishers' offered QoS stored in the bag, messages
 written with :func:`rotor_id.io.bag.open_writer` (rosbags; MCAP by default, sqlite3 on request)
 with every message definition embedded, rotor_id_msgs included, so mcap + mcap-ros2-support
-decode it.
+decode it, and each topic's type hash (RIHS01, as the publishers advertise it) in metadata.yaml
+and in the MCAP channel's ``topic_type_hash``, as rosbag2 writes them.
 
 With a run description (parameter ``run_description``, docs/run_description.md) it records the
 rig's topics (resolved in its namespace, so a recorder under ``/rig2`` records rig 2 only) and
@@ -77,6 +78,21 @@ def bag_qos(profile):
                avoid_ros_namespace_conventions=bool(profile.avoid_ros_namespace_conventions))
 
 
+def advertised_type_hash(infos):
+    """
+    Return the RIHS01 type hash the publishers advertise ('RIHS01_<sha256>'), or ''.
+
+    What rosbag2 stores as the topic's ``type_description_hash`` (and, in MCAP, as the
+    channel's ``topic_type_hash``): the hash of the type the publishers actually use. '' when
+    no publisher gives one (version 0: an RMW or a distribution without type hashes).
+    """
+    for info in infos:
+        type_hash = getattr(info, 'topic_type_hash', None)
+        if type_hash is not None and int(getattr(type_hash, 'version', 0)) > 0:
+            return str(type_hash)
+    return ''
+
+
 class Recorder(Node):
     """Raw subscriptions to the run's topics, written to a bag as they arrive."""
 
@@ -135,7 +151,8 @@ class Recorder(Node):
             if topic in self.subscriptions_by_topic or topic in self.exclude or \
                     topic in self.skipped or (self.wanted and topic not in self.wanted):
                 continue
-            offers = [info.qos_profile for info in self.get_publishers_info_by_topic(topic)]
+            infos = self.get_publishers_info_by_topic(topic)
+            offers = [info.qos_profile for info in infos]
             if not offers:
                 continue
             type_name = types[0]
@@ -147,8 +164,10 @@ class Recorder(Node):
                 self.skipped[topic] = type_name
                 self.diagnostics.count('unknown_type', f'{topic} ({type_name}): {exc}')
                 continue
+            store = self.writer.typestore
             conn = self.writer.writer.add_connection(
-                topic, type_name, typestore=self.writer.typestore,
+                topic, type_name, msgdef=store.generate_msgdef(type_name, ros_version=2)[0],
+                rihs01=advertised_type_hash(infos) or store.hash_rihs01(type_name),
                 offered_qos_profiles=[bag_qos(q) for q in offers])
             self.writer.connections[topic] = conn
             self.counts[topic] = 0

@@ -102,6 +102,14 @@ def _publish(stand, n, rate_hz=1000.0):
             time.sleep(delay)
 
 
+def mcap_type_hashes(bag):
+    """Return topic -> the ``topic_type_hash`` of its MCAP channel (the mcap package reads it)."""
+    from mcap.reader import make_reader
+    with open(next(bag.glob('*.mcap')), 'rb') as stream:
+        channels = make_reader(stream).get_summary().channels.values()
+        return {c.topic: c.metadata.get('topic_type_hash') for c in channels}
+
+
 def _bag_counts(bag):
     meta = yaml.safe_load((bag / 'metadata.yaml').read_text())['rosbag2_bagfile_information']
     return meta, {t['topic_metadata']['name']: t['message_count']
@@ -116,6 +124,9 @@ def test_recorder_loses_nothing(tmp_path, storage):
     try:
         _publish(stand, 1500)
         time.sleep(0.5)
+        advertised = {topic: str(session.node.get_publishers_info_by_topic(topic)[0]
+                                 .topic_type_hash)
+                      for topic in ('/rotor/blade_flap', '/rotor_id/estimate', '/rotor/config')}
         code = procs.stop('recorder', signal.SIGINT)
     finally:
         procs.stop_all(last=())
@@ -134,6 +145,14 @@ def test_recorder_loses_nothing(tmp_path, storage):
     assert qos['/rotor/blade_flap'][0]['reliability'] == 'best_effort'
     assert qos['/rotor/config'][0]['durability'] == 'transient_local'
     assert qos['/rotor_id/estimate'][0]['reliability'] == 'reliable'
+    # the type hash the publishers advertise, as rosbag2 stores it (metadata and MCAP channel)
+    hashes = {t['topic_metadata']['name']: t['topic_metadata']['type_description_hash']
+              for t in meta['topics_with_message_count']}
+    assert all(h.startswith('RIHS01_') and len(h) == 7 + 64 for h in advertised.values())
+    assert {topic: hashes[topic] for topic in advertised} == advertised
+    if storage == 'mcap':
+        assert {topic: h for topic, h in mcap_type_hashes(tmp_path / 'bag').items()
+                if topic in advertised} == advertised
     record = read_record(tmp_path / 'bag')
     assert len(record) == 1500
     assert np.array_equal(np.round(record.blade_flap[:, 0] * 1e6), np.arange(1500))

@@ -80,3 +80,60 @@ def write_streams(path, streams, storage='mcap', extra=None):
             for stamp, message in items:
                 writer.write(topic, stamp, message)
     return Path(path)
+
+
+def split_bag(source, target, parts):
+    """
+    Copy a bag into ``parts`` storage files of equal receive-time spans, as rosbag2 splits.
+
+    ``ros2 bag record --max-bag-duration`` writes NAME/NAME_0.mcap, NAME_1.mcap, ... and one
+    metadata.yaml listing them (``relative_file_paths``, ``files`` with each file's start,
+    duration and message count) with the topics' counts summed. Each part is written by
+    rosbags' Writer, its file moved into ``target``, and the parts' metadata merged.
+    """
+    import shutil
+    from rosbags.rosbag2 import Reader
+    import yaml
+    source, target = Path(source), Path(target)
+    storage = 'mcap' if any(source.glob('*.mcap')) else 'sqlite3'
+    with Reader(source) as reader:
+        messages = list(reader.messages())
+        start, end = reader.start_time, reader.end_time
+        topics = [(c.topic, c.msgtype) for c in reader.connections]
+    edges = np.linspace(start, end, parts + 1).astype(np.int64)
+    edges[-1] = end + 1
+    target.mkdir()
+    infos = []
+    for k in range(parts):
+        name = f'{target.name}_{k}'
+        part = target.parent / f'{name}.part'
+        with open_writer(part, storage) as writer:
+            for topic, msgtype in topics:
+                writer.add_topic(topic, msgtype)
+            for connection, stamp, data in messages:
+                if edges[k] <= stamp < edges[k + 1]:
+                    writer.write_raw(connection.topic, stamp, data)
+        stored = next(p for p in part.iterdir() if p.name != 'metadata.yaml')
+        stored.rename(target / f'{name}{stored.suffix}')
+        info = yaml.safe_load((part / 'metadata.yaml').read_text())
+        infos.append((f'{name}{stored.suffix}', info['rosbag2_bagfile_information']))
+        shutil.rmtree(part)
+    merged = dict(infos[0][1])
+    merged['relative_file_paths'] = [name for name, _ in infos]
+    merged['files'] = [{**info['files'][0], 'path': name} for name, info in infos]
+    merged['message_count'] = sum(info['message_count'] for _, info in infos)
+    first = min(info['starting_time']['nanoseconds_since_epoch'] for _, info in infos)
+    last = max(info['starting_time']['nanoseconds_since_epoch']
+               + info['duration']['nanoseconds'] for _, info in infos)
+    merged['starting_time'] = {'nanoseconds_since_epoch': first}
+    merged['duration'] = {'nanoseconds': last - first}
+    counts = {}
+    for _, info in infos:
+        for entry in info['topics_with_message_count']:
+            name = entry['topic_metadata']['name']
+            counts.setdefault(name, dict(entry, message_count=0))
+            counts[name]['message_count'] += entry['message_count']
+    merged['topics_with_message_count'] = list(counts.values())
+    (target / 'metadata.yaml').write_text(
+        yaml.safe_dump({'rosbag2_bagfile_information': merged}, sort_keys=False))
+    return target

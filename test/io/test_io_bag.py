@@ -2,6 +2,7 @@
 
 import math
 from pathlib import Path
+import re
 import shutil
 import warnings
 
@@ -10,7 +11,8 @@ import numpy as np
 import pytest
 from rosbags.typesys import get_typestore, Stores
 from rotor_id.io.bag import (
-    BagError, BagWarning, open_writer, read_record, register_msg_dir, write_record_bag,
+    BagError, BagWarning, message_with_defaults, open_writer, read_record, register_msg_dir,
+    typestore_with_custom_types, write_record_bag,
 )
 from rotor_id.io.jointstate_cdr import encode_batch, JOINT_STATE
 
@@ -70,6 +72,51 @@ def test_mcap_written_bag_decodes_with_independent_mcap_ros2_reader(tmp_path):
                 flap.append((stamp, list(msg.position)))
     assert [s for s, _ in flap] == [STAMP0 + i * 1_000_000 for i in range(40)]
     np.testing.assert_array_equal([p for _, p in flap], record.blade_flap)
+
+
+def _generated_type_hash(type_name):
+    """Return the RIHS01 hash rosidl generated for a type (share/PKG/msg/NAME.json), or None."""
+    import json
+    from ament_index_python.packages import get_package_share_directory
+    package, _, name = type_name.split('/')
+    try:
+        path = Path(get_package_share_directory(package)) / 'msg' / f'{name}.json'
+        hashes = json.loads(path.read_text())['type_hashes']
+    except (LookupError, OSError, ValueError, KeyError):
+        return None
+    return next(h['hash_string'] for h in hashes if h['type_name'] == type_name)
+
+
+def test_mcap_channels_carry_the_type_hash_as_rosbag2_writes(tmp_path):
+    """
+    Each MCAP channel's metadata holds ``offered_qos_profiles`` and ``topic_type_hash``.
+
+    The hash is the one rosidl generated for the type at its package's build (REP-2011,
+    share/PKG/msg/NAME.json) and the one metadata.yaml gives as ``type_description_hash``.
+    """
+    from mcap.reader import make_reader
+    import yaml
+    store = typestore_with_custom_types()
+    estimate = message_with_defaults(store, 'rotor_id_msgs/msg/ParameterEstimate')
+    bag = write_record_bag(tmp_path / 'bag', make_record(n=20),
+                           extra=[('/rotor_id/estimate', STAMP0, estimate)], typestore=store)
+    with open(bag / 'bag.mcap', 'rb') as stream:
+        channels = {c.topic: c.metadata
+                    for c in make_reader(stream).get_summary().channels.values()}
+    info = yaml.safe_load((bag / 'metadata.yaml').read_text())['rosbag2_bagfile_information']
+    listed = {t['topic_metadata']['name']: t['topic_metadata']
+              for t in info['topics_with_message_count']}
+    assert set(channels) == {FLAP, PITCH, AZIMUTH, '/rotor_id/estimate'}
+    checked = 0
+    for topic, metadata in channels.items():
+        assert set(metadata) == {'offered_qos_profiles', 'topic_type_hash'}
+        assert metadata['topic_type_hash'] == listed[topic]['type_description_hash']
+        assert re.fullmatch(r'RIHS01_[0-9a-f]{64}', metadata['topic_type_hash'])
+        generated = _generated_type_hash(listed[topic]['type'])
+        if generated is not None:
+            assert metadata['topic_type_hash'] == generated, topic
+            checked += 1
+    assert checked >= 3, 'sensor_msgs (in the venv) must give the generated hash'
 
 
 def test_custom_messages_are_written_with_embedded_definitions(tmp_path):
@@ -458,39 +505,3 @@ def test_velocity_missing_takes_speed_from_azimuth_rate(tmp_path):
     np.testing.assert_allclose(got.t, record.t, atol=1e-9)
     np.testing.assert_allclose(got.rotor_speed_rad_s, record.rotor_speed_rad_s, rtol=1e-4)
     assert any('no velocity' in w for w in got.warnings)
-
-
-@pytest.mark.parametrize('compression', ['none', 'zstd', 'lz4'])
-def test_indexed_mcap_read_in_place_and_decompressed_agree(tmp_path, compression):
-    """
-    The vectorised MCAP reader gives the same messages from uncompressed and compressed chunks.
-
-    Uncompressed chunks are read where they lie in the file (no copy); compressed ones are
-    decompressed and concatenated. Small chunks, so messages span many of them.
-    """
-    from mcap.writer import CompressionType, Writer
-    from rotor_id.io.mcap_recover import read_indexed_mcap
-    record = make_record(n=300)
-    streams = record_streams(record)
-    path = tmp_path / f'{compression}.mcap'
-    with open(path, 'wb') as stream:
-        writer = Writer(stream, chunk_size=2048,
-                        compression=getattr(CompressionType, compression.upper()))
-        writer.start(profile='ros2', library='rotor_id test')
-        schema = writer.register_schema(name=JOINT_STATE, encoding='ros2msg', data=b'')
-        sent = {}
-        for topic, (stamps, names, position, velocity) in streams.items():
-            channel = writer.register_channel(topic=topic, message_encoding='cdr',
-                                              schema_id=schema)
-            sent[topic] = encode_batch(stamps, names, position, velocity, frame_id='rotor')
-            for stamp, data in zip(np.asarray(stamps).tolist(), sent[topic]):
-                writer.add_message(channel, log_time=stamp, data=data, publish_time=stamp)
-        writer.finish()
-    read = read_indexed_mcap(path, set(streams))
-    assert read is not None, 'a healthy indexed MCAP must take the vectorised path'
-    types, messages = read
-    assert set(messages) == set(streams) and set(types.values()) == {JOINT_STATE}
-    for topic, (stamps, *_rest) in streams.items():
-        log_ns, packed = messages[topic]
-        np.testing.assert_array_equal(log_ns, np.asarray(stamps))
-        assert [bytes(m) for m in packed] == [bytes(m) for m in sent[topic]]

@@ -145,3 +145,95 @@ def test_running_median_is_scipy_median_filter():
         want = median_filter(values, size=MEDIAN_SPAN, mode='nearest')
         assert np.array_equal(_running_median(values, MEDIAN_SPAN), want)
         assert np.array_equal(_running_median(values, MEDIAN_SPAN, block=997), want)
+
+
+# ----------------------------------------------------------------------- value spikes (#36.5)
+
+RATE_HZ, OMEGA = 1000.0, 2 * np.pi * 15.0
+THETA0, CYCLIC = np.radians(2.0), np.radians(1.5)
+PITCH_NOISE = np.radians(0.01)
+
+
+def _blade_pitch(n_blades, event, noise=PITCH_NOISE, seconds=0.6, seed=0):
+    """(n, N) blade pitch θ0 + θ1c cos ψk + θ1s sin ψk at 1 kHz, 15 rev/s, with ``event``."""
+    time_s = np.arange(int(seconds * RATE_HZ)) / RATE_HZ
+    psi = OMEGA * time_s[:, None] + 2 * np.pi * np.arange(n_blades) / n_blades
+    collective, cosine, sine = event(time_s)
+    pitch = (collective[:, None] + cosine[:, None] * np.cos(psi)
+             + sine[:, None] * np.sin(psi))
+    rng = np.random.default_rng(seed)
+    return time_s, pitch + noise * rng.standard_normal(pitch.shape)
+
+
+def _step_at(time_s, at_s, size):
+    return np.where(time_s >= at_s, size, 0.0)
+
+
+ONE_REV_S = 2 * np.pi / OMEGA          # 0.067 s: where the test steps the lateral cyclic
+INPUTS = {
+    # the test's lateral-cyclic step one revolution in (the issue's 3-blade hover recording)
+    'lateral step': lambda t: (THETA0 + 0 * t, 0 * t, _step_at(t, ONE_REV_S, CYCLIC)),
+    'collective step': lambda t: (THETA0 + _step_at(t, 0.2, np.radians(0.5)), 0 * t, 0 * t),
+    # a command that goes out for 3 samples and back, on every blade at once
+    'cyclic pulse': lambda t: (THETA0 + 0 * t, 0 * t, CYCLIC * ((t >= ONE_REV_S)
+                                                                & (t < ONE_REV_S + 0.003))),
+    'collective ramp': lambda t: (THETA0 + np.radians(2.0) * np.clip((t - 0.2) / 0.05, 0, 1),
+                                  0 * t, 0 * t),
+    # stirring: the cyclic starts to turn at 7/rev (105 Hz: 9-10 samples a cycle)
+    'stirring start': lambda t: (THETA0 + 0 * t,
+                                 CYCLIC * np.cos(7 * OMEGA * t) * (t >= 0.2),
+                                 CYCLIC * np.sin(7 * OMEGA * t) * (t >= 0.2)),
+}
+
+
+@pytest.mark.parametrize('n_blades', [2, 3, 4, 5, 6])
+@pytest.mark.parametrize('name', sorted(INPUTS))
+@pytest.mark.parametrize('noise', [PITCH_NOISE, 0.0])
+def test_inputs_on_every_blade_are_never_repaired(n_blades, name, noise):
+    """Steps, ramps, pulses and stirring starts of the pitch are real inputs: none repaired."""
+    from rotor_id.io.streams import repair_value_spikes
+    time_s, pitch = _blade_pitch(n_blades, INPUTS[name], noise)
+    before = pitch.copy()
+    assert repair_value_spikes(time_s, pitch) == []
+    assert np.array_equal(pitch, before)
+
+
+@pytest.mark.parametrize('n_blades', [2, 3, 4, 5, 6])
+@pytest.mark.parametrize('name', sorted(INPUTS))
+def test_single_sample_spikes_are_repaired_among_inputs(n_blades, name):
+    """
+    A bit flip of one blade's reading is found and replaced, whatever the input.
+
+    One sample of the last blade +0.2 rad, away from the input's event; the replaced value is
+    the interpolation, within the noise of the true reading.
+    """
+    from rotor_id.io.streams import repair_value_spikes
+    time_s, pitch = _blade_pitch(n_blades, INPUTS[name])
+    clean = pitch.copy()
+    at = 450
+    pitch[at, -1] += 0.2
+    repairs = repair_value_spikes(time_s, pitch)
+    assert [(r.column, r.indices.tolist()) for r in repairs] == [(n_blades - 1, [at])]
+    assert repairs[0].old[0] == clean[at, -1] + 0.2
+    assert abs(pitch[at, -1] - clean[at, -1]) < 10 * PITCH_NOISE
+    unchanged = np.ones(pitch.shape, dtype=bool)
+    unchanged[at, -1] = False
+    assert np.array_equal(pitch[unchanged], clean[unchanged])
+
+
+def test_spike_threshold_follows_the_noise_scale():
+    """
+    The threshold is VALUE_SPIKE_SIGMAS cubic prediction errors of the MAD noise σ.
+
+    On white noise of σ (no signal), the MAD of second differences gives σ back within 3 %,
+    a +15σ sample is repaired and a +6σ one (below 7 × 1.39σ) is not.
+    """
+    from rotor_id.io.streams import noise_scale, value_spikes
+    rng = np.random.default_rng(7)
+    sigma = 0.002
+    values = sigma * rng.standard_normal((20000, 2))
+    assert noise_scale(values) == pytest.approx([sigma, sigma], rel=0.03)
+    values[5000, 0] += 15 * sigma
+    values[9000, 1] += 6 * sigma
+    found = value_spikes(values, groups=[[0], [1]])
+    assert found[0].tolist() == [5000] and found[1].size == 0

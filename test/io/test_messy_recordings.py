@@ -436,3 +436,33 @@ def main(argv=None):
 
 if __name__ == '__main__':
     main()
+
+
+def test_every_repair_is_listed_in_the_json(clean):
+    """
+    The identify JSON lists each replaced reading (topic, blade, time, old, new, why).
+
+    One flap sample of blade 2 and one pitch sample of blade 4 +0.2 rad (bit flips) in the
+    window: exactly those two in ``repairs``, old as received, new within 5 noise σ of the
+    clean reading. The clean record lists none.
+    """
+    root, record, description = clean
+    rc, _, data = identify(root, 'clean_json', record, description)
+    assert rc == 0 and data['repairs'] == []
+    inside = _in_window(record, description['window_s'])
+    flap_at, pitch_at = inside[40], inside[70]
+    flap, pitch = record.blade_flap.copy(), record.blade_pitch.copy()
+    flap[flap_at, 1] += 0.2
+    pitch[pitch_at, 3] += 0.2
+    rc, _, data = identify(root, 'two_spikes', replace(record, blade_flap=flap,
+                                                       blade_pitch=pitch), description)
+    assert rc == 0
+    got = sorted(data['repairs'], key=lambda r: r['topic'])
+    assert [(r['topic'], r['blade'], r['why']) for r in got] == [
+        ('/rotor/blade_flap', 'blade_2', 'value_spike'),
+        ('/rotor/blade_pitch', 'blade_4', 'value_spike')]
+    for repair, (values, at, column) in zip(got, ((flap, flap_at, 1), (pitch, pitch_at, 3))):
+        clean_values = record.blade_flap if values is flap else record.blade_pitch
+        assert repair['time'] == pytest.approx(record.time_s[at], abs=1e-9)
+        assert repair['old'] == values[at, column]
+        assert abs(repair['new'] - clean_values[at, column]) < 5 * NOISE_RAD
