@@ -1,5 +1,5 @@
 """
-Residual analysis: where do the recording and the model disagree (issue 4, step 2).
+Residual analysis: where do the recording and the model disagree.
 
 All tests compare the residuals with a **noise floor estimated without the model**: at 1 kHz
 the flap signal is smooth from sample to sample, so the k-th differences of a measured flap

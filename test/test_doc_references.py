@@ -30,9 +30,6 @@ DOCS_PATH = re.compile(r'(?<![\w/.<-])((?:docs|bench/results)/[\w.-]+\.md)\b')
 SECTION = re.compile(r'\b([A-Z][A-Z_]{3,})(?:\.md)? ?§')
 #: names of command-line placeholders (``--markdown OUT.md``, ``OUTDIR/campaign.md``)
 PLACEHOLDERS = {'OUT', 'OUTDIR', 'FILE', 'PATH', 'NAME', 'DIR'}
-#: a file of another area that still cites a document outside the repository (strict xfail:
-#: it fails once fixed, so that the mark is removed)
-PENDING = {'rotor_id/io/bag.py': 'its docstring cites the shared recordings README'}
 
 
 def tracked_files():
@@ -76,14 +73,7 @@ def unresolved_citations(relative, text):
     return bad
 
 
-def _params():
-    for name in TRACKED:
-        marks = ([pytest.mark.xfail(strict=True, reason=PENDING[name])]
-                 if name in PENDING else [])
-        yield pytest.param(name, marks=marks, id=name)
-
-
-@pytest.mark.parametrize('relative', list(_params()))
+@pytest.mark.parametrize('relative', TRACKED)
 def test_cited_documents_are_in_the_repository(relative):
     text = (REPO_ROOT / relative).read_text(encoding='utf-8', errors='replace')
     bad = unresolved_citations(relative, text)

@@ -22,24 +22,10 @@ import io
 from pathlib import Path
 import re
 import tokenize
-import warnings
 
 import pytest
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
-
-#: Paths other work is still cleaning; the check lists them (a warning) but does not fail on them.
-#: TEMPORARY: remove once those areas are merged and cleaned.
-TEMPORARY_ALLOWLIST = (
-    'rotor_id/io/',
-    'rotor_id/diagnosis/',
-    'rotor_id/commands/diagnose.py',
-    'rotor_id/nodes/stirring_input.py',
-    'rotor_id/nodes/common.py',
-    'launch/',
-    'test/diagnosis/',
-    'test/io/',
-)
 
 SESSION = re.compile(r'session', re.I)
 #: Names of Python and pytest that use the word in their own sense.
@@ -126,11 +112,6 @@ def scan():
     return out
 
 
-def _allowed(relative):
-    return any(relative.startswith(p) if p.endswith('/') else relative == p
-               for p in TEMPORARY_ALLOWLIST)
-
-
 def _report(offending):
     return '\n'.join(f'{path}: {len(found)} ({", ".join(sorted(set(found))[:4])}'
                      f'{", ..." if len(set(found)) > 4 else ""})'
@@ -138,13 +119,9 @@ def _report(offending):
 
 
 def test_no_development_history_in_the_product():
-    """Fail on history outside the temporary allowlist; list what the allowlist hides."""
+    """Fail on any history in the product, listing each file with what was found."""
     offending = scan()
-    failing = {p: f for p, f in offending.items() if not _allowed(p)}
-    waiting = {p: f for p, f in offending.items() if _allowed(p)}
-    if waiting:
-        warnings.warn('still to clean (TEMPORARY_ALLOWLIST):\n' + _report(waiting))
-    assert not failing, 'development history in the product:\n' + _report(failing)
+    assert not offending, 'development history in the product:\n' + _report(offending)
 
 
 @pytest.mark.parametrize('text, expected', [

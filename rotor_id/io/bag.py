@@ -1,7 +1,7 @@
 """
 Read and write rosbag2 recordings of the test stand (MCAP or sqlite3) with ``rosbags``.
 
-The convention (recordings/README.md): three ``sensor_msgs/msg/JointState`` topics,
+The recording convention (docs/run_description.md): three ``sensor_msgs/msg/JointState`` topics,
 ``header.stamp`` = acquisition time,
 
 * /rotor/blade_pitch: joints blade_1..blade_N, position = blade pitch, rad;
@@ -668,7 +668,7 @@ def read_record(bag_path, topics=None, joint_names=None, *, n_blades=None, omega
     check_dead_flap
         Refuse a blade whose flap reads one exact value throughout ``window_s`` (a dead
         sensor). False when ``window_s`` only says which part of a long bag to read and the
-        caller checks each window it fits (a session's slices:
+        caller checks each window it fits (a long bag's slices:
         :meth:`Record.stuck_flap_blades`).
 
     Returns

@@ -37,3 +37,5 @@ def test_identify_loads_neither_scipy_nor_matplotlib(tmp_path):
     assert {'numpy', 'rosbags'} <= packages            # the listing sees what was imported
     assert 'rotor_id.adequacy' in modules              # the check ran
     assert not packages & set(NOT_NEEDED), sorted(packages & set(NOT_NEEDED))
+    # the adequacy check reads the residuals without the diagnosis (it never imports upward)
+    assert not [name for name in modules if name.startswith('rotor_id.diagnosis')]

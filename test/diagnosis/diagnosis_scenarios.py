@@ -148,7 +148,7 @@ PAIRS = [
              original_truth={'gamma': GAMMA_WAKE, 'theta0': THETA0}),
 ]
 GAIN = [0.035, -0.03, 0.0, 0.02]
-#: Rig physics (issue 16, item 2), alone and with another effect.
+#: Rig physics, alone and with another effect.
 RIG = [
     # ΔP² = (γB⁴/8) K = 0.5 K: K = 0.1 is the flap_frequency scenario's 1.2 → 1.22
     Scenario('pitch_flap_coupling', 'pitch_flap_coupling',
@@ -300,7 +300,7 @@ def _together_scenario(*groups):
 
 def catalogue_pairs():
     """
-    Every pair of effect groups a rig can produce together, as scenarios (issue 16, item 5).
+    Every pair of effect groups a rig can produce together, as scenarios.
 
     Pairs within one equivalence group are excluded (the same physics, see
     :func:`effect_classes`); a group the generator cannot conceal (no :data:`CONCEALED` knobs)
@@ -332,7 +332,7 @@ PROCESS_NOISE_MU04 = Scenario(
 PAIR_STUDY = catalogue_pairs()
 SCENARIOS = SCENARIOS + [PROCESS_NOISE_MU04] + [s for s in PAIR_STUDY if s not in SCENARIOS]
 
-#: Physics no catalogue candidate models (issue 16 item 4): a once-per-rev flap stiffness
+#: Physics no catalogue candidate models: a once-per-rev flap stiffness
 #: β_k″ += −K_1c cos ψ_k β_k at μ = 0 (multiblade model, all four coordinates). The honest
 #: verdict is ``unexplained`` (or random inflow, the explanation of last resort) with a
 #: proposal of the term ``beta*cos(psi)``, coefficient −K_1c. Not in the study's SCENARIOS: no
@@ -403,7 +403,7 @@ def evaluate(scenario, result):
     if scenario.together:
         accepted = {a for group in scenario.together for a in group}
         out['right_named'] = all(any(a in named for a in group) for group in scenario.together)
-        # issue 16: two effects that are the same physics to first order in the record at
+        # two effects that are the same physics to first order in the record at
         # hand, said so and both named, is an honest answer, not a miss
         out['right'] = all(any(a in named + confounded for a in group)
                            for group in scenario.together)

@@ -58,7 +58,7 @@ def test_dynamic_inflow_candidate_is_the_wake_model(n_blades, mu):
 
 
 def test_nested_candidates_equal_finite_differences():
-    """Two effects at once (issue 16): the wake over a sensor lag, an odd blade over the wake."""
+    """Two effects at once: the wake over a sensor lag, an odd blade over the wake."""
     base = _base('multiblade', 3, 0.3, {'outputs': 'blades'})
     rng = np.random.default_rng(9)
     for model in (aug.DynamicInflow(aug.SensorLag(base)),

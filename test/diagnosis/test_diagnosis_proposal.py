@@ -1,5 +1,5 @@
 """
-Out of catalogue (issue 16 item 4): a proposed flap-equation term, validated on held-out blocks.
+Out of catalogue (pins #16): a proposed flap-equation term, validated on held-out blocks.
 
 * the proposal's model (baseline + one library term) has exact sensitivities and is the
   baseline at ξ = 0;

@@ -1,5 +1,5 @@
 """
-The given dx_* recordings are diagnosed as their answers say (issue 4), through the CLI.
+The given dx_* recordings are diagnosed as their answers say (pins #4), through the CLI.
 
 Each recording is diagnosed once (module fixture, two worker processes); the tests then check
 the named effect, the extra parameters against answers.json within 3σ, that the augmented

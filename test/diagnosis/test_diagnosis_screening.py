@@ -1,5 +1,5 @@
 """
-Score-test screening and catalogue bounds of the diagnosis (issue 15 item 1, issue 16 item 3).
+Score-test screening and catalogue bounds of the diagnosis (pins #16).
 
 * The score statistic at the baseline predicts the full fit's 2Δlog L for a nested effect
   (Rao's score test and the likelihood-ratio test agree to first order in a small effect).

@@ -114,7 +114,7 @@ def test_full_study_statistics():
         rs = [r for r in runs if r['scenario'] == sc.name]
         if not rs or sc.effect == 'none':
             continue
-        # single effects: as before; pairs (issue 16): both named in >= 80 %
+        # single effects: as before; pairs: both named in >= 80 %
         assert sum(r['right'] for r in rs) >= (0.8 if sc.together else 0.9) * len(rs), sc.name
         if not any('process_noise' in g for g in sc.together or [(sc.effect,)]):
             # filter error: innovations, above the floor

@@ -1,5 +1,5 @@
 """
-Independent generator of "real" test-stand recordings with concealed effects (issue 4).
+Independent generator of "real" test-stand recordings with concealed effects.
 
 This is the test suite's stand-in for the rotor. It is written from the blade equations, blade
 by blade, with scipy's adaptive integrator, and shares no code with the identification models
@@ -37,7 +37,7 @@ offset ``pitch_offset``, nor the first-order lag of the blade's pitch behind the
 description does not know (a concealed δ3), added to ``pitch_flap``. The azimuth encoder's
 zero may be off: the recording's azimuth of blade 1 reads ``azimuth_offset`` (rad) more than
 the blade's true azimuth, on which the rotor, its swashplate and its aerodynamics run.
-``flap_stiffness_1c`` is physics no catalogue candidate models (issue 16 item 4): a flap spring
+``flap_stiffness_1c`` is physics no catalogue candidate models: a flap spring
 whose stiffness varies once per revolution in the shaft frame (a hub spring with a
 shaft-fixed asymmetry), β_k″ += −K_1c cos ψ_k β_k; ``flap_damping_1s`` another, a flap damper
 whose damping varies once per revolution, β_k″ += −D_1s sin ψ_k β_k′.

@@ -124,7 +124,7 @@ def test_recorder_loses_nothing(tmp_path, storage):
     try:
         _publish(stand, 1500)
         time.sleep(0.5)
-        advertised = {topic: str(session.node.get_publishers_info_by_topic(topic)[0]
+        advertised = {topic: str(ros.node.get_publishers_info_by_topic(topic)[0]
                                  .topic_type_hash)
                       for topic in ('/rotor/blade_flap', '/rotor_id/estimate', '/rotor/config')}
         code = procs.stop('recorder', signal.SIGINT)

@@ -73,7 +73,7 @@ _BAGS = {}
 
 
 def clean_bag(storage):
-    """Bytes of a small valid bag's storage file (written once per session)."""
+    """Bytes of a small valid bag's storage file (written once per test run)."""
     if storage not in _BAGS:
         with tempfile.TemporaryDirectory() as tmp:
             bag = write_record_bag(Path(tmp) / 'bag', make_record(n=60), storage=storage)

@@ -1,5 +1,5 @@
 """
-Split bags (issue 35.3): several storage files listed in metadata.yaml read as one recording.
+Split bags (pins #35): several storage files listed in metadata.yaml read as one recording.
 
 ``ros2 bag record --max-bag-duration/--max-bag-size`` writes NAME_0.mcap, NAME_1.mcap, ...
 and one metadata.yaml. The same messages as one file and as 2 or 3 files must give the same

@@ -147,7 +147,7 @@ def test_running_median_is_scipy_median_filter():
         assert np.array_equal(_running_median(values, MEDIAN_SPAN, block=997), want)
 
 
-# ----------------------------------------------------------------------- value spikes (#36.5)
+# ----------------------------------------------------------------------- value spikes (pins #36)
 
 RATE_HZ, OMEGA = 1000.0, 2 * np.pi * 15.0
 THETA0, CYCLIC = np.radians(2.0), np.radians(1.5)

@@ -19,6 +19,7 @@ import time
 
 import numpy as np
 import pytest
+from ros_domains import next_domain
 
 rclpy = pytest.importorskip('rclpy', reason='rclpy not importable')
 msgs = pytest.importorskip('rotor_id_msgs.msg', reason='rotor_id_msgs not built')
@@ -52,7 +53,7 @@ def run(tmp_path_factory):
 
     description = tmp_path_factory.mktemp('rig') / 'rig.yaml'
     description.write_text(RIG)
-    domain = 201 + (os.getpid() + 15) % 30      # away from the identifier node test's
+    domain = next_domain()
     os.environ['ROS_AUTOMATIC_DISCOVERY_RANGE'] = 'LOCALHOST'
     context = rclpy.context.Context()
     rclpy.init(context=context, domain_id=domain, signal_handler_options=SignalHandlerOptions.NO)
@@ -234,7 +235,7 @@ def test_an_exception_mid_stirring_ends_on_trim(tmp_path, monkeypatch, broken):
     description = tmp_path / 'rig.yaml'
     description.write_text(RIG)
     context = rclpy.context.Context()
-    rclpy.init(context=context, domain_id=201 + (os.getpid() + 3) % 30,
+    rclpy.init(context=context, domain_id=next_domain(),
                signal_handler_options=SignalHandlerOptions.NO)
     params = [Parameter('run_description', value=str(description)),
               Parameter('t0', value=5.0), Parameter('step_after_rad', value=1.0),
@@ -303,7 +304,7 @@ def test_lifecycle_states_gate_the_commands(tmp_path):
     description = tmp_path / 'rig.yaml'
     description.write_text(RIG)
     context = rclpy.context.Context()
-    rclpy.init(context=context, domain_id=201 + (os.getpid() + 7) % 30,
+    rclpy.init(context=context, domain_id=next_domain(),
                signal_handler_options=SignalHandlerOptions.NO)
     nodes = []
 
