@@ -145,6 +145,6 @@ def run(args):
         print(f'JSON: {args.json_out}')
     if args.report:
         from rotor_id.diagnosis.figures import write_report
-        for path in write_report(result, args.report):
+        for path in write_report(result, args.report, record, description):
             print(f'figure: {path}')
     return 0

@@ -9,6 +9,9 @@ Figures of a diagnosis (matplotlib, Agg): what a person would rather look at tha
   floor, baseline and augmented; the located time span shaded.
 * ``effects.png``: the fit improving effect by effect (forward selection): residual RMS over
   the floor after each added effect, and the residual energy over time of every step.
+* ``frequency_response.png`` (records with a stirring sweep): the measured directional
+  frequency response β_c/θ_c with its coherence, and the baseline model's, so that the band
+  the diagnosis located can be read against frequency.
 * ``proposal.png`` (out of catalogue only): how much each library term lowers the held-out
   equation error at every step of the proposal, the kept terms marked.
 """
@@ -225,8 +228,32 @@ def plot_proposal(proposal, path):
     plt.close(fig)
 
 
-def write_report(diagnosis, directory):
-    """Write the figures into ``directory``; return their paths."""
+def plot_frequency_response(diagnosis, record, description, path):
+    """
+    Draw the record's measured dFRF and the baseline model's; return None or why not drawn.
+
+    The model is drawn at the baseline fit's values: the mismatch the diagnosis explains is
+    the one between these two curves.
+    """
+    from rotor_id import pipeline
+    from rotor_id.estimation.frequency_response_plot import bode_figure
+    values = {name: p['baseline_value'] for name, p in diagnosis.parameters.items()}
+    try:
+        analysis = pipeline.frequency_analysis([(record, description, 'record')],
+                                               parameters=values, source='the baseline fit')
+    except ValueError as exc:             # no stirring sweep, or too short for one
+        return str(exc)
+    bode_figure(analysis, path, title='diagnosis: measured and baseline model')
+    return None
+
+
+def write_report(diagnosis, directory, record=None, description=None):
+    """
+    Write the figures into ``directory``; return their paths.
+
+    With the diagnosed ``record`` and its ``description``, the frequency response is drawn too
+    where the record has a stirring sweep.
+    """
     out = Path(directory)
     out.mkdir(parents=True, exist_ok=True)
     paths = [out / 'fits.png', out / 'residual_spectra.png', out / 'residual_energy.png',
@@ -238,4 +265,8 @@ def write_report(diagnosis, directory):
     if getattr(diagnosis, 'proposal', None) and diagnosis.proposal.get('steps'):
         paths.append(out / 'proposal.png')
         plot_proposal(diagnosis.proposal, paths[-1])
+    if record is not None and description is not None:
+        path = out / 'frequency_response.png'
+        if plot_frequency_response(diagnosis, record, description, path) is None:
+            paths.append(path)
     return paths

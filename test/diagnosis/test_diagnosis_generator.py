@@ -9,20 +9,16 @@ generator's flap noise from the data alone.
 
 import json
 import math
-from pathlib import Path
 
 import numpy as np
+from practice import RECORDINGS, require_practice
 import pytest
 from rotor_id.residuals import blade_noise_floor, ljung_box
 from truth_generator import generate, TruthConfig, wake_case
 
-RECORDINGS = Path('/work/shared/recordings')
-
 
 def _answers():
-    path = RECORDINGS / 'answers.json'
-    if not path.is_file():
-        pytest.skip(f'{path} not available')
+    path = require_practice() / 'answers.json'
     return json.loads(path.read_text())
 
 

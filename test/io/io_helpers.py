@@ -7,7 +7,6 @@ from rotor_id.io.bag import DEFAULT_TOPICS, open_writer
 from rotor_id.io.jointstate_cdr import encode_batch, JOINT_STATE
 from rotor_id.io.record import Record
 
-# /work/main/test/io/io_helpers.py -> /work/shared/recordings
 RECORDING_NAMES = (
     'id_wake_progressing', 'id_multiblade_mu04', 'dx_none_wake', 'dx_dynamic_inflow',
     'dx_sensor_lag', 'dx_periodic_coefficients',
