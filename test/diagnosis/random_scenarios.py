@@ -49,10 +49,12 @@ FLAP_NOISE_RANGE = (math.radians(0.03), math.radians(0.15))
 #: Effect-free records, enough to estimate the false-alarm rate: at 300 records, 60 nulls
 #: bound a 2 % rate by a one-sided 95 % Wilson interval of about 5 %.
 NULL_PROBABILITY = 0.2
-#: Baseline residual RMS over the noise floor: a record of ~1 700 channel samples estimates
-#: the residual power to a relative standard error sqrt(2/1700) = 0.034, an excess of 0.017.
-#: 2 % is about one standard error (the RMS alone barely shows it), 10 % about six: the band
-#: where an effect hides near the floor, as in the issue's concealed recordings (2-11 %).
+#: Baseline residual RMS over the noise floor. A record of n = 900-2 300 channel samples
+#: (0.45 s at 1 kHz, 2-5 channels) estimates the residual power to a relative standard error
+#: sqrt(2/n) = 0.03-0.047, an excess of 0.015-0.024: 2 % is about one standard error (the RMS
+#: alone barely shows it), 10 % four to seven: the band where an effect hides near the floor,
+#: as in the issue's concealed recordings (2-11 %). The achieved excess of a record scatters
+#: about its target by that standard error (the study reports both).
 EXCESS_RANGE = (0.02, 0.10)
 #: Reference size of a check is its hover size here times MU04_SCALE**(μ/0.4) (the μ = 0.4
 #: size of diagnosis_scenarios, geometric in between), so the quadratic rule starts near the
@@ -111,7 +113,7 @@ class Concealed:
         """Return the TruthConfig changes that conceal this effect at ``size``."""
         k = self.knob
         if k == 'dynamic_inflow':
-            return {'wake': True, 'wake_L': size, 'wake_tau': 0.6}
+            return {'wake_L': size, 'wake_tau': 0.6}        # config() turns the wake on
         if k == 'periodic_coefficients':
             return {'mu': size}
         if k == 'sensor_lag':
@@ -222,7 +224,7 @@ class RandomScenario:
     def as_dict(self):
         """JSON-ready draw (with the sizes, once concealed)."""
         return {'seed': self.seed, 'kind': self.kind, 'truth': self.label,
-                'n_blades': self.n_blades, 'mu': self.config().mu, 'wake': self.wake,
+                'n_blades': self.n_blades, 'mu': self.mu, 'wake': self.wake,
                 'flap_noise_rad': self.flap_noise, 'model': self.model()[0],
                 'accepted': [list(a) for a in self.accepted()],
                 'concealed': [asdict(c) for c in self.concealed]}
