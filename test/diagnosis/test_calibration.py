@@ -15,7 +15,6 @@ import importlib.util
 import math
 from pathlib import Path
 
-import numpy as np
 import pytest
 from random_scenarios import conceal, draw, EXCESS_RANGE, residual_power, score
 
