@@ -26,23 +26,20 @@ import math
 import multiprocessing
 import os
 from pathlib import Path
-import subprocess
 import sys
 import tempfile
 import time
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
-sys.path.insert(0, str(ROOT / 'test' / 'diagnosis'))
+from common import machine_description, REPO_ROOT, RESULTS_DIR
+import numpy as np
+from scipy import stats
 
-import numpy as np  # noqa: E402
+sys.path.insert(0, str(REPO_ROOT / 'test' / 'diagnosis'))
 import random_scenarios  # noqa: E402,I100
-from scipy import stats  # noqa: E402,I100
 import truth_generator  # noqa: E402
 
-RESULTS = ROOT / 'bench' / 'results'
-COMMIT = subprocess.run(['git', '-C', str(ROOT), 'rev-parse', '--short', 'HEAD'],
-                        capture_output=True, text=True, check=False).stdout.strip()
+#: the commit the study ran at (each record keeps it)
+COMMIT = machine_description()['rotor_id commit']
 #: Bins of the stated probability: below an even chance; "likely"; "probable"; and the
 #: issue's high confidence (at least 0.95), the bin the targets are about.
 BINS = (0.0, 0.5, 0.8, 0.95, 1.0)
@@ -115,6 +112,21 @@ def _rate(right, n):
             'wilson95': [lo, hi]}
 
 
+def named_right(line):
+    """
+    Return whether the named effects alone are the concealed set (equivalents allowed).
+
+    Stricter than ``right``: no credit for an effect reported only as confounded with a
+    named one.
+    """
+    groups = [set(g) for g in line['draw']['accepted']]
+    if line['verdict'] in ('none', 'unexplained') or not line['named']:
+        return line['verdict'] == 'none' and not groups
+    union = set().union(*groups) if groups else set()
+    named = set(line['named'])
+    return bool(groups) and all(named & g for g in groups) and named <= union
+
+
 def summarize(runs):
     """Return the study's statistics (a JSON-ready dict) from its scored lines."""
     done = [r for r in runs if 'error' not in r]
@@ -164,6 +176,7 @@ def summarize(runs):
         'commits': sorted({r.get('commit', '') for r in runs} - {''}),
         'probability_source': sources,
         'overall': _rate(sum(r['right'] for r in done), len(done)),
+        'overall_named_right': _rate(sum(named_right(r) for r in done), len(done)),
         'unexplained': len(done) - len(judged),
         'reliability': table,
         'high_confidence': {**_rate(len(high) - wrong_high, len(high)),
@@ -256,7 +269,9 @@ def markdown(summary, command, load_at_start):
         f'{n["allowed_at_target_99"]} (binomial 99 %); P(≥ {n["false_alarms"]} | 2 %) = '
         f'{n["p_value_at_target"]:.2g}.',
         f'- Overall right: {s["overall"]["right"]}/{s["overall"]["n"]} = '
-        f'{_pct(s["overall"]["accuracy"])}; `unexplained`: {s["unexplained"]}.', '']
+        f'{_pct(s["overall"]["accuracy"])}; named right without credit for "confounded '
+        f'with": {s["overall_named_right"]["right"]}/{s["overall_named_right"]["n"]}; '
+        f'`unexplained`: {s["unexplained"]}.', '']
     for title, key in (('Per truth class', 'per_class'), ('Per rotor', 'per_rotor')):
         lines += [f'## {title}', '',
                   '| class | records | right | accuracy (Wilson 95 %) | high conf. right | '
@@ -269,11 +284,14 @@ def markdown(summary, command, load_at_start):
                          f'{row["unexplained"]} | {_fmt(row["excess_mean"])} | {wrong} |')
         lines.append('')
     cpu = s['cpu_s']
+    machine = machine_description()
     lines += [
         f'CPU per diagnosis (workers=1): median {_fmt(cpu["median"], ".1f")} s, max '
         f'{_fmt(cpu["max"], ".1f")} s, total {cpu["total"]:.0f} s; generating the records '
         f'(with the size checks) {cpu["generate_total"]:.0f} s.', '',
-        f'Reproduce: `{command}` (commit {", ".join(s["commits"]) or "unknown"}; load average '
+        f'Reproduce: `{command}` (commit {", ".join(s["commits"]) or "unknown"}; '
+        f'{machine["cpu"]}, {machine["logical cores"]} cores, {machine["date (UTC)"]} UTC; '
+        'load average '
         f'{" / ".join(f"{x:.2f}" for x in load_at_start)} at the start, '
         f'{" / ".join(f"{x:.2f}" for x in os.getloadavg())} at the last write).', '']
     return '\n'.join(lines)
@@ -336,7 +354,7 @@ def main(argv=None):
     parser.add_argument('--records', type=int, default=300, help='K: seeds first-seed..+K-1')
     parser.add_argument('--first-seed', type=int, default=1)
     parser.add_argument('--workers', type=int, default=1, help='records diagnosed at once')
-    parser.add_argument('--out', default=str(RESULTS / 'calibration'))
+    parser.add_argument('--out', default=str(RESULTS_DIR / 'calibration'))
     parser.add_argument('--summary-only', action='store_true',
                         help='rewrite .md/.json/.png from the .jsonl, diagnose nothing')
     parser.add_argument('--truth-cache', default=str(Path(tempfile.gettempdir())
@@ -353,6 +371,9 @@ def main(argv=None):
         sys.argv[1:] if argv is None else argv))
     load = os.getloadavg()
     if args.summary_only:
+        seeds = sorted(r['seed'] for r in runs) or [args.first_seed]
+        command = (f'python bench/calibration_study.py --records {seeds[-1] - seeds[0] + 1} '
+                   f'--first-seed {seeds[0]} --out {args.out}')
         write_results(runs, out, command, load)
         print(out.with_suffix('.md').read_text())
         return 0

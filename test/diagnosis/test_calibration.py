@@ -14,6 +14,7 @@ Full study (marker ``study``, ROTOR_ID_SLOW=1; hours): the same bounds on 300 re
 import importlib.util
 import math
 from pathlib import Path
+import sys
 
 import pytest
 from random_scenarios import conceal, draw, EXCESS_RANGE, residual_power, score
@@ -22,6 +23,8 @@ ROOT = Path(__file__).resolve().parents[2]
 
 
 def _bench():
+    if str(ROOT / 'bench') not in sys.path:         # the benchmark imports bench/common.py
+        sys.path.insert(0, str(ROOT / 'bench'))
     spec = importlib.util.spec_from_file_location(
         'calibration_study', ROOT / 'bench' / 'calibration_study.py')
     module = importlib.util.module_from_spec(spec)
