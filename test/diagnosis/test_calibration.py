@@ -131,8 +131,11 @@ def test_draw_is_reproducible_and_sized_by_the_quadratic_rule():
 
 #: The CI sample: seeds outside the study's range (1-300), kinds stratified so that the
 #: false-alarm claim always has nulls to stand on (an unstratified draw of five would hold
-#: no null with probability 0.8⁵ = 0.33). Sized by today's CPU cost (a null diagnoses in
-#: 1-2 s, a single effect in 10-40 s, a pair in up to 90 s): about a minute in all.
+#: no null with probability 0.8⁵ = 0.33). Its size is what a minute of CPU buys with the
+#: engine of today (a null diagnoses in seconds, one effect in up to a minute, a pair in
+#: more: bench/results/calibration.md); a faster engine affords more records, and the
+#: bounds below follow n. At n = 5 they catch only a gross failure: 3 of 5 confidently
+#: wrong (P = 0.001 at 5 %) or 2 of 3 false alarms (P = 0.001 at 2 %).
 CI_DRAWS = ((90001, 'null'), (90002, 'null'), (90003, 'null'), (90004, 'single'),
             (90005, 'single'))
 
