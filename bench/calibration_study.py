@@ -140,10 +140,11 @@ def summarize(runs):
                   or (hi == 1.0 and r['probability'] == 1.0)]
         row = _rate(sum(r['right'] for r in inside), len(inside))
         row.update(bin=[lo, hi], mean_stated=float(np.mean([r['probability'] for r in inside]))
-                   if inside else None)
+                   if inside else None, named_right=sum(named_right(r) for r in inside))
         table.append(row)
     high = [r for r in judged if r['probability'] >= HIGH]
     wrong_high = sum(not r['right'] for r in high)
+    strict_high = sum(named_right(r) for r in high)
     nulls = [r for r in done if r['draw']['kind'] == 'null']
     alarms = [r for r in nulls if r['verdict'] not in ('none', 'unexplained')]
     alarms_high = [r for r in alarms if r['probability'] >= HIGH]
@@ -183,7 +184,7 @@ def summarize(runs):
         'unexplained': len(done) - len(judged),
         'reliability': table,
         'high_confidence': {**_rate(len(high) - wrong_high, len(high)),
-                            'confidently_wrong': wrong_high,
+                            'confidently_wrong': wrong_high, 'named_right': strict_high,
                             'allowed_at_target_99': binomial_bound(len(high),
                                                                    1 - TARGET_ACCURACY_HIGH),
                             'p_value_at_target': upper_tail(wrong_high, len(high),
@@ -250,18 +251,19 @@ def markdown(summary, command, load_at_start):
         f'probability of a catalogue explanation). Stated probability from: {src}.', '',
         '## Reliability', '',
         '| stated probability | records | mean stated | right | observed accuracy | '
-        'Wilson 95 % |', '|---|---|---|---|---|---|']
+        'Wilson 95 % | named right (no credit for a confound) |', '|---|---|---|---|---|---|---|']
     for row in s['reliability']:
         lo, hi = row['bin']
         close = ']' if hi == 1.0 else ')'
         lines.append(f'| [{lo:.2f}, {hi:.2f}{close} | {row["n"]} | '
                      f'{_fmt(row["mean_stated"])} | {row["right"]} | '
-                     f'{_pct(row["accuracy"])} | {_interval(row)} |')
+                     f'{_pct(row["accuracy"])} | {_interval(row)} | {row["named_right"]} |')
     h, n = s['high_confidence'], s['nulls']
     lines += [
         '', '## Targets (issue 34)', '',
         f'- Accuracy at high confidence (stated ≥ {HIGH}): {h["right"]}/{h["n"]} = '
-        f'{_pct(h["accuracy"])} (Wilson 95 % {_interval(h)}); target ≥ '
+        f'{_pct(h["accuracy"])} (Wilson 95 % {_interval(h)}; named right without credit '
+        f'for a confound: {h["named_right"]}/{h["n"]}); target ≥ '
         f'{_pct(TARGET_ACCURACY_HIGH)}. Confidently wrong: {h["confidently_wrong"]}; a true '
         f'rate of 5 % allows at most {h["allowed_at_target_99"]} (binomial 99 % quantile); '
         f'P(≥ {h["confidently_wrong"]} | 5 %) = {h["p_value_at_target"]:.2g}.',
