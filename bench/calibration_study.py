@@ -18,6 +18,8 @@ is read by its label: 'high' as 0.95 (high confidence means at least 0.95, issue
     nice -n 10 python bench/calibration_study.py --records 300          # hours (see .md)
     python bench/calibration_study.py --records 40 --workers 2
     python bench/calibration_study.py --summary-only                    # tables from .jsonl
+    python bench/calibration_study.py --kind null --first-seed 1001 --records 100 \
+        --out bench/results/calibration_nulls                           # false alarms
 
 Exit status 1 when the records reject a target of issue 34 at the 1 % level.
 """
@@ -361,6 +363,9 @@ def main(argv=None):
     parser.add_argument('--records', type=int, default=300, help='K: seeds first-seed..+K-1')
     parser.add_argument('--first-seed', type=int, default=1)
     parser.add_argument('--workers', type=int, default=1, help='records diagnosed at once')
+    parser.add_argument('--kind', choices=('null', 'single', 'pair'),
+                        help='conceal only this (a stratum: e.g. many cheap nulls for the '
+                             'false-alarm rate); the rotor and noise are drawn as without it')
     parser.add_argument('--out', default=str(RESULTS_DIR / 'calibration'))
     parser.add_argument('--summary-only', action='store_true',
                         help='rewrite .md/.json/.png from the .jsonl, diagnose nothing')
@@ -388,7 +393,7 @@ def main(argv=None):
     seeds = [s for s in range(args.first_seed, args.first_seed + args.records) if s not in have]
     print(f'{len(have)} records in {lines_path}, {len(seeds)} to diagnose', flush=True)
     t0 = time.perf_counter()
-    tasks = [(s, None, 1) for s in seeds]
+    tasks = [(s, args.kind, 1) for s in seeds]
     pool = multiprocessing.get_context('fork').Pool(args.workers) if args.workers > 1 else None
     results = pool.imap_unordered(_job, tasks) if pool else map(_job, tasks)
     try:
