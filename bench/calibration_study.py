@@ -321,8 +321,9 @@ def figure(summary, path):
         ax.axvline(lo, color='0.9', lw=0.8)
     x = [r['mean_stated'] for r in rows]
     y = [r['accuracy'] for r in rows]
-    err = [[a - r['wilson95'][0] for a, r in zip(y, rows)],
-           [r['wilson95'][1] - a for a, r in zip(y, rows)]]
+    # (clipped: at an accuracy of 0 or 1 the interval's end is that value up to rounding)
+    err = [[max(a - r['wilson95'][0], 0.0) for a, r in zip(y, rows)],
+           [max(r['wilson95'][1] - a, 0.0) for a, r in zip(y, rows)]]
     ax.errorbar(x, y, yerr=err, fmt='o', capsize=4, label='observed (Wilson 95 %)')
     for xi, yi, r in zip(x, y, rows):
         ax.annotate(f'{r["right"]}/{r["n"]}', (xi, yi), textcoords='offset points',
