@@ -386,7 +386,8 @@ def main(argv=None):
     if args.summary_only:
         seeds = sorted(r['seed'] for r in runs) or [args.first_seed]
         command = (f'python bench/calibration_study.py --records {seeds[-1] - seeds[0] + 1} '
-                   f'--first-seed {seeds[0]} --out {args.out}')
+                   f'--first-seed {seeds[0]} --out {args.out}'
+                   + (f' --kind {args.kind}' if args.kind else ''))
         write_results(runs, out, command, load)
         print(out.with_suffix('.md').read_text())
         return 0 if targets_hold(summarize(runs)) else 1

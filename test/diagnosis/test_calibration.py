@@ -96,8 +96,10 @@ def test_reliability_table_from_scored_lines():
 
     def line(kind, right, p, verdict='x'):
         return {'seed': 0, 'draw': {'kind': kind, 'concealed': [], 'n_blades': 4, 'mu': 0.0,
-                                    'wake': True},
-                'verdict': verdict, 'named_text': verdict, 'right': right, 'probability': p,
+                                    'wake': True, 'accepted': [] if kind == 'null' else [[
+                                        verdict if right else 'sensor_lag']]},
+                'verdict': verdict, 'named_text': verdict, 'named': [verdict], 'right': right,
+                'probability': p,
                 'probability_source': 'test', 'excess': 0.05, 'cpu_s': 1.0}
     runs = ([line('single', True, 0.97)] * 18 + [line('single', False, 0.99)] * 2
             + [line('single', True, 0.6)] * 3 + [line('null', True, 0.96, 'none')] * 9
@@ -108,6 +110,7 @@ def test_reliability_table_from_scored_lines():
     assert (top['n'], top['right']) == (29, 27)
     assert s['reliability'][1]['n'] == 4 and s['unexplained'] == 1
     assert s['high_confidence']['confidently_wrong'] == 2
+    assert s['high_confidence']['named_right'] == 27
     assert s['nulls'] == {**s['nulls'], 'n': 10, 'false_alarms': 1, 'false_alarms_high': 0}
 
 
