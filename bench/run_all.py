@@ -129,6 +129,11 @@ KNOWN = {
     'diagnosis_azimuth': {'target': False, 'workers': True, 'what': 'diagnosis: azimuth offset'},
     'diagnosis_pairs': {'target': False, 'workers': True, 'what': 'diagnosis: pairs of effects'},
     'diagnosis_rig': {'target': False, 'workers': True, 'what': 'diagnosis: rig scenarios'},
+    'calibration': {'workers': True,
+                    'what': 'diagnosis calibration: stated probability vs accuracy on random '
+                            'concealed effects (issue 34: ≥ 95 % at high confidence)',
+                    'quick': ['bench/calibration_study.py', '--records', '2', '--out',
+                              '{tmp}/calibration']},
     'adequacy': {'target': False, 'workers': True,
                  'what': 'adequacy check: false alarms and detection'},
     'long_bag_memory': {'what': 'one-hour 1 kHz bag: peak memory follows the window'},
