@@ -6,7 +6,7 @@ K random records (test/diagnosis/random_scenarios.py: rotor, noise, concealed ef
 their sizes from one seed each; the records from the independent truth generator) are
 diagnosed and each verdict is scored right or not against the truth (random_scenarios.score).
 The verdict's stated probability is ``explanation.probability``; an engine that gives none
-is read by its label: 'high' as 0.95 (high confidence means at least 0.95, issue 34) and
+is read by its label: 'high' as 0.95 (high confidence means at least 0.95) and
 'low' as 0.5 (it claims no more than an even chance). Writes
 
 - ``<out>.jsonl``: one line per record (resumable: a re-run skips the seeds it holds);
@@ -21,7 +21,7 @@ is read by its label: 'high' as 0.95 (high confidence means at least 0.95, issue
     python bench/calibration_study.py --kind null --first-seed 1001 --records 100 \
         --out bench/results/calibration_nulls                           # false alarms
 
-Exit status 1 when the records reject a target of issue 34 at the 1 % level.
+Exit status 1 when the records reject a target at the 1 % level.
 """
 
 import argparse
@@ -43,14 +43,12 @@ sys.path.insert(0, str(REPO_ROOT / 'test' / 'diagnosis'))
 import random_scenarios  # noqa: E402,I100
 import truth_generator  # noqa: E402
 
-#: the commit the study ran at (each record keeps it)
-COMMIT = machine_description()['rotor_id commit']
 #: Bins of the stated probability: below an even chance; "likely"; "probable"; and the
 #: issue's high confidence (at least 0.95), the bin the targets are about.
 BINS = (0.0, 0.5, 0.8, 0.95, 1.0)
-#: A stated probability at or above this is "high confidence" (issue 34).
+#: A stated probability at or above this is "high confidence".
 HIGH = 0.95
-#: Targets of issue 34: accuracy at high confidence, false alarms on the nulls.
+#: Targets: accuracy at high confidence, false alarms on the nulls.
 TARGET_ACCURACY_HIGH = 0.95
 TARGET_FALSE_ALARMS = 0.02
 #: Two-sided 95 % normal quantile of the Wilson intervals.
@@ -85,8 +83,8 @@ def run_one(seed, kind=None, workers=1):
     try:
         record, description = scenario.record_and_description()
     except Exception as exc:  # noqa: B902 - a failed draw is a result of the study
-        return {'seed': seed, 'error': f'generation: {exc!r}', 'commit': COMMIT}
-    line = {'seed': seed, 'commit': COMMIT, 'draw': scenario.as_dict(),
+        return {'seed': seed, 'error': f'generation: {exc!r}'}
+    line = {'seed': seed, 'draw': scenario.as_dict(),
             'generate_cpu_s': time.process_time() - c0}
     c0, t0 = time.process_time(), time.perf_counter()
     try:
@@ -179,7 +177,6 @@ def summarize(runs):
     sources = _counts(r['probability_source'] for r in done)
     return {
         'records': len(runs), 'diagnosed': len(done), 'errors': len(runs) - len(done),
-        'commits': sorted({r.get('commit', '') for r in runs} - {''}),
         'probability_source': sources,
         'overall': _rate(sum(r['right'] for r in done), len(done)),
         'overall_named_right': _rate(sum(named_right(r) for r in done), len(done)),
@@ -262,7 +259,7 @@ def markdown(summary, command, load_at_start):
                      f'{_pct(row["accuracy"])} | {_interval(row)} | {row["named_right"]} |')
     h, n = s['high_confidence'], s['nulls']
     lines += [
-        '', '## Targets (issue 34)', '',
+        '', '## Targets', '',
         f'- Accuracy at high confidence (stated ≥ {HIGH}): {h["right"]}/{h["n"]} = '
         f'{_pct(h["accuracy"])} (Wilson 95 % {_interval(h)}; named right without credit '
         f'for a confound: {h["named_right"]}/{h["n"]}); target ≥ '
@@ -296,7 +293,7 @@ def markdown(summary, command, load_at_start):
         f'CPU per diagnosis (workers=1): median {_fmt(cpu["median"], ".1f")} s, max '
         f'{_fmt(cpu["max"], ".1f")} s, total {cpu["total"]:.0f} s; generating the records '
         f'(with the size checks) {cpu["generate_total"]:.0f} s.', '',
-        f'Reproduce: `{command}` (commit {", ".join(s["commits"]) or "unknown"}; '
+        f'Reproduce: `{command}` ('
         f'{machine["cpu"]}, {machine["logical cores"]} cores, {machine["date (UTC)"]} UTC; '
         'load average '
         f'{" / ".join(f"{x:.2f}" for x in load_at_start)} at the start, '

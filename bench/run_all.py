@@ -131,7 +131,7 @@ KNOWN = {
     'diagnosis_rig': {'target': False, 'workers': True, 'what': 'diagnosis: rig scenarios'},
     'calibration': {'workers': True,
                     'what': 'diagnosis calibration: stated probability vs accuracy on random '
-                            'concealed effects (issue 34: ≥ 95 % at high confidence)',
+                            'concealed effects (target ≥ 95 % at high confidence)',
                     'quick': ['bench/calibration_study.py', '--records', '2', '--out',
                               '{tmp}/calibration']},
     'adequacy': {'target': False, 'workers': True,

@@ -332,7 +332,7 @@ def conceal(scenario):
 
 
 #: An engine that states no probability is read by its confidence label: 'high' means at
-#: least 0.95 (issue 34), 'low' claims no more than an even chance between explanations.
+#: least 0.95, 'low' claims no more than an even chance between explanations.
 LABEL_PROBABILITY = {'high': 0.95, 'low': 0.5}
 
 

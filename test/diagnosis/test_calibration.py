@@ -1,5 +1,5 @@
 """
-The diagnosis's stated probability means what it says (issue 34, item 3): checked.
+The diagnosis's stated probability means what it says (pins #34): checked.
 
 The scoring and the statistics of bench/calibration_study.py on made-up verdicts
 (milliseconds), the random draw's reproducibility and concealment, and a CI-sized sample of
