@@ -87,6 +87,7 @@ def _generated_type_hash(type_name):
     return next(h['hash_string'] for h in hashes if h['type_name'] == type_name)
 
 
+@pytest.mark.ros
 def test_mcap_channels_carry_the_type_hash_as_rosbag2_writes(tmp_path):
     """
     Each MCAP channel's metadata holds ``offered_qos_profiles`` and ``topic_type_hash``.
