@@ -592,7 +592,7 @@ def score_statistic(runs, unknowns, guess, known, noise_var, max_step=None, extr
     which a detection limit follows.
     """
     max_step = max_step or DEFAULT_MAX_STEP
-    problem = Problem(runs, unknowns, guess, known)
+    problem = Problem(runs, unknowns, guess, known).prepare(max_step)
     k = len(problem.names)
     theta = np.concatenate([problem.p_base[problem.param_index],
                             np.zeros(k - len(problem.param_index))])
