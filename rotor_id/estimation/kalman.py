@@ -33,7 +33,6 @@ import numpy.typing as npt
 from rotor_id.estimation.simulate import (_fine_grid, _rk4_constant_forcing, _rk4_maps,
                                           _rk4_transition, _time_invariant, DEFAULT_MAX_STEP,
                                           gap_refinement, substeps_for)
-import scipy.linalg
 
 if TYPE_CHECKING:
     from rotor_id.physics.models import LinearModel
@@ -431,6 +430,7 @@ def steady_state_covariance(dm: DiscreteModel, R: np.ndarray) -> np.ndarray:
     n = Phi.shape[0]
     if not np.any(Q):
         return np.zeros((n, n))         # no process noise: the prediction is exact
+    import scipy.linalg             # only here: its import is a tenth of a second
     P = scipy.linalg.solve_discrete_are(Phi.T, H.T, Q, R)
     return _symmetric(P)
 
