@@ -43,7 +43,7 @@ class Workers:
         self.processes = int(processes)
         self._pool = None
 
-    def map(self, function, items):
+    def apply(self, function, items):
         """Return [function(item)] in order, in the workers where that pays."""
         items = list(items)
         if self.processes <= 1 or len(items) <= 1:
@@ -233,7 +233,7 @@ class OutputError:
         keys = [canonical(effects) for effects, _ in requests]
         todo = {k: self._job(k, start) for k, (_, start) in zip(keys, requests)
                 if k and k not in self._memo}
-        fits = self.workers.map(fit_candidate, todo.values())
+        fits = self.workers.apply(fit_candidate, todo.values())
         for key, fit in zip(todo, fits):
             self._memo[key] = None if _failed(key, fit) else self._result(key, fit)
         return [self.baseline() if not k else self._memo[k] for k in keys]
@@ -275,7 +275,7 @@ class OutputError:
                                      start=current.start_values()), noise_var)
                 for t in set(tested.values())}
         names = sorted(jobs)
-        found = dict(zip(names, self.workers.map(_screen_job, [jobs[n] for n in names])))
+        found = dict(zip(names, self.workers.apply(_screen_job, [jobs[n] for n in names])))
         out = dict.fromkeys(effects)
         for effect, test in tested.items():
             if found[test] is not None:

@@ -44,9 +44,9 @@ from dataclasses import dataclass, field
 import math
 
 import numpy as np
-from rotor_id.diagnosis.augmentations import Augmented, BladeView
 from rotor_id.estimation.equation_error import fit_equation_error, regression
 from rotor_id.estimation.output_error import fit_output_error, IdentificationError
+from rotor_id.physics.augmented import Augmented, BladeView
 from rotor_id.physics.models import Parameter
 from rotor_id.physics.stirring import blade_pitch_from_multiblade
 from scipy.special import stdtrit

@@ -105,12 +105,12 @@ class Augmented(LinearModel):
     """
 
     effect = 'augmented'
-    extra_parameters = ()
-    extra_states = ()
+    extra_parameters: tuple[Parameter, ...] = ()
+    extra_states: tuple[str, ...] = ()
     #: extra states whose initial value is estimated when the baseline's are
-    free_extra_states = ()
+    free_extra_states: tuple[str, ...] = ()
     #: columns of u beyond [θ0, θI, θII] the augmentation needs (see ExtendedInput)
-    extra_inputs = ()
+    extra_inputs: tuple[str, ...] = ()
 
     def __init__(self, base):
         self.base = base
@@ -159,7 +159,7 @@ class Augmented(LinearModel):
     #: extra-parameter bounds that are physics, not a catalogue range: {name: ('lower',...)}
     #: (a fit stopping there has found the physical limit, e.g. no wake gain, and competes on
     #: its likelihood); every other bound is a range the catalogue chose and is widened
-    physical_bounds = {}
+    physical_bounds: dict[str, tuple[str, ...]] = {}
 
     def with_bounds(self, bounds):
         """Replace extra-parameter bounds {name: (lower, upper)} (a widened catalogue range)."""
