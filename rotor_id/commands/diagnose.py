@@ -144,7 +144,7 @@ def run(args):
         Path(args.json_out).write_text(json.dumps(data, indent=1, default=float))
         print(f'JSON: {args.json_out}')
     if args.report:
-        from rotor_id.diagnosis.figures import write_report
+        from rotor_id.commands.diagnose_figures import write_report
         for path in write_report(result, args.report, record, description):
             print(f'figure: {path}')
     return 0

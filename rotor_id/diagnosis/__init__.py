@@ -10,7 +10,8 @@ Model-mismatch diagnosis: locate, explain and prove what a model leaves out.
 * :mod:`.policy`: every threshold, with its statistical reason;
 * :mod:`.verdict`: probability, shares, detection limits, ``unexplained``;
 * :mod:`.result`: the typed result (Diagnosis, Explanation, Effect, ...);
-* :mod:`.diagnose`: the procedure; :mod:`.figures`: the report's figures;
+* :mod:`.diagnose`: the procedure (its figures render in
+  :mod:`rotor_id.commands.diagnose_figures`);
 * :mod:`.proposal`: an out-of-catalogue term proposed from the equation error.
 
 The catalogue's physics, the augmented models (each a LinearModel wrapping the baseline, with

@@ -11,7 +11,7 @@ Model-mismatch diagnosis of one recording: fit, locate, explain, judge, show.
    the effects the record cannot tell apart, the detection limits of the others; ``unexplained``
    when its residuals are not noise.
 5. Show: :class:`rotor_id.diagnosis.result.Diagnosis` (JSON, text) and
-   :mod:`rotor_id.diagnosis.figures`. The rules are stated in docs/diagnosis.md.
+   :mod:`rotor_id.commands.diagnose_figures`. The rules are stated in docs/diagnosis.md.
 """
 
 from dataclasses import dataclass
