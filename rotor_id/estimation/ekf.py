@@ -22,7 +22,7 @@ for bounds.
 from dataclasses import dataclass
 import math
 import time
-from typing import Any, Callable, Mapping, Sequence, TYPE_CHECKING
+from typing import Callable, Sequence, TYPE_CHECKING
 
 import numpy as np
 import numpy.typing as npt
@@ -30,7 +30,8 @@ import numpy.typing as npt
 from rotor_id.estimation import kalman
 from rotor_id.estimation.filter_error import difference_noise_std
 from rotor_id.estimation.output_error import (
-    Estimate, Experiment, fit_initial_states, IdentificationError, Problem)
+    Estimate, Experiment, fit_initial_states, IdentificationError, ParameterValues, Problem,
+    Progress)
 from rotor_id.estimation.simulate import _fine_grid, _rk4_maps, DEFAULT_MAX_STEP, substeps_for
 
 if TYPE_CHECKING:
@@ -128,8 +129,8 @@ def _interval_maps(model, p, idx, inputs, t0, t1, substeps):
 
 def augmented_ekf(model: 'LinearModel', inputs: Callable[[np.ndarray], np.ndarray],
                   t: npt.ArrayLike, y: npt.ArrayLike, unknowns: Sequence[str],
-                  guess: Mapping[str, float] | None = None,
-                  known: Mapping[str, float] | None = None, R: npt.ArrayLike | None = None,
+                  guess: ParameterValues | None = None,
+                  known: ParameterValues | None = None, R: npt.ArrayLike | None = None,
                   x0: npt.ArrayLike | None = None, P0_states: npt.ArrayLike | None = None,
                   P0_parameters: npt.ArrayLike | None = None,
                   parameter_noise_std: npt.ArrayLike = 0.0,
@@ -267,9 +268,9 @@ def augmented_ekf(model: 'LinearModel', inputs: Callable[[np.ndarray], np.ndarra
 
 
 def fit_ekf(experiments: Sequence[Experiment], unknowns: Sequence[str],
-            guess: Mapping[str, float] | None = None, known: Mapping[str, float] | None = None,
+            guess: ParameterValues | None = None, known: ParameterValues | None = None,
             noise_std: npt.ArrayLike | None = None,
-            progress: Callable[[dict[str, Any]], Any] | None = None, passes: int = 1,
+            progress: Progress | None = None, passes: int = 1,
             smooth: bool = True, parameter_noise_std: npt.ArrayLike = 0.0,
             process_noise_std: float = 0.0, rows: Sequence[str | int] | None = None,
             max_step: float = DEFAULT_MAX_STEP) -> Estimate:

@@ -62,7 +62,7 @@ error's (conditional: within 6 %), because such a record cannot exclude σ_V ≈
 from dataclasses import replace
 import math
 import time
-from typing import Any, Callable, Mapping, Sequence
+from typing import Any, Sequence
 
 import numpy as np
 import numpy.typing as npt
@@ -70,7 +70,7 @@ import numpy.typing as npt
 from rotor_id.estimation import kalman, kernels
 from rotor_id.estimation.output_error import (
     damped_gauss_newton_step, dependence_warnings, Estimate, Experiment, fit_initial_states,
-    IdentificationError, Problem, STOP)
+    IdentificationError, ParameterValues, Problem, Progress, STOP)
 from rotor_id.estimation.simulate import (_equal_steps, _fine_grid, _rk4_transition,
                                           _rk4_transition_derivative, _time_invariant,
                                           DEFAULT_MAX_STEP, substeps_for)
@@ -106,7 +106,7 @@ class FilterProblem:
     """θ = [model unknowns, free initial states (per run), process σ?, measurement σ's?]."""
 
     def __init__(self, experiments: Sequence[Experiment], unknowns: Sequence[str],
-                 guess: Mapping[str, float] | None, known: Mapping[str, float] | None,
+                 guess: ParameterValues | None, known: ParameterValues | None,
                  noise_std: npt.ArrayLike | None, process_noise_std: float | None,
                  estimate_process_noise: bool, rows: Sequence[str | int] | None,
                  noise_model: str, gain: str, max_step: float,
@@ -645,16 +645,15 @@ def gradient_information(results: Sequence[RunInnovations], k: int
 
 
 def fit_filter_error_ml(experiments: Sequence[Experiment], unknowns: Sequence[str],
-                        guess: Mapping[str, float] | None = None,
-                        known: Mapping[str, float] | None = None,
-                        noise_std: npt.ArrayLike | None = None,
-                        progress: Callable[[dict[str, Any]], Any] | None = None,
+                        guess: ParameterValues | None = None,
+                        known: ParameterValues | None = None,
+                        noise_std: npt.ArrayLike | None = None, progress: Progress | None = None,
                         max_iter: int = 50, process_noise_std: float | None = None,
                         estimate_process_noise: bool = True,
                         rows: Sequence[str | int] | None = None, noise_model: str = 'white',
                         gain: str = 'auto', step_tol: float = 1e-3,
                         max_step: float = DEFAULT_MAX_STEP, label: str = 'filter-error ML',
-                        gradients: str = 'analytic', _start: Mapping[str, float] | None = None,
+                        gradients: str = 'analytic', _start: ParameterValues | None = None,
                         loglik_tol: float | None = None) -> Estimate:
     """
     Filter-error maximum likelihood over one or more runs; Cramér-Rao bound at the optimum.
@@ -936,14 +935,11 @@ def _trapezoid_weights(sigma, f):
 
 
 def fit_filter_error(experiments: Sequence[Experiment], unknowns: Sequence[str],
-                     guess: Mapping[str, float] | None = None,
-                     known: Mapping[str, float] | None = None,
-                     noise_std: npt.ArrayLike | None = None,
-                     progress: Callable[[dict[str, Any]], Any] | None = None,
+                     guess: ParameterValues | None = None, known: ParameterValues | None = None,
+                     noise_std: npt.ArrayLike | None = None, progress: Progress | None = None,
                      max_iter: int = 50, process_noise_std: float | None = None,
-                     estimate_process_noise: bool = True,
-                     rows: Sequence[str | int] | None = None, noise_model: str = 'white',
-                     gain: str = 'auto', step_tol: float = 1e-3,
+                     estimate_process_noise: bool = True, rows: Sequence[str | int] | None = None,
+                     noise_model: str = 'white', gain: str = 'auto', step_tol: float = 1e-3,
                      max_step: float = DEFAULT_MAX_STEP, label: str = 'filter-error ML',
                      bounds: str = 'marginal', gradients: str = 'analytic') -> Estimate:
     """

@@ -44,13 +44,13 @@ over the points with γ² ≥ 0.6; J ≤ 100 is an acceptable fit.
 from dataclasses import dataclass, field
 import math
 import time
-from typing import Any, Callable, Mapping, Protocol, Sequence, TYPE_CHECKING
+from typing import Any, Protocol, Sequence, TYPE_CHECKING
 
 import numpy as np
 import numpy.typing as npt
 
 from rotor_id.estimation.output_error import (dependence_warnings, Estimate,
-                                              IdentificationError)
+                                              IdentificationError, ParameterValues, Progress)
 from rotor_id.estimation.simulate import simulate
 from rotor_id.physics.multiblade import multiblade_coordinates
 from rotor_id.physics.stirring import multiblade_from_blade_pitch, SampledInput
@@ -617,10 +617,10 @@ def _residuals(measured, model, weights):
 
 def fit_frequency_response(model: 'RotorModel', sweeps: Sequence[Sweep],
                            estimate: FrequencyResponse, unknowns: Sequence[str],
-                           guess: Mapping[str, float], known: Mapping[str, float],
+                           guess: ParameterValues, known: ParameterValues,
                            collective: float, coherence_min: float = COHERENCE_MIN,
                            max_iter: int = 40, step_tol: float = 1e-6,
-                           progress: Callable[[dict[str, Any]], Any] | None = None
+                           progress: Progress | None = None
                            ) -> 'FrequencyFit':
     """
     Fit ``unknowns`` by minimising CIFER's J between the estimate and the model's estimate.

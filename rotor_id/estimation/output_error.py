@@ -39,6 +39,10 @@ INITIAL_STATE_MODES = ('estimate', 'positions', 'equilibrium', 'zero')
 
 #: Returned by a ``progress`` callback: stop after this iteration and return the estimate so far.
 STOP = 'stop after this iteration'
+#: Parameter values by name (a guess, known values).
+ParameterValues = Mapping[str, float]
+#: A fit's progress callback: called with each iteration's dict; :data:`STOP` ends the fit.
+Progress = Callable[[dict[str, Any]], Any]
 
 
 class IdentificationError(ValueError):
@@ -262,7 +266,7 @@ class Problem:
     """Bookkeeping of θ = [free model parameters, free initial states of each run]."""
 
     def __init__(self, experiments: Sequence[Experiment], unknowns: Sequence[str],
-                 guess: Mapping[str, float] | None, known: Mapping[str, float] | None) -> None:
+                 guess: ParameterValues | None, known: ParameterValues | None) -> None:
         if not experiments:
             raise IdentificationError('no experiment (run) to identify from')
         self.experiments = experiments
@@ -589,12 +593,12 @@ def damped_gauss_newton_step(theta: np.ndarray, grad: np.ndarray, M: np.ndarray,
 
 
 def fit_output_error(experiments: Sequence[Experiment], unknowns: Sequence[str],
-                     guess: Mapping[str, float] | None = None,
-                     known: Mapping[str, float] | None = None,
+                     guess: ParameterValues | None = None,
+                     known: ParameterValues | None = None,
                      noise_std: npt.ArrayLike | Sequence[npt.ArrayLike | None] | None = None,
                      prior: Mapping[str, Mapping[str, float]] | None = None, max_iter: int = 50,
                      step_tol: float = 1e-6, max_step: float = DEFAULT_MAX_STEP,
-                     progress: Callable[[dict[str, Any]], Any] | None = None,
+                     progress: Progress | None = None,
                      label: str = 'output-error ML') -> Estimate:
     """
     Output-error maximum likelihood over one or more runs.
