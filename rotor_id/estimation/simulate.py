@@ -34,12 +34,17 @@ a finite-difference peer's next simulation, prepares nothing again.
 from dataclasses import dataclass
 import math
 import time
+from typing import Any, Callable, Sequence, TYPE_CHECKING
 import weakref
 
 import numpy as np
+import numpy.typing as npt
 
 from rotor_id.estimation import kernels
 from rotor_id.physics.models import compact, full_along_time
+
+if TYPE_CHECKING:
+    from rotor_id.physics.models import LinearModel
 
 #: Longest RK4 step (nondimensional time). 0.05 keeps the truncation error of a 2/rev mode at
 #: about 1e-7 per revolution, far below any measurement noise.
@@ -69,15 +74,15 @@ class Simulation:
     t: np.ndarray
     x: np.ndarray
     y: np.ndarray
-    dx: np.ndarray = None
-    dy: np.ndarray = None
+    dx: np.ndarray | None = None
+    dy: np.ndarray | None = None
     #: With measurements (:meth:`TimeInvariantPlan.run`): residuals y − ŷ (T, m) and their
     #: per-channel sums (Σ r² (m,), Σ ∂ŷᵀ r (m, k), Σ ∂ŷᵀ ∂ŷ (m, k, k)); otherwise None.
-    residual: np.ndarray = None
-    residual_sums: tuple = None
+    residual: np.ndarray | None = None
+    residual_sums: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
 
 
-def substeps_for(t, max_step=DEFAULT_MAX_STEP):
+def substeps_for(t: npt.ArrayLike, max_step: float = DEFAULT_MAX_STEP) -> int:
     """Return the number of equal RK4 steps per sample interval so no step exceeds ``max_step``."""
     dt = np.diff(np.asarray(t, dtype=float))
     if dt.size == 0:
@@ -94,7 +99,8 @@ def _substeps(longest_interval, max_step):
 GAP_INTERVALS = 1.5
 
 
-def gap_refinement(t, max_step=DEFAULT_MAX_STEP):
+def gap_refinement(t: npt.ArrayLike, max_step: float = DEFAULT_MAX_STEP
+                   ) -> tuple[np.ndarray, np.ndarray] | None:
     """
     Return (times with the gaps filled, index of ``t`` in them), or None where there is no gap.
 
@@ -237,8 +243,10 @@ def _rk4_step_derivative(F, g, h, dF, dg, x):
     return h3 / 6.0 * (dk1 + 2.0 * dk2 + 2.0 * dk3 + dk4)
 
 
-def simulate(model, p, inputs, t, x0, param_index=(), x0_jacobian=None,
-             max_step=DEFAULT_MAX_STEP, forcing=None):
+def simulate(model: 'LinearModel', p: npt.ArrayLike, inputs: Callable[[np.ndarray], np.ndarray],
+             t: npt.ArrayLike, x0: npt.ArrayLike, param_index: Sequence[int] = (),
+             x0_jacobian: npt.ArrayLike | None = None, max_step: float = DEFAULT_MAX_STEP,
+             forcing: npt.ArrayLike | None = None) -> Simulation:
     """
     Simulate ``model`` at sample times ``t`` from ``x0`` = x(t[0]), optionally with sensitivities.
 
@@ -305,7 +313,8 @@ def simulate(model, p, inputs, t, x0, param_index=(), x0_jacobian=None,
     m = substeps_for(t, max_step)
     xs = np.empty((T, n))
     xs[0] = x0
-    Ss = np.empty((T, n, k)) if want_sens else None
+    # an array exactly when want_sens (every use below is under that test)
+    Ss: Any = np.empty((T, n, k)) if want_sens else None
     if want_sens:
         Ss[0] = S0
         if forcing is not None:
@@ -380,17 +389,22 @@ PLAN_MAX_VALUES = 1 << 19
 #: Azimuths (rad) at which :func:`affine_time_invariant` probes a model: arbitrary, so that
 #: no periodic coefficient (period 2π/N) takes the same value at all three.
 _CHECK_TIMES = (0.5, 2.1, 3.9)
-_verdicts = weakref.WeakKeyDictionary()        # model -> {number of inputs: verdict}
-_affine_masks = weakref.WeakKeyDictionary()    # model -> {(unknowns, fixed p): mask}
+# model -> {number of inputs: verdict}
+_verdicts: 'weakref.WeakKeyDictionary[LinearModel, dict[int, bool]]' = (
+    weakref.WeakKeyDictionary())
+# model -> {(unknowns, fixed p): mask}
+_affine_masks: 'weakref.WeakKeyDictionary[LinearModel, dict[tuple, np.ndarray]]' = (
+    weakref.WeakKeyDictionary())
 #: model -> {(id(inputs), max_step, T): (inputs, t, plan or None)}: the records prepared for
 #: a model (see :meth:`TimeInvariantPlan.prepare`); a plan refers to its model weakly, so the
 #: entries go with the model.
-_record_plans = weakref.WeakKeyDictionary()
+_record_plans: 'weakref.WeakKeyDictionary[LinearModel, dict[tuple, tuple]]' = (
+    weakref.WeakKeyDictionary())
 #: Most records remembered per model object (a diagnosis refits a handful per record).
 RECORD_PLANS_PER_MODEL = 8
 
 
-def affine_time_invariant(model, p, n_inputs):
+def affine_time_invariant(model: 'LinearModel', p: npt.ArrayLike, n_inputs: int) -> bool:
     """
     Tell whether F is constant and g = B u + e (B, e constant), and so their derivatives.
 
@@ -476,9 +490,12 @@ class TimeInvariantPlan:
     where the compiled kernels are loaded.
     """
 
-    def __init__(self, model, t, substeps, u, module):
+    def __init__(self, model: 'LinearModel', t: np.ndarray, substeps: int, u: np.ndarray,
+                 module: Any) -> None:
         """Hold the record: times, stage inputs u (at _fine_grid), H; see :meth:`prepare`."""
         T = t.size
+        # a weak reference to the model, or a holder where it cannot be referenced weakly
+        self._model: Callable[[], LinearModel | None]
         try:
             self._model = weakref.ref(model)
         except TypeError:                       # not weakly referenceable: held (not cached)
@@ -500,22 +517,25 @@ class TimeInvariantPlan:
         self.probe_t = np.full(self.n_inputs + 1, float(t[0]))
         self.probe_u = _unit_inputs(self.n_inputs)
         #: (p_ref, F, g, ∂F, ∂g at the unit inputs, mask of affine parameters); see _probes
-        self.reference = None
+        self.reference: tuple | None = None
         #: (reference, its p, its affine mask, the checked parameters) as lists (:meth:`_lists`)
-        self._reference_lists = None
+        self._reference_lists: tuple | None = None
         #: (free states, x0_base, S0) of the compiled fits of this record, by initial-state
         #: mode and θ's layout (output_error._CompiledIteration._initial_state_map)
-        self.initial_state_maps = {}
+        self.initial_state_maps: dict[tuple, tuple] = {}
         #: parameters whose affinity the reference's mask has checked (P,)
         self.checked = np.zeros(len(model.parameters), dtype=bool)
 
     @property
-    def model(self):
+    def model(self) -> 'LinearModel':
         """Return the model this record was prepared for."""
-        return self._model()
+        # None only once the model is gone, and a plan is used by a caller that holds it
+        return self._model()  # type: ignore[return-value]
 
     @classmethod
-    def prepare(cls, model, inputs, t, max_step, p):
+    def prepare(cls, model: 'LinearModel', inputs: Callable[[np.ndarray], np.ndarray],
+                t: npt.ArrayLike, max_step: float, p: npt.ArrayLike
+                ) -> 'TimeInvariantPlan | None':
         """
         Return a plan for this record, or None where it does not apply (then simulate).
 
@@ -555,7 +575,8 @@ class TimeInvariantPlan:
         t.setflags(write=False)                 # shared by every fit of this record
         return cls(model, t, m, u, module)
 
-    def run(self, p, x0, param_index=(), S0=None, y=None):
+    def run(self, p: npt.ArrayLike, x0: npt.ArrayLike, param_index: npt.ArrayLike = (),
+            S0: npt.ArrayLike | None = None, y: npt.ArrayLike | None = None) -> Simulation:
         """
         Simulate from x0 with sensitivities to ``param_index`` and the columns of ``S0``.
 
@@ -574,7 +595,7 @@ class TimeInvariantPlan:
         if (x0.shape != (n,) or S0.ndim != 2 or S0.shape[0] != n or S0.shape[1] < index.size
                 or p.shape != (len(model.parameters),)
                 or (index.size and (index.min() < 0 or index.max() >= p.size))
-                or (fit and np.shape(y) != (self.t.size, m))):
+                or (fit and np.shape(y) != (self.t.size, m))):  # type: ignore[arg-type]
             raise ValueError('TimeInvariantPlan.run: x0 needs shape (n,), S0 (n, k ≥ '
                              'len(param_index)), p one value per model parameter, y (T, m)')
         F, g, dF, dg, shift = self._probes(p, index)
@@ -601,7 +622,7 @@ class TimeInvariantPlan:
         return Simulation(self.t, xs, yhat, Ss, dyhat, residual=res if fit else None,
                           residual_sums=sums)
 
-    def reference_at(self, p, index):
+    def reference_at(self, p: npt.ArrayLike, index: np.ndarray) -> tuple:
         """
         Return the reference point (as :attr:`reference`) that serves p with sensitivities.
 
@@ -612,7 +633,7 @@ class TimeInvariantPlan:
         if ref is not None and self._on_reference(p, ref, index.tolist()):
             return ref
         self._probes(np.asarray(p, dtype=float), index)
-        return self.reference
+        return self.reference  # type: ignore[return-value]  # _probes has just set it
 
     def _lists(self, ref):
         """Return (reference, its p, its affine mask, the checked parameters) as lists."""
@@ -633,7 +654,7 @@ class TimeInvariantPlan:
         return all(checked[i] for i in indices) and all(
             a == b for a, b, free in zip(np.asarray(p).tolist(), values, affine) if not free)
 
-    def affine_along(self, ref, indices):
+    def affine_along(self, ref: tuple, indices: Sequence[int]) -> bool:
         """Tell whether F and g of the reference ``ref`` are affine along ``indices`` (a list)."""
         affine = self._lists(ref)[2]
         return all(affine[i] for i in indices)
@@ -719,7 +740,7 @@ class TimeInvariantPlan:
         return mask
 
     @staticmethod
-    def no_sensitivity(n):
+    def no_sensitivity(n: int) -> np.ndarray:
         """∂x0/∂θ with no columns."""
         return np.zeros((n, 0))
 
