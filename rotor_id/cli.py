@@ -63,7 +63,7 @@ def build_parser(selected=None):
         if selected is None or name == selected:
             module = importlib.import_module(module_name)
             module.add_arguments(command)
-            command.set_defaults(_run=module.run)
+            command.set_defaults(run_command=module.run)
     return parser
 
 
@@ -79,7 +79,7 @@ def main(argv=None):
     from rotor_id.commands.common import capture_warnings
     try:
         with capture_warnings():
-            return int(args._run(args) or 0)
+            return int(args.run_command(args) or 0)
     except KeyboardInterrupt:
         print(f'rotor-id {args.command}: interrupted', file=sys.stderr)
         return 130

@@ -236,7 +236,7 @@ def fit_filter(effect, variant, kept, start_fit, ctx, setup, max_iter=MAX_ITER):
                                   noise_std=setup.noise_std, max_iter=max_iter,
                                   process_noise_std=math.sqrt(theta[prob.i_process]),
                                   rows=rows, max_step=max_step,
-                                  label=f'{effect} + random inflow', _start=begin,
+                                  label=f'{effect} + random inflow', start_values=begin,
                                   loglik_tol=LOGLIK_TOL,
                                   progress=stop_at_bound(model, extra, None))
     except FAILURES as exc:

@@ -97,7 +97,7 @@ def term_pieces(view, term, t, u):
     measured multiblade pitch by eq. 3, the azimuth from the model.
     """
     factor, harmonic = _split_term(term)
-    psi = view._psi(t)
+    psi = view.azimuth(t)
     trig = dict(HARMONICS)[harmonic]
     h = np.ones_like(psi) if trig is None else trig(psi)
     if factor in ('beta', 'beta_dot'):

@@ -32,7 +32,7 @@ from rotor_id.estimation.filter_error import difference_noise_std
 from rotor_id.estimation.output_error import (
     Estimate, Experiment, fit_initial_states, IdentificationError, ParameterValues, Problem,
     Progress)
-from rotor_id.estimation.simulate import _fine_grid, _rk4_maps, DEFAULT_MAX_STEP, substeps_for
+from rotor_id.estimation.simulate import DEFAULT_MAX_STEP, fine_grid, rk4_maps, substeps_for
 
 if TYPE_CHECKING:
     from rotor_id.physics.models import LinearModel
@@ -98,7 +98,7 @@ def _interval_maps(model, p, idx, inputs, t0, t1, substeps):
     exact derivative of the RK4 state map, so the linearisation is that of the propagation used.
     """
     ts = np.array([t0, t1])
-    tf = _fine_grid(ts, substeps)
+    tf = fine_grid(ts, substeps)
     u = inputs(tf)
     F, g = model.system(tf, p, u)
     dF, dg = model.system_jacobian(tf, p, u)
@@ -115,7 +115,7 @@ def _interval_maps(model, p, idx, inputs, t0, t1, substeps):
         Fa[:, rows, rows] = F
         ga[:, rows] = dg[:, col]
     h = np.full(substeps, (t1 - t0) / substeps)
-    Phi_s, c_s = _rk4_maps(Fa, ga, h)
+    Phi_s, c_s = rk4_maps(Fa, ga, h)
     Phi = np.eye(size)
     c = np.zeros(size)
     for s in range(substeps):

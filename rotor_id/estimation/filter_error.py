@@ -71,9 +71,9 @@ from rotor_id.estimation import kalman, kernels
 from rotor_id.estimation.output_error import (
     damped_gauss_newton_step, dependence_warnings, Estimate, Experiment, fit_initial_states,
     IdentificationError, ParameterValues, Problem, Progress, STOP)
-from rotor_id.estimation.simulate import (_equal_steps, _fine_grid, _rk4_transition,
-                                          _rk4_transition_derivative, _time_invariant,
-                                          DEFAULT_MAX_STEP, substeps_for)
+from rotor_id.estimation.simulate import (
+    DEFAULT_MAX_STEP, equal_steps, fine_grid, rk4_transition, rk4_transition_derivative,
+    substeps_for, time_invariant_steps)
 
 PROCESS_NOISE = 'process_noise_std'
 _FD_STEP = 1e-5
@@ -280,8 +280,8 @@ class FilterProblem:
         """Φ, ∂Φ, Q, ∂Q (leading dimension 1) of a model with a constant system matrix."""
         n = Fs.shape[-1]
         dt = float(t[1] - t[0])
-        Phi_s = _rk4_transition(Fs, np.array([step]))[0]
-        dPhi_s = _rk4_transition_derivative(Fs, dF, np.array([step]))[0] if kp \
+        Phi_s = rk4_transition(Fs, np.array([step]))[0]
+        dPhi_s = rk4_transition_derivative(Fs, dF, np.array([step]))[0] if kp \
             else np.zeros((0, n, n))                                        # (kp, n, n)
         Phi = np.eye(n)
         dPhi = np.zeros((k, n, n))
@@ -301,8 +301,8 @@ class FilterProblem:
         n, T = Fs.shape[-1], t.size
         M = (T - 1) * substeps
         h = np.full(M, step)
-        Phi_s = _rk4_transition(Fs, h).reshape(T - 1, substeps, n, n)
-        dPhi_s = np.broadcast_to(_rk4_transition_derivative(Fs, dF, h), (M, kp, n, n)) if kp \
+        Phi_s = rk4_transition(Fs, h).reshape(T - 1, substeps, n, n)
+        dPhi_s = np.broadcast_to(rk4_transition_derivative(Fs, dF, h), (M, kp, n, n)) if kp \
             else np.zeros((M, 0, n, n))
         dPhi_s = dPhi_s.reshape(T - 1, substeps, kp, n, n)
         Phi = np.broadcast_to(np.eye(n), (T - 1, n, n))
@@ -345,13 +345,13 @@ class FilterProblem:
         p = self.base.full_parameters(base)
         t = exp.t
         substeps = substeps_for(t, self.max_step)
-        if not _equal_steps(np.diff(t) / substeps, t):
+        if not equal_steps(np.diff(t) / substeps, t):
             return None                 # time-stamp jitter or lost samples: uneven steps
-        tf = _fine_grid(t, substeps)
+        tf = fine_grid(t, substeps)
         u = exp.inputs(tf)
         F, g = model.system(tf, p, u)
         h = np.repeat(np.diff(t) / substeps, substeps)
-        constant = _time_invariant(F, h, t)
+        constant = time_invariant_steps(F, h, t)
         n, m, T = model.n_states, self.m, t.size
         k = len(theta) if sensitivities else 0
         kp = len(self.base.param_index) if sensitivities else 0
@@ -653,7 +653,7 @@ def fit_filter_error_ml(experiments: Sequence[Experiment], unknowns: Sequence[st
                         rows: Sequence[str | int] | None = None, noise_model: str = 'white',
                         gain: str = 'auto', step_tol: float = 1e-3,
                         max_step: float = DEFAULT_MAX_STEP, label: str = 'filter-error ML',
-                        gradients: str = 'analytic', _start: ParameterValues | None = None,
+                        gradients: str = 'analytic', start_values: ParameterValues | None = None,
                         loglik_tol: float | None = None) -> Estimate:
     """
     Filter-error maximum likelihood over one or more runs; Cramér-Rao bound at the optimum.
@@ -699,7 +699,7 @@ def fit_filter_error_ml(experiments: Sequence[Experiment], unknowns: Sequence[st
     gradients : {'analytic', 'finite-difference'}
         Sensitivities of ν and B: analytic for equally spaced samples (finite differences
         for uneven time stamps), or finite differences throughout (the reference).
-    _start : dict, optional
+    start_values : dict, optional
         Starting values by θ name (any of model unknowns, free initial states, measurement
         σ's), over the defaults; :func:`fit_filter_error`'s σ_V profile warm-starts with it.
     loglik_tol : float, optional
@@ -761,7 +761,7 @@ def fit_filter_error_ml(experiments: Sequence[Experiment], unknowns: Sequence[st
                 c = innovations_cost(prob.evaluate(trial, sensitivities=False))
                 if c < best:
                     best, theta = c, trial
-    for name, value in (_start or {}).items():
+    for name, value in (start_values or {}).items():
         theta[names.index(name)] = value
     t_start = time.perf_counter()
     history = []
@@ -1028,7 +1028,7 @@ def fit_filter_error(experiments: Sequence[Experiment], unknowns: Sequence[str],
                 experiments, unknowns, guess={n: start[n] for n in unknowns},
                 process_noise_std=sigma_v, estimate_process_noise=False,
                 label=f'{label}: profile σ_V = {sigma_v:.4g} ({len(fits) + 1})',
-                progress=progress, _start=start,
+                progress=progress, start_values=start,
                 **dict(options, step_tol=max(step_tol, _PROFILE_STEP_TOL)))
         except (IdentificationError, np.linalg.LinAlgError, FloatingPointError):
             est = None                 # no fit there: no weight (f = inf)

@@ -131,7 +131,7 @@ def gap_refinement(t: npt.ArrayLike, max_step: float = DEFAULT_MAX_STEP
     return fine, index
 
 
-def _fine_grid(t, substeps):
+def fine_grid(t, substeps):
     """Stage times: for every RK4 step its start, middle and end (shared with the next step)."""
     t = np.asarray(t, dtype=float)
     frac = np.arange(2 * substeps) / (2 * substeps)
@@ -161,7 +161,7 @@ def _mv(A, x):
     return (A @ x[..., None])[..., 0]
 
 
-def _rk4_maps(F, g, h):
+def rk4_maps(F, g, h):
     """
     Affine RK4 step maps x⁺ = Φ x + c from stage values (see the module docstring).
 
@@ -169,7 +169,7 @@ def _rk4_maps(F, g, h):
     ``h`` (M,). Returns Φ (M, n, n) and c (M, n). A time-invariant system may pass F (1, n, n)
     and one step length h (1,): then Φ (1, n, n) is computed once, c still per step.
     """
-    Phi = _rk4_transition(F, h)
+    Phi = rk4_transition(F, h)
     _, Fm, F1 = _stages(F)
     g0, gm, g1 = _stages(g)
     hv = h[:, None]
@@ -181,8 +181,8 @@ def _rk4_maps(F, g, h):
     return Phi, c
 
 
-def _rk4_transition(F, h):
-    """Φ (M, n, n) of the affine RK4 step maps of :func:`_rk4_maps` (F and h shaped as there)."""
+def rk4_transition(F, h):
+    """Φ (M, n, n) of the affine RK4 step maps of :func:`rk4_maps` (F and h shaped as there)."""
     F0, Fm, F1 = _stages(F)
     hh = h[:, None, None]
     # stage matrices: k_i = A_i x + b_i
@@ -193,11 +193,11 @@ def _rk4_transition(F, h):
     return np.eye(F.shape[-1]) + hh / 6.0 * (A1 + 2.0 * A2 + 2.0 * A3 + A4)
 
 
-def _rk4_transition_derivative(F, dF, h):
+def rk4_transition_derivative(F, dF, h):
     """
-    ∂Φ/∂p (M, k, n, n) of the RK4 step maps of :func:`_rk4_transition` along dF (…, k, n, n).
+    ∂Φ/∂p (M, k, n, n) of the RK4 step maps of :func:`rk4_transition` along dF (…, k, n, n).
 
-    The stage matrices of :func:`_rk4_transition` differentiated by the product rule, as
+    The stage matrices of :func:`rk4_transition` differentiated by the product rule, as
     matrices: ∂Φ e_c for every c at once, where :func:`_rk4_step_derivative` takes one pass
     per state column. Shapes as in :func:`_rk4_step_derivative`.
     """
@@ -219,7 +219,7 @@ def _rk4_step_derivative(F, g, h, dF, dg, x):
 
     The derivative of one RK4 step x⁺ = x + h/6 (k₁ + 2k₂ + 2k₃ + k₄) with respect to the
     parameters at fixed x, carried through the stages as vectors (shapes as in
-    :func:`_rk4_maps`; dF (2M+1 or 1, k, n, n), dg (2M+1, k, n)). Returns (M, k, n).
+    :func:`rk4_maps`; dF (2M+1 or 1, k, n, n), dg (2M+1, k, n)). Returns (M, k, n).
     """
     F0, Fm, F1 = _stages(F)
     g0, gm, g1 = _stages(g)
@@ -327,7 +327,7 @@ def simulate(model: 'LinearModel', p: npt.ArrayLike, inputs: Callable[[np.ndarra
     for start in range(0, T - 1, per_chunk):
         stop = min(T - 1, start + per_chunk)
         ts = t[start:stop + 1]
-        tf = _fine_grid(ts, m)
+        tf = fine_grid(ts, m)
         u = inputs(tf)
         h = np.repeat(np.diff(ts) / m, m)
         if kernel is not None:
@@ -339,15 +339,15 @@ def simulate(model: 'LinearModel', p: npt.ArrayLike, inputs: Callable[[np.ndarra
                                    Ss[start:stop + 1] if want_sens else None)
             continue
         F, g = model.system(tf, p, u)
-        if _time_invariant(F, h, ts):
+        if time_invariant_steps(F, h, ts):
             # one Φ for every step; c still follows the input step by step
             F_maps, h_maps = F[:1], h[:1]
         else:
             F_maps, h_maps = F, h
-        Phi_s, c_s = _rk4_maps(F_maps, g, h_maps)
+        Phi_s, c_s = rk4_maps(F_maps, g, h_maps)
         if forcing is not None:
             w = np.repeat(np.asarray(forcing, dtype=float)[start:stop], m, axis=0)
-            c_s = c_s + _rk4_constant_forcing(F_maps, w, h_maps)
+            c_s = c_s + rk4_constant_forcing(F_maps, w, h_maps)
         # maps from one sample to the next (the m RK4 steps of each interval composed)
         Phi, c = _per_interval(m, Phi_s, c_s)
         levels = _doubling_products(Phi, stop - start)
@@ -475,7 +475,7 @@ class TimeInvariantPlan:
 
     When F is constant, g = B u + e (:func:`affine_time_invariant`) and the RK4 steps are equal,
     every sample interval is the same affine map x_{j+1} = Φ x_j + C U_j + c_e of the stage
-    inputs U_j, with Φ, C, c_e polynomials in F, B, e (the expansion of :func:`_rk4_maps`,
+    inputs U_j, with Φ, C, c_e polynomials in F, B, e (the expansion of :func:`rk4_maps`,
     composed over the interval's steps). Per parameter vector, the model is evaluated once at
     its unit inputs (not at every stage time), the interval map and its parameter derivatives
     are formed once, and one compiled pass propagates the states and sensitivities, forms the
@@ -492,7 +492,7 @@ class TimeInvariantPlan:
 
     def __init__(self, model: 'LinearModel', t: np.ndarray, substeps: int, u: np.ndarray,
                  module: Any) -> None:
-        """Hold the record: times, stage inputs u (at _fine_grid), H; see :meth:`prepare`."""
+        """Hold the record: times, stage inputs u (at fine_grid), H; see :meth:`prepare`."""
         T = t.size
         # a weak reference to the model, or a holder where it cannot be referenced weakly
         self._model: Callable[[], LinearModel | None]
@@ -566,9 +566,9 @@ class TimeInvariantPlan:
         m = substeps_for(t, max_step)
         if (2 * m * (t.size - 1) + 1) * 3 > PLAN_MAX_VALUES:
             return None
-        if not _equal_steps(np.diff(t) / m, t):
+        if not equal_steps(np.diff(t) / m, t):
             return None
-        u = np.asarray(inputs(_fine_grid(t, m)), dtype=float)
+        u = np.asarray(inputs(fine_grid(t, m)), dtype=float)
         if u.ndim != 2 or not affine_time_invariant(model, p, u.shape[1]):
             return None
         t = t.copy()
@@ -765,10 +765,10 @@ def _compiled_chunk(kernel, model, p, tf, u, F, g, h, m, param_index, x, S, xs, 
     """
     n = x.shape[0]
     constant_F = bool(np.all(F == F[:1]))
-    if constant_F and _equal_steps(h, tf):
-        Phi = _rk4_transition(F[:1], h[:1])
+    if constant_F and equal_steps(h, tf):
+        Phi = rk4_transition(F[:1], h[:1])
     else:
-        Phi = _rk4_transition(full_along_time(F, tf.size), h)
+        Phi = rk4_transition(full_along_time(F, tf.size), h)
     F_val, (F_i, F_j) = _nonzero_entries(F[:1] if constant_F else F)
     if param_index:
         dF, dg = compact(model, 'system_jacobian', tf, p, u)
@@ -801,7 +801,7 @@ def _nonzero_entries(A):
             tuple(i.astype(np.int64) for i in index))
 
 
-def _time_invariant(F, h, ts):
+def time_invariant_steps(F, h, ts):
     """
     Return True when F is the same at every stage time and all steps are equally long.
 
@@ -809,16 +809,16 @@ def _time_invariant(F, h, ts):
     ``round(t0 + 0.1 j, 10)``, whose differences carry errors of a few ulp of t, i.e. 1e-13
     of a step at t ≈ 1000) count as equal; anything larger (time-stamp jitter) does not.
     """
-    return bool(np.all(F == F[:1])) and _equal_steps(h, ts)
+    return bool(np.all(F == F[:1])) and equal_steps(h, ts)
 
 
-def _equal_steps(h, ts):
+def equal_steps(h, ts):
     """Tell whether the steps h are equal to the rounding of the times ts (see above)."""
     rounding = 8.0 * np.finfo(float).eps * float(np.max(np.abs(ts)))
     return bool(np.ptp(h) <= 1e-12 * abs(h[0]) + rounding)
 
 
-def _rk4_constant_forcing(F, w, h):
+def rk4_constant_forcing(F, w, h):
     """Contribution to c of an input w (M, n) held constant over each RK4 step."""
     _, Fm, F1 = _stages(F)
     hv = h[:, None]

@@ -58,7 +58,8 @@ class BladeView:
         self.blades = tuple(model.blades)
         self.n_blades = len(self.blades)
 
-    def _psi(self, t):
+    def azimuth(self, t):
+        """Return every blade's azimuth ψ_k at times t (T, N), as the model defines it."""
         return self.model.blade_azimuth(t)
 
     def _columns(self, H):
@@ -787,7 +788,7 @@ class BladeDissimilarity(Augmented):
         dgamma = np.concatenate([dgamma, np.zeros(len(pb) - dgamma.size)])
         half, dhalf = 0.5 * gamma, 0.5 * np.broadcast_to(dgamma, (t.size, len(pb)))
         row, moment_u = self._moment(t, u)
-        coef = blade_aerodynamics(self.view._psi(t)[:, j], rotor.tip_loss, rotor.advance_ratio)
+        coef = blade_aerodynamics(self.view.azimuth(t)[:, j], rotor.tip_loss, rotor.advance_ratio)
         damping = coef['m_rate']
         stiff = coef['m_flap'] + rotor.pitch_flap_coupling * coef['m_theta']
         m_theta = coef['m_theta']
@@ -816,7 +817,7 @@ class BladeDissimilarity(Augmented):
         """
         rotor = self.view.model.rotor
         j = self._j
-        psi = self.view._psi(t)[:, j]
+        psi = self.view.azimuth(t)[:, j]
         per_damping = 0.5 * lock_number_from_damping(1.0, rotor.tip_loss)    # 4/B⁴ = (γ/2)/A
         w = per_damping * (2.0 / rotor.n_blades) * np.column_stack([np.cos(psi), np.sin(psi)])
         row, _ = self._moment(t, None)
