@@ -14,6 +14,7 @@ import argparse
 import importlib
 import importlib.util
 import sys
+from typing import Sequence
 
 #: command name -> (module, one-line help)
 COMMANDS = {
@@ -44,7 +45,7 @@ def _available(module_name):
     return importlib.util.find_spec(module_name) is not None
 
 
-def build_parser(selected=None):
+def build_parser(selected: str | None = None) -> argparse.ArgumentParser:
     """
     Return the argument parser with one subcommand per available command module.
 
@@ -67,7 +68,7 @@ def build_parser(selected=None):
     return parser
 
 
-def main(argv=None):
+def main(argv: Sequence[str] | None = None) -> int:
     """Parse ``argv`` and run the chosen command; return the exit code."""
     argv = sys.argv[1:] if argv is None else list(argv)
     chosen = next((a for a in argv if not a.startswith('-')), None)
