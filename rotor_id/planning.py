@@ -36,7 +36,7 @@ import math
 import os
 from pathlib import Path
 import time
-from typing import Any, Callable, Iterable, Sequence, TYPE_CHECKING
+from typing import Any, Callable, Iterable, NoReturn, Sequence, TYPE_CHECKING
 
 import numpy as np
 import numpy.typing as npt
@@ -46,7 +46,7 @@ from rotor_id.estimation.information import information_history, InformationHist
 from rotor_id.estimation.simulate import simulate
 from rotor_id.io.errors import RunDescriptionError
 from rotor_id.io.record import Record
-from rotor_id.io.run_description import _Lines, parse_run_description
+from rotor_id.io.run_description import parse_run_description, SourceLines
 from rotor_id.physics.blades import blade_flap_from_states
 from rotor_id.physics.models import build_model, lock_number_from_known
 from rotor_id.physics.stirring import PROGRESSING_OMEGADOT, StirringSchedule
@@ -219,7 +219,7 @@ class _PlanParser:
         self.lines = lines
         self.path = path
 
-    def fail(self, message, *where):
+    def fail(self, message: str, *where: Any) -> NoReturn:
         line = self.lines(*where) if where else None
         prefix = f'{self.path}:{line}' if line else self.path
         raise RunDescriptionError(f'{prefix}: {message}', self.path, line)
@@ -271,7 +271,7 @@ def parse_plan(text: str, path: 'str | os.PathLike[str]' = '<string>') -> Plan:
     if isinstance(data, dict) and 'window_s' not in data:
         text = text.rstrip('\n') + '\nwindow_s: [0.0, 1.0]  # set per candidate by the plan\n'
     description = parse_run_description(text, path, extra_keys=PLAN_KEYS)
-    parser = _PlanParser(data, _Lines(node), path)
+    parser = _PlanParser(data, SourceLines(node), path)
     model = pipeline.model_for(description)
 
     if description.noise_std_rad is None:

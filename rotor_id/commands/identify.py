@@ -284,13 +284,15 @@ def plot_runs(result: pipeline.Identification, records: Sequence[Record],
     columns = result.runs or [pipeline.Run(
         name='', source='', description=result.description, window_s=result.window_s,
         omega_rad_s=result.omega_rad_s, experiments=list(range(len(result.experiments))))]
-    n_ch = result.experiments[0].y.shape[1]
+    n_ch = result.experiments[0].model.n_outputs
     width = 9.0 if len(columns) == 1 else 4.2 * len(columns)
     fig, axes = plt.subplots(n_ch + 1, len(columns), figsize=(width, 1.9 * (n_ch + 1)),
                              sharex='col', squeeze=False)
     for col, (run, record) in enumerate(zip(columns, records)):
         for r in run.experiments:
             exp = result.experiments[r]
+            if exp.y is None:           # a run without measurements has nothing to draw
+                continue
             ts = (exp.t - record.t[0]) / run.omega_rad_s + record.time_s[0]
             first = r == run.experiments[0]
             for c in range(n_ch):

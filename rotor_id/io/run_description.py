@@ -327,7 +327,7 @@ def _joint_list(value, n_blades, what):
     return tuple(value)
 
 
-class _Lines:
+class SourceLines:
     """Line numbers of the keys and items of a composed YAML document, by path."""
 
     def __init__(self, node):
@@ -496,7 +496,7 @@ def parse_run_description(text: str, path: str | os.PathLike = '<string>',
             data = loader.construct_document(node) if node is not None else None
         finally:
             loader.dispose()
-        lines = _Lines(node if node is not None else yaml.ScalarNode('', ''))
+        lines = SourceLines(node if node is not None else yaml.ScalarNode('', ''))
     except yaml.YAMLError as err:
         mark = getattr(err, 'problem_mark', None)
         line = mark.line + 1 if mark is not None else None
