@@ -41,10 +41,15 @@ error.
 from dataclasses import dataclass, field
 import enum
 import math
+from typing import Any, Sequence, TYPE_CHECKING
 
 import numpy as np
 from rotor_id import residuals as rs
 from rotor_id.estimation.validation import chi2_sf, normal_sf
+
+if TYPE_CHECKING:
+    from rotor_id.estimation.output_error import Estimate, Experiment
+    from rotor_id.physics.models import LinearModel
 
 #: Family-wise false-alarm probability of the adequacy check on a recording the model explains.
 FAMILY_ALPHA = 0.01
@@ -77,7 +82,7 @@ class ResidualTest:
     p_value: float
     detail: dict = field(default_factory=dict)
 
-    def as_json(self, limit):
+    def as_json(self, limit: float) -> dict[str, Any]:
         """JSON-ready, with whether it passed at the per-test level ``limit``."""
         return {'test': self.test, 'run': self.run, 'channel': self.channel,
                 'statistic': float(self.statistic), 'p_value': float(self.p_value),
@@ -94,26 +99,26 @@ class Adequacy:
     family_alpha: float
     tests: list
     residuals: str                  # 'output error' | 'innovations'
-    location: dict = None           # channels, tests, band_per_rev, window_s of the misfit
+    location: dict | None = None    # channels, tests, band_per_rev, window_s of the misfit
     note: str = ''
-    timing: dict = None             # :func:`timing_sensitivity` (output and equation error)
+    timing: dict | None = None      # :func:`timing_sensitivity` (output and equation error)
 
     @property
-    def per_test_alpha(self):
+    def per_test_alpha(self) -> float:
         """Bonferroni level of each test, α/K."""
         return self.family_alpha / max(len(self.tests), 1)
 
     @property
-    def failed(self):
+    def failed(self) -> list[ResidualTest]:
         """Return the tests below the per-test level."""
         return [t for t in self.tests if t.p_value < self.per_test_alpha]
 
     @property
-    def adequate(self):
+    def adequate(self) -> bool:
         """Return True unless the check found a misfit (NOT_TESTED counts as adequate)."""
         return self.verdict is not Verdict.INADEQUATE
 
-    def as_json(self):
+    def as_json(self) -> dict[str, Any]:
         """JSON-ready: the ``adequacy`` key of ``rotor-id identify --json``."""
         limit = self.per_test_alpha
         return {'verdict': self.verdict.value, 'family_alpha': self.family_alpha,
@@ -124,7 +129,7 @@ class Adequacy:
                 'suggestion': ('rotor-id diagnose' if self.verdict is Verdict.INADEQUATE
                                else None)}
 
-    def warning(self):
+    def warning(self) -> str | None:
         """One-line warning for an inadequate or an unchecked fit, else None."""
         if self.verdict is Verdict.NOT_TESTED:
             # (too few samples: a misfit, a sensor fault included, would pass unnoticed)
@@ -161,7 +166,7 @@ def _describe(test):
             f'(z = {test.statistic:.1f}, p = {test.p_value:.2g})')
 
 
-def channel_matrix(model, t, n_blades):
+def channel_matrix(model: 'LinearModel', t: np.ndarray, n_blades: int) -> np.ndarray:
     """C (T, m, N): the model's output channels as linear combinations of the blade flaps."""
     t = np.asarray(t, dtype=float)
     columns = []
@@ -182,7 +187,8 @@ class FittedDirections:
     weighted: np.ndarray        # all runs stacked, ∂ŷ/∂θ / σ of shape (Σ T·m, P)
 
 
-def fitted_directions(estimate, experiments):
+def fitted_directions(estimate: 'Estimate', experiments: Sequence['Experiment']
+                      ) -> FittedDirections | None:
     """
     Return the :class:`FittedDirections` of a fit, or None when they cannot be formed.
 
@@ -212,7 +218,9 @@ def fitted_directions(estimate, experiments):
     return FittedDirections(list(problem.names), dys, sigmas, J)
 
 
-def timing_sensitivity(estimate, experiments, directions, sample_period_s):
+def timing_sensitivity(estimate: 'Estimate', experiments: Sequence['Experiment'],
+                       directions: FittedDirections, sample_period_s: float
+                       ) -> dict[str, Any] | None:
     """
     How far one sample of flap-sensor delay would move each unknown, in its own σ.
 
@@ -251,7 +259,10 @@ def timing_sensitivity(estimate, experiments, directions, sample_period_s):
             'delay_score_z': float(unseen @ residual / size) if size > 0 else 0.0}
 
 
-def whiteness_null(estimate, experiments, n_draws=NULL_DRAWS, seed=0, directions=None):
+def whiteness_null(estimate: 'Estimate', experiments: Sequence['Experiment'],
+                   n_draws: int = NULL_DRAWS, seed: int = 0,
+                   directions: FittedDirections | None = None
+                   ) -> list[list[tuple[float, float] | None]] | None:
     """
     Null distribution of each channel's Ljung-Box Q for the residuals of this very fit.
 
@@ -304,7 +315,9 @@ def whiteness_null(estimate, experiments, n_draws=NULL_DRAWS, seed=0, directions
     return out
 
 
-def check(estimate, experiments, measured, family_alpha=FAMILY_ALPHA):
+def check(estimate: 'Estimate', experiments: Sequence['Experiment'],
+          measured: Sequence[tuple[np.ndarray, np.ndarray]],
+          family_alpha: float = FAMILY_ALPHA) -> Adequacy:
     """
     Test the residuals of an identification (see the module docstring).
 

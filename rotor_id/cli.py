@@ -14,6 +14,7 @@ import argparse
 import importlib
 import importlib.util
 import sys
+from typing import Sequence
 
 #: command name -> (module, one-line help)
 COMMANDS = {
@@ -44,7 +45,7 @@ def _available(module_name):
     return importlib.util.find_spec(module_name) is not None
 
 
-def build_parser(selected=None):
+def build_parser(selected: str | None = None) -> argparse.ArgumentParser:
     """
     Return the argument parser with one subcommand per available command module.
 
@@ -63,11 +64,11 @@ def build_parser(selected=None):
         if selected is None or name == selected:
             module = importlib.import_module(module_name)
             module.add_arguments(command)
-            command.set_defaults(_run=module.run)
+            command.set_defaults(run_command=module.run)
     return parser
 
 
-def main(argv=None):
+def main(argv: Sequence[str] | None = None) -> int:
     """Parse ``argv`` and run the chosen command; return the exit code."""
     argv = sys.argv[1:] if argv is None else list(argv)
     chosen = next((a for a in argv if not a.startswith('-')), None)
@@ -79,7 +80,7 @@ def main(argv=None):
     from rotor_id.commands.common import capture_warnings
     try:
         with capture_warnings():
-            return int(args._run(args) or 0)
+            return int(args.run_command(args) or 0)
     except KeyboardInterrupt:
         print(f'rotor-id {args.command}: interrupted', file=sys.stderr)
         return 130

@@ -15,8 +15,13 @@ Time ``t`` is the report's nondimensional time (azimuth of blade 1, rad); the ro
 """
 
 import math
+from typing import TYPE_CHECKING
 
 import numpy as np
+import numpy.typing as npt
+
+if TYPE_CHECKING:
+    from rotor_id.physics.stirring import StirringSchedule
 
 # Phases: the values of rotor_id_msgs/StirringCommand's PHASE_* constants.
 PHASE_TRIM = 0
@@ -28,8 +33,8 @@ PHASE_NAMES = {PHASE_TRIM: 'trim', PHASE_CYCLIC_STEP: 'cyclic step', PHASE_STIRR
                PHASE_DONE: 'done', PHASE_RAMP_DOWN: 'ramp down'}
 
 
-def check_excitation_limits(amplitude_rad, max_amplitude_rad, duration_rad,
-                            max_stirring_rate_rad_s, ramp_s):
+def check_excitation_limits(amplitude_rad: float, max_amplitude_rad: float, duration_rad: float,
+                            max_stirring_rate_rad_s: float, ramp_s: float) -> str | None:
     """
     Return the reason the excitation settings are unsafe or meaningless, or None.
 
@@ -80,8 +85,9 @@ class StirringTestPoint:
 
     """
 
-    def __init__(self, schedule, omega_rad_s, duration_rad, max_stirring_rate_rad_s, ramp_s,
-                 max_amplitude_rad):
+    def __init__(self, schedule: 'StirringSchedule', omega_rad_s: float, duration_rad: float,
+                 max_stirring_rate_rad_s: float, ramp_s: float,
+                 max_amplitude_rad: float) -> None:
         reason = check_excitation_limits(schedule.amplitude, max_amplitude_rad, duration_rad,
                                          max_stirring_rate_rad_s, ramp_s)
         if reason is None and not omega_rad_s > 0:
@@ -101,14 +107,14 @@ class StirringTestPoint:
         self.t_end = schedule.t0 + min(duration_rad, to_rate_limit)   # stirring stops here
         self.ramp_rad = ramp_s * self.omega_rad_s
         self.t_ramp = self.t_end          # the ramp starts here (earlier after an abort)
-        self.aborted = None               # reason of an abort, None if not aborted
+        self.aborted: str | None = None   # reason of an abort, None if not aborted
 
     @property
-    def t_done(self):
+    def t_done(self) -> float:
         """Return t from which the test point is done (collective only)."""
         return self.t_ramp + self.ramp_rad
 
-    def abort(self, t, reason='abort requested'):
+    def abort(self, t: float, reason: str = 'abort requested') -> bool:
         """
         Start the ramp back to trim at ``t`` (no effect once ramping or done).
 
@@ -125,7 +131,7 @@ class StirringTestPoint:
             self.ramp_rad = 0.0
         return True
 
-    def phase(self, t):
+    def phase(self, t: float) -> int:
         """Return the PHASE_* at ``t``."""
         if t >= self.t_done:
             return PHASE_DONE
@@ -135,7 +141,7 @@ class StirringTestPoint:
             return PHASE_TRIM
         return PHASE_CYCLIC_STEP if t <= self.schedule.t0 else PHASE_STIRRING
 
-    def inputs(self, t):
+    def inputs(self, t: npt.ArrayLike) -> np.ndarray:
         """Return (n, 3) u = [θ0, θI, θII] at the times ``t`` (rad)."""
         t = np.atleast_1d(np.asarray(t, dtype=float))
         u = self.schedule.inputs(np.minimum(t, self.t_ramp))   # cyclic frozen from the ramp on
@@ -147,11 +153,11 @@ class StirringTestPoint:
         u[:, 1:] *= scale[:, None]
         return u
 
-    def stirring_phase(self, t):
+    def stirring_phase(self, t: float) -> float:
         """Return φ at ``t`` (frozen from the ramp on), rad."""
         return float(self.schedule.phase(min(t, self.t_ramp)))
 
-    def stirring_rate(self, t):
+    def stirring_rate(self, t: float) -> float:
         """Return dφ/dt at ``t``, rad/s (0 once ramping: the cyclic no longer rotates)."""
         if t >= self.t_ramp:
             return 0.0

@@ -10,12 +10,28 @@ No ROS here: records come from :mod:`rotor_id.io.bag` or from the identifier nod
 from dataclasses import dataclass, field, replace
 import itertools
 import math
+from typing import Any, Callable, Iterable, Mapping, Sequence, TYPE_CHECKING
 
 import numpy as np
 
-from rotor_id.estimation.output_error import Experiment, fit_output_error, IdentificationError
-from rotor_id.physics.models import build_model, lock_number_from_known, RotorConstants
+from rotor_id.estimation.output_error import (
+    Estimate, Experiment, fit_output_error, IdentificationError)
+from rotor_id.physics.models import (
+    build_model, DirectionalResponse, LinearModel, lock_number_from_known, RotorConstants,
+    RotorModel)
 from rotor_id.physics.stirring import SampledInput
+
+if TYPE_CHECKING:   # (scipy behind some of them: imported where used)
+    from rotor_id.adequacy import Adequacy
+    from rotor_id.estimation.frequency_response import (
+        BandCost, FrequencyFit, FrequencyResponse, Sweep)
+    from rotor_id.io.record import Record
+    from rotor_id.io.run_description import RunDescription
+
+#: Called with a dict per iteration of an estimator; returns None or STOP.
+Progress = Callable[[dict], object]
+#: Recordings fitted together: (record, its run description, a name for messages).
+Runs = Sequence[tuple['Record', 'RunDescription', str]]
 
 #: Default output channels per model when the run description does not say.
 DEFAULT_MEASUREMENT = {
@@ -30,33 +46,33 @@ DEFAULT_MEASUREMENT = {
 class Identification:
     """An estimate with the model, runs and window it came from."""
 
-    estimate: object
-    model: object
-    experiments: list
-    description: object
+    estimate: Estimate
+    model: LinearModel
+    experiments: list[Experiment]
+    description: 'RunDescription'
     window_s: tuple
     omega_rad_s: float
-    unknowns: list
+    unknowns: list[str]
     #: Several recordings fitted together (:func:`identify_runs`): one :class:`Run` each.
-    runs: list = field(default_factory=list)
+    runs: list['Run'] = field(default_factory=list)
     #: parameters neither identified nor given in ``known``: name -> value the fit used
     defaults_used: dict = field(default_factory=dict)
     #: the residual check (None only when the caller skipped it)
-    adequacy: object = None
+    adequacy: 'Adequacy | None' = None
     #: remarks on the inputs (defaults taken), before the estimator's own warnings
     notes: list = field(default_factory=list)
     #: ``--method frequency-response``: the :class:`FrequencyIdentification` behind the estimate
-    frequency_response: object = None
+    frequency_response: 'FrequencyIdentification | None' = None
 
     @property
-    def warnings(self):
+    def warnings(self) -> list[str]:
         """Every warning of this identification: inputs, estimator, adequacy."""
         out = list(self.notes) + list(self.estimate.warnings)
         if self.adequacy is not None and self.adequacy.warning():
             out.append(self.adequacy.warning())
         return out
 
-    def as_json(self):
+    def as_json(self) -> dict[str, Any]:
         """
         Return the JSON of ``rotor-id identify`` (its keys are stable; more may be added).
 
@@ -111,12 +127,12 @@ class Run:
 
     name: str
     source: str
-    description: object
+    description: 'RunDescription'
     window_s: tuple
     omega_rad_s: float
-    experiments: list      # indices into Identification.experiments
+    experiments: list[int]  # indices into Identification.experiments
 
-    def as_json(self, estimate):
+    def as_json(self, estimate: Estimate) -> dict[str, Any]:
         """Return this run's section of the JSON: window, noise, residuals, initial states."""
         idx = self.experiments
         residuals = np.concatenate([estimate.residuals[i] for i in idx], axis=0)
@@ -139,7 +155,7 @@ class Run:
         }
 
 
-def rotor_constants(description):
+def rotor_constants(description: 'RunDescription') -> RotorConstants:
     """Return the RotorConstants of a run description's ``rotor`` block."""
     rotor = description.rotor
     return RotorConstants(n_blades=int(rotor.blades), advance_ratio=float(rotor.advance_ratio),
@@ -148,7 +164,7 @@ def rotor_constants(description):
                           pitch_flap_coupling=float(getattr(rotor, 'pitch_flap_coupling', 0.0)))
 
 
-def model_for(description, **options):
+def model_for(description: 'RunDescription', **options: Any) -> RotorModel:
     """Return the identification model a run description names, in radians."""
     rotor = rotor_constants(description)
     measurement = description.measurement or DEFAULT_MEASUREMENT[description.model]
@@ -168,14 +184,16 @@ def model_for(description, **options):
         raise IdentificationError(f'{description.model} for this rotor: {err}') from None
 
 
-def given_values(description, model):
+def given_values(description: 'RunDescription', model: RotorModel) -> dict[str, float]:
     """Return the description's ``known`` values as the model's parameters (γ → A: wake)."""
     known = lock_number_from_known(description.known, model)
     return {k: v for k, v in known.items() if k in model.parameter_names}
 
 
-def parameter_defaults(description, model, collective=None,
-                       collective_source='the mean measured collective pitch', given=()):
+def parameter_defaults(description: 'RunDescription', model: RotorModel,
+                       collective: float | None = None,
+                       collective_source: str = 'the mean measured collective pitch',
+                       given: Iterable[str] = ()) -> tuple[dict[str, float], dict[str, str]]:
     """
     Model parameters neither identified nor given in ``known``, with the value used for them.
 
@@ -199,7 +217,7 @@ def parameter_defaults(description, model, collective=None,
     return values, sources
 
 
-def defaults_warning(values, sources):
+def defaults_warning(values: Mapping[str, float], sources: Mapping[str, str]) -> str | None:
     """One warning naming every default taken, or None."""
     if not values:
         return None
@@ -217,7 +235,9 @@ def _known_values(description, model, record):
     return {**given_values(description, model), **defaults}, defaults, sources
 
 
-def defaults_for(record, description, window_s=None):
+def defaults_for(record: 'Record', description: 'RunDescription',
+                 window_s: Sequence[float] | None = None
+                 ) -> tuple[dict[str, float], dict[str, str]]:
     """
     Return the defaults (name -> value, name -> source) an identification of ``record`` takes.
 
@@ -230,7 +250,8 @@ def defaults_for(record, description, window_s=None):
     return defaults, sources
 
 
-def check_values(description, model, values, what):
+def check_values(description: 'RunDescription', model: RotorModel, values: Mapping[str, float],
+                 what: str) -> None:
     """
     Check parameter values against the model's physical ranges before any fitting.
 
@@ -259,7 +280,9 @@ def _near_window(record, window_s):
                          min(window_s[1] + margin, float(record.time_s[-1])))
 
 
-def experiments_from_record(record, description, model=None, window_s=None):
+def experiments_from_record(record: 'Record', description: 'RunDescription',
+                            model: RotorModel | None = None,
+                            window_s: Sequence[float] | None = None) -> list[Experiment]:
     """Experiments (one per modelled blade for single_blade, else one) over the window."""
     model = model or model_for(description)
     window_s = tuple(window_s or description.window_s)
@@ -293,7 +316,9 @@ def _start_candidates(model, unknowns, guess):
         yield {n: base[n] * s for n, s in zip(unknowns, combo)}
 
 
-def starting_values(record, description, model, experiments, known, multi_start=True):
+def starting_values(record: 'Record', description: 'RunDescription', model: RotorModel,
+                    experiments: Sequence[Experiment], known: Mapping[str, float] | None,
+                    multi_start: bool = True) -> dict[str, float]:
     """
     Return starting values: the description's guess, or the best of a grid of starts.
 
@@ -320,9 +345,11 @@ def starting_values(record, description, model, experiments, known, multi_start=
     return best
 
 
-def identify(record, description, method=None, progress=None, window_s=None,
-             multi_start=True, max_iter=50, filter_bounds='marginal', step_tol=None,
-             check_adequacy=True, model=None):
+def identify(record: 'Record', description: 'RunDescription', method: str | None = None,
+             progress: Progress | None = None, window_s: Sequence[float] | None = None,
+             multi_start: bool = True, max_iter: int = 50, filter_bounds: str = 'marginal',
+             step_tol: float | None = None, check_adequacy: bool = True,
+             model: RotorModel | None = None) -> Identification:
     """
     Identify the run description's unknowns from a record.
 
@@ -392,7 +419,7 @@ def identify(record, description, method=None, progress=None, window_s=None,
     return ident
 
 
-def adequacy_of(ident, record):
+def adequacy_of(ident: Identification, record: 'Record') -> 'Adequacy':
     """
     Return the residual-adequacy check (:mod:`rotor_id.adequacy`) of a one-record identification.
 
@@ -468,7 +495,7 @@ def _fit(method, experiments, unknowns, guess, known, description, model, progre
 SHARED_KEYS = ('model', 'rotor', 'unknowns', 'known', 'measurement')
 
 
-def check_runs_agree(descriptions, names):
+def check_runs_agree(descriptions: Sequence['RunDescription'], names: Sequence[str]) -> None:
     """Raise IdentificationError unless the run descriptions agree on :data:`SHARED_KEYS`."""
     first = descriptions[0]
     for description, name in zip(descriptions[1:], names[1:]):
@@ -491,8 +518,9 @@ def _shared_model(description):
     return model, unknowns
 
 
-def identify_runs(runs, method=None, progress=None, multi_start=True, max_iter=50,
-                  step_tol=None):
+def identify_runs(runs: Runs, method: str | None = None, progress: Progress | None = None,
+                  multi_start: bool = True, max_iter: int = 50,
+                  step_tol: float | None = None) -> Identification:
     """
     Identify shared parameters from several recordings at once (output error).
 
@@ -528,6 +556,8 @@ def identify_runs(runs, method=None, progress=None, multi_start=True, max_iter=5
             '--method output-error')
     description = descriptions[0]
     model, unknowns = _shared_model(description)
+    experiments: list[Experiment]
+    parts: list[Run]
     experiments, parts, noise_std, known, measured = [], [], [], None, []
     for index, (record, desc, name) in enumerate(zip(records, descriptions, names)):
         window_s = tuple(desc.window_s)
@@ -570,7 +600,7 @@ def identify_runs(runs, method=None, progress=None, multi_start=True, max_iter=5
                           adequacy=adequacy_check.check(estimate, experiments, measured))
 
 
-def channel_noise(model, blade_noise):
+def channel_noise(model: RotorModel, blade_noise: float) -> float | np.ndarray:
     """
     Noise σ of the model's channels for independent per-blade flap noise σ, any N.
 
@@ -598,17 +628,17 @@ class ModelOverlay:
 
     name: str
     parameters: dict
-    source: str
-    transfer_function: object          # physics.models.DirectionalResponse on a fine grid
+    source: str | None
+    transfer_function: DirectionalResponse  # on a fine grid
     at_points: np.ndarray              # transfer function at the estimate's points
     as_estimated: np.ndarray           # the same estimator applied to the model's simulation
-    bands: list                        # BandCost against as_estimated
+    bands: list['BandCost']            # against as_estimated
     cost: float
-    bands_transfer_function: list      # BandCost against the transfer function
+    bands_transfer_function: list['BandCost']  # against the transfer function
     cost_transfer_function: float
 
     @property
-    def sideband_ratios(self):
+    def sideband_ratios(self) -> dict[int, float]:
         """{n: largest |H_n|/|H_0| over the band} of a periodic model's sidebands (n per rev)."""
         tf = self.transfer_function
         scale = np.maximum(np.abs(tf.principal), 1e-300)
@@ -616,11 +646,11 @@ class ModelOverlay:
                 if np.max(np.abs(h) / scale) > 1e-6}
 
     @property
-    def transient_error(self):
+    def transient_error(self) -> np.ndarray:
         """|as estimated / transfer function − 1|: the estimate's deterministic error here."""
         return np.abs(self.as_estimated / self.at_points - 1.0)
 
-    def as_json(self):
+    def as_json(self) -> dict[str, Any]:
         """Return the overlay's JSON: parameters, J per band against both model curves."""
         return {
             'model': self.name, 'parameters': {k: float(v) for k, v in self.parameters.items()},
@@ -640,12 +670,12 @@ class ModelOverlay:
 class FrequencyAnalysis:
     """The dFRF of one or more runs, and optionally a model's beside it."""
 
-    estimate: object                   # estimation.frequency_response.FrequencyResponse
-    sweeps: list
-    overlay: ModelOverlay = None
+    estimate: 'FrequencyResponse'
+    sweeps: list['Sweep']
+    overlay: ModelOverlay | None = None
     warnings: list = field(default_factory=list)
 
-    def as_json(self):
+    def as_json(self) -> dict[str, Any]:
         """Return the JSON of ``rotor-id frequency-response``."""
         out = self.estimate.as_json()
         out['windows_s'] = [list(s.window_s) for s in self.sweeps]
@@ -661,12 +691,16 @@ def _frequency_runs(runs, window_s=None):
     return [sweep_from_record(record, name, window_s) for record, _, name in runs]
 
 
-def model_overlay(model, p, sweeps, estimate, collective, source, points_per_side=200):
+def model_overlay(model: RotorModel, p: np.ndarray, sweeps: Sequence['Sweep'],
+                  estimate: 'FrequencyResponse', collective: float, source: str | None,
+                  points_per_side: int = 200) -> ModelOverlay:
     """Return the :class:`ModelOverlay` of ``model`` at the full parameter vector ``p``."""
     from rotor_id.estimation.frequency_response import band_costs, estimated_model_response
     from rotor_id.physics.models import directional_frequency_response
     f = estimate.frequency_per_rev
-    sides = [np.linspace(lo, hi, points_per_side) for lo, hi in
+    # (hi is None only with lo, which the filter drops)
+    sides = [np.linspace(lo, hi, points_per_side)  # type: ignore[arg-type]
+             for lo, hi in
              ((f[f < 0].min(), f[f < 0].max()) if np.any(f < 0) else (None, None),
               (f[f > 0].min(), f[f > 0].max()) if np.any(f > 0) else (None, None))
              if lo is not None]
@@ -681,7 +715,7 @@ def model_overlay(model, p, sweeps, estimate, collective, source, points_per_sid
                         bands_transfer_function=bands_tf, cost_transfer_function=cost_tf)
 
 
-def overlay_warnings(estimate, overlay):
+def overlay_warnings(estimate: 'FrequencyResponse', overlay: ModelOverlay) -> list[str]:
     """Say where the estimate's transient error exceeds its random error, with the figures."""
     from rotor_id.estimation.frequency_response import ACCEPTABLE_COST, COHERENCE_MIN
     out = []
@@ -705,7 +739,9 @@ def overlay_warnings(estimate, overlay):
     return out
 
 
-def frequency_analysis(runs, window_s=None, parameters=None, source=None):
+def frequency_analysis(runs: Runs, window_s: Sequence[float] | None = None,
+                       parameters: Mapping[str, float] | None = None,
+                       source: str | None = None) -> FrequencyAnalysis:
     """
     Estimate the dFRF of ``runs`` [(record, description, name)], with the model overlaid.
 
@@ -748,9 +784,9 @@ class FrequencyIdentification:
     """What ``identify --method frequency-response`` fitted: the dFRF and the J fit."""
 
     analysis: FrequencyAnalysis
-    fit: object
+    fit: 'FrequencyFit'
 
-    def as_json(self):
+    def as_json(self) -> dict[str, Any]:
         """Return J, points, χ²/dof and the windows of the frequency-domain fit."""
         return {'cost_J': float(self.fit.cost), 'points': int(self.fit.points),
                 'chi2_per_dof': float(self.fit.chi2_per_dof),
@@ -758,7 +794,8 @@ class FrequencyIdentification:
                 'noise_bins': int(self.analysis.estimate.noise_bins)}
 
 
-def identify_frequency_response(runs, progress=None, max_iter=40, window_s=None):
+def identify_frequency_response(runs: Runs, progress: Progress | None = None, max_iter: int = 40,
+                                window_s: Sequence[float] | None = None) -> Identification:
     """
     Identify the run description's unknowns by CIFER's J on the dFRF (docs/frequency_response.md).
 
@@ -799,6 +836,8 @@ def identify_frequency_response(runs, progress=None, max_iter=40, window_s=None)
     values = {**held, **dict(zip(fitted, fit.values))}
     analysis.overlay = model_overlay(model, model.parameter_vector({**known, **values}),
                                      sweeps, estimate, collective, 'the frequency-domain fit')
+    experiments: list[Experiment]
+    parts: list[Run]
     experiments, parts = [], []
     for index, (record, desc, name) in enumerate(runs):
         near = _near_window(record, tuple(desc.window_s))

@@ -33,21 +33,28 @@ Public API
 from dataclasses import dataclass, field, replace
 import itertools
 import math
+import os
 from pathlib import Path
 import time
+from typing import Any, Callable, Iterable, NoReturn, Sequence, TYPE_CHECKING
 
 import numpy as np
+import numpy.typing as npt
 from rotor_id import pipeline
 from rotor_id.estimation.information import information_history, InformationHistory, \
     inverse_or_nan, shortest_record
 from rotor_id.estimation.simulate import simulate
 from rotor_id.io.errors import RunDescriptionError
 from rotor_id.io.record import Record
-from rotor_id.io.run_description import _Lines, parse_run_description
+from rotor_id.io.run_description import parse_run_description, SourceLines
 from rotor_id.physics.blades import blade_flap_from_states
 from rotor_id.physics.models import build_model, lock_number_from_known
 from rotor_id.physics.stirring import PROGRESSING_OMEGADOT, StirringSchedule
 import yaml
+
+if TYPE_CHECKING:
+    from rotor_id.io.run_description import RunDescription
+    from rotor_id.physics.models import RotorModel
 
 #: Keys a plan adds to a run description (``noise_std_rad`` is a run-description key already).
 PLAN_KEYS = ('guess', 'rate_hz', 'omega_rad_s', 'target_std', 'candidates', 'collective_rad',
@@ -69,7 +76,7 @@ MAX_CANDIDATES = 500
 HORIZON = 2.0
 
 
-def default_t0(advance_ratio):
+def default_t0(advance_ratio: float) -> float:
     """Return the report's stirring delay after the cyclic step: 12 at μ > 0, 70 at μ = 0."""
     return 12.0 if advance_ratio > 0 else 70.0
 
@@ -103,41 +110,41 @@ class Candidate:
     duration_rev: float
 
     @property
-    def transient(self):
+    def transient(self) -> tuple[str, float, float, float]:
         """Return the candidate without its record length (candidates sharing it share a run)."""
         return (self.direction, self.omegadot, self.amplitude_rad, self.t0)
 
     @property
-    def stirring_start(self):
+    def stirring_start(self) -> float:
         """Stirring start in the record's nondimensional time (cyclic step + t0)."""
         return CYCLIC_STEP + self.t0
 
     @property
-    def duration(self):
+    def duration(self) -> float:
         """Record length in nondimensional time, 2π per revolution."""
         return 2.0 * math.pi * self.duration_rev
 
-    def schedule(self, collective_rad):
+    def schedule(self, collective_rad: float) -> StirringSchedule:
         """Return the pitch input of the planned run (:class:`StirringSchedule`, radians)."""
         return StirringSchedule(collective=collective_rad, amplitude=self.amplitude_rad,
                                 omegadot=self.omegadot, t0=self.stirring_start,
                                 t_step=CYCLIC_STEP)
 
-    def final_stirring_rate(self):
+    def final_stirring_rate(self) -> float:
         """Stirring rate dφ/dt at the record end, 2|ω̇|·duration (per rev of the rotor)."""
         return 2.0 * abs(self.omegadot) * self.duration
 
-    def window_s(self, omega_rad_s):
+    def window_s(self, omega_rad_s: float) -> tuple[float, float]:
         """Identification window (s after the record's first sample) for the run description."""
         return (self.stirring_start / omega_rad_s,
                 (self.stirring_start + self.duration) / omega_rad_s)
 
-    def label(self):
+    def label(self) -> str:
         """Short text for tables, progress lines and legends."""
         amplitude = math.degrees(self.amplitude_rad)
         return f'{self.direction} ω̇={self.omegadot:+.4g} amp={amplitude:.3g}° t0={self.t0:g}'
 
-    def as_json(self):
+    def as_json(self) -> dict[str, Any]:
         """Return the candidate's keys as in the JSON."""
         return {'direction': self.direction, 'omegadot': float(self.omegadot),
                 'amplitude_rad': float(self.amplitude_rad), 't0': float(self.t0),
@@ -176,7 +183,7 @@ class Plan:
 
     """
 
-    description: object
+    description: 'RunDescription'
     guess: dict
     noise_std_rad: float
     rate_hz: float
@@ -190,12 +197,12 @@ class Plan:
     defaults_used: dict = field(default_factory=dict)
 
     @property
-    def unknowns(self):
+    def unknowns(self) -> list[str]:
         """Return the unknown model parameters, in the description's order."""
         return list(self.description.unknowns)
 
     @property
-    def sample_interval(self):
+    def sample_interval(self) -> float:
         """Δt of the flap samples in nondimensional time, Ω / rate."""
         return self.omega_rad_s / self.rate_hz
 
@@ -212,7 +219,7 @@ class _PlanParser:
         self.lines = lines
         self.path = path
 
-    def fail(self, message, *where):
+    def fail(self, message: str, *where: Any) -> NoReturn:
         line = self.lines(*where) if where else None
         prefix = f'{self.path}:{line}' if line else self.path
         raise RunDescriptionError(f'{prefix}: {message}', self.path, line)
@@ -235,7 +242,7 @@ class _PlanParser:
         return value
 
 
-def parse_plan(text, path='<string>'):
+def parse_plan(text: str, path: 'str | os.PathLike[str]' = '<string>') -> Plan:
     """
     Parse and validate a plan: a run description plus the planning keys.
 
@@ -264,7 +271,7 @@ def parse_plan(text, path='<string>'):
     if isinstance(data, dict) and 'window_s' not in data:
         text = text.rstrip('\n') + '\nwindow_s: [0.0, 1.0]  # set per candidate by the plan\n'
     description = parse_run_description(text, path, extra_keys=PLAN_KEYS)
-    parser = _PlanParser(data, _Lines(node), path)
+    parser = _PlanParser(data, SourceLines(node), path)
     model = pipeline.model_for(description)
 
     if description.noise_std_rad is None:
@@ -313,7 +320,7 @@ def parse_plan(text, path='<string>'):
                 known_initial_state=known_state, defaults_used=defaults)
 
 
-def load_plan(path):
+def load_plan(path: 'str | os.PathLike[str]') -> Plan:
     """Read and validate the plan in file ``path`` (see :func:`parse_plan`)."""
     try:
         text = Path(path).read_text(encoding='utf-8')
@@ -443,12 +450,12 @@ class PlannedRun:
     p_full: np.ndarray
 
 
-def description_for(plan, candidate):
+def description_for(plan: Plan, candidate: Candidate) -> 'RunDescription':
     """Return the run description ``identify`` needs for a candidate's record (its window)."""
     return replace(plan.description, window_s=candidate.window_s(plan.omega_rad_s))
 
 
-def parameter_values(plan, model):
+def parameter_values(plan: Plan, model: 'RotorModel') -> np.ndarray:
     """Full parameter vector to plan around: nominal < known < guess (radians)."""
     known = lock_number_from_known(plan.description.known, model)
     values = {k: v for k, v in known.items() if k in model.parameter_names}
@@ -472,7 +479,8 @@ def _trim_state(model, p, collective):
     return model.trim_state(p, collective, t=0.0)
 
 
-def simulate_run(plan, candidate, rng=None):
+def simulate_run(plan: Plan, candidate: Candidate, rng: np.random.Generator | None = None
+                 ) -> PlannedRun:
     """
     Simulate the planned run of ``candidate``: a record, noise-free or with sensor noise.
 
@@ -540,18 +548,18 @@ class TransientPrediction:
     candidate: Candidate
     history: InformationHistory
     unknowns: list
-    noise_std: object
+    noise_std: np.ndarray | float
     stirring_start: float
 
-    def record_length_rev(self):
+    def record_length_rev(self) -> np.ndarray:
         """Record length t_f − t_start of every t_f, revolutions."""
         return (self.history.t - self.history.t[0]) / (2.0 * math.pi)
 
-    def std(self):
+    def std(self) -> np.ndarray:
         """Predicted σ of the unknowns for every t_f, shape (T, k)."""
         return self.history.std()[:, :len(self.unknowns)]
 
-    def std_with_samples(self, n_samples):
+    def std_with_samples(self, n_samples: int) -> np.ndarray:
         """σ of every θ name for the first ``n_samples`` samples of the window."""
         return self.history.std()[n_samples - 1]
 
@@ -574,7 +582,8 @@ def _combined_history(histories, k_par):
     return InformationHistory(t=histories[0].t, names=names, information=M, covariance=cov)
 
 
-def predict_transient(plan, candidate, initial_state=None, blades=None):
+def predict_transient(plan: Plan, candidate: Candidate, initial_state: str | None = None,
+                      blades: Sequence[int] | None = None) -> TransientPrediction:
     """
     Predicted Cramér-Rao bound M⁻¹(t_f) of a candidate's transient over its window.
 
@@ -667,14 +676,14 @@ class CandidateResult:
     initial_state_std: dict
     relative_std: dict
     meets_target: bool
-    shortest_duration_rev: object
+    shortest_duration_rev: float | None
     limiting: str
     worst_ratio: float
     window_s: tuple
     n_samples: int
     transient_index: int
 
-    def as_json(self):
+    def as_json(self) -> dict[str, Any]:
         """Return the candidate's JSON (the stable keys first)."""
         out = self.candidate.as_json()
         out.update({
@@ -704,7 +713,7 @@ class PlanResult:
     elapsed_s: float
     warnings: list = field(default_factory=list)
 
-    def as_json(self):
+    def as_json(self) -> dict[str, Any]:
         """Return ``{"candidates": [...], "recommended": index, ...}``."""
         plan = self.plan
         return {
@@ -736,7 +745,8 @@ def _worst_ratio(std, plan):
     return ratios[name], name
 
 
-def evaluate_plan(plan, progress=None):
+def evaluate_plan(plan: Plan, progress: Callable[[dict[str, Any]], Any] | None = None
+                  ) -> PlanResult:
     """
     Predict every candidate of a plan and choose the recommendation.
 
@@ -760,7 +770,7 @@ def evaluate_plan(plan, progress=None):
 
     """
     started = time.perf_counter()
-    groups = {}
+    groups: dict[tuple, list[Candidate]] = {}
     for c in plan.candidates:
         groups.setdefault(c.transient, []).append(c)
     transients = []
@@ -797,8 +807,8 @@ def evaluate_plan(plan, progress=None):
         shortest = None
         if plan.target_std:
             answer = shortest_record(pred.history, plan.target_std)
-            if answer.met:
-                shortest = answer.duration / (2.0 * math.pi)
+            if answer.met:                  # (then its duration is a number)
+                shortest = answer.duration / (2.0 * math.pi)  # type: ignore[operator]
                 limiting = answer.limiting if meets else limiting
         results.append(CandidateResult(
             candidate=c, std=std, initial_state_std=dict(zip(names[k:], std_all[k:])),
@@ -817,7 +827,9 @@ def evaluate_plan(plan, progress=None):
         best = results[recommended]
         reach = [r for r in results if r.shortest_duration_rev is not None]
         if reach:
-            quick = min(reach, key=lambda r: r.shortest_duration_rev)
+            # (reach: the candidates with a shortest duration)
+            quick = min(reach, key=(
+                lambda r: r.shortest_duration_rev))  # type: ignore[arg-type,return-value]
             hint = (f'{quick.candidate.label()} would meet them with a record of '
                     f'{quick.shortest_duration_rev:.2f} rev')
         else:
@@ -864,15 +876,15 @@ class MonteCarlo:
     truth: np.ndarray
     elapsed_s: float
 
-    def spread(self):
+    def spread(self) -> np.ndarray:
         """Sample standard deviation of the converged estimates (about their mean)."""
         return np.std(self.estimates[self.converged], axis=0, ddof=1)
 
-    def ratio(self):
+    def ratio(self) -> np.ndarray:
         """Monte Carlo spread / predicted σ, per unknown."""
         return self.spread() / self.predicted_std
 
-    def pooled_statistic(self, scale=1.0):
+    def pooled_statistic(self, scale: float = 1.0) -> tuple[float, int]:
         """
         D = Σ_runs (θ̂ − θ̄)ᵀ (scale² C)⁻¹ (θ̂ − θ̄) and its degrees of freedom k (N − 1).
 
@@ -887,7 +899,8 @@ class MonteCarlo:
         return value, dev.shape[1] * (dev.shape[0] - 1)
 
 
-def monte_carlo(plan, candidate, seeds, progress=None):
+def monte_carlo(plan: Plan, candidate: Candidate, seeds: Iterable[int],
+                progress: Callable[[dict[str, Any]], Any] | None = None) -> 'MonteCarlo':
     """
     Run ``identify`` on noisy simulated runs of a candidate and collect the estimates.
 
@@ -929,7 +942,9 @@ def monte_carlo(plan, candidate, seeds, progress=None):
 # descent to t = 23.0")
 # ------------------------------------------------------------------------------------------------
 
-def steep_descents(t, variance, window=1.0, steep=None, min_drop=1.25):
+def steep_descents(t: npt.ArrayLike, variance: npt.ArrayLike, window: float = 1.0,
+                   steep: float | None = None, min_drop: float = 1.25
+                   ) -> list[tuple[float, float, float]]:
     """
     Find the ends of the steep descents of an M⁻¹(t_f) curve.
 
@@ -970,7 +985,7 @@ def steep_descents(t, variance, window=1.0, steep=None, min_drop=1.25):
     hi = np.searchsorted(t, t + half, side='right') - 1
     rate = (logv[hi] - logv[lo]) / np.maximum(t[hi] - t[lo], 1e-12)
     threshold = min(float(np.median(rate)) if steep is None else float(steep), 0.0)
-    stretches = []
+    stretches: list[list[int]] = []     # [first, last] sample of each descent
     j = 0
     while j < t.size:
         if rate[j] >= threshold:
@@ -992,7 +1007,8 @@ def steep_descents(t, variance, window=1.0, steep=None, min_drop=1.25):
 # Figure
 # ------------------------------------------------------------------------------------------------
 
-def write_figure(result, path):
+def write_figure(result: PlanResult, path: 'str | os.PathLike[str]'
+                 ) -> 'str | os.PathLike[str]':
     """
     σ of each unknown against record length, one curve per transient (Ch.3 figs 2-3).
 

@@ -15,8 +15,10 @@ condenses these into the channels, the band (per rev) and the time span of the m
 
 from dataclasses import dataclass
 import math
+from typing import Any, Sequence
 
 import numpy as np
+import numpy.typing as npt
 
 from rotor_id.estimation import validation
 from rotor_id.estimation.validation import autocorrelation
@@ -32,7 +34,7 @@ DIFF_ORDER = 3
 _DIFF_RHO2 = 1.0 + 2.0 * (0.75**2 + 0.3**2 + 0.05**2)
 
 
-def blade_noise_floor(blade_flap, order=DIFF_ORDER):
+def blade_noise_floor(blade_flap: npt.ArrayLike, order: int = DIFF_ORDER) -> np.ndarray:
     """
     White-noise σ of each flap sensor from its k-th differences (T, N) → (N,).
 
@@ -52,13 +54,13 @@ def blade_noise_floor(blade_flap, order=DIFF_ORDER):
     return sigma
 
 
-def channel_floor(C, blade_sigma):
+def channel_floor(C: npt.ArrayLike, blade_sigma: npt.ArrayLike) -> np.ndarray:
     """σ of each model channel from blade σ: √(mean_t Σ_k C_jk² σ_k²); C is (T, m, N)."""
     return np.sqrt(np.mean(np.einsum('tmk,k->tm', np.asarray(C)**2,
                                      np.asarray(blade_sigma)**2), axis=0))
 
 
-def ljung_box(x, lags=LAGS):
+def ljung_box(x: np.ndarray, lags: int = LAGS) -> tuple[float, float]:
     """Ljung-Box portmanteau test of whiteness of a residual series: (Q, p-value)."""
     n = len(x)
     lags = min(lags, n // 4)
@@ -66,7 +68,7 @@ def ljung_box(x, lags=LAGS):
     return q, p
 
 
-def effective_fraction(x, max_lag=200):
+def effective_fraction(x: np.ndarray, max_lag: int = 200) -> float:
     """
     Return N_eff/N for the mean square of a correlated series.
 
@@ -83,7 +85,8 @@ def effective_fraction(x, max_lag=200):
     return float(min(1.0, max(1.0 / (1.0 + 2.0 * total), 1.0 / 50.0)))
 
 
-def channels_effective_fraction(residuals, innovations=False, white_level=WHITE_LEVEL):
+def channels_effective_fraction(residuals: npt.ArrayLike, innovations: bool = False,
+                                white_level: float = WHITE_LEVEL) -> float:
     """
     N_eff/N of a likelihood gain over several channels (T, m): what a criterion counts.
 
@@ -107,7 +110,7 @@ def channels_effective_fraction(residuals, innovations=False, white_level=WHITE_
     return min(fractions)
 
 
-def periodogram(x, dt):
+def periodogram(x: np.ndarray, dt: float) -> tuple[np.ndarray, np.ndarray]:
     """Periodogram |X|²/N (white noise of variance σ² has mean level σ²); frequency per rev."""
     x = np.asarray(x, dtype=float) - np.mean(x)
     n = len(x)
@@ -116,7 +119,8 @@ def periodogram(x, dt):
     return freq, spec
 
 
-def windowed_energy(x, t, window=2.0 * math.pi):
+def windowed_energy(x: npt.ArrayLike, t: npt.ArrayLike, window: float = 2.0 * math.pi
+                    ) -> tuple[np.ndarray, np.ndarray]:
     """Mean square of x over consecutive windows of ``window`` (rad): (centres, ms)."""
     t = np.asarray(t, dtype=float)
     edges = np.arange(t[0], t[-1] + window, window)
@@ -129,7 +133,8 @@ def windowed_energy(x, t, window=2.0 * math.pi):
     return np.array(centres), np.array(ms)
 
 
-def input_cross_correlation(x, u, max_lag):
+def input_cross_correlation(x: np.ndarray, u: np.ndarray, max_lag: int
+                            ) -> tuple[float, int, str]:
     """Largest |normalised cross-correlation| of x with θI and θII over ±max_lag samples."""
     x = np.asarray(x, dtype=float) - np.mean(x)
     best, best_lag, best_input = 0.0, 0, ''
@@ -165,17 +170,18 @@ class ChannelStats:
     xcorr_input: str
     xcorr_threshold: float
 
-    def flagged(self, n_channels):
+    def flagged(self, n_channels: int) -> bool:
         """Significant departure from white noise at the floor (Bonferroni over channels)."""
         return bool(self.whiteness_p * n_channels < 1e-3 or self.z_excess > 4.0)
 
-    def as_dict(self):
+    def as_dict(self) -> dict[str, Any]:
         """JSON-ready."""
         return {k: (float(v) if isinstance(v, (float, np.floating)) else v)
                 for k, v in self.__dict__.items()}
 
 
-def channel_stats(name, res, floor, u, n_blades_in_floor, t):
+def channel_stats(name: str, res: npt.ArrayLike, floor: float, u: np.ndarray,
+                  n_blades_in_floor: int, t: np.ndarray) -> ChannelStats:
     """All per-channel statistics of one residual series."""
     res = np.asarray(res, dtype=float)
     n = len(res)
@@ -192,7 +198,7 @@ def channel_stats(name, res, floor, u, n_blades_in_floor, t):
                         xcorr_input=which, xcorr_threshold=4.0 / math.sqrt(n))
 
 
-def combined_whiteness_p(stats_list):
+def combined_whiteness_p(stats_list: Sequence[ChannelStats]) -> float:
     """Bonferroni-combined whiteness p-value over channels."""
     if not stats_list:
         return 1.0
@@ -208,13 +214,15 @@ def _span(x, w, lo=0.05, hi=0.95):
     return float(x[np.searchsorted(c, lo)]), float(x[min(np.searchsorted(c, hi), len(x) - 1)])
 
 
-def band_of_excess(residuals, floors, dt, smooth=31):
+def band_of_excess(residuals: Sequence[np.ndarray], floors: Sequence[float], dt: float,
+                   smooth: int = 31) -> tuple[float, float]:
     """
     Band (per rev) holding 5-95 % of the significant residual power above the floor.
 
     The periodogram over all channels, relative to each floor, is averaged over ``smooth``
     bins; only bins more than 3 standard errors above the floor's level count.
     """
+    total: Any                          # the channels' summed ratios (None before the first)
     total, count = None, 0
     for res, floor in zip(residuals, floors):
         freq, spec = periodogram(res, dt)
@@ -229,12 +237,14 @@ def band_of_excess(residuals, floors, dt, smooth=31):
     return span or (0.0, float(freq[-1]))
 
 
-def span_of_excess(residuals, floors, t):
+def span_of_excess(residuals: Sequence[np.ndarray], floors: Sequence[float], t: np.ndarray
+                   ) -> tuple[float, float]:
     """
     Return the time span holding 5-95 % of the significant residual energy above the floor.
 
     Nondimensional; one-revolution windows, a window counts when 3 standard errors above.
     """
+    total: Any                          # the channels' summed ratios (None before the first)
     total, count, centres, n_win = None, 0, None, 1
     dt = float(np.median(np.diff(t)))
     for res, floor in zip(residuals, floors):

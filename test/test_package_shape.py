@@ -93,16 +93,19 @@ def test_no_import_cycle_in_the_package():
     assert _cycles(_graph()) == []
 
 
-def test_no_private_name_crosses_into_or_out_of_the_diagnosis():
+def test_no_private_name_crosses_a_module():
+    """A name with a leading underscore is imported, or passed as a keyword, only at home."""
     modules = _modules()
     crossing = []
     for name, path in modules.items():
         for imported, names in _imports(path, modules):
             private = [n for n in names if n.startswith('_')]
-            inside = name.startswith('rotor_id.diagnosis') \
-                or imported.startswith('rotor_id.diagnosis')
-            if private and inside and imported != name:
+            if private and imported != name:
                 crossing.append((name, imported, private))
+        for node in ast.walk(ast.parse(path.read_text())):
+            if isinstance(node, ast.Call):
+                crossing += [(name, 'keyword', kw.arg) for kw in node.keywords
+                             if kw.arg and kw.arg.startswith('_')]
     assert crossing == []
 
 

@@ -25,6 +25,7 @@ blades) and ``conditions:`` keys, the bag's ``custom_data`` (rosbag2 metadata), 
 record says in the window: mean rotor speed, mean collective pitch, stirring direction and rate.
 """
 
+import argparse
 from concurrent.futures import as_completed, ProcessPoolExecutor
 from concurrent.futures.process import BrokenProcessPool
 import csv
@@ -37,8 +38,13 @@ import os
 from pathlib import Path
 import sys
 import time
+from typing import Any, Mapping, Sequence, TextIO, TYPE_CHECKING
 
 import numpy as np
+
+if TYPE_CHECKING:
+    from rotor_id.io.record import Record
+    from rotor_id.io.run_description import RunDescription
 
 #: Bump when the content of result.json changes meaning (old results are then re-made).
 RESULT_FORMAT = 1
@@ -53,9 +59,13 @@ TREND_PREFERENCE = ('advance_ratio', 'collective_rad', 'rotor_speed_rad_s',
 #: A point further than this many σ from the trend through the other points is an outlier.
 OUTLIER_SIGMA = 3.0
 USER_ERRORS = (ValueError, FileNotFoundError, PermissionError, KeyError)
+#: One test point's result.json (and a campaign.csv row): a JSON object.
+Summary = dict[str, Any]
+#: Per parameter: abscissa, values, σ and masks (:func:`analyse`).
+Analysis = dict[str, dict[str, np.ndarray]]
 
 
-def add_arguments(parser):
+def add_arguments(parser: argparse.ArgumentParser) -> None:
     """Arguments of ``rotor-id campaign``."""
     parser.add_argument('directory', help='directory of bags (rosbag2 directories or .mcap/.db3 '
                         'files), each with its run description NAME.yaml beside it')
@@ -86,9 +96,9 @@ class TestPoint:
 
     name: str
     bag: Path
-    config: Path = None
+    config: Path | None = None
 
-    def key(self, options, tool):
+    def key(self, options: Mapping[str, Any], tool: str) -> str:
         """Return the key its results are valid for: bag files, description, options, tool."""
         digest = hashlib.sha256()
         files = sorted(p for p in self.bag.rglob('*') if p.is_file()) if self.bag.is_dir() \
@@ -102,7 +112,8 @@ class TestPoint:
         return digest.hexdigest()
 
 
-def find_test_points(directory, config=None):
+def find_test_points(directory: str | os.PathLike,
+                     config: str | os.PathLike | None = None) -> list[TestPoint]:
     """Return the bags in ``directory`` (sorted by name) with their run descriptions."""
     directory = Path(directory)
     if not directory.is_dir():
@@ -131,7 +142,7 @@ def find_test_points(directory, config=None):
     return points
 
 
-def tool_version():
+def tool_version() -> str:
     """Return the version of rotor_id and a hash of its Python sources."""
     try:
         version = importlib.metadata.version('rotor_id')
@@ -169,13 +180,14 @@ def _bag_custom_data(bag):
     return out
 
 
-def measured_conditions(record, description):
+def measured_conditions(record: 'Record',
+                        description: 'RunDescription') -> dict[str, float | str]:
     """Conditions of a test point: rotor, record in the window, description, bag metadata."""
     from rotor_id.physics.stirring import measured_stirring, multiblade_from_blade_pitch
     part = record.window(*description.window_s)
     u = multiblade_from_blade_pitch(part.t, part.blade_pitch)
     direction, rate = measured_stirring(part.t, u)
-    conditions = {
+    conditions: dict[str, float | str] = {
         'advance_ratio': float(description.rotor.advance_ratio),
         'collective_rad': float(np.mean(u[:, 0])),
         'rotor_speed_rad_s': float(part.omega_mean),
@@ -198,7 +210,8 @@ def _write_json(path, data):
     tmp.replace(path)              # result.json appears whole or not at all
 
 
-def process_point(point, out_dir, options, key):
+def process_point(point: TestPoint, out_dir: str | os.PathLike, options: Mapping[str, Any],
+                  key: str) -> Summary:
     """
     Identify (and diagnose) one test point; return its summary (also written as result.json).
 
@@ -211,9 +224,10 @@ def process_point(point, out_dir, options, key):
     started = time.perf_counter()
     folder = Path(out_dir) / 'points' / point.name
     folder.mkdir(parents=True, exist_ok=True)
-    summary = {'format': RESULT_FORMAT, 'key': key, 'bag': point.name, 'bag_path': str(point.bag),
-               'config': str(point.config) if point.config else None, 'status': 'failed',
-               'error': '', 'conditions': _bag_custom_data(point.bag), 'warnings': []}
+    summary: Summary = {
+        'format': RESULT_FORMAT, 'key': key, 'bag': point.name, 'bag_path': str(point.bag),
+        'config': str(point.config) if point.config else None, 'status': 'failed',
+        'error': '', 'conditions': _bag_custom_data(point.bag), 'warnings': []}
     try:
         if point.config is None:
             raise FileNotFoundError(f'no run description {point.name}.yaml beside the bag; '
@@ -263,7 +277,7 @@ def process_point(point, out_dir, options, key):
     return summary
 
 
-def cached_summary(point, out_dir, key):
+def cached_summary(point: TestPoint, out_dir: str | os.PathLike, key: str) -> Summary | None:
     """Return the point's result.json when its key matches, else None."""
     path = Path(out_dir) / 'points' / point.name / 'result.json'
     try:
@@ -287,14 +301,15 @@ def _clock(seconds):
 class Progress:
     """The progress line: done, failed, up to date, elapsed, time left (stderr)."""
 
-    def __init__(self, total, stream=None):
+    def __init__(self, total: int, stream: TextIO | None = None) -> None:
         self.total = total
         self.stream = stream or sys.stderr
         self.started = time.perf_counter()
         self.done = self.failed = self.cached = 0
-        self.tty = hasattr(stream, 'isatty') and stream.isatty()
+        # (hasattr is False for None)
+        self.tty = hasattr(stream, 'isatty') and stream.isatty()  # type: ignore[union-attr]
 
-    def point(self, summary, cached=False):
+    def point(self, summary: Mapping[str, Any], cached: bool = False) -> None:
         """Count one finished point and show the line."""
         self.done += 1
         self.cached += bool(cached)
@@ -309,7 +324,7 @@ class Progress:
         if self.tty:
             print('\r\033[K', end='', file=self.stream)
 
-    def show(self):
+    def show(self) -> None:
         """Print the progress line (rewritten in place on a terminal)."""
         elapsed = time.perf_counter() - self.started
         worked = self.done - self.cached
@@ -328,11 +343,13 @@ class Progress:
             print(line, file=self.stream, flush=True)
 
 
-def run_points(points, out_dir, options, jobs, force=False, stream=None):
+def run_points(points: Sequence[TestPoint], out_dir: str | os.PathLike,
+               options: Mapping[str, Any], jobs: int, force: bool = False,
+               stream: TextIO | None = None) -> list[Summary]:
     """Process every point (in ``jobs`` processes); return their summaries in point order."""
     tool = tool_version()
     keys = [p.key(options, tool) for p in points]
-    summaries = [None] * len(points)
+    summaries: list[Any] = [None] * len(points)     # every entry set below
     progress = Progress(len(points), stream)
     progress.show()
     todo = []
@@ -367,7 +384,7 @@ def run_points(points, out_dir, options, jobs, force=False, stream=None):
 # The report
 # ------------------------------------------------------------------------------------------------
 
-def parameter_names(summaries):
+def parameter_names(summaries: list[Summary]) -> list[str]:
     """Every parameter identified in the campaign, in first-seen order."""
     names = []
     for s in summaries:
@@ -377,7 +394,7 @@ def parameter_names(summaries):
     return names
 
 
-def condition_names(summaries):
+def condition_names(summaries: list[Summary]) -> list[str]:
     """Return the standard conditions, then every other condition met, sorted."""
     extra = sorted({k for s in summaries for k in s.get('conditions', {})}
                    - set(STANDARD_CONDITIONS))
@@ -389,7 +406,7 @@ def _numeric(value):
         and math.isfinite(value)
 
 
-def trend_key(summaries, requested=None):
+def trend_key(summaries: list[Summary], requested: str | None = None) -> str:
     """Return the condition to plot against: the requested one, else the first that varies."""
     names = condition_names(summaries)
     if requested is not None:
@@ -437,7 +454,8 @@ def _degree(x):
     return int(max(0, min(2, distinct - 1, (x.size - 1) // 3)))
 
 
-def trend_outliers(x, y, sigma, usable):
+def trend_outliers(x: np.ndarray, y: np.ndarray, sigma: np.ndarray,
+                   usable: np.ndarray) -> np.ndarray:
     """
     Outliers: more than :data:`OUTLIER_SIGMA` from the smooth trend through the other points.
 
@@ -458,7 +476,7 @@ def trend_outliers(x, y, sigma, usable):
     return z
 
 
-def analyse(summaries, key):
+def analyse(summaries: list[Summary], key: str) -> Analysis:
     """Per parameter: abscissa, values, σ, usable/inadequate masks, z and outlier mask."""
     x = _abscissa(summaries, key)
     out = {}
@@ -478,7 +496,8 @@ def analyse(summaries, key):
     return out
 
 
-def plot_trends(summaries, key, analysis, out_dir):
+def plot_trends(summaries: list[Summary], key: str, analysis: Analysis,
+                out_dir: str | os.PathLike) -> list[Path]:
     """One figure per parameter: value ± σ against ``key``; return the paths."""
     import matplotlib
     matplotlib.use('Agg')
@@ -537,7 +556,7 @@ def _cell(value):
     return str(value)
 
 
-def csv_rows(summaries):
+def csv_rows(summaries: list[Summary]) -> tuple[list[str], list[list[str]]]:
     """Header and rows of campaign.csv."""
     params = parameter_names(summaries)
     conditions = condition_names(summaries)
@@ -568,7 +587,9 @@ def _pm(p):
     return f'{p["value"]:.4g} ± {p["std"]:.2g}'
 
 
-def markdown_report(summaries, key, analysis, figures, directory, options, tool):
+def markdown_report(summaries: list[Summary], key: str, analysis: Analysis,
+                    figures: Sequence[Path], directory: str | os.PathLike,
+                    options: Mapping[str, Any], tool: str) -> str:
     """Return the campaign report (Markdown): figures, flags, every test point, failures."""
     params = parameter_names(summaries)
     n = len(summaries)
@@ -628,7 +649,9 @@ def markdown_report(summaries, key, analysis, figures, directory, options, tool)
     return '\n'.join(lines)
 
 
-def write_report(summaries, out_dir, directory, options, requested_key=None):
+def write_report(summaries: list[Summary], out_dir: str | os.PathLike,
+                 directory: str | os.PathLike, options: Mapping[str, Any],
+                 requested_key: str | None = None) -> list[Path]:
     """Write campaign.csv, campaign.md and the trend figures; return their paths."""
     out_dir = Path(out_dir)
     header, rows = csv_rows(summaries)
@@ -676,7 +699,7 @@ def _check_trend_key(points, requested):
     raise ValueError(f'--trend-against {requested}: {what}; use one of {choices}')
 
 
-def default_jobs():
+def default_jobs() -> int:
     """Return the number of cores this process may run on."""
     try:
         return len(os.sched_getaffinity(0))
@@ -684,7 +707,7 @@ def default_jobs():
         return os.cpu_count() or 1
 
 
-def run(args):
+def run(args: argparse.Namespace) -> int:
     """Run the campaign; exit 0 when every bag was identified and converged, else 1."""
     jobs = default_jobs() if args.jobs is None else args.jobs
     if jobs < 1:

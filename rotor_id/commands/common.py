@@ -15,17 +15,21 @@ import errno
 import os
 from pathlib import Path
 import sys
+from typing import Iterable, Iterator, TextIO, TYPE_CHECKING
 import warnings
+
+if TYPE_CHECKING:
+    from rotor_id.io.record import Record
 
 
 class OutputPathError(ValueError):
     """An output path given on the command line cannot be written."""
 
 
-_printed = set()
+_printed: set[str] = set()
 
 
-def print_warning(text, stream=None):
+def print_warning(text: object, stream: TextIO | None = None) -> None:
     """Print ``warning: text`` on stderr unless this text was already printed."""
     text = str(text).strip()
     if text.startswith('warning: '):
@@ -36,19 +40,19 @@ def print_warning(text, stream=None):
     print(f'warning: {text}', file=stream or sys.stderr, flush=True)
 
 
-def repairs_json(records) -> list:
+def repairs_json(records: Iterable['Record']) -> list:
     """Every reading the records' reader replaced, as the commands' JSON ``repairs`` lists it."""
     return [repair.as_json() for record in records for repair in record.repairs]
 
 
-def print_warnings(texts, stream=None):
+def print_warnings(texts: Iterable[object], stream: TextIO | None = None) -> None:
     """Print each of ``texts`` with :func:`print_warning`."""
     for text in texts:
         print_warning(text, stream)
 
 
 @contextlib.contextmanager
-def capture_warnings():
+def capture_warnings() -> Iterator[None]:
     """
     Within the block, Python warnings are printed by :func:`print_warning` (once each).
 
@@ -92,7 +96,8 @@ def _reason(err):
     return err.strerror or str(err)
 
 
-def check_output_path(option, path, directory=False):
+def check_output_path(option: str, path: str | os.PathLike | None,
+                      directory: bool = False) -> None:
     """
     Check that ``path`` can be written (a file, or a directory when ``directory``).
 
@@ -143,7 +148,7 @@ def check_output_path(option, path, directory=False):
         fail(_reason(err))
 
 
-def check_output_paths(**paths):
+def check_output_paths(**paths: str | os.PathLike | None) -> None:
     """Check each ``--option=path`` given (keys: option names without dashes, e.g. json)."""
     for name, path in paths.items():
         directory = name.endswith('_dir')

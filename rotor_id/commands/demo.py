@@ -9,15 +9,20 @@ then identifies the recorded bag offline with the same pipeline and shows that b
 Ctrl-C stops the children (the recorder last, so the bag is complete) and nothing is left running.
 """
 
+import argparse
 import math
 import os
 from pathlib import Path
 import signal
 import sys
 import time
+from typing import Any, Mapping, TextIO, TYPE_CHECKING
 
 import numpy as np
 import yaml
+
+if TYPE_CHECKING:
+    from rotor_id.nodes.watch import RunWatcher
 
 CASES = ('wake', 'multiblade', 'single_blade')
 #: Rotor time simulated after the identification window (s).
@@ -26,7 +31,7 @@ MARGIN_S = 0.05
 DISCOVERY_TIMEOUT_S = 30.0
 
 
-def add_arguments(parser):
+def add_arguments(parser: argparse.ArgumentParser) -> None:
     """Arguments of ``rotor-id demo``."""
     parser.add_argument('--case', choices=CASES, default='wake',
                         help='report case: mu = 0 dynamic wake (default), mu = 0.4 multiblade '
@@ -40,7 +45,7 @@ def add_arguments(parser):
     parser.add_argument('--seed', type=int, default=None, help='noise seed of the plant')
 
 
-def case_files(case):
+def case_files(case: str) -> tuple[Path, Path, dict[str, float]]:
     """(node parameter file, run description, true parameter values) of a demo case."""
     from rotor_id.nodes.common import resolve_config
     params_file = resolve_config(f'nodes_{case}.yaml')
@@ -68,7 +73,9 @@ def _estimate_line(msg, t_start):
             f'{values}  ({kind}; {verdict})')
 
 
-def run_live(case, out, storage, domain_id, timeout, seed=None, stream=sys.stdout):
+def run_live(case: str, out: Path, storage: str, domain_id: int, timeout: float,
+             seed: int | None = None, stream: TextIO = sys.stdout
+             ) -> tuple[Any, 'RunWatcher', Path, dict[str, int | None]]:
     """Run the five nodes; return (final ParameterEstimate, all estimates, bag path, codes)."""
     import rclpy
     from rclpy.signals import SignalHandlerOptions
@@ -164,7 +171,8 @@ def run_live(case, out, storage, domain_id, timeout, seed=None, stream=sys.stdou
     return watcher.final_estimate(), watcher, bag, codes
 
 
-def convergence_figure(watcher, truth, path, title):
+def convergence_figure(watcher: 'RunWatcher', truth: Mapping[str, float],
+                       path: str | os.PathLike, title: str) -> None:
     """Estimates ± σ against the window length, with the true values."""
     import matplotlib
     matplotlib.use('Agg')
@@ -187,7 +195,7 @@ def convergence_figure(watcher, truth, path, title):
     plt.close(fig)
 
 
-def run(args):
+def run(args: argparse.Namespace) -> int:
     """Run the demo; exit 0 when every estimate is within 3σ and live and offline agree."""
     from rotor_id import pipeline
     from rotor_id.commands.identify import format_table, load_inputs, plot_fit

@@ -10,10 +10,12 @@ original parameters, the alternatives, and the detection limits of the effects n
 ``--json`` writes the same as JSON, ``--report`` the figures.
 """
 
+import argparse
 import json
 import math
 from pathlib import Path
 import sys
+from typing import cast, TYPE_CHECKING
 
 from rotor_id import pipeline
 from rotor_id.commands.common import check_output_paths, print_warnings, repairs_json
@@ -21,8 +23,12 @@ from rotor_id.commands.identify import load_inputs
 from rotor_id.diagnosis.catalogue import EFFECTS
 from rotor_id.diagnosis.diagnose import diagnose
 
+if TYPE_CHECKING:
+    from rotor_id.diagnosis.policy import SelectionPolicy
+    from rotor_id.diagnosis.result import Diagnosis
 
-def add_arguments(parser):
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
     """Arguments of ``rotor-id diagnose``."""
     parser.add_argument('bag', help='rosbag2 directory (or its .mcap/.db3 file)')
     parser.add_argument('--config', required=True,
@@ -74,7 +80,7 @@ def _limit_lines(explanation, power):
     return lines
 
 
-def format_summary(diagnosis):
+def format_summary(diagnosis: 'Diagnosis') -> str:
     """Plain-text summary of a diagnosis."""
     ex = diagnosis.explanation
     fit = diagnosis.fit
@@ -111,14 +117,15 @@ def format_summary(diagnosis):
         lines.append(f'{name:<44} {a.probability:11.4f} {a.two_delta_loglik:9.1f} '
                      f'{a.n_params:3d} {_fmt(a.misfit_explained, ".0%"):>14}'
                      + ('' if a.fitted else '  (score test)'))
-    lines += _limit_lines(ex, diagnosis.policy.detection_power)
+    policy = cast('SelectionPolicy', diagnosis.policy)     # (the field is typed object)
+    lines += _limit_lines(ex, policy.detection_power)
     lines.append(f'probability: BIC evidence with the autocorrelation-corrected sample size, '
                  f'prior uniform over sizes then sets; high confidence from '
-                 f'{diagnosis.policy.high_confidence:g}; {diagnosis.elapsed_s:.1f} s')
+                 f'{policy.high_confidence:g}; {diagnosis.elapsed_s:.1f} s')
     return '\n'.join(lines)
 
 
-def run(args):
+def run(args: argparse.Namespace) -> int:
     """Diagnose and report; exit 0 (a diagnosis was made, whatever it says)."""
     if args.workers < 1:
         raise ValueError(f'--workers must be at least 1, got {args.workers}')
@@ -144,7 +151,7 @@ def run(args):
         Path(args.json_out).write_text(json.dumps(data, indent=1, default=float))
         print(f'JSON: {args.json_out}')
     if args.report:
-        from rotor_id.diagnosis.figures import write_report
+        from rotor_id.commands.diagnose_figures import write_report
         for path in write_report(result, args.report, record, description):
             print(f'figure: {path}')
     return 0

@@ -10,9 +10,12 @@ else its known values and guesses) with CIFER's cost J per band, and writes
 (docs/frequency_response.md).
 """
 
+import argparse
 import json
+import os
 from pathlib import Path
 import time
+from typing import Iterable, TYPE_CHECKING
 
 import numpy as np
 
@@ -20,8 +23,11 @@ from rotor_id import pipeline
 from rotor_id.commands.common import check_output_paths, print_warnings
 from rotor_id.commands.identify import configs_for, load_inputs, run_names
 
+if TYPE_CHECKING:
+    from multiprocessing.process import BaseProcess
 
-def add_arguments(parser):
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
     """Arguments of ``rotor-id frequency-response``."""
     parser.add_argument('bag', nargs='+', help='rosbag2 directories (or .mcap/.db3 files) of '
                         'stirring runs: progressing and regressing together give both signs '
@@ -41,7 +47,7 @@ def add_arguments(parser):
     parser.add_argument('--quiet', action='store_true', help='no summary table')
 
 
-def parse_parameters(items):
+def parse_parameters(items: Iterable[str] | None) -> dict[str, float]:
     """Return {name: value} from NAME=VALUE words; ValueError names a malformed one."""
     out = {}
     for item in items or ():
@@ -56,7 +62,7 @@ def parse_parameters(items):
     return out
 
 
-def parameters_from_json(path):
+def parameters_from_json(path: str | os.PathLike) -> dict[str, float]:
     """Return the parameter values of an identify JSON; ValueError says what is wrong."""
     try:
         data = json.loads(Path(path).read_text())
@@ -68,7 +74,7 @@ def parameters_from_json(path):
                          '"parameters": {name: {"value": ...}})') from None
 
 
-def format_table(analysis):
+def format_table(analysis: pipeline.FrequencyAnalysis) -> str:
     """Plain-text table: one line per point, then J per band."""
     est = analysis.estimate
     lines = [f'{"f [per rev]":>11} {"f [Hz]":>8} {"|H| [rad/rad]":>13} {"phase [deg]":>11} '
@@ -112,9 +118,9 @@ class FigureProcess:
     here.
     """
 
-    def __init__(self):
+    def __init__(self) -> None:
         import multiprocessing
-        self.process = None
+        self.process: 'BaseProcess | None' = None
         try:
             context = multiprocessing.get_context('fork')
             self.connection, child = context.Pipe()
@@ -124,7 +130,8 @@ class FigureProcess:
         except (ValueError, OSError):
             self.process = None
 
-    def draw(self, analysis, path, title):
+    def draw(self, analysis: pipeline.FrequencyAnalysis, path: str | os.PathLike,
+             title: str) -> float:
         """
         Draw the figure (in the process when it runs); raise RuntimeError on a failure.
 
@@ -141,7 +148,7 @@ class FigureProcess:
             raise RuntimeError(f'the figure {path} could not be drawn: {error}')
         return cpu
 
-    def cancel(self):
+    def cancel(self) -> None:
         """End the process without a figure (the command failed before it)."""
         if self.process is not None and self.process.is_alive():
             try:
@@ -152,7 +159,7 @@ class FigureProcess:
             self.process.join(timeout=5)
 
 
-def run(args):
+def run(args: argparse.Namespace) -> int:
     """Estimate, overlay, write; exit 0 (1 when the model's J exceeds 100)."""
     started = time.perf_counter()
     figure_process = FigureProcess()

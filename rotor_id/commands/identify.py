@@ -19,11 +19,14 @@ replay_excitation`): the stirring node's phases (topic ``stirring``), else the i
 estimates tagged with their test point (topic ``estimate``, their ``test_point_start``).
 """
 
+import argparse
 from dataclasses import replace
 import json
+import os
 from pathlib import Path
 import sys
 import time
+from typing import Any, Iterator, Mapping, Sequence, TextIO, TYPE_CHECKING
 
 import numpy as np
 
@@ -31,12 +34,17 @@ from rotor_id import pipeline
 from rotor_id.commands.common import check_output_paths, print_warnings, repairs_json
 from rotor_id.io.bag import may_read_by_parts, read_messages, read_record
 from rotor_id.io.errors import BagError
-from rotor_id.io.run_description import check_against_record, load_run_description
+from rotor_id.io.record import Record
+from rotor_id.io.run_description import (
+    check_against_record, load_run_description, RunDescription)
+
+if TYPE_CHECKING:
+    from rotor_id.nodes.test_points import RecordedTestPoint
 
 METHODS = ('output-error', 'filter-error', 'equation-error', 'frequency-response')
 
 
-def add_arguments(parser):
+def add_arguments(parser: argparse.ArgumentParser) -> None:
     """Arguments of ``rotor-id identify``."""
     parser.add_argument('bag', nargs='+',
                         help='rosbag2 directory (or its .mcap/.db3 file); several bags are '
@@ -64,7 +72,7 @@ def add_arguments(parser):
                         help='with --test-point: write one row per test point here (CSV)')
 
 
-def progress_printer(label, stream=sys.stderr):
+def progress_printer(label: str, stream: TextIO = sys.stderr) -> pipeline.Progress:
     """Return a progress callback printing one line per iteration."""
     def show(info):
         values = ' '.join(f'{n}={v:.5g}' for n, v in zip(info['names'], info['values'])
@@ -75,7 +83,8 @@ def progress_printer(label, stream=sys.stderr):
     return show
 
 
-def load_inputs(bag, config):
+def load_inputs(bag: str | os.PathLike, config: str | os.PathLike
+                ) -> tuple[RunDescription, Record]:
     """
     Run description and record, checked against each other.
 
@@ -90,7 +99,7 @@ def load_inputs(bag, config):
     return description, record
 
 
-def format_table(result):
+def format_table(result: pipeline.Identification) -> str:
     """Plain-text table of the identified parameters, σ and correlations."""
     data = result.as_json()
     names = list(data['parameters'])
@@ -134,12 +143,13 @@ def _status(data):
     return 'converged' if data['message'] == 'converged' else 'converged, ' + data['message']
 
 
-def plot_fit(result, record, path, title=''):
+def plot_fit(result: pipeline.Identification, record: Record, path: str | os.PathLike,
+             title: str = '') -> None:
     """Measured vs fitted channels and residuals, against time in seconds."""
     plot_runs(result, [record], path, title)
 
 
-def configs_for(bags, configs):
+def configs_for(bags: Sequence[str], configs: Sequence[str]) -> list[str]:
     """Return one run description path per bag (one for all, or one each)."""
     if len(configs) == 1:
         return list(configs) * len(bags)
@@ -149,7 +159,7 @@ def configs_for(bags, configs):
     return list(configs)
 
 
-def run(args):
+def run(args: argparse.Namespace) -> int:
     """Identify and report; exit 0 when converged, 1 when not."""
     configs = configs_for(args.bag, args.config)
     if args.test_point is not None or args.csv_out:
@@ -175,7 +185,9 @@ def run(args):
     return 0 if result.estimate.converged else 1
 
 
-def write_outputs(result, records, args, bag, started, title):
+def write_outputs(result: pipeline.Identification, records: Sequence[Record],
+                  args: argparse.Namespace, bag: str | list[str], started: float,
+                  title: str) -> None:
     """Print the result's warnings (once each), write the JSON and the figure when asked."""
     print_warnings(result.warnings)
     data = result.as_json()
@@ -191,13 +203,13 @@ def write_outputs(result, records, args, bag, started, title):
         print(f'figure: {args.figure}')
 
 
-def run_names(bags):
+def run_names(bags: Sequence[str | os.PathLike]) -> list[str]:
     """Short, distinct names of the bags for tables and the JSON."""
     names = [Path(b).name or str(b) for b in bags]
     return names if len(set(names)) == len(names) else [str(b) for b in bags]
 
 
-def format_runs(result):
+def format_runs(result: pipeline.Identification) -> str:
     """Plain-text table of the runs of a multi-run estimate: window, noise, residual RMS."""
     data = result.as_json()
     width = max(8, *(len(r['name']) for r in data['runs']))
@@ -210,9 +222,10 @@ def format_runs(result):
     return '\n'.join(lines)
 
 
-def check_no_overlap(bags, windows):
+def check_no_overlap(bags: Sequence[str | os.PathLike],
+                     windows: Sequence[Sequence[float]]) -> None:
     """Refuse one bag given twice with overlapping windows (its samples would count twice)."""
-    seen = []
+    seen: list[tuple[Path, Sequence[float]]] = []
     for bag, window in zip(bags, windows):
         path = Path(bag).resolve()
         for other, other_window in seen:
@@ -225,7 +238,7 @@ def check_no_overlap(bags, windows):
         seen.append((path, window))
 
 
-def run_several(args, configs):
+def run_several(args: argparse.Namespace, configs: Sequence[str]) -> int:
     """Identify several bags together; exit 0 when converged, 1 when not."""
     started = time.perf_counter()
     names = run_names(args.bag)
@@ -256,7 +269,8 @@ def run_several(args, configs):
     return 0 if result.estimate.converged else 1
 
 
-def plot_runs(result, records, path, title=''):
+def plot_runs(result: pipeline.Identification, records: Sequence[Record],
+              path: str | os.PathLike, title: str = '') -> None:
     """
     Measured vs fitted channels and residuals against time in seconds, a column per run.
 
@@ -270,13 +284,15 @@ def plot_runs(result, records, path, title=''):
     columns = result.runs or [pipeline.Run(
         name='', source='', description=result.description, window_s=result.window_s,
         omega_rad_s=result.omega_rad_s, experiments=list(range(len(result.experiments))))]
-    n_ch = result.experiments[0].y.shape[1]
+    n_ch = result.experiments[0].model.n_outputs
     width = 9.0 if len(columns) == 1 else 4.2 * len(columns)
     fig, axes = plt.subplots(n_ch + 1, len(columns), figsize=(width, 1.9 * (n_ch + 1)),
                              sharex='col', squeeze=False)
     for col, (run, record) in enumerate(zip(columns, records)):
         for r in run.experiments:
             exp = result.experiments[r]
+            if exp.y is None:           # a run without measurements has nothing to draw
+                continue
             ts = (exp.t - record.t[0]) / run.omega_rad_s + record.time_s[0]
             first = r == run.experiments[0]
             for c in range(n_ch):
@@ -311,7 +327,7 @@ CSV_FIXED = ('test_point', 'found_from', 'test_point_start_s', 'window_start_s',
              'status', 'converged', 'n_samples')
 
 
-def parse_test_point(text):
+def parse_test_point(text: str) -> int | None:
     """``--test-point``: a positive integer, or 'all' (None)."""
     if str(text).strip().lower() == 'all':
         return None
@@ -341,7 +357,8 @@ class MultiPointRecord:
     own revolutions (the replay uses it modulo 2π).
     """
 
-    def __init__(self, bag, options, slice_s=None):
+    def __init__(self, bag: str | os.PathLike, options: Mapping[str, Any],
+                 slice_s: float | None = None) -> None:
         # slices and windows are read without the reader's dead-sensor check: a blade may
         # read one value between test points; each fitted window is checked by the caller
         self.bag, self.options = bag, {**options, 'window_s': None, 'check_dead_flap': False}
@@ -367,7 +384,7 @@ class MultiPointRecord:
                            f'bag, read {self.slice_s:g} s at a time to find its test '
                            'points]') from None
 
-    def window(self, window_s):
+    def window(self, window_s: Sequence[float]) -> Record:
         """Return the record around ``window_s`` (the whole record when it was read whole)."""
         if self.whole is not None:
             return self.whole
@@ -375,7 +392,7 @@ class MultiPointRecord:
         self.warnings += [w for w in record.warnings if w not in self.warnings]
         return record
 
-    def slices(self):
+    def slices(self) -> Iterator[Record]:
         """Yield the samples of [k·slice_s, (k+1)·slice_s) s as Records, k = 0, 1, ..."""
         k, start, part = 0, 0.0, self._first
         while True:
@@ -393,7 +410,7 @@ class MultiPointRecord:
             start = k * self.slice_s
             part = self._read(start)
 
-    def replay_record(self):
+    def replay_record(self) -> 'Record | _SlicedRecord':
         """
         Return the bag's record as :func:`~rotor_id.nodes.test_points.replay_excitation` takes it.
 
@@ -462,7 +479,10 @@ class _SliceRows:
         return self.multi_point.row(self.name, int(index))
 
 
-def find_test_points(bag, description, multi_point, found=None):
+def find_test_points(bag: str | os.PathLike, description: RunDescription,
+                     multi_point: 'MultiPointRecord | Record',
+                     found: Mapping[str, tuple[str | None, list[tuple[int, Any]]]] | None = None
+                     ) -> tuple[list['RecordedTestPoint'], str, list[str]]:
     """
     Find the test points of a multi-point bag; return (RecordedTestPoints, found from, notes).
 
@@ -480,7 +500,7 @@ def find_test_points(bag, description, multi_point, found=None):
         found = read_messages(bag, [stirring, estimate])
     stirring_topic, commands = found[stirring]
     estimate_topic, estimates = found[estimate]
-    tagged = {}                                      # live number -> its estimates
+    tagged: dict[int, list[Any]] = {}                # live number -> its estimates
     for _, msg in estimates:
         if msg.test_point > 0:
             tagged.setdefault(int(msg.test_point), []).append(msg)
@@ -526,7 +546,7 @@ def _live_windows(bag, description):
             if m.test_point > 0 and m.kind == 1 and m.window_requested_end_s > 0}
 
 
-def run_test_points(args, configs):
+def run_test_points(args: argparse.Namespace, configs: Sequence[str]) -> int:
     """Identify test point K (or all) of a multi-point bag; exit 0 when all converged, else 1."""
     from rotor_id.nodes.test_points import Phase
     if args.test_point is None:
@@ -639,7 +659,7 @@ def run_test_points(args, configs):
         print(format_test_points(rows, description.unknowns))
     elapsed = time.perf_counter() - started
     if args.json_out:
-        out = results[0] if wanted is not None else results
+        out: Any = results[0] if wanted is not None else results    # a JSON object or list
         if wanted is not None:
             out['elapsed_s'] = elapsed
         Path(args.json_out).parent.mkdir(parents=True, exist_ok=True)
@@ -651,7 +671,7 @@ def run_test_points(args, configs):
     return 0 if all_converged else 1
 
 
-def format_test_points(rows, unknowns):
+def format_test_points(rows: Sequence[Mapping[str, Any]], unknowns: Sequence[str]) -> str:
     """Plain-text summary of the test points of a multi-point bag: start, status, value ± σ."""
     lines = [f'{"test point":>10} {"start [s]":>10}  {"status":<15} '
              + ' '.join(f'{n:>20}' for n in unknowns)]
@@ -663,7 +683,8 @@ def format_test_points(rows, unknowns):
     return '\n'.join(lines)
 
 
-def write_csv(path, rows, unknowns):
+def write_csv(path: str | os.PathLike, rows: Sequence[Mapping[str, Any]],
+              unknowns: Sequence[str]) -> None:
     """One row per test point: CSV_FIXED columns, then each unknown and its σ."""
     import csv
     columns = list(CSV_FIXED) + [c for n in unknowns for c in (n, f'{n}_std')]

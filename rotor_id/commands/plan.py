@@ -12,6 +12,7 @@ Exit code 0 when the recommended candidate meets every stipulated σ (or none is
 1 when no candidate meets them (the table and JSON still say how close each comes).
 """
 
+import argparse
 import json
 import math
 from pathlib import Path
@@ -21,7 +22,7 @@ from rotor_id import planning
 from rotor_id.commands.common import check_output_paths, print_warnings
 
 
-def add_arguments(parser):
+def add_arguments(parser: argparse.ArgumentParser) -> None:
     """Arguments of ``rotor-id plan``."""
     parser.add_argument('--config', required=True,
                         help='plan YAML: a run description plus guess, noise_std_rad, rate_hz, '
@@ -31,7 +32,7 @@ def add_arguments(parser):
     parser.add_argument('--quiet', action='store_true', help='no progress lines')
 
 
-def format_table(result):
+def format_table(result: planning.PlanResult) -> str:
     """Plain-text table: one row per candidate, the recommended one marked with '*'."""
     plan = result.plan
     names = plan.unknowns
@@ -58,7 +59,7 @@ def format_table(result):
     return '\n'.join(lines)
 
 
-def format_recommendation(result):
+def format_recommendation(result: planning.PlanResult) -> str:
     """One paragraph: what to fly, its window for the run description, and why."""
     plan = result.plan
     best = result.candidates[result.recommended]
@@ -79,7 +80,7 @@ def format_recommendation(result):
             f'revolution later); {best.n_samples} samples')
 
 
-def run(args):
+def run(args: argparse.Namespace) -> int:
     """Plan and report; exit 0 when the recommendation meets the targets, else 1."""
     check_output_paths(json=args.json_out, figure=args.figure)
     plan = planning.load_plan(args.config)

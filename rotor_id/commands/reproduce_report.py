@@ -8,10 +8,12 @@ All numbers are in the report's units (degrees; t in rad of azimuth). Exit code 
 M⁻¹ and initial state agrees (documented report typos excepted), 1 otherwise.
 """
 
+import argparse
 import json
 from pathlib import Path
 import sys
 import time
+from typing import Sequence, TextIO
 
 import numpy as np
 
@@ -19,7 +21,7 @@ from rotor_id.report import cases as C
 from rotor_id.report import reproduce as R
 
 
-def add_arguments(parser):
+def add_arguments(parser: argparse.ArgumentParser) -> None:
     """Options of ``reproduce-report``."""
     parser.add_argument('--json', metavar='OUT', type=Path,
                         help='write all numbers as JSON: {"cases": [{"name", "report_minv", '
@@ -36,7 +38,7 @@ def _matrix_text(a, width=8):
     return ['[' + ' '.join(f'{v:{width}.4f}' for v in row) + ' ]' for row in np.asarray(a)]
 
 
-def print_matrices(results, out):
+def print_matrices(results: Sequence[R.MatrixResult], out: TextIO) -> None:
     """Print each printed M⁻¹ beside ours."""
     out.write('\n== Information matrices M⁻¹ (report | ours)\n')
     for res in results:
@@ -63,12 +65,12 @@ def print_matrices(results, out):
             out.write(f'   note: {case.note}\n')
 
 
-def print_iterations(results, out):
+def print_iterations(results: Sequence[R.IterationResult], out: TextIO) -> None:
     """Print the iterates from the report's start: report, ours noise-free, ours noisy."""
     out.write("\n== Estimates per iteration from the report's starting values\n"
               '   (report: its own noise draw; ours: noise-free data, and one seeded noisy '
               "draw that cannot match the report's)\n")
-    by_case = {}
+    by_case: dict[str, list[R.IterationResult]] = {}
     for res in results:
         by_case.setdefault(res.case.name, []).append(res)
     for name, runs in by_case.items():
@@ -100,7 +102,7 @@ def print_iterations(results, out):
                       + ', '.join(f'{v:g}' for v in case.noise_free_limit) + '\n')
 
 
-def print_gradient(res, out):
+def print_gradient(res: R.GradientResult, out: TextIO) -> None:
     """Print the report's eq. 22 gradient at the initial estimate beside ours."""
     case = res.case
     out.write(f'\n== Gradient ∂J/∂Θ at the initial estimate (4, 8), R = I [{case.source}]\n')
@@ -110,7 +112,7 @@ def print_gradient(res, out):
                   f'   noise sd {sd:.3f}   z = {z:+.2f}\n')
 
 
-def print_summary(results, out):
+def print_summary(results: Sequence[R.SummaryResult], out: TextIO) -> None:
     """Print the Ch.2 summary table, report | ours (σ = 0.2, variances = M⁻¹·0.04)."""
     out.write('\n== Ch.2 summary table (σ = 0.2; variances = Cramér-Rao bound with R = 0.04; '
               'ours from the seeded noisy draw)\n')
@@ -132,7 +134,7 @@ def print_summary(results, out):
               'times are 1975 mainframe seconds)\n')
 
 
-def print_validation(results, out):
+def print_validation(results: Sequence[R.ValidationResult], out: TextIO) -> None:
     """Print the residual checks of the seeded noisy fits."""
     out.write('\n== Validation of the seeded noisy fits (residual RMS, Theil U, Ljung-Box p of '
               'whiteness, largest |input cross-correlation| vs its 95 % limit over all lags)\n')
@@ -148,7 +150,7 @@ def print_validation(results, out):
                       f'(limit {c.cross_correlation_limit():.3f}, {inputs})\n')
 
 
-def print_initial_states(results, out):
+def print_initial_states(results: Sequence[R.InitialStateResult], out: TextIO) -> None:
     """Print the report's initial states beside ours."""
     out.write('\n== Initial states (report | ours; checked to the printed digits)\n')
     for res in results:
@@ -162,7 +164,7 @@ def print_initial_states(results, out):
             out.write(f'   note: {state}: {why}\n')
 
 
-def run(args):
+def run(args: argparse.Namespace) -> int:
     """Run every report case, print the comparison, write JSON/figure if asked."""
     t_start = time.perf_counter()
 

@@ -3,8 +3,6 @@ Model-mismatch diagnosis: locate, explain and prove what a model leaves out.
 
 ``diagnose(record, description)`` is the library entry; ``rotor-id diagnose`` is its command.
 
-* :mod:`.augmentations`: the catalogue's augmented models (each a LinearModel wrapping the
-  baseline, with analytic derivatives);
 * :mod:`.catalogue`: building, fitting and score-testing one candidate (output error);
 * :mod:`.noisy`: the same with random inflow (filter error);
 * :mod:`.likelihood`: both behind one interface (fit → FitResult, score test → ScoreTest);
@@ -12,9 +10,12 @@ Model-mismatch diagnosis: locate, explain and prove what a model leaves out.
 * :mod:`.policy`: every threshold, with its statistical reason;
 * :mod:`.verdict`: probability, shares, detection limits, ``unexplained``;
 * :mod:`.result`: the typed result (Diagnosis, Explanation, Effect, ...);
-* :mod:`.diagnose`: the procedure; :mod:`.figures`: the report's figures;
+* :mod:`.diagnose`: the procedure (its figures render in
+  :mod:`rotor_id.commands.diagnose_figures`);
 * :mod:`.proposal`: an out-of-catalogue term proposed from the equation error.
 
+The catalogue's physics, the augmented models (each a LinearModel wrapping the baseline, with
+analytic derivatives), lives with the other models in :mod:`rotor_id.physics.augmented`.
 The selection and its statistics are stated in docs/diagnosis.md.
 """
 

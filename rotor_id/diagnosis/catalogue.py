@@ -2,7 +2,7 @@
 Build and fit the catalogue's candidates on the baseline's data.
 
 A candidate is an id of the issue (``sensor_lag``, ``dynamic_inflow`` …), the augmented model
-of :mod:`rotor_id.diagnosis.augmentations` for every run of the baseline, the unknowns (the
+of :mod:`rotor_id.physics.augmented` for every run of the baseline, the unknowns (the
 baseline's plus the augmentation's) and its starting values (the baseline estimate plus the
 augmentation's neutral values). Fitting is the same output-error ML as the baseline
 (:func:`rotor_id.estimation.output_error.fit_output_error`), so likelihoods, Cramér-Rao bounds
@@ -17,11 +17,11 @@ import time
 
 import numpy as np
 
-from rotor_id.diagnosis import augmentations as aug
 from rotor_id.estimation.output_error import (
     evaluate, Experiment, fit_initial_states, fit_output_error, IdentificationError,
     information_matrix, Problem, STOP)
 from rotor_id.estimation.simulate import DEFAULT_MAX_STEP
+from rotor_id.physics import augmented as aug
 from rotor_id.physics.aerodynamics import flap_damping
 
 #: Every effect of the catalogue, in the order they are tried.

@@ -11,7 +11,7 @@ Model-mismatch diagnosis of one recording: fit, locate, explain, judge, show.
    the effects the record cannot tell apart, the detection limits of the others; ``unexplained``
    when its residuals are not noise.
 5. Show: :class:`rotor_id.diagnosis.result.Diagnosis` (JSON, text) and
-   :mod:`rotor_id.diagnosis.figures`. The rules are stated in docs/diagnosis.md.
+   :mod:`rotor_id.commands.diagnose_figures`. The rules are stated in docs/diagnosis.md.
 """
 
 from dataclasses import dataclass
@@ -21,14 +21,15 @@ import time
 import numpy as np
 
 from rotor_id import residuals as rs
-from rotor_id.diagnosis.augmentations import BladeView
 from rotor_id.diagnosis.catalogue import applicable, EFFECTS, Setting
-from rotor_id.diagnosis.likelihood import FilterError, ModelSpace, OutputError
+from rotor_id.diagnosis.likelihood import FilterError, ModelSpace, OutputError, Workers
 from rotor_id.diagnosis.policy import DEFAULT_POLICY
 from rotor_id.diagnosis.result import Diagnosis
 from rotor_id.diagnosis.selection import Prior, search
 from rotor_id.diagnosis.verdict import explain
+from rotor_id.estimation import kernels
 from rotor_id.estimation.simulate import simulate
+from rotor_id.physics.augmented import BladeView
 from rotor_id.physics.multiblade import coordinate_names, multiblade_from_blade_matrix
 from rotor_id.pipeline import identify
 
@@ -223,7 +224,7 @@ def _space(record, description, base, window_s, effects, workers, verbose):
         else:
             not_tried[NOISE] = ('the filter-error likelihood (rotor_id.estimation.filter_error) '
                                 'is not installed in this build')
-    space = ModelSpace(OutputError(setting, ident, n_obs, workers), noise, usable)
+    space = ModelSpace(OutputError(setting, ident, n_obs, Workers(workers)), noise, usable)
     return space, usable, {e: why for e, why in not_tried.items() if why}
 
 
@@ -324,16 +325,20 @@ def diagnose(record, description, progress=None, workers=2, effects=EFFECTS, win
         if progress is not None:
             progress(f'{text} ({time.perf_counter() - t_start:.1f} s)')
     say(f'baseline: fitting {description.model} ({", ".join(description.unknowns)})')
+    kernels.prefer()                # every candidate simulates: the compiled path from the start
     base = _baseline(record, description, window_s, say, t_start)
     space, usable, not_tried = _space(record, description, base, window_s, effects, workers,
                                       verbose_fits)
     mu = base.ident.model.rotor.advance_ratio
     prior = Prior(usable, policy.max_effects, record.n_blades, mu)
-    selection = search(space, usable, prior, policy, mu, say,
-                       lambda r: residuals_are_noise(r, base, policy))
-    explanation, top, table = explain(
-        space, selection, prior, policy, lambda r: residuals_are_noise(r, base, policy),
-        lambda r: misfit_removed(r, base))
+    try:
+        selection = search(space, usable, prior, policy, mu, say,
+                           lambda r: residuals_are_noise(r, base, policy))
+        explanation, top, table = explain(
+            space, selection, prior, policy, lambda r: residuals_are_noise(r, base, policy),
+            lambda r: misfit_removed(r, base))
+    finally:
+        space.output_error.workers.close()
     proposal = _proposal(explanation, base, say)
     if proposal is not None and proposal.terms and explanation.names == (NOISE,):
         # a deterministic term that predicts held-out blocks is not random inflow: a filter

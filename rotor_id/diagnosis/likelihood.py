@@ -29,6 +29,38 @@ NOISE = 'process_noise'
 FAILURES = (IdentificationError, np.linalg.LinAlgError, FloatingPointError, ValueError)
 
 
+class Workers:
+    """
+    Worker processes for the candidate fits and score tests, forked once per diagnosis.
+
+    Forked on first use, after the compiled kernels are loaded (:func:`kernels.prefer`), so
+    every worker inherits them, and kept until :meth:`close`: a worker holds the record's
+    prepared plans from one batch to the next. With one process (or one job) the work runs
+    here.
+    """
+
+    def __init__(self, processes):
+        self.processes = int(processes)
+        self._pool = None
+
+    def apply(self, function, items):
+        """Return [function(item)] in order, in the workers where that pays."""
+        items = list(items)
+        if self.processes <= 1 or len(items) <= 1:
+            return [function(item) for item in items]
+        if self._pool is None:
+            kernels.prefer()
+            self._pool = multiprocessing.get_context('fork').Pool(processes=self.processes)
+        return self._pool.map(function, items)
+
+    def close(self):
+        """Stop the workers (idempotent)."""
+        if self._pool is not None:
+            self._pool.close()
+            self._pool.join()
+            self._pool = None
+
+
 def canonical(effects):
     """Return an explanation's effects [(effect, variant)] in the catalogue's order."""
     return tuple(sorted(effects, key=lambda ev: (EFFECTS.index(ev[0]), ev[1])))
@@ -163,8 +195,9 @@ class OutputError:
 
     name = 'output error'
 
-    def __init__(self, setting, ident, n_obs, workers=1):
-        self.setting, self.ident, self.n_obs, self.workers = setting, ident, n_obs, workers
+    def __init__(self, setting, ident, n_obs, workers=None):
+        self.setting, self.ident, self.n_obs = setting, ident, n_obs
+        self.workers = workers if workers is not None else Workers(1)
         self.model = ident.model
         self._memo = {}
 
@@ -200,13 +233,7 @@ class OutputError:
         keys = [canonical(effects) for effects, _ in requests]
         todo = {k: self._job(k, start) for k, (_, start) in zip(keys, requests)
                 if k and k not in self._memo}
-        jobs = list(todo.values())
-        if self.workers > 1 and len(jobs) > 1:
-            kernels.prefer()
-            with multiprocessing.get_context('fork').Pool(processes=self.workers) as pool:
-                fits = pool.map(fit_candidate, jobs)
-        else:
-            fits = [fit_candidate(job) for job in jobs]
+        fits = self.workers.apply(fit_candidate, todo.values())
         for key, fit in zip(todo, fits):
             self._memo[key] = None if _failed(key, fit) else self._result(key, fit)
         return [self.baseline() if not k else self._memo[k] for k in keys]
@@ -248,12 +275,7 @@ class OutputError:
                                      start=current.start_values()), noise_var)
                 for t in set(tested.values())}
         names = sorted(jobs)
-        if self.workers > 1 and len(names) > 1:
-            kernels.prefer()
-            with multiprocessing.get_context('fork').Pool(processes=self.workers) as pool:
-                found = dict(zip(names, pool.map(_screen_job, [jobs[n] for n in names])))
-        else:
-            found = {n: _screen_job(jobs[n]) for n in names}
+        found = dict(zip(names, self.workers.apply(_screen_job, [jobs[n] for n in names])))
         out = dict.fromkeys(effects)
         for effect, test in tested.items():
             if found[test] is not None:

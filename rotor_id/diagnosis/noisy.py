@@ -18,7 +18,6 @@ import time
 
 import numpy as np
 
-from rotor_id.diagnosis import augmentations as aug
 from rotor_id.diagnosis.catalogue import (
     at_catalogue_bound, augment_runs, build, CandidateFit, effect_parameters, grid_starts,
     LAG_PARAMETER, stop_at_bound)
@@ -28,6 +27,7 @@ from rotor_id.estimation.filter_error import (
     measurement_noise_name, PROCESS_NOISE)
 from rotor_id.estimation.output_error import fit_initial_states, IdentificationError
 from rotor_id.estimation.simulate import DEFAULT_MAX_STEP
+from rotor_id.physics import augmented as aug
 
 NOISE = 'process_noise'
 #: Gauss-Newton (scoring) iterations of a candidate's filter-error fit; it starts at the
@@ -236,7 +236,7 @@ def fit_filter(effect, variant, kept, start_fit, ctx, setup, max_iter=MAX_ITER):
                                   noise_std=setup.noise_std, max_iter=max_iter,
                                   process_noise_std=math.sqrt(theta[prob.i_process]),
                                   rows=rows, max_step=max_step,
-                                  label=f'{effect} + random inflow', _start=begin,
+                                  label=f'{effect} + random inflow', start_values=begin,
                                   loglik_tol=LOGLIK_TOL,
                                   progress=stop_at_bound(model, extra, None))
     except FAILURES as exc:
@@ -337,7 +337,7 @@ def random_inflow_states(runs, record):
     The one noise model of every filter-error fit of a diagnosis (random inflow alone, with
     deterministic effects added to it, or added to them), so that they are nested: random
     inflow as a pitch-like angle with a first-order spectrum
-    (:class:`~rotor_id.diagnosis.augmentations.PitchLikeRandomInflow`), its correlation time
+    (:class:`~rotor_id.physics.augmented.PitchLikeRandomInflow`), its correlation time
     τ_w estimated, on a wake model too. White noise on the flap-acceleration rows (the
     default rows of a model without a wake) has neither the spectrum nor the direction of
     turbulence; a wake's λ rows have its direction but the wake's time constant. Measured

@@ -44,12 +44,12 @@ from dataclasses import dataclass, field
 import math
 
 import numpy as np
-from rotor_id.diagnosis.augmentations import Augmented, BladeView
 from rotor_id.estimation.equation_error import fit_equation_error, regression
 from rotor_id.estimation.output_error import fit_output_error, IdentificationError
+from rotor_id.physics.augmented import Augmented, BladeView
 from rotor_id.physics.models import Parameter
 from rotor_id.physics.stirring import blade_pitch_from_multiblade
-from scipy import stats
+from scipy.special import stdtrit
 
 #: Contiguous time blocks of the held-out validation.
 N_BLOCKS = 8
@@ -97,7 +97,7 @@ def term_pieces(view, term, t, u):
     measured multiblade pitch by eq. 3, the azimuth from the model.
     """
     factor, harmonic = _split_term(term)
-    psi = view._psi(t)
+    psi = view.azimuth(t)
     trig = dict(HARMONICS)[harmonic]
     h = np.ones_like(psi) if trig is None else trig(psi)
     if factor in ('beta', 'beta_dot'):
@@ -361,9 +361,9 @@ def propose(experiments, unknowns, values, known, max_terms=MAX_TERMS, n_blocks=
         spread = float(np.std(gain, ddof=1))
         t_stat = float(np.mean(gain)) / (spread / math.sqrt(n_blocks)) if spread > 0 \
             else (math.inf if np.mean(gain) > 0 else 0.0)
-        t_crit = float(stats.t.ppf(1.0 - alpha / len(left), n_blocks - 1))
+        t_crit = float(stdtrit(n_blocks - 1, 1.0 - alpha / len(left)))
         # a rival term is as good within chance unless worse at the one-sided 5 % level
-        t_alternative = float(stats.t.ppf(0.95, n_blocks - 1))
+        t_alternative = float(stdtrit(n_blocks - 1, 0.95))
         improvement = float(1.0 - np.sum(trials[best]) / np.sum(sse))
         kept = bool(t_stat > t_crit and improvement >= MIN_IMPROVEMENT)
         steps.append({'term': names[best], 'heldout_improvement': improvement,

@@ -17,8 +17,7 @@ import math
 from rotor_id.diagnosis.catalogue import EFFECTS, equivalent
 from rotor_id.diagnosis.result import Alternative, DetectionLimit, Effect, Explanation, Share
 from rotor_id.diagnosis.selection import posterior, same_physics, shared_rho, tests_at
-from scipy.optimize import brentq
-from scipy.stats import ncx2
+from scipy.special import chndtr, chndtrinc
 
 
 def alternatives(ranked, baseline, misfit=None):
@@ -102,11 +101,10 @@ def acceptance_noncentrality(result, test, prior, policy, rho):
     if not math.isfinite(c):            # the model is as large as the policy allows
         return math.inf
 
-    def miss(lam):
-        return ncx2.sf(c, k, lam) - policy.detection_power
-    if c <= 0.0 or miss(0.0) >= 0.0:
+    # P(χ²_k(λ) > c) = 1 − chndtr(c, k, λ); chndtrinc inverts chndtr in λ
+    if c <= 0.0 or 1.0 - chndtr(c, k, 0.0) >= policy.detection_power:
         return 0.0
-    return float(brentq(miss, 0.0, 100.0 * c + 100.0))
+    return float(chndtrinc(c, k, 1.0 - policy.detection_power))
 
 
 def detection_limits(space, selection, top, prior, policy):

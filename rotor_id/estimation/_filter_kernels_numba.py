@@ -5,7 +5,7 @@ Loaded through :func:`rotor_id.estimation.kernels.filter_sensitivity_kernel` onl
 twin is :func:`rotor_id.estimation.filter_error.sensitivity_scan_numpy`, with the same
 equations in the same order (test/estimation/test_filter_error_gradient.py checks agreement).
 
-The m×m inverse and the innovation covariance and gain are ``_kernels_numba._invert`` and
+The m×m inverse and the innovation covariance and gain are ``_kernels_numba.invert_in_place`` and
 ``_kernels_numba.innovation_gain``, compiled into this module's cache: numba does not track
 that dependency, so a change to either needs this cache cleared too (``make build`` after
 ``make clean``, or touch this file).
@@ -13,7 +13,7 @@ that dependency, so a change to either needs this cache cleared too (``make buil
 
 from numba import njit
 import numpy as np
-from rotor_id.estimation._kernels_numba import _invert, innovation_gain
+from rotor_id.estimation._kernels_numba import innovation_gain, invert_in_place
 
 
 @njit(cache=True, nogil=True)
@@ -128,7 +128,7 @@ def sensitivity_scan(Fs, g, dFs, dg, h, substeps, Phis, dPhis, Qs, dQs, R, dR, H
                     Kj[i, a] = K_ss[i, a]
                     for c in range(k):
                         dKj[c, i, a] = dK_ss[c, i, a]
-            logdet = _invert(Bj, Binv)
+            logdet = invert_in_place(Bj, Binv)
         else:
             logdet = innovation_gain(P, Ht, R, PHT, Bj, Binv, Kj)
             for c in range(k):

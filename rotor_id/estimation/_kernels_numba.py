@@ -58,7 +58,7 @@ def rk4_scan(Phi, F_val, F_i, F_j, g, dF_val, dF_p, dF_i, dF_j, dg, h, substeps,
 
     Phi (1 or M, n, n): the steps' transition matrices. F and g (2M+1, n) at the start, middle
     and end of every step (shared with the next step), as
-    :func:`rotor_id.estimation.simulate._fine_grid` lays them out; F as its non-zero entries
+    :func:`rotor_id.estimation.simulate.fine_grid` lays them out; F as its non-zero entries
     F_val (1 or 2M+1, nnz) at (F_i, F_j), ∂F/∂p as its non-zero entries dF_val
     (1 or 2M+1, nnz) at (dF_p, dF_i, dF_j); ∂g/∂p as dg (2M+1, kp, n) for the first kp of the
     k sensitivity columns (the others, e.g. initial states, have no forcing). xs (M/substeps
@@ -149,7 +149,7 @@ def warm_up():
 
 
 @njit(cache=True, nogil=True)
-def _invert(A, inverse):
+def invert_in_place(A, inverse):
     """Set inverse = A⁻¹ (Gauss-Jordan, partial pivoting); return log|det A| (-inf: singular)."""
     m = A.shape[0]
     work = A.copy()
@@ -214,7 +214,7 @@ def innovation_gain(P, Ht, R, PHT, B, Binv, K):
             sym = 0.5 * (B[a, b] + B[b, a])
             B[a, b] = sym
             B[b, a] = sym
-    logdet = _invert(B, Binv)
+    logdet = invert_in_place(B, Binv)
     for i in range(n):
         for b in range(m):
             acc = 0.0
@@ -427,7 +427,7 @@ def interval_map(F, B, e, dF, dB, de, h, substeps, Phi, dPhi, C, dC, ce, dce):
 
     For x′ = F x + B u + e with F, B, e constant, one RK4 step of length h with the input at
     the step's start, middle and end (u₀, u_m, u₁) is x⁺ = Φ₁ x + Γ₀ g₀ + Γ_m g_m + Γ₁ g₁,
-    g = B u + e, with (expanding simulate._rk4_maps)
+    g = B u + e, with (expanding simulate.rk4_maps)
 
         Φ₁ = I + h/6 (A₁ + 2A₂ + 2A₃ + A₄),  A₁ = F, A₂ = F + h/2 F A₁, A₃ = F + h/2 F A₂,
         A₄ = F + h F A₃;

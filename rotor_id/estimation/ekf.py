@@ -22,14 +22,20 @@ for bounds.
 from dataclasses import dataclass
 import math
 import time
+from typing import Callable, Sequence, TYPE_CHECKING
 
 import numpy as np
+import numpy.typing as npt
 
 from rotor_id.estimation import kalman
 from rotor_id.estimation.filter_error import difference_noise_std
 from rotor_id.estimation.output_error import (
-    Estimate, Experiment, fit_initial_states, IdentificationError, Problem)
-from rotor_id.estimation.simulate import _fine_grid, _rk4_maps, DEFAULT_MAX_STEP, substeps_for
+    Estimate, Experiment, fit_initial_states, IdentificationError, ParameterValues, Problem,
+    Progress)
+from rotor_id.estimation.simulate import DEFAULT_MAX_STEP, fine_grid, rk4_maps, substeps_for
+
+if TYPE_CHECKING:
+    from rotor_id.physics.models import LinearModel
 
 COVARIANCE_WARNING = ('augmented-state EKF: the parameter covariance comes from an arbitrary '
                       'a-priori covariance and a linearisation about early, poor estimates; it '
@@ -59,14 +65,14 @@ class EKFResult:
     names: list
     z_filt: np.ndarray
     P_filt: np.ndarray
-    z_smooth: np.ndarray
-    P_smooth: np.ndarray
+    z_smooth: np.ndarray | None
+    P_smooth: np.ndarray | None
     innovations: np.ndarray
     log_likelihood: float
     n_states: int
 
     @property
-    def parameters(self):
+    def parameters(self) -> np.ndarray:
         """
         Return the final θ̂: the smoothed value at t0, or the filtered one at the last sample.
 
@@ -76,7 +82,7 @@ class EKFResult:
         return z[self.n_states:]
 
     @property
-    def parameter_covariance(self):
+    def parameter_covariance(self) -> np.ndarray:
         """Covariance block of θ̂ at the same point (NOT a confidence measure)."""
         P = self.P_smooth[0] if self.P_smooth is not None else self.P_filt[-1]
         n = self.n_states
@@ -92,7 +98,7 @@ def _interval_maps(model, p, idx, inputs, t0, t1, substeps):
     exact derivative of the RK4 state map, so the linearisation is that of the propagation used.
     """
     ts = np.array([t0, t1])
-    tf = _fine_grid(ts, substeps)
+    tf = fine_grid(ts, substeps)
     u = inputs(tf)
     F, g = model.system(tf, p, u)
     dF, dg = model.system_jacobian(tf, p, u)
@@ -109,7 +115,7 @@ def _interval_maps(model, p, idx, inputs, t0, t1, substeps):
         Fa[:, rows, rows] = F
         ga[:, rows] = dg[:, col]
     h = np.full(substeps, (t1 - t0) / substeps)
-    Phi_s, c_s = _rk4_maps(Fa, ga, h)
+    Phi_s, c_s = rk4_maps(Fa, ga, h)
     Phi = np.eye(size)
     c = np.zeros(size)
     for s in range(substeps):
@@ -121,9 +127,15 @@ def _interval_maps(model, p, idx, inputs, t0, t1, substeps):
     return Phi[:n, :n], c[:n], D, e, F[substeps]
 
 
-def augmented_ekf(model, inputs, t, y, unknowns, guess=None, known=None, R=None, x0=None,
-                  P0_states=None, P0_parameters=None, parameter_noise_std=0.0, rows=None,
-                  process_noise_std=0.0, smooth=True, max_step=DEFAULT_MAX_STEP):
+def augmented_ekf(model: 'LinearModel', inputs: Callable[[np.ndarray], np.ndarray],
+                  t: npt.ArrayLike, y: npt.ArrayLike, unknowns: Sequence[str],
+                  guess: ParameterValues | None = None,
+                  known: ParameterValues | None = None, R: npt.ArrayLike | None = None,
+                  x0: npt.ArrayLike | None = None, P0_states: npt.ArrayLike | None = None,
+                  P0_parameters: npt.ArrayLike | None = None,
+                  parameter_noise_std: npt.ArrayLike = 0.0,
+                  rows: Sequence[str | int] | None = None, process_noise_std: float = 0.0,
+                  smooth: bool = True, max_step: float = DEFAULT_MAX_STEP) -> EKFResult:
     """
     Run the augmented-state EKF over one record.
 
@@ -255,9 +267,13 @@ def augmented_ekf(model, inputs, t, y, unknowns, guess=None, known=None, R=None,
     return EKFResult(t, names, z_filt, P_filt, z_s, P_s, nu, loglik, n)
 
 
-def fit_ekf(experiments, unknowns, guess=None, known=None, noise_std=None, progress=None,
-            passes=1, smooth=True, parameter_noise_std=0.0, process_noise_std=0.0, rows=None,
-            max_step=DEFAULT_MAX_STEP):
+def fit_ekf(experiments: Sequence[Experiment], unknowns: Sequence[str],
+            guess: ParameterValues | None = None, known: ParameterValues | None = None,
+            noise_std: npt.ArrayLike | None = None,
+            progress: Progress | None = None, passes: int = 1,
+            smooth: bool = True, parameter_noise_std: npt.ArrayLike = 0.0,
+            process_noise_std: float = 0.0, rows: Sequence[str | int] | None = None,
+            max_step: float = DEFAULT_MAX_STEP) -> Estimate:
     """
     Augmented-state EKF estimate over one run, as an :class:`Estimate` (method 'ekf').
 
@@ -278,14 +294,16 @@ def fit_ekf(experiments, unknowns, guess=None, known=None, noise_std=None, progr
     t_start = time.perf_counter()
     history = []
     for iteration in range(1, passes + 1):
-        res = augmented_ekf(model, exp.inputs, exp.t, exp.y, unknowns, start, known, R, x0,
+        # (a run fitted has measurements)
+        res = augmented_ekf(model, exp.inputs, exp.t, exp.y,  # type: ignore[arg-type]
+                            unknowns, start, known, R, x0,
                             parameter_noise_std=parameter_noise_std, rows=rows,
                             process_noise_std=process_noise_std, smooth=smooth,
                             max_step=max_step)
         theta = res.parameters.copy()
         start = dict(zip(unknowns, theta))
-        if smooth:
-            x0 = res.z_smooth[0, :res.n_states]
+        if smooth:                      # (then the RTS pass ran: z_smooth is an array)
+            x0 = res.z_smooth[0, :res.n_states]  # type: ignore[index]
         info = {'iteration': iteration, 'cost': -res.log_likelihood,
                 'rms': math.sqrt(float(np.mean(res.innovations**2))), 'names': list(unknowns),
                 'values': theta.copy(), 'elapsed': time.perf_counter() - t_start,
@@ -295,7 +313,8 @@ def fit_ekf(experiments, unknowns, guess=None, known=None, noise_std=None, progr
             progress(info)
     cov = res.parameter_covariance
     p_final = model.parameter_vector({**(known or {}), **start})
-    xs = res.z_smooth if smooth else res.z_filt
+    # (with smooth, the RTS pass ran: z_smooth is an array)
+    xs: np.ndarray = res.z_smooth if smooth else res.z_filt  # type: ignore[assignment]
     y_hat = np.einsum('tij,tj->ti', model.output_matrix(exp.t), xs[:, :res.n_states])
     noise = np.sqrt(np.mean((exp.y - y_hat)**2, axis=0))
     return Estimate(

@@ -62,29 +62,35 @@ error's (conditional: within 6 %), because such a record cannot exclude σ_V ≈
 from dataclasses import replace
 import math
 import time
+from typing import Any, Sequence
 
 import numpy as np
+import numpy.typing as npt
 
 from rotor_id.estimation import kalman, kernels
 from rotor_id.estimation.output_error import (
-    damped_gauss_newton_step, dependence_warnings, Estimate, fit_initial_states,
-    IdentificationError, Problem, STOP)
-from rotor_id.estimation.simulate import (_equal_steps, _fine_grid, _rk4_transition,
-                                          _rk4_transition_derivative, _time_invariant,
-                                          DEFAULT_MAX_STEP, substeps_for)
+    damped_gauss_newton_step, dependence_warnings, Estimate, Experiment, fit_initial_states,
+    IdentificationError, ParameterValues, Problem, Progress, STOP)
+from rotor_id.estimation.simulate import (
+    DEFAULT_MAX_STEP, equal_steps, fine_grid, rk4_transition, rk4_transition_derivative,
+    substeps_for, time_invariant_steps)
 
 PROCESS_NOISE = 'process_noise_std'
 _FD_STEP = 1e-5
 #: How the sensitivities of ν and B are computed (see the module docstring).
 GRADIENTS = ('analytic', 'finite-difference')
+#: One run's filter result: (ν (T, m), B (T, m, m), ∂ν (T, m, k), ∂B (T, m, m, k), cost
+#: νᵀB⁻¹ν + log|B| summed over the samples); ∂ν and ∂B are None where no sensitivities were
+#: asked for, which the caller knows (Any: the fits read them without a test)
+RunInnovations = tuple[np.ndarray, np.ndarray, Any, Any, float]
 
 
-def measurement_noise_name(channel):
+def measurement_noise_name(channel: str) -> str:
     """Parameter name of the measurement-noise σ of an output channel."""
     return f'noise_std_{channel}'
 
 
-def difference_noise_std(y):
+def difference_noise_std(y: npt.ArrayLike) -> np.ndarray:
     """
     Measurement-noise σ per channel from second differences: var(Δ²v) = 6σ² for white v.
 
@@ -99,9 +105,12 @@ def difference_noise_std(y):
 class FilterProblem:
     """θ = [model unknowns, free initial states (per run), process σ?, measurement σ's?]."""
 
-    def __init__(self, experiments, unknowns, guess, known, noise_std, process_noise_std,
-                 estimate_process_noise, rows, noise_model, gain, max_step,
-                 gradients='analytic'):
+    def __init__(self, experiments: Sequence[Experiment], unknowns: Sequence[str],
+                 guess: ParameterValues | None, known: ParameterValues | None,
+                 noise_std: npt.ArrayLike | None, process_noise_std: float | None,
+                 estimate_process_noise: bool, rows: Sequence[str | int] | None,
+                 noise_model: str, gain: str, max_step: float,
+                 gradients: str = 'analytic') -> None:
         self.base = Problem(experiments, unknowns, guess, known)
         self.gradients = gradients
         self.cheap_sensitivities = False        # set by evaluate: all runs analytic
@@ -145,16 +154,21 @@ class FilterProblem:
         # state-parameter columns are handled exactly (linear), the rest by differences
         k_par = len(self.base.param_index)
         self.fd_index = list(range(k_par)) + list(range(self.n_base, len(self.names)))
+        #: typical size of each θ component, for finite-difference steps (set by the fit)
+        self.scale: np.ndarray
 
-    def split(self, theta):
+    def split(self, theta: np.ndarray) -> tuple[np.ndarray, float, np.ndarray]:
         """Model-and-state part, process σ, measurement σ's."""
         # the process noise is optimised as its variance q = σ² (see fit_filter_error)
         sig_p = math.sqrt(max(theta[self.i_process], 0.0)) if self.i_process is not None \
             else self.fixed_process
         sig_m = theta[self.i_meas] if self.i_meas is not None else self.fixed_meas
-        return theta[:self.n_base], float(sig_p), np.asarray(sig_m, dtype=float)
+        # (fixed_process is a number where σ_V is not estimated)
+        return (theta[:self.n_base], float(sig_p),  # type: ignore[arg-type]
+                np.asarray(sig_m, dtype=float))
 
-    def discretized(self, r, theta):
+    def discretized(self, r: int, theta: np.ndarray
+                    ) -> tuple[kalman.DiscreteModel, np.ndarray, np.ndarray]:
         """Discrete model, initial state and R of run r at θ."""
         base, sig_p, sig_m = self.split(theta)
         exp = self.experiments[r]
@@ -164,20 +178,21 @@ class FilterProblem:
                                self.noise_model, self.max_step)
         return dm, x0, np.diag(np.maximum(sig_m, 1e-300)**2)
 
-    def gain_mode(self, dm):
+    def gain_mode(self, dm: kalman.DiscreteModel) -> str:
         """'steady' or 'time-varying' for this discretised model."""
         if self.gain == 'auto':
             return 'steady' if dm.time_invariant else 'time-varying'
         return self.gain
 
-    def innovations(self, r, theta):
+    def innovations(self, r: int, theta: np.ndarray) -> np.ndarray:
         """Innovations ν (T, m) of run r at θ (process noise as its variance, as optimised)."""
         dm, x0, R = self.discretized(r, theta)
-        nu, _, _, _ = filter_batch([dm], self.experiments[r].y, x0[None], R[None],
-                                   self.gain_mode(dm))
+        # (a run that is filtered has measurements)
+        nu, _, _, _ = filter_batch([dm], self.experiments[r].y,  # type: ignore[arg-type]
+                                   x0[None], R[None], self.gain_mode(dm))
         return nu[0]
 
-    def evaluate(self, theta, sensitivities=True):
+    def evaluate(self, theta: np.ndarray, sensitivities: bool = True) -> list[RunInnovations]:
         """Per run: (ν (T,m), B (T,m,m), ∂ν (T,m,k) or None, ∂B (T,m,m,k) or None, cost)."""
         out = []
         k = len(theta)
@@ -203,7 +218,9 @@ class FilterProblem:
             parts = [self.discretized(r, th) for th in thetas]
             dms = [dm for dm, _, _ in parts]
             gain = self.gain_mode(dms[0])
-            nu, B, gains, cost = filter_batch(dms, exp.y, np.array([x0 for _, x0, _ in parts]),
+            # (a run that is filtered has measurements)
+            nu, B, gains, cost = filter_batch(dms, exp.y,  # type: ignore[arg-type]
+                                              np.array([x0 for _, x0, _ in parts]),
                                               np.array([R for _, _, R in parts]), gain)
             if not sensitivities:
                 out.append((nu[0], B[0], None, None, cost[0]))
@@ -263,8 +280,8 @@ class FilterProblem:
         """Φ, ∂Φ, Q, ∂Q (leading dimension 1) of a model with a constant system matrix."""
         n = Fs.shape[-1]
         dt = float(t[1] - t[0])
-        Phi_s = _rk4_transition(Fs, np.array([step]))[0]
-        dPhi_s = _rk4_transition_derivative(Fs, dF, np.array([step]))[0] if kp \
+        Phi_s = rk4_transition(Fs, np.array([step]))[0]
+        dPhi_s = rk4_transition_derivative(Fs, dF, np.array([step]))[0] if kp \
             else np.zeros((0, n, n))                                        # (kp, n, n)
         Phi = np.eye(n)
         dPhi = np.zeros((k, n, n))
@@ -284,8 +301,8 @@ class FilterProblem:
         n, T = Fs.shape[-1], t.size
         M = (T - 1) * substeps
         h = np.full(M, step)
-        Phi_s = _rk4_transition(Fs, h).reshape(T - 1, substeps, n, n)
-        dPhi_s = np.broadcast_to(_rk4_transition_derivative(Fs, dF, h), (M, kp, n, n)) if kp \
+        Phi_s = rk4_transition(Fs, h).reshape(T - 1, substeps, n, n)
+        dPhi_s = np.broadcast_to(rk4_transition_derivative(Fs, dF, h), (M, kp, n, n)) if kp \
             else np.zeros((M, 0, n, n))
         dPhi_s = dPhi_s.reshape(T - 1, substeps, kp, n, n)
         Phi = np.broadcast_to(np.eye(n), (T - 1, n, n))
@@ -308,7 +325,8 @@ class FilterProblem:
         dQ = self._noise_derivatives(covariance, (Fs, Fmid), (dF, dFmid), sig_p, k, kp)
         return np.ascontiguousarray(Phi), dPhi, Q, np.ascontiguousarray(dQ)
 
-    def analytic_sensitivities(self, r, theta, sensitivities=True):
+    def analytic_sensitivities(self, r: int, theta: np.ndarray, sensitivities: bool = True
+                               ) -> RunInnovations | None:
         """
         Return (ν, B, ∂ν, ∂B, cost) of run r from the filter's analytic sensitivities.
 
@@ -327,13 +345,13 @@ class FilterProblem:
         p = self.base.full_parameters(base)
         t = exp.t
         substeps = substeps_for(t, self.max_step)
-        if not _equal_steps(np.diff(t) / substeps, t):
+        if not equal_steps(np.diff(t) / substeps, t):
             return None                 # time-stamp jitter or lost samples: uneven steps
-        tf = _fine_grid(t, substeps)
+        tf = fine_grid(t, substeps)
         u = exp.inputs(tf)
         F, g = model.system(tf, p, u)
         h = np.repeat(np.diff(t) / substeps, substeps)
-        constant = _time_invariant(F, h, t)
+        constant = time_invariant_steps(F, h, t)
         n, m, T = model.n_states, self.m, t.size
         k = len(theta) if sensitivities else 0
         kp = len(self.base.param_index) if sensitivities else 0
@@ -355,7 +373,9 @@ class FilterProblem:
                 dR[i, a, a] = 2.0 * sig_m[a]
         H = np.ascontiguousarray(model.output_matrix(t), dtype=float)
         d = np.ascontiguousarray(model.output_offset(t, p), dtype=float)
-        dm = kalman.DiscreteModel(t=t, Phi=np.broadcast_to(Phi, (T - 1, n, n)), c=None,
+        # (no forcing c: the state is carried through the RK4 steps, not by Φ x + c)
+        dm = kalman.DiscreteModel(t=t, Phi=np.broadcast_to(Phi, (T - 1, n, n)),
+                                  c=None,  # type: ignore[arg-type]
                                   Q=np.broadcast_to(Q, (T - 1, n, n)), H=H, d=d)
         steady = self.gain_mode(dm) == 'steady' and constant
         if steady:
@@ -392,7 +412,10 @@ class FilterProblem:
         return nu, B, dnu, dB, float(cost)
 
 
-def steady_gain_sensitivities(Phi, Q, H, R, dPhi, dQ, dR):
+def steady_gain_sensitivities(Phi: np.ndarray, Q: np.ndarray, H: np.ndarray, R: np.ndarray,
+                              dPhi: np.ndarray, dQ: np.ndarray, dR: np.ndarray
+                              ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray,
+                                         np.ndarray]:
     """
     Steady-state filter (P, B, K) and the derivatives ∂B, ∂K along k directions.
 
@@ -409,7 +432,9 @@ def steady_gain_sensitivities(Phi, Q, H, R, dPhi, dQ, dR):
     n = Phi.shape[0]
     k = dPhi.shape[0]
     P = kalman.steady_state_covariance(
-        kalman.DiscreteModel(t=None, Phi=Phi[None], c=None, Q=Q[None], H=H[None], d=None), R)
+        # (the steady state needs Φ, Q and H only)
+        kalman.DiscreteModel(t=None, Phi=Phi[None], c=None,  # type: ignore[arg-type]
+                             Q=Q[None], H=H[None], d=None), R)  # type: ignore[arg-type]
     B = H @ P @ H.T + R
     B = 0.5 * (B + B.T)
     Binv = np.linalg.inv(B)
@@ -427,8 +452,14 @@ def steady_gain_sensitivities(Phi, Q, H, R, dPhi, dQ, dR):
     return P, B, K, dB, dK
 
 
-def sensitivity_scan_numpy(Fs, g, dFs, dg, h, substeps, Phis, dPhis, Qs, dQs, R, dR, H, d, dd,
-                           y, x0, dx0, steady, B_ss, K_ss, dB_ss, dK_ss, nu, dnu, B, dB):
+def sensitivity_scan_numpy(Fs: np.ndarray, g: np.ndarray, dFs: np.ndarray, dg: np.ndarray,
+                           h: float, substeps: int, Phis: np.ndarray, dPhis: np.ndarray,
+                           Qs: np.ndarray, dQs: np.ndarray, R: np.ndarray, dR: np.ndarray,
+                           H: np.ndarray, d: np.ndarray, dd: np.ndarray, y: np.ndarray,
+                           x0: np.ndarray, dx0: np.ndarray, steady: bool, B_ss: np.ndarray,
+                           K_ss: np.ndarray, dB_ss: np.ndarray, dK_ss: np.ndarray,
+                           nu: np.ndarray, dnu: np.ndarray, B: np.ndarray,
+                           dB: np.ndarray) -> float:
     """Numpy twin of ``_filter_kernels_numba.sensitivity_scan`` (same arguments and result)."""
     T = y.shape[0]
     n, kp = Fs.shape[1], dFs.shape[1]
@@ -500,7 +531,9 @@ def sensitivity_scan_numpy(Fs, g, dFs, dg, h, substeps, Phis, dPhis, Qs, dQs, R,
     return total
 
 
-def filter_batch(dms, y, x0, R, gain='time-varying'):
+def filter_batch(dms: Sequence[kalman.DiscreteModel], y: np.ndarray, x0: np.ndarray,
+                 R: np.ndarray, gain: str = 'time-varying'
+                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """
     Run the Kalman filter of :func:`~rotor_id.estimation.kalman.kalman_filter` on K models.
 
@@ -586,12 +619,13 @@ def _reported(prob, theta):
     return out
 
 
-def innovations_cost(results):
+def innovations_cost(results: Sequence[RunInnovations]) -> float:
     """½ Σ (νᵀB⁻¹ν + log|B|) over all runs (eq. 26 halved)."""
     return 0.5 * float(sum(r[4] for r in results))
 
 
-def gradient_information(results, k):
+def gradient_information(results: Sequence[RunInnovations], k: int
+                         ) -> tuple[np.ndarray, np.ndarray]:
     """Gradient of J and the expected (Fisher) information over all runs."""
     g = np.zeros(k)
     M = np.zeros((k, k))
@@ -610,12 +644,17 @@ def gradient_information(results, k):
     return g, 0.5 * (M + M.T)
 
 
-def fit_filter_error_ml(experiments, unknowns, guess=None, known=None, noise_std=None,
-                        progress=None, max_iter=50, process_noise_std=None,
-                        estimate_process_noise=True, rows=None, noise_model='white',
-                        gain='auto', step_tol=1e-3, max_step=DEFAULT_MAX_STEP,
-                        label='filter-error ML', gradients='analytic', _start=None,
-                        loglik_tol=None):
+def fit_filter_error_ml(experiments: Sequence[Experiment], unknowns: Sequence[str],
+                        guess: ParameterValues | None = None,
+                        known: ParameterValues | None = None,
+                        noise_std: npt.ArrayLike | None = None, progress: Progress | None = None,
+                        max_iter: int = 50, process_noise_std: float | None = None,
+                        estimate_process_noise: bool = True,
+                        rows: Sequence[str | int] | None = None, noise_model: str = 'white',
+                        gain: str = 'auto', step_tol: float = 1e-3,
+                        max_step: float = DEFAULT_MAX_STEP, label: str = 'filter-error ML',
+                        gradients: str = 'analytic', start_values: ParameterValues | None = None,
+                        loglik_tol: float | None = None) -> Estimate:
     """
     Filter-error maximum likelihood over one or more runs; Cramér-Rao bound at the optimum.
 
@@ -660,7 +699,7 @@ def fit_filter_error_ml(experiments, unknowns, guess=None, known=None, noise_std
     gradients : {'analytic', 'finite-difference'}
         Sensitivities of ν and B: analytic for equally spaced samples (finite differences
         for uneven time stamps), or finite differences throughout (the reference).
-    _start : dict, optional
+    start_values : dict, optional
         Starting values by θ name (any of model unknowns, free initial states, measurement
         σ's), over the defaults; :func:`fit_filter_error`'s σ_V profile warm-starts with it.
     loglik_tol : float, optional
@@ -722,7 +761,7 @@ def fit_filter_error_ml(experiments, unknowns, guess=None, known=None, noise_std
                 c = innovations_cost(prob.evaluate(trial, sensitivities=False))
                 if c < best:
                     best, theta = c, trial
-    for name, value in (_start or {}).items():
+    for name, value in (start_values or {}).items():
         theta[names.index(name)] = value
     t_start = time.perf_counter()
     history = []
@@ -895,11 +934,14 @@ def _trapezoid_weights(sigma, f):
     return w / w.sum()
 
 
-def fit_filter_error(experiments, unknowns, guess=None, known=None, noise_std=None,
-                     progress=None, max_iter=50, process_noise_std=None,
-                     estimate_process_noise=True, rows=None, noise_model='white', gain='auto',
-                     step_tol=1e-3, max_step=DEFAULT_MAX_STEP, label='filter-error ML',
-                     bounds='marginal', gradients='analytic'):
+def fit_filter_error(experiments: Sequence[Experiment], unknowns: Sequence[str],
+                     guess: ParameterValues | None = None, known: ParameterValues | None = None,
+                     noise_std: npt.ArrayLike | None = None, progress: Progress | None = None,
+                     max_iter: int = 50, process_noise_std: float | None = None,
+                     estimate_process_noise: bool = True, rows: Sequence[str | int] | None = None,
+                     noise_model: str = 'white', gain: str = 'auto', step_tol: float = 1e-3,
+                     max_step: float = DEFAULT_MAX_STEP, label: str = 'filter-error ML',
+                     bounds: str = 'marginal', gradients: str = 'analytic') -> Estimate:
     """
     Filter-error identification with bounds that include the uncertainty of the process noise.
 
@@ -941,9 +983,10 @@ def fit_filter_error(experiments, unknowns, guess=None, known=None, noise_std=No
     """
     if bounds not in ('marginal', 'conditional'):
         raise IdentificationError(f"bounds must be 'marginal' or 'conditional', not {bounds!r}")
-    options = {'known': known, 'noise_std': noise_std, 'max_iter': max_iter, 'rows': rows,
-               'noise_model': noise_model, 'gain': gain, 'step_tol': step_tol,
-               'max_step': max_step, 'gradients': gradients}
+    options: dict[str, Any] = {
+        'known': known, 'noise_std': noise_std, 'max_iter': max_iter, 'rows': rows,
+        'noise_model': noise_model, 'gain': gain, 'step_tol': step_tol,
+        'max_step': max_step, 'gradients': gradients}
     if bounds == 'marginal' and estimate_process_noise and gradients == 'analytic':
         # a dozen fits follow: the compiled filter pays for its loading (kernels.prefer)
         kernels.prefer()
@@ -954,7 +997,7 @@ def fit_filter_error(experiments, unknowns, guess=None, known=None, noise_std=No
     if bounds == 'conditional' or not estimate_process_noise:
         return joint
     t_start = time.perf_counter()
-    fits = {}
+    fits: dict[float, Any] = {}         # σ_V -> its Estimate, None where that fit failed
 
     def warm_start(sigma_v):
         """
@@ -985,7 +1028,7 @@ def fit_filter_error(experiments, unknowns, guess=None, known=None, noise_std=No
                 experiments, unknowns, guess={n: start[n] for n in unknowns},
                 process_noise_std=sigma_v, estimate_process_noise=False,
                 label=f'{label}: profile σ_V = {sigma_v:.4g} ({len(fits) + 1})',
-                progress=progress, _start=start,
+                progress=progress, start_values=start,
                 **dict(options, step_tol=max(step_tol, _PROFILE_STEP_TOL)))
         except (IdentificationError, np.linalg.LinAlgError, FloatingPointError):
             est = None                 # no fit there: no weight (f = inf)

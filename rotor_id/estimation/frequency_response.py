@@ -44,14 +44,19 @@ over the points with γ² ≥ 0.6; J ≤ 100 is an acceptable fit.
 from dataclasses import dataclass, field
 import math
 import time
+from typing import Any, Protocol, Sequence, TYPE_CHECKING
 
 import numpy as np
+import numpy.typing as npt
 
 from rotor_id.estimation.output_error import (dependence_warnings, Estimate,
-                                              IdentificationError)
+                                              IdentificationError, ParameterValues, Progress)
 from rotor_id.estimation.simulate import simulate
 from rotor_id.physics.multiblade import multiblade_coordinates
 from rotor_id.physics.stirring import multiblade_from_blade_pitch, SampledInput
+
+if TYPE_CHECKING:
+    from rotor_id.physics.models import RotorModel
 
 #: Independent neighbouring frequencies (spacing 2π/T) over which the flap noise of a point is
 #: estimated: seven give three degrees of freedom after the local response and transient.
@@ -68,6 +73,16 @@ PHASE_WEIGHT = 0.01745
 ACCEPTABLE_COST = 100.0
 DB = 20.0 / math.log(10.0)          # dB per neper
 DEG = 180.0 / math.pi
+
+
+class StirringRecord(Protocol):
+    """What :func:`sweep_from_record` reads of a record (a rotor_id.io Record has it)."""
+
+    time_s: np.ndarray
+    t: np.ndarray
+    rotor_speed_rad_s: np.ndarray
+    blade_flap: np.ndarray
+    blade_pitch: np.ndarray
 
 
 @dataclass
@@ -89,7 +104,7 @@ class Sweep:
     omega_rad_s: float
     band: tuple
     record_t: np.ndarray
-    inputs: object
+    inputs: SampledInput
     start: int
     stirring_t: tuple
     window_s: tuple
@@ -97,7 +112,8 @@ class Sweep:
     ends: tuple = (1, 1)
 
 
-def cyclic_signals(t, blade_pitch, blade_flap):
+def cyclic_signals(t: npt.ArrayLike, blade_pitch: np.ndarray, blade_flap: np.ndarray
+                   ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Return θ_c = θI + iθII and β_c = βI + iβII (docs/models.md §0, §8) from blade data."""
     u = multiblade_from_blade_pitch(t, blade_pitch)
     coords = multiblade_coordinates(blade_flap, t)
@@ -107,7 +123,8 @@ def cyclic_signals(t, blade_pitch, blade_flap):
     return u[:, 1] + 1j * u[:, 2], coords['cos'] + 1j * coords['sin'], u
 
 
-def stirring_frequency(t, pitch, smoothing=1.0):
+def stirring_frequency(t: np.ndarray, pitch: np.ndarray, smoothing: float = 1.0
+                       ) -> tuple[np.ndarray, np.ndarray]:
     """
     Instantaneous stirring frequency (per rev, signed) of θ_c, and where the cyclic is on.
 
@@ -127,7 +144,8 @@ def stirring_frequency(t, pitch, smoothing=1.0):
     return np.where(on, rate, 0.0), on
 
 
-def sweep_from_record(record, name='run', window_s=None):
+def sweep_from_record(record: StirringRecord, name: str = 'run',
+                      window_s: Sequence[float] | None = None) -> 'Sweep':
     """
     Return the :class:`Sweep` of a record: its stirring band and its transform window.
 
@@ -171,7 +189,8 @@ def sweep_from_record(record, name='run', window_s=None):
                  ends=steady_ends(t_all[window], pitch_all[window]))
 
 
-def steady_ends(t, pitch, longest=2.0 * math.pi, tolerance=0.01):
+def steady_ends(t: np.ndarray, pitch: np.ndarray, longest: float = 2.0 * math.pi,
+                tolerance: float = 0.01) -> tuple[int, int]:
     """
     Count the samples at each end of the window where the cyclic pitch holds still (≥ 1).
 
@@ -225,16 +244,17 @@ class Spectra:
     ends: list = field(default_factory=list)         # per sweep: its steady ends
     #: Σ_r |Θ_r(−ω)|² / Σ_r |Θ_r(ω)|²: the input a rotor that is not axisymmetric (μ > 0)
     #: turns into response at ω through its mirror response (physics DirectionalResponse)
-    mirror_input: np.ndarray = None
+    # (given by every estimate; the default keeps the field optional in the constructor)
+    mirror_input: np.ndarray = None  # type: ignore[assignment]
 
-    def of(self, flaps):
+    def of(self, flaps: Sequence[np.ndarray]) -> np.ndarray:
         """Return the estimator applied to one flap signal per sweep, (F,) or (F, k)."""
-        out = 0.0
+        out: Any = 0.0                  # the sum over the sweeps, an array from the first on
         for weights, ends, flap in zip(self.operators, self.ends, flaps):
             out = out + weights @ np.diff(_with_steady_ends(flap, ends), axis=0)
         return out
 
-    def restricted(self, points):
+    def restricted(self, points: np.ndarray) -> 'Spectra':
         """Return the estimator at some of the points only (for a fit)."""
         return Spectra(frequency=self.frequency[points], guu=self.guu[points],
                        gyy=self.gyy[points], guy=self.guy[points], noise=self.noise[points],
@@ -284,7 +304,8 @@ def _end_noise(sweep, frequency, local):
     return np.full(frequency.size, sigma2 * (1.0 / head + 1.0 / tail))
 
 
-def estimate_spectra(sweeps, noise_bins=NOISE_BINS, frequency=None):
+def estimate_spectra(sweeps: Sequence[Sweep], noise_bins: int = NOISE_BINS,
+                     frequency: npt.ArrayLike | None = None) -> Spectra:
     """
     Return the :class:`Spectra` of ``sweeps`` at each point of the grid.
 
@@ -375,28 +396,29 @@ class FrequencyResponse:
     omega_rad_s: float
     noise_bins: int
     runs: list
-    spectra: Spectra = None
+    # (given by every estimate; the default keeps the field optional in the constructor)
+    spectra: Spectra = None  # type: ignore[assignment]
 
     @property
-    def frequency_hz(self):
+    def frequency_hz(self) -> np.ndarray:
         """Frequencies in Hz at the mean rotor speed (the per-rev value times Ω/2π)."""
         return self.frequency_per_rev * self.omega_rad_s / (2.0 * math.pi)
 
     @property
-    def magnitude(self):
+    def magnitude(self) -> np.ndarray:
         """|H|, rad/rad."""
         return np.abs(self.response)
 
     @property
-    def phase_deg(self):
+    def phase_deg(self) -> np.ndarray:
         """∠H in degrees, in (−180, 180]."""
         return np.degrees(np.angle(self.response))
 
-    def usable(self, coherence_min=COHERENCE_MIN):
+    def usable(self, coherence_min: float = COHERENCE_MIN) -> np.ndarray:
         """Return the points with γ² at least ``coherence_min`` (CIFER: 0.6)."""
         return self.coherence >= coherence_min
 
-    def as_json(self):
+    def as_json(self) -> dict[str, Any]:
         """Return the JSON of ``rotor-id frequency-response`` (other tools read its keys)."""
         return {
             'frequency_per_rev': [float(v) for v in self.frequency_per_rev],
@@ -413,13 +435,14 @@ class FrequencyResponse:
         }
 
 
-def random_error(coherence, averages):
+def random_error(coherence: npt.ArrayLike, averages: npt.ArrayLike) -> np.ndarray:
     """ε_r = √(1 − γ²)/(|γ| √(2 n_d)) (Bendat & Piersol), for |H| (relative) and ∠H (rad)."""
     gamma2 = np.clip(np.asarray(coherence, dtype=float), 1e-12, 1.0)
     return np.sqrt(1.0 - gamma2) / (np.sqrt(gamma2) * np.sqrt(2.0 * np.asarray(averages)))
 
 
-def estimate_frequency_response(sweeps, noise_bins=NOISE_BINS, frequency=None):
+def estimate_frequency_response(sweeps: Sequence[Sweep], noise_bins: int = NOISE_BINS,
+                                frequency: npt.ArrayLike | None = None) -> FrequencyResponse:
     """Estimate the dFRF of one or more :class:`Sweep` (module docstring)."""
     spectra = estimate_spectra(sweeps, noise_bins, frequency)
     if spectra.frequency.size == 0:
@@ -437,18 +460,20 @@ def estimate_frequency_response(sweeps, noise_bins=NOISE_BINS, frequency=None):
 
 
 # ------------------------------------------------------------------------------ CIFER's cost
-def coherence_weight(coherence):
+def coherence_weight(coherence: npt.ArrayLike) -> np.ndarray:
     """W_γ = [1.58 (1 − exp(−γ²))]² (Tischler & Remple)."""
     return (1.58 * (1.0 - np.exp(-np.asarray(coherence, dtype=float)))) ** 2
 
 
-def response_errors(measured, model):
+def response_errors(measured: npt.ArrayLike, model: npt.ArrayLike
+                    ) -> tuple[np.ndarray, np.ndarray]:
     """Return the magnitude (dB) and phase (deg, within ±180) errors of ``model``."""
     ratio = np.asarray(model) / np.asarray(measured)
     return DB * np.log(np.abs(ratio)), DEG * np.angle(ratio)
 
 
-def cifer_cost(measured, model, coherence):
+def cifer_cost(measured: npt.ArrayLike, model: npt.ArrayLike, coherence: npt.ArrayLike
+               ) -> float:
     """J = (20/n) Σ W_γ [W_g Δ|H|dB² + W_p Δ∠H deg²] over the points given (NaN if none)."""
     if np.size(measured) == 0:
         return float('nan')
@@ -468,18 +493,19 @@ class BandCost:
     cost: float
 
     @property
-    def acceptable(self):
+    def acceptable(self) -> bool:
         """J ≤ 100 (CIFER)."""
         return bool(self.points) and self.cost <= ACCEPTABLE_COST
 
-    def as_json(self):
+    def as_json(self) -> dict[str, Any]:
         """Band limits, points and J."""
         return {'frequency_per_rev': [float(self.low), float(self.high)],
                 'points': int(self.points), 'cost': float(self.cost),
                 'acceptable': self.acceptable}
 
 
-def band_costs(estimate, model_response, bands_per_side=3, coherence_min=COHERENCE_MIN):
+def band_costs(estimate: FrequencyResponse, model_response: np.ndarray, bands_per_side: int = 3,
+               coherence_min: float = COHERENCE_MIN) -> tuple[list[BandCost], float]:
     """
     J per band: each direction's usable points split into ``bands_per_side`` equal bands.
 
@@ -504,7 +530,8 @@ def band_costs(estimate, model_response, bands_per_side=3, coherence_min=COHEREN
 
 
 # ------------------------------------------------------------------ the model as estimated
-def model_start(model, p, sweep, collective):
+def model_start(model: 'RotorModel', p: np.ndarray, sweep: Sweep, collective: float
+                ) -> np.ndarray:
     """State at the record's first sample: in trim at the held input (the convention)."""
     u0 = sweep.inputs(sweep.record_t[:1])
     if model.time_invariant:
@@ -527,7 +554,8 @@ def _start_jacobian(model, p, sweep, collective, index):
     return np.column_stack(columns)
 
 
-def model_flap(model, p, sweep, collective, index=()):
+def model_flap(model: 'RotorModel', p: npt.ArrayLike, sweep: Sweep, collective: float,
+               index: Sequence[int] = ()) -> tuple[np.ndarray, np.ndarray | None]:
     """
     Simulate β_c of ``model`` at ``p`` on the measured pitch; return it over the window.
 
@@ -547,10 +575,13 @@ def model_flap(model, p, sweep, collective, index=()):
     flap = sim.x[part, iI] + 1j * sim.x[part, iII]
     if not index:
         return flap, None
-    return flap, sim.dx[part, iI, :] + 1j * sim.dx[part, iII, :]
+    # (simulated with sensitivities to index: dx is an array)
+    return flap, sim.dx[part, iI, :] + 1j * sim.dx[part, iII, :]  # type: ignore[index]
 
 
-def estimated_model_response(model, p, sweeps, spectra, collective, index=()):
+def estimated_model_response(model: 'RotorModel', p: npt.ArrayLike, sweeps: Sequence[Sweep],
+                             spectra: Spectra, collective: float, index: Sequence[int] = ()
+                             ) -> tuple[np.ndarray, np.ndarray | None]:
     """Return the model's dFRF as the estimator sees it on these sweeps (and ∂/∂p_i)."""
     flaps, sens = [], []
     for sweep in sweeps:
@@ -558,7 +589,8 @@ def estimated_model_response(model, p, sweeps, spectra, collective, index=()):
         flaps.append(flap)
         sens.append(dflap)
     response = spectra.of(flaps)
-    return response, (spectra.of(sens) if index else None)
+    # (with index, every sweep's sensitivities are arrays)
+    return response, (spectra.of(sens) if index else None)  # type: ignore[arg-type]
 
 
 # ------------------------------------------------------------------------------ the fit
@@ -583,9 +615,13 @@ def _residuals(measured, model, weights):
     return np.concatenate([weights[0] * mag, weights[1] * phase])
 
 
-def fit_frequency_response(model, sweeps, estimate, unknowns, guess, known, collective,
-                           coherence_min=COHERENCE_MIN, max_iter=40, step_tol=1e-6,
-                           progress=None):
+def fit_frequency_response(model: 'RotorModel', sweeps: Sequence[Sweep],
+                           estimate: FrequencyResponse, unknowns: Sequence[str],
+                           guess: ParameterValues, known: ParameterValues,
+                           collective: float, coherence_min: float = COHERENCE_MIN,
+                           max_iter: int = 40, step_tol: float = 1e-6,
+                           progress: Progress | None = None
+                           ) -> 'FrequencyFit':
     """
     Fit ``unknowns`` by minimising CIFER's J between the estimate and the model's estimate.
 
@@ -688,7 +724,8 @@ def _covariance(A, weights, eps, r):
     return covariance * max(1.0, chi2), chi2
 
 
-def as_estimate(fit, time_domain, method='frequency-response'):
+def as_estimate(fit: 'FrequencyFit', time_domain: Estimate, method: str = 'frequency-response'
+                ) -> Estimate:
     """
     Return an output-error :class:`Estimate` carrying the frequency-domain values and bounds.
 

@@ -6,17 +6,25 @@ Bode plots of a directional frequency response, measured and modelled (matplotli
 phase over one signed frequency axis (− regressing, + progressing, per rev), coherence below.
 """
 
+from typing import Any, TYPE_CHECKING
+
 import numpy as np
 
-from rotor_id.estimation.frequency_response import COHERENCE_MIN, DB
+from rotor_id.estimation.frequency_response import COHERENCE_MIN, DB, FrequencyResponse
+
+if TYPE_CHECKING:
+    import os
+
+    from matplotlib.axes import Axes
 
 
 def _db(values):
     return DB * np.log(np.maximum(np.abs(values), 1e-300))
 
 
-def draw_frequency_response(ax_magnitude, ax_phase, estimate, overlay=None, ax_coherence=None,
-                            sidebands=True):
+def draw_frequency_response(ax_magnitude: 'Axes', ax_phase: 'Axes', estimate: FrequencyResponse,
+                            overlay: Any = None, ax_coherence: 'Axes | None' = None,
+                            sidebands: bool = True) -> None:
     """
     Draw a dFRF estimate and optionally a model on the given axes.
 
@@ -43,12 +51,13 @@ def draw_frequency_response(ax_magnitude, ax_phase, estimate, overlay=None, ax_c
         if not np.any(mask):
             continue
         label = 'measured' if mask is good else f'measured, γ² < {COHERENCE_MIN:g}'
+        # (style: matplotlib keyword arguments, inferred as dict[str, object] by mypy)
         ax_magnitude.errorbar(f[mask], _db(estimate.response[mask]),
                               yerr=DB * np.minimum(eps[mask], 3.0), fmt='o', ms=3, lw=0.8,
-                              label=label, **style)
+                              label=label, **style)  # type: ignore[arg-type]
         ax_phase.errorbar(f[mask], estimate.phase_deg[mask],
                           yerr=np.degrees(np.minimum(eps[mask], np.pi)), fmt='o', ms=3,
-                          lw=0.8, **style)
+                          lw=0.8, **style)  # type: ignore[arg-type]
     if overlay is not None:
         tf = overlay.transfer_function
         for side in (tf.frequency < 0, tf.frequency > 0):
@@ -92,7 +101,7 @@ def draw_frequency_response(ax_magnitude, ax_phase, estimate, overlay=None, ax_c
         ax_coherence.grid(True, lw=0.3)
 
 
-def bode_figure(analysis, path, title=''):
+def bode_figure(analysis: Any, path: 'str | os.PathLike[str]', title: str = '') -> None:
     """Write the Bode figure of a ``pipeline.FrequencyAnalysis`` (PNG) to ``path``."""
     # the figure without pyplot: its import is most of a short command's time
     from matplotlib.backends.backend_agg import FigureCanvasAgg

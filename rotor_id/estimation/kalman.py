@@ -30,10 +30,9 @@ from typing import Callable, Sequence, TYPE_CHECKING
 
 import numpy as np
 import numpy.typing as npt
-from rotor_id.estimation.simulate import (_fine_grid, _rk4_constant_forcing, _rk4_maps,
-                                          _rk4_transition, _time_invariant, DEFAULT_MAX_STEP,
-                                          gap_refinement, substeps_for)
-import scipy.linalg
+from rotor_id.estimation.simulate import (
+    DEFAULT_MAX_STEP, fine_grid, gap_refinement, rk4_constant_forcing, rk4_maps, rk4_transition,
+    substeps_for, time_invariant_steps)
 
 if TYPE_CHECKING:
     from rotor_id.physics.models import LinearModel
@@ -156,17 +155,17 @@ def discretize(model: 'LinearModel', p: npt.ArrayLike, inputs: Callable[[np.ndar
     T = t.size
     m = substeps_for(t, max_step)
     # stage times of all RK4 steps, and the affine step maps x⁺ = Φ_s x + c_s
-    tf = _fine_grid(t, m)
+    tf = fine_grid(t, m)
     u = inputs(tf)
     F, g = model.system(tf, p, u)
     h = np.repeat(np.diff(t) / m, m)
-    constant = _time_invariant(F, h, t)
+    constant = time_invariant_steps(F, h, t)
     if constant:
         # one transition for every step (as the simulator does); c still per step
-        Phi_s, c_s = _rk4_maps(F[:1], g, h[:1])
+        Phi_s, c_s = rk4_maps(F[:1], g, h[:1])
         Phi_s = np.broadcast_to(Phi_s, (h.size, n, n))
     else:
-        Phi_s, c_s = _rk4_maps(F, g, h)
+        Phi_s, c_s = rk4_maps(F, g, h)
     Phi_s = Phi_s.reshape(T - 1, m, n, n)
     c_s = c_s.reshape(T - 1, m, n)
     # compose the m steps of each sample interval (vectorised over intervals)
@@ -246,12 +245,12 @@ def varying_noise_covariance(F: np.ndarray, Fmid: np.ndarray | None, t: np.ndarr
         assert Fmid is not None                 # discretize gives the midpoints' F for 'white'
         return van_loan(Fmid, Qc, np.diff(t))[1], None
     h = np.repeat(np.diff(t) / substeps, substeps)
-    Phi_s = _rk4_transition(F, h).reshape(T - 1, substeps, n, n)
+    Phi_s = rk4_transition(F, h).reshape(T - 1, substeps, n, n)
     G_s = np.zeros((T - 1, substeps, n, len(rows)))
     for k, row in enumerate(rows):
         w = np.zeros((h.size, n))
         w[:, row] = 1.0
-        G_s[:, :, :, k] = _rk4_constant_forcing(F, w, h).reshape(T - 1, substeps, n)
+        G_s[:, :, :, k] = rk4_constant_forcing(F, w, h).reshape(T - 1, substeps, n)
     G = np.zeros((T - 1, n, len(rows)))
     for s in range(substeps):
         G = Phi_s[:, s] @ G + G_s[:, s]
@@ -269,12 +268,12 @@ def held_noise_response(F: np.ndarray, dt: float, substeps: int,
     n = F.shape[0]
     h = np.array([dt / substeps])
     F1 = F[None]
-    step = _rk4_maps(F1, np.zeros((1, n)), h)[0][0]
+    step = rk4_maps(F1, np.zeros((1, n)), h)[0][0]
     G = np.zeros((n, len(rows)))
     for k, row in enumerate(rows):
         w = np.zeros((1, n))
         w[0, row] = 1.0
-        G_s = _rk4_constant_forcing(F1, w, h)[0]
+        G_s = rk4_constant_forcing(F1, w, h)[0]
         g = np.zeros(n)
         for _ in range(substeps):
             g = step @ g + G_s
@@ -431,6 +430,7 @@ def steady_state_covariance(dm: DiscreteModel, R: np.ndarray) -> np.ndarray:
     n = Phi.shape[0]
     if not np.any(Q):
         return np.zeros((n, n))         # no process noise: the prediction is exact
+    import scipy.linalg             # only here: its import is a tenth of a second
     P = scipy.linalg.solve_discrete_are(Phi.T, H.T, Q, R)
     return _symmetric(P)
 

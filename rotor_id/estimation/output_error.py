@@ -23,10 +23,11 @@ on the functions below.
 from dataclasses import dataclass, field
 import math
 import time
-from typing import Callable, TYPE_CHECKING
+from typing import Any, Callable, Mapping, Sequence, TYPE_CHECKING
 import weakref
 
 import numpy as np
+import numpy.typing as npt
 
 from rotor_id.estimation.simulate import (DEFAULT_MAX_STEP, simulate, Simulation,
                                           TimeInvariantPlan)
@@ -38,6 +39,10 @@ INITIAL_STATE_MODES = ('estimate', 'positions', 'equilibrium', 'zero')
 
 #: Returned by a ``progress`` callback: stop after this iteration and return the estimate so far.
 STOP = 'stop after this iteration'
+#: Parameter values by name (a guess, known values).
+ParameterValues = Mapping[str, float]
+#: A fit's progress callback: called with each iteration's dict; :data:`STOP` ends the fit.
+Progress = Callable[[dict[str, Any]], Any]
 
 
 class IdentificationError(ValueError):
@@ -75,13 +80,13 @@ class Experiment:
     model: 'LinearModel'
     inputs: Callable[[np.ndarray], np.ndarray]
     t: np.ndarray
-    y: np.ndarray = None
+    y: np.ndarray | None = None
     initial_state: object = 'estimate'
     x0_guess: object = None
     name: str = 'run'
     noise_group: object = 0
 
-    def free_states(self):
+    def free_states(self) -> list[int]:
         """Return the indices of the states whose initial value is estimated."""
         mode = self.initial_state
         if isinstance(mode, str):
@@ -125,32 +130,32 @@ class Estimate:
     run_noise_std: list = field(default_factory=list)
 
     @property
-    def std(self):
+    def std(self) -> np.ndarray:
         """Cramér-Rao standard deviations √diag(M⁻¹)."""
         return np.sqrt(np.clip(np.diag(self.covariance), 0.0, None))
 
     @property
-    def correlation(self):
+    def correlation(self) -> np.ndarray:
         """Correlation matrix of the Cramér-Rao bound."""
         s = self.std
         with np.errstate(invalid='ignore', divide='ignore'):
             corr = self.covariance / np.outer(s, s)
         return np.nan_to_num(corr)
 
-    def value(self, name):
+    def value(self, name: str) -> float:
         """Estimated value of parameter ``name``."""
         return float(self.values[self.names.index(name)])
 
-    def std_of(self, name):
+    def std_of(self, name: str) -> float:
         """Cramér-Rao σ of parameter ``name``."""
         return float(self.std[self.names.index(name)])
 
-    def residual_rms(self):
+    def residual_rms(self) -> np.ndarray:
         """RMS of all residuals, per channel."""
         res = np.concatenate(self.residuals, axis=0)
         return np.sqrt(np.mean(res**2, axis=0))
 
-    def as_dict(self):
+    def as_dict(self) -> dict[str, Any]:
         """JSON-ready dictionary with the stable keys of ``rotor-id identify``."""
         return {
             'method': self.method,
@@ -181,7 +186,7 @@ def _initial_state_name(state, run_index, n_runs):
 #: reference to the model, {key: layout}); at most this many models and layouts per model
 LAYOUT_MODELS = 64
 LAYOUTS_PER_MODEL = 8
-_layouts = {}
+_layouts: dict[int, tuple[weakref.ref, dict[tuple, dict[str, Any]]]] = {}
 
 
 def _layout(experiments, unknowns, guess, known):
@@ -260,7 +265,8 @@ def _new_layout(experiments, unknowns, guess, known, free_states):
 class Problem:
     """Bookkeeping of θ = [free model parameters, free initial states of each run]."""
 
-    def __init__(self, experiments, unknowns, guess, known):
+    def __init__(self, experiments: Sequence[Experiment], unknowns: Sequence[str],
+                 guess: ParameterValues | None, known: ParameterValues | None) -> None:
         if not experiments:
             raise IdentificationError('no experiment (run) to identify from')
         self.experiments = experiments
@@ -276,10 +282,10 @@ class Problem:
         self.state_slices = list(layout['state_slices'])
         self.lo, self.hi = layout['lo'], layout['hi']
         #: per run: a TimeInvariantPlan (or None) once :meth:`prepare` ran; None before
-        self.plans = None
-        self.max_step = None
+        self.plans: list[TimeInvariantPlan | None] | None = None
+        self.max_step: float | None = None
 
-    def prepare(self, max_step):
+    def prepare(self, max_step: float) -> 'Problem':
         """
         Prepare every run's record for repeated simulation (:class:`TimeInvariantPlan`).
 
@@ -292,7 +298,7 @@ class Problem:
         self.max_step = max_step
         return self
 
-    def run_columns(self, r):
+    def run_columns(self, r: int) -> np.ndarray | None:
         """Columns of θ of run r's sensitivities (None: all of θ, in order)."""
         k_par = len(self.param_index)
         sl = self.state_slices[r]
@@ -300,12 +306,13 @@ class Problem:
             return None
         return np.concatenate([np.arange(k_par), np.arange(sl.start, sl.stop)])
 
-    def full_parameters(self, theta):
+    def full_parameters(self, theta: np.ndarray) -> np.ndarray:
         p = self.p_base.copy()
         p[self.param_index] = theta[:len(self.param_index)]
         return p
 
-    def initial_state(self, r, theta, p):
+    def initial_state(self, r: int, theta: np.ndarray, p: np.ndarray
+                      ) -> tuple[np.ndarray, np.ndarray]:
         """x0 of run r and ∂x0/∂θ_r (columns: model unknowns, then this run's free states)."""
         exp = self.experiments[r]
         n = exp.model.n_states
@@ -323,7 +330,7 @@ class Problem:
         jac[free, k_par + np.arange(len(free))] = 1.0
         return x0, jac
 
-    def fixed_initial_state(self, r):
+    def fixed_initial_state(self, r: int) -> np.ndarray:
         """x0 of run r before its free states are set (not for 'equilibrium'): a new array."""
         exp = self.experiments[r]
         n = exp.model.n_states
@@ -336,7 +343,7 @@ class Problem:
         return x0
 
 
-def fit_initial_states(problem, theta, max_step):
+def fit_initial_states(problem: Problem, theta: np.ndarray, max_step: float) -> np.ndarray:
     """Least-squares initial states at fixed model parameters (y is linear in x0)."""
     p = None                            # the model parameters, once a run needs them
     for r, exp in enumerate(problem.experiments):
@@ -358,7 +365,7 @@ def fit_initial_states(problem, theta, max_step):
         else:
             sim = simulate(exp.model, p, exp.inputs, exp.t, x0, param_index=(),
                            x0_jacobian=jac, max_step=max_step)
-        A = sim.dy.reshape(-1, len(free))
+        A = sim.dy.reshape(-1, len(free))  # type: ignore[union-attr]  # with x0_jacobian
         b = (exp.y - sim.y).ravel()
         ok = np.isfinite(b)
         theta[problem.state_slices[r]] = np.linalg.lstsq(A[ok], b[ok], rcond=None)[0]
@@ -372,11 +379,13 @@ def _plan(problem, r, max_step):
     return problem.plans[r]
 
 
-def evaluate(problem, theta, max_step=DEFAULT_MAX_STEP, sensitivities=True):
+def evaluate(problem: Problem, theta: np.ndarray, max_step: float = DEFAULT_MAX_STEP,
+             sensitivities: bool = True) -> list[tuple[Any, Any, Simulation]]:
     """
     Residuals and output sensitivities of every run at θ.
 
-    Returns a list of (residual (T, m), dy/dθ (T, m, len(θ)) or None, simulation) per run.
+    Returns a list of (residual (T, m), dy/dθ (T, m, len(θ)) or None, simulation) per run
+    (residual None for a run without measurements, dy/dθ None without ``sensitivities``).
     Runs with a prepared plan (:meth:`Problem.prepare`) also carry the residuals' sums in
     ``simulation.residual_sums`` (run-local columns, :meth:`Problem.run_columns`).
     """
@@ -402,8 +411,9 @@ def evaluate(problem, theta, max_step=DEFAULT_MAX_STEP, sensitivities=True):
             res = None if exp.y is None else exp.y - sim.y
         if sensitivities:
             dy = np.zeros(sim.y.shape + (len(theta),))
-            dy[:, :, :k_par] = sim.dy[:, :, :k_par]
-            dy[:, :, problem.state_slices[r]] = sim.dy[:, :, k_par:]
+            # (a simulation with sensitivities has dy)
+            dy[:, :, :k_par] = sim.dy[:, :, :k_par]  # type: ignore[index]
+            dy[:, :, problem.state_slices[r]] = sim.dy[:, :, k_par:]  # type: ignore[index]
         else:
             dy = None
         out.append((res, dy, sim))
@@ -447,7 +457,8 @@ def _weighted_sums(problem, results, noise_var):
     return M, grad
 
 
-def information_matrix(dys, noise_var):
+def information_matrix(dys: Sequence[np.ndarray],
+                       noise_var: npt.ArrayLike | list[npt.ArrayLike]) -> np.ndarray:
     """
     M = Σ_j (∂ŷ_j/∂θ)ᵀ R⁻¹ (∂ŷ_j/∂θ) over all runs (R = diag(noise_var)).
 
@@ -474,7 +485,9 @@ def _per_run(noise_var, n_runs):
 DEPENDENCE_THRESHOLD = 1e-7
 
 
-def dependence_warnings(names, M, threshold=DEPENDENCE_THRESHOLD):
+def dependence_warnings(names: Sequence[str], M: np.ndarray,
+                        threshold: float = DEPENDENCE_THRESHOLD
+                        ) -> tuple[list[str], np.ndarray | None]:
     """
     Eigen-analysis of the scaled information matrix: name near-dependent combinations.
 
@@ -518,8 +531,11 @@ def dependence_warnings(names, M, threshold=DEPENDENCE_THRESHOLD):
     return warnings, vals
 
 
-def damped_gauss_newton_step(theta, grad, M, lo, hi, cost, trial_cost, lm, free=None,
-                             attempts=12, halvings=6):
+def damped_gauss_newton_step(theta: np.ndarray, grad: np.ndarray, M: np.ndarray,
+                             lo: npt.ArrayLike, hi: npt.ArrayLike, cost: float,
+                             trial_cost: Callable[[np.ndarray], tuple[float, Any]], lm: float,
+                             free: npt.ArrayLike | None = None, attempts: int = 12,
+                             halvings: int = 6) -> tuple[bool, np.ndarray, float, Any, float]:
     """
     One accepted step of scaled Gauss-Newton (Fisher scoring) with damping and step halving.
 
@@ -576,9 +592,14 @@ def damped_gauss_newton_step(theta, grad, M, lo, hi, cost, trial_cost, lm, free=
     return False, theta, cost, None, lm
 
 
-def fit_output_error(experiments, unknowns, guess=None, known=None, noise_std=None,
-                     prior=None, max_iter=50, step_tol=1e-6, max_step=DEFAULT_MAX_STEP,
-                     progress=None, label='output-error ML'):
+def fit_output_error(experiments: Sequence[Experiment], unknowns: Sequence[str],
+                     guess: ParameterValues | None = None,
+                     known: ParameterValues | None = None,
+                     noise_std: npt.ArrayLike | Sequence[npt.ArrayLike | None] | None = None,
+                     prior: Mapping[str, Mapping[str, float]] | None = None, max_iter: int = 50,
+                     step_tol: float = 1e-6, max_step: float = DEFAULT_MAX_STEP,
+                     progress: Progress | None = None,
+                     label: str = 'output-error ML') -> Estimate:
     """
     Output-error maximum likelihood over one or more runs.
 
@@ -678,6 +699,10 @@ def fit_output_error(experiments, unknowns, guess=None, known=None, noise_std=No
         return var
 
     theta_eval = theta
+    # the compiled iteration, or None once (or where) the fit runs in Python; the results of
+    # either path (the compiled one's stay in its buffers: None until read)
+    compiled: Any                       # (an iteration status ≥ 0 means it is not None)
+    results: Any
     compiled = _CompiledIteration.for_problem(problem, floor, prior_info, prior_mean, step_tol,
                                               not fixed_noise)
     if compiled is not None and progress is None:     # the whole fit in one compiled call
@@ -725,7 +750,7 @@ def fit_output_error(experiments, unknowns, guess=None, known=None, noise_std=No
             message = NO_STEP_MESSAGE
             converged = _gradient_small(grad, M, cost)
             break
-        applied = None if compiled is not None else trial - theta
+        applied: Any = None if compiled is not None else trial - theta
         theta = trial
         results = trial_results
         if compiled is not None:

@@ -34,12 +34,17 @@ a finite-difference peer's next simulation, prepares nothing again.
 from dataclasses import dataclass
 import math
 import time
+from typing import Any, Callable, Sequence, TYPE_CHECKING
 import weakref
 
 import numpy as np
+import numpy.typing as npt
 
 from rotor_id.estimation import kernels
 from rotor_id.physics.models import compact, full_along_time
+
+if TYPE_CHECKING:
+    from rotor_id.physics.models import LinearModel
 
 #: Longest RK4 step (nondimensional time). 0.05 keeps the truncation error of a 2/rev mode at
 #: about 1e-7 per revolution, far below any measurement noise.
@@ -69,15 +74,15 @@ class Simulation:
     t: np.ndarray
     x: np.ndarray
     y: np.ndarray
-    dx: np.ndarray = None
-    dy: np.ndarray = None
+    dx: np.ndarray | None = None
+    dy: np.ndarray | None = None
     #: With measurements (:meth:`TimeInvariantPlan.run`): residuals y − ŷ (T, m) and their
     #: per-channel sums (Σ r² (m,), Σ ∂ŷᵀ r (m, k), Σ ∂ŷᵀ ∂ŷ (m, k, k)); otherwise None.
-    residual: np.ndarray = None
-    residual_sums: tuple = None
+    residual: np.ndarray | None = None
+    residual_sums: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
 
 
-def substeps_for(t, max_step=DEFAULT_MAX_STEP):
+def substeps_for(t: npt.ArrayLike, max_step: float = DEFAULT_MAX_STEP) -> int:
     """Return the number of equal RK4 steps per sample interval so no step exceeds ``max_step``."""
     dt = np.diff(np.asarray(t, dtype=float))
     if dt.size == 0:
@@ -94,7 +99,8 @@ def _substeps(longest_interval, max_step):
 GAP_INTERVALS = 1.5
 
 
-def gap_refinement(t, max_step=DEFAULT_MAX_STEP):
+def gap_refinement(t: npt.ArrayLike, max_step: float = DEFAULT_MAX_STEP
+                   ) -> tuple[np.ndarray, np.ndarray] | None:
     """
     Return (times with the gaps filled, index of ``t`` in them), or None where there is no gap.
 
@@ -125,7 +131,7 @@ def gap_refinement(t, max_step=DEFAULT_MAX_STEP):
     return fine, index
 
 
-def _fine_grid(t, substeps):
+def fine_grid(t, substeps):
     """Stage times: for every RK4 step its start, middle and end (shared with the next step)."""
     t = np.asarray(t, dtype=float)
     frac = np.arange(2 * substeps) / (2 * substeps)
@@ -155,7 +161,7 @@ def _mv(A, x):
     return (A @ x[..., None])[..., 0]
 
 
-def _rk4_maps(F, g, h):
+def rk4_maps(F, g, h):
     """
     Affine RK4 step maps x⁺ = Φ x + c from stage values (see the module docstring).
 
@@ -163,7 +169,7 @@ def _rk4_maps(F, g, h):
     ``h`` (M,). Returns Φ (M, n, n) and c (M, n). A time-invariant system may pass F (1, n, n)
     and one step length h (1,): then Φ (1, n, n) is computed once, c still per step.
     """
-    Phi = _rk4_transition(F, h)
+    Phi = rk4_transition(F, h)
     _, Fm, F1 = _stages(F)
     g0, gm, g1 = _stages(g)
     hv = h[:, None]
@@ -175,8 +181,8 @@ def _rk4_maps(F, g, h):
     return Phi, c
 
 
-def _rk4_transition(F, h):
-    """Φ (M, n, n) of the affine RK4 step maps of :func:`_rk4_maps` (F and h shaped as there)."""
+def rk4_transition(F, h):
+    """Φ (M, n, n) of the affine RK4 step maps of :func:`rk4_maps` (F and h shaped as there)."""
     F0, Fm, F1 = _stages(F)
     hh = h[:, None, None]
     # stage matrices: k_i = A_i x + b_i
@@ -187,11 +193,11 @@ def _rk4_transition(F, h):
     return np.eye(F.shape[-1]) + hh / 6.0 * (A1 + 2.0 * A2 + 2.0 * A3 + A4)
 
 
-def _rk4_transition_derivative(F, dF, h):
+def rk4_transition_derivative(F, dF, h):
     """
-    ∂Φ/∂p (M, k, n, n) of the RK4 step maps of :func:`_rk4_transition` along dF (…, k, n, n).
+    ∂Φ/∂p (M, k, n, n) of the RK4 step maps of :func:`rk4_transition` along dF (…, k, n, n).
 
-    The stage matrices of :func:`_rk4_transition` differentiated by the product rule, as
+    The stage matrices of :func:`rk4_transition` differentiated by the product rule, as
     matrices: ∂Φ e_c for every c at once, where :func:`_rk4_step_derivative` takes one pass
     per state column. Shapes as in :func:`_rk4_step_derivative`.
     """
@@ -213,7 +219,7 @@ def _rk4_step_derivative(F, g, h, dF, dg, x):
 
     The derivative of one RK4 step x⁺ = x + h/6 (k₁ + 2k₂ + 2k₃ + k₄) with respect to the
     parameters at fixed x, carried through the stages as vectors (shapes as in
-    :func:`_rk4_maps`; dF (2M+1 or 1, k, n, n), dg (2M+1, k, n)). Returns (M, k, n).
+    :func:`rk4_maps`; dF (2M+1 or 1, k, n, n), dg (2M+1, k, n)). Returns (M, k, n).
     """
     F0, Fm, F1 = _stages(F)
     g0, gm, g1 = _stages(g)
@@ -237,8 +243,10 @@ def _rk4_step_derivative(F, g, h, dF, dg, x):
     return h3 / 6.0 * (dk1 + 2.0 * dk2 + 2.0 * dk3 + dk4)
 
 
-def simulate(model, p, inputs, t, x0, param_index=(), x0_jacobian=None,
-             max_step=DEFAULT_MAX_STEP, forcing=None):
+def simulate(model: 'LinearModel', p: npt.ArrayLike, inputs: Callable[[np.ndarray], np.ndarray],
+             t: npt.ArrayLike, x0: npt.ArrayLike, param_index: Sequence[int] = (),
+             x0_jacobian: npt.ArrayLike | None = None, max_step: float = DEFAULT_MAX_STEP,
+             forcing: npt.ArrayLike | None = None) -> Simulation:
     """
     Simulate ``model`` at sample times ``t`` from ``x0`` = x(t[0]), optionally with sensitivities.
 
@@ -305,7 +313,8 @@ def simulate(model, p, inputs, t, x0, param_index=(), x0_jacobian=None,
     m = substeps_for(t, max_step)
     xs = np.empty((T, n))
     xs[0] = x0
-    Ss = np.empty((T, n, k)) if want_sens else None
+    # an array exactly when want_sens (every use below is under that test)
+    Ss: Any = np.empty((T, n, k)) if want_sens else None
     if want_sens:
         Ss[0] = S0
         if forcing is not None:
@@ -318,7 +327,7 @@ def simulate(model, p, inputs, t, x0, param_index=(), x0_jacobian=None,
     for start in range(0, T - 1, per_chunk):
         stop = min(T - 1, start + per_chunk)
         ts = t[start:stop + 1]
-        tf = _fine_grid(ts, m)
+        tf = fine_grid(ts, m)
         u = inputs(tf)
         h = np.repeat(np.diff(ts) / m, m)
         if kernel is not None:
@@ -330,15 +339,15 @@ def simulate(model, p, inputs, t, x0, param_index=(), x0_jacobian=None,
                                    Ss[start:stop + 1] if want_sens else None)
             continue
         F, g = model.system(tf, p, u)
-        if _time_invariant(F, h, ts):
+        if time_invariant_steps(F, h, ts):
             # one Φ for every step; c still follows the input step by step
             F_maps, h_maps = F[:1], h[:1]
         else:
             F_maps, h_maps = F, h
-        Phi_s, c_s = _rk4_maps(F_maps, g, h_maps)
+        Phi_s, c_s = rk4_maps(F_maps, g, h_maps)
         if forcing is not None:
             w = np.repeat(np.asarray(forcing, dtype=float)[start:stop], m, axis=0)
-            c_s = c_s + _rk4_constant_forcing(F_maps, w, h_maps)
+            c_s = c_s + rk4_constant_forcing(F_maps, w, h_maps)
         # maps from one sample to the next (the m RK4 steps of each interval composed)
         Phi, c = _per_interval(m, Phi_s, c_s)
         levels = _doubling_products(Phi, stop - start)
@@ -380,17 +389,22 @@ PLAN_MAX_VALUES = 1 << 19
 #: Azimuths (rad) at which :func:`affine_time_invariant` probes a model: arbitrary, so that
 #: no periodic coefficient (period 2π/N) takes the same value at all three.
 _CHECK_TIMES = (0.5, 2.1, 3.9)
-_verdicts = weakref.WeakKeyDictionary()        # model -> {number of inputs: verdict}
-_affine_masks = weakref.WeakKeyDictionary()    # model -> {(unknowns, fixed p): mask}
+# model -> {number of inputs: verdict}
+_verdicts: 'weakref.WeakKeyDictionary[LinearModel, dict[int, bool]]' = (
+    weakref.WeakKeyDictionary())
+# model -> {(unknowns, fixed p): mask}
+_affine_masks: 'weakref.WeakKeyDictionary[LinearModel, dict[tuple, np.ndarray]]' = (
+    weakref.WeakKeyDictionary())
 #: model -> {(id(inputs), max_step, T): (inputs, t, plan or None)}: the records prepared for
 #: a model (see :meth:`TimeInvariantPlan.prepare`); a plan refers to its model weakly, so the
 #: entries go with the model.
-_record_plans = weakref.WeakKeyDictionary()
+_record_plans: 'weakref.WeakKeyDictionary[LinearModel, dict[tuple, tuple]]' = (
+    weakref.WeakKeyDictionary())
 #: Most records remembered per model object (a diagnosis refits a handful per record).
 RECORD_PLANS_PER_MODEL = 8
 
 
-def affine_time_invariant(model, p, n_inputs):
+def affine_time_invariant(model: 'LinearModel', p: npt.ArrayLike, n_inputs: int) -> bool:
     """
     Tell whether F is constant and g = B u + e (B, e constant), and so their derivatives.
 
@@ -461,7 +475,7 @@ class TimeInvariantPlan:
 
     When F is constant, g = B u + e (:func:`affine_time_invariant`) and the RK4 steps are equal,
     every sample interval is the same affine map x_{j+1} = Φ x_j + C U_j + c_e of the stage
-    inputs U_j, with Φ, C, c_e polynomials in F, B, e (the expansion of :func:`_rk4_maps`,
+    inputs U_j, with Φ, C, c_e polynomials in F, B, e (the expansion of :func:`rk4_maps`,
     composed over the interval's steps). Per parameter vector, the model is evaluated once at
     its unit inputs (not at every stage time), the interval map and its parameter derivatives
     are formed once, and one compiled pass propagates the states and sensitivities, forms the
@@ -476,9 +490,12 @@ class TimeInvariantPlan:
     where the compiled kernels are loaded.
     """
 
-    def __init__(self, model, t, substeps, u, module):
-        """Hold the record: times, stage inputs u (at _fine_grid), H; see :meth:`prepare`."""
+    def __init__(self, model: 'LinearModel', t: np.ndarray, substeps: int, u: np.ndarray,
+                 module: Any) -> None:
+        """Hold the record: times, stage inputs u (at fine_grid), H; see :meth:`prepare`."""
         T = t.size
+        # a weak reference to the model, or a holder where it cannot be referenced weakly
+        self._model: Callable[[], LinearModel | None]
         try:
             self._model = weakref.ref(model)
         except TypeError:                       # not weakly referenceable: held (not cached)
@@ -500,22 +517,25 @@ class TimeInvariantPlan:
         self.probe_t = np.full(self.n_inputs + 1, float(t[0]))
         self.probe_u = _unit_inputs(self.n_inputs)
         #: (p_ref, F, g, ∂F, ∂g at the unit inputs, mask of affine parameters); see _probes
-        self.reference = None
+        self.reference: tuple | None = None
         #: (reference, its p, its affine mask, the checked parameters) as lists (:meth:`_lists`)
-        self._reference_lists = None
+        self._reference_lists: tuple | None = None
         #: (free states, x0_base, S0) of the compiled fits of this record, by initial-state
         #: mode and θ's layout (output_error._CompiledIteration._initial_state_map)
-        self.initial_state_maps = {}
+        self.initial_state_maps: dict[tuple, tuple] = {}
         #: parameters whose affinity the reference's mask has checked (P,)
         self.checked = np.zeros(len(model.parameters), dtype=bool)
 
     @property
-    def model(self):
+    def model(self) -> 'LinearModel':
         """Return the model this record was prepared for."""
-        return self._model()
+        # None only once the model is gone, and a plan is used by a caller that holds it
+        return self._model()  # type: ignore[return-value]
 
     @classmethod
-    def prepare(cls, model, inputs, t, max_step, p):
+    def prepare(cls, model: 'LinearModel', inputs: Callable[[np.ndarray], np.ndarray],
+                t: npt.ArrayLike, max_step: float, p: npt.ArrayLike
+                ) -> 'TimeInvariantPlan | None':
         """
         Return a plan for this record, or None where it does not apply (then simulate).
 
@@ -546,16 +566,17 @@ class TimeInvariantPlan:
         m = substeps_for(t, max_step)
         if (2 * m * (t.size - 1) + 1) * 3 > PLAN_MAX_VALUES:
             return None
-        if not _equal_steps(np.diff(t) / m, t):
+        if not equal_steps(np.diff(t) / m, t):
             return None
-        u = np.asarray(inputs(_fine_grid(t, m)), dtype=float)
+        u = np.asarray(inputs(fine_grid(t, m)), dtype=float)
         if u.ndim != 2 or not affine_time_invariant(model, p, u.shape[1]):
             return None
         t = t.copy()
         t.setflags(write=False)                 # shared by every fit of this record
         return cls(model, t, m, u, module)
 
-    def run(self, p, x0, param_index=(), S0=None, y=None):
+    def run(self, p: npt.ArrayLike, x0: npt.ArrayLike, param_index: npt.ArrayLike = (),
+            S0: npt.ArrayLike | None = None, y: npt.ArrayLike | None = None) -> Simulation:
         """
         Simulate from x0 with sensitivities to ``param_index`` and the columns of ``S0``.
 
@@ -574,7 +595,7 @@ class TimeInvariantPlan:
         if (x0.shape != (n,) or S0.ndim != 2 or S0.shape[0] != n or S0.shape[1] < index.size
                 or p.shape != (len(model.parameters),)
                 or (index.size and (index.min() < 0 or index.max() >= p.size))
-                or (fit and np.shape(y) != (self.t.size, m))):
+                or (fit and np.shape(y) != (self.t.size, m))):  # type: ignore[arg-type]
             raise ValueError('TimeInvariantPlan.run: x0 needs shape (n,), S0 (n, k ≥ '
                              'len(param_index)), p one value per model parameter, y (T, m)')
         F, g, dF, dg, shift = self._probes(p, index)
@@ -601,7 +622,7 @@ class TimeInvariantPlan:
         return Simulation(self.t, xs, yhat, Ss, dyhat, residual=res if fit else None,
                           residual_sums=sums)
 
-    def reference_at(self, p, index):
+    def reference_at(self, p: npt.ArrayLike, index: np.ndarray) -> tuple:
         """
         Return the reference point (as :attr:`reference`) that serves p with sensitivities.
 
@@ -612,7 +633,7 @@ class TimeInvariantPlan:
         if ref is not None and self._on_reference(p, ref, index.tolist()):
             return ref
         self._probes(np.asarray(p, dtype=float), index)
-        return self.reference
+        return self.reference  # type: ignore[return-value]  # _probes has just set it
 
     def _lists(self, ref):
         """Return (reference, its p, its affine mask, the checked parameters) as lists."""
@@ -633,7 +654,7 @@ class TimeInvariantPlan:
         return all(checked[i] for i in indices) and all(
             a == b for a, b, free in zip(np.asarray(p).tolist(), values, affine) if not free)
 
-    def affine_along(self, ref, indices):
+    def affine_along(self, ref: tuple, indices: Sequence[int]) -> bool:
         """Tell whether F and g of the reference ``ref`` are affine along ``indices`` (a list)."""
         affine = self._lists(ref)[2]
         return all(affine[i] for i in indices)
@@ -719,7 +740,7 @@ class TimeInvariantPlan:
         return mask
 
     @staticmethod
-    def no_sensitivity(n):
+    def no_sensitivity(n: int) -> np.ndarray:
         """∂x0/∂θ with no columns."""
         return np.zeros((n, 0))
 
@@ -744,10 +765,10 @@ def _compiled_chunk(kernel, model, p, tf, u, F, g, h, m, param_index, x, S, xs, 
     """
     n = x.shape[0]
     constant_F = bool(np.all(F == F[:1]))
-    if constant_F and _equal_steps(h, tf):
-        Phi = _rk4_transition(F[:1], h[:1])
+    if constant_F and equal_steps(h, tf):
+        Phi = rk4_transition(F[:1], h[:1])
     else:
-        Phi = _rk4_transition(full_along_time(F, tf.size), h)
+        Phi = rk4_transition(full_along_time(F, tf.size), h)
     F_val, (F_i, F_j) = _nonzero_entries(F[:1] if constant_F else F)
     if param_index:
         dF, dg = compact(model, 'system_jacobian', tf, p, u)
@@ -780,7 +801,7 @@ def _nonzero_entries(A):
             tuple(i.astype(np.int64) for i in index))
 
 
-def _time_invariant(F, h, ts):
+def time_invariant_steps(F, h, ts):
     """
     Return True when F is the same at every stage time and all steps are equally long.
 
@@ -788,16 +809,16 @@ def _time_invariant(F, h, ts):
     ``round(t0 + 0.1 j, 10)``, whose differences carry errors of a few ulp of t, i.e. 1e-13
     of a step at t ≈ 1000) count as equal; anything larger (time-stamp jitter) does not.
     """
-    return bool(np.all(F == F[:1])) and _equal_steps(h, ts)
+    return bool(np.all(F == F[:1])) and equal_steps(h, ts)
 
 
-def _equal_steps(h, ts):
+def equal_steps(h, ts):
     """Tell whether the steps h are equal to the rounding of the times ts (see above)."""
     rounding = 8.0 * np.finfo(float).eps * float(np.max(np.abs(ts)))
     return bool(np.ptp(h) <= 1e-12 * abs(h[0]) + rounding)
 
 
-def _rk4_constant_forcing(F, w, h):
+def rk4_constant_forcing(F, w, h):
     """Contribution to c of an input w (M, n) held constant over each RK4 step."""
     _, Fm, F1 = _stages(F)
     hv = h[:, None]

@@ -34,8 +34,11 @@ library used.)
 from contextlib import suppress
 from dataclasses import dataclass, field
 from io import BytesIO
+import os
 from pathlib import Path
 import re
+from types import TracebackType
+from typing import Any, cast, Iterable, Literal, Mapping, Sequence, TYPE_CHECKING
 import warnings
 import xml.etree.ElementTree as ElementTree
 
@@ -48,7 +51,8 @@ from rotor_id.io.jointstate_cdr import decode_batch, encode_batch, JOINT_STATE
 from rotor_id.io.mcap_recover import scan_mcap, zstd
 from rotor_id.io.record import Record, Repair
 from rotor_id.io.run_description import (DEFAULT_AZIMUTH_JOINT, DEFAULT_TOPICS,
-                                         normalize_joint_names, recorded_topic, validate_window)
+                                         normalize_joint_names, recorded_topic, RunDescription,
+                                         validate_window)
 from rotor_id.io.streams import (
     interleaved_streams, phase_outliers, repair_value_spikes, spikes, split_runs,
     stuck_channels,
@@ -56,6 +60,10 @@ from rotor_id.io.streams import (
 from rotor_id.io.timebase import interpolate_columns, nondimensional_time, TWO_PI, wrap_azimuth
 from rotor_id.numpy_compat import trapezoid
 import yaml
+
+if TYPE_CHECKING:
+    from rosbags.interfaces import Connection
+    from rosbags.typesys.store import Typestore
 
 __all__ = [
     'BagError', 'BagWarning', 'BagWriter', 'DEFAULT_TOPICS', 'open_writer', 'read_messages',
@@ -367,7 +375,7 @@ class _Samples:
     position: np.ndarray
     velocity: object             # (n, k) or None
     message: np.ndarray          # message number of each sample, in recording order
-    frame_ids: dict = None       # header.frame_id -> messages
+    frame_ids: dict | None = None  # header.frame_id -> messages
 
 
 def _topic_samples(ctx, topic, role, with_velocity):
@@ -630,9 +638,12 @@ def _gaps(stamps_ns, omega, topic, issues, what):
 
 # --------------------------------------------------------------------------- reading
 
-def read_record(bag_path, topics=None, joint_names=None, *, n_blades=None, omega_rad_s=None,
-                run=None, window_s=None, azimuth_joint=DEFAULT_AZIMUTH_JOINT,
-                azimuth_convention='wrapped', check_dead_flap=True):
+def read_record(bag_path: str | os.PathLike, topics: Mapping[str, str | None] | None = None,
+                joint_names: object = None, *, n_blades: int | None = None,
+                omega_rad_s: float | None = None, run: int | None = None,
+                window_s: Sequence[float] | None = None,
+                azimuth_joint: str = DEFAULT_AZIMUTH_JOINT, azimuth_convention: str = 'wrapped',
+                check_dead_flap: bool = True) -> Record:
     """
     Read a test-stand recording into a Record on the flap stamps.
 
@@ -728,7 +739,7 @@ def read_record(bag_path, topics=None, joint_names=None, *, n_blades=None, omega
     return record
 
 
-def may_read_by_parts(bag_path):
+def may_read_by_parts(bag_path: str | os.PathLike) -> bool:
     """
     Say whether :func:`read_record` may read only the part of this bag around a window.
 
@@ -1128,7 +1139,8 @@ def _repair_phase(ctx, topic, joint, stamps, position, rate, time_s):
     return stamps[good], position[good], rate[good], time_s[good]
 
 
-def read_run(description, bag_path=None):
+def read_run(description: RunDescription,
+             bag_path: str | os.PathLike | None = None) -> Record:
     """
     Read the bag of a run description, and check its window against the record.
 
@@ -1158,7 +1170,7 @@ def read_run(description, bag_path=None):
     return record
 
 
-def typestore_with_custom_types(msg_dirs=()):
+def typestore_with_custom_types(msg_dirs: Iterable[str | os.PathLike] = ()) -> 'Typestore':
     """
     Jazzy's rosbags typestore plus rotor_id_msgs and the .msg files of ``msg_dirs``.
 
@@ -1177,7 +1189,7 @@ def typestore_with_custom_types(msg_dirs=()):
     return store
 
 
-def message_with_defaults(store, name, **values):
+def message_with_defaults(store: 'Typestore', name: str, **values: Any) -> Any:
     """
     Build a message of type ``name`` from ``store``: the fields given, every other at zero.
 
@@ -1188,6 +1200,7 @@ def message_with_defaults(store, name, **values):
     numpy_types = {'float64': float, 'float32': np.float32, 'uint32': np.uint32,
                    'uint8': np.uint8, 'int32': np.int32}
     fields = {}
+    detail: Any                 # the field's type: (base type, ...) or a nested definition
     for name_, (kind, detail) in store.fielddefs[name][1]:
         if name_ in values:
             continue
@@ -1203,7 +1216,8 @@ def message_with_defaults(store, name, **values):
     return store.types[name](**fields, **values)
 
 
-def read_messages(bag_path, topics):
+def read_messages(bag_path: str | os.PathLike, topics: Iterable[str]
+                  ) -> dict[str, tuple[str | None, list[tuple[int, Any]]]]:
     """
     Decode every message of some topics of a bag (any type rotor_id's typestore knows).
 
@@ -1234,7 +1248,8 @@ def read_messages(bag_path, topics):
         available = {c.topic: c.msgtype for c in reader.connections}
         found = {name: recorded_topic(name, available) for name in topics}
         wanted = [c for c in reader.connections if c.topic in found.values()]
-        messages = {topic: [] for topic in found.values() if topic}
+        messages: dict[str | None, list[tuple[int, Any]]] = {
+            topic: [] for topic in found.values() if topic}
         try:
             for connection, log_ns, data in (reader.messages(wanted) if wanted else ()):
                 messages[connection.topic].append(
@@ -1252,7 +1267,8 @@ def read_messages(bag_path, topics):
 
 # --------------------------------------------------------------------------- writing
 
-def register_msg_dir(typestore, msg_dir, package=None):
+def register_msg_dir(typestore: 'Typestore', msg_dir: str | os.PathLike,
+                     package: str | None = None) -> list[str]:
     """
     Register every .msg file of a directory in a typestore.
 
@@ -1300,37 +1316,38 @@ class BagWriter:
     Use as a context manager; on an exception inside the block the bag is aborted.
     """
 
-    def __init__(self, writer, typestore):
+    def __init__(self, writer: Writer, typestore: 'Typestore') -> None:
         self.writer = writer
         self.typestore = typestore
-        self.connections = {}
+        self.connections: dict[str, 'Connection'] = {}
 
-    def add_topic(self, topic, msgtype):
+    def add_topic(self, topic: str, msgtype: str) -> 'Connection':
         """Add (once) a topic of type ``msgtype``; its definition is embedded in the bag."""
         if topic not in self.connections:
             self.connections[topic] = self.writer.add_connection(
                 topic, msgtype, typestore=self.typestore)
         return self.connections[topic]
 
-    def write(self, topic, timestamp_ns, message):
+    def write(self, topic: str, timestamp_ns: int, message: Any) -> None:
         """Serialize ``message`` and write it on ``topic`` (added first if needed)."""
         self.add_topic(topic, message.__msgtype__)
         self.write_raw(topic, timestamp_ns,
                        self.typestore.serialize_cdr(message, message.__msgtype__))
 
-    def write_raw(self, topic, timestamp_ns, data):
+    def write_raw(self, topic: str, timestamp_ns: int, data: bytes | memoryview) -> None:
         """Write CDR bytes on ``topic`` (which must have been added)."""
         self.writer.write(self.connections[topic], int(timestamp_ns), data)
 
-    def close(self):
+    def close(self) -> None:
         """Finish the bag (index, metadata.yaml)."""
         self.writer.close()
 
-    def __enter__(self):
+    def __enter__(self) -> 'BagWriter':
         """Return self."""
         return self
 
-    def __exit__(self, exc_type, exc, traceback):
+    def __exit__(self, exc_type: type[BaseException] | None, exc: BaseException | None,
+                 traceback: TracebackType | None) -> Literal[False]:
         """Close, or abort on an exception."""
         if exc_type is None:
             self.close()
@@ -1370,7 +1387,8 @@ class _Writer(Writer):
     STORAGE_PLUGINS = {**Writer.STORAGE_PLUGINS, StoragePlugin.MCAP: _McapWriter}
 
 
-def open_writer(path, storage='mcap', typestore=None):
+def open_writer(path: str | Path, storage: str = 'mcap',
+                typestore: 'Typestore | None' = None) -> BagWriter:
     """
     Create a rosbag2 bag as Jazzy writes it (metadata version 9).
 
@@ -1406,8 +1424,10 @@ def open_writer(path, storage='mcap', typestore=None):
     return BagWriter(writer, typestore or get_typestore(Stores.ROS2_JAZZY))
 
 
-def write_record_bag(path, record, storage='mcap', topics=None, frame_id='rotor', extra=(),
-                     typestore=None):
+def write_record_bag(path: str | Path, record: Record, storage: str = 'mcap',
+                     topics: Mapping[str, str | None] | None = None, frame_id: str = 'rotor',
+                     extra: Iterable[tuple[str, int, Any]] = (),
+                     typestore: 'Typestore | None' = None) -> Path:
     """
     Write a Record into a bag following the test-stand convention.
 
@@ -1444,13 +1464,13 @@ def write_record_bag(path, record, storage='mcap', topics=None, frame_id='rotor'
     psi = np.mod(record.t, TWO_PI)
     psi[psi >= TWO_PI] = 0.0  # np.mod of a tiny negative number rounds to 2π
     streams = [
-        (topics['blade_pitch'], encode_batch(stamps, record.blade_names, record.blade_pitch,
-                                             frame_id=frame_id)),
-        (topics['blade_flap'], encode_batch(stamps, record.blade_names, record.blade_flap,
-                                            frame_id=frame_id)),
+        (cast(str, topics['blade_pitch']),
+         encode_batch(stamps, record.blade_names, record.blade_pitch, frame_id=frame_id)),
+        (cast(str, topics['blade_flap']),
+         encode_batch(stamps, record.blade_names, record.blade_flap, frame_id=frame_id)),
     ]
     if topics.get('azimuth'):
-        streams.append((topics['azimuth'], encode_batch(
+        streams.append((cast(str, topics['azimuth']), encode_batch(
             stamps, ['rotor'], psi[:, None], record.rotor_speed_rad_s[:, None],
             frame_id=frame_id)))
     with open_writer(path, storage, typestore) as writer:

@@ -23,7 +23,7 @@ class RunDescriptionError(ValueError):
 
     """
 
-    def __init__(self, message, path=None, line=None):
+    def __init__(self, message: str, path: str | None = None, line: int | None = None) -> None:
         super().__init__(message)
         self.path = path
         self.line = line

@@ -18,8 +18,10 @@ of that header, float64 arrays are 8-aligned only when they are not empty)::
 
 from dataclasses import dataclass
 import struct
+from typing import Sequence
 
 import numpy as np
+import numpy.typing as npt
 
 JOINT_STATE = 'sensor_msgs/msg/JointState'
 FIELDS = ('position', 'velocity', 'effort')
@@ -58,11 +60,11 @@ class JointStateLayout:
     names: tuple
     offsets: dict
 
-    def count(self, field):
+    def count(self, field: str) -> int:
         """Return the number of elements of ``field`` ('position', 'velocity', 'effort')."""
         return self.offsets[field][1]
 
-    def value_mask(self):
+    def value_mask(self) -> np.ndarray:
         """Return a bool mask (size,) that is True at the bytes of the stamp and the values."""
         mask = np.zeros(self.size, dtype=bool)
         mask[_HEADER:_HEADER + 8] = True
@@ -105,15 +107,15 @@ class JointStateBatch:
     velocity: np.ndarray
     dropped: dict
     kept: np.ndarray
-    velocity_sent: np.ndarray = None
-    frame_ids: dict = None
+    velocity_sent: np.ndarray | None = None
+    frame_ids: dict | None = None
 
 
 def _align(pos, alignment):
     return pos + (-(pos - _HEADER)) % alignment
 
 
-def parse_layout(raw):
+def parse_layout(raw: bytes | bytearray | memoryview) -> JointStateLayout:
     """
     Parse the layout of one serialized JointState.
 
@@ -205,7 +207,8 @@ def _stamps(rows, little):
     return sec * 1_000_000_000 + nsec
 
 
-def decode_one(raw):
+def decode_one(raw: bytes | bytearray | memoryview
+               ) -> tuple[int, tuple, np.ndarray, np.ndarray]:
     """
     Decode one JointState.
 
@@ -225,7 +228,7 @@ def decode_one(raw):
             _values(rows, layout, 'position')[0], _values(rows, layout, 'velocity')[0])
 
 
-def decode_batch(raws):
+def decode_batch(raws: Sequence[bytes | bytearray | memoryview]) -> JointStateBatch:
     """
     Decode many JointState messages of one topic.
 
@@ -249,8 +252,8 @@ def decode_batch(raws):
     stamps = np.zeros(n, dtype=np.int64)
     ok = np.zeros(n, dtype=bool)
     sent = np.zeros(n, dtype=bool)
-    frame_ids = {}
-    dropped = {}
+    frame_ids: dict[str, int] = {}
+    dropped: dict[str, int] = {}
     names = None
     position = velocity = None
 
@@ -290,7 +293,7 @@ def decode_batch(raws):
     sizes, counts = np.unique(lengths, return_counts=True)
     for size in sizes[np.argsort(-counts, kind='stable')]:
         index = np.flatnonzero(lengths == size)
-        rows = np.frombuffer(b''.join([bytes(raws[i]) for i in index]), dtype=np.uint8)
+        rows = np.frombuffer(b''.join([bytes(raws[i]) for i in index.tolist()]), dtype=np.uint8)
         rows = rows.reshape(len(index), int(size))
         try:
             layout = parse_layout(rows[0].tobytes())
@@ -300,7 +303,7 @@ def decode_batch(raws):
             fits = _same_fixed_bytes(rows, ~layout.value_mask())
             store(index[fits], layout, rows if fits.all() else rows[fits])
         # Messages that do not share the group's fixed bytes: one at a time.
-        for i in index[~fits]:
+        for i in index[~fits].tolist():
             try:
                 layout = parse_layout(raws[i])
             except ValueError as err:
@@ -344,7 +347,9 @@ def _encode_template(frame_id, names, counts, little=True):
     return bytes(out)
 
 
-def encode_rows(stamps_ns, names, position, velocity=None, effort=None, frame_id=''):
+def encode_rows(stamps_ns: npt.ArrayLike, names: Sequence[str], position: npt.ArrayLike,
+                velocity: npt.ArrayLike | None = None, effort: npt.ArrayLike | None = None,
+                frame_id: str = '') -> np.ndarray:
     """
     Serialize many JointState messages that share names and array lengths, as one array.
 
@@ -377,7 +382,9 @@ def encode_rows(stamps_ns, names, position, velocity=None, effort=None, frame_id
     return rows
 
 
-def encode_batch(stamps_ns, names, position, velocity=None, effort=None, frame_id=''):
+def encode_batch(stamps_ns: npt.ArrayLike, names: Sequence[str], position: npt.ArrayLike,
+                 velocity: npt.ArrayLike | None = None, effort: npt.ArrayLike | None = None,
+                 frame_id: str = '') -> list[bytes]:
     """
     Serialize many JointState messages that share names and array lengths.
 

@@ -9,6 +9,7 @@ every message it can read, including those at the start of a truncated chunk.
 
 from binascii import crc32
 from dataclasses import dataclass, field
+import os
 import struct
 import sys
 
@@ -52,11 +53,11 @@ class McapScan:
     problem: str = ''
     skipped_chunks: int = 0
 
-    def topics(self):
+    def topics(self) -> dict[str, str]:
         """Return topic -> message type for every channel found."""
         return {topic: self.schemas.get(schema, '') for topic, schema in self.channels.values()}
 
-    def topic_messages(self, topic):
+    def topic_messages(self, topic: str) -> list[tuple[int, bytes]]:
         """Return the list of (log_time_ns, bytes) of ``topic`` in file order."""
         out = []
         for cid, (name, _) in self.channels.items():
@@ -136,7 +137,7 @@ class _Scanner:
         self.records(memoryview(raw), 0, min(len(raw), size))
 
 
-def scan_mcap(path):
+def scan_mcap(path: str | os.PathLike) -> McapScan:
     """
     Scan an MCAP file linearly and return every message that can be read.
 

@@ -4,7 +4,7 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
-from rotor_id.io.streams import repair_value_spikes, stuck_channels
+from rotor_id.io.streams import repair_value_spikes, SpikeRepair, stuck_channels
 from rotor_id.io.timebase import blade_azimuths, multiblade_coordinates
 
 # Window ends are inclusive; this absorbs float rounding of a stamp written as seconds.
@@ -101,7 +101,7 @@ class Record:
     read_around_window: bool = False
     repairs: list = field(default_factory=list)
 
-    def __post_init__(self):
+    def __post_init__(self) -> None:
         """Convert to float arrays and check that the shapes agree."""
         for name in ('time_s', 't', 'rotor_speed_rad_s', 'blade_flap', 'blade_pitch'):
             setattr(self, name, np.asarray(getattr(self, name), dtype=float))
@@ -124,17 +124,17 @@ class Record:
         if len(self.blade_names) != self.n_blades:
             raise ValueError(f'{len(self.blade_names)} blade names for {self.n_blades} blades')
 
-    def __len__(self):
+    def __len__(self) -> int:
         """Return the number of samples."""
         return self.time_s.shape[0]
 
     @property
-    def n_blades(self):
+    def n_blades(self) -> int:
         """Return the number of blades N."""
         return self.blade_flap.shape[1]
 
     @property
-    def bag_blade_count(self):
+    def bag_blade_count(self) -> int | None:
         """
         Return the number of blade joints the bag carries, or None if unknown.
 
@@ -147,34 +147,34 @@ class Record:
         return len(self.flap_joints)
 
     @property
-    def omega_mean(self):
+    def omega_mean(self) -> float:
         """Return the mean rotor speed, rad/s."""
         return float(np.mean(self.rotor_speed_rad_s))
 
     @property
-    def duration_s(self):
+    def duration_s(self) -> float:
         """Return the time from the first to the last sample, s."""
         return float(self.time_s[-1] - self.time_s[0]) if len(self) else 0.0
 
     @property
-    def sample_period_s(self):
+    def sample_period_s(self) -> float:
         """Return the median sampling interval, s."""
         return float(np.median(np.diff(self.time_s))) if len(self) > 1 else float('nan')
 
-    def azimuths(self):
+    def azimuths(self) -> np.ndarray:
         """Return the (n, N) blade azimuths ψ_k = t + (k − 1)·2π/N."""
         return blade_azimuths(self.t, self.n_blades)
 
-    def t_at(self, time_s):
+    def t_at(self, time_s: float | np.ndarray) -> float | np.ndarray:
         """Nondimensional time at ``time_s`` (seconds since the first stamp), interpolated."""
         return np.interp(time_s, self.time_s, self.t)
 
-    def multiblade(self, quantity='flap'):
+    def multiblade(self, quantity: str = 'flap') -> dict[str, np.ndarray]:
         """Multiblade coordinates of 'flap' or 'pitch' (see :mod:`rotor_id.io.timebase`)."""
         values = {'flap': self.blade_flap, 'pitch': self.blade_pitch}[quantity]
         return multiblade_coordinates(values, self.t)
 
-    def repair_value_spikes(self):
+    def repair_value_spikes(self) -> list[tuple[str, str, SpikeRepair]]:
         """
         Replace the flap and pitch spikes in place (:func:`rotor_id.io.streams.value_spikes`).
 
@@ -200,7 +200,7 @@ class Record:
                 for i, old, new in zip(r.indices, r.old, r.new))
         return found
 
-    def stuck_flap_blades(self, t0_s, t1_s):
+    def stuck_flap_blades(self, t0_s: float, t1_s: float) -> list[tuple[str, float]]:
         """
         Return the blades whose flap reads one exact value throughout [t0_s, t1_s] s.
 
@@ -210,7 +210,7 @@ class Record:
         flap = self.blade_flap[keep]
         return [(self.blade_names[k], float(flap[0, k])) for k in stuck_channels(flap)]
 
-    def window(self, t0_s, t1_s):
+    def window(self, t0_s: float, t1_s: float) -> 'Record':
         """
         Return the samples with t0_s ≤ time_s ≤ t1_s (seconds since the first stamp).
 

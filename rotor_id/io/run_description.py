@@ -45,13 +45,18 @@ because ignoring it would change the answer silently; other unknown keys only wa
 from dataclasses import dataclass, field
 import difflib
 import math
+import os
 from pathlib import Path
 import re
+from typing import Any, Collection, Iterable, TYPE_CHECKING
 import warnings
 
 from rotor_id.io.errors import RunDescriptionError, RunDescriptionWarning
 from rotor_id.physics.aerodynamics import flap_damping
 import yaml
+
+if TYPE_CHECKING:
+    from rotor_id.io.record import Record
 
 MODEL_PARAMETERS = {
     'single_blade': ('gamma', 'theta0', 'delta'),
@@ -196,17 +201,17 @@ class RunDescription:
     model: str
     unknowns: tuple
     window_s: tuple
-    run: object = None
-    joint_names: object = None
+    run: int | None = None
+    joint_names: dict[str, tuple[str, ...]] | None = None
     known: dict = field(default_factory=dict)
     initial_guess: dict = field(default_factory=dict)
     initial_state: str = 'estimate'
-    noise_std_rad: object = None
+    noise_std_rad: float | None = None
     method: str = 'output-error'
-    measurement: object = None
-    lock_number: object = None
+    measurement: str | None = None
+    lock_number: float | None = None
     conditions: dict = field(default_factory=dict)
-    inflow: object = None
+    inflow: str | None = None
     node_topics: dict = field(default_factory=lambda: dict(DEFAULT_NODE_TOPICS))
     azimuth_joint: str = DEFAULT_AZIMUTH_JOINT
     azimuth_convention: str = 'wrapped'
@@ -216,11 +221,11 @@ class RunDescription:
     lines: dict = field(default_factory=dict, repr=False, compare=False)
 
     @property
-    def parameters(self):
+    def parameters(self) -> tuple[str, ...]:
         """Return the parameter names of the model."""
         return MODEL_PARAMETERS[self.model]
 
-    def record_options(self):
+    def record_options(self) -> dict[str, Any]:
         """
         Keyword arguments of :func:`rotor_id.io.bag.read_record` for this rig.
 
@@ -232,20 +237,21 @@ class RunDescription:
                 'azimuth_joint': self.azimuth_joint,
                 'azimuth_convention': self.azimuth_convention}
 
-    def blade_joints(self, role):
+    def blade_joints(self, role: str) -> list[str]:
         """Joint names of ``role`` ('blade_flap' | 'blade_pitch'), blade 1 first."""
         if self.joint_names is not None:
             return list(self.joint_names[role])
         return [f'blade_{k}' for k in range(1, self.rotor.blades + 1)]
 
-    def bag_path(self):
+    def bag_path(self) -> Path:
         """Return the conventional bag of this description: NAME/ beside NAME.yaml."""
         if self.path == '<string>':
             raise ValueError('a description parsed from text has no bag beside it')
         return Path(self.path).with_suffix('')
 
 
-def normalize_joint_names(value, n_blades=None):
+def normalize_joint_names(value: object, n_blades: int | None = None
+                          ) -> dict[str, tuple[str, ...]]:
     """
     Bring the accepted forms of ``joint_names`` to {role: tuple of names in blade order}.
 
@@ -279,7 +285,7 @@ def normalize_joint_names(value, n_blades=None):
     return {role: names for role in BLADE_JOINT_ROLES}
 
 
-def recorded_topic(name, available):
+def recorded_topic(name: str | None, available: Collection[str]) -> str | None:
     """
     Return the topic of a bag that a run description's topic ``name`` means.
 
@@ -321,7 +327,7 @@ def _joint_list(value, n_blades, what):
     return tuple(value)
 
 
-class _Lines:
+class SourceLines:
     """Line numbers of the keys and items of a composed YAML document, by path."""
 
     def __init__(self, node):
@@ -457,7 +463,8 @@ def _kind(value):
     return 'nothing' if value is None else type(value).__name__
 
 
-def parse_run_description(text, path='<string>', extra_keys=()):
+def parse_run_description(text: str, path: str | os.PathLike = '<string>',
+                          extra_keys: Iterable[str] = ()) -> RunDescription:
     """
     Parse and validate a run description.
 
@@ -489,7 +496,7 @@ def parse_run_description(text, path='<string>', extra_keys=()):
             data = loader.construct_document(node) if node is not None else None
         finally:
             loader.dispose()
-        lines = _Lines(node if node is not None else yaml.ScalarNode('', ''))
+        lines = SourceLines(node if node is not None else yaml.ScalarNode('', ''))
     except yaml.YAMLError as err:
         mark = getattr(err, 'problem_mark', None)
         line = mark.line + 1 if mark is not None else None
@@ -501,7 +508,7 @@ def parse_run_description(text, path='<string>', extra_keys=()):
     return _validate(_Parser(data, lines, path), tuple(extra_keys))
 
 
-def load_run_description(path):
+def load_run_description(path: str | os.PathLike) -> RunDescription:
     """
     Read and validate the run description in file ``path`` (see module docstring).
 
@@ -726,7 +733,7 @@ def _check_wake_gain(parser, rotor, unknowns, known, data):
                         f'(A = γB⁴/8 = {implied:.6g}); give one of them', *where)
 
 
-def validate_window(description, record):
+def validate_window(description: RunDescription, record: 'Record') -> None:
     """
     Check that the description's window lies inside the record.
 
@@ -757,7 +764,7 @@ def validate_window(description, record):
             description.path)
 
 
-def check_against_record(description, record):
+def check_against_record(description: RunDescription, record: 'Record') -> None:
     """
     Check a run description against the record read from its bag, before any fitting.
 

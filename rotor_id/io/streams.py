@@ -28,8 +28,10 @@ wrong on a rig, and how each is told from the others:
 
 from dataclasses import dataclass
 import functools
+from typing import Sequence
 
 import numpy as np
+import numpy.typing as npt
 
 NS_PER_S = 1_000_000_000
 #: A backward stamp step longer than this many sample periods (and RESET_MIN_S) is a clock
@@ -83,21 +85,21 @@ class RunSplit:
     period_ns: float
 
     @property
-    def n_runs(self):
+    def n_runs(self) -> int:
         """Return the number of runs."""
         return int(self.labels.max()) + 1 if self.labels.size else 0
 
-    def glitches(self):
+    def glitches(self) -> np.ndarray:
         """Return the indices of the glitch samples."""
         return np.flatnonzero(self.labels < 0)
 
-    def interleaved(self):
+    def interleaved(self) -> bool:
         """Return True if samples of different runs alternate (several clocks at once)."""
         runs = self.labels[self.labels >= 0]
         return int(np.count_nonzero(np.diff(runs) != 0)) > 2 * max(self.n_runs - 1, 0)
 
 
-def split_runs(stamps_ns, received_ns=None):
+def split_runs(stamps_ns: npt.ArrayLike, received_ns: npt.ArrayLike | None = None) -> RunSplit:
     """
     Group stamps given in recording order into runs separated by clock resets.
 
@@ -120,7 +122,7 @@ def split_runs(stamps_ns, received_ns=None):
     RunSplit.
 
     """
-    stamps = np.asarray(stamps_ns, dtype=np.int64)
+    stamps: np.ndarray = np.asarray(stamps_ns, dtype=np.int64)
     n = stamps.size
     steps = np.diff(stamps)
     if np.count_nonzero(steps < 0) > 0.1 * steps.size:    # clocks taking turns: steps say nothing
@@ -145,7 +147,7 @@ def split_runs(stamps_ns, received_ns=None):
             # (short pieces on both sides: clocks taking turns, not a glitch)
             glitch_piece[j] = 0 < bridge <= limit and not (short[j - 1] and short[j + 1])
     received = None if received_ns is None else np.asarray(received_ns, dtype=np.int64)
-    last = []                   # last stamp of each run so far
+    last: list[int] = []        # last stamp of each run so far
     run_of_piece = []
     previous = None             # last sample of the previous piece that is no glitch
     for start, end, is_glitch in zip(starts, ends, glitch_piece):
@@ -238,7 +240,7 @@ class Interleaving:
     stamp_steps_ns: tuple
     column: int
 
-    def describe(self, unit='rad'):
+    def describe(self, unit: str = 'rad') -> str:
         """One phrase with the figures."""
         parts = []
         if self.offset:
@@ -268,7 +270,7 @@ def _blocks(values, block, most):
     return values[starts[:, None] + np.arange(block + 2)]
 
 
-def interleaved_streams(stamps_ns, values):
+def interleaved_streams(stamps_ns: npt.ArrayLike, values: npt.ArrayLike) -> Interleaving | None:
     """
     Test whether sorted samples are two interleaved streams (e.g. two publishers).
 
@@ -368,7 +370,7 @@ def _robust_threshold(residual, floor):
     return max(OUTLIER_SIGMAS * spread, float(floor))
 
 
-def phase_outliers(step_residual, floor):
+def phase_outliers(step_residual: npt.ArrayLike, floor: float) -> PhaseOutliers:
     """
     Find glitches and lasting steps in a phase from its step residuals.
 
@@ -413,7 +415,7 @@ def phase_outliers(step_residual, floor):
     return PhaseOutliers(np.asarray(sorted(set(repaired)), dtype=np.int64), slips, threshold)
 
 
-def spikes(values, floor):
+def spikes(values: npt.ArrayLike, floor: float) -> np.ndarray:
     """
     Find the isolated spikes of a slowly varying signal, each at most REPAIR_MAX_SAMPLES long.
 
@@ -440,7 +442,7 @@ def spikes(values, floor):
     return np.concatenate(out) if out else np.empty(0, dtype=np.int64)
 
 
-def noise_scale(values):
+def noise_scale(values: npt.ArrayLike) -> np.ndarray:
     """
     Return the robust noise σ of each column from the MAD of its second differences.
 
@@ -477,7 +479,8 @@ LOCAL_SPAN = 4 * MEDIAN_SPAN
 SHARED_SIGMAS = 5.0
 
 
-def value_spikes(values, groups=None):
+def value_spikes(values: npt.ArrayLike,
+                 groups: Sequence[Sequence[int]] | None = None) -> list[np.ndarray]:
     """
     Find the isolated spikes of each column of sampled angles (flap or pitch readings).
 
@@ -553,32 +556,33 @@ class SpikeRepair:
     new: np.ndarray                   # the cubic through their neighbours either side
 
     @property
-    def count(self):
+    def count(self) -> int:
         """Return the number of samples replaced."""
         return int(self.indices.size)
 
     @property
-    def worst(self):
+    def worst(self) -> int:
         """Return the position (in ``indices``) of the sample that left its neighbours most."""
         return int(np.argmax(np.abs(self.old - self.new)))
 
     @property
-    def index(self):
+    def index(self) -> int:
         """Return the sample index of the worst replaced sample."""
         return int(self.indices[self.worst])
 
     @property
-    def value(self):
+    def value(self) -> float:
         """Return the worst replaced sample's reading, as received."""
         return float(self.old[self.worst])
 
     @property
-    def neighbours(self):
+    def neighbours(self) -> float:
         """Return what the interpolation put in place of the worst sample."""
         return float(self.new[self.worst])
 
 
-def repair_value_spikes(times, values, groups=None):
+def repair_value_spikes(times: np.ndarray, values: np.ndarray,
+                        groups: Sequence[Sequence[int]] | None = None) -> list[SpikeRepair]:
     """
     Replace each column's spikes (:func:`value_spikes`) by the cubic through their neighbours.
 
@@ -613,7 +617,7 @@ def repair_value_spikes(times, values, groups=None):
     return repairs
 
 
-def stuck_channels(values):
+def stuck_channels(values: npt.ArrayLike) -> list[int]:
     """
     Return the columns of ``values`` that read one exact value in every row (at least two).
 

@@ -21,6 +21,7 @@ the lateral cyclic θII and the 'sin' coordinate is −θI.
 """
 
 import numpy as np
+import numpy.typing as npt
 
 # The transforms live with the physics; re-exported here for the readers of records.
 from rotor_id.physics.multiblade import (  # noqa: F401
@@ -29,14 +30,15 @@ from rotor_id.physics.multiblade import (  # noqa: F401
 TWO_PI = 2.0 * np.pi
 
 
-def wrap_azimuth(psi):
+def wrap_azimuth(psi: npt.ArrayLike) -> float | np.ndarray:
     """Return an azimuth (rad, scalar or array, any branch) wrapped to [0, 2π)."""
     wrapped = np.mod(psi, TWO_PI)
     return np.where(wrapped >= TWO_PI, 0.0, wrapped) if np.ndim(wrapped) else (
         0.0 if wrapped >= TWO_PI else float(wrapped))
 
 
-def unwrap_azimuth(psi_wrapped, time_s, omega_rad_s=None):
+def unwrap_azimuth(psi_wrapped: npt.ArrayLike, time_s: npt.ArrayLike,
+                   omega_rad_s: npt.ArrayLike | None = None) -> np.ndarray:
     """
     Unwrap a measured azimuth into a continuous angle.
 
@@ -68,7 +70,9 @@ def unwrap_azimuth(psi_wrapped, time_s, omega_rad_s=None):
     return np.concatenate([psi_wrapped[:1], psi_wrapped[0] + np.cumsum(step)])
 
 
-def azimuth_step(wrapped_step, omega_before, omega_after, dt_s):
+def azimuth_step(wrapped_step: float | np.ndarray, omega_before: float | np.ndarray,
+                 omega_after: float | np.ndarray, dt_s: float | np.ndarray
+                 ) -> float | np.ndarray:
     """
     Unwrap one step: the wrapped increment plus the 2π multiple nearest to Ω·Δt.
 
@@ -79,7 +83,8 @@ def azimuth_step(wrapped_step, omega_before, omega_after, dt_s):
     return wrapped_step + TWO_PI * np.round((expected - wrapped_step) / TWO_PI)
 
 
-def predicted_azimuth_step(omega_before, omega_after, dt_s):
+def predicted_azimuth_step(omega_before: float | np.ndarray, omega_after: float | np.ndarray,
+                           dt_s: float | np.ndarray) -> float | np.ndarray:
     """Return the azimuth step the measured rotor speed predicts: 0.5 (Ω_before + Ω_after) Δt."""
     return 0.5 * (omega_after + omega_before) * dt_s
 
@@ -93,12 +98,12 @@ class AzimuthUnwrapper:
     stamps in integer ns converted per step). The first sample's wrapped ψ is the origin.
     """
 
-    def __init__(self):
-        self._first = None
+    def __init__(self) -> None:
+        self._first = 0.0  # ψ of the first sample, set by the first add()
         self._sum = 0.0
-        self._last = None
+        self._last: tuple[int, float, float] | None = None
 
-    def add(self, stamp_ns, psi, omega):
+    def add(self, stamp_ns: int, psi: float, omega: float) -> float:
         """Add one sample (stamp in ns, ψ wrapped to [0, 2π), Ω in rad/s); return it unwrapped."""
         if self._last is None:
             self._first = float(psi)
@@ -112,12 +117,13 @@ class AzimuthUnwrapper:
         return value
 
     @property
-    def started(self):
+    def started(self) -> bool:
         """Say whether a sample was added."""
         return self._last is not None
 
 
-def nondimensional_time(time_s, psi_wrapped=None, omega_rad_s=None):
+def nondimensional_time(time_s: npt.ArrayLike, psi_wrapped: npt.ArrayLike | None = None,
+                        omega_rad_s: npt.ArrayLike | None = None) -> np.ndarray:
     """
     Return the report's nondimensional time t = unwrapped azimuth of blade 1.
 
@@ -151,7 +157,7 @@ def nondimensional_time(time_s, psi_wrapped=None, omega_rad_s=None):
     return np.concatenate([[0.0], np.cumsum(increments)])
 
 
-def interpolate_columns(x_new, x, values):
+def interpolate_columns(x_new: np.ndarray, x: np.ndarray, values: npt.ArrayLike) -> np.ndarray:
     """Linearly interpolate every column of ``values`` (n, m) from ``x`` onto ``x_new``."""
     values = np.asarray(values, dtype=float)
     out = np.empty((len(x_new), values.shape[1]))

@@ -8,7 +8,8 @@ Every model is a linear state-space system in the report's nondimensional time t
 with ``u = [θ0, θI, θII]`` the multiblade pitch (:mod:`rotor_id.physics.stirring`). A model gives
 F, g, their derivatives with respect to every parameter, H and the optional output offset d, all
 vectorised over an array of times. The estimators need nothing else, so models added later
-(diagnosis augmentations, per-blade simulations) work with every estimator unchanged.
+(the augmented models of :mod:`rotor_id.physics.augmented`, per-blade simulations) work with
+every estimator unchanged.
 
 The collective pitch enters through the parameter θ0 (or δ = γθ0, the report's choice), not through
 ``u[0]``: the identified collective is the aerodynamic one, which a pitch sensor does not know.

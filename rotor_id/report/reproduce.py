@@ -28,8 +28,8 @@ import numpy as np
 
 from rotor_id.estimation.information import (cramer_rao_bound, information_history,
                                              sensitivities)
-from rotor_id.estimation.output_error import fit_output_error
-from rotor_id.estimation.validation import validate
+from rotor_id.estimation.output_error import Estimate, fit_output_error
+from rotor_id.estimation.validation import RunValidation, validate
 from rotor_id.report import cases as C
 
 #: Seed of the one noisy draw per scenario (the report's own draws cannot be reproduced).
@@ -41,7 +41,7 @@ MATRIX_TOLERANCE = 0.02
 class MatrixResult:
     """Our M⁻¹ beside the report's for one :class:`~rotor_id.report.cases.MatrixCase`."""
 
-    case: object
+    case: C.MatrixCase
     names: list
     ours: np.ndarray
     report: np.ndarray
@@ -126,12 +126,12 @@ def matrix_results(progress=None):
 class IterationResult:
     """Our iterates for one :class:`~rotor_id.report.cases.IterationCase` and one data set."""
 
-    case: object
+    case: C.IterationCase
     data: str
     names: list
     start: np.ndarray
     iterates: np.ndarray
-    estimate: object
+    estimate: Estimate
     cpu_s: float
     minv_previous: list = field(default_factory=list)
 
@@ -250,7 +250,7 @@ def iteration_results(seed=DEFAULT_SEED, progress=None):
 class SummaryResult:
     """Our numbers for one row of the Ch.2 summary table (None entries: not available)."""
 
-    row: object
+    row: C.SummaryRow
     iterations: int
     gamma: float
     delta: float
@@ -332,7 +332,7 @@ def _iterations_to_converge(result):
 class InitialStateResult:
     """Our initial states beside the report's, checked to the printed digits."""
 
-    case: object
+    case: C.InitialStateCase
     ours: np.ndarray
     passed: list
 
@@ -391,7 +391,7 @@ def initial_state_results():
 class GradientResult:
     """The report's eq. 22 gradient at (4, 8) beside ours (noise-free) and the noise spread."""
 
-    case: object
+    case: C.GradientCase
     ours_noise_free: np.ndarray
     noise_std: np.ndarray
     z: np.ndarray
@@ -430,7 +430,7 @@ class ValidationResult:
     """Residual checks of one seeded noisy fit (or a held-out prediction)."""
 
     label: str
-    run: object
+    run: RunValidation
 
     def as_dict(self):
         """JSON entry."""
@@ -543,7 +543,7 @@ class Reproduction:
     summary: list
     initial_states: list
     seed: int
-    gradient: object = None
+    gradient: 'GradientResult | None' = None
     validation: list = field(default_factory=list)
 
     @property

@@ -456,7 +456,7 @@ def diagnosed(name, seed, workers=2, effects_figure=None):
     record, description = scenario.record_and_description(seed)
     diagnosis = diagnose(record, description, workers=workers)
     if effects_figure is not None:
-        from rotor_id.diagnosis.figures import plot_effects
+        from rotor_id.commands.diagnose_figures import plot_effects
         plot_effects(diagnosis, effects_figure)
     result = diagnosis.as_json()
     return result, evaluate(scenario, result)

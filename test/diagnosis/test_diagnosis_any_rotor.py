@@ -8,9 +8,9 @@ coupling, and the dynamic-inflow candidate must be the wake model itself.
 
 import numpy as np
 import pytest
-from rotor_id.diagnosis import augmentations as aug
 from rotor_id.diagnosis.catalogue import ExtendedInput
 from rotor_id.estimation.simulate import simulate
+from rotor_id.physics import augmented as aug
 from rotor_id.physics.models import build_model, RotorConstants
 import test_diagnosis_augmentations as four_blades  # noqa: I100
 
@@ -109,3 +109,37 @@ def test_a_three_bladed_rotors_sensor_offsets_in_forward_flight_are_not_a_pitch_
     for k, b in enumerate(bias, start=1):
         estimate = named['sensor_bias']['parameters'][f'bias_{k}']
         assert abs(estimate['value'] - b) < 4 * estimate['std'], (k, estimate, b)
+
+
+@pytest.mark.parametrize('n_blades, mu, name, outputs', [
+    (3, 0.0, 'multiblade', 'multiblade'), (4, 0.0, 'multiblade_wake', 'multiblade'),
+    (5, 0.0, 'multiblade', 'blades'), (4, 0.3, 'multiblade', 'multiblade'),
+    (5, 0.35, 'multiblade_constant', 'eq30'), (4, 0.0, 'single_blade', 'multiblade')])
+def test_sensor_lag_in_flap_coordinates_is_the_blade_form(n_blades, mu, name, outputs,
+                                                          monkeypatch):
+    """The sensor lag carried in the flap's coordinates simulates as the per-blade lag."""
+    options = {} if name == 'single_blade' else {'outputs': outputs}
+    base = build_model(name, RotorConstants(n_blades=n_blades, advance_ratio=mu),
+                       collective='theta0', angle_unit='rad', **options)
+    coordinates = aug.SensorLag(base)
+    monkeypatch.setattr(aug, 'flap_basis', lambda view: None)
+    blades = aug.SensorLag(base)
+    if name != 'single_blade':
+        assert coordinates.constant_terms() and not blades.constant_terms()
+    if mu == 0.0 and name != 'single_blade':
+        F, _ = coordinates.system_compact(T, coordinates.nominal(), four_blades.SCHEDULE(T))
+        assert F.shape[0] == 1                          # time-invariant over a hover rotor
+    p = coordinates.nominal().copy()
+    p[-1] = 0.2                                         # τ_s
+    x0 = np.zeros(coordinates.n_states)
+    x0[:base.n_states] = 0.01 * np.cos(np.arange(base.n_states))
+    index = list(range(len(p)))
+    # the same ODE: the two RK4 solutions differ by the step's truncation (h⁴), under 1e-9
+    # of the signal at h = 0.00625 (6e-7 at the default 0.05)
+    a = simulate(coordinates, p, four_blades.SCHEDULE, T, x0, param_index=index,
+                 max_step=0.00625)
+    b = simulate(blades, p, four_blades.SCHEDULE, T, np.concatenate(
+        [x0[:base.n_states], np.zeros(blades.n_states - base.n_states)]), param_index=index,
+        max_step=0.00625)
+    assert np.abs(a.y - b.y).max() < 1e-8 * np.abs(b.y).max()
+    assert np.abs(a.dy - b.dy).max() < 1e-7 * np.abs(b.dy).max()

@@ -16,9 +16,9 @@ import pickle
 import numpy as np
 import pytest
 
-from rotor_id.diagnosis import augmentations as aug
 from rotor_id.diagnosis.catalogue import ExtendedInput
 from rotor_id.estimation.simulate import simulate
+from rotor_id.physics import augmented as aug
 from rotor_id.physics.models import build_model, RotorConstants
 from rotor_id.physics.stirring import StirringSchedule
 

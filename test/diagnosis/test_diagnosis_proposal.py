@@ -17,8 +17,8 @@ from diagnosis_scenarios import BY_NAME, D_1S, K_1C
 import numpy as np
 import pytest
 from rotor_id.commands.diagnose import format_summary
+from rotor_id.commands.diagnose_figures import write_report
 from rotor_id.diagnosis.diagnose import diagnose
-from rotor_id.diagnosis.figures import write_report
 from rotor_id.diagnosis.proposal import LibraryTerm, propose, term_names
 from rotor_id.estimation.simulate import simulate
 from rotor_id.pipeline import identify

@@ -175,7 +175,7 @@ def test_unknown_gradient_method_is_a_clear_error():
 
 def test_analytic_gradient_with_output_offsets_and_two_runs():
     """Sensor-bias parameters (∂d/∂p ≠ 0) and two runs, each with its own free states."""
-    from rotor_id.diagnosis.augmentations import SensorBias
+    from rotor_id.physics.augmented import SensorBias
     model = SensorBias(WAKE, T_WAKE)
     biases = [n for n in model.parameter_names if n.startswith('bias')]
     assert biases

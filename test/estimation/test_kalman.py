@@ -278,8 +278,8 @@ def test_lost_samples_are_discretised_at_the_cost_of_their_own_substeps(
     lost = np.arange(150, 250)
     t = np.delete(whole, lost)
     steps = []
-    grid = kalman._fine_grid
-    monkeypatch.setattr(kalman, '_fine_grid',
+    grid = kalman.fine_grid
+    monkeypatch.setattr(kalman, 'fine_grid',
                         lambda ts, m: steps.append(len(ts) * m) or grid(ts, m))
     dm = kalman.discretize(model, p, schedule, t, rows, sigma, noise_model)
     cost = sum(steps)

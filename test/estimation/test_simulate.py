@@ -158,8 +158,8 @@ def test_lost_samples_cost_their_own_substeps_not_the_whole_records(name, monkey
     t = np.delete(whole, np.arange(150, 250))
     index = list(range(len(model.parameters)))
     steps = []
-    grid = simulation._fine_grid
-    monkeypatch.setattr(simulation, '_fine_grid',
+    grid = simulation.fine_grid
+    monkeypatch.setattr(simulation, 'fine_grid',
                         lambda ts, m: steps.append(len(ts) * m) or grid(ts, m))
     sim = simulate(model, p, schedule, t, x0, index)
     cost = sum(steps)
@@ -192,11 +192,11 @@ def test_rk4_step_derivatives_equal_finite_differences_of_the_step(varying):
     F = rng.standard_normal((2 * M + 1 if varying[0] else 1, n, n))
     dF = rng.standard_normal((2 * M + 1 if varying[1] else 1, k, n, n))
     h = rng.uniform(0.05, 0.2, M)
-    got = np.broadcast_to(sim._rk4_transition_derivative(F, dF, h), (M, k, n, n))
+    got = np.broadcast_to(sim.rk4_transition_derivative(F, dF, h), (M, k, n, n))
     eps = 1e-6
     for i in range(k):
-        fd = (sim._rk4_transition(F + eps * dF[:, i], h)
-              - sim._rk4_transition(F - eps * dF[:, i], h)) / (2 * eps)
+        fd = (sim.rk4_transition(F + eps * dF[:, i], h)
+              - sim.rk4_transition(F - eps * dF[:, i], h)) / (2 * eps)
         assert np.max(np.abs(got[:, i] - fd)) < 1e-8 * np.max(np.abs(fd))
     # column c of ∂Φ is the step derivative from the unit state e_c (the per-column form)
     for c in range(n):

@@ -277,8 +277,8 @@ def test_streaming_kalman_takes_a_gap_at_the_cost_of_its_own_substeps(path, monk
     batch = kalman_filter(discretize(model, p, schedule, t, [4, 5], 0.01), y, x0, P0,
                           np.full(2, 1e-6))
     cost = []
-    grid = kalman._fine_grid
-    monkeypatch.setattr(kalman, '_fine_grid',
+    grid = kalman.fine_grid
+    monkeypatch.setattr(kalman, 'fine_grid',
                         lambda ts, m: cost.append((len(ts) - 1) * m) or grid(ts, m))
     stream = StreamingKalman(model, p, np.full(2, 1e-3), x0, P0, process_noise_std=0.01)
     split = [150] if path == 'update' else [1, 150]

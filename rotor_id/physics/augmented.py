@@ -58,7 +58,8 @@ class BladeView:
         self.blades = tuple(model.blades)
         self.n_blades = len(self.blades)
 
-    def _psi(self, t):
+    def azimuth(self, t):
+        """Return every blade's azimuth ψ_k at times t (T, N), as the model defines it."""
         return self.model.blade_azimuth(t)
 
     def _columns(self, H):
@@ -105,12 +106,12 @@ class Augmented(LinearModel):
     """
 
     effect = 'augmented'
-    extra_parameters = ()
-    extra_states = ()
+    extra_parameters: tuple[Parameter, ...] = ()
+    extra_states: tuple[str, ...] = ()
     #: extra states whose initial value is estimated when the baseline's are
-    free_extra_states = ()
+    free_extra_states: tuple[str, ...] = ()
     #: columns of u beyond [θ0, θI, θII] the augmentation needs (see ExtendedInput)
-    extra_inputs = ()
+    extra_inputs: tuple[str, ...] = ()
 
     def __init__(self, base):
         self.base = base
@@ -159,7 +160,7 @@ class Augmented(LinearModel):
     #: extra-parameter bounds that are physics, not a catalogue range: {name: ('lower',...)}
     #: (a fit stopping there has found the physical limit, e.g. no wake gain, and competes on
     #: its likelihood); every other bound is a range the catalogue chose and is widened
-    physical_bounds = {}
+    physical_bounds: dict[str, tuple[str, ...]] = {}
 
     def with_bounds(self, bounds):
         """Replace extra-parameter bounds {name: (lower, upper)} (a widened catalogue range)."""
@@ -303,6 +304,16 @@ class SensorLag(Augmented):
     (zero when the sensor has settled, as in trim at the start of a record):
 
         e_k′ = −e_k/τ_s − β_k′ = −e_k/τ_s − Hbr_k x,      y = H x + C e
+
+    Where the model's flap is a constant combination of azimuth functions, β_k = Hb_k(t) q
+    with Hb_k′ = Hb_k A and β_k′ = Hb_k(t) W x for constant A, W (the multiblade coordinates
+    of identical blades), the errors are carried in the same coordinates, e_k = Hb_k(t) E:
+
+        E′ = −(A + I/τ_s) E − W x,      y = H x + C Hb(t) E
+
+    a time-invariant block over a time-invariant rotor (hover), where the blade form is
+    periodic through Hbr_k(t). Both are the same model; the blade form is kept for a flap
+    that is not such a combination.
     """
 
     effect = 'sensor_lag'
@@ -333,25 +344,73 @@ class SensorLag(Augmented):
         return self.STEP_PER_LAG * self.parameter('lag_rad').lower
 
     def __init__(self, base):
-        n = BladeView(base).n_blades
-        self.extra_states = tuple(f'lag_error_{k}' for k in BladeView(base).blades)
+        view = BladeView(base)
+        self._basis = flap_basis(view)
+        if self._basis is None:
+            self.extra_states = tuple(f'lag_error_{k}' for k in view.blades)
+        else:
+            self.extra_states = tuple(f'lag_error_{base.state_names[j]}'
+                                      for j in self._basis[0])
         super().__init__(base)
-        self._n = n
+
+    def constant_terms(self):
+        """Tell whether the errors are in the flap's coordinates (then the block is constant)."""
+        return self._basis is not None
 
     def _extra(self, t, pb, pe, u, F, g):
-        nb, N = self.n_base_states, self._n
-        F[:, nb:, :nb] = -self.view.flap_rate(t)
-        F[:, nb:, nb:] = -np.eye(N) / pe[0]
+        nb = self.n_base_states
+        if self._basis is None:
+            F[:, nb:, :nb] = -self.view.flap_rate(t)
+            F[:, nb:, nb:] = -np.eye(self.n_states - nb) / pe[0]
+            return
+        _, A, W = self._basis
+        F[:, nb:, :nb] = -W
+        F[:, nb:, nb:] = -A - np.eye(A.shape[0]) / pe[0]
 
     def _extra_jacobian(self, t, pb, pe, u, dF, dg):
-        nb, N = self.n_base_states, self._n
-        dF[:, -1, nb:, nb:] = np.eye(N) / pe[0]**2
+        nb = self.n_base_states
+        dF[:, -1, nb:, nb:] = np.eye(self.n_states - nb) / pe[0]**2
 
     def output_matrix(self, t):
-        """Return H of y = H x + C e."""
+        """Return H of y = H x + C e (C Hb(t) E in the flap's coordinates)."""
         H = super().output_matrix(t)
-        H[:, :, self.n_base_states:] = self.view.channels(t)
+        C = self.view.channels(t)
+        if self._basis is None:
+            H[:, :, self.n_base_states:] = C
+        else:
+            H[:, :, self.n_base_states:] = C @ self.view.flap(t)[:, :, self._basis[0]]
         return H
+
+
+#: azimuths (rad) at which a flap basis is checked to be one constant combination
+_BASIS_PROBES = np.array([0.0, 0.4137, 1.9071, 4.4402])
+
+
+def flap_basis(view):
+    """
+    Return (q, A, W) of β_k = Hb_k(t) x[q] with Hb′ = Hb A and β_k′ = Hb W x, or None.
+
+    q: the state columns the blades' flap reads; A (|q|, |q|) and W (|q|, n) constant. For
+    the multiblade coordinates of identical blades they exist (cos/sin of ψ_k differentiate
+    into each other); None where Hb(t) is not of full column rank or no constant A, W
+    reproduce the model's Hb′ and Hbr at every probe azimuth.
+    """
+    Hb, Hbr = view.flap(_BASIS_PROBES), view.flap_rate(_BASIS_PROBES)
+    q = np.flatnonzero(np.any(Hb != 0.0, axis=(0, 1)))
+    B = Hb[:, :, q]
+    if q.size == 0 or q.size > B.shape[1] or any(
+            np.linalg.matrix_rank(b) < q.size for b in B):
+        return None
+    W = np.linalg.lstsq(B[0], Hbr[0], rcond=None)[0]
+    # β′ = Hb′ q + Hb q′: W's columns on q are A, checked against a central difference of Hb
+    A = W[:, q]
+    h = 1e-5
+    dB = (view.flap(_BASIS_PROBES + h)[:, :, q] - view.flap(_BASIS_PROBES - h)[:, :, q]) / (2 * h)
+    scale = max(float(np.abs(Hbr).max()), 1.0)
+    if (np.abs(B @ W - Hbr).max() > 1e-10 * scale
+            or np.abs(B @ A - dB).max() > 1e-6 * scale):
+        return None
+    return q, A, W
 
 
 class TimeDelay(Augmented):
@@ -787,7 +846,7 @@ class BladeDissimilarity(Augmented):
         dgamma = np.concatenate([dgamma, np.zeros(len(pb) - dgamma.size)])
         half, dhalf = 0.5 * gamma, 0.5 * np.broadcast_to(dgamma, (t.size, len(pb)))
         row, moment_u = self._moment(t, u)
-        coef = blade_aerodynamics(self.view._psi(t)[:, j], rotor.tip_loss, rotor.advance_ratio)
+        coef = blade_aerodynamics(self.view.azimuth(t)[:, j], rotor.tip_loss, rotor.advance_ratio)
         damping = coef['m_rate']
         stiff = coef['m_flap'] + rotor.pitch_flap_coupling * coef['m_theta']
         m_theta = coef['m_theta']
@@ -816,7 +875,7 @@ class BladeDissimilarity(Augmented):
         """
         rotor = self.view.model.rotor
         j = self._j
-        psi = self.view._psi(t)[:, j]
+        psi = self.view.azimuth(t)[:, j]
         per_damping = 0.5 * lock_number_from_damping(1.0, rotor.tip_loss)    # 4/B⁴ = (γ/2)/A
         w = per_damping * (2.0 / rotor.n_blades) * np.column_stack([np.cos(psi), np.sin(psi)])
         row, _ = self._moment(t, None)
@@ -1182,6 +1241,8 @@ class AzimuthOffset(Augmented):
     CYCLIC_PAIRS = (('lambda_I', 'lambda_II'), ('pitch_error_II', 'pitch_error_I'))
     #: extra-input triples [θ0, θI, θII]-like (pitch rates) turned like the pitch
     PITCH_INPUTS = ('theta_0_rate', 'theta_I_rate', 'theta_II_rate')
+    #: prefix of a sensor lag's error states in the flap's coordinates (:class:`SensorLag`)
+    LAG_ERROR = 'lag_error_'
     STEP = 1e-4
 
     def __init__(self, base):
@@ -1203,6 +1264,10 @@ class AzimuthOffset(Augmented):
                 if stem in coords:
                     self._index.append((i, coords.index(stem), 1.0, name.endswith('_dot'),
                                         stem))
+                elif stem.startswith(self.LAG_ERROR) and stem[len(self.LAG_ERROR):] in coords:
+                    # a sensor lag's errors in the flap's multiblade coordinates turn alike
+                    self._index.append((i, coords.index(stem[len(self.LAG_ERROR):]), 1.0,
+                                        False, self.LAG_ERROR))
         extra = list(self.all_extra_inputs)
         self._pitch_columns = [3 + extra.index(n) for n in self.PITCH_INPUTS] \
             if all(n in extra for n in self.PITCH_INPUTS) else []
@@ -1215,7 +1280,8 @@ class AzimuthOffset(Augmented):
         groups = {}
         for i, c, sign, rate, key in self._index:
             groups.setdefault((rate, key in ('lambda_I', 'lambda_II'),
-                               key.startswith('pitch_error')), []).append((i, c, sign))
+                               key.startswith('pitch_error'), key == self.LAG_ERROR),
+                              []).append((i, c, sign))
         for members in groups.values():
             for i, ci, si in members:
                 for j, cj, sj in members:
