@@ -25,6 +25,7 @@ Exit status 1 when the records reject a target at the 1 % level.
 """
 
 import argparse
+from dataclasses import replace
 import json
 import math
 import multiprocessing
@@ -75,9 +76,10 @@ def upper_tail(count, n, rate):
     return float(stats.binom.sf(count - 1, n, rate)) if n else 1.0
 
 
-def run_one(seed, kind=None, workers=1):
+def run_one(seed, kind=None, workers=1, tempering=None):
     """Draw, generate and diagnose one random record; return its scored line."""
     from rotor_id.diagnosis.diagnose import diagnose
+    from rotor_id.diagnosis.policy import DEFAULT_POLICY
     scenario = random_scenarios.draw(seed, kind)
     c0, t0 = time.process_time(), time.perf_counter()
     try:
@@ -88,7 +90,9 @@ def run_one(seed, kind=None, workers=1):
             'generate_cpu_s': time.process_time() - c0}
     c0, t0 = time.process_time(), time.perf_counter()
     try:
-        result = diagnose(record, description, workers=workers).as_json()
+        policy = DEFAULT_POLICY if tempering is None else \
+            replace(DEFAULT_POLICY, evidence_tempering=tempering)
+        result = diagnose(record, description, workers=workers, policy=policy).as_json()
     except Exception as exc:  # noqa: B902
         line.update(error=f'diagnose: {exc!r}', cpu_s=time.process_time() - c0)
         return line
@@ -365,6 +369,8 @@ def main(argv=None):
                         help='conceal only this (a stratum: e.g. many cheap nulls for the '
                              'false-alarm rate); the rotor and noise are drawn as without it')
     parser.add_argument('--out', default=str(RESULTS_DIR / 'calibration'))
+    parser.add_argument('--evidence-tempering', type=float, default=None,
+                        help='η of the stated probabilities (default: the policy\'s)')
     parser.add_argument('--summary-only', action='store_true',
                         help='rewrite .md/.json/.png from the .jsonl, diagnose nothing')
     parser.add_argument('--truth-cache', default=str(Path(tempfile.gettempdir())
@@ -392,7 +398,7 @@ def main(argv=None):
     seeds = [s for s in range(args.first_seed, args.first_seed + args.records) if s not in have]
     print(f'{len(have)} records in {lines_path}, {len(seeds)} to diagnose', flush=True)
     t0 = time.perf_counter()
-    tasks = [(s, args.kind, 1) for s in seeds]
+    tasks = [(s, args.kind, 1, args.evidence_tempering) for s in seeds]
     pool = multiprocessing.get_context('fork').Pool(args.workers) if args.workers > 1 else None
     results = pool.imap_unordered(_job, tasks) if pool else map(_job, tasks)
     try:

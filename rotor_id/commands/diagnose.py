@@ -119,7 +119,8 @@ def format_summary(diagnosis: 'Diagnosis') -> str:
                      + ('' if a.fitted else '  (score test)'))
     policy = cast('SelectionPolicy', diagnosis.policy)     # (the field is typed object)
     lines += _limit_lines(ex, policy.detection_power)
-    lines.append(f'probability: BIC evidence with the autocorrelation-corrected sample size, '
+    lines.append(f'probability: BIC evidence at the autocorrelation-corrected sample size, '
+                 f'temperature-scaled (η = {policy.evidence_tempering:g}), '
                  f'prior uniform over sizes then sets; high confidence from '
                  f'{policy.high_confidence:g}; {diagnosis.elapsed_s:.1f} s')
     return '\n'.join(lines)

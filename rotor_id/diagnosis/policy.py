@@ -22,6 +22,16 @@ class SelectionPolicy:
     #: An explanation is listed among the alternatives (and an effect that can stand in for
     #: a named one is named beside it, with its share) from this posterior probability on.
     alternative_share: float = 0.01
+    #: The stated probabilities are the posterior's, temperature-scaled (p ∝ posterior^η,
+    #: the standard recalibration of a classifier's odds; the ranking, and so every name, is
+    #: unchanged). Every candidate approximates the rig's physics by the catalogue's forms,
+    #: and likelihood ratios between misspecified models overstate the evidence: at η = 1 the
+    #: verdicts stated at 0.80-0.95 were right 81 % of the time and those at ≥ 0.95, 93 %
+    #: (300 random records of the independent generator, seeds 1-300,
+    #: bench/results/calibration_tempering_fit.md). η maximised the log score of the stated
+    #: probability on the odd seeds (0.7) and on the even ones (0.8-0.9); calibration.md
+    #: checks η = 0.8 on records never used to choose it. The search keeps η = 1.
+    evidence_tempering: float = 0.8
     #: Power at which a detection limit is stated: an effect of that size would have been
     #: added by the search in this share of records like this one.
     detection_power: float = 0.95

@@ -135,16 +135,18 @@ def log_posterior(candidate, rho, prior):
             + prior.log(candidate.effects))
 
 
-def posterior(candidates, prior):
+def posterior(candidates, prior, tempering=1.0):
     """
     Return [(candidate, probability)] over the table, most probable first.
 
     Score-test approximations enter the normalisation but are never ranked above a fit of
-    the same size that explains more: they are predictions, not fits.
+    the same size that explains more: they are predictions, not fits. ``tempering`` η ≤ 1
+    scales every log posterior (temperature scaling, p ∝ posterior^η): the ranking stays,
+    the odds shrink (see :attr:`SelectionPolicy.evidence_tempering`).
     """
     rows = list(candidates)
     rho = shared_rho(rows)
-    logs = [log_posterior(c, rho, prior) for c in rows]
+    logs = [tempering * log_posterior(c, rho, prior) for c in rows]
     top = max(logs)
     weights = [math.exp(v - top) for v in logs]
     total = sum(weights)

@@ -139,7 +139,7 @@ def explain(space, selection, prior, policy, adequate, misfit):
     ``adequate(result)``: whether a fit's residuals are noise; ``misfit(result)``: the share
     of the baseline's excess over the noise floor it removes.
     """
-    ranked = posterior(selection.candidates.values(), prior)
+    ranked = posterior(selection.candidates.values(), prior, policy.evidence_tempering)
     baseline = selection.candidates[()]
     top = next(c for c, p in ranked if c.fitted)
     top, p_top = physics_of(top, ranked, policy, selection.mu)

@@ -22,6 +22,7 @@ from scipy.stats import ncx2
 
 N_OBS = 4000
 POLICY = SelectionPolicy()
+UNTEMPERED = replace(POLICY, evidence_tempering=1.0)
 EFFECTS = ('sensor_lag', 'time_delay', 'sensor_bias', 'flap_frequency', 'sensor_gain',
            'pitch_actuator_lag')
 
@@ -82,7 +83,8 @@ def _run(table, effects=EFFECTS, policy=POLICY, adequate=lambda r: True, **optio
 
 
 def test_a_clear_single_effect_is_named_with_high_confidence():
-    explanation, selection, _ = _run({frozenset(['sensor_bias']): (60.0, 2)})
+    # the untempered posterior (η = 1): the temperature is checked on its own below
+    explanation, selection, _ = _run({frozenset(['sensor_bias']): (60.0, 2)}, policy=UNTEMPERED)
     assert explanation.names == ('sensor_bias',)
     assert explanation.effect == 'sensor_bias'
     assert explanation.confidence == 'high' and explanation.probability >= 0.95
@@ -95,14 +97,17 @@ def test_the_posterior_odds_are_the_bic_evidence_with_the_prior():
     # one effect of k = 1 gaining Δlog L = g: log odds against none = g − ½ log N
     # − log C(m, 1) (prior: sizes uniform, then sets of physics; the lag, the delay and the
     # actuator lag are one physics in hover, so m = 4 for the six effects)
+    # and the stated probability temperature-scales those log odds by η
     m, g = 4, 10.0
-    explanation, selection, _ = _run({frozenset(['flap_frequency']): (g, 1)})
-    odds = g - 0.5 * math.log(N_OBS) - math.log(m)
-    expected = 1.0 / (1.0 + math.exp(-odds))
-    probs = {tuple(a.effects): a.probability for a in explanation.alternatives}
-    probs[explanation.names] = explanation.probability
-    p_one, p_none = probs[('flap_frequency',)], probs[()]
-    assert p_one / (p_one + p_none) == pytest.approx(expected, rel=1e-9)
+    for eta in (1.0, POLICY.evidence_tempering):
+        explanation, selection, _ = _run({frozenset(['flap_frequency']): (g, 1)},
+                                         policy=replace(POLICY, evidence_tempering=eta))
+        odds = eta * (g - 0.5 * math.log(N_OBS) - math.log(m))
+        expected = 1.0 / (1.0 + math.exp(-odds))
+        probs = {tuple(a.effects): a.probability for a in explanation.alternatives}
+        probs[explanation.names] = explanation.probability
+        p_one, p_none = probs[('flap_frequency',)], probs[()]
+        assert p_one / (p_one + p_none) == pytest.approx(expected, rel=1e-9)
 
 
 def test_a_small_gain_leaves_none_with_low_confidence_and_a_null_is_high():
@@ -167,7 +172,7 @@ def test_a_stand_in_kept_first_does_not_hide_the_pair_it_stands_in_for():
              frozenset(['flap_frequency', 'sensor_gain']): (72.0, 5),
              frozenset(['sensor_bias', 'sensor_gain']): (140.0, 6),
              frozenset(['flap_frequency', 'sensor_bias', 'sensor_gain']): (140.5, 7)}
-    explanation, selection, _ = _run(table)
+    explanation, selection, _ = _run(table, policy=UNTEMPERED)
     assert set(explanation.names) == {'sensor_bias', 'sensor_gain'}
     assert [(s.action, s.effect) for s in selection.steps] == [('add', 'flap_frequency'),
                                                                ('add', 'sensor_gain')]
