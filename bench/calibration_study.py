@@ -370,7 +370,7 @@ def main(argv=None):
                              'false-alarm rate); the rotor and noise are drawn as without it')
     parser.add_argument('--out', default=str(RESULTS_DIR / 'calibration'))
     parser.add_argument('--evidence-tempering', type=float, default=None,
-                        help='η of the stated probabilities (default: the policy\'s)')
+                        help='η of the stated probabilities (default: the policy value)')
     parser.add_argument('--summary-only', action='store_true',
                         help='rewrite .md/.json/.png from the .jsonl, diagnose nothing')
     parser.add_argument('--truth-cache', default=str(Path(tempfile.gettempdir())
