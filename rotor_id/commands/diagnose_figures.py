@@ -16,13 +16,25 @@ Figures of a diagnosis (matplotlib, Agg): what a person would rather look at tha
   equation error at every step of the proposal, the kept terms marked.
 """
 
+from __future__ import annotations
+
 import math
+import os
 from pathlib import Path
+from typing import Any, TYPE_CHECKING, Union
 
 import numpy as np
 
 from rotor_id import residuals as rs
 from rotor_id.diagnosis.proposal import MIN_IMPROVEMENT
+
+if TYPE_CHECKING:
+    from rotor_id.diagnosis.result import Diagnosis
+    from rotor_id.io.record import Record
+    from rotor_id.io.run_description import RunDescription
+
+#: a file or directory name
+PathLike = Union[str, os.PathLike]
 
 
 def _plt():
@@ -48,7 +60,7 @@ def _augmented_series(diagnosis):
             [est.residuals[0][:, j] for j in range(est.residuals[0].shape[1])])
 
 
-def plot_fits(diagnosis, path):
+def plot_fits(diagnosis: Diagnosis, path: PathLike) -> None:
     """Measured vs both fits, and residuals, per model channel."""
     plt = _plt()
     chans = _model_channels(diagnosis)
@@ -91,7 +103,7 @@ def _title(diagnosis):
             f'augmented {fit["augmented_rms"]:.3g}, floor {fit["noise_floor"]:.3g} rad')
 
 
-def plot_spectra(diagnosis, path, smooth=15):
+def plot_spectra(diagnosis: Diagnosis, path: PathLike, smooth: int = 15) -> None:
     """Residual spectra of baseline and augmented model relative to the floor."""
     plt = _plt()
     chans = _model_channels(diagnosis)
@@ -104,11 +116,9 @@ def plot_spectra(diagnosis, path, smooth=15):
                                  ('augmented', aug_res, 'C3')):
         if series is None:
             continue
-        total = None
-        for res, c in zip(series, chans):
-            freq, spec = rs.periodogram(res, dt)
-            ratio = spec / c.floor**2
-            total = ratio if total is None else total + ratio
+        spectra = [rs.periodogram(res, dt) for res in series]
+        freq = spectra[0][0]
+        total = np.sum([spec / c.floor**2 for (_, spec), c in zip(spectra, chans)], axis=0)
         ax.semilogy(freq, np.convolve(total / len(chans), kernel, mode='same'), color=color,
                     label=f'{label} residual')
     ax.axhline(1.0, color='k', ls=':', lw=0.8, label='noise floor')
@@ -125,7 +135,7 @@ def plot_spectra(diagnosis, path, smooth=15):
     plt.close(fig)
 
 
-def plot_energy(diagnosis, path):
+def plot_energy(diagnosis: Diagnosis, path: PathLike) -> None:
     """Residual mean square per revolution over time, relative to the floor."""
     plt = _plt()
     chans = _model_channels(diagnosis)
@@ -137,10 +147,9 @@ def plot_energy(diagnosis, path):
                                  ('augmented', aug_res, 'C3')):
         if series is None:
             continue
-        total = None
-        for res, c in zip(series, chans):
-            centres, ms = rs.windowed_energy(res, t)
-            total = ms / c.floor**2 if total is None else total + ms / c.floor**2
+        energies = [rs.windowed_energy(res, t) for res in series]
+        centres = energies[0][0]
+        total = np.sum([ms / c.floor**2 for (_, ms), c in zip(energies, chans)], axis=0)
         ax.plot(np.interp(centres, part.t, part.time_s), total / len(chans), 'o-', ms=3,
                 color=color, label=f'{label} residual')
     ax.axhline(1.0, color='k', ls=':', lw=0.8, label='noise floor')
@@ -155,7 +164,7 @@ def plot_energy(diagnosis, path):
     plt.close(fig)
 
 
-def plot_effects(diagnosis, path):
+def plot_effects(diagnosis: Diagnosis, path: PathLike) -> None:
     """Show the fit improving effect by effect: RMS over the floor per step, energy in time."""
     plt = _plt()
     chans = _model_channels(diagnosis)
@@ -186,10 +195,9 @@ def plot_effects(diagnosis, path):
     ax_bar.axhline(0.0, color='k', lw=0.8)
     ax_bar.set_ylabel('residual RMS above the floor [%]')
     for i, (name, res) in enumerate(series):
-        total = None
-        for r, f in zip(res, floors):
-            centres, ms = rs.windowed_energy(r, t)
-            total = ms / f**2 if total is None else total + ms / f**2
+        energies = [rs.windowed_energy(r, t) for r in res]
+        centres = energies[0][0]
+        total = np.sum([ms / f**2 for (_, ms), f in zip(energies, floors)], axis=0)
         ax.plot(np.interp(centres, part.t, part.time_s), total / len(res), 'o-', ms=3,
                 color=f'C{i}', label=name if i == 0 else f'+ {name}')
     ax.axhline(1.0, color='k', ls=':', lw=0.8, label='noise floor')
@@ -202,7 +210,7 @@ def plot_effects(diagnosis, path):
     plt.close(fig)
 
 
-def plot_proposal(proposal, path):
+def plot_proposal(proposal: dict[str, Any], path: PathLike) -> None:
     """Held-out improvement of every library term at each step of a proposal (JSON)."""
     plt = _plt()
     steps = proposal['steps']
@@ -228,7 +236,8 @@ def plot_proposal(proposal, path):
     plt.close(fig)
 
 
-def plot_frequency_response(diagnosis, record, description, path):
+def plot_frequency_response(diagnosis: Diagnosis, record: Record,
+                            description: RunDescription, path: PathLike) -> str | None:
     """
     Draw the record's measured dFRF and the baseline model's; return None or why not drawn.
 
@@ -247,7 +256,8 @@ def plot_frequency_response(diagnosis, record, description, path):
     return None
 
 
-def write_report(diagnosis, directory, record=None, description=None):
+def write_report(diagnosis: Diagnosis, directory: PathLike, record: Record | None = None,
+                 description: RunDescription | None = None) -> list[Path]:
     """
     Write the figures into ``directory``; return their paths.
 

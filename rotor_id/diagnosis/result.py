@@ -8,8 +8,15 @@ fits and the moves of the search (:class:`rotor_id.diagnosis.selection.Step`).
 
 from dataclasses import asdict, dataclass, field
 import math
+from typing import TYPE_CHECKING
 
 import numpy as np
+
+if TYPE_CHECKING:
+    from rotor_id.diagnosis.likelihood import FitResult
+    from rotor_id.diagnosis.policy import SelectionPolicy
+    from rotor_id.io.record import Record
+    from rotor_id.pipeline import Identification
 
 
 @dataclass
@@ -141,20 +148,20 @@ class Diagnosis:
     candidates: list
     #: the run's unknowns: baseline and corrected values ± σ
     parameters: dict
-    baseline: object
+    baseline: 'Identification'
     #: the verdict's fitted model (a FitResult; None: the baseline)
-    chosen: object
+    chosen: 'FitResult | None'
     channels: list
     stats_baseline: list
     stats_augmented: list
     blade_floor: np.ndarray
-    record_window: object
+    record_window: 'Record'
     elapsed_s: float
     steps: list = field(default_factory=list)
     #: the fits along the search to the verdict's model: [(effect added, FitResult)]
     path: list = field(default_factory=list)
     proposal: dict = None
-    policy: object = None
+    policy: 'SelectionPolicy | None' = None
     #: catalogue effects not tried on this record, and why
     not_tried: dict = field(default_factory=dict)
 

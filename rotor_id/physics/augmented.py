@@ -17,8 +17,10 @@ cubic spring) ride in extra columns of u after the report's [θ0, θI, θII].
 import copy
 from dataclasses import replace
 import math
+from typing import Any, Mapping, Sequence
 
 import numpy as np
+import numpy.typing as npt
 
 from rotor_id.physics.aerodynamics import (blade_aerodynamics, flap_damping,
                                            lock_number_from_damping)
@@ -26,6 +28,11 @@ from rotor_id.physics.models import (compact, CYCLIC_INFLOW, full_along_time, Li
                                      Multiblade, Parameter, RotorModel, via_compact)
 from rotor_id.physics.multiblade import azimuth_offset_matrix, coordinate_names
 from rotor_id.physics.stirring import blade_pitch_from_multiblade, multiblade_from_blade_pitch
+
+#: a rotor model (:class:`~rotor_id.physics.models.RotorModel`) or one of the augmented models
+#: wrapping it: both carry the rotor's attributes (rotor, blades, collective, outputs, ...)
+#: beyond the LinearModel interface
+RotorLike = Any
 
 
 # ------------------------------------------------------------------------------------------------
@@ -42,7 +49,7 @@ class BladeView:
     augmentations' extra states get zero columns, and a channel subset picks its rows.
     """
 
-    def __init__(self, model):
+    def __init__(self, model: RotorLike) -> None:
         self.n_states = model.n_states
         self.n_outputs = model.n_outputs
         rows = None
@@ -58,7 +65,7 @@ class BladeView:
         self.blades = tuple(model.blades)
         self.n_blades = len(self.blades)
 
-    def azimuth(self, t):
+    def azimuth(self, t: npt.ArrayLike) -> np.ndarray:
         """Return every blade's azimuth ψ_k at times t (T, N), as the model defines it."""
         return self.model.blade_azimuth(t)
 
@@ -67,24 +74,24 @@ class BladeView:
         out[:, :, :H.shape[2]] = H
         return out
 
-    def flap(self, t):
+    def flap(self, t: npt.ArrayLike) -> np.ndarray:
         """Hb (T, N, n): β_k = Hb x."""
         return self._columns(self.model.blade_flap_matrix(t))
 
-    def flap_rate(self, t):
+    def flap_rate(self, t: npt.ArrayLike) -> np.ndarray:
         """Hbr (T, N, n): β_k′ = Hbr x (rates are states, so no input enters)."""
         return self._columns(self.model.blade_flap_rate_matrix(t))
 
-    def inflow(self, t):
+    def inflow(self, t: npt.ArrayLike) -> np.ndarray:
         """Return Hl (T, N, n): the wake's inflow angle λ_k = λI cos ψ_k + λII sin ψ_k."""
         return self._columns(self.model.blade_inflow_matrix(t))
 
-    def channels(self, t):
+    def channels(self, t: npt.ArrayLike) -> np.ndarray:
         """C (T, m, N): the model's output channels from the modelled blades' values."""
         C = self.model.channel_matrix(t)[:, :, [k - 1 for k in self.blades]]
         return C if self._rows is None else C[:, self._rows]
 
-    def force(self, t):
+    def force(self, t: npt.ArrayLike) -> np.ndarray:
         """G (T, n, N): change of x′ for a unit flapping acceleration of blade k alone."""
         G = self.model.blade_force_matrix(t)
         out = np.zeros((G.shape[0], self.n_states, G.shape[2]))
@@ -113,7 +120,7 @@ class Augmented(LinearModel):
     #: columns of u beyond [θ0, θI, θII] the augmentation needs (see ExtendedInput)
     extra_inputs: tuple[str, ...] = ()
 
-    def __init__(self, base):
+    def __init__(self, base: RotorLike) -> None:
         self.base = base
         self.view = BladeView(base)
         self.rotor = base.rotor
@@ -127,14 +134,14 @@ class Augmented(LinearModel):
         self.all_extra_inputs = tuple(getattr(base, 'all_extra_inputs', ())) + \
             tuple(self.extra_inputs)
 
-    def own_inputs(self, u):
+    def own_inputs(self, u: npt.ArrayLike) -> np.ndarray:
         """Return [θ0, θI, θII, this augmentation's extra inputs] out of the full u."""
         u = np.asarray(u, dtype=float)
         if self.n_base_inputs == 3:
             return u
         return np.concatenate([u[:, :3], u[:, self.n_base_inputs:]], axis=1)
 
-    def base_inputs(self, u, pitch=None):
+    def base_inputs(self, u: npt.ArrayLike, pitch: np.ndarray | None = None) -> np.ndarray:
         """Return the columns of u the base reads, optionally with [θ0, θI, θII] replaced."""
         u = np.asarray(u, dtype=float)[:, :self.n_base_inputs]
         if pitch is None:
@@ -142,18 +149,18 @@ class Augmented(LinearModel):
         return np.concatenate([pitch, u[:, 3:]], axis=1)
 
     @property
-    def effects(self):
+    def effects(self) -> tuple[str, ...]:
         """Return the effects of this model from the innermost to this one."""
         inner = getattr(self.base, 'effects', ())
         return tuple(inner) + (self.effect,)
 
     @property
-    def n_base_states(self):
+    def n_base_states(self) -> int:
         """Return the number of the baseline's states."""
         return self.base.n_states
 
     @property
-    def n_base_parameters(self):
+    def n_base_parameters(self) -> int:
         """Return the number of the baseline's parameters."""
         return len(self.base.parameters)
 
@@ -162,7 +169,7 @@ class Augmented(LinearModel):
     #: its likelihood); every other bound is a range the catalogue chose and is widened
     physical_bounds: dict[str, tuple[str, ...]] = {}
 
-    def with_bounds(self, bounds):
+    def with_bounds(self, bounds: Mapping[str, tuple[float, float]]) -> 'Augmented':
         """Replace extra-parameter bounds {name: (lower, upper)} (a widened catalogue range)."""
         self.extra_parameters = tuple(
             replace(par, lower=float(bounds[par.name][0]), upper=float(bounds[par.name][1]))
@@ -170,7 +177,7 @@ class Augmented(LinearModel):
         self.parameters = tuple(self.base.parameters) + tuple(self.extra_parameters)
         return self
 
-    def widened(self, name, side):
+    def widened(self, name: str, side: str) -> tuple[float, float] | None:
         """
         Return (lower, upper) of extra parameter ``name`` widened on ``side``, or None.
 
@@ -189,7 +196,7 @@ class Augmented(LinearModel):
         p = np.asarray(p, dtype=float)
         return p[:self.n_base_parameters], p[self.n_base_parameters:]
 
-    def constant_terms(self):
+    def constant_terms(self) -> bool:
         """
         Tell whether this layer's own F and ∂F terms are the same at every time.
 
@@ -199,18 +206,21 @@ class Augmented(LinearModel):
         return False
 
     @via_compact
-    def system(self, t, p, u):
+    def system(self, t: npt.ArrayLike, p: np.ndarray,
+               u: npt.ArrayLike) -> tuple[np.ndarray, np.ndarray]:
         """F and g: the baseline's, with the augmentation's blocks added."""
         F, g = self.system_compact(t, p, u)
         return full_along_time(F, g.shape[0]), g
 
     @via_compact
-    def system_jacobian(self, t, p, u):
+    def system_jacobian(self, t: npt.ArrayLike, p: np.ndarray,
+                        u: npt.ArrayLike) -> tuple[np.ndarray, np.ndarray]:
         """∂F/∂p and ∂g/∂p: the baseline's, with the augmentation's blocks added."""
         dF, dg = self.system_jacobian_compact(t, p, u)
         return full_along_time(dF, dg.shape[0]), dg
 
-    def system_compact(self, t, p, u):
+    def system_compact(self, t: npt.ArrayLike, p: np.ndarray,
+                       u: npt.ArrayLike) -> tuple[np.ndarray, np.ndarray]:
         """:meth:`system`, F of length 1 along time where it is constant (:func:`compact`)."""
         t = np.atleast_1d(np.asarray(t, dtype=float))
         u = np.asarray(u, dtype=float)
@@ -225,7 +235,8 @@ class Augmented(LinearModel):
         self._extra(t, pb, pe, self.own_inputs(u), F, g)
         return F, g
 
-    def system_jacobian_compact(self, t, p, u):
+    def system_jacobian_compact(self, t: npt.ArrayLike, p: np.ndarray,
+                                u: npt.ArrayLike) -> tuple[np.ndarray, np.ndarray]:
         """:meth:`system_jacobian`, ∂F/∂p of length 1 along time where F is constant."""
         t = np.atleast_1d(np.asarray(t, dtype=float))
         u = np.asarray(u, dtype=float)
@@ -246,19 +257,19 @@ class Augmented(LinearModel):
     def _extra_jacobian(self, t, pb, pe, u, dF, dg):
         """Add the augmentation's derivative terms in place."""
 
-    def output_matrix(self, t):
+    def output_matrix(self, t: npt.ArrayLike) -> np.ndarray:
         """H: the baseline's, zero on extra states unless a subclass says otherwise."""
         Hb = self.base.output_matrix(t)
         H = np.zeros((Hb.shape[0], Hb.shape[1], self.n_states))
         H[:, :, :self.n_base_states] = Hb
         return H
 
-    def output_offset(self, t, p):
+    def output_offset(self, t: npt.ArrayLike, p: np.ndarray) -> np.ndarray:
         """Return the baseline's output offset (no baseline has one)."""
         pb, _ = self._split(p)
         return self.base.output_offset(t, pb)
 
-    def output_offset_jacobian(self, t, p):
+    def output_offset_jacobian(self, t: npt.ArrayLike, p: np.ndarray) -> np.ndarray:
         """∂d/∂p, zero for the extra parameters unless a subclass says otherwise."""
         pb, _ = self._split(p)
         d = self.base.output_offset_jacobian(t, pb)
@@ -266,15 +277,16 @@ class Augmented(LinearModel):
         out[:, :, :d.shape[2]] = d
         return out
 
-    def observe_blades(self, t, blade_flap):
+    def observe_blades(self, t: npt.ArrayLike, blade_flap: npt.ArrayLike) -> np.ndarray:
         """Return the baseline's channels."""
         return self.base.observe_blades(t, blade_flap)
 
-    def equilibrium(self, t, p, u):
+    def equilibrium(self, t: npt.ArrayLike, p: np.ndarray, u: npt.ArrayLike) -> np.ndarray:
         """Steady state for a held input (extra inputs held at their first value)."""
         return super().equilibrium(t, p, u)
 
-    def report_parameters(self, values, cov):
+    def report_parameters(self, values: np.ndarray,
+                          cov: np.ndarray) -> dict[str, tuple[float, float]]:
         """
         Physical extra parameters {name: (value, std)} from the fitted extra parameters.
 
@@ -330,7 +342,7 @@ class SensorLag(Augmented):
     #: stopped here is reported bound-limited, not widened.
     SMALLEST_LAG = 0.03
 
-    def widened(self, name, side):
+    def widened(self, name: str, side: str) -> tuple[float, float] | None:
         """Return the upper bound doubled; None at the lower (see :data:`SMALLEST_LAG`)."""
         par = self.parameter(name)
         if side == 'lower':
@@ -339,11 +351,11 @@ class SensorLag(Augmented):
             return max(par.lower / 3.0, self.SMALLEST_LAG), par.upper
         return par.lower, 2.0 * par.upper
 
-    def step(self):
+    def step(self) -> float:
         """Return the longest stable RK4 step for the smallest admissible τ_s."""
         return self.STEP_PER_LAG * self.parameter('lag_rad').lower
 
-    def __init__(self, base):
+    def __init__(self, base: RotorLike) -> None:
         view = BladeView(base)
         self._basis = flap_basis(view)
         if self._basis is None:
@@ -353,7 +365,7 @@ class SensorLag(Augmented):
                                       for j in self._basis[0])
         super().__init__(base)
 
-    def constant_terms(self):
+    def constant_terms(self) -> bool:
         """Tell whether the errors are in the flap's coordinates (then the block is constant)."""
         return self._basis is not None
 
@@ -371,7 +383,7 @@ class SensorLag(Augmented):
         nb = self.n_base_states
         dF[:, -1, nb:, nb:] = np.eye(self.n_states - nb) / pe[0]**2
 
-    def output_matrix(self, t):
+    def output_matrix(self, t: npt.ArrayLike) -> np.ndarray:
         """Return H of y = H x + C e (C Hb(t) E in the flap's coordinates)."""
         H = super().output_matrix(t)
         C = self.view.channels(t)
@@ -386,7 +398,7 @@ class SensorLag(Augmented):
 _BASIS_PROBES = np.array([0.0, 0.4137, 1.9071, 4.4402])
 
 
-def flap_basis(view):
+def flap_basis(view: 'BladeView') -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
     """
     Return (q, A, W) of β_k = Hb_k(t) x[q] with Hb′ = Hb A and β_k′ = Hb W x, or None.
 
@@ -444,7 +456,8 @@ class TimeDelay(Augmented):
         dout[:, 2] = -u[:, 5] * c - th_ii * s - u[:, 4] * s + th_i * c
         return out, dout
 
-    def system(self, t, p, u):
+    def system(self, t: npt.ArrayLike, p: np.ndarray,
+               u: npt.ArrayLike) -> tuple[np.ndarray, np.ndarray]:
         """Baseline F, g at the delayed, rotated pitch."""
         t = np.atleast_1d(np.asarray(t, dtype=float))
         u = np.asarray(u, dtype=float)
@@ -452,7 +465,8 @@ class TimeDelay(Augmented):
         us, _ = self._shifted(self.own_inputs(u), pe[0])
         return self.base.system(t, pb, self.base_inputs(u, us))
 
-    def system_jacobian(self, t, p, u):
+    def system_jacobian(self, t: npt.ArrayLike, p: np.ndarray,
+                        u: npt.ArrayLike) -> tuple[np.ndarray, np.ndarray]:
         """Baseline derivatives at the delayed pitch, and ∂g/∂d = G ∂u/∂d (g affine in u)."""
         t = np.atleast_1d(np.asarray(t, dtype=float))
         u = np.asarray(u, dtype=float)
@@ -470,7 +484,7 @@ class TimeDelay(Augmented):
         return dF, dg
 
 
-def observable_basis(gram):
+def observable_basis(gram: np.ndarray) -> np.ndarray:
     """Orthonormal directions of a Gram matrix the record can see (eigenvalues above 1e-8)."""
     vals, vecs = np.linalg.eigh(gram)
     return vecs[:, vals > 1e-8 * max(vals.max(), 1e-300)]
@@ -493,7 +507,8 @@ class SensorBias(Augmented):
 
     effect = 'sensor_bias'
 
-    def __init__(self, base, t_window, collective_fitted=True):
+    def __init__(self, base: RotorLike, t_window: npt.ArrayLike,
+                 collective_fitted: bool = True) -> None:
         view = BladeView(base)
         C = view.channels(t_window)
         N = view.n_blades
@@ -512,7 +527,7 @@ class SensorBias(Augmented):
         super().__init__(base)
         self.blade_numbers = view.blades
 
-    def output_offset(self, t, p):
+    def output_offset(self, t: npt.ArrayLike, p: np.ndarray) -> np.ndarray:
         """
         Return the inner layers' offset plus d = C(t) V c.
 
@@ -525,14 +540,15 @@ class SensorBias(Augmented):
         return super().output_offset(t, p) + np.einsum('tmn,n->tm', self.view.channels(t),
                                                        self.basis @ pe)
 
-    def output_offset_jacobian(self, t, p):
+    def output_offset_jacobian(self, t: npt.ArrayLike, p: np.ndarray) -> np.ndarray:
         """∂d/∂c = C(t) V."""
         out = super().output_offset_jacobian(t, p)
         out[:, :, self.n_base_parameters:] = np.einsum('tmn,nk->tmk', self.view.channels(t),
                                                        self.basis)
         return out
 
-    def report_parameters(self, values, cov):
+    def report_parameters(self, values: np.ndarray,
+                          cov: np.ndarray) -> dict[str, tuple[float, float]]:
         """Per-blade biases b = V c with their σ (unobservable parts set to zero)."""
         k = self.n_base_parameters
         c = np.asarray(values[k:], dtype=float)
@@ -552,17 +568,17 @@ class FlapFrequency(Augmented):
 
     effect = 'flap_frequency'
 
-    def __init__(self, base):
+    def __init__(self, base: RotorLike) -> None:
         P = base.rotor.flap_frequency
         self.extra_parameters = (Parameter('P', 'P = ω₁', 'per rev', P, 0.3, 4.0,
                                            'rotating flap natural frequency'),)
         super().__init__(base)
-        self._cache = {}
+        self._cache: dict[Any, Any] = {}
 
     #: the rotor constant this augmentation frees
     constant = 'flap_frequency'
 
-    def with_rotor(self, **constants):
+    def with_rotor(self, **constants: Any) -> RotorLike:
         """
         Return a copy on a base with some rotor constants changed (fresh caches).
 
@@ -593,12 +609,14 @@ class FlapFrequency(Augmented):
             self._cache[P] = model
         return self._cache[P]
 
-    def system(self, t, p, u):
+    def system(self, t: npt.ArrayLike, p: np.ndarray,
+               u: npt.ArrayLike) -> tuple[np.ndarray, np.ndarray]:
         """Return the baseline's F, g with P replaced."""
         pb, pe = self._split(p)
         return self._with_P(pe[0]).system(t, pb, self.base_inputs(u))
 
-    def system_jacobian(self, t, p, u):
+    def system_jacobian(self, t: npt.ArrayLike, p: np.ndarray,
+                        u: npt.ArrayLike) -> tuple[np.ndarray, np.ndarray]:
         """Baseline derivatives at P, and ∂F/∂P by an exact central difference."""
         t = np.atleast_1d(np.asarray(t, dtype=float))
         u = self.base_inputs(u)
@@ -620,7 +638,7 @@ class FlapFrequency(Augmented):
 class ChannelSubset(LinearModel):
     """A model observed on a subset of its output channels (same parameters)."""
 
-    def __init__(self, model, rows, effect):
+    def __init__(self, model: RotorLike, rows: Sequence[int], effect: str) -> None:
         self.inner = model
         self.rows = list(rows)
         self.effect = effect
@@ -631,7 +649,7 @@ class ChannelSubset(LinearModel):
         self.output_names = tuple(model.output_names[i] for i in self.rows)
         self.time_invariant = model.time_invariant
 
-    def with_rotor(self, **constants):
+    def with_rotor(self, **constants: Any) -> RotorLike:
         """
         Return a copy whose inner model has some rotor constants changed.
 
@@ -641,28 +659,31 @@ class ChannelSubset(LinearModel):
         """
         return ChannelSubset(self.inner.with_rotor(**constants), self.rows, self.effect)
 
-    def system(self, t, p, u):
+    def system(self, t: npt.ArrayLike, p: np.ndarray,
+               u: npt.ArrayLike) -> tuple[np.ndarray, np.ndarray]:
         """Return the inner model's F and g."""
         return self.inner.system(t, p, np.asarray(u)[:, :3])
 
-    def system_jacobian(self, t, p, u):
+    def system_jacobian(self, t: npt.ArrayLike, p: np.ndarray,
+                        u: npt.ArrayLike) -> tuple[np.ndarray, np.ndarray]:
         """Return the inner model's derivatives."""
         return self.inner.system_jacobian(t, p, np.asarray(u)[:, :3])
 
-    def output_matrix(self, t):
+    def output_matrix(self, t: npt.ArrayLike) -> np.ndarray:
         """Return the selected rows of the inner H."""
         return self.inner.output_matrix(t)[:, self.rows]
 
-    def observe_blades(self, t, blade_flap):
+    def observe_blades(self, t: npt.ArrayLike, blade_flap: npt.ArrayLike) -> np.ndarray:
         """Return the selected channels."""
         return self.inner.observe_blades(t, blade_flap)[:, self.rows]
 
-    def report_parameters(self, values, cov):
+    def report_parameters(self, values: np.ndarray,
+                          cov: np.ndarray) -> dict[str, tuple[float, float]]:
         """No extra parameters."""
         return {}
 
 
-def periodic_coefficients(base):
+def periodic_coefficients(base: RotorLike) -> RotorLike:
     """Return the periodic model (docs/models.md §2.1) on the constant model's outputs."""
     inner = Multiblade(base.rotor, collective=base.collective, outputs=base.outputs)
     inner.parameters = base.parameters
@@ -707,7 +728,7 @@ class DynamicInflow(Augmented):
     extra_states = ('lambda_I', 'lambda_II')
     free_extra_states = ('lambda_I', 'lambda_II')
 
-    def __init__(self, base):
+    def __init__(self, base: RotorLike) -> None:
         super().__init__(base)
         self._gamma = _gamma_index(base)
         self._a1 = flap_damping(1.0, base.rotor.tip_loss)      # A/γ, Ch.2 eq. 27
@@ -737,7 +758,7 @@ class DynamicInflow(Augmented):
                          _as_index(self._states[self._root_in_inner]),
                          _as_index([root_of[mine] for mine, _ in pairs if mine in root_of]))
 
-    def constant_terms(self):
+    def constant_terms(self) -> bool:
         """Tell whether the rotor models of the wake are time-invariant (then so are its F, ∂F)."""
         return bool(self.inner.time_invariant and getattr(self.root, 'time_invariant', False))
 
@@ -778,7 +799,8 @@ class DynamicInflow(Augmented):
                 dF[:, row][(slice(None),) + _grid(states)] += dFx[:, k]
                 dg[:, row][:, states] += dgx[:, k]
 
-    def report_parameters(self, values, cov):
+    def report_parameters(self, values: np.ndarray,
+                          cov: np.ndarray) -> dict[str, tuple[float, float]]:
         """Return A = γB⁴/8 with its σ, AL/τ and 1/τ (the answers' names)."""
         out = super().report_parameters(values, cov)
         i = self._gamma
@@ -821,7 +843,7 @@ class BladeDissimilarity(Augmented):
     extra_states = ('eta', 'eta_dot')
     free_extra_states = ('eta', 'eta_dot')
 
-    def __init__(self, base, blade):
+    def __init__(self, base: RotorLike, blade: int) -> None:
         if 'lambda_0' in BladeView(base).model.state_names:
             raise ValueError('blade dissimilarity is modelled with the cyclic wake only, not '
                              'with the three-state inflow')
@@ -947,13 +969,14 @@ class BladeDissimilarity(Augmented):
                 dg[:, kb, lam] += -gain * wi * q
                 dg[:, kb + 1, lam] += -gain * wi * m_th                  # ∂/∂(Δθ + εθ0)
 
-    def output_matrix(self, t):
+    def output_matrix(self, t: npt.ArrayLike) -> np.ndarray:
         """Return H of y = H x + C_{:,j} η."""
         H = super().output_matrix(t)
         H[:, :, self.n_base_states] = self.view.channels(t)[:, :, self._j]
         return H
 
-    def report_parameters(self, values, cov):
+    def report_parameters(self, values: np.ndarray,
+                          cov: np.ndarray) -> dict[str, tuple[float, float]]:
         """ε, Δθ = (Δθ + εθ0) − εθ0 (σ by the delta method) and which blade."""
         out = super().report_parameters(values, cov)
         k = self.n_base_parameters
@@ -992,7 +1015,7 @@ class CubicStiffness(Augmented):
     extra_parameters = (Parameter('kappa', 'κ', 'rad⁻²', 0.0, -1e5, 1e5,
                                   'cubic flap stiffness, per rev² per rad²'),)
 
-    def __init__(self, base):
+    def __init__(self, base: RotorLike) -> None:
         self.extra_inputs = tuple(f'beta_{k}_measured' for k in BladeView(base).blades)
         super().__init__(base)
 
@@ -1018,7 +1041,7 @@ class CubicStiffness(Augmented):
         memo.append((np.array(t, dtype=float), np.array(beta, dtype=float), forcing))
         return forcing
 
-    def constant_terms(self):
+    def constant_terms(self) -> bool:
         """Return True: the spring adds to g only."""
         return True
 
@@ -1074,7 +1097,7 @@ class PitchFlapCoupling(FlapFrequency):
     effect = 'pitch_flap_coupling'
     constant = 'pitch_flap_coupling'
 
-    def __init__(self, base):
+    def __init__(self, base: RotorLike) -> None:
         K = base.rotor.pitch_flap_coupling
         self.extra_parameters = (Parameter('pitch_flap_coupling', 'K = tan δ3', 'rad/rad', K,
                                            K - 1.5, K + 1.5,
@@ -1106,7 +1129,7 @@ class PitchActuatorLag(Augmented):
     STEP_PER_LAG = SensorLag.STEP_PER_LAG
     widened = SensorLag.widened
 
-    def step(self):
+    def step(self) -> float:
         """Return the longest stable RK4 step for the smallest admissible τ_a."""
         return self.STEP_PER_LAG * self.parameter('actuator_lag_rad').lower
 
@@ -1145,7 +1168,8 @@ class SensorGain(Augmented):
     #: samples either side averaged for the flap at the start of a run
     SMOOTH = 10
 
-    def __init__(self, base, t_record, blade_flap):
+    def __init__(self, base: RotorLike, t_record: npt.ArrayLike,
+                 blade_flap: npt.ArrayLike) -> None:
         view = BladeView(base)
         self._t = np.asarray(t_record, dtype=float)
         self._flap = np.asarray(blade_flap, dtype=float)
@@ -1177,13 +1201,13 @@ class SensorGain(Augmented):
         for i in range(self.basis.shape[1]):
             dF[:, kb + i, nb:, :nb] = self.basis[:, i][None, :, None] * rate
 
-    def output_matrix(self, t):
+    def output_matrix(self, t: npt.ArrayLike) -> np.ndarray:
         """Return H of y = H x + C z."""
         H = super().output_matrix(t)
         H[:, :, self.n_base_states:] = self.view.channels(t)
         return H
 
-    def output_offset(self, t, p):
+    def output_offset(self, t: npt.ArrayLike, p: np.ndarray) -> np.ndarray:
         """Return the baseline's offset plus C(t) diag(s) β(t_0)."""
         t = np.atleast_1d(np.asarray(t, dtype=float))
         _, pe = self._split(p)
@@ -1191,7 +1215,7 @@ class SensorGain(Augmented):
         return super().output_offset(t, p) + np.einsum('tmn,n->tm', self.view.channels(t),
                                                        start)
 
-    def output_offset_jacobian(self, t, p):
+    def output_offset_jacobian(self, t: npt.ArrayLike, p: np.ndarray) -> np.ndarray:
         """∂d/∂c = C(t) diag(β(t_0)) V."""
         t = np.atleast_1d(np.asarray(t, dtype=float))
         out = super().output_offset_jacobian(t, p)
@@ -1200,7 +1224,8 @@ class SensorGain(Augmented):
             self.basis)
         return out
 
-    def report_parameters(self, values, cov):
+    def report_parameters(self, values: np.ndarray,
+                          cov: np.ndarray) -> dict[str, tuple[float, float]]:
         """Per-blade scale errors s = V c with their σ."""
         k = self.n_base_parameters
         c = np.asarray(values[k:k + self.basis.shape[1]], dtype=float)
@@ -1245,7 +1270,7 @@ class AzimuthOffset(Augmented):
     LAG_ERROR = 'lag_error_'
     STEP = 1e-4
 
-    def __init__(self, base):
+    def __init__(self, base: RotorLike) -> None:
         super().__init__(base)
         self._n = int(self.view.model.rotor.n_blades)
         coords = list(coordinate_names(self._n)) if self.view.model.blade is None else []
@@ -1273,11 +1298,13 @@ class AzimuthOffset(Augmented):
             if all(n in extra for n in self.PITCH_INPUTS) else []
         self.rotation(0.1)                # raises now for a state set S does not map onto itself
 
-    def rotation(self, offset):
+    def rotation(self, offset: float) -> np.ndarray:
         """S over the state vector: the cyclic pairs turned by hΔψ, everything else kept."""
-        S = azimuth_offset_matrix(self._n, offset) if self._index else None
         out = np.eye(self.n_states)
-        groups = {}
+        if not self._index:
+            return out
+        S = azimuth_offset_matrix(self._n, offset)
+        groups: dict[tuple[bool, ...], list[tuple[int, int, float]]] = {}
         for i, c, sign, rate, key in self._index:
             groups.setdefault((rate, key in ('lambda_I', 'lambda_II'),
                                key.startswith('pitch_error'), key == self.LAG_ERROR),
@@ -1291,8 +1318,9 @@ class AzimuthOffset(Augmented):
                              'carries one half of a pair')
         return out
 
-    def true_inputs(self, t, u, offset):
+    def true_inputs(self, t: npt.ArrayLike, u: npt.ArrayLike, offset: float) -> np.ndarray:
         """Return u with [θ0, θI, θII] (and pitch rates) turned to the true azimuth t − Δψ."""
+        t = np.asarray(t, dtype=float)
         u = np.array(u, dtype=float)
         for first in [0] + self._pitch_columns[:1]:
             cols = slice(first, first + 3)
@@ -1309,13 +1337,15 @@ class AzimuthOffset(Augmented):
         F, g = self.base.system(tt, pb, ut)
         return S @ F @ S.T, np.einsum('ij,tj->ti', S, g)
 
-    def system(self, t, p, u):
+    def system(self, t: npt.ArrayLike, p: np.ndarray,
+               u: npt.ArrayLike) -> tuple[np.ndarray, np.ndarray]:
         """F and g of the base at the true azimuth, in the recording's frame."""
         t = np.atleast_1d(np.asarray(t, dtype=float))
         pb, pe = self._split(p)
         return self._at(t, pb, u, pe[0])
 
-    def system_jacobian(self, t, p, u):
+    def system_jacobian(self, t: npt.ArrayLike, p: np.ndarray,
+                        u: npt.ArrayLike) -> tuple[np.ndarray, np.ndarray]:
         """Return the base's derivatives turned by S, and ∂/∂Δψ by a central difference."""
         t = np.atleast_1d(np.asarray(t, dtype=float))
         pb, pe = self._split(p)
