@@ -135,6 +135,13 @@ def plot_spectra(diagnosis: Diagnosis, path: PathLike, smooth: int = 15) -> None
     plt.close(fig)
 
 
+def _energy_over_floor(residuals, floors, t, part):
+    """Return (seconds, residual mean square per revolution / floor², averaged over channels)."""
+    energies = [rs.windowed_energy(r, t) for r in residuals]
+    total = np.sum([ms / f**2 for (_, ms), f in zip(energies, floors)], axis=0)
+    return np.interp(energies[0][0], part.t, part.time_s), total / len(residuals)
+
+
 def plot_energy(diagnosis: Diagnosis, path: PathLike) -> None:
     """Residual mean square per revolution over time, relative to the floor."""
     plt = _plt()
@@ -147,10 +154,7 @@ def plot_energy(diagnosis: Diagnosis, path: PathLike) -> None:
                                  ('augmented', aug_res, 'C3')):
         if series is None:
             continue
-        energies = [rs.windowed_energy(res, t) for res in series]
-        centres = energies[0][0]
-        total = np.sum([ms / c.floor**2 for (_, ms), c in zip(energies, chans)], axis=0)
-        ax.plot(np.interp(centres, part.t, part.time_s), total / len(chans), 'o-', ms=3,
+        ax.plot(*_energy_over_floor(series, [c.floor for c in chans], t, part), 'o-', ms=3,
                 color=color, label=f'{label} residual')
     ax.axhline(1.0, color='k', ls=':', lw=0.8, label='noise floor')
     if diagnosis.mismatch:
@@ -195,10 +199,7 @@ def plot_effects(diagnosis: Diagnosis, path: PathLike) -> None:
     ax_bar.axhline(0.0, color='k', lw=0.8)
     ax_bar.set_ylabel('residual RMS above the floor [%]')
     for i, (name, res) in enumerate(series):
-        energies = [rs.windowed_energy(r, t) for r in res]
-        centres = energies[0][0]
-        total = np.sum([ms / f**2 for (_, ms), f in zip(energies, floors)], axis=0)
-        ax.plot(np.interp(centres, part.t, part.time_s), total / len(res), 'o-', ms=3,
+        ax.plot(*_energy_over_floor(res, floors, t, part), 'o-', ms=3,
                 color=f'C{i}', label=name if i == 0 else f'+ {name}')
     ax.axhline(1.0, color='k', ls=':', lw=0.8, label='noise floor')
     ax.set_xlabel('time since first sample [s]')
