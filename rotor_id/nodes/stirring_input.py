@@ -463,7 +463,10 @@ class StirringInput(LifecycleNode):
 
         A start asked for before the rotor turned thus begins with its first sample (as a
         recording's first sample, docs/run_description.md), one asked for while it turns
-        begins at once; never more than ``azimuth_timeout_s`` before now.
+        begins at once; never more than ``azimuth_timeout_s`` before now. On a busy node the
+        first sample can arrive after the schedule's cyclic step: the first command then
+        carries the schedule's cyclic at its time, and the test point is still announced by
+        a TRIM StirringCommand stamped with this start (:meth:`command`).
         """
         stamps = self.azimuth.series.stamps
         i = int(np.searchsorted(stamps, self.requested_ns))
@@ -559,6 +562,12 @@ class StirringInput(LifecycleNode):
         self.published += 1
         self.previous_stamp = self.last_stamp
         self.last_stamp, self.last_u = applies, tuple(float(v) for v in u)
+        if self.start_stamp is not None and phase != PHASE_TRIM:
+            # a test point's first StirringCommand is TRIM, stamped with its start, whatever
+            # phase its first command falls in: readers arm the test point on it
+            self._publish_stirring(PHASE_TRIM, self.start_stamp,
+                                   (self.trim_collective, 0.0, 0.0), 0.0, 0.0)
+            self.start_stamp, self.last_phase = None, PHASE_TRIM
         changed = phase != self.last_phase
         self.last_phase = phase
         if changed:
@@ -568,18 +577,21 @@ class StirringInput(LifecycleNode):
         if not changed and (self.start_requested
                             or (self.published - 1) % self.d['stirring_every']):
             return
+        # a phase change is stamped with the time the phase began (docs/actuator.md)
+        self._publish_stirring(phase, self._phase_began(phase, t, applies, ramp) if changed
+                               else applies, u, phi, rate)
+        if t is not None:
+            self.diagnostics.set_value('t', f'{t:.4f}')
+
+    def _publish_stirring(self, phase, stamp, u, phi, rate):
         cmd = StirringCommand()
-        cmd.header.stamp = time_msg(applies)
-        if changed:            # stamped with the time the phase began (docs/actuator.md)
-            cmd.header.stamp = time_msg(self._phase_began(phase, t, applies, ramp))
+        cmd.header.stamp = time_msg(stamp)
         cmd.header.frame_id = self.d['frame_id']
         cmd.collective, cmd.cyclic_forward, cmd.cyclic_left = (float(v) for v in u)
         cmd.stirring_phase = float(phi)
         cmd.stirring_rate = float(rate)
         cmd.phase = phase
         self.pub_stirring.publish(cmd)
-        if t is not None:
-            self.diagnostics.set_value('t', f'{t:.4f}')
 
     def _phase_changed(self, phase, t, ramp=None):
         self.diagnostics.set_value('state', PHASE_NAMES[phase])

@@ -293,6 +293,64 @@ def test_an_exception_mid_stirring_ends_on_trim(tmp_path, monkeypatch, broken):
         assert len(after) >= 3 and max(spreads) <= 2 * amplitude + 1e-9
 
 
+def test_a_start_before_the_rotor_turns_is_announced_however_late_the_first_sample(tmp_path):
+    """
+    A start asked for before the shaft turns begins with the first azimuth sample (as a
+    recording's first sample); when that sample reaches a busy node later than the step's
+    ``step_after_rad`` (here 150 ms against 21 ms), the first command falls mid-schedule, and
+    the test point is still announced first: a TRIM StirringCommand stamped with the first
+    sample, before the phase the command is in (readers arm a test point on TRIM).
+    """
+    from rclpy.executors import SingleThreadedExecutor
+    from rclpy.parameter import Parameter
+    from rclpy.signals import SignalHandlerOptions
+    from rotor_id.nodes import stirring_input as module
+    from rotor_id_msgs.msg import StirringCommand as S
+    from std_srvs.srv import Trigger
+
+    description = tmp_path / 'rig.yaml'
+    description.write_text(RIG)
+    context = rclpy.context.Context()
+    rclpy.init(context=context, domain_id=next_domain(),
+               signal_handler_options=SignalHandlerOptions.NO)
+    params = [Parameter('run_description', value=str(description)),
+              Parameter('t0', value=10.0), Parameter('step_after_rad', value=2.0),
+              Parameter('duration_rad', value=8.0), Parameter('ramp_s', value=0.05),
+              Parameter('omegadot', value=-1.0), Parameter('max_stirring_rate_rad_s', value=1e4)]
+    node = module.StirringInput(parameter_overrides=params, context=context, namespace='/rig9')
+    executor = SingleThreadedExecutor(context=context)
+    executor.add_node(node)
+    stirring, commands = [], []
+    node.pub_stirring.publish = lambda m: stirring.append((m.phase, _ns(m.header.stamp), m))
+    node.pub_command.publish = lambda m: commands.append((_ns(m.header.stamp), m.position))
+    try:
+        assert node.on_start(Trigger.Request(), Trigger.Response()).success
+        asked = node.get_clock().now().nanoseconds
+        executor.spin_once(timeout_sec=0.05)
+        before = len(stirring)
+        time.sleep(0.15)
+        # the shaft's first 150 ms of samples arrive at once, late (the node was busy)
+        now = node.get_clock().now().nanoseconds
+        stamps = np.arange(asked + 1_000_000, now, 2_000_000)
+        node.azimuth.add_batch(stamps, np.mod(OMEGA * (stamps - stamps[0]) / 1e9, 2 * math.pi),
+                               np.full(stamps.size, OMEGA), int(stamps[0]))
+        first_command = len(commands)
+        node.tick()
+        after = stirring[before:]
+    finally:
+        executor.shutdown()
+        node.destroy_node()
+        rclpy.try_shutdown(context=context)
+    assert len(after) >= 2 and after[0][0] == S.PHASE_TRIM, [p for p, _, _ in after]
+    assert after[0][1] == stamps[0]                          # the first sample since the start
+    assert after[1][0] != S.PHASE_TRIM and after[1][1] <= commands[first_command][0]
+    assert np.ptp(commands[first_command][1]) > 0            # the schedule's cyclic, at its time
+
+
+def _ns(stamp):
+    return stamp.sec * 1_000_000_000 + stamp.nanosec
+
+
 def test_lifecycle_states_gate_the_commands(tmp_path):
     """Unconfigured or inactive: nothing commanded, ~/start refused; configure checks the rig."""
     from rclpy.lifecycle import TransitionCallbackReturn as R
