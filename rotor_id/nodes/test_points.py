@@ -203,13 +203,30 @@ def grid_stamp(before_ns, after_ns, at_ns, period_ns, regularity=0.25):
     return min(after_ns, before_ns + int(round(max(k, 1) * step)))
 
 
+#: A lost sample placed within this many standard deviations of the stamps' jitter of a
+#: window bound may have been stamped inside it (4σ: one in ~16 000 for Gaussian jitter, and
+#: beyond the worst case of uniform jitter, whose MAD-based σ is 0.61 of its half-width).
+JITTER_SIGMAS = 4.0
+
+
+def stamp_jitter_ns(steps: np.ndarray) -> float:
+    """Return the robust σ of a stamp about its sampling grid, from the steps between stamps."""
+    if steps.size < 3:
+        return 0.0
+    deviation = np.abs(steps - np.median(steps))
+    return float(1.4826 * np.median(deviation) / math.sqrt(2.0))   # a step: two stamps' jitter
+
+
 def channel_coverage(name, stamps, lo_ns, hi_ns, period_ns=None, factor=1.5):
     """
     Coverage of [lo_ns, hi_ns] by one channel's sorted stamps.
 
     A step between consecutive samples longer than ``factor`` sampling periods is a gap; the
     steps from the sample before the window and to the one after it count too (the samples of
-    such a gap that fall inside the window are missing at its start or end). Where the buffer
+    such a gap that fall inside the window are missing at its start or end: placed by even
+    spacing between the gap's ends, those within the stamps' jitter (JITTER_SIGMAS robust σ, at
+    most half a period) of a bound count as inside, so that jitter never hides a loss inside
+    the window, at the price of sometimes counting one just outside). Where the buffer
     has no sample before (after) the window, a first (last) sample more than ``factor`` periods
     after ``lo_ns`` (before ``hi_ns``) is a loss at the start (end): a loss that covers the
     window's start or end is never taken for a complete window. The period is the median step
@@ -229,17 +246,23 @@ def channel_coverage(name, stamps, lo_ns, hi_ns, period_ns=None, factor=1.5):
     steps = np.diff(inside)
     big = steps > limit
     first, last = int(inside[0]), int(inside[-1])
+    # a lost sample's stamp is known only as even spacing between its neighbours; one placed
+    # within the stamps' jitter of a bound may have been inside: it counts (never the reverse)
+    tolerance = min(JITTER_SIGMAS * stamp_jitter_ns(steps[~big]), 0.5 * period)
     if i0 > 0 and first - stamps[i0 - 1] > limit:       # a gap across the start
         before = int(stamps[i0 - 1])
         lost = int(round((first - before) / period)) - 1
-        missing_start = min(max(lost - math.ceil((lo_ns - before) / period) + 1, 0), lost)
+        spacing = (first - before) / (lost + 1)
+        k_first = max(1, math.ceil((lo_ns - tolerance - before) / spacing))
+        missing_start = max(lost - k_first + 1, 0)
     elif i0 == 0 and first - lo_ns > limit:           # nothing before: the bound itself
         missing_start = int((first - lo_ns) // period)
     else:
         missing_start = 0
     if i1 < stamps.size and stamps[i1] - last > limit:  # a gap across the end
         lost = int(round((int(stamps[i1]) - last) / period)) - 1
-        missing_end = min(max(int((hi_ns - last) // period), 0), lost)
+        spacing = (int(stamps[i1]) - last) / (lost + 1)
+        missing_end = min(max(math.floor((hi_ns + tolerance - last) / spacing), 0), lost)
     elif i1 == stamps.size and hi_ns - last > limit:
         missing_end = int((hi_ns - last) // period)
     else:
@@ -578,12 +601,13 @@ class TestPointSequence:
         return (last - point.stamp0_ns) / NS
 
     # -------------------------------------------------------------------------- fits
-    def due(self, worker_idle=True):
+    def due(self, worker_idle=True, data_ended=False):
         """
         Return the next fit to ask for (a FitRequest) or None.
 
-        The final fit once every stream covers the window (the test point is then FITTING and
-        no longer current); before that a growing-window fit after ``min_window_rad``, then one
+        The final fit once every stream has a sample stamped past the window's end (or, with
+        ``data_ended``, reached it: no sample follows), the test point is then FITTING and no
+        longer current; before that a growing-window fit after ``min_window_rad``, then one
         every ``update_every_rad`` and, in the last ``refit_tail_rad``, one whenever the worker
         is idle, so that the final fit starts next to its optimum.
         """
@@ -594,12 +618,12 @@ class TestPointSequence:
         t0, t1 = point.window_s
         s = self.schedule
         omega = self.azimuth.omega
-        stamps = self.flap.stamps
-        period_ns = int(stamps[-1] - stamps[-2]) if stamps.size > 1 else 0
         reached_ns = point.stamp0_ns + int(round(covered * NS))
-        # final once the next sample is due past the window's end: every sample up to the end
-        # (one exactly on it included, as offline) is in
-        if reached_ns + period_ns > point.stamp0_ns + int(round(t1 * NS)):
+        end_ns = point.stamp0_ns + int(round(t1 * NS))
+        # final once every stream is past the window's end: every sample up to the end (one
+        # exactly on it included, as offline) is in. Not on a prediction of the next stamp:
+        # under stamp jitter the next sample can still fall inside the window.
+        if reached_ns > end_ns or (data_ended and reached_ns >= end_ns):
             request = self.request(point, (t0, t1), True)
             point.phase, point.final_requested = Phase.FITTING, True
             self.current = None
@@ -734,6 +758,9 @@ def replay_excitation(record, excitation, window_s, gap_factor=1.5, slip_toleran
         request = sequence.due()
         if request is not None:
             checks[request.test_point] = request.check
+    request = sequence.due(data_ended=True)      # a window ending on the record's last sample
+    if request is not None:
+        checks[request.test_point] = request.check
     for stamp, phase in events[e:]:                      # stamped after the last flap sample
         sequence.on_excitation(phase, stamp)
     found = []
