@@ -295,8 +295,10 @@ def test_an_exception_mid_stirring_ends_on_trim(tmp_path, monkeypatch, broken):
 
 def test_a_start_before_the_rotor_turns_is_announced_however_late_the_first_sample(tmp_path):
     """
-    A start asked for before the shaft turns begins with the first azimuth sample (as a
-    recording's first sample); when that sample reaches a busy node later than the step's
+    A start asked before the shaft turns is announced by TRIM however late its first sample.
+
+    The test point begins with the first azimuth sample (as a recording's first sample); when
+    that sample reaches a busy node later than the step's
     ``step_after_rad`` (here 150 ms against 21 ms), the first command falls mid-schedule, and
     the test point is still announced first: a TRIM StirringCommand stamped with the first
     sample, before the phase the command is in (readers arm a test point on TRIM).

@@ -414,8 +414,10 @@ def _final_check_of(stamps, drops, offset_ms=0):
 @given(data=st.data())
 def test_no_sample_of_the_window_is_lost_unnoticed(data):
     """
-    Property: a loss inside the window is never taken for a complete window, and a loss more
-    than one sampling period outside it never spoils one.
+    Property: a loss inside the window is never missed, one a period outside never counts.
+
+    A loss inside the window is never taken for a complete window, and a loss more than one
+    sampling period outside it never spoils one.
 
     Samples are dropped at random, in any channel, around and inside the window (its start and
     end included), with ±20 % stamp jitter: a lost sample's stamp is known only from its
@@ -446,6 +448,8 @@ def test_no_sample_of_the_window_is_lost_unnoticed(data):
 @pytest.mark.parametrize('side', ['inside', 'outside'])
 def test_a_sample_lost_at_a_window_bound_under_jitter(channel, where, side):
     """
+    A sample lost at a window bound under jitter is missing when inside, not when outside.
+
     ±20 % jitter, the sample nearest a bound lost. Stamped 0.1 period inside the window, with
     neighbours that put the even-spacing guess 0.15 period outside, it is missing; a full
     period outside the window it is not. The final fit waits for every stream past the end.
