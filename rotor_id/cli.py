@@ -13,6 +13,7 @@ re-run with ``--debug`` for the traceback (exit code 3).
 import argparse
 import importlib
 import importlib.util
+import os
 import sys
 from typing import Sequence
 
@@ -84,6 +85,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     except KeyboardInterrupt:
         print(f'rotor-id {args.command}: interrupted', file=sys.stderr)
         return 130
+    except BrokenPipeError as exc:
+        if not _stdout_closed():
+            return _unexpected(args, exc)
+        return 128 + 13               # the reader of our output left (`| head`): as SIGPIPE
     except _user_errors() as exc:
         if args.debug:
             raise
@@ -91,12 +96,28 @@ def main(argv: Sequence[str] | None = None) -> int:
         print(f'rotor-id {args.command}: error: {message}', file=sys.stderr)
         return 2
     except Exception as exc:  # noqa: B902 - the last line of defence: one line, not a traceback
-        if args.debug:
-            raise
-        print(f'rotor-id {args.command}: unexpected {type(exc).__name__}: {exc} '
-              '(re-run with --debug for the traceback and please report it)', file=sys.stderr)
-        return 3
+        return _unexpected(args, exc)
 
 
-if __name__ == '__main__':
-    sys.exit(main())
+def _unexpected(args: argparse.Namespace, exc: Exception) -> int:
+    """Say an unexpected failure in one line (its traceback with --debug); return 3."""
+    if args.debug:
+        raise exc
+    print(f'rotor-id {args.command}: unexpected {type(exc).__name__}: {exc} '
+          '(re-run with --debug for the traceback and please report it)', file=sys.stderr)
+    return 3
+
+
+def _stdout_closed() -> bool:
+    """Say whether standard output's reader has gone; if so, point it at /dev/null for exit."""
+    import select
+    try:
+        fd = sys.stdout.fileno()
+        poll = select.poll()
+        poll.register(fd, select.POLLOUT)
+        gone = any(event & select.POLLERR for _, event in poll.poll(0))   # a pipe, no reader
+    except (OSError, ValueError, AttributeError):
+        return False
+    if gone:             # the interpreter flushes stdout at exit: that must not fail again
+        os.dup2(os.open(os.devnull, os.O_WRONLY), fd)
+    return gone

@@ -321,3 +321,21 @@ def test_a_librarys_deprecation_notice_is_not_a_warning_line(capsys):
         warnings.warn('going away', PendingDeprecationWarning)
         warnings.warn('the fit is doubtful', UserWarning)
     assert capsys.readouterr().err.splitlines() == ['warning: the fit is doubtful']
+
+
+def test_output_piped_into_a_reader_that_leaves_is_quiet(tmp_path):
+    """`rotor-id … | head -1`: the reader leaves; no 'unexpected BrokenPipeError', exit as SIGPIPE."""
+    import os
+    import sys
+    script = ('import sys\n'
+              'from rotor_id import cli\n'
+              'from rotor_id.commands import demo\n'
+              'demo.run = lambda args: [print("a result line") for _ in range(100000)]\n'
+              'sys.exit(cli.main(["demo"]))\n')
+    read, write = os.pipe()
+    os.close(read)                                 # the reader has left before we write
+    proc = subprocess.run([sys.executable, '-c', script], stdout=write, stderr=subprocess.PIPE,
+                          text=True, timeout=60)
+    os.close(write)
+    assert 'unexpected' not in proc.stderr and 'Traceback' not in proc.stderr, proc.stderr
+    assert proc.returncode == 128 + 13
