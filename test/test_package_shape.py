@@ -5,6 +5,7 @@ The package's import structure, read from the source with ast (no module is impo
   alike (a function-level import hides a cycle from Python, not from the design).
 * No private name (``_x``) imported from another module of the diagnosis, nor by it.
 * The layers point one way: the adequacy check and the pipeline do not import the diagnosis.
+* No function of the diagnosis is longer than about 80 lines.
 """
 
 import ast
@@ -113,3 +114,18 @@ def test_adequacy_and_pipeline_do_not_import_the_diagnosis():
     graph = _graph()
     for name in ('rotor_id.adequacy', 'rotor_id.pipeline', 'rotor_id.residuals'):
         assert not any(m.startswith('rotor_id.diagnosis') for m in graph[name]), name
+
+
+#: "No function in diagnosis/ longer than about 80 lines": docstring included.
+LONGEST_DIAGNOSIS_FUNCTION = 80
+
+
+def test_no_long_function_in_the_diagnosis():
+    long = []
+    for path in sorted((PACKAGE / 'diagnosis').glob('*.py')):
+        for node in ast.walk(ast.parse(path.read_text())):
+            if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef)):
+                length = node.end_lineno - node.lineno + 1
+                if length > LONGEST_DIAGNOSIS_FUNCTION:
+                    long.append(f'{path.name}:{node.lineno} {node.name} ({length} lines)')
+    assert not long, long

@@ -352,53 +352,64 @@ def propose(experiments, unknowns, values, known, max_terms=MAX_TERMS, n_blocks=
     before = float(math.sqrt(np.sum(sse) / reg.e.size))
     steps = []
     for _ in range(max_terms):
-        left = [m for m in range(len(names)) if m not in current]
-        trials = {m: heldout_errors(reg, current + [m], n_blocks) for m in left}
-        best = min(trials, key=lambda m: float(np.sum(trials[m])))
-        # per block log ratio: scale-free, so the blocks of a quiet trim and of the stirring
-        # count alike
-        gain = np.log(sse / np.maximum(trials[best], 1e-300))
-        spread = float(np.std(gain, ddof=1))
-        t_stat = float(np.mean(gain)) / (spread / math.sqrt(n_blocks)) if spread > 0 \
-            else (math.inf if np.mean(gain) > 0 else 0.0)
-        t_crit = float(stdtrit(n_blocks - 1, 1.0 - alpha / len(left)))
-        # a rival term is as good within chance unless worse at the one-sided 5 % level
-        t_alternative = float(stdtrit(n_blocks - 1, 0.95))
-        improvement = float(1.0 - np.sum(trials[best]) / np.sum(sse))
-        kept = bool(t_stat > t_crit and improvement >= MIN_IMPROVEMENT)
-        steps.append({'term': names[best], 'heldout_improvement': improvement,
-                      't_statistic': t_stat, 't_critical': t_crit,
-                      'blocks_improved': int(np.sum(gain > 0)), 'kept': kept,
-                      'tried': {names[m]: float(1.0 - np.sum(trials[m]) / np.sum(sse))
-                                for m in left},
-                      'alternatives': [names[m] for m in left if m != best and not _worse(
-                          trials[m], trials[best], t_alternative)]})
-        if not kept:
+        step, best, trial = _forward_step(reg, current, sse, names, n_blocks, alpha)
+        steps.append(step)
+        if not step['kept']:
             break
         current.append(best)
-        sse = trials[best]
-    terms = []
-    reason = ''
-    if current:
-        coef, cov = robust_fit(reg, current)
-        k = reg.A.shape[1]
-        try:
-            est, extra = refine(experiments, unknowns, values, known,
-                                [names[m] for m in current])
-            ml = {n: (est.value(n), est.std_of(n)) for n in extra}
-        except (IdentificationError, np.linalg.LinAlgError, FloatingPointError,
-                ValueError) as exc:
-            ml, reason = {}, f'output-error refit failed: {exc}'
-        for i, m in enumerate(current):
-            step = next(s for s in steps if s['term'] == names[m])
-            ee = (float(coef[k + i]), float(math.sqrt(max(cov[k + i, k + i], 0.0))))
-            value, std = ml.get(f'xi[{names[m]}]', ee)
-            terms.append({'term': names[m], 'coefficient': float(value), 'std': float(std),
-                          'coefficient_from': 'output-error ML' if ml else 'equation error',
-                          'equation_error_coefficient': ee[0], 'equation_error_std': ee[1],
-                          'heldout_improvement': step['heldout_improvement'],
-                          't_statistic': step['t_statistic'],
-                          'alternatives': step['alternatives'], 'label': 'proposal'})
+        sse = trial
+    terms, reason = _proposed_terms(reg, current, steps, names, experiments, unknowns, values,
+                                    known)
     after = float(math.sqrt(np.sum(sse) / reg.e.size))
     return Proposal(terms=terms, library=names, heldout_rms_before=before,
                     heldout_rms_after=after, steps=steps, reason=reason)
+
+
+def _forward_step(reg, current, sse, names, n_blocks, alpha):
+    """Try each term left beside ``current``; return (step record, best term, its errors)."""
+    left = [m for m in range(len(names)) if m not in current]
+    trials = {m: heldout_errors(reg, current + [m], n_blocks) for m in left}
+    best = min(trials, key=lambda m: float(np.sum(trials[m])))
+    # per block log ratio: scale-free, so the blocks of a quiet trim and of the stirring
+    # count alike
+    gain = np.log(sse / np.maximum(trials[best], 1e-300))
+    spread = float(np.std(gain, ddof=1))
+    t_stat = float(np.mean(gain)) / (spread / math.sqrt(n_blocks)) if spread > 0 \
+        else (math.inf if np.mean(gain) > 0 else 0.0)
+    t_crit = float(stdtrit(n_blocks - 1, 1.0 - alpha / len(left)))
+    # a rival term is as good within chance unless worse at the one-sided 5 % level
+    t_alternative = float(stdtrit(n_blocks - 1, 0.95))
+    improvement = float(1.0 - np.sum(trials[best]) / np.sum(sse))
+    kept = bool(t_stat > t_crit and improvement >= MIN_IMPROVEMENT)
+    step = {'term': names[best], 'heldout_improvement': improvement,
+            't_statistic': t_stat, 't_critical': t_crit,
+            'blocks_improved': int(np.sum(gain > 0)), 'kept': kept,
+            'tried': {names[m]: float(1.0 - np.sum(trials[m]) / np.sum(sse)) for m in left},
+            'alternatives': [names[m] for m in left if m != best and not _worse(
+                trials[m], trials[best], t_alternative)]}
+    return step, best, trials[best]
+
+
+def _proposed_terms(reg, current, steps, names, experiments, unknowns, values, known):
+    """Return (the kept terms with their coefficients, reason the ML refit failed or '')."""
+    terms, reason = [], ''
+    if not current:
+        return terms, reason
+    coef, cov = robust_fit(reg, current)
+    k = reg.A.shape[1]
+    try:
+        est, extra = refine(experiments, unknowns, values, known, [names[m] for m in current])
+        ml = {n: (est.value(n), est.std_of(n)) for n in extra}
+    except (IdentificationError, np.linalg.LinAlgError, FloatingPointError, ValueError) as exc:
+        ml, reason = {}, f'output-error refit failed: {exc}'
+    for i, m in enumerate(current):
+        step = next(s for s in steps if s['term'] == names[m])
+        ee = (float(coef[k + i]), float(math.sqrt(max(cov[k + i, k + i], 0.0))))
+        value, std = ml.get(f'xi[{names[m]}]', ee)
+        terms.append({'term': names[m], 'coefficient': float(value), 'std': float(std),
+                      'coefficient_from': 'output-error ML' if ml else 'equation error',
+                      'equation_error_coefficient': ee[0], 'equation_error_std': ee[1],
+                      'heldout_improvement': step['heldout_improvement'],
+                      't_statistic': step['t_statistic'],
+                      'alternatives': step['alternatives'], 'label': 'proposal'})
+    return terms, reason
