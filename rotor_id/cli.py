@@ -121,3 +121,7 @@ def _stdout_closed() -> bool:
     if gone:             # the interpreter flushes stdout at exit: that must not fail again
         os.dup2(os.open(os.devnull, os.O_WRONLY), fd)
     return gone
+
+
+if __name__ == '__main__':
+    sys.exit(main())
