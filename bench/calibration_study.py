@@ -9,7 +9,8 @@ The verdict's stated probability is ``explanation.probability``; an engine that 
 is read by its label: 'high' as 0.95 (high confidence means at least 0.95) and
 'low' as 0.5 (it claims no more than an even chance). Writes
 
-- ``<out>.jsonl``: one line per record (resumable: a re-run skips the seeds it holds);
+- ``<out>.jsonl``: one line per record (resumable: a re-run skips the seeds it holds), with
+  the verdict's candidate table (every term of each explanation's evidence);
 - ``<out>.md``, ``<out>.json``: the reliability table (stated probability in bins against
   the observed accuracy, Wilson 95 % intervals), accuracy at high confidence, false alarms
   on the nulls, the breakdown per truth class and per rotor;
@@ -98,6 +99,10 @@ def run_one(seed, kind=None, workers=1, tempering=None):
         return line
     line.update(random_scenarios.score(scenario, result),
                 cpu_s=time.process_time() - c0, wall_s=time.perf_counter() - t0)
+    # the candidate table with every term of its evidence and the fit's residual figures:
+    # verdict rules can be re-scored on the recorded tables (bench/verdict_rules.py)
+    line.update(candidates=result['candidates'], fit=result['fit'],
+                tempering=result['policy']['evidence_tempering'])
     return line
 
 

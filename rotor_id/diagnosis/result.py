@@ -70,13 +70,21 @@ class Alternative:
     likelihood: str = ''
     #: share of the baseline's misfit above the noise floor that this explanation removes
     misfit_explained: float = None
+    #: the terms of its evidence besides 2Δlog L and n_params: log prior, observations n
+    #: and the autocorrelation factor ρ (log evidence = ρ log L − k/2 log(nρ) + log prior),
+    #: so that a verdict rule can be re-evaluated on a recorded table
+    log_prior: float = math.nan
+    n_obs: int = 0
+    rho: float = math.nan
 
     def as_json(self):
         """Return an entry of ``explanation.alternatives`` / ``candidates``."""
         return {'effects': list(self.effects), 'probability': float(self.probability),
                 'fitted': self.fitted, 'two_delta_loglik': float(self.two_delta_loglik),
                 'n_params': int(self.n_params), 'likelihood': self.likelihood,
-                'misfit_explained': self.misfit_explained}
+                'misfit_explained': self.misfit_explained,
+                'log_prior': float(self.log_prior), 'n_obs': int(self.n_obs),
+                'rho': float(self.rho)}
 
 
 @dataclass

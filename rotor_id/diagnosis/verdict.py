@@ -20,8 +20,9 @@ from rotor_id.diagnosis.selection import posterior, same_physics, shared_rho, te
 from scipy.special import chndtr, chndtrinc
 
 
-def alternatives(ranked, baseline, misfit=None):
+def alternatives(ranked, baseline, misfit=None, prior=None):
     """Return :class:`Alternative` rows of [(candidate, probability)]."""
+    rho = shared_rho([cand for cand, _ in ranked])
     out = []
     for cand, prob in ranked:
         res = cand.result
@@ -29,7 +30,9 @@ def alternatives(ranked, baseline, misfit=None):
             effects=cand.names, probability=prob, fitted=cand.fitted,
             two_delta_loglik=2.0 * (cand.loglik - baseline.loglik), n_params=cand.n_params,
             likelihood=res.likelihood if res is not None else cand.parent.likelihood,
-            misfit_explained=None if misfit is None or res is None else misfit(res)))
+            misfit_explained=None if misfit is None or res is None else misfit(res),
+            log_prior=prior.log(cand.effects) if prior is not None else math.nan,
+            n_obs=(res if res is not None else cand.parent).n_obs, rho=rho))
     return out
 
 
@@ -143,7 +146,7 @@ def explain(space, selection, prior, policy, adequate, misfit):
     baseline = selection.candidates[()]
     top = next(c for c, p in ranked if c.fitted)
     top, p_top = physics_of(top, ranked, policy, selection.mu)
-    table = alternatives(ranked, baseline, misfit)
+    table = alternatives(ranked, baseline, misfit, prior)
     shown = [a for a, (c, p) in zip(table, ranked)
              if c is not top and p >= policy.alternative_share]
     limits = detection_limits(space, selection, top, prior, policy)
