@@ -324,7 +324,7 @@ def test_a_librarys_deprecation_notice_is_not_a_warning_line(capsys):
 
 
 def test_output_piped_into_a_reader_that_leaves_is_quiet(tmp_path):
-    """`rotor-id … | head -1`: the reader leaves; no 'unexpected BrokenPipeError', exit as SIGPIPE."""
+    """`rotor-id … | head -1`: the reader leaves; no "unexpected BrokenPipeError", SIGPIPE exit."""
     import os
     import sys
     script = ('import sys\n'
