@@ -112,7 +112,7 @@ def main(argv=None):
     parser.add_argument('--eta', type=float, nargs='+', default=[0.6, 0.8, 1.0])
     parser.add_argument('--g', type=float, nargs='+', default=[10.0, 100.0, 1000.0])
     parser.add_argument('--out', default=None,
-                        help='write the table to OUT.md as well (e.g. bench/results/verdict_rules)')
+                        help='also write the table to OUT.md (e.g. bench/results/verdict_rules)')
     args = parser.parse_args(argv)
     lines = [json.loads(s) for s in args.study.read_text().splitlines() if s.strip()]
     lines = [s for s in lines if 'candidates' in s]
