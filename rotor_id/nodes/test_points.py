@@ -207,6 +207,8 @@ def grid_stamp(before_ns, after_ns, at_ns, period_ns, regularity=0.25):
 #: window bound may have been stamped inside it (4σ: one in ~16 000 for Gaussian jitter, and
 #: beyond the worst case of uniform jitter, whose MAD-based σ is 0.61 of its half-width).
 JITTER_SIGMAS = 4.0
+#: Steps of the newest stamps from which the jitter is judged near a window's end.
+JITTER_STEPS = 64
 
 
 def stamp_jitter_ns(steps: np.ndarray) -> float:
@@ -605,8 +607,9 @@ class TestPointSequence:
         """
         Return the next fit to ask for (a FitRequest) or None.
 
-        The final fit once every stream has a sample stamped past the window's end (or, with
-        ``data_ended``, reached it: no sample follows), the test point is then FITTING and no
+        The final fit once every stream has a sample stamped past the window's end, or its next
+        one is due past it beyond the stamps' jitter (or, with ``data_ended``, reached it: no
+        sample follows); the test point is then FITTING and no
         longer current; before that a growing-window fit after ``min_window_rad``, then one
         every ``update_every_rad`` and, in the last ``refit_tail_rad``, one whenever the worker
         is idle, so that the final fit starts next to its optimum.
@@ -620,10 +623,12 @@ class TestPointSequence:
         omega = self.azimuth.omega
         reached_ns = point.stamp0_ns + int(round(covered * NS))
         end_ns = point.stamp0_ns + int(round(t1 * NS))
-        # final once every stream is past the window's end: every sample up to the end (one
-        # exactly on it included, as offline) is in. Not on a prediction of the next stamp:
-        # under stamp jitter the next sample can still fall inside the window.
-        if reached_ns > end_ns or (data_ended and reached_ns >= end_ns):
+        # final once every sample up to the end (one exactly on it included, as offline) is
+        # in: every stream is past the end, or its next sample is due past it beyond the
+        # stamps' jitter (on a regular stream, one period after its last; under jitter the
+        # next sample can still fall inside the window)
+        if reached_ns > end_ns or (data_ended and reached_ns >= end_ns) or \
+                self._next_stamp_after(reached_ns, end_ns):
             request = self.request(point, (t0, t1), True)
             point.phase, point.final_requested = Phase.FITTING, True
             self.current = None
@@ -640,6 +645,16 @@ class TestPointSequence:
             return None
         point.requested_until = covered
         return self.request(point, (t0, covered), False)
+
+    def _next_stamp_after(self, reached_ns, end_ns):
+        """Say whether a sample after ``reached_ns`` is sure to be stamped after ``end_ns``."""
+        stamps = self.flap.stamps
+        if stamps.size < 3 or reached_ns + 2 * (stamps[-1] - stamps[-2]) <= end_ns:
+            return False                  # too few samples, or far from the end: not yet
+        steps = np.diff(stamps[-min(stamps.size, JITTER_STEPS + 1):])
+        period = float(np.median(steps))
+        margin = min(JITTER_SIGMAS * stamp_jitter_ns(steps), 0.5 * period)
+        return reached_ns + period - margin > end_ns
 
     def request(self, point, window_s, final):
         """Return a FitRequest of a test point's window: its data (± the margin), checked."""
