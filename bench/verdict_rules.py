@@ -142,7 +142,7 @@ def main(argv=None):
                             '--out', args.out])
         Path(args.out).with_suffix('.md').write_text(
             '# Verdict rules re-scored on recorded candidate tables\n\n'
-            f'Reproduce: `{command}` (from the repository root; milliseconds).\n\n'
+            f'Reproduce: `{command}` (from the repository root; about a second).\n\n'
             + __doc__.split('\n\n', 1)[1].rsplit('\n\n', 1)[0] + '\n\n' + '\n'.join(out)
             + '\n')
     return 0
