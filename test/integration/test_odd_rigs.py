@@ -13,7 +13,8 @@ within 3σ of the simulated rotor's truth (required below 1-minute load 4 per co
 estimator publishes on the rig's state topic; ``rotor-id identify BAG --config RIG --test-point 1``
 on the recorded bag starts the test point at the same flap sample and agrees with the live
 estimate to 0.2σ (the 5-blade, 2 kHz, unwrapped rig's bag was refused as "two streams merged"
-before the fix of rotor_id/io/streams.py).
+before the fix of rotor_id/io/streams.py). A run the machine starved so that the stirring node
+stopped on a stale azimuth (test point 1 aborted) is run once more; no claim is dropped.
 """
 
 import json
@@ -58,6 +59,28 @@ def rig_description(blades, convention):
 def rig(request, tmp_path_factory):
     """Start the five nodes on one odd rig until test point 1's final estimate; return all."""
     require_workspace()
+    blades, convention, namespace, rate = RIGS[request.param]
+    # A starved run: on a loaded CI machine the simulated plant (which waits for the pitch
+    # commands) can fall 0.25 s behind the clock; the stirring node then stops on a stale
+    # azimuth and the identifier aborts test point 1, the nodes' honest answer, but no test of
+    # the rig. One more run in a fresh domain then, every claim below unchanged.
+    for attempt in (1, 2):
+        out = _run_rig(request.param, tmp_path_factory.mktemp(request.param), blades,
+                       convention, namespace, rate)
+        out['attempts'] = attempt
+        if not _aborted(out['estimates']):
+            break
+    return out
+
+
+def _aborted(estimates):
+    from rotor_id_msgs.msg import ParameterEstimate
+    return any(m.kind == ParameterEstimate.KIND_FINAL
+               and m.status == ParameterEstimate.STATUS_ABORTED for m in estimates)
+
+
+def _run_rig(name, work, blades, convention, namespace, rate):
+    """Start the five nodes on one odd rig until test point 1's final estimate; return all."""
     import rclpy
     from rotor_id.commands.demo import case_files
     from rotor_id.nodes.common import RESULT_QOS, STATE_QOS
@@ -65,8 +88,6 @@ def rig(request, tmp_path_factory):
     from rotor_id.nodes.watch import call_trigger
     from rotor_id_msgs.msg import ParameterEstimate, StateEstimate
 
-    blades, convention, namespace, rate = RIGS[request.param]
-    work = tmp_path_factory.mktemp(request.param)
     config = work / 'rig.yaml'
     config.write_text(yaml.safe_dump(rig_description(blades, convention), allow_unicode=True),
                       encoding='utf-8')
@@ -74,7 +95,7 @@ def rig(request, tmp_path_factory):
     domain = domain_id()
     ros = RosClient(domain)
     out = {'config': config, 'bag': work / 'bag', 'estimates': [], 'states': [],
-           'load': os.getloadavg()[0], 'name': request.param}
+           'load': os.getloadavg()[0], 'name': name}
     ros.node.create_subscription(ParameterEstimate, f'{namespace}/results/estimate',
                                  out['estimates'].append, RESULT_QOS)
     # volatile, as the state estimator offers them: the states after discovery
