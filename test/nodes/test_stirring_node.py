@@ -225,24 +225,14 @@ def test_pitch_commands_cannot_queue_a_stale_backlog(run):
 def test_an_exception_mid_stirring_ends_on_trim(tmp_path, monkeypatch, broken):
     """The command tick raises mid-stirring; close() (what spin_node runs next) ends on trim."""
     from rclpy.executors import SingleThreadedExecutor
-    from rclpy.parameter import Parameter
-    from rclpy.signals import SignalHandlerOptions
     from rotor_id.nodes import stirring_input as module
     from rotor_id.nodes.common import joint_state, SENSOR_OFFER_QOS, SENSOR_QOS
     from sensor_msgs.msg import JointState
     from std_srvs.srv import Trigger
 
-    description = tmp_path / 'rig.yaml'
-    description.write_text(RIG)
-    context = rclpy.context.Context()
-    rclpy.init(context=context, domain_id=next_domain(),
-               signal_handler_options=SignalHandlerOptions.NO)
-    params = [Parameter('run_description', value=str(description)),
-              Parameter('t0', value=5.0), Parameter('step_after_rad', value=1.0),
-              Parameter('duration_rad', value=1e5), Parameter('omegadot', value=-0.01),
-              Parameter('max_stirring_rate_rad_s', value=1e4),
-              Parameter('azimuth_timeout_s', value=5.0)]
-    node = module.StirringInput(parameter_overrides=params, context=context, namespace='/rig8')
+    node, context = _stirring_node(tmp_path, '/rig8', t0=5.0, step_after_rad=1.0,
+                                   duration_rad=1e5, omegadot=-0.01,
+                                   max_stirring_rate_rad_s=1e4, azimuth_timeout_s=5.0)
     test = rclpy.create_node('test_exception', context=context)
     executor = SingleThreadedExecutor(context=context)
     executor.add_node(node)
@@ -304,22 +294,12 @@ def test_a_start_before_the_rotor_turns_is_announced_however_late_the_first_samp
     sample, before the phase the command is in (readers arm a test point on TRIM).
     """
     from rclpy.executors import SingleThreadedExecutor
-    from rclpy.parameter import Parameter
-    from rclpy.signals import SignalHandlerOptions
-    from rotor_id.nodes import stirring_input as module
     from rotor_id_msgs.msg import StirringCommand as S
     from std_srvs.srv import Trigger
 
-    description = tmp_path / 'rig.yaml'
-    description.write_text(RIG)
-    context = rclpy.context.Context()
-    rclpy.init(context=context, domain_id=next_domain(),
-               signal_handler_options=SignalHandlerOptions.NO)
-    params = [Parameter('run_description', value=str(description)),
-              Parameter('t0', value=10.0), Parameter('step_after_rad', value=2.0),
-              Parameter('duration_rad', value=8.0), Parameter('ramp_s', value=0.05),
-              Parameter('omegadot', value=-1.0), Parameter('max_stirring_rate_rad_s', value=1e4)]
-    node = module.StirringInput(parameter_overrides=params, context=context, namespace='/rig9')
+    node, context = _stirring_node(tmp_path, '/rig9', t0=10.0, step_after_rad=2.0,
+                                   duration_rad=8.0, ramp_s=0.05, omegadot=-1.0,
+                                   max_stirring_rate_rad_s=1e4)
     executor = SingleThreadedExecutor(context=context)
     executor.add_node(node)
     stirring, commands = [], []
@@ -347,6 +327,22 @@ def test_a_start_before_the_rotor_turns_is_announced_however_late_the_first_samp
     assert after[0][1] == stamps[0]                          # the first sample since the start
     assert after[1][0] != S.PHASE_TRIM and after[1][1] <= commands[first_command][0]
     assert np.ptp(commands[first_command][1]) > 0            # the schedule's cyclic, at its time
+
+
+def _stirring_node(tmp_path, namespace, **settings):
+    """Return (a StirringInput on RIG with these parameters, its own rclpy context)."""
+    from rclpy.parameter import Parameter
+    from rclpy.signals import SignalHandlerOptions
+    from rotor_id.nodes.stirring_input import StirringInput
+    description = tmp_path / 'rig.yaml'
+    description.write_text(RIG)
+    context = rclpy.context.Context()
+    rclpy.init(context=context, domain_id=next_domain(),
+               signal_handler_options=SignalHandlerOptions.NO)
+    params = [Parameter('run_description', value=str(description))] + [
+        Parameter(name, value=value) for name, value in settings.items()]
+    return StirringInput(parameter_overrides=params, context=context,
+                         namespace=namespace), context
 
 
 def _ns(stamp):
