@@ -609,10 +609,10 @@ class TestPointSequence:
 
         The final fit once every stream has a sample stamped past the window's end, or its next
         one is due past it beyond the stamps' jitter (or, with ``data_ended``, reached it: no
-        sample follows); the test point is then FITTING and no
-        longer current; before that a growing-window fit after ``min_window_rad``, then one
-        every ``update_every_rad`` and, in the last ``refit_tail_rad``, one whenever the worker
-        is idle, so that the final fit starts next to its optimum.
+        sample follows); the test point is then FITTING and no longer current. Before that a
+        growing-window fit after ``min_window_rad``, then one every ``update_every_rad`` and,
+        in the last ``refit_tail_rad``, one whenever the worker is idle, so that the final fit
+        starts next to its optimum.
         """
         point = self.current
         covered = self.covered_s(point)
