@@ -214,11 +214,20 @@ def test_the_test_point_is_identified_on_an_unlike_stand(stand):
 
 
 def log_likelihood_ratio(estimate, own, foreign):
-    """Log of how much more likely the estimate is under its own truth than the foreign one."""
-    squares = {
-        label: sum(((v - truth[n]) / s) ** 2
-                   for n, v, s in zip(estimate.names, estimate.values, estimate.std))
-        for label, truth in (('own', own), ('foreign', foreign))}
+    """
+    Log of how much more likely the estimate is under its own truth than the foreign one.
+
+    Under the estimate's reported covariance Σ (A, AL/τ and 1/τ are correlated at about 0.9): a
+    correlated deviation is one deviation, not three. With correct bounds the ratio is normal
+    with mean D²/2 and variance D², D² = ΔᵀΣ⁻¹Δ between the two truths (about 140 and 180
+    here: below ln 100 with probability ~1e-8); the diagonal σ alone failed ~2 % of runs.
+    """
+    import numpy as np
+    cov = np.array(estimate.covariance, dtype=float).reshape(len(estimate.names), -1)
+    squares = {}
+    for label, truth in (('own', own), ('foreign', foreign)):
+        error = np.array([v - truth[n] for n, v in zip(estimate.names, estimate.values)])
+        squares[label] = float(error @ np.linalg.solve(cov, error))
     return 0.5 * (squares['foreign'] - squares['own'])
 
 
@@ -234,9 +243,9 @@ def test_two_stands_on_one_graph_share_nothing(stand):
     other = within_sigma(first.values, first.std, TRUTH, first.names)[1]
     assert ok, f'{text} | stand1: {other}'
     # neither is the other stand's rotor: each estimate must favour its own rotor over the other
-    # by a likelihood ratio of at least 100 under its own reported σ (an estimate from the other
-    # stand's data favours the other rotor instead). Not a fixed 3σ distance from the other
-    # truth: a stand whose stirring starts late in its window honestly reports a wider σ.
+    # by a likelihood ratio of at least 100 under its own reported covariance (an estimate from
+    # the other stand's data favours the other rotor instead). Not a fixed 3σ distance from the
+    # other truth: a stand whose stirring starts late in its window honestly reports a wider σ.
     for estimate, own, foreign in ((final, TRUTH2, TRUTH), (first, TRUTH, TRUTH2)):
         ratio = log_likelihood_ratio(estimate, own, foreign)
         assert ratio >= math.log(100.0), (
