@@ -29,7 +29,7 @@ import math
 from pathlib import Path
 import sys
 
-from calibration_study import HIGH, wilson
+from calibration_study import HIGH, random_scenarios, wilson
 from rotor_id.diagnosis.policy import DEFAULT_POLICY
 from rotor_id.diagnosis.selection import same_physics
 
@@ -71,17 +71,25 @@ def verdict(line, rule, eta):
     return named, p_top
 
 
+class _Drawn:
+    """The scenario of a study line as random_scenarios.score reads it: its accepted ids."""
+
+    def __init__(self, line):
+        self.groups = line['draw']['accepted']
+
+    def accepted(self):
+        return self.groups
+
+
 def right(line, named):
-    """Score as the study does (random_scenarios.score): confounded names count."""
+    """Score a verdict ({effect: confounded with} or 'unexplained') as the study does."""
     if named == 'unexplained':
-        return False
-    groups = [set(g) for g in line['draw']['accepted']]
-    if not named:
-        return not groups
-    union = set().union(*groups) if groups else set()
-    seen = set(named) | {c for cs in named.values() for c in cs}
-    return (bool(groups) and all(seen & g for g in groups)
-            and all(n in union or union & cs for n, cs in named.items()))
+        explanation = {'effect': 'unexplained', 'effects': []}
+    else:
+        explanation = {'effect': next(iter(named), 'none'),
+                       'effects': [{'effect': e, 'confounded_with': sorted(c)}
+                                   for e, c in named.items()]}
+    return random_scenarios.score(_Drawn(line), {'explanation': explanation})['right']
 
 
 def summary(lines, rule, eta):
