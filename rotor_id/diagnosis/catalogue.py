@@ -17,6 +17,7 @@ import time
 
 import numpy as np
 
+from rotor_id.diagnosis.policy import DEFAULT_POLICY
 from rotor_id.estimation.output_error import (
     evaluate, Experiment, fit_initial_states, fit_output_error, IdentificationError,
     information_matrix, Problem, STOP)
@@ -118,6 +119,8 @@ class Job:
     bounds: dict = None
     #: effects already kept, [(effect, variant)], fitted together with this one
     prior: tuple = ()
+    #: convergence of the fit (:attr:`~rotor_id.diagnosis.policy.SelectionPolicy.fit_tolerance`)
+    fit_tolerance: float = DEFAULT_POLICY.fit_tolerance
 
 
 @dataclass
@@ -159,13 +162,16 @@ class Setting:
     known: dict
     window_s: tuple
     verbose: bool = False
+    #: convergence of every candidate fit (the policy's ``fit_tolerance``)
+    fit_tolerance: float = DEFAULT_POLICY.fit_tolerance
     #: the filter-error fits made so far (later ones start from an earlier one's values)
     filter_fits: list = field(default_factory=list)
 
     def job(self, effect, variant='', **options):
         """Return a candidate :class:`Job` on this record, description and values."""
         return Job(effect, variant, self.record, self.description, self.values,
-                   self.unknowns, self.known, self.window_s, verbose=self.verbose, **options)
+                   self.unknowns, self.known, self.window_s, verbose=self.verbose,
+                   fit_tolerance=self.fit_tolerance, **options)
 
 
 def _free_of(exp, model, extra_free):
@@ -537,7 +543,8 @@ def fit_candidate(job):
                 guess = _best_start(runs, unknowns, starts, job.known, max_step) or guess
             fit_kw = dict(known=job.known, label=label, **kw,
                           progress=stop_at_bound(model, extra, _printer(label, job.verbose)))
-            est = fit_output_error(runs, unknowns, guess=guess, max_iter=40, **fit_kw)
+            est = fit_output_error(runs, unknowns, guess=guess, max_iter=40,
+                                   step_tol=job.fit_tolerance, **fit_kw)
             at_bound = at_catalogue_bound(est, model, extra)
             out.bounds = dict(job.bounds or {})
             out.bound_limited = [name for name, _ in at_bound]

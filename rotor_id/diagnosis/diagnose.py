@@ -204,14 +204,15 @@ def _filter_error_available():
     return True
 
 
-def _space(record, description, base, window_s, effects, workers, verbose):
+def _space(record, description, base, window_s, effects, workers, verbose, policy):
     """Return the model space (output error, filter error) and the effects it may use."""
     ident = base.ident
     est = ident.estimate
     unknowns = list(description.unknowns)
     setting = Setting(record, description, {n: est.model_parameters[n] for n in unknowns},
                       unknowns, {n: v for n, v in est.model_parameters.items()
-                                 if n not in unknowns}, tuple(window_s), verbose=verbose)
+                                 if n not in unknowns}, tuple(window_s), verbose=verbose,
+                      fit_tolerance=policy.fit_tolerance)
     n_obs = sum(e.t.size * e.model.n_outputs for e in ident.experiments)
     not_tried = {e: applicable(e, ident.model.name, ident.model.rotor, unknowns)
                  for e in effects if e != NOISE}
@@ -328,7 +329,7 @@ def diagnose(record, description, progress=None, workers=2, effects=EFFECTS, win
     kernels.prefer()                # every candidate simulates: the compiled path from the start
     base = _baseline(record, description, window_s, say, t_start)
     space, usable, not_tried = _space(record, description, base, window_s, effects, workers,
-                                      verbose_fits)
+                                      verbose_fits, policy)
     mu = base.ident.model.rotor.advance_ratio
     prior = Prior(usable, policy.max_effects, record.n_blades, mu)
     try:

@@ -33,12 +33,6 @@ NOISE = 'process_noise'
 #: Gauss-Newton (scoring) iterations of a candidate's filter-error fit; it starts at the
 #: current estimate with the extra parameters neutral, a few steps from its optimum.
 MAX_ITER = 20
-#: A filter-error fit here has converged when a further scoring step would gain less than
-#: this in log-likelihood (the Newton decrement), beside the step test: the tests compare
-#: likelihoods on a scale of χ² quantiles (≥ 3.8), and scoring zigzags about the optimum of
-#: random inflow on the wake record with the cost flat to 0.01 (measured, inflow+noise seed
-#: 1003: ΔJ final from iteration 6, the step test met at iteration 36).
-LOGLIK_TOL = 1e-3
 FAILURES = (IdentificationError, np.linalg.LinAlgError, FloatingPointError, ValueError)
 #: random inflow's own parameters beside σ_V (its correlation time, a model without a wake)
 #: random inflow's states (their initial values are the noise model's, no extra parameters)
@@ -237,7 +231,7 @@ def fit_filter(effect, variant, kept, start_fit, ctx, setup, max_iter=MAX_ITER):
                                   process_noise_std=math.sqrt(theta[prob.i_process]),
                                   rows=rows, max_step=max_step,
                                   label=f'{effect} + random inflow', start_values=begin,
-                                  loglik_tol=LOGLIK_TOL,
+                                  loglik_tol=ctx.fit_tolerance, step_tol=ctx.fit_tolerance,
                                   progress=stop_at_bound(model, extra, None))
     except FAILURES as exc:
         out.available, out.reason = False, f'filter-error fit failed: {exc}'
@@ -374,7 +368,7 @@ def fit_alone(ctx, setup):
         est = fit_filter_error_ml(runs, unknowns, guess=guess, known=ctx.known,
                                   noise_std=setup.noise_std, max_iter=MAX_ITER, rows=rows,
                                   label='process_noise (pitch-like random inflow)',
-                                  loglik_tol=LOGLIK_TOL)
+                                  loglik_tol=ctx.fit_tolerance, step_tol=ctx.fit_tolerance)
     except FAILURES as exc:
         out.available, out.reason = False, f'filter-error fit failed: {exc}'
         return out

@@ -255,11 +255,14 @@ class FilterProblem:
 
     def _noise_derivatives(self, covariance, F, dF, sig_p, k, kp):
         """
-        ∂Q (…, k, n, n): ∂Q/∂q = Q at σ_V = 1 (θ holds q = σ_V²), ∂Q/∂p = ∂Q/∂F along ∂F/∂p.
+        Return Q and its derivatives ∂Q (…, k, n, n) along θ.
+
+        ∂Q/∂q = Q at σ_V = 1 (θ holds q = σ_V²); ∂Q/∂p = ∂Q/∂F along ∂F/∂p.
 
         ``covariance(F, σ)`` is the model's Q as a function of its F (a tuple of arrays);
-        ∂Q/∂F along ∂F/∂p is its central difference with a step 1e-6 of F (truncation ~1e-12
-        relative: Q is a smooth matrix function).
+        ∂Q/∂F along ∂F/∂p is its forward difference with a step 1e-7 of F (Q is linear in σ²,
+        so Q at σ_V is σ_V²·Q1): truncation and rounding both ~1e-7 relative, far below what
+        moves a scoring step, at one evaluation of Q per parameter.
         """
         Q1 = covariance(F, 1.0)
         dQ = np.zeros(Q1.shape[:-2] + (k, Q1.shape[-1], Q1.shape[-1]))
@@ -268,13 +271,11 @@ class FilterProblem:
         if sig_p > 0.0:
             for i in range(kp):
                 size = max(max(float(np.max(np.abs(dFx[..., i, :, :]))) for dFx in dF), 1e-300)
-                eps = 1e-6 * max(max(float(np.max(np.abs(Fx))) for Fx in F), 1e-300) / size
+                eps = 1e-7 * max(max(float(np.max(np.abs(Fx))) for Fx in F), 1e-300) / size
                 up = covariance(tuple(Fx + eps * dFx[..., i, :, :] for Fx, dFx in zip(F, dF)),
-                                sig_p)
-                down = covariance(tuple(Fx - eps * dFx[..., i, :, :]
-                                        for Fx, dFx in zip(F, dF)), sig_p)
-                dQ[..., i, :, :] = (up - down) / (2.0 * eps)
-        return dQ
+                                1.0)
+                dQ[..., i, :, :] = sig_p**2 * (up - Q1) / eps
+        return sig_p**2 * Q1, dQ
 
     def _constant_pieces(self, exp, p, t, substeps, Fs, dF, step, sig_p, k, kp):
         """Φ, ∂Φ, Q, ∂Q (leading dimension 1) of a model with a constant system matrix."""
@@ -292,8 +293,7 @@ class FilterProblem:
         def covariance(F, sigma):
             return kalman.constant_noise_covariance(F[0], dt, substeps, self.rows, sigma,
                                                     self.noise_model)
-        Q = covariance((Fs[0],), sig_p)
-        dQ = self._noise_derivatives(covariance, (Fs[0],), (dF[0],), sig_p, k, kp)
+        Q, dQ = self._noise_derivatives(covariance, (Fs[0],), (dF[0],), sig_p, k, kp)
         return Phi[None], dPhi[None], Q[None], dQ[None]
 
     def _varying_pieces(self, exp, p, t, substeps, Fs, dF, step, sig_p, k, kp):
@@ -321,8 +321,7 @@ class FilterProblem:
         def covariance(F, sigma):
             return kalman.varying_noise_covariance(F[0], F[1], t, substeps, self.rows, sigma,
                                                    self.noise_model)[0]
-        Q = covariance((Fs, Fmid), sig_p)
-        dQ = self._noise_derivatives(covariance, (Fs, Fmid), (dF, dFmid), sig_p, k, kp)
+        Q, dQ = self._noise_derivatives(covariance, (Fs, Fmid), (dF, dFmid), sig_p, k, kp)
         return np.ascontiguousarray(Phi), dPhi, Q, np.ascontiguousarray(dQ)
 
     def analytic_sensitivities(self, r: int, theta: np.ndarray, sensitivities: bool = True
