@@ -217,15 +217,15 @@ def _space(record, description, base, window_s, effects, workers, verbose, polic
     not_tried = {e: applicable(e, ident.model.name, ident.model.rotor, unknowns)
                  for e in effects if e != NOISE}
     usable = [e for e in effects if e != NOISE and not not_tried[e]]
-    noise = None
+    noise, pool = None, Workers(workers)
     if NOISE in effects:
         if _filter_error_available():
-            noise = FilterError(setting, n_obs, est.names)
+            noise = FilterError(setting, n_obs, est.names, pool)
             usable.append(NOISE)
         else:
             not_tried[NOISE] = ('the filter-error likelihood (rotor_id.estimation.filter_error) '
                                 'is not installed in this build')
-    space = ModelSpace(OutputError(setting, ident, n_obs, Workers(workers)), noise, usable)
+    space = ModelSpace(OutputError(setting, ident, n_obs, pool), noise, usable)
     return space, usable, {e: why for e, why in not_tried.items() if why}
 
 

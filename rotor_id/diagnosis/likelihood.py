@@ -283,14 +283,40 @@ class OutputError:
         return out
 
 
+def _filter_fit_job(item):
+    """Return the filter-error fit of one request (in a worker), None where it fails."""
+    new, rest, start_fit, earlier, setting, setup = item
+    try:
+        if start_fit is None:
+            return noisy.fit_alone(setting, setup)
+        effect, variant = new if new is not None else (None, None)
+        return noisy.fit_filter(effect, variant, rest, start_fit, setting, setup,
+                                earlier=earlier)
+    except FAILURES:
+        return None
+
+
+def _filter_score_job(item):
+    """Return the filter-error score test of one effect (in a worker), None where it fails."""
+    effect, kept, current_fit, setting, setup = item
+    try:
+        if effect == NOISE:
+            lm, var = noisy.noise_score(current_fit, kept, setting, setup)
+            return ScoreTest(NOISE, '', float(lm), 1 + len(noisy.SHAPE), var)
+        return _best_variant(effect, noisy.screen(effect, kept, current_fit, setting, setup))
+    except FAILURES:
+        return None
+
+
 class FilterError:
     """Explanations with random inflow, by filter-error ML (innovations likelihood)."""
 
     name = 'filter error'
 
-    def __init__(self, setting, n_obs, baseline_names):
+    def __init__(self, setting, n_obs, baseline_names, workers=None):
         self.setting, self.n_obs = setting, n_obs
         self.base_names = set(baseline_names)
+        self.workers = workers if workers is not None else Workers(1)
         self._setup = None
         self._memo = {}
 
@@ -300,6 +326,10 @@ class FilterError:
         if self._setup is None:
             self._setup = noisy.setup_for(self.setting)
         return self._setup
+
+    def _shared(self):
+        """Return the setting as a worker needs it (without the fits made so far)."""
+        return replace(self.setting, filter_fits=[])
 
     def _result(self, effects, fit):
         est = fit.estimate
@@ -313,40 +343,55 @@ class FilterError:
                          converged=bool(est.converged), at_bound=tuple(fit.bound_limited),
                          fit=fit, likelihood=self.name, elapsed_s=float(fit.elapsed_s))
 
+    def _request(self, key, start):
+        """
+        Return a worker's item for fitting ``key`` from ``start``.
+
+        Random inflow alone, or the effect ``start`` lacks added to its filter-error fit, or
+        (from an output-error start) the stack fitted whole.
+        """
+        kept = [ev for ev in key if ev[0] != NOISE]
+        if not kept:
+            return None, [], None, None, self._shared(), self.setup
+        if start is not None and start.likelihood == self.name:
+            new = ([ev for ev in kept if ev not in start.effects] or kept[-1:])[0]
+            rest = [ev for ev in kept if ev != new]
+            effect, variant, stack = new[0], new[1], rest
+        else:
+            new, rest = None, kept
+            (effect, variant), stack = kept[-1], kept[:-1]
+        earlier = noisy.earlier_fit(self.setting.filter_fits, effect, variant, stack)
+        return new, rest, start.fit, earlier, self._shared(), self.setup
+
+    def fit_many(self, requests):
+        """Fit [(effects, start)] with random inflow (in worker processes); None where failed."""
+        keys = [canonical(effects) for effects, _ in requests]
+        todo = {}
+        for key, (_, start) in zip(keys, requests):
+            if key not in self._memo and key not in todo:
+                todo[key] = self._request(key, start)
+        for key, fit in zip(todo, self.workers.apply(_filter_fit_job, todo.values())):
+            self._memo[key] = None if _failed(key, fit) else self._result(key, fit)
+            if self._memo[key] is not None:
+                self.setting.filter_fits.append(fit)
+        return [self._memo[k] for k in keys]
+
     def fit(self, effects, start):
         """Fit one explanation with random inflow in it (see :class:`Likelihood`)."""
-        key = canonical(effects)
-        if key in self._memo:
-            return self._memo[key]
-        kept = [ev for ev in key if ev[0] != NOISE]
-        try:
-            if not kept:
-                fit = noisy.fit_alone(self.setting, self.setup)
-            elif start is not None and start.likelihood == self.name:
-                new = [ev for ev in kept if ev not in start.effects] or kept[-1:]
-                rest = [ev for ev in kept if ev != new[0]]
-                fit = noisy.fit_filter(new[0][0], new[0][1], rest, start.fit, self.setting,
-                                       self.setup)
-            else:
-                fit = noisy.fit_filter(None, None, kept, start.fit, self.setting, self.setup)
-        except FAILURES:
-            fit = None
-        self._memo[key] = None if _failed(key, fit) else self._result(key, fit)
-        return self._memo[key]
+        return self.fit_many([(effects, start)])[0]
+
+    def score_many(self, current, effects):
+        """Score-test effects at a fitted model, in worker processes: {effect: ScoreTest}."""
+        kept = [ev for ev in current.effects if ev[0] != NOISE]
+        asked = [e for e in effects if e == NOISE or e in SCREENED]
+        items = [(e, kept, current.fit, self._shared(), self.setup) for e in asked]
+        out = dict.fromkeys(effects)
+        out.update(zip(asked, self.workers.apply(_filter_score_job, items)))
+        return out
 
     def score(self, current, effect):
-        """Score-test an effect at a fitted model (random inflow itself at an OE model)."""
-        kept = [ev for ev in current.effects if ev[0] != NOISE]
-        try:
-            if effect == NOISE:
-                lm, var = noisy.noise_score(current.fit, kept, self.setting, self.setup)
-                return ScoreTest(NOISE, '', float(lm), 1 + len(noisy.SHAPE), var)
-            if effect not in SCREENED:
-                return None
-            tests = noisy.screen(effect, kept, current.fit, self.setting, self.setup)
-        except FAILURES:
-            return None
-        return _best_variant(effect, tests)
+        """Score-test one effect at a fitted model (random inflow itself at an OE model)."""
+        return self.score_many(current, [effect])[effect]
 
 
 class ModelSpace:
@@ -369,15 +414,14 @@ class ModelSpace:
         return self.output_error.baseline()
 
     def fit_many(self, requests):
-        """Fit [(effects, start)]: output error in parallel, filter error in turn."""
+        """Fit [(effects, start)], each by its likelihood, each batch in worker processes."""
         out = [None] * len(requests)
-        plain = [i for i, (effects, _) in enumerate(requests)
-                 if self._owner(effects) is self.output_error]
-        for i, res in zip(plain, self.output_error.fit_many([requests[i] for i in plain])):
-            out[i] = res
-        for i, (effects, start) in enumerate(requests):
-            if i not in plain and self.filter_error is not None:
-                out[i] = self.filter_error.fit(effects, start)
+        for owner in (self.output_error, self.filter_error):
+            mine = [i for i, (effects, _) in enumerate(requests)
+                    if self._owner(effects) is owner]
+            if mine and owner is not None:
+                for i, res in zip(mine, owner.fit_many([requests[i] for i in mine])):
+                    out[i] = res
         return out
 
     def fit(self, effects, start):
@@ -391,12 +435,11 @@ class ModelSpace:
 
     def score_many(self, current, effects):
         """Score-test effects at ``current``: {effect: ScoreTest or None}."""
-        plain = [e for e in effects
-                 if self._owner(current.effects + ((e, ''),)) is self.output_error]
-        out = self.output_error.score_many(current, plain) if plain else {}
-        for e in effects:
-            if e not in out:
-                out[e] = self.score(current, e)
+        out = dict.fromkeys(effects)
+        for owner in (self.output_error, self.filter_error):
+            mine = [e for e in effects if self._owner(current.effects + ((e, ''),)) is owner]
+            if mine and owner is not None:
+                out.update(owner.score_many(current, mine))
         return out
 
     def score(self, current, effect):

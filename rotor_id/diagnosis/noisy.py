@@ -198,12 +198,14 @@ def screen(effect, kept, current, ctx, setup):
     return out
 
 
-def fit_filter(effect, variant, kept, start_fit, ctx, setup, max_iter=MAX_ITER):
+def fit_filter(effect, variant, kept, start_fit, ctx, setup, earlier=None,
+               max_iter=MAX_ITER):
     """
     Filter-error fit of the stack ``kept`` + ``effect`` with σ_V estimated: CandidateFit.
 
     Started from ``start_fit``'s estimate (a filter-error one: its σ_V and measurement σ's
-    too). ``effect`` None fits ``kept`` alone (the backward check).
+    too) and, where given, from ``earlier``, this effect's fit beside fewer effects
+    (:func:`earlier_fit`). ``effect`` None fits ``kept`` alone (the backward check).
     """
     t0 = time.perf_counter()
     est0 = start_fit.estimate
@@ -222,7 +224,7 @@ def fit_filter(effect, variant, kept, start_fit, ctx, setup, max_iter=MAX_ITER):
         model = runs[0].model
         guess, prob, theta = _best_filter_start(
             effect, job, model, runs, unknowns, guess, setup, max_step, est0, rows,
-            earlier=_earlier_fit(ctx, effect, variant, kept))
+            earlier=earlier)
         begin = {n: v for n, v in zip(prob.names, theta)
                  if n != PROCESS_NOISE and n not in unknowns}
         # two iterations at a catalogue bound end the fit: it is reported bound-limited
@@ -240,19 +242,18 @@ def fit_filter(effect, variant, kept, start_fit, ctx, setup, max_iter=MAX_ITER):
     out.bound_limited = [n for n, _ in at_catalogue_bound(est, model, extra)]
     out.elapsed_s = time.perf_counter() - t0
     out.experiments, out.max_step, out.noise_rows = runs, max_step, rows
-    ctx.filter_fits.append(out)
     return out
 
 
-def _earlier_fit(ctx, effect, variant, kept):
+def earlier_fit(fits, effect, variant, kept):
     """
-    Return this effect's fit of an earlier step (beside fewer kept effects), or None.
+    Return this effect's fit among earlier ``fits`` (beside fewer kept effects), or None.
 
     The latest one, its stack a part of ``kept``: the model now fitted is that fit's with the
     effects added since, so its estimate is a start from the other side of the same model.
     """
     stack = set(kept)
-    for fit in reversed(ctx.filter_fits):
+    for fit in reversed(fits):
         if (fit.effect, fit.variant) == (effect, variant) and fit.available \
                 and set(fit.prior) < stack:
             return fit
@@ -270,7 +271,7 @@ def _best_filter_start(effect, job, model, runs, unknowns, guess, setup, max_ste
     beside random inflow swing far (γ to twice its value, σ_V to its bound) and the fit ends,
     within its iterations, in whichever valley the path found.
 
-    ``earlier``: the effect's fit beside fewer of the kept effects (:func:`_earlier_fit`).
+    ``earlier``: the effect's fit beside fewer of the kept effects (:func:`earlier_fit`).
     Its estimate, the effects added since at the current one's values, is one more start, at
     its own σ_V: the same model approached from the other side. The current model's
     parameters can sit in another valley than the effect needs (measured, inflow+blade+noise
@@ -375,7 +376,6 @@ def fit_alone(ctx, setup):
     _fill(out, est, model, unknowns, [], ctx)
     out.elapsed_s = time.perf_counter() - t0
     out.experiments, out.max_step, out.noise_rows = runs, DEFAULT_MAX_STEP, rows
-    ctx.filter_fits.append(out)
     return out
 
 
