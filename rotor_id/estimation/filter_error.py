@@ -310,13 +310,13 @@ class FilterProblem:
         for s in range(substeps):
             dPhi[:, :kp] = dPhi_s[:, s] @ Phi[:, None] + Phi_s[:, s, None] @ dPhi[:, :kp]
             Phi = Phi_s[:, s] @ Phi
-        mid = 0.5 * (t[:-1] + t[1:])
+        # F at the intervals' midpoints: stage times of the fine grid (fine_grid: interval j's
+        # middle is its point j·2s + s), so F and ∂F/∂p there are already at hand
         Fmid, dFmid = np.zeros((T - 1, n, n)), np.zeros((T - 1, kp, n, n))
         if self.noise_model == 'white':
-            Fmid = exp.model.system(mid, p, exp.inputs(mid))[0]
+            Fmid = Fs[substeps::2 * substeps]
             if kp:
-                dFmid = exp.model.system_jacobian(mid, p, exp.inputs(mid))[0][
-                    :, self.base.param_index]
+                dFmid = dF[substeps::2 * substeps]
 
         def covariance(F, sigma):
             return kalman.varying_noise_covariance(F[0], F[1], t, substeps, self.rows, sigma,
