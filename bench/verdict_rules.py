@@ -18,9 +18,10 @@ The verdict is the most probable fitted explanation, its first-order equivalents
 added (rotor_id.diagnosis.verdict.physics_of); a record whose verdict was ``unexplained`` stays
 so (its residual test does not depend on the rule). Right is scored as the study does, from
 the draw's accepted groups. Prints, per rule and η, the accuracy at a stated ≥ 0.95 with its
-Wilson interval, the false alarms on the nulls, and the log score.
+Wilson interval, the false alarms on the nulls, and the log score (all records, and the odd
+and even seeds apart: the halves on which η is chosen and checked).
 
-    python bench/verdict_rules.py STUDY.jsonl [--eta 0.6 0.8 1.0] [--g 10 100 1000]
+    python bench/verdict_rules.py STUDY.jsonl [--eta 0.6 0.7 0.8 1.0] [--g 10 100 1000]
 """
 
 import argparse
@@ -117,7 +118,7 @@ def main(argv=None):
     """Print the table of rules."""
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[1])
     parser.add_argument('study', type=Path)
-    parser.add_argument('--eta', type=float, nargs='+', default=[0.6, 0.8, 1.0])
+    parser.add_argument('--eta', type=float, nargs='+', default=[0.6, 0.7, 0.75, 0.8, 1.0])
     parser.add_argument('--g', type=float, nargs='+', default=[10.0, 100.0, 1000.0])
     parser.add_argument('--out', default=None,
                         help='also write the table to OUT.md (e.g. bench/results/verdict_rules)')
@@ -135,14 +136,17 @@ def main(argv=None):
            f"diagnosis's own rule reproduces {same_p} stated probabilities and {same_right} "
            'scores.', '',
            '| rule | η | stated ≥ 0.95 | right | accuracy (Wilson 95 %) | false alarms on nulls '
-           '| log score |', '|---|---|---|---|---|---|---|']
+           '| log score | odd seeds | even seeds |', '|---|---|---|---|---|---|---|---|---|']
     for rule in ['bic', 'aic'] + [f'g={g:g}' for g in args.g]:
         for eta in args.eta:
             s = summary(lines, rule, eta)
+            odd, even = (summary([x for x in lines if x['seed'] % 2 == parity], rule, eta)
+                         for parity in (1, 0))
             lo, hi = s['wilson95']
             out.append(f'| {rule} | {eta:g} | {s["high"]} | {s["right_high"]} | '
                        f'{s["accuracy_high"]:.0%} ({lo:.0%}–{hi:.0%}) | '
-                       f'{s["false_alarms"]}/{s["nulls"]} | {s["log_score"]:.1f} |')
+                       f'{s["false_alarms"]}/{s["nulls"]} | {s["log_score"]:.1f} | '
+                       f'{odd["log_score"]:.1f} | {even["log_score"]:.1f} |')
     print('\n'.join(out))
     if args.out:
         command = ' '.join(['python', 'bench/verdict_rules.py', str(args.study), '--eta',
