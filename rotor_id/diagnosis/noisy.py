@@ -129,13 +129,13 @@ def _problem(runs, unknowns, guess, known, setup, sigma_v, max_step, start_est,
         theta, prob.start_cost = tries[best], float(costs[best])
     if refit_states:
         # a filter-error fit can leave initial states far along a direction its own model
-        # barely sees, which another model sees (measured, inflow+blade+noise seed 1000:
-        # random inflow and the blade left β0(t0) = 64 rad, η(t0) = -256 rad; every start of
-        # the wake beside them cost 1e8-1e9). Such a start, less likely by more than one unit
-        # of log-likelihood per observation than with all initial states refitted there, is
-        # absurd and takes the refitted ones; any other keeps the current estimate's, which
-        # a nearer start can beat only by a start's transient (blade+noise seed 1001: taking
-        # the likelier start there ended the blade's fit 10.5 lower in log-likelihood)
+        # barely sees, which another model sees (random inflow beside a blade difference has
+        # left β0(t0) at tens of radians, and every wake start beside them at a cost of
+        # 1e8-1e9). A start less likely by more than one unit of log-likelihood per
+        # observation than with all initial states refitted there is absurd (no noise
+        # level explains it) and takes the refitted ones; any other keeps the current
+        # estimate's, which a nearer start beats only by a start's transient, not by a
+        # better optimum
         refitted = theta.copy()
         refitted[len(base.param_index):prob.n_base] = fitted_states[len(base.param_index):]
         cost = innovations_cost(prob.evaluate(refitted, sensitivities=False))
@@ -274,10 +274,9 @@ def _best_filter_start(effect, job, model, runs, unknowns, guess, setup, max_ste
     ``earlier``: the effect's fit beside fewer of the kept effects (:func:`earlier_fit`).
     Its estimate, the effects added since at the current one's values, is one more start, at
     its own σ_V: the same model approached from the other side. The current model's
-    parameters can sit in another valley than the effect needs (measured, inflow+blade+noise
-    seed 1000: beside random inflow and the blade the wake gained ΔJ 10.2 from the current
-    γ = 3.2, σ_V = 1.8e-3; the same three effects, the blade added to the wake's fit at
-    γ = 3.9, reached 120 more).
+    parameters can sit in another valley than the effect needs (beside random inflow and a
+    blade difference, a wake fitted from the current Lock number can stop far below the same
+    three effects reached from the wake's own fit).
     """
     sigma0 = max(_sigma_v(est0), 1e-12)
     starts = [(g, sigma0) for g in [guess] + (grid_starts(job, model, guess, unknowns) or [])]
@@ -337,8 +336,7 @@ def random_inflow_states(runs, record):
     default rows of a model without a wake) has neither the spectrum nor the direction of
     turbulence; a wake's λ rows have its direction but the wake's time constant. Measured
     (bench/results/diagnosis_pairs.md): a flap-frequency error beside turbulence in the wake
-    record gains 2ΔJ = 18-25 with the pitch-like states against 15 with noise on λ
-    (noise+flap_frequency seeds 1001, 1002).
+    record gains more with the pitch-like states than with noise on λ.
     """
     runs, model = augment_runs(runs, aug.PitchLikeRandomInflow, record)
     return runs, list(model.extra_states), list(SHAPE)
