@@ -414,8 +414,34 @@ def search(space, effects, prior, policy, mu=0.0, say=None, adequate=None):
     adequate = adequate or (lambda result: False)
     best = space.baseline()
     candidates = {(): Candidate((), best)}
-    steps, tests, frontier = [], {}, [best]
-    for size in range(1, policy.max_effects + 1):
+    steps, tests = [], {}
+    table = (space, effects, candidates, prior, policy, tests, mu, say)
+    best = _forward(table, best, [best], steps, adequate)
+    best = _exchange(space, best, candidates, prior, policy, steps, mu, say)
+    # a final explanation the forward steps did not extend (reached by a drop or a swap) is
+    # extended from in turn: the selection ends where no score test asks for more
+    for _ in range(policy.max_effects):
+        if best.effects in tests or len(best.effects) >= policy.max_effects:
+            break
+        before = best
+        best = _exchange(space, _forward(table, best, [best], steps, adequate), candidates,
+                         prior, policy, steps, mu, say)
+        if best is before:
+            break
+    return Selection(candidates=candidates, steps=steps, final=best, tests=tests,
+                     effects=tuple(effects), mu=mu)
+
+
+def _forward(table, best, frontier, steps, adequate):
+    """
+    Forward steps from ``frontier`` while the best of the next size is more probable: the best.
+
+    Each step score-tests the open effects at each explanation of the frontier, fits the
+    promising ones (:func:`_fit_step`), adds the most probable when it beats ``best``, checks
+    backward, and extends the beam (:func:`_beam`) of that size next.
+    """
+    space, effects, candidates, prior, policy, tests, mu, say = table
+    for size in range(len(frontier[0].effects) + 1, policy.max_effects + 1):
         requests = {}
         for current in frontier:
             for ub, key, start in _screen(space, current, effects, candidates, prior, policy,
@@ -442,9 +468,7 @@ def search(space, effects, prior, policy, mu=0.0, say=None, adequate=None):
                           2.0 * (ranked[0].loglik - best.loglik), ranked[0].effects))
         best = _backward(space, ranked[0], added, candidates, prior, steps)
         frontier = _beam(ranked, policy, mu, adequate)
-    best = _exchange(space, best, candidates, prior, policy, steps, mu, say)
-    return Selection(candidates=candidates, steps=steps, final=best, tests=tests,
-                     effects=tuple(effects), mu=mu)
+    return best
 
 
 def tests_at(space, selection, result):
