@@ -15,7 +15,8 @@ it never asks whether a model is fitted by output error or by filter error.
   hold :attr:`~rotor_id.diagnosis.policy.SelectionPolicy.fit_share` of the posterior (and the
   effects without a score test) are fitted on top of it. The most probable is added when it
   is more probable than the current model; then every earlier effect must stay (backward
-  check: the model without it is fitted and must be less probable). At most K effects.
+  check: the model without it is fitted and must be less probable). At most K effects. An
+  explanation reached by a drop or an exchange is extended from in turn.
 * **Posterior.** Normalised over every explanation fitted or score-tested on the way.
 """
 
