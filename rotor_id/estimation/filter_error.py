@@ -277,7 +277,7 @@ class FilterProblem:
                 dQ[..., i, :, :] = sig_p**2 * (up - Q1) / eps
         return sig_p**2 * Q1, dQ
 
-    def _constant_pieces(self, exp, p, t, substeps, Fs, dF, step, sig_p, k, kp):
+    def _constant_pieces(self, t, substeps, Fs, dF, step, sig_p, k, kp):
         """Φ, ∂Φ, Q, ∂Q (leading dimension 1) of a model with a constant system matrix."""
         n = Fs.shape[-1]
         dt = float(t[1] - t[0])
@@ -296,7 +296,7 @@ class FilterProblem:
         Q, dQ = self._noise_derivatives(covariance, (Fs[0],), (dF[0],), sig_p, k, kp)
         return Phi[None], dPhi[None], Q[None], dQ[None]
 
-    def _varying_pieces(self, exp, p, t, substeps, Fs, dF, step, sig_p, k, kp):
+    def _varying_pieces(self, t, substeps, Fs, dF, step, sig_p, k, kp):
         """Φ_j, ∂Φ_j, Q_j, ∂Q_j (leading dimension T-1) of a model whose F varies (periodic)."""
         n, T = Fs.shape[-1], t.size
         M = (T - 1) * substeps
@@ -363,7 +363,7 @@ class FilterProblem:
             dg = np.zeros((g.shape[0], 0, n))
         Fs = np.ascontiguousarray(F[:1] if constant else F)
         pieces = (self._constant_pieces if constant else self._varying_pieces)(
-            exp, p, t, substeps, Fs, dF, h[0], sig_p, k, kp)
+            t, substeps, Fs, dF, h[0], sig_p, k, kp)
         Phi, dPhi, Q, dQ = pieces
         R = np.diag(np.maximum(sig_m, 1e-300)**2)
         dR = np.zeros((k, m, m))
