@@ -69,7 +69,8 @@ build: venv | sysdeps
 	@# byte-compile our sources and the generated message code once here, so that starting
 	@# ./rotor-id reads .pyc even where PYTHONDONTWRITEBYTECODE is set (see tools/make_venv.sh)
 	@$(VENV_ENV) && python -m compileall -q rotor_id install > /dev/null
-	@# compile the numba kernel into its cache now (2-6 s once), not in a user's first study
+	@# compile the numba kernels into their cache now (2-6 s once), not in a user's first study,
+	@# and ahead of time into an extension module (about 30 s, once per change of the kernels)
 	@$(WS_ENV) && python -m rotor_id.estimation.kernels
 
 # Both cores (pytest-xdist; tests take their ROS domains from test/ros_domains.py), and the
@@ -159,7 +160,7 @@ lock: venv
 	@git diff --stat -- $(CONS) || true
 
 clean:
-	rm -rf build install log .pytest_cache .hypothesis *.egg-info
+	rm -rf build install log .pytest_cache .hypothesis *.egg-info rotor_id/estimation/_kernels_aot_*
 	find . -path ./$(VENV) -prune -o -name __pycache__ -type d -prune -exec rm -rf {} +
 
 distclean: clean

@@ -23,14 +23,29 @@ the kernel is loaded and used from there on (Monte Carlo studies, diagnosis, lon
 reference). Where numba is missing or fails to compile, the numpy path is used and
 :func:`status` says why.
 
-The machine code is cached next to this file (numba ``cache=True``), or, where that directory is
-read-only, in numba's per-user cache directory (``NUMBA_CACHE_DIR`` overrides both); with no
-writable place numba compiles at every start (about 2 s) and still gives the same results.
+``make build`` also compiles the kernels ahead of time (numba.pycc, :func:`build_ahead_of_time`)
+into an extension module beside this file, named after a hash of the kernels' sources and the
+numba, numpy and Python versions: it loads in about a millisecond and without numba, where the
+just-in-time kernels cost 0.5 s of numba start-up in every process (``rotor-id diagnose`` of a
+1-second record takes 1-2 s in all). Its functions check every argument's type, layout and
+writability against the signature it was compiled for, and pass a call that does not match to
+the just-in-time kernel (compiled code would read such an array wrongly). Without that module
+(no C compiler, other sources) the just-in-time kernels load as before.
+
+The just-in-time machine code is cached next to this file (numba ``cache=True``), or, where that
+directory is read-only, in numba's per-user cache directory (``NUMBA_CACHE_DIR`` overrides both);
+with no writable place numba compiles at every start (about 2 s) and still gives the same
+results.
 """
 
+import hashlib
+import importlib
+import json
 import os
+from pathlib import Path
+import sys
 import time
-from types import ModuleType
+from types import ModuleType, SimpleNamespace
 from typing import Any, Callable
 
 import numpy as np
@@ -40,7 +55,13 @@ MODES = ('auto', 'numba', 'numpy')
 AUTO_SWITCH_SECONDS = 0.5
 
 _state: dict[str, Any] = {'kernel': None, 'tried': False, 'error': None, 'numpy_seconds': 0.0,
-                          'load_seconds': None, 'module': None}
+                          'load_seconds': None, 'module': None, 'compiled': None,
+                          'ahead_error': None, 'just_in_time_calls': 0}
+_HERE = Path(__file__).resolve().parent
+#: the files whose content the ahead-of-time module is built from (its name hashes them)
+_KERNEL_SOURCES = ('_kernels_numba.py', '_filter_kernels_numba.py', '_kernels_build.py')
+#: which Python scalars a compiled scalar argument takes (anything else: the just-in-time path)
+_SCALAR_KINDS = {'float64': (float,), 'int64': (int, np.integer), 'bool': (bool, np.bool_)}
 
 
 def mode() -> str:
@@ -54,7 +75,9 @@ def mode() -> str:
 def status() -> dict[str, Any]:
     """Return a dict: mode, kernel loaded?, why not, its load time, numpy seconds so far."""
     return {'mode': mode(), 'loaded': _state['kernel'] is not None, 'error': _state['error'],
-            'load_seconds': _state['load_seconds'], 'numpy_seconds': _state['numpy_seconds']}
+            'load_seconds': _state['load_seconds'], 'numpy_seconds': _state['numpy_seconds'],
+            'compiled': _state['compiled'], 'ahead_error': _state['ahead_error'],
+            'just_in_time_calls': _state['just_in_time_calls']}
 
 
 def note_numpy_seconds(seconds: float) -> None:
@@ -121,6 +144,8 @@ def filter_sensitivity_kernel() -> Callable[..., Any] | None:
     """
     if rk4_kernel() is None:
         return None
+    if 'sensitivity' not in _state and hasattr(_state['module'], 'sensitivity_scan'):
+        _state['sensitivity'] = _state['module'].sensitivity_scan
     if 'sensitivity' not in _state:
         try:
             from rotor_id.estimation import _filter_kernels_numba
@@ -132,26 +157,107 @@ def filter_sensitivity_kernel() -> Callable[..., Any] | None:
     return _state['sensitivity']
 
 
+def ahead_of_time_name() -> str:
+    """Return the ahead-of-time module's name for these kernel sources and library versions."""
+    from importlib.metadata import version
+    digest = hashlib.sha256()
+    for name in _KERNEL_SOURCES:
+        digest.update((_HERE / name).read_bytes())
+    digest.update(f'{version("numba")} {np.__version__} {sys.version}'.encode())
+    return f'_kernels_aot_{digest.hexdigest()[:16]}'
+
+
+def _just_in_time(function: str) -> Callable[..., Any]:
+    """Return a kernel's just-in-time dispatcher (numba compiles a signature it has not seen)."""
+    _state['just_in_time_calls'] += 1
+    if function == 'sensitivity_scan':
+        from rotor_id.estimation import _filter_kernels_numba
+        return _filter_kernels_numba.sensitivity_scan
+    from rotor_id.estimation import _kernels_numba
+    return getattr(_kernels_numba, function)
+
+
+def _checked(function: str, compiled: Callable[..., Any],
+             arguments: list[list[Any]]) -> Callable[..., Any]:
+    """Wrap a kernel compiled ahead of time: a call off its signature goes just in time."""
+    arrays = tuple((i, np.dtype(dtype), ndim, contiguous)
+                   for i, (dtype, ndim, contiguous) in enumerate(arguments) if ndim)
+    scalars = tuple((i, _SCALAR_KINDS[dtype])
+                    for i, (dtype, ndim, _) in enumerate(arguments) if not ndim)
+    count = len(arguments)
+
+    def call(*args: Any) -> Any:
+        matches = len(args) == count and all(
+            type(args[i]) is np.ndarray and args[i].dtype == dtype and args[i].ndim == ndim
+            and args[i].flags.writeable and args[i].flags.aligned
+            and (args[i].flags.c_contiguous or not contiguous)
+            for i, dtype, ndim, contiguous in arrays) and all(
+            isinstance(args[i], kinds) and (bool in kinds or not isinstance(args[i], bool))
+            for i, kinds in scalars)
+        return (compiled if matches else _just_in_time(function))(*args)
+    call.__name__ = call.__qualname__ = function
+    return call
+
+
+def _load_ahead_of_time() -> SimpleNamespace | None:
+    """Return the kernels compiled ahead of time (checked), or None (and why, in the status)."""
+    name = ahead_of_time_name()
+    described = _HERE / f'{name}.json'
+    if not described.exists():
+        _state['ahead_error'] = f'{name} not built (make build compiles it)'
+        return None
+    arguments = json.loads(described.read_text())
+    module = importlib.import_module(f'rotor_id.estimation.{name}')
+    return SimpleNamespace(**{function: _checked(function, getattr(module, function), types)
+                              for function, types in arguments.items()})
+
+
+def _load_just_in_time() -> ModuleType:
+    """Import numba's kernels and compile them (or load them from numba's cache)."""
+    from rotor_id.estimation import _kernels_numba
+    _kernels_numba.warm_up()
+    _kernels_numba.warm_up_filter()
+    _kernels_numba.warm_up_affine()
+    _kernels_numba.warm_up_gn()
+    return _kernels_numba
+
+
 def load() -> Callable[..., Any] | None:
-    """Import numba and compile (or load from the cache) the kernel; None if that fails."""
+    """Load the kernels (ahead of time, else numba's just in time); None if neither loads."""
     if _state['kernel'] is not None or _state['tried']:
         return _state['kernel']
     _state['tried'] = True
     start = time.perf_counter()
+    module: Any = None
     try:
-        from rotor_id.estimation import _kernels_numba
-        kernel = _kernels_numba.rk4_scan
-        _kernels_numba.warm_up()
-        _kernels_numba.warm_up_filter()
-        _kernels_numba.warm_up_affine()
-        _kernels_numba.warm_up_gn()
-    except Exception as err:  # noqa: B902 - ImportError, numba's compile errors: use numpy
-        _state['error'] = f'{type(err).__name__}: {err}'
-        return None
+        module = _load_ahead_of_time()
+    except Exception as err:  # noqa: B902 - a module that does not load: just in time
+        _state['ahead_error'] = f'{type(err).__name__}: {err}'
+    _state['compiled'] = 'ahead of time' if module is not None else 'just in time'
+    if module is None:
+        try:
+            module = _load_just_in_time()
+        except Exception as err:  # noqa: B902 - ImportError, numba's compile errors: use numpy
+            _state['error'] = f'{type(err).__name__}: {err}'
+            _state['compiled'] = None
+            return None
     _state['load_seconds'] = time.perf_counter() - start
-    _state['module'] = _kernels_numba
-    _state['kernel'] = kernel
-    return kernel
+    _state['module'] = module
+    _state['kernel'] = module.rk4_scan
+    return _state['kernel']
+
+
+def build_ahead_of_time() -> str:
+    """Compile the kernels ahead of time unless this version is built; return what was done."""
+    name = ahead_of_time_name()
+    if (_HERE / f'{name}.json').exists():
+        return f'{name} up to date'
+    from rotor_id.estimation import _kernels_build
+    start = time.perf_counter()
+    for old in _HERE.glob('_kernels_aot_*'):     # builds of other sources or versions
+        old.unlink(missing_ok=True)
+    _kernels_build.build(_HERE, name)
+    return f'{name} built in {time.perf_counter() - start:.0f} s'
 
 
 def prefer() -> Callable[..., Any] | None:
@@ -169,18 +275,28 @@ def prefer() -> Callable[..., Any] | None:
 
 def main() -> int:
     """
-    Load (compile or read from the cache) the kernel and print how long that took.
+    Compile the kernels (just in time into numba's cache, then ahead of time); say what it took.
 
-    Exits 0 either way (``make build`` calls it): without the kernel everything runs on numpy.
+    Exits 0 either way (``make build`` calls it): without the just-in-time kernels everything
+    runs on numpy, without the ahead-of-time module on the just-in-time kernels.
     """
-    kernel = prefer()
-    if kernel is not None:
-        filter_sensitivity_kernel()            # compile it into the cache as well
-    state = status()
-    if kernel is None:
-        print(f'rotor_id kernels: numpy only ({state["error"] or "ROTOR_ID_KERNELS=numpy"})')
+    if mode() == 'numpy':
+        print('rotor_id kernels: numpy only (ROTOR_ID_KERNELS=numpy)')
         return 0
-    print(f'rotor_id kernels: compiled kernel ready in {state["load_seconds"]:.2f} s')
+    start = time.perf_counter()
+    try:
+        _load_just_in_time()
+        from rotor_id.estimation import _filter_kernels_numba
+        _filter_kernels_numba.warm_up()
+    except Exception as err:  # noqa: B902 - ImportError, numba's compile errors: use numpy
+        print(f'rotor_id kernels: numpy only ({type(err).__name__}: {err})')
+        return 0
+    print(f'rotor_id kernels: just-in-time kernels ready in {time.perf_counter() - start:.2f} s')
+    try:
+        print(f'rotor_id kernels: ahead of time: {build_ahead_of_time()}')
+    except Exception as err:  # noqa: B902 - no compiler etc.: the just-in-time kernels serve
+        print(f'rotor_id kernels: not compiled ahead of time ({type(err).__name__}: {err}); '
+              'the just-in-time kernels serve')
     return 0
 
 

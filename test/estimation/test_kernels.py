@@ -139,8 +139,12 @@ def test_filter_kernel_compiles_nothing_for_read_only_or_strided_inputs():
     kernel = kernels.load()
     assert kernel is not None, kernels.status()['error']
     scan = kernels.filter_kernel()
-    dispatcher = kernels._state['module'].filter_scan
-    before = list(dispatcher.signatures)
+    from rotor_id.estimation import _kernels_numba
+    dispatcher = _kernels_numba.filter_scan          # where a call off the signature would go
+
+    def compiled_variants():
+        return list(dispatcher.signatures), kernels.status()['just_in_time_calls']
+    before = compiled_variants()
     rng = np.random.default_rng(3)
     K_, T, n, m = 1, 6, 3, 2
     Phi = 0.3 * rng.standard_normal((T - 1, K_, n, n)) + np.eye(n)
@@ -161,7 +165,7 @@ def test_filter_kernel_compiles_nothing_for_read_only_or_strided_inputs():
                np.empty(K_), np.empty((K_, n)), np.empty((K_, n, n)))
         scan(phi, c, Q, H, d, y, np.zeros((K_, n)), R, P0, False, *out)
         outputs.append(out)
-    assert list(dispatcher.signatures) == before
+    assert compiled_variants() == before
     for out in outputs[1:]:
         for a, b in zip(outputs[0], out):
             np.testing.assert_array_equal(a, b)
@@ -404,7 +408,8 @@ def test_kept_plans_follow_the_record_and_the_model():
 def test_step_test_sigma_by_cholesky_is_pinv():
     """gn_iteration's σ of the step test: diag(M⁻¹) by Cholesky equals pinv's, else pinv."""
     assert kernels.load() is not None, kernels.status()['error']
-    inverse_diagonal = kernels._state['module']._inverse_diagonal
+    from rotor_id.estimation import _kernels_numba      # an inner kernel: numba's own
+    inverse_diagonal = _kernels_numba._inverse_diagonal
     rng = np.random.default_rng(5)
     for scale in (1.0, 30.0):
         A = rng.standard_normal((60, 7)) * np.logspace(0, np.log10(scale), 7)
@@ -476,8 +481,10 @@ def test_whole_fit_stops_and_warns_as_the_python_loop(story, monkeypatch):
                      initial_state='positions' if story == 'near-dependent' else x0)
     unknowns = ['A', 'AL_over_tau', 'inv_tau']
     if story == 'singular on the way':
-        gn_fit = _kernels_numba.gn_fit
-        monkeypatch.setattr(_kernels_numba, 'gn_fit',
+        assert kernels.load() is not None, kernels.status()['error']
+        compiled = kernels.affine_kernels()
+        gn_fit = compiled.gn_fit
+        monkeypatch.setattr(compiled, 'gn_fit',
                             lambda *args: gn_fit(*args) * 0 + _kernels_numba.FIT_SINGULAR)
     reference, planned = _numpy_and_compiled(
         monkeypatch, lambda: fit_output_error([exp], unknowns, noise_std=0.01))
@@ -510,3 +517,100 @@ def test_compiled_clock_is_perf_counter():
     inside = clock_ns(PERF_COUNTER_CLOCK_ID)
     after = time.perf_counter_ns()
     assert before <= inside <= after
+
+
+# -- the kernels compiled ahead of time (make build) and numba's just-in-time ones --------------
+
+def test_make_build_compiled_the_kernels_ahead_of_time():
+    """The kernels load from the ahead-of-time module that make build made, without numba."""
+    import subprocess
+    import sys
+    code = ('import sys; from rotor_id.estimation import kernels; kernels.load(); '
+            's = kernels.status(); print(s["compiled"], "numba" in sys.modules, s["ahead_error"])')
+    out = subprocess.run([sys.executable, '-c', code], capture_output=True, text=True, check=True)
+    assert out.stdout.split()[:2] == ['ahead', 'of'], f'run make build: {out.stdout.strip()}'
+    assert out.stdout.split()[3] == 'False', 'numba imported although compiled ahead of time'
+
+
+@pytest.fixture
+def just_in_time(monkeypatch):
+    """Run the test's second half on numba's just-in-time kernels; yield a switch to them."""
+    assert kernels.load() is not None, kernels.status()['error']
+    from rotor_id.estimation import _filter_kernels_numba, _kernels_numba
+
+    def switch():
+        _kernels_numba.warm_up()
+        monkeypatch.setitem(kernels._state, 'module', _kernels_numba)
+        monkeypatch.setitem(kernels._state, 'kernel', _kernels_numba.rk4_scan)
+        monkeypatch.setitem(kernels._state, 'sensitivity', _filter_kernels_numba.sensitivity_scan)
+    return switch
+
+
+def test_both_compiled_kernels_give_the_same_results(just_in_time, monkeypatch):
+    """
+    Ahead-of-time and just-in-time kernels agree to rounding on every path that uses them.
+
+    Simulation of every model (RK4 scan, affine run), an output-error fit in one call
+    (gn_fit), and the filter with and without sensitivities (filter error's likelihood):
+    whichever module loads, the numbers are numba's.
+    """
+    from rotor_id.estimation import filter_error as fe
+    from rotor_id.estimation.output_error import Experiment, fit_output_error
+
+    def results():
+        out = []
+        for model, stirring, t0 in CASES.values():
+            t = t0 + 0.1 * np.arange(121)
+            run = simulate(model, model.nominal(), stirring, t, np.zeros(model.n_states),
+                           param_index=[0, 1])
+            out += [run.x, run.dx]
+        model, stirring = MultibladeWake(HOVER), StirringSchedule(collective=2.0, t0=70.0)
+        t = 70.0 + 0.1 * np.arange(121)
+        truth = np.array([0.5, 0.25, 0.125])
+        y = simulate(model, truth, stirring, t, np.zeros(model.n_states)).y
+        y = y + 0.01 * np.random.default_rng(0).standard_normal(y.shape)
+        exp = Experiment(model, stirring, t, y, initial_state=np.zeros(model.n_states))
+        fit = fit_output_error([exp], ['A', 'AL_over_tau', 'inv_tau'], noise_std=0.01)
+        out += [fit.values, fit.std]
+        noisy = fe.fit_filter_error_ml([exp], ['A', 'AL_over_tau', 'inv_tau'], noise_std=0.01,
+                                       noise_model='held', max_iter=3)
+        return out + [noisy.values, noisy.std]
+
+    ahead = results()
+    just_in_time()
+    again = results()
+    assert kernels.status()['compiled'] in ('ahead of time', 'just in time')
+    for a, b in zip(ahead, again):
+        np.testing.assert_allclose(a, b, rtol=1e-9, atol=1e-12 * np.max(np.abs(b)))
+
+
+def test_a_call_off_the_compiled_signature_goes_just_in_time():
+    """A strided or read-only array never reaches code compiled for contiguous writable ones."""
+    assert kernels.load() is not None, kernels.status()['error']
+    if kernels.status()['compiled'] != 'ahead of time':
+        pytest.skip('the just-in-time kernels compile any layout they meet: nothing to route')
+    from rotor_id.estimation import _kernels_numba
+    module = kernels.affine_kernels()
+    rng = np.random.default_rng(5)
+    K_, T, n, m = 1, 6, 3, 2
+    Phi = 0.3 * rng.standard_normal((T - 1, K_, n, n)) + np.eye(n)
+    args = [Phi, rng.standard_normal((T - 1, K_, n)), np.broadcast_to(
+        0.01 * np.eye(n), (T - 1, K_, n, n)).copy(), rng.standard_normal((T, K_, m, n)),
+        np.zeros((T, K_, m)), rng.standard_normal((T, m)), np.zeros((K_, n)),
+        np.eye(m)[None] * 0.1, np.eye(n)[None] * 0.2, False]
+    strided_y = np.zeros((m, T)).T                   # y as a transposed (strided) view
+    strided_y[:] = args[5]
+
+    def run(scan, y):
+        out = (np.empty((K_, T, m)), np.empty((K_, T, m, m)), np.empty((K_, T, n, m)),
+               np.empty(K_), np.empty((K_, n)), np.empty((K_, n, n)))
+        scan(*args[:5], y, *args[6:], *out)
+        return out
+    reference = run(_kernels_numba.filter_scan, args[5])
+    before = kernels.status()['just_in_time_calls']
+    routed = run(module.filter_scan, strided_y)
+    assert kernels.status()['just_in_time_calls'] == before + 1
+    for a, b in zip(reference, routed):
+        np.testing.assert_array_equal(a, b)
+    run(module.filter_scan, args[5])
+    assert kernels.status()['just_in_time_calls'] == before + 1, 'a matching call went round'
