@@ -253,8 +253,8 @@ def n_choices(effect, n_blades):
 #: recording.
 COMPOSE_ORDER = ('periodic_coefficients', 'flap_frequency', 'pitch_flap_coupling',
                  'dynamic_inflow', 'cubic_stiffness', 'blade_dissimilarity',
-                 'pitch_actuator_lag', 'time_delay', 'sensor_lag', 'sensor_gain', 'sensor_bias',
-                 'azimuth_offset')
+                 'pitch_actuator_lag', 'pitch_delay', 'time_delay', 'sensor_lag', 'sensor_gain',
+                 'sensor_bias', 'azimuth_offset')
 
 
 def _augment_one(effect, variant, record, experiments, unknowns=()):
@@ -268,6 +268,8 @@ def _augment_one(effect, variant, record, experiments, unknowns=()):
         return augment_runs(experiments, aug.SensorLag, record)
     if effect == 'time_delay':
         return augment_runs(experiments, aug.TimeDelay, record, _pitch_rates)
+    if effect == 'pitch_delay':              # the actuator lag's score test (SCREENED_AS)
+        return augment_runs(experiments, aug.PitchDelay, record, _pitch_rates)
     if effect == 'sensor_bias':
         t_all = np.concatenate([e.t for e in experiments])
         return augment_runs(
@@ -427,6 +429,11 @@ FIRST_ORDER_START = {
 
 #: The time constant of each lag effect (not nested: τ > 0; started from several values).
 LAG_PARAMETER = {'sensor_lag': 'lag_rad', 'pitch_actuator_lag': 'actuator_lag_rad'}
+#: The nested first-order equivalent each lag is score-tested through: the delay d = τ, at
+#: d = 0, of what the lag delays: the flap reading (``time_delay``) or the blade pitch
+#: (:class:`~rotor_id.physics.augmented.PitchDelay`). In hover the two delays are one model;
+#: in forward flight they differ at first order in μ d, and so do the two lags.
+SCREENED_AS = {'sensor_lag': 'time_delay', 'pitch_actuator_lag': 'pitch_delay'}
 
 
 def grid_starts(job, model, guess, unknowns):
@@ -628,7 +635,8 @@ def screen_candidate(job, noise_var):
     k counts the extra parameters and estimated extra initial states (the test's degrees of
     freedom); var = {extra parameter: its variance here}. A blade dissimilarity is tested
     per blade; a lag, which is not nested (τ > 0), by its first-order equivalent, the delay
-    d = τ nested at d = 0 (var then under the lag's parameter name).
+    d = τ nested at d = 0 of the flap reading or of the pitch (:data:`SCREENED_AS`; var then
+    under the lag's parameter name).
     """
     from rotor_id.pipeline import experiments_from_record, model_for
     base_model = model_for(job.description)
@@ -636,7 +644,7 @@ def screen_candidate(job, noise_var):
                                           job.window_s)
     effect = job.effect
     if effect in LAG_PARAMETER:
-        job = _replace(job, effect='time_delay')
+        job = _replace(job, effect=SCREENED_AS[effect])
     blades = _blades_of(base_model, job.record) if effect == 'blade_dissimilarity' else [None]
     out = []
     for blade in blades:

@@ -21,7 +21,7 @@ from rotor_id import residuals as rs
 from rotor_id.diagnosis import noisy
 from rotor_id.diagnosis.catalogue import (
     CandidateFit, COMPOSE_ORDER, EFFECTS, fit_candidate, LAG_PARAMETER, screen_candidate,
-    SCREENED)
+    SCREENED, SCREENED_AS)
 from rotor_id.estimation import kernels
 from rotor_id.estimation.output_error import IdentificationError
 
@@ -266,11 +266,10 @@ class OutputError:
         """
         Score-test effects at an output-error fit: {effect: ScoreTest or None}.
 
-        In worker processes; the lags, tested through the delay d = τ, share its test.
+        In worker processes; a lag is tested through its delay d = τ (:data:`SCREENED_AS`).
         """
         noise_var = np.asarray(current.estimate.noise_std, dtype=float)**2
-        tested = {e: ('time_delay' if e in LAG_PARAMETER else e) for e in effects
-                  if e in SCREENED}
+        tested = {e: SCREENED_AS.get(e, e) for e in effects if e in SCREENED}
         jobs = {t: (self.setting.job(t, '', prior=current.effects,
                                      start=current.start_values()), noise_var)
                 for t in set(tested.values())}

@@ -20,7 +20,7 @@ import numpy as np
 
 from rotor_id.diagnosis.catalogue import (
     at_catalogue_bound, augment_runs, build, CandidateFit, effect_parameters, grid_starts,
-    LAG_PARAMETER, stop_at_bound)
+    LAG_PARAMETER, SCREENED_AS, stop_at_bound)
 from rotor_id.estimation import kalman
 from rotor_id.estimation.filter_error import (
     FilterProblem, fit_filter_error_ml, gradient_information, innovations_cost,
@@ -174,10 +174,11 @@ def screen(effect, kept, current, ctx, setup):
     """
     Score-test one effect on top of ``current`` (filter error): [(variant, LM, k, var)].
 
-    A sensor lag (not nested, τ > 0) is tested by its first-order equivalent, the delay
-    nested at d = 0, as output error's screening does; a blade dissimilarity blade by blade.
+    A lag (not nested, τ > 0) is tested by its first-order equivalent, a delay nested at
+    d = 0 (:data:`~rotor_id.diagnosis.catalogue.SCREENED_AS`), as output error's screening
+    does; a blade dissimilarity blade by blade.
     """
-    test = 'time_delay' if effect in LAG_PARAMETER else effect
+    test = SCREENED_AS.get(effect, effect)
     blades = list(setup.base_model.blades) if effect == 'blade_dissimilarity' else [None]
     est = current.estimate
     start = {n: est.model_parameters[n] for n in current.unknowns}

@@ -425,20 +425,23 @@ def flap_basis(view: 'BladeView') -> tuple[np.ndarray, np.ndarray, np.ndarray] |
     return q, A, W
 
 
-class TimeDelay(Augmented):
+class PitchDelay(Augmented):
     """
-    Flap read later than the pitch by d (``delay_rad``, rad of azimuth; d/Ω seconds).
+    The blades' pitch reaching the rotor d (``delay_rad``, rad of azimuth) after it is measured.
 
-    A flap sample at t shows the rotor at t − d, the response to the blade pitch θ_k(· − d)
-    (rotational symmetry). In multiblade pitch that is a shift and a rotation by d:
+    Each blade flaps in response to θ_k(t − d). In multiblade pitch that is a shift and a
+    rotation by d:
 
         θI_d = θI(t−d) cos d − θII(t−d) sin d,   θII_d = θII(t−d) cos d + θI(t−d) sin d,
         θ(t−d) ≈ θ(t) − d θ′(t)   (θ′: measured pitch rate, extra inputs)
 
-    and g is the baseline's g at that pitch. No extra states.
+    and g is the baseline's g at that pitch. No extra states. It is the first-order
+    equivalent of a pitch-actuator lag τ_a = d at any advance ratio (the lag's score test is
+    taken here, at d = 0); in hover, where the rotor is axisymmetric, it is also exactly the
+    flap read d late (:class:`TimeDelay`).
     """
 
-    effect = 'time_delay'
+    effect = 'pitch_delay'
     extra_parameters = (Parameter('delay_rad', 'd', 'rad', 0.0, -0.6, 0.6,
                                   'flap read later than pitch, rad of azimuth'),)
     extra_inputs = ('theta_0_rate', 'theta_I_rate', 'theta_II_rate')
@@ -1360,6 +1363,37 @@ class AzimuthOffset(Augmented):
             dF[:, Pb] += sign * F / (2.0 * h)
             dg[:, Pb] += sign * g / (2.0 * h)
         return dF, dg
+
+
+class TimeDelay(AzimuthOffset):
+    """
+    Flap read later than the pitch by d (``delay_rad``, rad of azimuth; d/Ω seconds).
+
+    A flap sample at t shows each blade as it was at t − d: the whole rotor state of that
+    instant, with its periodic aerodynamics at azimuth t − d, driven by the pitch of then,
+    θ(t − d) ≈ θ(t) − d θ′(t) (θ′: the measured pitch rates, extra inputs). Formed into
+    multiblade coordinates with the azimuth of t, that state is turned by d
+    (:func:`~rotor_id.physics.multiblade.azimuth_offset_matrix`, S). With x_read = S x(t − d):
+
+        x_read′ = S F(t − d) S⁻¹ x_read + S g(t − d, θ(t) − d θ′(t)),   y = H(t) x_read
+
+    which is :class:`AzimuthOffset`'s frame with the offset d and the pitch of t − d. In
+    hover S commutes with the rotor and this is the pitch delayed and turned by d
+    (:class:`PitchDelay`), exactly; in forward flight the two differ at first order in μ d,
+    and this one is a flap sensor's or a clock's delay, the first-order equivalent of a flap
+    sensor lag τ = d at any advance ratio. ∂/∂d as :class:`AzimuthOffset`'s ∂/∂Δψ.
+    """
+
+    effect = 'time_delay'
+    extra_parameters = (Parameter('delay_rad', 'd', 'rad', 0.0, -0.6, 0.6,
+                                  'flap read later than pitch, rad of azimuth'),)
+    extra_inputs = ('theta_0_rate', 'theta_I_rate', 'theta_II_rate')
+
+    def true_inputs(self, t: npt.ArrayLike, u: npt.ArrayLike, offset: float) -> np.ndarray:
+        """Return u with [θ0, θI, θII] as they were at t − d, to first order in d."""
+        u = np.array(u, dtype=float)
+        u[:, :3] -= offset * self.own_inputs(u)[:, 3:6]
+        return u
 
 
 class PitchLikeRandomInflow(Augmented):
