@@ -26,9 +26,9 @@ class SelectionPolicy:
     #: the standard recalibration of a classifier's odds; the ranking, and so every name, is
     #: unchanged). Every candidate approximates the rig's physics by the catalogue's forms,
     #: and likelihood ratios between misspecified models overstate the evidence: at η = 1 the
-    #: verdicts stated at 0.80-0.95 were right 81 % of the time and those at ≥ 0.95, 93 %
-    #: (300 random records of the independent generator, seeds 1-300,
-    #: bench/results/calibration_tempering_fit.md). η is the maximum of the log score (a
+    #: verdicts stated at ≥ 0.95 were right 95 % of the time (300 random records of the
+    #: independent generator, seeds 1-300, bench/results/verdict_rules.md; 94 % on seeds
+    #: 2001-2300). η is the maximum of the log score (a
     #: proper scoring rule) of the stated probability over the candidate tables the search
     #: records (bench/verdict_rules.py on calibration_tables.jsonl): 0.7 on the even seeds,
     #: 0.75 on the odd ones, 0.7 on all; where the two halves differ the smaller is taken, as
