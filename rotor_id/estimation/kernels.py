@@ -25,11 +25,11 @@ reference). Where numba is missing or fails to compile, the numpy path is used a
 
 ``make build`` also compiles the kernels ahead of time (numba.pycc, :func:`build_ahead_of_time`)
 into an extension module beside this file, named after a hash of the kernels' sources and the
-numba, numpy and Python versions: it loads in about a millisecond and without numba, where the
-just-in-time kernels cost 0.5 s of numba start-up in every process (``rotor-id diagnose`` of a
-1-second record takes 1-2 s in all). Its functions check every argument's type, layout and
-writability against the signature it was compiled for, and pass a call that does not match to
-the just-in-time kernel (compiled code would read such an array wrongly). Without that module
+numba, numpy and Python versions: it loads without importing numba, where the just-in-time
+kernels cost numba's start-up in every process (bench/results/diagnose_speed.md). Its functions
+check every argument's type, layout and writability against the signature it was compiled for,
+and pass a call that does not match to the just-in-time kernel (compiled code would read such an
+array wrongly). Without that module
 (no C compiler, other sources) the just-in-time kernels load as before.
 
 The just-in-time machine code is cached next to this file (numba ``cache=True``), or, where that
