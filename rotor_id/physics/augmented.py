@@ -443,7 +443,7 @@ class PitchDelay(Augmented):
 
     effect = 'pitch_delay'
     extra_parameters = (Parameter('delay_rad', 'd', 'rad', 0.0, -0.6, 0.6,
-                                  'flap read later than pitch, rad of azimuth'),)
+                                  'blade pitch later than measured, rad of azimuth'),)
     extra_inputs = ('theta_0_rate', 'theta_I_rate', 'theta_II_rate')
 
     @staticmethod
@@ -1387,7 +1387,7 @@ class TimeDelay(AzimuthOffset):
     effect = 'time_delay'
     extra_parameters = (Parameter('delay_rad', 'd', 'rad', 0.0, -0.6, 0.6,
                                   'flap read later than pitch, rad of azimuth'),)
-    extra_inputs = ('theta_0_rate', 'theta_I_rate', 'theta_II_rate')
+    extra_inputs = PitchDelay.extra_inputs           # the measured pitch rates θ′
 
     def true_inputs(self, t: npt.ArrayLike, u: npt.ArrayLike, offset: float) -> np.ndarray:
         """Return u with [θ0, θI, θII] as they were at t − d, to first order in d."""
