@@ -207,10 +207,10 @@ def _pitch_rates(exp, model):
     return base.t, rate
 
 
-def _measured_flap(record):
+def _measured_flap_cubed(record):
     def columns(exp, model):
         blades = list(model.view.blades)
-        return record.t, record.blade_flap[:, [b - 1 for b in blades]]
+        return record.t, record.blade_flap[:, [b - 1 for b in blades]] ** 3
     return columns
 
 
@@ -279,7 +279,7 @@ def _augment_one(effect, variant, record, experiments, unknowns=()):
     if effect == 'flap_frequency':
         return augment_runs(experiments, aug.FlapFrequency, record)
     if effect == 'cubic_stiffness':
-        return augment_runs(experiments, aug.CubicStiffness, record, _measured_flap(record))
+        return augment_runs(experiments, aug.CubicStiffness, record, _measured_flap_cubed(record))
     if effect == 'dynamic_inflow':
         return augment_runs(experiments, aug.DynamicInflow, record)
     if effect == 'blade_dissimilarity':

@@ -72,10 +72,19 @@ from rotor_id.estimation.output_error import (
     damped_gauss_newton_step, dependence_warnings, Estimate, Experiment, fit_initial_states,
     IdentificationError, ParameterValues, Problem, Progress, STOP)
 from rotor_id.estimation.simulate import (
-    DEFAULT_MAX_STEP, equal_steps, fine_grid, rk4_transition, rk4_transition_derivative,
-    substeps_for, time_invariant_steps)
+    DEFAULT_MAX_STEP, equal_steps, fine_grid, rk4_step_transition,
+    rk4_step_transition_derivative, rk4_transition, rk4_transition_derivative, substeps_for,
+    time_invariant_steps)
+from rotor_id.physics.models import full_along_time
+from rotor_id.physics.revolution import agree, on_record, series_at
 
 PROCESS_NOISE = 'process_noise_std'
+#: Interval azimuths per revolution from which a periodic model's Φ_j, Q_j and their
+#: derivatives are summed as Fourier series (more where fewer do not agree).
+PHASES = (32, 64, 128)
+#: ... when they equal the intervals' own to this fraction of their largest entry at the
+#: checked intervals (rounding ~1e-14; the filter's likelihood moves by less than 1e-6)
+PHASE_AGREE = 1e-9
 _FD_STEP = 1e-5
 #: How the sensitivities of ν and B are computed (see the module docstring).
 GRADIENTS = ('analytic', 'finite-difference')
@@ -253,7 +262,7 @@ class FilterProblem:
             out.append((nu[0], B[0], dnu, dB, cost[0]))
         return out
 
-    def _noise_derivatives(self, covariance, F, dF, sig_p, k, kp):
+    def _noise_derivatives(self, covariance, F, dF, sig_p, k, kp, steps=None):
         """
         Return Q and its derivatives ∂Q (…, k, n, n) along θ.
 
@@ -262,16 +271,17 @@ class FilterProblem:
         ``covariance(F, σ)`` is the model's Q as a function of its F (a tuple of arrays);
         ∂Q/∂F along ∂F/∂p is its forward difference with a step 1e-7 of F (Q is linear in σ²,
         so Q at σ_V is σ_V²·Q1): truncation and rounding both ~1e-7 relative, far below what
-        moves a scoring step, at one evaluation of Q per parameter.
+        moves a scoring step, at one evaluation of Q per parameter. ``steps``: the steps per
+        parameter (:func:`_difference_steps`), by default those of F and dF given.
         """
+        if steps is None:
+            steps = _difference_steps(F, dF, kp)
         Q1 = covariance(F, 1.0)
         dQ = np.zeros(Q1.shape[:-2] + (k, Q1.shape[-1], Q1.shape[-1]))
         if k and self.i_process is not None:
             dQ[..., self.i_process, :, :] = Q1
         if sig_p > 0.0:
-            for i in range(kp):
-                size = max(max(float(np.max(np.abs(dFx[..., i, :, :]))) for dFx in dF), 1e-300)
-                eps = 1e-7 * max(max(float(np.max(np.abs(Fx))) for Fx in F), 1e-300) / size
+            for i, eps in enumerate(steps):
                 up = covariance(tuple(Fx + eps * dFx[..., i, :, :] for Fx, dFx in zip(F, dF)),
                                 1.0)
                 dQ[..., i, :, :] = sig_p**2 * (up - Q1) / eps
@@ -296,32 +306,80 @@ class FilterProblem:
         Q, dQ = self._noise_derivatives(covariance, (Fs[0],), (dF[0],), sig_p, k, kp)
         return Phi[None], dPhi[None], Q[None], dQ[None]
 
-    def _varying_pieces(self, t, substeps, Fs, dF, step, sig_p, k, kp):
-        """Φ_j, ∂Φ_j, Q_j, ∂Q_j (leading dimension T-1) of a model whose F varies (periodic)."""
-        n, T = Fs.shape[-1], t.size
-        M = (T - 1) * substeps
-        h = np.full(M, step)
-        Phi_s = rk4_transition(Fs, h).reshape(T - 1, substeps, n, n)
-        dPhi_s = np.broadcast_to(rk4_transition_derivative(Fs, dF, h), (M, kp, n, n)) if kp \
-            else np.zeros((M, 0, n, n))
-        dPhi_s = dPhi_s.reshape(T - 1, substeps, kp, n, n)
-        Phi = np.broadcast_to(np.eye(n), (T - 1, n, n))
-        dPhi = np.zeros((T - 1, k, n, n))
+    def _varying_pieces(self, t, substeps, Fs, dF, step, sig_p, k, kp, stage_matrices=None):
+        """
+        Φ_j, ∂Φ_j, Q_j, ∂Q_j (leading dimension T-1) of a model whose F varies (periodic).
+
+        With equal intervals each is a function of its interval's start azimuth t_j alone, of
+        period 2π, smooth: where ``stage_matrices(times)`` gives F and ∂F/∂p at any times,
+        they are computed for intervals starting at :data:`PHASES` azimuths of one revolution
+        and summed as Fourier series at every t_j, as long as that equals the interval's own
+        at checked intervals (a truncated series of an analytic function: its error falls
+        geometrically with the samples); else for every interval.
+        """
+        windows = (_windows(Fs, substeps), _windows(dF, substeps))
+        steps = _difference_steps((Fs,), (dF,), kp)      # one ∂Q step for every interval
+        if stage_matrices is not None and self.noise_model == 'white':
+            pieces = self._phase_series(t, substeps, windows, step, sig_p, k, kp, steps,
+                                        stage_matrices)
+            if pieces is not None:
+                return pieces
+        return self._interval_pieces(*windows, t, substeps, step, sig_p, k, kp, steps, Fs, dF)
+
+    def _phase_series(self, t, substeps, windows, step, sig_p, k, kp, steps, stage_matrices):
+        """:meth:`_varying_pieces` from one revolution of interval phases, or None."""
+        n_intervals = t.size - 1
+        check = np.array([n_intervals // 3, (2 * n_intervals) // 3])
+        exact = self._interval_pieces(windows[0][check], windows[1][check], t[:3], substeps,
+                                      step, sig_p, k, kp, steps)
+        for phases in PHASES:
+            if n_intervals < 2 * phases:
+                return None
+            starts = float(t[0]) + 2.0 * np.pi * np.arange(phases) / phases
+            times = (starts[:, None] + 0.5 * step * np.arange(2 * substeps + 1)).ravel()
+            F, dF = stage_matrices(times)
+            shape = (phases, 2 * substeps + 1)
+            sampled = self._interval_pieces(F.reshape(shape + F.shape[1:]),
+                                            dF.reshape(shape + dF.shape[1:]),
+                                            t[:3], substeps, step, sig_p, k, kp, steps)
+            pieces = [series_at(x, float(t[0]), t[:-1]) for x in sampled]
+            if all(agree(x[check], e, PHASE_AGREE) for x, e in zip(pieces, exact)):
+                return tuple(np.ascontiguousarray(x) for x in pieces)
+        return None
+
+    def _interval_pieces(self, F, dF, t, substeps, step, sig_p, k, kp, steps, Fs=None,
+                         dFs=None):
+        """
+        Φ_j, ∂Φ_j, Q_j, ∂Q_j of intervals from F (J, 2s+1, n, n), ∂F (J, 2s+1, kp, n, n).
+
+        F at each interval's stage times (:func:`_windows`). ``'held'`` noise needs the record's
+        whole stage grid ``Fs``, ``dFs`` (its Q composes the steps' responses); ``t`` gives the
+        interval length; ``steps`` the difference steps of ∂Q (:meth:`_noise_derivatives`).
+        """
+        n_intervals, n = F.shape[0], F.shape[-1]
+        h = np.full(n_intervals, step)
+        Phi = np.broadcast_to(np.eye(F.shape[-1]), (n_intervals, n, n))
+        dPhi = np.zeros((n_intervals, k, n, n))
         for s in range(substeps):
-            dPhi[:, :kp] = dPhi_s[:, s] @ Phi[:, None] + Phi_s[:, s, None] @ dPhi[:, :kp]
-            Phi = Phi_s[:, s] @ Phi
-        # F at the intervals' midpoints: stage times of the fine grid (fine_grid: interval j's
-        # middle is its point j·2s + s), so F and ∂F/∂p there are already at hand
-        Fmid, dFmid = np.zeros((T - 1, n, n)), np.zeros((T - 1, kp, n, n))
-        if self.noise_model == 'white':
-            Fmid = Fs[substeps::2 * substeps]
+            F0, Fm, F1 = F[:, 2 * s], F[:, 2 * s + 1], F[:, 2 * s + 2]
+            Phi_s = rk4_step_transition(F0, Fm, F1, h)
             if kp:
-                dFmid = dF[substeps::2 * substeps]
+                dPhi_s = rk4_step_transition_derivative(
+                    F0, Fm, F1, dF[:, 2 * s], dF[:, 2 * s + 1], dF[:, 2 * s + 2], h)
+                dPhi[:, :kp] = dPhi_s @ Phi[:, None] + Phi_s[:, None] @ dPhi[:, :kp]
+            Phi = Phi_s @ Phi
+        # F at the intervals' midpoints (the middle stage of each interval)
+        Fmid, dFmid = np.zeros((n_intervals, n, n)), np.zeros((n_intervals, kp, n, n))
+        if self.noise_model == 'white':
+            Fmid, dFmid = F[:, substeps], dF[:, substeps]
+            Fs, dFs = Fmid, dFmid
+        dt = np.full(n_intervals + 1, float(t[1] - t[0])).cumsum()
 
         def covariance(F, sigma):
-            return kalman.varying_noise_covariance(F[0], F[1], t, substeps, self.rows, sigma,
+            return kalman.varying_noise_covariance(F[0], F[1], dt, substeps, self.rows, sigma,
                                                    self.noise_model)[0]
-        Q, dQ = self._noise_derivatives(covariance, (Fs, Fmid), (dF, dFmid), sig_p, k, kp)
+        Q, dQ = self._noise_derivatives(covariance, (Fs, Fmid), (dFs, dFmid), sig_p, k, kp,
+                                        steps)
         return np.ascontiguousarray(Phi), dPhi, Q, np.ascontiguousarray(dQ)
 
     def analytic_sensitivities(self, r: int, theta: np.ndarray, sensitivities: bool = True
@@ -348,22 +406,33 @@ class FilterProblem:
             return None                 # time-stamp jitter or lost samples: uneven steps
         tf = fine_grid(t, substeps)
         u = exp.inputs(tf)
-        F, g = model.system(tf, p, u)
+        F, g = on_record(model, 'system', tf, p, u)        # F of length 1 where constant
         h = np.repeat(np.diff(t) / substeps, substeps)
         constant = time_invariant_steps(F, h, t)
         n, m, T = model.n_states, self.m, t.size
         k = len(theta) if sensitivities else 0
         kp = len(self.base.param_index) if sensitivities else 0
         if kp:
-            dF, dg = model.system_jacobian(tf, p, u)
+            dF, dg = on_record(model, 'system_jacobian', tf, p, u)
             dF = np.ascontiguousarray(dF[:1 if constant else None][:, self.base.param_index])
             dg = np.ascontiguousarray(dg[:, self.base.param_index])        # (2M+1, kp, n)
         else:
             dF = np.zeros((1 if constant else F.shape[0], 0, n, n))
             dg = np.zeros((g.shape[0], 0, n))
         Fs = np.ascontiguousarray(F[:1] if constant else F)
-        pieces = (self._constant_pieces if constant else self._varying_pieces)(
-            t, substeps, Fs, dF, h[0], sig_p, k, kp)
+        if constant:
+            pieces = self._constant_pieces(t, substeps, Fs, dF, h[0], sig_p, k, kp)
+        else:
+            def stage_matrices(times):
+                zero = np.zeros((times.size, u.shape[1]))
+                F_at = full_along_time(on_record(model, 'system', times, p, zero)[0],
+                                       times.size)
+                if not kp:
+                    return F_at, np.zeros((times.size, 0, n, n))
+                dF_at = on_record(model, 'system_jacobian', times, p, zero)[0]
+                return F_at, full_along_time(dF_at, times.size)[:, self.base.param_index]
+            pieces = self._varying_pieces(t, substeps, Fs, dF, h[0], sig_p, k, kp,
+                                          stage_matrices)
         Phi, dPhi, Q, dQ = pieces
         R = np.diag(np.maximum(sig_m, 1e-300)**2)
         dR = np.zeros((k, m, m))
@@ -1124,3 +1193,29 @@ def fit_filter_error(experiments: Sequence[Experiment], unknowns: Sequence[str],
     return replace(joint, covariance=cov, information=information, warnings=warnings,
                    history=joint.history + [h for e in done for h in e.history],
                    message=message, iterations=joint.iterations + sum(e.iterations for e in done))
+
+
+def _windows(A, substeps):
+    """
+    Return A at each interval's stage times (T-1, 2s+1, …), views of A (2M+1, …) or (1, …).
+
+    The stage grid (:func:`~rotor_id.estimation.simulate.fine_grid`) has 2s points per
+    interval and shares each interval's end with the next one's start.
+    """
+    if A.shape[0] == 1:
+        return np.broadcast_to(A[:, None], (1, 2 * substeps + 1) + A.shape[1:])
+    view = np.lib.stride_tricks.sliding_window_view(A, 2 * substeps + 1, axis=0)
+    return np.moveaxis(view[::2 * substeps], -1, 1)
+
+
+def _difference_steps(F, dF, kp):
+    """
+    Return the steps of the forward difference of Q along ∂F/∂p, one per parameter.
+
+    1e-7 of F's largest entry along each ∂F/∂p (F and dF: tuples of arrays, e.g. the stage
+    grid and the midpoints): the same for every interval of a record, so that Q's
+    derivative is one smooth function of the interval's azimuth.
+    """
+    size_F = max(max(float(np.max(np.abs(Fx))) for Fx in F), 1e-300)
+    return [1e-7 * size_F / max(max(float(np.max(np.abs(dFx[..., i, :, :]))) for dFx in dF),
+                                1e-300) for i in range(kp)]

@@ -41,7 +41,8 @@ import numpy as np
 import numpy.typing as npt
 
 from rotor_id.estimation import kernels
-from rotor_id.physics.models import compact, full_along_time
+from rotor_id.physics.models import full_along_time
+from rotor_id.physics.revolution import on_record
 
 if TYPE_CHECKING:
     from rotor_id.physics.models import LinearModel
@@ -183,14 +184,18 @@ def rk4_maps(F, g, h):
 
 def rk4_transition(F, h):
     """Φ (M, n, n) of the affine RK4 step maps of :func:`rk4_maps` (F and h shaped as there)."""
-    F0, Fm, F1 = _stages(F)
+    return rk4_step_transition(*_stages(F), h)
+
+
+def rk4_step_transition(F0, Fm, F1, h):
+    """Φ (M, n, n) of M RK4 steps of lengths h from F at their start, middle and end."""
     hh = h[:, None, None]
     # stage matrices: k_i = A_i x + b_i
     A1 = F0
     A2 = Fm + 0.5 * hh * (Fm @ A1)
     A3 = Fm + 0.5 * hh * (Fm @ A2)
     A4 = F1 + hh * (F1 @ A3)
-    return np.eye(F.shape[-1]) + hh / 6.0 * (A1 + 2.0 * A2 + 2.0 * A3 + A4)
+    return np.eye(F0.shape[-1]) + hh / 6.0 * (A1 + 2.0 * A2 + 2.0 * A3 + A4)
 
 
 def rk4_transition_derivative(F, dF, h):
@@ -201,8 +206,11 @@ def rk4_transition_derivative(F, dF, h):
     matrices: ∂Φ e_c for every c at once, where :func:`_rk4_step_derivative` takes one pass
     per state column. Shapes as in :func:`_rk4_step_derivative`.
     """
-    F0, Fm, F1 = _stages(F)
-    dF0, dFm, dF1 = _stages(dF)
+    return rk4_step_transition_derivative(*_stages(F), *_stages(dF), h)
+
+
+def rk4_step_transition_derivative(F0, Fm, F1, dF0, dFm, dF1, h):
+    """∂Φ/∂p (M, k, n, n) of M RK4 steps from F and ∂F at their start, middle and end."""
     h3, h4 = h[:, None, None], h[:, None, None, None]
     A2 = Fm + 0.5 * h3 * (Fm @ F0)
     A3 = Fm + 0.5 * h3 * (Fm @ A2)
@@ -332,7 +340,7 @@ def simulate(model: 'LinearModel', p: npt.ArrayLike, inputs: Callable[[np.ndarra
         h = np.repeat(np.diff(ts) / m, m)
         if kernel is not None:
             # F of length 1 along time where the model knows it is constant (compact)
-            F, g = compact(model, 'system', tf, p, u)
+            F, g = on_record(model, 'system', tf, p, u)
             x, S = _compiled_chunk(kernel, model, p, tf, u, F, g, h, m, param_index,
                                    x, S if want_sens else np.zeros((n, 0)),
                                    xs[start:stop + 1],
@@ -771,7 +779,7 @@ def _compiled_chunk(kernel, model, p, tf, u, F, g, h, m, param_index, x, S, xs, 
         Phi = rk4_transition(full_along_time(F, tf.size), h)
     F_val, (F_i, F_j) = _nonzero_entries(F[:1] if constant_F else F)
     if param_index:
-        dF, dg = compact(model, 'system_jacobian', tf, p, u)
+        dF, dg = on_record(model, 'system_jacobian', tf, p, u)
         dF_val, (dF_p, dF_i, dF_j) = _nonzero_entries(dF[:, param_index])
         dg = dg[:, param_index]
     else:

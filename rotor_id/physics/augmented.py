@@ -1009,9 +1009,9 @@ class CubicStiffness(Augmented):
     """
     A hardening flap spring κβ³ on every blade (hub spring or elastic-stop nonlinearity).
 
-    β_k″ += −κ β_k³; the cube is taken of the measured flap (extra inputs), which is the
-    flap to within the sensor noise, so the model stays linear in its states and κ:
-    x′ += −κ G(t) β_meas³ with G the blade-to-state projection.
+    β_k″ += −κ β_k³; the cube is taken of the measured flap (extra inputs: the cubes β_k,meas³),
+    which is the flap to within the sensor noise, so the model stays linear in its states, in
+    κ and in its inputs: x′ += −κ G(t) β_meas³ with G the blade-to-state projection.
     """
 
     effect = 'cubic_stiffness'
@@ -1019,7 +1019,7 @@ class CubicStiffness(Augmented):
                                   'cubic flap stiffness, per rev² per rad²'),)
 
     def __init__(self, base: RotorLike) -> None:
-        self.extra_inputs = tuple(f'beta_{k}_measured' for k in BladeView(base).blades)
+        self.extra_inputs = tuple(f'beta_{k}_measured_cubed' for k in BladeView(base).blades)
         super().__init__(base)
 
     def __getstate__(self):
@@ -1030,18 +1030,18 @@ class CubicStiffness(Augmented):
 
     def _forcing(self, t, u):
         """−G(t) β_meas³ (T, n_base): no parameter enters, so it is kept per time grid."""
-        beta = u[:, 3:3 + self.view.n_blades]
+        cubes = u[:, 3:3 + self.view.n_blades]
         # a fit evaluates F, g and their derivatives on the same grid and measured flap
         # every time: a copy of them decides a hit (the einsum was a sixth of a diagnosis)
         memo = self.__dict__.setdefault('_forcing_memo', [])
-        for t_seen, beta_seen, forcing in memo:
-            if np.array_equal(t_seen, t) and np.array_equal(beta_seen, beta):
+        for t_seen, cubes_seen, forcing in memo:
+            if np.array_equal(t_seen, t) and np.array_equal(cubes_seen, cubes):
                 return forcing
-        forcing = -np.einsum('tnk,tk->tn', self.view.force(t), beta ** 3)
+        forcing = -np.einsum('tnk,tk->tn', self.view.force(t), cubes)
         forcing.setflags(write=False)
         if len(memo) >= FORCING_GRIDS_KEPT:
             memo.pop(0)
-        memo.append((np.array(t, dtype=float), np.array(beta, dtype=float), forcing))
+        memo.append((np.array(t, dtype=float), np.array(cubes, dtype=float), forcing))
         return forcing
 
     def constant_terms(self) -> bool:

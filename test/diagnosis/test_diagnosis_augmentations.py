@@ -321,7 +321,8 @@ def test_wake_with_constant_blocks_is_the_full_sum(name, mu, monkeypatch):
 
 
 def test_cubic_spring_forcing_follows_the_grid_and_the_measured_flap():
-    # the kept forcing −G(t) β³ is the one of the grid and flap asked for, never a stale one
+    # the kept forcing −G(t) β³ is the one of the grid and flap cubes asked for, never a
+    # stale one
     base = _base('multiblade', 0.4)
     p = _away_from_neutral(aug.CubicStiffness(base))
     u = _inputs()(T)
@@ -334,13 +335,14 @@ def test_cubic_spring_forcing_follows_the_grid_and_the_measured_flap():
                                       fresh.system(t, p, inputs)[1])
         np.testing.assert_array_equal(model.system_jacobian(t, p, inputs)[1],
                                       fresh.system_jacobian(t, p, inputs)[1])
-    # β³ scaled by 1.5³: the forcing (g − baseline g) scales with it, a check on the values
+    # the cubes β³ scaled by 1.5: the forcing (g − baseline g) scales with them, a check on
+    # the values
     g_base = aug.CubicStiffness(base).system(T, np.concatenate([p[:-1], [0.0]]), u)[1]
     change = model.system(T, p, u)[1] - g_base
     moved = np.abs(change) > 1e-12
     assert moved.any()
     np.testing.assert_allclose((model.system(T, p, other)[1] - g_base)[moved] / change[moved],
-                               1.5**3, rtol=1e-9)
+                               1.5, rtol=1e-9)
     assert '_forcing_memo' in model.__dict__
     assert '_forcing_memo' not in pickle.loads(pickle.dumps(model)).__dict__
 
@@ -349,6 +351,8 @@ def test_compiled_simulation_with_constant_blocks_is_the_full_one(monkeypatch):
     # the simulator takes F and ∂F of length 1 along time where the model says they are
     # constant (the wake and the cubic spring on the constant-coefficient model at μ = 0.4):
     # states, outputs and sensitivities bit for bit those of the arrays copied to every time
+    # (the model evaluated at every stage time: test/physics/test_revolution.py checks the
+    # one-revolution series against that)
     from rotor_id.estimation import kernels, simulate as simulate_module
     from rotor_id.physics.models import compact
     assert kernels.load() is not None, kernels.status()['error']
@@ -363,10 +367,10 @@ def test_compiled_simulation_with_constant_blocks_is_the_full_one(monkeypatch):
         out = compact(inner, method, *args)
         rows.append(out[0].shape[0])
         return out
-    monkeypatch.setattr(simulate_module, 'compact', counted)
+    monkeypatch.setattr(simulate_module, 'on_record', counted)
     fast = simulate(model, p, inputs, T, x0, param_index=index)
     assert rows and set(rows) == {1}            # the compact path was taken
-    monkeypatch.setattr(simulate_module, 'compact',
+    monkeypatch.setattr(simulate_module, 'on_record',
                         lambda inner, method, *args: getattr(inner, method)(*args))
     full = simulate(model, p, inputs, T, x0, param_index=index)
     for name in ('x', 'y', 'dx', 'dy'):

@@ -6,7 +6,8 @@ Filter error's analytic sensitivities against finite differences.
   Φ, Q, the forcing and the equilibrium initial state), the process-noise variance, the
   measurement σ's and free initial states; with the rotating measurement and the time-varying
   gain (wake model), and with the steady-state gain (constant-coefficient model);
-* the same for a periodic model (μ = .4: Φ_j, Q_j per interval);
+* the same for a periodic model (μ = .4: Φ_j, Q_j per interval), whose Φ_j, Q_j and their
+  derivatives summed as Fourier series of the interval's azimuth equal the intervals' own;
 * the compiled scan and its numpy twin give the same numbers;
 * the fit with analytic gradients lands on the finite-difference fit's optimum.
 """
@@ -122,6 +123,27 @@ def test_analytic_gradient_for_a_periodic_model(noise_model):
     assert prob.analytic_sensitivities(0, theta) is not None
     worst, _ = _gradient_check(prob, theta)
     assert worst < 1e-5
+
+
+def test_periodic_pieces_from_one_revolution_are_every_interval_s(monkeypatch):
+    """Φ_j, Q_j, ∂Φ_j, ∂Q_j from 32 interval azimuths: the filter's outputs to rounding."""
+    prob, theta = _periodic_problem('white')
+    used = []
+    series = fe.FilterProblem._phase_series
+
+    def spy(self, *args):
+        out = series(self, *args)
+        used.append(out is not None)
+        return out
+    monkeypatch.setattr(fe.FilterProblem, '_phase_series', spy)
+    (nu, B, dnu, dB, cost), = prob.evaluate(theta)
+    assert used == [True]
+    monkeypatch.setattr(fe, 'PHASES', ())             # every interval's own pieces
+    (nu_0, B_0, dnu_0, dB_0, cost_0), = prob.evaluate(theta)
+    assert used == [True, False]
+    for got, want in ((nu, nu_0), (B, B_0), (dnu, dnu_0), (dB, dB_0)):
+        assert np.max(np.abs(got - want)) <= 1e-9 * np.max(np.abs(want))
+    assert cost == pytest.approx(cost_0, rel=1e-12)
 
 
 def test_analytic_sensitivities_match_the_finite_difference_ones():
