@@ -2,8 +2,17 @@
 """
 Time ``rotor-id diagnose`` per recording against its full-search peer.
 
-For every dx_* practice recording (1-second, 4-blade, 1 kHz) the diagnosis is run three ways,
-interleaved round by round so that all see the same load:
+Two sets of 1-second 4-blade records at 1 kHz:
+
+* the dx_* practice recordings (hover, one effect or none; dx_periodic_coefficients is the
+  report's μ = 0.4 case, 0.45 s);
+* forward flight (μ = 0.35, periodic baseline), made by the independent blade-by-blade truth
+  generator of test/diagnosis and written as bags: no effect, a flap-sensor delay, a sensor
+  lag, a blade Lock-number difference beside a delay, and random inflow (turbulence), the
+  kinds of record that took longest.
+
+Every record is diagnosed three ways, interleaved round by round so that all see the same
+load:
 
 * ``command``: what a user waits for, ``./rotor-id diagnose REC --config REC.yaml`` end to
   end in a child process (start-up, bag reading, the default two worker processes); its CPU
@@ -22,6 +31,7 @@ shared, so read it beside the load average, the CPU time and the ratio to the pe
 """
 
 import argparse
+import dataclasses
 import json
 import os
 from pathlib import Path
@@ -36,6 +46,15 @@ import numpy as np
 
 RECORDINGS = REPO_ROOT.parent / 'shared' / 'recordings'
 NAMES = ('dx_none_wake', 'dx_sensor_lag', 'dx_dynamic_inflow', 'dx_periodic_coefficients')
+#: forward flight at μ = 0.35 (the truth generator's knobs; a delay in seconds, a lag in rad
+#: of azimuth, the Lock number of blade 2 scaled, turbulence σ in rad of pitch)
+FORWARD = {'ff_none': {},
+           'ff_delay': {'time_delay_s': 0.0003},
+           'ff_sensor_lag': {'sensor_lag': 0.028},
+           'ff_blade_delay': {'gamma_scale': [1.0, 1.06, 1.0, 1.0], 'time_delay_s': 0.00025},
+           'ff_turbulence': {'turbulence': 0.0004, 'turbulence_corr': 2.0}}
+FORWARD_MU = 0.35
+STAMP0_NS = 1_764_000_000 * 10**9
 TARGET_S = 3.0
 TARGET_MEDIAN_S = 1.5
 
@@ -51,11 +70,28 @@ def _children_cpu():
     return usage.ru_utime + usage.ru_stime
 
 
-def _command(name, workdir):
+def _forward_flight(workdir):
+    """Write the forward-flight records as bags with run descriptions: {name: directory}."""
+    sys.path.insert(0, str(REPO_ROOT / 'test' / 'diagnosis'))
+    import truth_generator as truth
+    from rotor_id.io.bag import write_record_bag
+    out = {}
+    for seed, (name, knobs) in enumerate(FORWARD.items(), start=1):
+        cfg = truth.mu04_case(seed=seed, mu=FORWARD_MU, t0=truth.TruthConfig.t0, **knobs)
+        # stamped from a nonzero clock, as a recorder's messages are (a zero stamp is unfilled)
+        record = dataclasses.replace(truth.generate(cfg), stamp0_ns=STAMP0_NS)
+        write_record_bag(Path(workdir) / name, record)
+        (Path(workdir) / f'{name}.yaml').write_text(
+            truth.run_description_text(cfg, 'multiblade', ('gamma', 'theta0')))
+        out[name] = Path(workdir)
+    return out
+
+
+def _command(name, folder, workdir):
     """Run ``rotor-id diagnose`` on one recording: (verdict, wall s, CPU s of the children)."""
     out = Path(workdir) / f'{name}.json'
-    cmd = [str(REPO_ROOT / 'rotor-id'), 'diagnose', str(RECORDINGS / name), '--config',
-           str(RECORDINGS / f'{name}.yaml'), '--quiet', '--json', str(out)]
+    cmd = [str(REPO_ROOT / 'rotor-id'), 'diagnose', str(folder / name), '--config',
+           str(folder / f'{name}.yaml'), '--quiet', '--json', str(out)]
     wall, cpu = time.perf_counter(), _children_cpu()
     done = subprocess.run(cmd, capture_output=True, text=True)
     wall, cpu = time.perf_counter() - wall, _children_cpu() - cpu
@@ -78,21 +114,23 @@ def main(argv=None):
     from rotor_id.diagnosis.diagnose import diagnose
     from rotor_id.io.bag import read_run
     from rotor_id.io.run_description import load_run_description
-    inputs = {}
-    for name in NAMES:
-        description = load_run_description(RECORDINGS / f'{name}.yaml')
-        inputs[name] = (description, read_run(description))
     from rotor_id.pipeline import identify
     modes = ('command', 'in_process', 'identify')
-    times = {(n, m): [] for n in NAMES for m in modes}
-    verdicts = {(n, m): set() for n in NAMES for m in modes}
     with tempfile.TemporaryDirectory(prefix='rotor_id_diagnose_speed_') as workdir:
+        folders = {**{name: RECORDINGS for name in NAMES}, **_forward_flight(workdir)}
+        names = tuple(folders)
+        inputs = {}
+        for name, folder in folders.items():
+            description = load_run_description(folder / f'{name}.yaml')
+            inputs[name] = (description, read_run(description))
+        times = {(n, m): [] for n in names for m in modes}
+        verdicts = {(n, m): set() for n in names for m in modes}
         for round_ in range(args.repeat):
-            for name in NAMES:
+            for name in names:
                 description, record = inputs[name]
                 for mode in modes:
                     if mode == 'command':
-                        effect, wall, cpu = _command(name, workdir)
+                        effect, wall, cpu = _command(name, folders[name], workdir)
                     elif mode == 'in_process':
                         result, wall, cpu = _timed(lambda: diagnose(record, description,
                                                                     workers=1))
@@ -107,6 +145,11 @@ def main(argv=None):
     lines = ['# diagnose: the command, in process, and the baseline fit as the peer',
              '', 'Machine:', '']
     lines += [f'* {k}: {v}' for k, v in machine_description().items()]
+    lines += ['', 'Records: the dx_* practice recordings, and forward flight at '
+              f'μ = {FORWARD_MU} (ff_*: 1-second 4-blade records of the independent truth '
+              'generator, test/diagnosis/truth_generator.py, written as bags; '
+              + '; '.join(f'{n}: {", ".join(f"{k} {v}" for k, v in knobs.items()) or "none"}'
+                          for n, knobs in FORWARD.items()) + ').']
     lines += ['', f'Median of {args.repeat} interleaved rounds. `command`: `./rotor-id diagnose` '
               'end to end (start-up, bag reading, two workers; CPU summed over the command and '
               'its workers). `in process`: `diagnose()` on the record in memory, one worker. '
@@ -118,7 +161,7 @@ def main(argv=None):
               '|---|---|---|---|---|---|---|---|---|']
     ok = True
     walls = []
-    for name in NAMES:
+    for name in names:
         c, s_, f = (np.median(np.array(times[name, m]), axis=0) for m in modes)
         seen = [verdicts[name, m] for m in modes[:2]]
         same = seen[0] == seen[1] and len(seen[0]) == 1
