@@ -462,11 +462,9 @@ def _wake_starts(model, guess, unknowns):
     """
     Yield starting points for the wake.
 
-    No wake gain (L = 0: the model it extends, so a fit started there never ends below it),
-    then gains L and time constants τ, γ raised so that the quasi-steady damping γ/(1+AL)
-    stays at the baseline's.
+    Gains L and time constants τ; γ raised so that the quasi-steady damping γ/(1+AL) stays at
+    the baseline's.
     """
-    yield {**guess, 'AL_over_tau': 0.0}
     a1 = flap_damping(1.0, model.rotor.tip_loss)           # A/γ, Ch.2 eq. 27
     gamma_b = guess['gamma']
     for L in (0.5, 1.5, 3.0):

@@ -281,6 +281,10 @@ def _best_filter_start(effect, job, model, runs, unknowns, guess, setup, max_ste
     """
     sigma0 = max(_sigma_v(est0), 1e-12)
     starts = [(g, sigma0) for g in [guess] + (grid_starts(job, model, guess, unknowns) or [])]
+    if effect == 'dynamic_inflow':
+        # and no wake gain (L = 0, the current model's likelihood): a fit from there never
+        # ends below the model it extends, where the grid's starts are all less likely
+        starts.insert(1, ({**guess, 'AL_over_tau': 0.0}, sigma0))
     if earlier is not None:
         before = earlier.estimate.model_parameters
         starts.append(({**guess, **{n: before[n] for n in unknowns if n in before}},
