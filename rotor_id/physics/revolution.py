@@ -45,7 +45,8 @@ def _samples(model: LinearModel) -> int | None:
     return model.__dict__.get('_revolution_samples')
 
 
-def series_at(values: np.ndarray, t0: float, t: np.ndarray) -> np.ndarray:
+def series_at(values: np.ndarray, t0: float, t: np.ndarray,
+              weights: np.ndarray | None = None) -> np.ndarray:
     """
     Values sampled at R equally spaced phases t0 + 2πr/R, summed as their Fourier series at t.
 
@@ -53,27 +54,38 @@ def series_at(values: np.ndarray, t0: float, t: np.ndarray) -> np.ndarray:
     below R/2 (the harmonics 0 … R/2 − 1 are summed; the Nyquist term is left out). Entries
     that are zero at every phase stay exactly zero, and harmonics below :data:`NEGLIGIBLE` of
     every entry's largest coefficient are not summed.
+
+    ``weights`` (t.size, J): ``values`` (R, …, J) are J functions, and the result (t.size, …)
+    is Σ_j values_j(t) weights_j(t) (an input matrix times the inputs), formed without the
+    (t.size, …, J) array of the functions themselves.
     """
     samples = values.shape[0]
-    flat = values.reshape(samples, -1)
-    out = np.zeros((np.size(t), flat.shape[1]))
-    varying = np.flatnonzero(np.any(flat != 0.0, axis=0))
+    t = np.asarray(t, dtype=float)
+    n_weights = 1 if weights is None else weights.shape[1]
+    shape = values.shape[1:] if weights is None else values.shape[1:-1]
+    flat = values.reshape(samples, -1, n_weights)
+    out = np.zeros((t.size, flat.shape[1]))
+    varying = np.flatnonzero(np.any(flat != 0.0, axis=(0, 2)))
     if varying.size == 0:
-        return out.reshape((out.shape[0],) + values.shape[1:])
-    spectrum = np.fft.rfft(flat[:, varying], axis=0) / samples
+        return out.reshape((t.size,) + shape)
+    spectrum = np.fft.rfft(flat[:, varying], axis=0) / samples     # (R/2+1, columns, J)
     order = samples // 2 - 1
-    relative = np.abs(spectrum[:order + 1]) / np.abs(spectrum).max(axis=0)
-    present = np.flatnonzero(relative.max(axis=1) > NEGLIGIBLE)
+    size = np.abs(spectrum).max(axis=0)
+    relative = np.abs(spectrum[:order + 1]) / np.where(size > 0.0, size, 1.0)
+    present = np.flatnonzero(relative.reshape(order + 1, -1).max(axis=1) > NEGLIGIBLE)
     order = int(present[-1]) if present.size else 0
     rows = [spectrum[0].real]
     for h in range(1, order + 1):             # x = c0 + Σ 2 Re c_h cos hψ − 2 Im c_h sin hψ
         rows += [2.0 * spectrum[h].real, -2.0 * spectrum[h].imag]
-    harmonic = np.multiply.outer(np.asarray(t, dtype=float) - t0, np.arange(1, order + 1))
-    basis = np.empty((harmonic.shape[0], 2 * order + 1))
+    harmonic = np.multiply.outer(t - t0, np.arange(1, order + 1))
+    basis = np.empty((t.size, 2 * order + 1))
     basis[:, 0] = 1.0
     basis[:, 1::2], basis[:, 2::2] = np.cos(harmonic), np.sin(harmonic)
-    out[:, varying] = basis @ np.array(rows)
-    return out.reshape((out.shape[0],) + values.shape[1:])
+    coefficients = np.moveaxis(np.array(rows), 2, 1)          # (harmonics, J, columns)
+    if weights is not None:                                   # Σ_h Σ_j basis_h w_j c_hj
+        basis = (basis[:, :, None] * weights[:, None, :]).reshape(t.size, -1)
+    out[:, varying] = basis @ coefficients.reshape(-1, varying.size)
+    return out.reshape((t.size,) + shape)
 
 
 def agree(series: np.ndarray, exact: np.ndarray, tolerance: float = 1e-9) -> bool:
@@ -141,7 +153,7 @@ def _series(model, method, t, p, u):
         F = F_rev
     else:
         F = series_at(F_rev, t0, t)
-    g = series_at(b_rev, t0, t) + np.einsum('t...j,tj->t...', series_at(B_rev, t0, t), u)
+    g = series_at(b_rev, t0, t) + series_at(B_rev, t0, t, weights=u)
     check = np.unique(np.linspace(0, t.size - 1, CHECKED_TIMES + 2).astype(int)[1:])
     F_at, g_at = compact(model, method, t[check], p, u[check])
     F_series = F if F.shape[0] == 1 else F[check]
