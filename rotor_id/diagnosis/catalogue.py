@@ -434,6 +434,16 @@ LAG_PARAMETER = {'sensor_lag': 'lag_rad', 'pitch_actuator_lag': 'actuator_lag_ra
 #: (:class:`~rotor_id.physics.augmented.PitchDelay`). In hover the two delays are one model;
 #: in forward flight they differ at first order in μ d, and so do the two lags.
 SCREENED_AS = {'sensor_lag': 'time_delay', 'pitch_actuator_lag': 'pitch_delay'}
+#: The delay parameter of each of them (distinct names: the pitch delay is tested beside a
+#: fitted flap-reading delay)
+DELAY_PARAMETER = {layer.effect: layer.extra_parameters[0].name
+                   for layer in (aug.TimeDelay, aug.PitchDelay)}
+
+
+def as_lag_variance(effect, variance):
+    """Return a delay's score-test variances {name: var} under the lag ``effect``'s name."""
+    delay = DELAY_PARAMETER[SCREENED_AS[effect]]
+    return {LAG_PARAMETER[effect]: variance.get(delay, math.nan)}
 
 
 def grid_starts(job, model, guess, unknowns):
@@ -652,7 +662,7 @@ def screen_candidate(job, noise_var):
         runs, model, unknowns, extra, guess, max_step = build(trial, base_model, experiments)
         lm, var = score_statistic(runs, unknowns, guess, job.known, noise_var, max_step, extra)
         if effect in LAG_PARAMETER:
-            var = {LAG_PARAMETER[effect]: var['delay_rad']}
+            var = as_lag_variance(effect, var)
         k = len(extra) + _n_initial(runs) - _n_initial(experiments)
         out.append(('' if blade is None else f'blade_{blade}', lm, k, var))
     return out

@@ -20,8 +20,8 @@ import numpy as np
 from rotor_id import residuals as rs
 from rotor_id.diagnosis import noisy
 from rotor_id.diagnosis.catalogue import (
-    CandidateFit, COMPOSE_ORDER, EFFECTS, fit_candidate, LAG_PARAMETER, screen_candidate,
-    SCREENED, SCREENED_AS)
+    as_lag_variance, CandidateFit, COMPOSE_ORDER, EFFECTS, fit_candidate, LAG_PARAMETER,
+    screen_candidate, SCREENED, SCREENED_AS)
 from rotor_id.estimation import kernels
 from rotor_id.estimation.output_error import IdentificationError
 
@@ -187,7 +187,7 @@ def _as_lag(effect, test):
     if effect not in LAG_PARAMETER:
         return test
     return ScoreTest(effect, test.variant, test.statistic, test.k,
-                     {LAG_PARAMETER[effect]: test.variance.get('delay_rad', math.nan)})
+                     as_lag_variance(effect, test.variance))
 
 
 class OutputError:

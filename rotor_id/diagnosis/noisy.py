@@ -19,8 +19,8 @@ import time
 import numpy as np
 
 from rotor_id.diagnosis.catalogue import (
-    at_catalogue_bound, augment_runs, build, CandidateFit, effect_parameters, grid_starts,
-    LAG_PARAMETER, SCREENED_AS, stop_at_bound)
+    as_lag_variance, at_catalogue_bound, augment_runs, build, CandidateFit, effect_parameters,
+    grid_starts, SCREENED_AS, stop_at_bound)
 from rotor_id.estimation import kalman
 from rotor_id.estimation.filter_error import (
     FilterProblem, fit_filter_error_ml, gradient_information, innovations_cost,
@@ -194,7 +194,7 @@ def screen(effect, kept, current, ctx, setup):
         k = len(prob.names) - len(est.names)
         lm, var = _score(prob, theta, extra)
         if effect != test:
-            var = {LAG_PARAMETER[effect]: var.get('delay_rad', math.nan)}
+            var = as_lag_variance(effect, var)
         out.append((variant, lm, k, var))
     return out
 

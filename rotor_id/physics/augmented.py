@@ -427,7 +427,7 @@ def flap_basis(view: 'BladeView') -> tuple[np.ndarray, np.ndarray, np.ndarray] |
 
 class PitchDelay(Augmented):
     """
-    The blades' pitch reaching the rotor d (``delay_rad``, rad of azimuth) after it is measured.
+    The blades' pitch reaching the rotor d (``pitch_delay_rad``, rad) after it is measured.
 
     Each blade flaps in response to θ_k(t − d). In multiblade pitch that is a shift and a
     rotation by d:
@@ -442,7 +442,7 @@ class PitchDelay(Augmented):
     """
 
     effect = 'pitch_delay'
-    extra_parameters = (Parameter('delay_rad', 'd', 'rad', 0.0, -0.6, 0.6,
+    extra_parameters = (Parameter('pitch_delay_rad', 'd_θ', 'rad', 0.0, -0.6, 0.6,
                                   'blade pitch later than measured, rad of azimuth'),)
     extra_inputs = ('theta_0_rate', 'theta_I_rate', 'theta_II_rate')
 
