@@ -373,11 +373,11 @@ class FilterProblem:
         if self.noise_model == 'white':
             Fmid, dFmid = F[:, substeps], dF[:, substeps]
             Fs, dFs = Fmid, dFmid
-        dt = np.full(n_intervals + 1, float(t[1] - t[0])).cumsum()
+        times = float(t[1] - t[0]) * np.arange(n_intervals + 1)     # equal intervals
 
         def covariance(F, sigma):
-            return kalman.varying_noise_covariance(F[0], F[1], dt, substeps, self.rows, sigma,
-                                                   self.noise_model)[0]
+            return kalman.varying_noise_covariance(F[0], F[1], times, substeps, self.rows,
+                                                   sigma, self.noise_model)[0]
         Q, dQ = self._noise_derivatives(covariance, (Fs, Fmid), (dFs, dFmid), sig_p, k, kp,
                                         steps)
         return np.ascontiguousarray(Phi), dPhi, Q, np.ascontiguousarray(dQ)
