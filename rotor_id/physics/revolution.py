@@ -36,8 +36,9 @@ AGREE = 1e-9
 #: a harmonic below this fraction of every entry's largest coefficient is not summed (its
 #: share of the value is below rounding)
 NEGLIGIBLE = 1e-15
-#: record times at which every evaluation is checked against the model itself
-CHECKED_TIMES = 3
+#: record times (spread over it, the last included) at which every evaluation is checked
+#: against the model itself
+CHECKED_TIMES = 4
 
 
 def _samples(model: LinearModel) -> int | None:
@@ -154,7 +155,7 @@ def _series(model, method, t, p, u):
     else:
         F = series_at(F_rev, t0, t)
     g = series_at(b_rev, t0, t) + series_at(B_rev, t0, t, weights=u)
-    check = np.unique(np.linspace(0, t.size - 1, CHECKED_TIMES + 2).astype(int)[1:])
+    check = np.unique(np.linspace(0, t.size - 1, CHECKED_TIMES + 1).astype(int)[1:])
     F_at, g_at = compact(model, method, t[check], p, u[check])
     F_series = F if F.shape[0] == 1 else F[check]
     same = F_at.shape[0] == F_series.shape[0] and agree(F_series, F_at, AGREE) \
