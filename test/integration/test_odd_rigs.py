@@ -148,7 +148,11 @@ def test_the_live_estimate_is_right_or_says_it_is_incomplete(rig):
         ok, text = within_sigma(final.values, final.std, TRUTH, final.names)
         assert ok, f'{rig["name"]}: {text}'
     else:
-        assert final.status == ParameterEstimate.STATUS_INCOMPLETE, final.message
+        # samples lost, or the plant fell behind the clock so that the excitation ended before
+        # the window (aborted): both said plainly, and only on a machine too loaded to run
+        # the nodes in real time
+        assert final.status in (ParameterEstimate.STATUS_INCOMPLETE,
+                                ParameterEstimate.STATUS_ABORTED), final.message
         assert rig['load'] > LOADED_PER_CORE * (os.cpu_count() or 1), (
             f'incomplete at load {rig["load"]:.1f}: {final.message}')
 
@@ -160,6 +164,13 @@ def test_offline_identification_of_the_bag_agrees(rig, tmp_path):
     done = subprocess.run([str(REPO_ROOT / 'rotor-id'), 'identify', str(rig['bag']), '--config',
                            str(rig['config']), '--test-point', '1', '--json', str(out),
                            '--quiet'], capture_output=True, text=True, timeout=300)
+    if final.status == ParameterEstimate.STATUS_ABORTED:
+        # a test point the live identifier aborted is refused offline too, in one error line
+        # naming why, before any fit
+        last = done.stderr.strip().splitlines()[-1:] or ['']
+        assert done.returncode == 2 and 'Traceback' not in done.stderr, done.stderr[-2000:]
+        assert last[0].startswith('rotor-id identify: error: ') and 'aborted' in last[0], last
+        return
     assert done.returncode == 0, done.stderr[-2000:]
     offline = json.loads(out.read_text())
     start = final.test_point_start.sec * 1_000_000_000 + final.test_point_start.nanosec
