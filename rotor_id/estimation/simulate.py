@@ -41,8 +41,7 @@ import numpy as np
 import numpy.typing as npt
 
 from rotor_id.estimation import kernels
-from rotor_id.physics.models import full_along_time
-from rotor_id.physics.revolution import on_record
+from rotor_id.physics.revolution import entries_on_record
 
 if TYPE_CHECKING:
     from rotor_id.physics.models import LinearModel
@@ -339,9 +338,7 @@ def simulate(model: 'LinearModel', p: npt.ArrayLike, inputs: Callable[[np.ndarra
         u = inputs(tf)
         h = np.repeat(np.diff(ts) / m, m)
         if kernel is not None:
-            # F of length 1 along time where the model knows it is constant (compact)
-            F, g = on_record(model, 'system', tf, p, u)
-            x, S = _compiled_chunk(kernel, model, p, tf, u, F, g, h, m, param_index,
+            x, S = _compiled_chunk(kernel, model, p, tf, u, h, m, param_index,
                                    x, S if want_sens else np.zeros((n, 0)),
                                    xs[start:stop + 1],
                                    Ss[start:stop + 1] if want_sens else None)
@@ -764,49 +761,29 @@ def _record_cache(model, inputs):
         return None
 
 
-def _compiled_chunk(kernel, model, p, tf, u, F, g, h, m, param_index, x, S, xs, Ss):
+def _compiled_chunk(kernel, model, p, tf, u, h, m, param_index, x, S, xs, Ss):
     """
     One chunk through the compiled RK4 scan (:mod:`rotor_id.estimation.kernels`).
 
     Writes the samples into the views ``xs`` (L+1, n) and ``Ss`` (L+1, n, k) or None (plain
-    simulation, S of shape (n, 0)); returns the last state and sensitivities.
+    simulation, S of shape (n, 0)); returns the last state and sensitivities. F and ∂F/∂p
+    enter as their non-zero entries, constant ones once (:func:`entries_on_record`).
     """
     n = x.shape[0]
-    constant_F = bool(np.all(F == F[:1]))
-    if constant_F and equal_steps(h, tf):
-        Phi = rk4_transition(F[:1], h[:1])
-    else:
-        Phi = rk4_transition(full_along_time(F, tf.size), h)
-    F_val, (F_i, F_j) = _nonzero_entries(F[:1] if constant_F else F)
+    (F_val, (F_i, F_j)), g = entries_on_record(model, 'system', tf, p, u)
     if param_index:
-        dF, dg = on_record(model, 'system_jacobian', tf, p, u)
-        dF_val, (dF_p, dF_i, dF_j) = _nonzero_entries(dF[:, param_index])
-        dg = dg[:, param_index]
+        (dF_val, (dF_p, dF_i, dF_j)), dg = entries_on_record(model, 'system_jacobian', tf, p, u,
+                                                             param_index)
     else:
         dF_p = dF_i = dF_j = np.zeros(0, dtype=np.int64)
         dF_val = np.zeros((1, 0))
         dg = np.zeros((g.shape[0], 0, n))
     S_out = np.empty((xs.shape[0], n, S.shape[1])) if Ss is None else Ss
-    kernel(np.ascontiguousarray(Phi), F_val, F_i, F_j, np.ascontiguousarray(g, dtype=float),
+    kernel(F_val, F_i, F_j, np.ascontiguousarray(g, dtype=float),
            dF_val, dF_p, dF_i, dF_j, np.ascontiguousarray(dg, dtype=float),
            np.ascontiguousarray(h, dtype=float), m, x, np.ascontiguousarray(S, dtype=float), xs,
            S_out)
     return xs[-1].copy(), S_out[-1].copy()
-
-
-def _nonzero_entries(A):
-    """
-    Entries of the stacked arrays A (T, ...) that are non-zero at any t: (values, indices).
-
-    values (T, nnz), or (1, nnz) when they are the same at every t; indices one int64 array
-    per axis of A[0], as np.nonzero gives them.
-    """
-    index = np.nonzero(A[0] if A.shape[0] == 1 else np.any(A != 0.0, axis=0))
-    values = A[(slice(None),) + index]
-    if values.shape[0] > 1 and np.all(values == values[:1]):
-        values = values[:1]
-    return (np.ascontiguousarray(values, dtype=float),
-            tuple(i.astype(np.int64) for i in index))
 
 
 def time_invariant_steps(F, h, ts):

@@ -20,6 +20,8 @@ rounding (a model not periodic in ψ, a forcing not affine in its inputs, a harm
 samples) the model is evaluated directly, as it always could be.
 """
 
+from dataclasses import dataclass
+
 import numpy as np
 import numpy.typing as npt
 
@@ -46,47 +48,91 @@ def _samples(model: LinearModel) -> int | None:
     return model.__dict__.get('_revolution_samples')
 
 
+@dataclass(frozen=True)
+class Series:
+    """
+    The Fourier series of the entries of a function of ψ that are non-zero at some phase.
+
+    ``index``: those entries' flat positions in one value of ``shape``; ``coefficients``
+    (2H+1, J, entries): the constant, then the cosine and sine of each harmonic 1 … H, for each
+    of J weights (J = 1 without weights); the series are in ψ − ``t0``.
+    """
+
+    shape: tuple[int, ...]
+    index: np.ndarray
+    coefficients: np.ndarray
+    t0: float
+
+    @classmethod
+    def of(cls, values: np.ndarray, t0: float, weighted: bool = False) -> 'Series':
+        """
+        Return the series of ``values`` sampled at R equally spaced phases t0 + 2πr/R.
+
+        ``values`` (R, …), or (R, …, J) when ``weighted``. Exact for a trigonometric polynomial
+        of degree below R/2 (the harmonics 0 … R/2 − 1; the Nyquist term is left out); the
+        harmonics above the last one that reaches :data:`NEGLIGIBLE` of some entry's largest
+        coefficient are left out.
+        """
+        samples = values.shape[0]
+        n_weights = values.shape[-1] if weighted else 1
+        shape = values.shape[1:-1] if weighted else values.shape[1:]
+        flat = values.reshape(samples, -1, n_weights)
+        index = np.flatnonzero(np.any(flat != 0.0, axis=(0, 2)))
+        spectrum = np.fft.rfft(flat[:, index], axis=0) / samples    # (R/2+1, entries, J)
+        order = samples // 2 - 1
+        size = np.abs(spectrum).max(axis=0) if index.size else np.ones((0, n_weights))
+        relative = np.abs(spectrum[:order + 1]) / np.where(size > 0.0, size, 1.0)
+        present = np.flatnonzero(relative.reshape(order + 1, -1).max(axis=1, initial=0.0)
+                                 > NEGLIGIBLE)
+        order = int(present[-1]) if present.size else 0
+        rows = [spectrum[0].real]
+        for h in range(1, order + 1):         # x = c0 + Σ 2 Re c_h cos hψ − 2 Im c_h sin hψ
+            rows += [2.0 * spectrum[h].real, -2.0 * spectrum[h].imag]
+        return cls(tuple(shape), index, np.moveaxis(np.array(rows), 2, 1), float(t0))
+
+    @property
+    def constant(self) -> bool:
+        """Tell whether the function does not vary with ψ (no harmonic, no weights)."""
+        return self.coefficients.shape[0] == 1 and self.coefficients.shape[1] == 1
+
+    def entries(self, t: np.ndarray, weights: np.ndarray | None = None) -> np.ndarray:
+        """
+        Return the entries at the times t: (t.size, entries); (1, entries) if :attr:`constant`.
+
+        ``weights`` (t.size, J) for a weighted series: Σ_j values_j(t) weights_j(t) (an input
+        matrix times the inputs), formed without the (t.size, …, J) array of the functions.
+        """
+        harmonics, n_weights, n_entries = self.coefficients.shape
+        if weights is None and self.constant:
+            return self.coefficients[0].copy()
+        order = harmonics // 2
+        angle = np.multiply.outer(np.asarray(t, dtype=float) - self.t0,
+                                  np.arange(1, order + 1))
+        basis = np.empty((angle.shape[0], harmonics))
+        basis[:, 0] = 1.0
+        basis[:, 1::2], basis[:, 2::2] = np.cos(angle), np.sin(angle)
+        if weights is not None:                               # Σ_h Σ_j basis_h w_j c_hj
+            basis = (basis[:, :, None] * weights[:, None, :]).reshape(basis.shape[0], -1)
+        return basis @ self.coefficients.reshape(-1, n_entries)
+
+    def values(self, t: np.ndarray, weights: np.ndarray | None = None) -> np.ndarray:
+        """Return the full values at the times t: (t.size, …) (entries that are zero stay zero)."""
+        t = np.atleast_1d(np.asarray(t, dtype=float))
+        out = np.zeros((t.size, int(np.prod(self.shape))))
+        out[:, self.index] = self.entries(t, weights)
+        return out.reshape((t.size,) + self.shape)
+
+
 def series_at(values: np.ndarray, t0: float, t: np.ndarray,
               weights: np.ndarray | None = None) -> np.ndarray:
     """
     Values sampled at R equally spaced phases t0 + 2πr/R, summed as their Fourier series at t.
 
-    ``values`` (R, …); returns (t.size, …). Exact for a trigonometric polynomial of degree
-    below R/2 (the harmonics 0 … R/2 − 1 are summed; the Nyquist term is left out). Entries
-    that are zero at every phase stay exactly zero, and harmonics below :data:`NEGLIGIBLE` of
-    every entry's largest coefficient are not summed.
-
-    ``weights`` (t.size, J): ``values`` (R, …, J) are J functions, and the result (t.size, …)
-    is Σ_j values_j(t) weights_j(t) (an input matrix times the inputs), formed without the
-    (t.size, …, J) array of the functions themselves.
+    ``values`` (R, …); returns (t.size, …): :meth:`Series.values` of :meth:`Series.of`.
+    ``weights`` (t.size, J): ``values`` (R, …, J) are J functions, and the result is
+    Σ_j values_j(t) weights_j(t).
     """
-    samples = values.shape[0]
-    t = np.asarray(t, dtype=float)
-    n_weights = 1 if weights is None else weights.shape[1]
-    shape = values.shape[1:] if weights is None else values.shape[1:-1]
-    flat = values.reshape(samples, -1, n_weights)
-    out = np.zeros((t.size, flat.shape[1]))
-    varying = np.flatnonzero(np.any(flat != 0.0, axis=(0, 2)))
-    if varying.size == 0:
-        return out.reshape((t.size,) + shape)
-    spectrum = np.fft.rfft(flat[:, varying], axis=0) / samples     # (R/2+1, columns, J)
-    order = samples // 2 - 1
-    size = np.abs(spectrum).max(axis=0)
-    relative = np.abs(spectrum[:order + 1]) / np.where(size > 0.0, size, 1.0)
-    present = np.flatnonzero(relative.reshape(order + 1, -1).max(axis=1) > NEGLIGIBLE)
-    order = int(present[-1]) if present.size else 0
-    rows = [spectrum[0].real]
-    for h in range(1, order + 1):             # x = c0 + Σ 2 Re c_h cos hψ − 2 Im c_h sin hψ
-        rows += [2.0 * spectrum[h].real, -2.0 * spectrum[h].imag]
-    harmonic = np.multiply.outer(t - t0, np.arange(1, order + 1))
-    basis = np.empty((t.size, 2 * order + 1))
-    basis[:, 0] = 1.0
-    basis[:, 1::2], basis[:, 2::2] = np.cos(harmonic), np.sin(harmonic)
-    coefficients = np.moveaxis(np.array(rows), 2, 1)          # (harmonics, J, columns)
-    if weights is not None:                                   # Σ_h Σ_j basis_h w_j c_hj
-        basis = (basis[:, :, None] * weights[:, None, :]).reshape(t.size, -1)
-    out[:, varying] = basis @ coefficients.reshape(-1, varying.size)
-    return out.reshape((t.size,) + shape)
+    return Series.of(values, t0, weights is not None).values(t, weights)
 
 
 def agree(series: np.ndarray, exact: np.ndarray, tolerance: float = 1e-9) -> bool:
@@ -131,11 +177,60 @@ def on_record(model: LinearModel, method: str, t: npt.ArrayLike, p: npt.ArrayLik
     """
     t = np.atleast_1d(np.asarray(t, dtype=float))
     p, u = np.asarray(p, dtype=float), np.asarray(u, dtype=float)
-    series = _series(model, method, t, p, u)
-    return compact(model, method, t, p, u) if series is None else series
+    series = _series(model, method, t, p, u, None)
+    if series is None:
+        return compact(model, method, t, p, u)
+    F, b, B = series
+    return (F if isinstance(F, np.ndarray) else F.values(t)), b.values(t) + B.values(t, u)
 
 
-def _series(model, method, t, p, u):
+def entries_on_record(model: LinearModel, method: str, t: npt.ArrayLike, p: npt.ArrayLike,
+                      u: npt.ArrayLike, columns: list[int] | None = None
+                      ) -> tuple[tuple[np.ndarray, tuple[np.ndarray, ...]], np.ndarray]:
+    """
+    :func:`on_record` with F (∂F/∂p) as its non-zero entries, as :func:`nonzero_entries` gives.
+
+    ``columns``: the parameters of ``system_jacobian`` wanted (all when None). The entries come
+    straight from the series where it holds, without the (T, …) array of F.
+    """
+    t = np.atleast_1d(np.asarray(t, dtype=float))
+    p, u = np.asarray(p, dtype=float), np.asarray(u, dtype=float)
+    series = _series(model, method, t, p, u, columns)
+    if series is None:
+        F, g = compact(model, method, t, p, u)
+        if columns is not None:
+            F, g = F[:, columns], g[:, columns]
+        return nonzero_entries(F), g
+    F, b, B = series
+    g = b.values(t) + B.values(t, u)
+    if isinstance(F, np.ndarray):
+        return nonzero_entries(F), g
+    index = tuple(i.astype(np.int64) for i in np.unravel_index(F.index, F.shape))
+    return (np.ascontiguousarray(F.entries(t)), index), g
+
+
+def nonzero_entries(A: np.ndarray) -> tuple[np.ndarray, tuple[np.ndarray, ...]]:
+    """
+    Entries of the stacked arrays A (T, ...) that are non-zero at any t: (values, indices).
+
+    values (T, nnz), or (1, nnz) when they are the same at every t; indices one int64 array
+    per axis of A[0], as np.nonzero gives them.
+    """
+    index = np.nonzero(A[0] if A.shape[0] == 1 else np.any(A != 0.0, axis=0))
+    values = A[(slice(None),) + index]
+    if values.shape[0] > 1 and np.all(values == values[:1]):
+        values = values[:1]
+    return (np.ascontiguousarray(values, dtype=float),
+            tuple(i.astype(np.int64) for i in index))
+
+
+def _series(model, method, t, p, u, columns):
+    """
+    F, b and B of the method as series, checked at the record's times; or None.
+
+    F is the revolution's (1, …) array where the model gives it constant; ``columns`` selects
+    the parameters of ``system_jacobian``.
+    """
     if getattr(model, 'time_invariant', True) or _samples(model) == 0:
         return None
     n_inputs = u.shape[1]
@@ -150,19 +245,21 @@ def _series(model, method, t, p, u):
             model.__dict__['_revolution_samples'] = 0
             return None
         model.__dict__['_revolution_samples'] = 2 * order + 4
-    if F_rev.shape[0] == 1:
-        F = F_rev
-    else:
-        F = series_at(F_rev, t0, t)
-    g = series_at(b_rev, t0, t) + series_at(B_rev, t0, t, weights=u)
+    if columns is not None:
+        F_rev, b_rev, B_rev = F_rev[:, columns], b_rev[:, columns], B_rev[:, columns]
+    F = F_rev if F_rev.shape[0] == 1 else Series.of(F_rev, t0)
+    b, B = Series.of(b_rev, t0), Series.of(B_rev, t0, weighted=True)
     check = np.unique(np.linspace(0, t.size - 1, CHECKED_TIMES + 1).astype(int)[1:])
     F_at, g_at = compact(model, method, t[check], p, u[check])
-    F_series = F if F.shape[0] == 1 else F[check]
+    if columns is not None:
+        F_at, g_at = F_at[:, columns], g_at[:, columns]
+    F_series = F if isinstance(F, np.ndarray) else F.values(t[check])
+    g_series = b.values(t[check]) + B.values(t[check], u[check])
     same = F_at.shape[0] == F_series.shape[0] and agree(F_series, F_at, AGREE) \
-        and agree(g[check], g_at, AGREE)
+        and agree(g_series, g_at, AGREE)
     if not same:
         # fewer samples than the probe's: a harmonic the probe's parameters left out, probe
         # again at these; at the probe's own count the series does not hold for this model
         model.__dict__['_revolution_samples'] = None if samples < PROBE_SAMPLES else 0
         return None
-    return F, g
+    return F, b, B

@@ -12,7 +12,7 @@ import pytest
 
 from rotor_id.physics import augmented as aug
 from rotor_id.physics.models import build_model, compact, LinearModel, RotorConstants
-from rotor_id.physics.revolution import on_record
+from rotor_id.physics.revolution import entries_on_record, on_record
 
 #: a one-second record at 900 rpm sampled at 1 kHz, two RK4 stages per sample
 GRID = 0.03 + 0.0471 * np.arange(4000)
@@ -77,9 +77,29 @@ def test_series_over_a_record_is_the_model_at_every_time(name):
                 scale = np.abs(want).max()
                 np.testing.assert_allclose(got, want, rtol=0.0, atol=1e-9 * scale,
                                            err_msg=f'{name} {method}')
+            _assert_entries_are_the_model(model, method, p, u)
     # (1e-9: an azimuth offset's ∂/∂Δψ is a central difference, its rounding ~1e-11)
     # the series was used (the model varies with ψ; a hover model is time-invariant)
     assert model.__dict__['_revolution_samples'] > 0, name
+
+
+def _assert_entries_are_the_model(model, method, p, u):
+    """entries_on_record: F's non-zero entries (of some parameters) and g, as the model's."""
+    columns = None if method == 'system' else list(range(0, len(p), 2))
+    (values, index), g = entries_on_record(model, method, GRID, p, u, columns)
+    F_exact, g_exact = compact(model, method, GRID, p, u)
+    if columns is not None:
+        F_exact, g_exact = F_exact[:, columns], g_exact[:, columns]
+    F = np.zeros((values.shape[0],) + F_exact.shape[1:])
+    F[(slice(None),) + index] = values
+    if values.shape[0] == 1:                                # constant: given once
+        assert np.all(F_exact == F_exact[:1])
+        F_exact = F_exact[:1]
+    scale = np.abs(F_exact).max()
+    np.testing.assert_allclose(F, F_exact, rtol=0.0, atol=1e-9 * scale)
+    np.testing.assert_allclose(g, g_exact, rtol=0.0, atol=1e-9 * np.abs(g_exact).max())
+    # every entry left out is zero at every time
+    assert np.count_nonzero(np.any(F_exact != 0.0, axis=0)) <= values.shape[1]
 
 
 class _Drifting(LinearModel):
