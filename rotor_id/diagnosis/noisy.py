@@ -19,24 +19,21 @@ import time
 import numpy as np
 
 from rotor_id.diagnosis.catalogue import (
-    as_lag_variance, at_catalogue_bound, augment_runs, build, CandidateFit, effect_parameters,
-    grid_starts, SCREENED_AS, stop_at_bound)
-from rotor_id.estimation import kalman
+    as_lag_variance, augment_runs, bound_sides, build, CandidateFit, effect_parameters,
+    FAILURES, grid_starts, NOISE, SCREENED_AS, start_values, stop_at_bound)
 from rotor_id.estimation.filter_error import (
     FilterProblem, fit_filter_error_ml, gradient_information, innovations_cost,
     measurement_noise_name, PROCESS_NOISE)
-from rotor_id.estimation.output_error import fit_initial_states, IdentificationError
+from rotor_id.estimation.output_error import fit_initial_states
 from rotor_id.estimation.simulate import DEFAULT_MAX_STEP
 from rotor_id.physics import augmented as aug
 
-NOISE = 'process_noise'
 #: Gauss-Newton (scoring) iterations of a candidate's filter-error fit; it starts at the
 #: current estimate with the extra parameters neutral, a few steps from its optimum.
 MAX_ITER = 20
-FAILURES = (IdentificationError, np.linalg.LinAlgError, FloatingPointError, ValueError)
-#: random inflow's own parameters beside σ_V (its correlation time, a model without a wake)
 #: random inflow's states (their initial values are the noise model's, no extra parameters)
 INFLOW_STATES = tuple(aug.PitchLikeRandomInflow.extra_states)
+#: random inflow's own parameters beside σ_V (its correlation time, a model without a wake)
 SHAPE = tuple(par.name for par in aug.PitchLikeRandomInflow.extra_parameters)
 SHAPE_START = {par.name: par.nominal for par in aug.PitchLikeRandomInflow.extra_parameters}
 
@@ -47,7 +44,6 @@ class Setup:
 
     base_model: object
     experiments: list
-    rows: list                  # process-noise rows (state names of the baseline model)
     noise_std: object           # fixed measurement σ per channel, or None (estimated)
 
 
@@ -58,22 +54,17 @@ def setup_for(ctx):
     base_model = model_for(description)
     experiments = experiments_from_record(ctx.record, description, base_model,
                                           tuple(ctx.window_s))
-    rows = [base_model.state_names[i] for i in kalman.default_noise_rows(base_model)]
     noise = description.noise_std_rad
     fixed = None if noise is None else channel_noise(base_model, float(noise))
-    return Setup(base_model, experiments, rows, fixed)
-
-
-def _job(ctx, effect, variant, kept, start):
-    return ctx.job(effect, variant, prior=tuple(kept), start=start)
+    return Setup(base_model, experiments, fixed)
 
 
 def _sigma_v(est):
     return float(est.value(PROCESS_NOISE)) if PROCESS_NOISE in est.names else 0.0
 
 
-def _problem(runs, unknowns, guess, known, setup, sigma_v, max_step, start_est,
-             process_sigma=None, rows=None, refit_states=False):
+def _problem(runs, unknowns, guess, known, setup, sigma_v, max_step, start_est, rows,
+             process_sigma=None, refit_states=False):
     """
     Filter problem of a candidate and its θ at the current estimate (extra parts neutral).
 
@@ -85,8 +76,8 @@ def _problem(runs, unknowns, guess, known, setup, sigma_v, max_step, start_est,
     test is at the current estimate, where they are already the current model's optimum).
     ``prob.start_cost`` is the filter's cost at the returned θ when it was evaluated here.
     """
-    prob = FilterProblem(runs, unknowns, guess, known, setup.noise_std, sigma_v, True,
-                         setup.rows if rows is None else rows, 'white', 'auto', max_step)
+    prob = FilterProblem(runs, unknowns, guess, known, setup.noise_std, sigma_v, True, rows,
+                         'white', 'auto', max_step)
     k = len(prob.names)
     base = prob.base
     theta = np.zeros(k)
@@ -181,16 +172,13 @@ def screen(effect, kept, current, ctx, setup):
     test = SCREENED_AS.get(effect, effect)
     blades = list(setup.base_model.blades) if effect == 'blade_dissimilarity' else [None]
     est = current.estimate
-    start = {n: est.model_parameters[n] for n in current.unknowns}
     out = []
     for blade in blades:
         variant = '' if blade is None else f'blade_{blade}'
-        job = _job(ctx, test, variant, kept, start)
-        runs, model, unknowns, extra, guess, max_step = build(job, setup.base_model,
-                                                              setup.experiments)
-        runs, rows, unknowns = _with_inflow_states(runs, unknowns, guess, est, ctx, setup)
-        prob, theta = _problem(runs, unknowns, guess, job.known, setup, _sigma_v(est),
-                               max_step or DEFAULT_MAX_STEP, est, rows=rows)
+        _, runs, unknowns, extra, guess, max_step, rows = _stack(
+            ctx, setup, list(kept) + [(test, variant)], est, start_values(current))
+        prob, theta = _problem(runs, unknowns, guess, ctx.known, setup, _sigma_v(est),
+                               max_step, est, rows)
         k = len(prob.names) - len(est.names)
         lm, var = _score(prob, theta, extra)
         if effect != test:
@@ -199,8 +187,7 @@ def screen(effect, kept, current, ctx, setup):
     return out
 
 
-def fit_filter(effect, variant, kept, start_fit, ctx, setup, earlier=None,
-               max_iter=MAX_ITER):
+def fit_filter(effect, variant, kept, start_fit, ctx, setup, earlier=None):
     """
     Filter-error fit of the stack ``kept`` + ``effect`` with σ_V estimated: CandidateFit.
 
@@ -210,27 +197,21 @@ def fit_filter(effect, variant, kept, start_fit, ctx, setup, earlier=None,
     """
     t0 = time.perf_counter()
     est0 = start_fit.estimate
-    start = {n: est0.model_parameters[n] for n in start_fit.unknowns
-             if n in est0.model_parameters}
     if effect is None:
         effect, variant = kept[-1]
         kept = kept[:-1]
     out = CandidateFit(effect=effect, variant=variant, prior=tuple(kept))
     try:
-        job = _job(ctx, effect, variant, kept, start)
-        runs, model, unknowns, extra, guess, max_step = build(job, setup.base_model,
-                                                              setup.experiments)
-        max_step = max_step or DEFAULT_MAX_STEP
-        runs, rows, unknowns = _with_inflow_states(runs, unknowns, guess, est0, ctx, setup)
+        job, runs, unknowns, extra, guess, max_step, rows = _stack(
+            ctx, setup, list(kept) + [(effect, variant)], est0, start_values(start_fit))
         model = runs[0].model
-        guess, prob, theta = _best_filter_start(
-            effect, job, model, runs, unknowns, guess, setup, max_step, est0, rows,
-            earlier=earlier)
+        guess, prob, theta = _best_filter_start(job, model, runs, unknowns, guess, setup,
+                                                max_step, est0, rows, earlier)
         begin = {n: v for n, v in zip(prob.names, theta)
                  if n != PROCESS_NOISE and n not in unknowns}
         # two iterations at a catalogue bound end the fit: it is reported bound-limited
         est = fit_filter_error_ml(runs, unknowns, guess=guess, known=job.known,
-                                  noise_std=setup.noise_std, max_iter=max_iter,
+                                  noise_std=setup.noise_std, max_iter=MAX_ITER,
                                   process_noise_std=math.sqrt(theta[prob.i_process]),
                                   rows=rows, max_step=max_step,
                                   label=f'{effect} + random inflow', start_values=begin,
@@ -239,10 +220,9 @@ def fit_filter(effect, variant, kept, start_fit, ctx, setup, earlier=None,
     except FAILURES as exc:
         out.available, out.reason = False, f'filter-error fit failed: {exc}'
         return out
-    _fill(out, est, model, unknowns, extra, ctx)
-    out.bound_limited = [n for n, _ in at_catalogue_bound(est, model, extra)]
+    _fill(out, est, model, unknowns, extra)
+    out.bound_limited = [n for n, _ in bound_sides(est.model_parameters, model, extra)]
     out.elapsed_s = time.perf_counter() - t0
-    out.experiments, out.max_step, out.noise_rows = runs, max_step, rows
     return out
 
 
@@ -261,8 +241,8 @@ def earlier_fit(fits, effect, variant, kept):
     return None
 
 
-def _best_filter_start(effect, job, model, runs, unknowns, guess, setup, max_step, est0,
-                       rows, earlier=None):
+def _best_filter_start(job, model, runs, unknowns, guess, setup, max_step, est0, rows,
+                       earlier):
     """
     Return (start, its filter problem, its θ): the most likely of output error's grid starts.
 
@@ -280,8 +260,8 @@ def _best_filter_start(effect, job, model, runs, unknowns, guess, setup, max_ste
     three effects reached from the wake's own fit).
     """
     sigma0 = max(_sigma_v(est0), 1e-12)
-    starts = [(g, sigma0) for g in [guess] + (grid_starts(job, model, guess, unknowns) or [])]
-    if effect == 'dynamic_inflow':
+    starts = [(g, sigma0) for g in [guess] + (grid_starts(job, model, guess) or [])]
+    if job.effect == 'dynamic_inflow':
         # and no wake gain (L = 0, the current model's likelihood): a fit from there never
         # ends below the model it extends, where the grid's starts are all less likely
         starts.insert(1, ({**guess, 'AL_over_tau': 0.0}, sigma0))
@@ -293,29 +273,22 @@ def _best_filter_start(effect, job, model, runs, unknowns, guess, setup, max_ste
     for start, sigma in starts:
         try:
             prob, theta = _problem(runs, unknowns, start, job.known, setup, sigma,
-                                   max_step, est0, process_sigma=sigma, rows=rows,
+                                   max_step, est0, rows, process_sigma=sigma,
                                    refit_states=True)
         except FAILURES:
             continue
         if len(starts) == 1:
             return start, prob, theta
-        try:
-            cost = prob.start_cost
-            if cost is None:
-                cost = innovations_cost(prob.evaluate(theta, sensitivities=False))
-        except FAILURES:
-            continue
-        if math.isfinite(cost) and (best is None or cost < best_cost):
-            best, best_cost = (start, prob, theta), cost
+        if math.isfinite(prob.start_cost) and prob.start_cost < best_cost:
+            best, best_cost = (start, prob, theta), prob.start_cost
     if best is None:           # no start evaluates: the neutral one fails as it did before
         prob, theta = _problem(runs, unknowns, guess, job.known, setup, _sigma_v(est0),
-                               max_step, est0, process_sigma=max(_sigma_v(est0), 1e-12),
-                               rows=rows)
+                               max_step, est0, rows, process_sigma=max(_sigma_v(est0), 1e-12))
         return guess, prob, theta
     return best
 
 
-def _fill(out, est, model, unknowns, extra, ctx):
+def _fill(out, est, model, unknowns, extra):
     """Estimate, model and every effect's parameters ± σ (random inflow's σ's included)."""
     out.estimate, out.model, out.unknowns, out.extra_names = est, model, unknowns, extra
     out.effect_parameters.update(effect_parameters(est, model))
@@ -343,12 +316,23 @@ def random_inflow_states(runs, record):
     return runs, list(model.extra_states), list(SHAPE)
 
 
-def _with_inflow_states(runs, unknowns, guess, est, ctx, setup):
-    """Candidate runs with random inflow's states; τ_w (if any) started at ``est``'s."""
+def _stack(ctx, setup, kept, est, start):
+    """
+    Return the stack ``kept`` [(effect, variant)] with random inflow, τ_w at ``est``'s.
+
+    Returns (job of the last effect or None, runs, unknowns, extra parameters of the last
+    effect, guess, RK4 step, process-noise rows).
+    """
+    job, runs, unknowns, extra = None, setup.experiments, list(ctx.unknowns), []
+    guess, max_step = dict(start), DEFAULT_MAX_STEP
+    if kept:
+        job = ctx.job(kept[-1][0], kept[-1][1], prior=tuple(kept[:-1]), start=start)
+        runs, _, unknowns, extra, guess, max_step = build(job, setup.base_model,
+                                                          setup.experiments)
     runs, rows, shape = random_inflow_states(runs, ctx.record)
-    for name in shape:
-        guess[name] = est.model_parameters.get(name, SHAPE_START[name])
-    return runs, rows, list(unknowns) + shape
+    have = {} if est is None else est.model_parameters
+    guess.update({name: have.get(name, SHAPE_START[name]) for name in shape})
+    return job, runs, list(unknowns) + shape, extra, guess, max_step, rows
 
 
 def fit_alone(ctx, setup):
@@ -360,10 +344,7 @@ def fit_alone(ctx, setup):
     """
     t0 = time.perf_counter()
     out = CandidateFit(effect=NOISE)
-    runs, rows, shape = random_inflow_states(setup.experiments, ctx.record)
-    model = runs[0].model
-    unknowns = list(ctx.unknowns) + shape
-    guess = {**ctx.values, **{n: SHAPE_START[n] for n in shape}}
+    _, runs, unknowns, _, guess, _, rows = _stack(ctx, setup, [], None, ctx.values)
     try:
         est = fit_filter_error_ml(runs, unknowns, guess=guess, known=ctx.known,
                                   noise_std=setup.noise_std, max_iter=MAX_ITER, rows=rows,
@@ -372,9 +353,8 @@ def fit_alone(ctx, setup):
     except FAILURES as exc:
         out.available, out.reason = False, f'filter-error fit failed: {exc}'
         return out
-    _fill(out, est, model, unknowns, [], ctx)
+    _fill(out, est, runs[0].model, unknowns, [])
     out.elapsed_s = time.perf_counter() - t0
-    out.experiments, out.max_step, out.noise_rows = runs, DEFAULT_MAX_STEP, rows
     return out
 
 
@@ -386,16 +366,8 @@ def noise_score(current, kept, ctx, setup):
     (and τ_w's) is left; one-sided: a cost that rises with σ_V² asks for none.
     """
     est = current.estimate
-    start = {n: est.model_parameters[n] for n in current.unknowns}
-    if kept:
-        job = _job(ctx, kept[-1][0], kept[-1][1], kept[:-1], start)
-        runs, model, unknowns, extra, guess, max_step = build(job, setup.base_model,
-                                                              setup.experiments)
-    else:
-        runs, unknowns, guess, max_step = setup.experiments, list(ctx.unknowns), start, None
-    max_step = max_step or DEFAULT_MAX_STEP
-    runs, rows, shape = random_inflow_states(runs, ctx.record)
-    guess = {**guess, **{n: SHAPE_START[n] for n in shape}}
-    prob, theta = _problem(runs, list(unknowns) + shape, guess, ctx.known, setup, 0.0,
-                           max_step, est, process_sigma=0.0, rows=rows)
+    _, runs, unknowns, _, guess, max_step, rows = _stack(ctx, setup, kept, est,
+                                                         start_values(current))
+    prob, theta = _problem(runs, unknowns, guess, ctx.known, setup, 0.0, max_step, est, rows,
+                           process_sigma=0.0)
     return _score(prob, theta, (PROCESS_NOISE,), one_sided=prob.i_process)

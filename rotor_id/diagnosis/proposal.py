@@ -44,8 +44,9 @@ from dataclasses import dataclass, field
 import math
 
 import numpy as np
+from rotor_id.diagnosis.catalogue import augment_runs, FAILURES
 from rotor_id.estimation.equation_error import fit_equation_error, regression
-from rotor_id.estimation.output_error import fit_output_error, IdentificationError
+from rotor_id.estimation.output_error import fit_output_error
 from rotor_id.physics.augmented import Augmented, BladeView
 from rotor_id.physics.models import Parameter
 from rotor_id.physics.stirring import blade_pitch_from_multiblade
@@ -297,10 +298,9 @@ def refine(experiments, unknowns, values, known, terms):
     The runs are the baseline's with every term stacked on the model (the catalogue's
     :func:`~rotor_id.diagnosis.catalogue.augment_runs`).
     """
-    from rotor_id.diagnosis.catalogue import augment_runs
     runs = experiments
     for term in terms:
-        runs, _ = augment_runs(runs, lambda m, term=term: LibraryTerm(m, term), None)
+        runs, _ = augment_runs(runs, lambda m, term=term: LibraryTerm(m, term))
     extra = [f'xi[{term}]' for term in terms]
     guess = {**values, **dict.fromkeys(extra, 0.0)}
     return fit_output_error(runs, list(unknowns) + extra, guess=guess, known=known,
@@ -345,7 +345,7 @@ def propose(experiments, unknowns, values, known, max_terms=MAX_TERMS, n_blocks=
     try:
         reg = build_regressors(experiments, list(unknowns), dict(values), dict(known),
                                n_blocks)
-    except (IdentificationError, np.linalg.LinAlgError, FloatingPointError, ValueError) as exc:
+    except FAILURES as exc:
         return Proposal(library=names, reason=f'equation error failed: {exc}')
     current = []
     sse = heldout_errors(reg, current, n_blocks)
@@ -400,7 +400,7 @@ def _proposed_terms(reg, current, steps, names, experiments, unknowns, values, k
     try:
         est, extra = refine(experiments, unknowns, values, known, [names[m] for m in current])
         ml = {n: (est.value(n), est.std_of(n)) for n in extra}
-    except (IdentificationError, np.linalg.LinAlgError, FloatingPointError, ValueError) as exc:
+    except FAILURES as exc:
         ml, reason = {}, f'output-error refit failed: {exc}'
     for i, m in enumerate(current):
         step = next(s for s in steps if s['term'] == names[m])
