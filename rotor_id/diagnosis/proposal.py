@@ -134,8 +134,7 @@ class Regressors:
     rows: list
 
 
-def build_regressors(experiments, unknowns, values, known, n_blocks=N_BLOCKS,
-                     n_clusters=N_CLUSTERS):
+def build_regressors(experiments, unknowns, values, known):
     """Reconstruct the states and build :class:`Regressors` for the baseline's runs."""
     result = fit_equation_error(experiments, unknowns, guess=values, known=known, max_iter=1)
     model = experiments[0].model
@@ -165,10 +164,10 @@ def build_regressors(experiments, unknowns, values, known, n_blocks=N_BLOCKS,
         es.append((e * scale).reshape(-1))
         As.append((A * scale[:, :, None]).reshape(-1, A.shape[2]))
         Ls.append((Lt * scale[:, :, None]).reshape(-1, Lt.shape[2]))
-        b = np.minimum((frac * n_blocks).astype(int), n_blocks - 1)
-        c = np.minimum((frac * n_clusters).astype(int), n_clusters - 1)
+        b = np.minimum((frac * N_BLOCKS).astype(int), N_BLOCKS - 1)
+        c = np.minimum((frac * N_CLUSTERS).astype(int), N_CLUSTERS - 1)
         blocks.append(np.repeat(b, len(rows)))
-        clusters.append(np.repeat(c + n_clusters * len(clusters), len(rows)))
+        clusters.append(np.repeat(c + N_CLUSTERS * len(clusters), len(rows)))
     return Regressors(np.concatenate(es), np.concatenate(As), np.concatenate(Ls),
                       np.concatenate(blocks), np.concatenate(clusters),
                       float(result.process_noise_std), rows)
@@ -178,11 +177,11 @@ def _design(reg, terms):
     return np.concatenate([reg.A, reg.L[:, list(terms)]], axis=1)
 
 
-def heldout_errors(reg, terms, n_blocks=N_BLOCKS):
-    """Return the held-out weighted squared equation error of every block, (n_blocks,)."""
+def heldout_errors(reg, terms):
+    """Return the held-out weighted squared equation error of every block, (N_BLOCKS,)."""
     X = _design(reg, terms)
-    out = np.empty(n_blocks)
-    for b in range(n_blocks):
+    out = np.empty(N_BLOCKS)
+    for b in range(N_BLOCKS):
         test = reg.block == b
         coef = np.linalg.lstsq(X[~test], reg.e[~test], rcond=None)[0]
         out[b] = float(np.sum((reg.e[test] - X[test] @ coef)**2))
@@ -228,10 +227,6 @@ class Proposal:
                           f'{N_BLOCKS} time blocks (t-test of the log ratios, level {ALPHA} '
                           f'over the terms tried, and by >= {MIN_IMPROVEMENT:.0%} in all); '
                           f'coefficient and σ from the output-error ML fit with the term'}
-
-    def text(self):
-        """Return one line for the text report."""
-        return summary_line(self.as_json())
 
 
 def summary_line(proposal):
@@ -307,52 +302,38 @@ def refine(experiments, unknowns, values, known, terms):
                             max_iter=30), extra
 
 
-def _worse(sse, best_sse, t_crit):
-    """Say whether held-out errors ``sse`` are worse than ``best_sse`` beyond chance."""
-    ratio = np.log(np.maximum(sse, 1e-300) / np.maximum(best_sse, 1e-300))
-    spread = float(np.std(ratio, ddof=1))
-    if spread == 0.0:
-        return bool(np.mean(ratio) > 0)
-    return bool(np.mean(ratio) / (spread / math.sqrt(ratio.size)) > t_crit)
-
-
-def propose(experiments, unknowns, values, known, max_terms=MAX_TERMS, n_blocks=N_BLOCKS,
-            alpha=ALPHA):
+def _log_ratio_t(before, after):
     """
-    Propose up to ``max_terms`` library terms of the flap equation (see the module docstring).
+    Return the t statistic of the blocks' log ratios of held-out errors (before/after), and them.
 
-    Parameters
-    ----------
-    experiments : list of Experiment
-        The baseline's runs (model, inputs, t, measured channels).
-    unknowns : list of str
-        The baseline's unknowns (re-estimated alongside every term).
-    values, known : dict
-        The baseline's estimates of the unknowns and the values of the known parameters.
-    max_terms : int
-        Most terms proposed.
-    n_blocks : int
-        Held-out time blocks.
-    alpha : float
-        Family-wise level of the held-out test at each step.
+    Per block log ratio: scale-free, so the blocks of a quiet trim and of the stirring count
+    alike.
+    """
+    ratio = np.log(np.maximum(before, 1e-300) / np.maximum(after, 1e-300))
+    spread = float(np.std(ratio, ddof=1))
+    if not spread > 0:
+        return (math.inf if np.mean(ratio) > 0 else 0.0), ratio
+    return float(np.mean(ratio)) / (spread / math.sqrt(ratio.size)), ratio
 
-    Returns
-    -------
-    Proposal
 
+def propose(experiments, unknowns, values, known):
+    """
+    Propose up to :data:`MAX_TERMS` library terms of the flap equation: :class:`Proposal`.
+
+    ``experiments``: the baseline's runs; ``unknowns`` (re-estimated beside every term), their
+    baseline ``values`` and the ``known`` parameters. The method is the module docstring's.
     """
     names = term_names()
     try:
-        reg = build_regressors(experiments, list(unknowns), dict(values), dict(known),
-                               n_blocks)
+        reg = build_regressors(experiments, list(unknowns), dict(values), dict(known))
     except FAILURES as exc:
         return Proposal(library=names, reason=f'equation error failed: {exc}')
     current = []
-    sse = heldout_errors(reg, current, n_blocks)
+    sse = heldout_errors(reg, current)
     before = float(math.sqrt(np.sum(sse) / reg.e.size))
     steps = []
-    for _ in range(max_terms):
-        step, best, trial = _forward_step(reg, current, sse, names, n_blocks, alpha)
+    for _ in range(MAX_TERMS):
+        step, best, trial = _forward_step(reg, current, sse, names)
         steps.append(step)
         if not step['kept']:
             break
@@ -365,28 +346,23 @@ def propose(experiments, unknowns, values, known, max_terms=MAX_TERMS, n_blocks=
                     heldout_rms_after=after, steps=steps, reason=reason)
 
 
-def _forward_step(reg, current, sse, names, n_blocks, alpha):
+def _forward_step(reg, current, sse, names):
     """Try each term left beside ``current``; return (step record, best term, its errors)."""
     left = [m for m in range(len(names)) if m not in current]
-    trials = {m: heldout_errors(reg, current + [m], n_blocks) for m in left}
+    trials = {m: heldout_errors(reg, current + [m]) for m in left}
     best = min(trials, key=lambda m: float(np.sum(trials[m])))
-    # per block log ratio: scale-free, so the blocks of a quiet trim and of the stirring
-    # count alike
-    gain = np.log(sse / np.maximum(trials[best], 1e-300))
-    spread = float(np.std(gain, ddof=1))
-    t_stat = float(np.mean(gain)) / (spread / math.sqrt(n_blocks)) if spread > 0 \
-        else (math.inf if np.mean(gain) > 0 else 0.0)
-    t_crit = float(stdtrit(n_blocks - 1, 1.0 - alpha / len(left)))
+    t_stat, gain = _log_ratio_t(sse, trials[best])
+    t_crit = float(stdtrit(N_BLOCKS - 1, 1.0 - ALPHA / len(left)))
     # a rival term is as good within chance unless worse at the one-sided 5 % level
-    t_alternative = float(stdtrit(n_blocks - 1, 0.95))
+    t_alternative = float(stdtrit(N_BLOCKS - 1, 0.95))
     improvement = float(1.0 - np.sum(trials[best]) / np.sum(sse))
     kept = bool(t_stat > t_crit and improvement >= MIN_IMPROVEMENT)
     step = {'term': names[best], 'heldout_improvement': improvement,
             't_statistic': t_stat, 't_critical': t_crit,
             'blocks_improved': int(np.sum(gain > 0)), 'kept': kept,
             'tried': {names[m]: float(1.0 - np.sum(trials[m]) / np.sum(sse)) for m in left},
-            'alternatives': [names[m] for m in left if m != best and not _worse(
-                trials[m], trials[best], t_alternative)]}
+            'alternatives': [names[m] for m in left if m != best
+                             and not _log_ratio_t(trials[m], trials[best])[0] > t_alternative]}
     return step, best, trials[best]
 
 
