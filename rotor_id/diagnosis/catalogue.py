@@ -42,12 +42,10 @@ FAILURES = (IdentificationError, np.linalg.LinAlgError, FloatingPointError, Valu
 #: first order in the flapping about trim.
 #: A pitch-actuator lag τ_a is the same delay of the flap behind the pitch to first order,
 #: and pitch-flap coupling (δ3) is a flap-stiffness change, exactly so at μ = 0 without a wake.
-EQUIVALENT = {'sensor_lag': ('time_delay', 'pitch_actuator_lag'),
-              'time_delay': ('sensor_lag', 'pitch_actuator_lag'),
-              'pitch_actuator_lag': ('time_delay', 'sensor_lag'),
-              'flap_frequency': ('cubic_stiffness', 'pitch_flap_coupling'),
-              'cubic_stiffness': ('flap_frequency', 'pitch_flap_coupling'),
-              'pitch_flap_coupling': ('flap_frequency', 'cubic_stiffness')}
+EQUIVALENT = {effect: tuple(e for e in group if e != effect)
+              for group in (('time_delay', 'sensor_lag', 'pitch_actuator_lag'),
+                            ('flap_frequency', 'cubic_stiffness', 'pitch_flap_coupling'))
+              for effect in group}
 #: Pairs of :data:`EQUIVALENT` that are one physics in hover only. In forward flight the
 #: pitch moment coefficient is periodic, m_θ = (B⁴ + B²μ²)/4 + (2/3)B³μ sin ψ − (B²μ²/4) cos 2ψ:
 #: δ3 adds a once-per-rev stiffness (2/3)B³μ / ((B⁴+B²μ²)/4) = 0.94 of its mean at μ = 0.4
@@ -572,22 +570,18 @@ def fit_candidate(job):
 #: ``periodic_coefficients`` is not nested by a parameter, ``dynamic_inflow``'s gain is far
 #: from linear (its benefit comes at a wake gain where the local test says little), and
 #: ``process_noise`` is the explanation of last resort (fitted only when needed).
-SCREENED = ('sensor_lag', 'time_delay', 'sensor_bias', 'blade_dissimilarity',
-            'flap_frequency', 'cubic_stiffness', 'pitch_flap_coupling', 'pitch_actuator_lag',
-            'sensor_gain', 'azimuth_offset')
+SCREENED = tuple(e for e in EFFECTS
+                 if e not in ('periodic_coefficients', 'dynamic_inflow', NOISE))
 
 
 def score_statistic(runs, unknowns, guess, known, noise_var, max_step=None, extra=()):
     """
     Score (Lagrange-multiplier) test of extra parameters at the current estimate: (LM, var).
 
-    LM = gᵀ M⁻¹ g with g the gradient of the output-error cost ½Σ r²/σ² and M the information
-    matrix, both at ``guess`` (current estimate, extra parameters at their neutral values,
-    initial states refitted); σ² is the current model's. LM is the Gauss-Newton prediction of
-    2Δlog L of the full fit and is χ²(k) under the null of no effect (Rao's score test), from
-    one sensitivity simulation and no refitting. ``var`` = {name: (M⁻¹)_jj} of the ``extra``
-    parameters: the variance their estimate would have here (the others profiled), from
-    which a detection limit follows.
+    LM = gᵀ M⁻¹ g, g the gradient of the output-error cost ½Σ r²/σ² and M the information at
+    ``guess`` (extra parameters neutral, initial states refitted, σ² the current model's):
+    Rao's statistic, χ²(k) without the effect. ``var`` = {name: (M⁻¹)_jj} of the ``extra``
+    parameters, the others profiled (a detection limit follows from it).
     """
     max_step = max_step or DEFAULT_MAX_STEP
     problem = Problem(runs, unknowns, guess, known).prepare(max_step)
@@ -612,11 +606,9 @@ def screen_candidate(job, noise_var):
     """
     Return [(variant, LM, k, var)] of a screened effect's score tests at the current model.
 
-    k counts the extra parameters and estimated extra initial states (the test's degrees of
-    freedom); var = {extra parameter: its variance here}. A blade dissimilarity is tested
-    per blade; a lag, which is not nested (τ > 0), by its first-order equivalent, the delay
-    d = τ nested at d = 0 of the flap reading or of the pitch (:data:`SCREENED_AS`; var then
-    under the lag's parameter name).
+    k: the extra parameters and estimated extra initial states; var: {extra parameter: its
+    variance here}. A blade dissimilarity is tested per blade; a lag (not nested: τ > 0) by
+    its delay d = τ at d = 0 (:data:`SCREENED_AS`; var under the lag's parameter name).
     """
     from rotor_id.pipeline import experiments_from_record, model_for
     base_model = model_for(job.description)

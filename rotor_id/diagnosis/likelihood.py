@@ -11,6 +11,7 @@ the search (:mod:`rotor_id.diagnosis.selection`) never asks which one it has.
 """
 
 from dataclasses import dataclass, field, replace
+from functools import cached_property
 import math
 import multiprocessing
 
@@ -182,12 +183,12 @@ class OutputError(Likelihood):
     def __init__(self, setting, ident, n_obs, workers=None):
         self.setting, self.ident, self.n_obs = setting, ident, n_obs
         self.workers = workers if workers is not None else Workers(1)
-        self.model = ident.model
         self._memo = {}
 
     def baseline(self):
         """Return the run's own fit (the empty explanation)."""
-        fit = CandidateFit(effect='baseline', estimate=self.ident.estimate, model=self.model,
+        ident = self.ident
+        fit = CandidateFit(effect='baseline', estimate=ident.estimate, model=ident.model,
                            unknowns=list(self.setting.unknowns))
         return self._result((), fit)
 
@@ -278,15 +279,12 @@ class FilterError(Likelihood):
         self.setting, self.n_obs = setting, n_obs
         self.base_names = set(baseline_names)
         self.workers = workers if workers is not None else Workers(1)
-        self._setup = None
         self._memo = {}
 
-    @property
+    @cached_property
     def setup(self):
         """Return the filter problem's shared parts (built on first use)."""
-        if self._setup is None:
-            self._setup = noisy.setup_for(self.setting)
-        return self._setup
+        return noisy.setup_for(self.setting)
 
     def _shared(self):
         """Return the setting as a worker needs it (without the fits made so far)."""

@@ -1,15 +1,11 @@
 """
 Filter-error (random-inflow) fits and score tests of the catalogue's models.
 
-Random inflow (``process_noise``) is a pitch-like angle with a first-order spectrum, its σ_V and
-correlation time τ_w estimated (:func:`random_inflow_states`); a model with it is fitted by the
-innovations likelihood J = ½ Σ_j [ν_jᵀ B_j⁻¹ ν_j + log|B_j|] (Ch.1 eq. 26) with the
-measurement σ's estimated (:func:`rotor_id.estimation.filter_error.fit_filter_error_ml`). The
-deterministic effects are the augmented models of the catalogue, stacked as output error's
-(:func:`rotor_id.diagnosis.catalogue.build`). Random inflow is one model in every such fit, so
-"random inflow alone", "random inflow + effect" and "effect + random inflow" are nested and
-compared under one noise model. :class:`rotor_id.diagnosis.likelihood.FilterError` wraps these
-functions in the likelihood interface of the selection.
+A model with random inflow (``process_noise``, :func:`random_inflow_states`) is fitted by the
+innovations likelihood J = ½ Σ_j [ν_jᵀ B_j⁻¹ ν_j + log|B_j|] (Ch.1 eq. 26) with σ_V, τ_w and
+the measurement σ's estimated; the deterministic effects are stacked as output error's
+(:func:`rotor_id.diagnosis.catalogue.build`). :class:`rotor_id.diagnosis.likelihood.FilterError`
+wraps these functions in the likelihood interface of the selection.
 """
 
 from dataclasses import dataclass
@@ -68,13 +64,10 @@ def _problem(runs, unknowns, guess, known, setup, sigma_v, max_step, start_est, 
     """
     Filter problem of a candidate and its θ at the current estimate (extra parts neutral).
 
-    Every θ entry the current estimate has (model unknowns, initial states, measurement σ's)
-    is taken from it; the candidate's extra parameters stay at their neutral values and its
-    extra initial states at their output-error fit. σ_V² is ``process_sigma``² if given.
-    ``refit_states``: a fit's start away from the current estimate; its initial states are
-    the current ones unless they make the start absurd, then all refitted there (a score
-    test is at the current estimate, where they are already the current model's optimum).
-    ``prob.start_cost`` is the filter's cost at the returned θ when it was evaluated here.
+    θ takes every entry the current estimate has; the extra parameters are neutral, the extra
+    initial states at their output-error fit or at rest. σ_V² is ``process_sigma``² if given.
+    ``refit_states``: a fit's start, whose initial states are refitted where the current ones
+    make it absurd. ``prob.start_cost``: the filter's cost at θ when evaluated here.
     """
     prob = FilterProblem(runs, unknowns, guess, known, setup.noise_std, sigma_v, True, rows,
                          'white', 'auto', max_step)
@@ -119,14 +112,11 @@ def _problem(runs, unknowns, guess, known, setup, sigma_v, max_step, start_est, 
         best = int(np.argmin(costs))
         theta, prob.start_cost = tries[best], float(costs[best])
     if refit_states:
-        # a filter-error fit can leave initial states far along a direction its own model
-        # barely sees, which another model sees (random inflow beside a blade difference has
-        # left β0(t0) at tens of radians, and every wake start beside them at a cost of
-        # 1e8-1e9). A start less likely by more than one unit of log-likelihood per
-        # observation than with all initial states refitted there is absurd (no noise
-        # level explains it) and takes the refitted ones; any other keeps the current
-        # estimate's, which a nearer start beats only by a start's transient, not by a
-        # better optimum
+        # a filter-error fit can leave initial states far along a direction only another model
+        # sees (β0(t0) at tens of radians beside a blade difference, every wake start beside
+        # them at a cost of 1e8-1e9). A start worse by more than one unit of log-likelihood
+        # per observation than with them refitted is absurd and takes the refitted ones; any
+        # other keeps the current estimate's (a nearer start gains only a transient)
         refitted = theta.copy()
         refitted[len(base.param_index):prob.n_base] = fitted_states[len(base.param_index):]
         cost = innovations_cost(prob.evaluate(refitted, sensitivities=False))
@@ -246,18 +236,12 @@ def _best_filter_start(job, model, runs, unknowns, guess, setup, max_step, est0,
     """
     Return (start, its filter problem, its θ): the most likely of output error's grid starts.
 
-    Effects whose likelihood has several valleys (the wake's gain and time constant, a lag's
-    τ, :func:`~rotor_id.diagnosis.catalogue.grid_starts`) are started where the filter, at the
-    current σ_V, finds them most likely: from the neutral values the first scoring steps
-    beside random inflow swing far (γ to twice its value, σ_V to its bound) and the fit ends,
-    within its iterations, in whichever valley the path found.
-
-    ``earlier``: the effect's fit beside fewer of the kept effects (:func:`earlier_fit`).
-    Its estimate, the effects added since at the current one's values, is one more start, at
-    its own σ_V: the same model approached from the other side. The current model's
-    parameters can sit in another valley than the effect needs (beside random inflow and a
-    blade difference, a wake fitted from the current Lock number can stop far below the same
-    three effects reached from the wake's own fit).
+    Effects whose likelihood has several valleys (:func:`~rotor_id.diagnosis.catalogue.
+    grid_starts`) start where the filter, at the current σ_V, finds them most likely: from the
+    neutral values the first scoring steps beside random inflow swing far (γ to twice its
+    value, σ_V to its bound). ``earlier`` (:func:`earlier_fit`), the same model approached
+    from the other side, is one more start at its own σ_V: the current model's parameters can
+    sit in another valley than the effect needs.
     """
     sigma0 = max(_sigma_v(est0), 1e-12)
     starts = [(g, sigma0) for g in [guess] + (grid_starts(job, model, guess) or [])]
@@ -298,21 +282,17 @@ def _fill(out, est, model, unknowns, extra):
     out.parameters = out.effect_parameters.get(out.effect, {})
 
 
-def random_inflow_states(runs, record):
+def random_inflow_states(runs):
     """
     Return (runs, process-noise rows, extra unknowns) of random inflow over a candidate's runs.
 
-    The one noise model of every filter-error fit of a diagnosis (random inflow alone, with
-    deterministic effects added to it, or added to them), so that they are nested: random
-    inflow as a pitch-like angle with a first-order spectrum
-    (:class:`~rotor_id.physics.augmented.PitchLikeRandomInflow`), its correlation time
-    τ_w estimated, on a wake model too. White noise on the flap-acceleration rows (the
-    default rows of a model without a wake) has neither the spectrum nor the direction of
-    turbulence; a wake's λ rows have its direction but the wake's time constant. Measured
-    (bench/results/diagnosis_pairs.md): a flap-frequency error beside turbulence in the wake
-    record gains more with the pitch-like states than with noise on λ.
+    The one noise model of every filter-error fit of a diagnosis, so that they are nested: a
+    pitch-like angle with a first-order spectrum (:class:`~rotor_id.physics.augmented.
+    PitchLikeRandomInflow`), on a wake model too. White noise on the flap-acceleration rows
+    has neither turbulence's spectrum nor its direction; a wake's λ rows have its direction
+    but the wake's time constant (bench/results/diagnosis_pairs.md).
     """
-    runs, model = augment_runs(runs, aug.PitchLikeRandomInflow, record)
+    runs, model = augment_runs(runs, aug.PitchLikeRandomInflow)
     return runs, list(model.extra_states), list(SHAPE)
 
 
@@ -329,7 +309,7 @@ def _stack(ctx, setup, kept, est, start):
         job = ctx.job(kept[-1][0], kept[-1][1], prior=tuple(kept[:-1]), start=start)
         runs, _, unknowns, extra, guess, max_step = build(job, setup.base_model,
                                                           setup.experiments)
-    runs, rows, shape = random_inflow_states(runs, ctx.record)
+    runs, rows, shape = random_inflow_states(runs)
     have = {} if est is None else est.model_parameters
     guess.update({name: have.get(name, SHAPE_START[name]) for name in shape})
     return job, runs, list(unknowns) + shape, extra, guess, max_step, rows

@@ -83,10 +83,8 @@ class Prior:
     """
     Uniform over sizes 0 … K, then over the sets of physics of a size, then over the forms.
 
-    Effects that are the same physics to first order in this record (a sensor lag, a delay
-    and a pitch-actuator lag; :func:`~rotor_id.diagnosis.catalogue.equivalent`) are one
-    physics: m counts the physics, and each form of one shares its weight. An effect's
-    variants (the odd blade: one of N) share it too.
+    First-order equivalents in this record (:func:`~rotor_id.diagnosis.catalogue.equivalent`)
+    are one physics, their forms sharing its weight, as an effect's variants do.
     """
 
     def __init__(self, effects, max_effects, n_blades, mu=0.0):
@@ -127,10 +125,8 @@ def posterior(candidates, prior, tempering=1.0):
     """
     Return [(candidate, probability)] over the table, most probable first.
 
-    Score-test approximations enter the normalisation but are never ranked above a fit of
-    the same size that explains more: they are predictions, not fits. ``tempering`` η ≤ 1
-    scales every log posterior (temperature scaling, p ∝ posterior^η): the ranking stays,
-    the odds shrink (see :attr:`SelectionPolicy.evidence_tempering`).
+    ``tempering`` η ≤ 1 scales every log posterior (p ∝ posterior^η: the ranking stays, the
+    odds shrink; :attr:`SelectionPolicy.evidence_tempering`).
     """
     rows = list(candidates)
     rho = shared_rho(rows)
@@ -192,26 +188,17 @@ class _Search:
         return fitted
 
     def screen(self, current):
-        """
-        Score-test every open effect at ``current``; return the requests worth fitting.
-
-        An effect is fitted when allowance·LM could give its explanation ``fit_share`` of the
-        posterior against ``current``; an effect without a score test, when it was fitted alone
-        and held that share against the baseline, or at the first step.
-        """
+        """Score-test every open effect at ``current``; return the requests worth fitting."""
         candidates, policy = self.candidates, self.policy
         rho = shared_rho(candidates.values())
-        here = self.tests.setdefault(current.effects, {})
+        here = tests_at(self.space, self, current)
         scored, unscored = [], []
         open_effects = _open_effects(current, self.effects, self.mu)
-        asked = [e for e in open_effects if e not in here]
-        fresh = self.space.score_many(current, asked) if asked else {}
         for effect in open_effects:
-            test = here.get(effect) or fresh.get(effect)
+            test = here.get(effect)
             if test is None:
                 unscored.append(effect)
                 continue
-            here[effect] = test
             key = canonical(current.effects + ((effect, test.variant),))
             if key not in candidates:
                 candidates[key] = Candidate(key, parent=current, test=test)
@@ -253,14 +240,7 @@ class _Search:
         return rho * loglik - 0.5 * k * math.log(cand.parent.n_obs * rho) + self.prior.log(key)
 
     def fit_step(self, requests):
-        """
-        Fit a step's requests [(bound, key, start)]; return the fits.
-
-        Branch and bound on the score tests' bound of the posterior (:meth:`bound`, evaluated
-        at the shared ρ as it stands): the requests that could be the step's best (bound within
-        ``fit_share`` of the highest, and those without a score test) first; then each other
-        whose bound still reaches ``fit_share`` of the best fit.
-        """
+        """Fit a step's requests [(bound, key, start)] by branch and bound; return the fits."""
         share = math.log(self.policy.fit_share)
         bounds = {key: self.bound(key) for _, key, _ in requests}
         top = max((b for b in bounds.values() if math.isfinite(b)), default=-math.inf)
@@ -276,12 +256,7 @@ class _Search:
         return fitted
 
     def restart_equivalents(self, fitted):
-        """
-        Refit a lag or delay that ended below its first-order equivalent's likelihood.
-
-        Started from the equivalent's estimate (a lag τ is a delay d = τ to first order); the
-        better of the two fits is kept.
-        """
+        """Refit a lag or delay that ended below its equivalent's likelihood from its estimate."""
         candidates = self.candidates
         by_key = {r.effects: r for r in fitted if r is not None}
         for res in list(by_key.values()):
@@ -324,14 +299,11 @@ class _Search:
 
     def exchange(self, best):
         """
-        Swap each effect of the final explanation for each strong single effect not in it.
+        Swap each effect of ``best`` for each deterministic effect that would be named alone.
 
-        Strong: fitted alone, it beats the baseline by posterior odds of 1/fit_share or more
-        (it would be named alone); random inflow is not swapped in (its own score test is
-        asked at every step, and a filter tracks any unmodelled dynamics). Forward steps
-        cannot undo an effect that stands in for another (per-blade gains for per-blade
-        offsets beside a lag); the swap is kept when it is more probable, and the exchange
-        repeated from there.
+        Forward steps cannot undo an effect that stands in for another (per-blade gains for
+        per-blade offsets beside a lag); random inflow is not swapped in (a filter tracks any
+        unmodelled dynamics). A more probable swap is kept and the exchange repeated.
         """
         candidates, log_post = self.candidates, self.log_post
         baseline = candidates[()].result
@@ -369,14 +341,9 @@ class _Search:
         """
         Return the explanations of one size to extend: the most probable ones, one per physics.
 
-        At most ``beam_width``, each of another physics than those before it (extending a delay
-        beside the lag it is equivalent to tests the same models again). However improbable
-        the second is, it is extended: a stand-in can hide the pair it stands in for by any
-        margin. Only explanations of the best one's likelihood are extended beside it (a
-        compute budget: a filter-error fit costs tens of output-error ones; random inflow is
-        score-tested on top of the best explanation at every step all the same), and only when
-        the best one leaves residuals that are not noise (``adequate``): otherwise nothing is
-        left that a pair could explain better than the effect standing in for it.
+        However improbable the second is, it is extended (a stand-in can hide the pair it
+        stands in for by any margin), if of the best one's likelihood (a filter-error fit
+        costs tens of output-error ones) and the best one's residuals are not noise.
         """
         if self.adequate(ranked[0]):
             return ranked[:1]
@@ -390,14 +357,7 @@ class _Search:
         return beam
 
     def forward(self, best, frontier):
-        """
-        Forward steps from ``frontier`` while the best of the next size is more probable.
-
-        Each step score-tests the open effects at each explanation of the frontier, fits the
-        promising ones (:meth:`fit_step`), adds the most probable when it beats ``best``,
-        checks backward, and extends the beam (:meth:`beam`) of that size next. Returns the
-        best explanation.
-        """
+        """Step forward from ``frontier`` while the next size's best beats ``best``; the best."""
         for size in range(len(frontier[0].effects) + 1, self.policy.max_effects + 1):
             requests = {}
             for current in frontier:
@@ -433,12 +393,10 @@ def search(space, effects, prior, policy, mu=0.0, say=None, adequate=None):
     """
     Forward steps guided by score tests, a backward check after each: :class:`Selection`.
 
-    ``space``: a :class:`~rotor_id.diagnosis.likelihood.Likelihood` with ``baseline()``,
-    ``fit_many`` and ``refit_from``; ``effects``: the catalogue ids it may use; ``mu``: the
-    advance ratio (which effects are first-order equivalents, never added together). Each
-    step extends the :attr:`~SelectionPolicy.beam_width` most probable explanations of the
-    last size (``adequate(result)``: whether a fit's residuals are noise); the search goes on
-    while the best of the new size is the most probable yet.
+    ``space``: a :class:`~rotor_id.diagnosis.likelihood.Likelihood` with ``baseline()`` and
+    ``refit_from``; ``effects``: the catalogue ids it may use; ``mu``: the advance ratio (which
+    effects are first-order equivalents); ``adequate(result)``: whether a fit's residuals are
+    noise. The steps are docs/diagnosis.md's §3.
     """
     run = _Search(space, effects, prior, policy, mu, say or (lambda text: None),
                   adequate or (lambda result: False))
@@ -456,10 +414,14 @@ def search(space, effects, prior, policy, mu=0.0, say=None, adequate=None):
                      effects=tuple(effects), mu=mu)
 
 
-def tests_at(space, selection, result):
-    """Return the score tests of every open effect at a fitted explanation (cached)."""
-    here = selection.tests.setdefault(result.effects, {})
-    asked = [e for e in _open_effects(result, selection.effects, selection.mu) if e not in here]
+def tests_at(space, table, result):
+    """
+    Return the score tests of every open effect at a fitted explanation (cached).
+
+    ``table``: a :class:`Selection` or the search in progress (``tests``, ``effects``, ``mu``).
+    """
+    here = table.tests.setdefault(result.effects, {})
+    asked = [e for e in _open_effects(result, table.effects, table.mu) if e not in here]
     for effect, test in (space.score_many(result, asked) if asked else {}).items():
         if test is not None:
             here[effect] = test
