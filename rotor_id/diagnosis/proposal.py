@@ -2,42 +2,31 @@
 Out of catalogue: propose a term of the flap equation from the equation error.
 
 When no catalogue effect explains a recording (verdict ``unexplained``), the mismatch may still
-be structured dynamics. This module asks which small physical term, added to every blade's
-flapping equation alike, the data want:
+be structured dynamics. Which small physical term, added to every blade's flapping equation
+alike, do the data want?
 
-1. Reconstruct the states from the measured channels with the baseline model: the iterated
-   equation error's Kalman filter and RTS smoother, with process noise on the
-   parameter-dependent rows chosen by likelihood, so the smoothed states follow the data where
-   the model is wrong (:func:`rotor_id.estimation.equation_error.fit_equation_error`, one pass).
-2. The equation error of the model's parameter-dependent rows, e = x′ − F x − g, against the
-   baseline's own regressors (``equation_error.regression``; always in, so a term is judged
-   for what it adds beyond re-estimating the baseline's unknowns) and a library of named
-   per-blade terms φ_k carried into the model's rows by the model's own blade-force matrix G
-   (x′ += ξ G φ, i.e. β_k″ += ξ φ_k on every blade):
+1. Reconstruct the states with the baseline model: the iterated equation error's Kalman filter
+   and RTS smoother, process noise on the parameter-dependent rows chosen by likelihood, so the
+   smoothed states follow the data where the model is wrong (one pass of
+   :func:`rotor_id.estimation.equation_error.fit_equation_error`).
+2. Regress the equation error of those rows, e = x′ − F x − g, on the baseline's own regressors
+   (always in: a term is judged for what it adds beyond re-estimating the baseline's unknowns)
+   and a library of per-blade terms φ_k carried into the rows by the model's blade-force matrix
+   G (x′ += ξ G φ, i.e. β_k″ += ξ φ_k): β_k, β_k′, θ_k (measured), 1, each alone and times
+   cos ψ_k and sin ψ_k.
+3. Forward stepwise, validated on :data:`N_BLOCKS` held-out contiguous time blocks: a term is
+   kept only if it lowers the held-out error in a one-sided t-test of the blocks' log ratios
+   at level :data:`ALPHA` (Bonferroni over the terms tried at that step), and by at least
+   :data:`MIN_IMPROVEMENT` in all.
+4. The kept terms' regression coefficients, σ by a cluster sandwich over :data:`N_CLUSTERS`
+   contiguous clusters (the smoothed states are serially correlated). Equation error attenuates
+   a coefficient where the smoothed states lean on the wrong model (bench/results/proposal.md),
+   so the baseline with the kept terms (:class:`LibraryTerm`) is fitted by output-error ML:
+   that coefficient and its Cramér-Rao σ are the proposal's.
 
-       β_k, β_k′, θ_k (measured blade pitch), 1,  each alone and times cos ψ_k and sin ψ_k.
-
-3. Forward stepwise regression with held-out time blocks: the record is cut into
-   :data:`N_BLOCKS` contiguous blocks; each candidate set is fitted on all blocks but one and
-   predicts the one left out. A term is kept only if it lowers the held-out equation error in
-   a one-sided t-test of the blocks' log ratios (error without / with the term) at level
-   :data:`ALPHA`, Bonferroni-corrected for the number of terms tried at that step, and by at
-   least :data:`MIN_IMPROVEMENT` of it in all.
-4. The kept terms' coefficients from the whole record, with σ from the regression covariance
-   made robust to the serial correlation of the smoothed states (cluster sandwich over
-   :data:`N_CLUSTERS` contiguous clusters; the plain regression covariance understates it, as
-   the report warns for equation error). Equation error attenuates a coefficient where the
-   smoothed states lean on the wrong model (bench/results/proposal.md), so the
-   baseline with the kept terms (:class:`LibraryTerm`) is then fitted by the same output-error
-   ML as every candidate: that coefficient and its Cramér-Rao σ are the proposal's, the
-   regression's are reported beside them.
-
-What comes out is labelled ``proposal``: a hypothesis for the experimenter (a term, its
-coefficient ± σ, how much it improves the held-out fit), never a catalogue verdict. Terms
-whose held-out error is not worse than the proposed one's beyond chance (the same t-test,
-one-sided 5 %, uncorrected: generous to rivals) are listed as ``alternatives``: e.g. β cos ψ
-and θ cos ψ are nearly collinear where the coning (∝ θ0) dominates the flap, and a small term
-may not tell them apart.
+The result is labelled ``proposal``, a hypothesis for the experimenter, never a catalogue
+verdict. Terms whose held-out error is not worse beyond chance (one-sided 5 %, uncorrected) are
+listed as ``alternatives``: β cos ψ and θ cos ψ are nearly collinear where the coning dominates.
 """
 
 from dataclasses import dataclass, field
