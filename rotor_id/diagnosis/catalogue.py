@@ -6,13 +6,14 @@ of :mod:`rotor_id.physics.augmented` for every run of the baseline, the unknowns
 baseline's plus the augmentation's) and its starting values (the baseline estimate plus the
 augmentation's neutral values). Fitting is the same output-error ML as the baseline
 (:func:`rotor_id.estimation.output_error.fit_output_error`), so likelihoods, Cramér-Rao bounds
-and residuals compare directly. ``process_noise`` uses the filter-error likelihood of
-:mod:`rotor_id.estimation.filter_error` when that module is present.
+and residuals compare directly. ``process_noise`` (random inflow) is fitted by filter error
+(:mod:`rotor_id.diagnosis.noisy`).
 """
 
 from dataclasses import dataclass, field
 from dataclasses import replace as _replace
 import math
+import sys
 import time
 
 import numpy as np
@@ -30,6 +31,10 @@ EFFECTS = ('dynamic_inflow', 'periodic_coefficients', 'sensor_lag', 'time_delay'
            'sensor_bias', 'blade_dissimilarity', 'process_noise', 'flap_frequency',
            'cubic_stiffness', 'pitch_flap_coupling', 'pitch_actuator_lag', 'sensor_gain',
            'azimuth_offset')
+#: Random inflow: the one effect fitted by filter error.
+NOISE = 'process_noise'
+#: The exceptions of a fit or a score test that fails (reported, never raised).
+FAILURES = (IdentificationError, np.linalg.LinAlgError, FloatingPointError, ValueError)
 
 #: Effects that a recording cannot tell apart at small size (the same physics to first
 #: order): a first-order sensor lag τ and a pure delay d = τ give the same flap to O(τ²); a
@@ -37,12 +42,10 @@ EFFECTS = ('dynamic_inflow', 'periodic_coefficients', 'sensor_lag', 'time_delay'
 #: first order in the flapping about trim.
 #: A pitch-actuator lag τ_a is the same delay of the flap behind the pitch to first order,
 #: and pitch-flap coupling (δ3) is a flap-stiffness change, exactly so at μ = 0 without a wake.
-EQUIVALENT = {'sensor_lag': ('time_delay', 'pitch_actuator_lag'),
-              'time_delay': ('sensor_lag', 'pitch_actuator_lag'),
-              'pitch_actuator_lag': ('time_delay', 'sensor_lag'),
-              'flap_frequency': ('cubic_stiffness', 'pitch_flap_coupling'),
-              'cubic_stiffness': ('flap_frequency', 'pitch_flap_coupling'),
-              'pitch_flap_coupling': ('flap_frequency', 'cubic_stiffness')}
+EQUIVALENT = {effect: tuple(e for e in group if e != effect)
+              for group in (('time_delay', 'sensor_lag', 'pitch_actuator_lag'),
+                            ('flap_frequency', 'cubic_stiffness', 'pitch_flap_coupling'))
+              for effect in group}
 #: Pairs of :data:`EQUIVALENT` that are one physics in hover only. In forward flight the
 #: pitch moment coefficient is periodic, m_θ = (B⁴ + B²μ²)/4 + (2/3)B³μ sin ψ − (B²μ²/4) cos 2ψ:
 #: δ3 adds a once-per-rev stiffness (2/3)B³μ / ((B⁴+B²μ²)/4) = 0.94 of its mean at μ = 0.4
@@ -133,7 +136,6 @@ class CandidateFit:
     reason: str = ''
     estimate: object = None
     model: object = None
-    experiments: list = field(default_factory=list)
     unknowns: list = field(default_factory=list)
     extra_names: list = field(default_factory=list)
     n_extra: int = 0
@@ -148,6 +150,12 @@ class CandidateFit:
     #: extra parameters still at a catalogue bound after widening: the likelihood is capped,
     #: so the candidate is reported but not compared
     bound_limited: list = field(default_factory=list)
+
+
+def start_values(fit):
+    """Return a fit's estimated model parameters (a start for a bigger or smaller model)."""
+    est = fit.estimate
+    return {n: est.model_parameters[n] for n in fit.unknowns if n in est.model_parameters}
 
 
 @dataclass
@@ -174,25 +182,17 @@ class Setting:
                    fit_tolerance=self.fit_tolerance, **options)
 
 
-def _free_of(exp, model, extra_free):
-    free = list(exp.free_states())
-    mode = exp.initial_state
-    if isinstance(mode, str) and mode == 'estimate':
-        free += [model.state_names.index(s) for s in extra_free]
-    return free
-
-
-def augment_runs(experiments, make, record, extra_inputs=None):
+def augment_runs(experiments, make, extra_inputs=None):
     """One augmented experiment per baseline run; returns (experiments, model of run 1)."""
     runs = []
     for exp in experiments:
         model = make(exp.model)
         inputs = exp.inputs
-        names = getattr(model, 'extra_inputs', ())
-        if names:
-            t_s, columns = extra_inputs(exp, model)
-            inputs = ExtendedInput(exp.inputs, t_s, columns)
-        free = _free_of(exp, model, getattr(model, 'free_extra_states', ()))
+        if getattr(model, 'extra_inputs', ()):
+            inputs = ExtendedInput(exp.inputs, *extra_inputs(exp, model))
+        free = list(exp.free_states())
+        if isinstance(exp.initial_state, str) and exp.initial_state == 'estimate':
+            free += [model.state_names.index(s) for s in model.free_extra_states]
         runs.append(AugmentedExperiment(model, inputs, exp.t, exp.y,
                                         initial_state=exp.initial_state, name=exp.name,
                                         free=free))
@@ -257,54 +257,47 @@ COMPOSE_ORDER = ('periodic_coefficients', 'flap_frequency', 'pitch_flap_coupling
                  'sensor_bias', 'azimuth_offset')
 
 
+#: The augmentation of each effect that wraps the model alone, and of each that is fed the
+#: measured pitch rates θ′ as extra inputs (the delays and the actuator lag).
+WRAPS = {'sensor_lag': aug.SensorLag, 'flap_frequency': aug.FlapFrequency,
+         'dynamic_inflow': aug.DynamicInflow, 'pitch_flap_coupling': aug.PitchFlapCoupling,
+         'azimuth_offset': aug.AzimuthOffset}
+FED_PITCH_RATES = {'time_delay': aug.TimeDelay, 'pitch_delay': aug.PitchDelay,
+                   'pitch_actuator_lag': aug.PitchActuatorLag}
+
+
 def _augment_one(effect, variant, record, experiments, unknowns=()):
     """
     Wrap every run's model in one effect's augmentation: (runs, model).
 
     ``unknowns``: the fitted parameters of the baseline (a sensor bias asks whether its
-    collective pitch is one).
+    collective pitch is one). ``pitch_delay`` is the actuator lag's score test (SCREENED_AS).
     """
-    if effect == 'sensor_lag':
-        return augment_runs(experiments, aug.SensorLag, record)
-    if effect == 'time_delay':
-        return augment_runs(experiments, aug.TimeDelay, record, _pitch_rates)
-    if effect == 'pitch_delay':              # the actuator lag's score test (SCREENED_AS)
-        return augment_runs(experiments, aug.PitchDelay, record, _pitch_rates)
+    if effect in WRAPS:
+        return augment_runs(experiments, WRAPS[effect])
+    if effect in FED_PITCH_RATES:
+        return augment_runs(experiments, FED_PITCH_RATES[effect], _pitch_rates)
     if effect == 'sensor_bias':
         t_all = np.concatenate([e.t for e in experiments])
-        return augment_runs(
-            experiments, lambda m: aug.SensorBias(
-                m, t_all, collective_fitted=aug.BladeView(m).model.collective in unknowns),
-            record)
-    if effect == 'flap_frequency':
-        return augment_runs(experiments, aug.FlapFrequency, record)
+        return augment_runs(experiments, lambda m: aug.SensorBias(
+            m, t_all, collective_fitted=aug.BladeView(m).model.collective in unknowns))
     if effect == 'cubic_stiffness':
-        return augment_runs(experiments, aug.CubicStiffness, record, _measured_flap_cubed(record))
-    if effect == 'dynamic_inflow':
-        return augment_runs(experiments, aug.DynamicInflow, record)
+        return augment_runs(experiments, aug.CubicStiffness, _measured_flap_cubed(record))
     if effect == 'blade_dissimilarity':
         blade = int((variant or 'blade_1').split('_')[1])
-        return augment_runs(experiments, lambda m: aug.BladeDissimilarity(m, blade), record)
-    if effect == 'pitch_flap_coupling':
-        return augment_runs(experiments, aug.PitchFlapCoupling, record)
-    if effect == 'pitch_actuator_lag':
-        return augment_runs(experiments, aug.PitchActuatorLag, record, _pitch_rates)
+        return augment_runs(experiments, lambda m: aug.BladeDissimilarity(m, blade))
     if effect == 'sensor_gain':
         def gain(m):
             blades = [b - 1 for b in aug.BladeView(m).blades]
             return aug.SensorGain(m, record.t, record.blade_flap[:, blades])
-        return augment_runs(experiments, gain, record)
-    if effect == 'azimuth_offset':
-        return augment_runs(experiments, aug.AzimuthOffset, record)
+        return augment_runs(experiments, gain)
     if effect == 'periodic_coefficients':
         if any(isinstance(e.model, aug.Augmented) for e in experiments):
             raise IdentificationError('periodic_coefficients replaces the rotor model and is '
                                       'stacked first')
-        runs = []
-        for exp in experiments:
-            sub = aug.periodic_coefficients(exp.model)
-            runs.append(Experiment(sub, exp.inputs, exp.t, exp.y,
-                                   initial_state=exp.initial_state, name=exp.name))
+        runs = [Experiment(aug.periodic_coefficients(exp.model), exp.inputs, exp.t, exp.y,
+                           initial_state=exp.initial_state, name=exp.name)
+                for exp in experiments]
         return runs, runs[0].model
     raise IdentificationError(f'unknown effect {effect!r}')
 
@@ -320,7 +313,7 @@ def layers(model):
 
 def build(job, baseline_model, experiments):
     """
-    Experiments, unknowns, guesses and RK4 step of a candidate.
+    Return (experiments, model, unknowns, extra, guess, RK4 step) of a candidate.
 
     The candidate is ``job.effect`` on top of the effects already kept (``job.prior``), all
     stacked in :data:`COMPOSE_ORDER` on the one rotor model. ``extra`` names the candidate's
@@ -356,20 +349,15 @@ def build(job, baseline_model, experiments):
     # exchange) carries parameters this model does not have: the fit refused them, so the
     # backward check never ran
     guess.update({n: v for n, v in (job.start or {}).items() if n in unknowns})
-    return runs, model, unknowns, extra, guess, max_step
+    return runs, model, unknowns, extra, guess, max_step or DEFAULT_MAX_STEP
 
 
 #: Most times a catalogue range is widened when a fit stops at it.
 MAX_WIDENINGS = 2
 
 
-def at_catalogue_bound(est, model, extra):
-    """[(name, 'lower'|'upper')] of extra parameters at a catalogue (not physical) bound."""
-    return bound_sides(est.model_parameters, model, extra)
-
-
 def bound_sides(values, model, extra):
-    """[(name, side)] of the extra parameters in ``values`` at a catalogue bound."""
+    """[(name, 'lower'|'upper')] of the extra parameters in ``values`` at a catalogue bound."""
     out = []
     for name in extra:
         layer = _layer_of(model, name)
@@ -415,20 +403,14 @@ def stop_at_bound(model, extra, show):
     return check
 
 
+#: The time constant of each lag effect (not nested: τ > 0; started from several values).
+LAG_PARAMETER = {'sensor_lag': 'lag_rad', 'pitch_actuator_lag': 'actuator_lag_rad'}
 #: Starts of a lag or delay from its first-order equivalent's fit: {effect: {equivalent:
 #: (its parameter, this effect's parameter)}}. A lag τ and a delay d = τ give the same flap to
 #: O(τ²), so one's estimate is a start of the other's fit near its optimum.
-FIRST_ORDER_START = {
-    'time_delay': {'sensor_lag': ('lag_rad', 'delay_rad'),
-                   'pitch_actuator_lag': ('actuator_lag_rad', 'delay_rad')},
-    'sensor_lag': {'time_delay': ('delay_rad', 'lag_rad'),
-                   'pitch_actuator_lag': ('actuator_lag_rad', 'lag_rad')},
-    'pitch_actuator_lag': {'time_delay': ('delay_rad', 'actuator_lag_rad'),
-                           'sensor_lag': ('lag_rad', 'actuator_lag_rad')},
-}
-
-#: The time constant of each lag effect (not nested: τ > 0; started from several values).
-LAG_PARAMETER = {'sensor_lag': 'lag_rad', 'pitch_actuator_lag': 'actuator_lag_rad'}
+_TIME = {'time_delay': 'delay_rad', **LAG_PARAMETER}
+FIRST_ORDER_START = {effect: {other: (_TIME[other], mine) for other in EQUIVALENT[effect]}
+                     for effect, mine in _TIME.items()}
 #: The nested first-order equivalent each lag is score-tested through: the delay d = τ, at
 #: d = 0, of what the lag delays: the flap reading (``time_delay``) or the blade pitch
 #: (:class:`~rotor_id.physics.augmented.PitchDelay`). In hover the two delays are one model;
@@ -446,7 +428,7 @@ def as_lag_variance(effect, variance):
     return {LAG_PARAMETER[effect]: variance.get(delay, math.nan)}
 
 
-def grid_starts(job, model, guess, unknowns):
+def grid_starts(job, model, guess):
     """
     Return the starting points of an effect whose likelihood has several valleys, or None.
 
@@ -455,20 +437,16 @@ def grid_starts(job, model, guess, unknowns):
     error :func:`rotor_id.diagnosis.noisy.fit_filter`).
     """
     if job.effect == 'dynamic_inflow':
-        return list(_wake_starts(model, guess, unknowns))
+        return list(_wake_starts(model, guess))
     if job.effect in LAG_PARAMETER and LAG_PARAMETER[job.effect] not in (job.start or {}):
-        return list(_lag_starts(model, guess, LAG_PARAMETER[job.effect]))
+        # τ from the smallest admissible up
+        name = LAG_PARAMETER[job.effect]
+        return [{**guess, name: model.parameter(name).lower * factor}
+                for factor in (1.0, 2.0, 4.0, 10.0, 30.0)]
     return None
 
 
-def _lag_starts(model, guess, name):
-    """Yield starting τ from the smallest admissible up (the best by cost starts the fit)."""
-    lower = model.parameter(name).lower
-    for factor in (1.0, 2.0, 4.0, 10.0, 30.0):
-        yield {**guess, name: lower * factor}
-
-
-def _wake_starts(model, guess, unknowns):
+def _wake_starts(model, guess):
     """
     Yield starting points for the wake.
 
@@ -488,33 +466,32 @@ def _wake_starts(model, guess, unknowns):
             yield start
 
 
-def _start_cost(runs, unknowns, start, known, max_step):
-    """
-    −log L of a starting point up to a constant, with R at its ML value, or inf.
-
-    The initial states are fitted (y is linear in them) and R is each channel's mean square
-    residual, so −log L = ½ Σ_runs T Σ_channels log(mean r²) + const: the same ranking as the
-    likelihood of a fit stopped at the start, from plain simulations (no sensitivities).
-    """
-    try:
-        problem = Problem(runs, unknowns, start, known)
-        theta = np.concatenate([problem.p_base[problem.param_index],
-                                np.zeros(len(problem.names) - len(problem.param_index))])
-        theta = fit_initial_states(problem, theta, max_step)
-        results = evaluate(problem, theta, max_step, sensitivities=False)
-        cost = 0.5 * sum(res.shape[0] * float(np.sum(np.log(np.mean(res**2, axis=0))))
-                         for res, _, _ in results)
-    except (IdentificationError, np.linalg.LinAlgError, FloatingPointError, ValueError):
-        return math.inf
-    return cost if math.isfinite(cost) else math.inf
+def _evaluated(problem, max_step, sensitivities=True):
+    """Evaluate a problem at its base values, the initial states fitted (y is linear in them)."""
+    theta = np.concatenate([problem.p_base[problem.param_index],
+                            np.zeros(len(problem.names) - len(problem.param_index))])
+    theta = fit_initial_states(problem, theta, max_step)
+    return evaluate(problem, theta, max_step, sensitivities=sensitivities)
 
 
 def _best_start(runs, unknowns, starts, known, max_step):
-    """Return the start of lowest −log L (:func:`_start_cost`), or None if none evaluates."""
+    """
+    Return the start of lowest −log L up to a constant, or None if none evaluates.
+
+    With the initial states fitted and R at its ML value, each channel's mean square residual,
+    −log L = ½ Σ_runs T Σ_channels log(mean r²) + const: the same ranking as the likelihood of
+    a fit stopped at the start, from plain simulations (no sensitivities).
+    """
     best, best_cost = None, math.inf
     for start in starts:
-        cost = _start_cost(runs, unknowns, start, known, max_step or DEFAULT_MAX_STEP)
-        if cost < best_cost:
+        try:
+            results = _evaluated(Problem(runs, unknowns, start, known), max_step,
+                                 sensitivities=False)
+            cost = 0.5 * sum(res.shape[0] * float(np.sum(np.log(np.mean(res**2, axis=0))))
+                             for res, _, _ in results)
+        except FAILURES:
+            continue
+        if math.isfinite(cost) and cost < best_cost:
             best, best_cost = start, cost
     return best
 
@@ -522,7 +499,6 @@ def _best_start(runs, unknowns, starts, known, max_step):
 def _printer(label, verbose):
     if not verbose:
         return None
-    import sys
 
     def show(info):
         rms = math.sqrt(float(np.mean(np.square(info['noise_std']))))
@@ -554,15 +530,14 @@ def fit_candidate(job):
         for widening in range(MAX_WIDENINGS + 1):
             runs, model, unknowns, extra, guess, max_step = build(job, base_model,
                                                                   experiments)
-            kw = {'max_step': max_step} if max_step else {}
-            starts = grid_starts(job, model, guess, unknowns)
+            starts = grid_starts(job, model, guess)
             if starts is not None:
                 guess = _best_start(runs, unknowns, starts, job.known, max_step) or guess
-            fit_kw = dict(known=job.known, label=label, **kw,
-                          progress=stop_at_bound(model, extra, _printer(label, job.verbose)))
-            est = fit_output_error(runs, unknowns, guess=guess, max_iter=40,
-                                   step_tol=job.fit_tolerance, **fit_kw)
-            at_bound = at_catalogue_bound(est, model, extra)
+            est = fit_output_error(
+                runs, unknowns, guess=guess, known=job.known, max_iter=40,
+                step_tol=job.fit_tolerance, max_step=max_step, label=label,
+                progress=stop_at_bound(model, extra, _printer(label, job.verbose)))
+            at_bound = bound_sides(est.model_parameters, model, extra)
             out.bounds = dict(job.bounds or {})
             out.bound_limited = [name for name, _ in at_bound]
             wider = {name: _layer_of(model, name).widened(name, side)
@@ -580,16 +555,13 @@ def fit_candidate(job):
         out.elapsed_s = time.perf_counter() - t_start
         return out
     out.estimate, out.model, out.unknowns, out.extra_names = est, model, unknowns, extra
-    out.experiments = runs
     out.n_extra = len(est.names) - len(job.unknowns) - _n_initial(experiments)
     out.effect_parameters.update(effect_parameters(est, model))
     out.parameters = out.effect_parameters.get(job.effect, {})
     out.elapsed_s = time.perf_counter() - t_start
     if job.verbose:
-        import sys
         sys.stderr.write(f'  [{label}] done in {out.elapsed_s:.1f} s\n')
         sys.stderr.flush()
-    out.experiments = []            # keep the result small for the trip back to the parent
     return out
 
 
@@ -598,30 +570,22 @@ def fit_candidate(job):
 #: ``periodic_coefficients`` is not nested by a parameter, ``dynamic_inflow``'s gain is far
 #: from linear (its benefit comes at a wake gain where the local test says little), and
 #: ``process_noise`` is the explanation of last resort (fitted only when needed).
-SCREENED = ('sensor_lag', 'time_delay', 'sensor_bias', 'blade_dissimilarity',
-            'flap_frequency', 'cubic_stiffness', 'pitch_flap_coupling', 'pitch_actuator_lag',
-            'sensor_gain', 'azimuth_offset')
+SCREENED = tuple(e for e in EFFECTS
+                 if e not in ('periodic_coefficients', 'dynamic_inflow', NOISE))
 
 
 def score_statistic(runs, unknowns, guess, known, noise_var, max_step=None, extra=()):
     """
     Score (Lagrange-multiplier) test of extra parameters at the current estimate: (LM, var).
 
-    LM = gᵀ M⁻¹ g with g the gradient of the output-error cost ½Σ r²/σ² and M the information
-    matrix, both at ``guess`` (current estimate, extra parameters at their neutral values,
-    initial states refitted); σ² is the current model's. LM is the Gauss-Newton prediction of
-    2Δlog L of the full fit and is χ²(k) under the null of no effect (Rao's score test), from
-    one sensitivity simulation and no refitting. ``var`` = {name: (M⁻¹)_jj} of the ``extra``
-    parameters: the variance their estimate would have here (the others profiled), from
-    which a detection limit follows.
+    LM = gᵀ M⁻¹ g, g the gradient of the output-error cost ½Σ r²/σ² and M the information at
+    ``guess`` (extra parameters neutral, initial states refitted, σ² the current model's):
+    Rao's statistic, χ²(k) without the effect. ``var`` = {name: (M⁻¹)_jj} of the ``extra``
+    parameters, the others profiled (a detection limit follows from it).
     """
     max_step = max_step or DEFAULT_MAX_STEP
     problem = Problem(runs, unknowns, guess, known).prepare(max_step)
-    k = len(problem.names)
-    theta = np.concatenate([problem.p_base[problem.param_index],
-                            np.zeros(k - len(problem.param_index))])
-    theta = fit_initial_states(problem, theta, max_step)
-    results = evaluate(problem, theta, max_step)
+    results = _evaluated(problem, max_step)
     inv_var = 1.0 / np.asarray(noise_var, dtype=float)
     grad = -sum(np.einsum('tmi,m,tm->i', dy, inv_var, res) for res, dy, _ in results)
     M = information_matrix([dy for _, dy, _ in results], noise_var)
@@ -642,11 +606,9 @@ def screen_candidate(job, noise_var):
     """
     Return [(variant, LM, k, var)] of a screened effect's score tests at the current model.
 
-    k counts the extra parameters and estimated extra initial states (the test's degrees of
-    freedom); var = {extra parameter: its variance here}. A blade dissimilarity is tested
-    per blade; a lag, which is not nested (τ > 0), by its first-order equivalent, the delay
-    d = τ nested at d = 0 of the flap reading or of the pitch (:data:`SCREENED_AS`; var then
-    under the lag's parameter name).
+    k: the extra parameters and estimated extra initial states; var: {extra parameter: its
+    variance here}. A blade dissimilarity is tested per blade; a lag (not nested: τ > 0) by
+    its delay d = τ at d = 0 (:data:`SCREENED_AS`; var under the lag's parameter name).
     """
     from rotor_id.pipeline import experiments_from_record, model_for
     base_model = model_for(job.description)
@@ -655,7 +617,7 @@ def screen_candidate(job, noise_var):
     effect = job.effect
     if effect in LAG_PARAMETER:
         job = _replace(job, effect=SCREENED_AS[effect])
-    blades = _blades_of(base_model, job.record) if effect == 'blade_dissimilarity' else [None]
+    blades = aug.BladeView(base_model).blades if effect == 'blade_dissimilarity' else [None]
     out = []
     for blade in blades:
         trial = job if blade is None else _replace(job, variant=f'blade_{blade}')
@@ -681,7 +643,7 @@ def _screen_blade(job, base_model, experiments):
     """
     best, best_cost = None, math.inf
     blades = [int(job.variant.split('_')[1])] if job.variant else \
-        _blades_of(base_model, job.record)
+        aug.BladeView(base_model).blades
     for blade in blades:
         for eps in DISSIMILARITY_STARTS:
             trial = _replace(job, variant=f'blade_{blade}',
@@ -699,11 +661,6 @@ def _screen_blade(job, base_model, experiments):
     return best
 
 
-def _blades_of(model, record):
-    """Blade numbers a model sees."""
-    return aug.BladeView(model).blades
-
-
 def _n_initial(experiments):
     return sum(len(e.free_states()) for e in experiments)
 
@@ -712,21 +669,15 @@ def effect_parameters(est, model):
     """Return {effect: its parameters ± σ as reported} for each augmentation layer of a fit."""
     if not layers(model):
         return {}
-    p_full = np.array([est.model_parameters[n] for n in model.parameter_names])
-    cov_full = _full_covariance(est, model)
+    names = model.parameter_names
+    p_full = np.array([est.model_parameters[n] for n in names])
+    # the covariance over the model's full parameter vector (zero rows for known ones)
+    mine = [i for i, n in enumerate(names) if n in est.names]
+    theirs = [est.names.index(names[i]) for i in mine]
+    cov_full = np.zeros((len(names), len(names)))
+    cov_full[np.ix_(mine, mine)] = np.asarray(est.covariance)[np.ix_(theirs, theirs)]
     found = {}
     for layer in layers(model):
         n = len(layer.parameters)          # its base's parameters, then its own
         found[layer.effect] = layer.report_parameters(p_full[:n], cov_full[:n, :n])
     return found
-
-
-def _full_covariance(est, model):
-    """Covariance over the model's full parameter vector (zero rows for known ones)."""
-    names = model.parameter_names
-    cov = np.zeros((len(names), len(names)))
-    idx = [(i, est.names.index(n)) for i, n in enumerate(names) if n in est.names]
-    for i, a in idx:
-        for j, b in idx:
-            cov[i, j] = est.covariance[a, b]
-    return cov

@@ -21,7 +21,7 @@ import time
 import numpy as np
 
 from rotor_id import residuals as rs
-from rotor_id.diagnosis.catalogue import applicable, EFFECTS, Setting
+from rotor_id.diagnosis.catalogue import applicable, EFFECTS, NOISE, Setting
 from rotor_id.diagnosis.likelihood import FilterError, ModelSpace, OutputError, Workers
 from rotor_id.diagnosis.policy import DEFAULT_POLICY
 from rotor_id.diagnosis.result import Diagnosis
@@ -32,8 +32,6 @@ from rotor_id.estimation.simulate import simulate
 from rotor_id.physics.augmented import BladeView
 from rotor_id.physics.multiblade import coordinate_names, multiblade_from_blade_matrix
 from rotor_id.pipeline import identify
-
-NOISE = 'process_noise'
 
 
 @dataclass
@@ -100,10 +98,12 @@ def baseline_channels(ident, part, blade_sigma):
     return channels
 
 
-def _location(channels, stats_base, t, part, mismatch, n_ch):
-    flagged = [c for c, s in zip(channels, stats_base) if s.flagged(n_ch)]
+def _location(base, mismatch):
+    """Return where the baseline's misfit is: flagged channels, band per rev, time window."""
+    channels, t, part = base.channels, base.t, base.part
+    flagged = [c for c, s in zip(channels, base.stats) if s.flagged(len(base.stats))]
     if not flagged and mismatch:
-        order = sorted(zip(channels, stats_base), key=lambda cs: -cs[1].z_excess)
+        order = sorted(zip(channels, base.stats), key=lambda cs: -cs[1].z_excess)
         flagged = [c for c, s in order if s.z_excess > 2.0][:4] or [order[0][0]]
     use = flagged or [c for c in channels if c.model_channel]
     dt = float(np.median(np.diff(t)))
@@ -181,7 +181,7 @@ def misfit_removed(result, base):
     return float((before - after) / before) if before > 0.0 else 0.0
 
 
-def _baseline(record, description, window_s, say, t_start):
+def _baseline(record, description, window_s, say):
     def base_progress(info):
         rms = math.sqrt(float(np.mean(np.square(info['noise_std']))))
         say(f'baseline: iteration {info["iteration"]}, residual RMS {rms:.5g} rad')
@@ -194,14 +194,6 @@ def _baseline(record, description, window_s, say, t_start):
     stats = [rs.channel_stats(c.name, c.residual, c.floor, u, c.n_blades, exp0.t)
              for c in channels]
     return Baseline(ident, part, blade_sigma, channels, stats, exp0.t, u)
-
-
-def _filter_error_available():
-    try:
-        import rotor_id.estimation.filter_error  # noqa: F401
-    except ImportError:
-        return False
-    return True
 
 
 def _space(record, description, base, window_s, effects, workers, verbose, policy):
@@ -219,12 +211,8 @@ def _space(record, description, base, window_s, effects, workers, verbose, polic
     usable = [e for e in effects if e != NOISE and not not_tried[e]]
     noise, pool = None, Workers(workers)
     if NOISE in effects:
-        if _filter_error_available():
-            noise = FilterError(setting, n_obs, est.names, pool)
-            usable.append(NOISE)
-        else:
-            not_tried[NOISE] = ('the filter-error likelihood (rotor_id.estimation.filter_error) '
-                                'is not installed in this build')
+        noise = FilterError(setting, n_obs, est.names, pool)
+        usable.append(NOISE)
     space = ModelSpace(OutputError(setting, ident, n_obs, pool), noise, usable)
     return space, usable, {e: why for e, why in not_tried.items() if why}
 
@@ -262,7 +250,7 @@ def _proposal(explanation, base, say):
     """Return the equation-error proposal of an out-of-catalogue verdict (or random inflow)."""
     if explanation.effect != 'unexplained' and explanation.names != (NOISE,):
         return None
-    from rotor_id.diagnosis.proposal import propose
+    from rotor_id.diagnosis.proposal import propose, summary_line
     ident = base.ident
     est = ident.estimate
     say('proposal: stepwise regression of the equation error on a library of flap-equation '
@@ -271,7 +259,7 @@ def _proposal(explanation, base, say):
     proposal = propose(ident.experiments, unknowns,
                        {n: est.model_parameters[n] for n in unknowns},
                        {n: v for n, v in est.model_parameters.items() if n not in unknowns})
-    say(proposal.text())
+    say(summary_line(proposal.as_json()))
     return proposal
 
 
@@ -293,31 +281,12 @@ def _path(selection, chosen):
 def diagnose(record, description, progress=None, workers=2, effects=EFFECTS, window_s=None,
              verbose_fits=False, policy=DEFAULT_POLICY):
     """
-    Diagnose the mismatch between a recording and the run description's model.
+    Diagnose the mismatch between a recording (rad, s) and the run description's model.
 
-    Parameters
-    ----------
-    record : rotor_id.io.record.Record
-        The recording (rad, s), e.g. from :func:`rotor_id.io.bag.read_run` or a live buffer.
-    description : rotor_id.io.run_description.RunDescription
-        The run description: model, unknowns, window, rotor data.
-    progress : callable, optional
-        Called with one line of text per step.
-    workers : int
-        Worker processes for the candidate fits (1: all in this process).
-    effects : sequence of str
-        Catalogue ids to try (default: all).
-    window_s : (float, float), optional
-        Overrides the description's window.
-    verbose_fits : bool
-        Worker processes print every Gauss-Newton iteration to stderr.
-    policy : SelectionPolicy
-        The selection's and the verdict's thresholds.
-
-    Returns
-    -------
-    Diagnosis
-
+    ``progress`` is called with one line of text per step; ``workers``: processes for the
+    candidate fits (1: all in this process); ``effects``: the catalogue ids to try;
+    ``window_s`` overrides the description's window; ``verbose_fits``: the workers print every
+    Gauss-Newton iteration to stderr; ``policy``: the selection's and the verdict's thresholds.
     """
     t_start = time.perf_counter()
     window_s = tuple(window_s or description.window_s)
@@ -327,7 +296,7 @@ def diagnose(record, description, progress=None, workers=2, effects=EFFECTS, win
             progress(f'{text} ({time.perf_counter() - t_start:.1f} s)')
     say(f'baseline: fitting {description.model} ({", ".join(description.unknowns)})')
     kernels.prefer()                # every candidate simulates: the compiled path from the start
-    base = _baseline(record, description, window_s, say, t_start)
+    base = _baseline(record, description, window_s, say)
     space, usable, not_tried = _space(record, description, base, window_s, effects, workers,
                                       verbose_fits, policy)
     mu = base.ident.model.rotor.advance_ratio
@@ -351,8 +320,7 @@ def diagnose(record, description, progress=None, workers=2, effects=EFFECTS, win
     chosen = top.result if top.effects else None
     stats_aug = residual_stats(chosen, base) if chosen is not None else base.model_stats
     mismatch = explanation.effect != 'none'
-    n_ch = len(base.stats)
-    location = _location(base.channels, base.stats, base.t, base.part, mismatch, n_ch)
+    location = _location(base, mismatch)
     elapsed = time.perf_counter() - t_start
     say(f'diagnosis: {explanation.effect} ({explanation.confidence} confidence, '
         f'p = {explanation.probability:.3f})')

@@ -11,22 +11,18 @@ the search (:mod:`rotor_id.diagnosis.selection`) never asks which one it has.
 """
 
 from dataclasses import dataclass, field, replace
+from functools import cached_property
 import math
 import multiprocessing
-from typing import Protocol
 
 import numpy as np
 
 from rotor_id import residuals as rs
 from rotor_id.diagnosis import noisy
 from rotor_id.diagnosis.catalogue import (
-    as_lag_variance, CandidateFit, COMPOSE_ORDER, EFFECTS, fit_candidate, LAG_PARAMETER,
-    screen_candidate, SCREENED, SCREENED_AS)
+    as_lag_variance, CandidateFit, COMPOSE_ORDER, EFFECTS, FAILURES, fit_candidate,
+    LAG_PARAMETER, NOISE, screen_candidate, SCREENED, SCREENED_AS, start_values)
 from rotor_id.estimation import kernels
-from rotor_id.estimation.output_error import IdentificationError
-
-NOISE = 'process_noise'
-FAILURES = (IdentificationError, np.linalg.LinAlgError, FloatingPointError, ValueError)
 
 
 class Workers:
@@ -91,46 +87,13 @@ class FitResult:
         return tuple(e for e, _ in self.effects)
 
     @property
-    def n_eff(self):
-        """Return the autocorrelation-corrected number of observations N·ρ."""
-        return self.n_obs * self.rho
-
-    @property
     def estimate(self):
         """Return the fit's estimate: residuals, covariance, parameters."""
         return self.fit.estimate
 
-    @property
-    def covariance(self):
-        """Return the Cramér-Rao covariance of the estimate."""
-        return self.fit.estimate.covariance
-
-    def log_evidence(self, rho=None):
-        """
-        BIC approximation of log p(data | explanation) up to a shared constant.
-
-        ρ·log L − ½ k log(Nρ): the log-likelihood tempered by the residuals' effective
-        fraction ρ (a quasi-likelihood for correlated residuals) and the Laplace/BIC charge
-        per parameter with the effective sample size. ``rho``: the shared ρ of a comparison.
-        """
-        rho = self.rho if rho is None else rho
-        return rho * self.loglik - 0.5 * self.n_params * math.log(self.n_obs * rho)
-
-    @property
-    def bic(self):
-        """Return the BIC with the autocorrelation-corrected sample size (lower is better)."""
-        return -2.0 * self.log_evidence()
-
-    @property
-    def aic(self):
-        """Return the AIC of the tempered likelihood (lower is better)."""
-        return -2.0 * self.rho * self.loglik + 2.0 * self.n_params
-
     def start_values(self):
         """Return the estimate's model parameters (a start for a bigger or smaller model)."""
-        est = self.fit.estimate
-        return {n: est.model_parameters[n] for n in self.fit.unknowns
-                if n in est.model_parameters}
+        return start_values(self.fit)
 
 
 @dataclass
@@ -146,21 +109,43 @@ class ScoreTest:
     variance: dict = field(default_factory=dict)
 
 
-class Likelihood(Protocol):
-    """What the search needs of a likelihood: fits of explanations and score tests."""
+class Likelihood:
+    """
+    What the search needs of a likelihood: fits of explanations and score tests.
 
-    def fit(self, effects: tuple, start: FitResult) -> FitResult:
+    A likelihood gives ``fit_many([(effects, start)])`` (results, None where a fit failed) and
+    ``score_many(current, effects)`` ({effect: ScoreTest, None where not nested}), each batch
+    in worker processes; :meth:`fit` and :meth:`score` are one of each.
+    """
+
+    def fit(self, effects: tuple, start: FitResult | None) -> FitResult | None:
         """Fit the explanation ``effects`` started from ``start``'s values (None: failed)."""
+        return self.fit_many([(effects, start)])[0]
 
-    def score(self, current: FitResult, effect: str) -> ScoreTest:
+    def score(self, current: FitResult, effect: str) -> ScoreTest | None:
         """Score-test ``effect`` at the fitted ``current`` (None: not nested, fit it)."""
+        return self.score_many(current, [effect])[effect]
+
+    def fit_many(self, requests: list) -> list:
+        """Fit [(effects, start)]: a result each, None where the fit failed."""
+        raise NotImplementedError
 
     def score_many(self, current: FitResult, effects: list) -> dict:
         """Score-test several effects at ``current``: {effect: ScoreTest or None}."""
+        raise NotImplementedError
 
 
-def _failed(effects, fit):
-    return fit is None or not fit.available
+def _fit_result(effects, fit, n_params, n_obs, likelihood, innovations=False):
+    """Return the :class:`FitResult` of a CandidateFit (None for a failed one)."""
+    if fit is None or not fit.available:
+        return None
+    est = fit.estimate
+    res = np.concatenate(est.residuals, axis=0)
+    return FitResult(effects=effects, loglik=-float(est.neg_log_likelihood),
+                     n_params=n_params, n_obs=n_obs,
+                     rho=rs.channels_effective_fraction(res, innovations),
+                     converged=bool(est.converged), at_bound=tuple(fit.bound_limited),
+                     fit=fit, likelihood=likelihood, elapsed_s=float(fit.elapsed_s))
 
 
 def _best_variant(effect, tests):
@@ -190,7 +175,7 @@ def _as_lag(effect, test):
                      as_lag_variance(effect, test.variance))
 
 
-class OutputError:
+class OutputError(Likelihood):
     """Deterministic explanations by output-error ML; the baseline is the run's own fit."""
 
     name = 'output error'
@@ -198,24 +183,18 @@ class OutputError:
     def __init__(self, setting, ident, n_obs, workers=None):
         self.setting, self.ident, self.n_obs = setting, ident, n_obs
         self.workers = workers if workers is not None else Workers(1)
-        self.model = ident.model
         self._memo = {}
 
     def baseline(self):
         """Return the run's own fit (the empty explanation)."""
-        est = self.ident.estimate
-        fit = CandidateFit(effect='baseline', estimate=est, model=self.model,
+        ident = self.ident
+        fit = CandidateFit(effect='baseline', estimate=ident.estimate, model=ident.model,
                            unknowns=list(self.setting.unknowns))
         return self._result((), fit)
 
     def _result(self, effects, fit):
-        res = np.concatenate(fit.estimate.residuals, axis=0)
-        return FitResult(effects=effects, loglik=-float(fit.estimate.neg_log_likelihood),
-                         n_params=max(int(fit.n_extra), 0), n_obs=self.n_obs,
-                         rho=rs.channels_effective_fraction(res),
-                         converged=bool(fit.estimate.converged),
-                         at_bound=tuple(fit.bound_limited), fit=fit, likelihood=self.name,
-                         elapsed_s=float(fit.elapsed_s))
+        n_params = 0 if fit is None else max(int(fit.n_extra), 0)
+        return _fit_result(effects, fit, n_params, self.n_obs, self.name)
 
     def _job(self, effects, start):
         """Return the job of ``effects``: its own effect the one ``start`` lacks (last added)."""
@@ -234,33 +213,17 @@ class OutputError:
         todo = {k: self._job(k, start) for k, (_, start) in zip(keys, requests)
                 if k and k not in self._memo}
         fits = self.workers.apply(fit_candidate, todo.values())
-        for key, fit in zip(todo, fits):
-            self._memo[key] = None if _failed(key, fit) else self._result(key, fit)
+        self._memo.update((key, self._result(key, fit)) for key, fit in zip(todo, fits))
         return [self.baseline() if not k else self._memo[k] for k in keys]
 
-    def fit(self, effects, start):
-        """Fit one explanation (see :class:`Likelihood`)."""
-        return self.fit_many([(effects, start)])[0]
-
     def refit_from(self, effects, values):
-        """
-        Fit an explanation again from the start ``values``; keep it if its likelihood is higher.
-
-        Returns the better of the two results.
-        """
+        """Fit an explanation again from the start ``values``; return the better of the two."""
         key = canonical(effects)
-        job = replace(self._job(key, None), start=dict(values))
-        fit = fit_candidate(job)
+        new = self._result(key, fit_candidate(replace(self._job(key, None), start=dict(values))))
         old = self._memo.get(key)
-        if not _failed(key, fit):
-            new = self._result(key, fit)
-            if old is None or new.loglik > old.loglik:
-                self._memo[key] = new
+        if new is not None and (old is None or new.loglik > old.loglik):
+            self._memo[key] = new
         return self._memo.get(key)
-
-    def score(self, current, effect):
-        """Score-test a deterministic effect at an output-error fit (None: not nested)."""
-        return self.score_many(current, [effect])[effect]
 
     def score_many(self, current, effects):
         """
@@ -307,7 +270,7 @@ def _filter_score_job(item):
         return None
 
 
-class FilterError:
+class FilterError(Likelihood):
     """Explanations with random inflow, by filter-error ML (innovations likelihood)."""
 
     name = 'filter error'
@@ -316,31 +279,25 @@ class FilterError:
         self.setting, self.n_obs = setting, n_obs
         self.base_names = set(baseline_names)
         self.workers = workers if workers is not None else Workers(1)
-        self._setup = None
         self._memo = {}
 
-    @property
+    @cached_property
     def setup(self):
         """Return the filter problem's shared parts (built on first use)."""
-        if self._setup is None:
-            self._setup = noisy.setup_for(self.setting)
-        return self._setup
+        return noisy.setup_for(self.setting)
 
     def _shared(self):
         """Return the setting as a worker needs it (without the fits made so far)."""
         return replace(self.setting, filter_fits=[])
 
     def _result(self, effects, fit):
-        est = fit.estimate
+        if fit is None or not fit.available:
+            return None
+        # not counted: the measurement σ's (output error's R alike), random inflow's states
         measured = {noisy.measurement_noise_name(c) for c in fit.model.output_names}
-        inflow_states = tuple(noisy.INFLOW_STATES)
-        k = len([n for n in est.names if n not in self.base_names and n not in measured
-                 and not n.startswith(inflow_states)])
-        res = np.concatenate(est.residuals, axis=0)
-        return FitResult(effects=effects, loglik=-float(est.neg_log_likelihood), n_params=k,
-                         n_obs=self.n_obs, rho=rs.channels_effective_fraction(res, True),
-                         converged=bool(est.converged), at_bound=tuple(fit.bound_limited),
-                         fit=fit, likelihood=self.name, elapsed_s=float(fit.elapsed_s))
+        k = len([n for n in fit.estimate.names if n not in self.base_names and n not in measured
+                 and not n.startswith(noisy.INFLOW_STATES)])
+        return _fit_result(effects, fit, k, self.n_obs, self.name, innovations=True)
 
     def _request(self, key, start):
         """
@@ -370,14 +327,10 @@ class FilterError:
             if key not in self._memo and key not in todo:
                 todo[key] = self._request(key, start)
         for key, fit in zip(todo, self.workers.apply(_filter_fit_job, todo.values())):
-            self._memo[key] = None if _failed(key, fit) else self._result(key, fit)
+            self._memo[key] = self._result(key, fit)
             if self._memo[key] is not None:
                 self.setting.filter_fits.append(fit)
         return [self._memo[k] for k in keys]
-
-    def fit(self, effects, start):
-        """Fit one explanation with random inflow in it (see :class:`Likelihood`)."""
-        return self.fit_many([(effects, start)])[0]
 
     def score_many(self, current, effects):
         """Score-test effects at a fitted model, in worker processes: {effect: ScoreTest}."""
@@ -388,17 +341,12 @@ class FilterError:
         out.update(zip(asked, self.workers.apply(_filter_score_job, items)))
         return out
 
-    def score(self, current, effect):
-        """Score-test one effect at a fitted model (random inflow itself at an OE model)."""
-        return self.score_many(current, [effect])[effect]
 
-
-class ModelSpace:
+class ModelSpace(Likelihood):
     """
     The explanations of one record, each fitted by the likelihood that owns it.
 
     Random inflow in an explanation: :class:`FilterError`; otherwise :class:`OutputError`.
-    Implements :class:`Likelihood` for the search.
     """
 
     def __init__(self, output_error, filter_error, effects):
@@ -423,27 +371,16 @@ class ModelSpace:
                     out[i] = res
         return out
 
-    def fit(self, effects, start):
-        """Fit one explanation (see :class:`Likelihood`)."""
-        return self.fit_many([(effects, start)])[0]
-
     def refit_from(self, effects, values):
         """Fit an explanation again from ``values``; the better of the two (output error)."""
         owner = self._owner(effects)
         return owner.refit_from(effects, values) if hasattr(owner, 'refit_from') else None
 
     def score_many(self, current, effects):
-        """Score-test effects at ``current``: {effect: ScoreTest or None}."""
+        """Score-test effects at ``current`` with the likelihood of ``current + effect``."""
         out = dict.fromkeys(effects)
         for owner in (self.output_error, self.filter_error):
             mine = [e for e in effects if self._owner(current.effects + ((e, ''),)) is owner]
             if mine and owner is not None:
                 out.update(owner.score_many(current, mine))
         return out
-
-    def score(self, current, effect):
-        """Score-test ``effect`` at ``current`` with the likelihood of ``current + effect``."""
-        owner = self._owner(current.effects + ((effect, ''),))
-        if owner is None:
-            return None
-        return owner.score(current, effect)

@@ -1,15 +1,11 @@
 """
 Filter-error (random-inflow) fits and score tests of the catalogue's models.
 
-Random inflow (``process_noise``) is a pitch-like angle with a first-order spectrum, its σ_V and
-correlation time τ_w estimated (:func:`random_inflow_states`); a model with it is fitted by the
-innovations likelihood J = ½ Σ_j [ν_jᵀ B_j⁻¹ ν_j + log|B_j|] (Ch.1 eq. 26) with the
-measurement σ's estimated (:func:`rotor_id.estimation.filter_error.fit_filter_error_ml`). The
-deterministic effects are the augmented models of the catalogue, stacked as output error's
-(:func:`rotor_id.diagnosis.catalogue.build`). Random inflow is one model in every such fit, so
-"random inflow alone", "random inflow + effect" and "effect + random inflow" are nested and
-compared under one noise model. :class:`rotor_id.diagnosis.likelihood.FilterError` wraps these
-functions in the likelihood interface of the selection.
+A model with random inflow (``process_noise``, :func:`random_inflow_states`) is fitted by the
+innovations likelihood J = ½ Σ_j [ν_jᵀ B_j⁻¹ ν_j + log|B_j|] (Ch.1 eq. 26) with σ_V, τ_w and
+the measurement σ's estimated; the deterministic effects are stacked as output error's
+(:func:`rotor_id.diagnosis.catalogue.build`). :class:`rotor_id.diagnosis.likelihood.FilterError`
+wraps these functions in the likelihood interface of the selection.
 """
 
 from dataclasses import dataclass
@@ -19,24 +15,21 @@ import time
 import numpy as np
 
 from rotor_id.diagnosis.catalogue import (
-    as_lag_variance, at_catalogue_bound, augment_runs, build, CandidateFit, effect_parameters,
-    grid_starts, SCREENED_AS, stop_at_bound)
-from rotor_id.estimation import kalman
+    as_lag_variance, augment_runs, bound_sides, build, CandidateFit, effect_parameters,
+    FAILURES, grid_starts, NOISE, SCREENED_AS, start_values, stop_at_bound)
 from rotor_id.estimation.filter_error import (
     FilterProblem, fit_filter_error_ml, gradient_information, innovations_cost,
     measurement_noise_name, PROCESS_NOISE)
-from rotor_id.estimation.output_error import fit_initial_states, IdentificationError
+from rotor_id.estimation.output_error import fit_initial_states
 from rotor_id.estimation.simulate import DEFAULT_MAX_STEP
 from rotor_id.physics import augmented as aug
 
-NOISE = 'process_noise'
 #: Gauss-Newton (scoring) iterations of a candidate's filter-error fit; it starts at the
 #: current estimate with the extra parameters neutral, a few steps from its optimum.
 MAX_ITER = 20
-FAILURES = (IdentificationError, np.linalg.LinAlgError, FloatingPointError, ValueError)
-#: random inflow's own parameters beside σ_V (its correlation time, a model without a wake)
 #: random inflow's states (their initial values are the noise model's, no extra parameters)
 INFLOW_STATES = tuple(aug.PitchLikeRandomInflow.extra_states)
+#: random inflow's own parameters beside σ_V (its correlation time, a model without a wake)
 SHAPE = tuple(par.name for par in aug.PitchLikeRandomInflow.extra_parameters)
 SHAPE_START = {par.name: par.nominal for par in aug.PitchLikeRandomInflow.extra_parameters}
 
@@ -47,7 +40,6 @@ class Setup:
 
     base_model: object
     experiments: list
-    rows: list                  # process-noise rows (state names of the baseline model)
     noise_std: object           # fixed measurement σ per channel, or None (estimated)
 
 
@@ -58,35 +50,27 @@ def setup_for(ctx):
     base_model = model_for(description)
     experiments = experiments_from_record(ctx.record, description, base_model,
                                           tuple(ctx.window_s))
-    rows = [base_model.state_names[i] for i in kalman.default_noise_rows(base_model)]
     noise = description.noise_std_rad
     fixed = None if noise is None else channel_noise(base_model, float(noise))
-    return Setup(base_model, experiments, rows, fixed)
-
-
-def _job(ctx, effect, variant, kept, start):
-    return ctx.job(effect, variant, prior=tuple(kept), start=start)
+    return Setup(base_model, experiments, fixed)
 
 
 def _sigma_v(est):
     return float(est.value(PROCESS_NOISE)) if PROCESS_NOISE in est.names else 0.0
 
 
-def _problem(runs, unknowns, guess, known, setup, sigma_v, max_step, start_est,
-             process_sigma=None, rows=None, refit_states=False):
+def _problem(runs, unknowns, guess, known, setup, sigma_v, max_step, start_est, rows,
+             process_sigma=None, refit_states=False):
     """
     Filter problem of a candidate and its θ at the current estimate (extra parts neutral).
 
-    Every θ entry the current estimate has (model unknowns, initial states, measurement σ's)
-    is taken from it; the candidate's extra parameters stay at their neutral values and its
-    extra initial states at their output-error fit. σ_V² is ``process_sigma``² if given.
-    ``refit_states``: a fit's start away from the current estimate; its initial states are
-    the current ones unless they make the start absurd, then all refitted there (a score
-    test is at the current estimate, where they are already the current model's optimum).
-    ``prob.start_cost`` is the filter's cost at the returned θ when it was evaluated here.
+    θ takes every entry the current estimate has; the extra parameters are neutral, the extra
+    initial states at their output-error fit or at rest. σ_V² is ``process_sigma``² if given.
+    ``refit_states``: a fit's start, whose initial states are refitted where the current ones
+    make it absurd. ``prob.start_cost``: the filter's cost at θ when evaluated here.
     """
-    prob = FilterProblem(runs, unknowns, guess, known, setup.noise_std, sigma_v, True,
-                         setup.rows if rows is None else rows, 'white', 'auto', max_step)
+    prob = FilterProblem(runs, unknowns, guess, known, setup.noise_std, sigma_v, True, rows,
+                         'white', 'auto', max_step)
     k = len(prob.names)
     base = prob.base
     theta = np.zeros(k)
@@ -128,14 +112,11 @@ def _problem(runs, unknowns, guess, known, setup, sigma_v, max_step, start_est,
         best = int(np.argmin(costs))
         theta, prob.start_cost = tries[best], float(costs[best])
     if refit_states:
-        # a filter-error fit can leave initial states far along a direction its own model
-        # barely sees, which another model sees (random inflow beside a blade difference has
-        # left β0(t0) at tens of radians, and every wake start beside them at a cost of
-        # 1e8-1e9). A start less likely by more than one unit of log-likelihood per
-        # observation than with all initial states refitted there is absurd (no noise
-        # level explains it) and takes the refitted ones; any other keeps the current
-        # estimate's, which a nearer start beats only by a start's transient, not by a
-        # better optimum
+        # a filter-error fit can leave initial states far along a direction only another model
+        # sees (β0(t0) at tens of radians beside a blade difference, every wake start beside
+        # them at a cost of 1e8-1e9). A start worse by more than one unit of log-likelihood
+        # per observation than with them refitted is absurd and takes the refitted ones; any
+        # other keeps the current estimate's (a nearer start gains only a transient)
         refitted = theta.copy()
         refitted[len(base.param_index):prob.n_base] = fitted_states[len(base.param_index):]
         cost = innovations_cost(prob.evaluate(refitted, sensitivities=False))
@@ -181,16 +162,13 @@ def screen(effect, kept, current, ctx, setup):
     test = SCREENED_AS.get(effect, effect)
     blades = list(setup.base_model.blades) if effect == 'blade_dissimilarity' else [None]
     est = current.estimate
-    start = {n: est.model_parameters[n] for n in current.unknowns}
     out = []
     for blade in blades:
         variant = '' if blade is None else f'blade_{blade}'
-        job = _job(ctx, test, variant, kept, start)
-        runs, model, unknowns, extra, guess, max_step = build(job, setup.base_model,
-                                                              setup.experiments)
-        runs, rows, unknowns = _with_inflow_states(runs, unknowns, guess, est, ctx, setup)
-        prob, theta = _problem(runs, unknowns, guess, job.known, setup, _sigma_v(est),
-                               max_step or DEFAULT_MAX_STEP, est, rows=rows)
+        _, runs, unknowns, extra, guess, max_step, rows = _stack(
+            ctx, setup, list(kept) + [(test, variant)], est, start_values(current))
+        prob, theta = _problem(runs, unknowns, guess, ctx.known, setup, _sigma_v(est),
+                               max_step, est, rows)
         k = len(prob.names) - len(est.names)
         lm, var = _score(prob, theta, extra)
         if effect != test:
@@ -199,8 +177,7 @@ def screen(effect, kept, current, ctx, setup):
     return out
 
 
-def fit_filter(effect, variant, kept, start_fit, ctx, setup, earlier=None,
-               max_iter=MAX_ITER):
+def fit_filter(effect, variant, kept, start_fit, ctx, setup, earlier=None):
     """
     Filter-error fit of the stack ``kept`` + ``effect`` with σ_V estimated: CandidateFit.
 
@@ -210,27 +187,21 @@ def fit_filter(effect, variant, kept, start_fit, ctx, setup, earlier=None,
     """
     t0 = time.perf_counter()
     est0 = start_fit.estimate
-    start = {n: est0.model_parameters[n] for n in start_fit.unknowns
-             if n in est0.model_parameters}
     if effect is None:
         effect, variant = kept[-1]
         kept = kept[:-1]
     out = CandidateFit(effect=effect, variant=variant, prior=tuple(kept))
     try:
-        job = _job(ctx, effect, variant, kept, start)
-        runs, model, unknowns, extra, guess, max_step = build(job, setup.base_model,
-                                                              setup.experiments)
-        max_step = max_step or DEFAULT_MAX_STEP
-        runs, rows, unknowns = _with_inflow_states(runs, unknowns, guess, est0, ctx, setup)
+        job, runs, unknowns, extra, guess, max_step, rows = _stack(
+            ctx, setup, list(kept) + [(effect, variant)], est0, start_values(start_fit))
         model = runs[0].model
-        guess, prob, theta = _best_filter_start(
-            effect, job, model, runs, unknowns, guess, setup, max_step, est0, rows,
-            earlier=earlier)
+        guess, prob, theta = _best_filter_start(job, model, runs, unknowns, guess, setup,
+                                                max_step, est0, rows, earlier)
         begin = {n: v for n, v in zip(prob.names, theta)
                  if n != PROCESS_NOISE and n not in unknowns}
         # two iterations at a catalogue bound end the fit: it is reported bound-limited
         est = fit_filter_error_ml(runs, unknowns, guess=guess, known=job.known,
-                                  noise_std=setup.noise_std, max_iter=max_iter,
+                                  noise_std=setup.noise_std, max_iter=MAX_ITER,
                                   process_noise_std=math.sqrt(theta[prob.i_process]),
                                   rows=rows, max_step=max_step,
                                   label=f'{effect} + random inflow', start_values=begin,
@@ -239,10 +210,9 @@ def fit_filter(effect, variant, kept, start_fit, ctx, setup, earlier=None,
     except FAILURES as exc:
         out.available, out.reason = False, f'filter-error fit failed: {exc}'
         return out
-    _fill(out, est, model, unknowns, extra, ctx)
-    out.bound_limited = [n for n, _ in at_catalogue_bound(est, model, extra)]
+    _fill(out, est, model, unknowns, extra)
+    out.bound_limited = [n for n, _ in bound_sides(est.model_parameters, model, extra)]
     out.elapsed_s = time.perf_counter() - t0
-    out.experiments, out.max_step, out.noise_rows = runs, max_step, rows
     return out
 
 
@@ -261,27 +231,21 @@ def earlier_fit(fits, effect, variant, kept):
     return None
 
 
-def _best_filter_start(effect, job, model, runs, unknowns, guess, setup, max_step, est0,
-                       rows, earlier=None):
+def _best_filter_start(job, model, runs, unknowns, guess, setup, max_step, est0, rows,
+                       earlier):
     """
     Return (start, its filter problem, its θ): the most likely of output error's grid starts.
 
-    Effects whose likelihood has several valleys (the wake's gain and time constant, a lag's
-    τ, :func:`~rotor_id.diagnosis.catalogue.grid_starts`) are started where the filter, at the
-    current σ_V, finds them most likely: from the neutral values the first scoring steps
-    beside random inflow swing far (γ to twice its value, σ_V to its bound) and the fit ends,
-    within its iterations, in whichever valley the path found.
-
-    ``earlier``: the effect's fit beside fewer of the kept effects (:func:`earlier_fit`).
-    Its estimate, the effects added since at the current one's values, is one more start, at
-    its own σ_V: the same model approached from the other side. The current model's
-    parameters can sit in another valley than the effect needs (beside random inflow and a
-    blade difference, a wake fitted from the current Lock number can stop far below the same
-    three effects reached from the wake's own fit).
+    Effects whose likelihood has several valleys (:func:`~rotor_id.diagnosis.catalogue.
+    grid_starts`) start where the filter, at the current σ_V, finds them most likely: from the
+    neutral values the first scoring steps beside random inflow swing far (γ to twice its
+    value, σ_V to its bound). ``earlier`` (:func:`earlier_fit`), the same model approached
+    from the other side, is one more start at its own σ_V: the current model's parameters can
+    sit in another valley than the effect needs.
     """
     sigma0 = max(_sigma_v(est0), 1e-12)
-    starts = [(g, sigma0) for g in [guess] + (grid_starts(job, model, guess, unknowns) or [])]
-    if effect == 'dynamic_inflow':
+    starts = [(g, sigma0) for g in [guess] + (grid_starts(job, model, guess) or [])]
+    if job.effect == 'dynamic_inflow':
         # and no wake gain (L = 0, the current model's likelihood): a fit from there never
         # ends below the model it extends, where the grid's starts are all less likely
         starts.insert(1, ({**guess, 'AL_over_tau': 0.0}, sigma0))
@@ -293,29 +257,22 @@ def _best_filter_start(effect, job, model, runs, unknowns, guess, setup, max_ste
     for start, sigma in starts:
         try:
             prob, theta = _problem(runs, unknowns, start, job.known, setup, sigma,
-                                   max_step, est0, process_sigma=sigma, rows=rows,
+                                   max_step, est0, rows, process_sigma=sigma,
                                    refit_states=True)
         except FAILURES:
             continue
         if len(starts) == 1:
             return start, prob, theta
-        try:
-            cost = prob.start_cost
-            if cost is None:
-                cost = innovations_cost(prob.evaluate(theta, sensitivities=False))
-        except FAILURES:
-            continue
-        if math.isfinite(cost) and (best is None or cost < best_cost):
-            best, best_cost = (start, prob, theta), cost
+        if math.isfinite(prob.start_cost) and prob.start_cost < best_cost:
+            best, best_cost = (start, prob, theta), prob.start_cost
     if best is None:           # no start evaluates: the neutral one fails as it did before
         prob, theta = _problem(runs, unknowns, guess, job.known, setup, _sigma_v(est0),
-                               max_step, est0, process_sigma=max(_sigma_v(est0), 1e-12),
-                               rows=rows)
+                               max_step, est0, rows, process_sigma=max(_sigma_v(est0), 1e-12))
         return guess, prob, theta
     return best
 
 
-def _fill(out, est, model, unknowns, extra, ctx):
+def _fill(out, est, model, unknowns, extra):
     """Estimate, model and every effect's parameters ± σ (random inflow's σ's included)."""
     out.estimate, out.model, out.unknowns, out.extra_names = est, model, unknowns, extra
     out.effect_parameters.update(effect_parameters(est, model))
@@ -325,30 +282,37 @@ def _fill(out, est, model, unknowns, extra, ctx):
     out.parameters = out.effect_parameters.get(out.effect, {})
 
 
-def random_inflow_states(runs, record):
+def random_inflow_states(runs):
     """
     Return (runs, process-noise rows, extra unknowns) of random inflow over a candidate's runs.
 
-    The one noise model of every filter-error fit of a diagnosis (random inflow alone, with
-    deterministic effects added to it, or added to them), so that they are nested: random
-    inflow as a pitch-like angle with a first-order spectrum
-    (:class:`~rotor_id.physics.augmented.PitchLikeRandomInflow`), its correlation time
-    τ_w estimated, on a wake model too. White noise on the flap-acceleration rows (the
-    default rows of a model without a wake) has neither the spectrum nor the direction of
-    turbulence; a wake's λ rows have its direction but the wake's time constant. Measured
-    (bench/results/diagnosis_pairs.md): a flap-frequency error beside turbulence in the wake
-    record gains more with the pitch-like states than with noise on λ.
+    The one noise model of every filter-error fit of a diagnosis, so that they are nested: a
+    pitch-like angle with a first-order spectrum (:class:`~rotor_id.physics.augmented.
+    PitchLikeRandomInflow`), on a wake model too. White noise on the flap-acceleration rows
+    has neither turbulence's spectrum nor its direction; a wake's λ rows have its direction
+    but the wake's time constant (bench/results/diagnosis_pairs.md).
     """
-    runs, model = augment_runs(runs, aug.PitchLikeRandomInflow, record)
+    runs, model = augment_runs(runs, aug.PitchLikeRandomInflow)
     return runs, list(model.extra_states), list(SHAPE)
 
 
-def _with_inflow_states(runs, unknowns, guess, est, ctx, setup):
-    """Candidate runs with random inflow's states; τ_w (if any) started at ``est``'s."""
-    runs, rows, shape = random_inflow_states(runs, ctx.record)
-    for name in shape:
-        guess[name] = est.model_parameters.get(name, SHAPE_START[name])
-    return runs, rows, list(unknowns) + shape
+def _stack(ctx, setup, kept, est, start):
+    """
+    Return the stack ``kept`` [(effect, variant)] with random inflow, τ_w at ``est``'s.
+
+    Returns (job of the last effect or None, runs, unknowns, extra parameters of the last
+    effect, guess, RK4 step, process-noise rows).
+    """
+    job, runs, unknowns, extra = None, setup.experiments, list(ctx.unknowns), []
+    guess, max_step = dict(start), DEFAULT_MAX_STEP
+    if kept:
+        job = ctx.job(kept[-1][0], kept[-1][1], prior=tuple(kept[:-1]), start=start)
+        runs, _, unknowns, extra, guess, max_step = build(job, setup.base_model,
+                                                          setup.experiments)
+    runs, rows, shape = random_inflow_states(runs)
+    have = {} if est is None else est.model_parameters
+    guess.update({name: have.get(name, SHAPE_START[name]) for name in shape})
+    return job, runs, list(unknowns) + shape, extra, guess, max_step, rows
 
 
 def fit_alone(ctx, setup):
@@ -360,10 +324,7 @@ def fit_alone(ctx, setup):
     """
     t0 = time.perf_counter()
     out = CandidateFit(effect=NOISE)
-    runs, rows, shape = random_inflow_states(setup.experiments, ctx.record)
-    model = runs[0].model
-    unknowns = list(ctx.unknowns) + shape
-    guess = {**ctx.values, **{n: SHAPE_START[n] for n in shape}}
+    _, runs, unknowns, _, guess, _, rows = _stack(ctx, setup, [], None, ctx.values)
     try:
         est = fit_filter_error_ml(runs, unknowns, guess=guess, known=ctx.known,
                                   noise_std=setup.noise_std, max_iter=MAX_ITER, rows=rows,
@@ -372,9 +333,8 @@ def fit_alone(ctx, setup):
     except FAILURES as exc:
         out.available, out.reason = False, f'filter-error fit failed: {exc}'
         return out
-    _fill(out, est, model, unknowns, [], ctx)
+    _fill(out, est, runs[0].model, unknowns, [])
     out.elapsed_s = time.perf_counter() - t0
-    out.experiments, out.max_step, out.noise_rows = runs, DEFAULT_MAX_STEP, rows
     return out
 
 
@@ -386,16 +346,8 @@ def noise_score(current, kept, ctx, setup):
     (and τ_w's) is left; one-sided: a cost that rises with σ_V² asks for none.
     """
     est = current.estimate
-    start = {n: est.model_parameters[n] for n in current.unknowns}
-    if kept:
-        job = _job(ctx, kept[-1][0], kept[-1][1], kept[:-1], start)
-        runs, model, unknowns, extra, guess, max_step = build(job, setup.base_model,
-                                                              setup.experiments)
-    else:
-        runs, unknowns, guess, max_step = setup.experiments, list(ctx.unknowns), start, None
-    max_step = max_step or DEFAULT_MAX_STEP
-    runs, rows, shape = random_inflow_states(runs, ctx.record)
-    guess = {**guess, **{n: SHAPE_START[n] for n in shape}}
-    prob, theta = _problem(runs, list(unknowns) + shape, guess, ctx.known, setup, 0.0,
-                           max_step, est, process_sigma=0.0, rows=rows)
+    _, runs, unknowns, _, guess, max_step, rows = _stack(ctx, setup, kept, est,
+                                                         start_values(current))
+    prob, theta = _problem(runs, unknowns, guess, ctx.known, setup, 0.0, max_step, est, rows,
+                           process_sigma=0.0)
     return _score(prob, theta, (PROCESS_NOISE,), one_sided=prob.i_process)

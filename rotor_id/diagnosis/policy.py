@@ -22,18 +22,14 @@ class SelectionPolicy:
     #: An explanation is listed among the alternatives (and an effect that can stand in for
     #: a named one is named beside it, with its share) from this posterior probability on.
     alternative_share: float = 0.01
-    #: The stated probabilities are the posterior's, temperature-scaled (p ∝ posterior^η,
-    #: the standard recalibration of a classifier's odds; the ranking, and so every name, is
-    #: unchanged). Every candidate approximates the rig's physics by the catalogue's forms,
-    #: and likelihood ratios between misspecified models overstate the evidence: at η = 1 the
-    #: verdicts stated at ≥ 0.95 were right 95 % of the time (300 random records of the
-    #: independent generator, seeds 1-300, bench/results/verdict_rules.md; 94 % on seeds
-    #: 2001-2300). η is the maximum of the log score (a
-    #: proper scoring rule) of the stated probability over the candidate tables the search
-    #: records (bench/verdict_rules.py on calibration_tables.jsonl): 0.7 on the even seeds,
-    #: 0.75 on the odd ones, 0.7 on all; where the two halves differ the smaller is taken, as
-    #: a user's rig is further from the catalogue's forms than the generator is. The search
-    #: keeps η = 1.
+    #: The stated probabilities are the posterior's, temperature-scaled (p ∝ posterior^η, the
+    #: standard recalibration of a classifier's odds; the ranking, and so every name, stays):
+    #: likelihood ratios between the catalogue's misspecified forms overstate the evidence (at
+    #: η = 1, verdicts stated at ≥ 0.95 were right 94-95 %, bench/results/verdict_rules.md). η
+    #: maximises the log score (a proper scoring rule) of the stated probability on the tables
+    #: the search records (bench/verdict_rules.py): 0.7 on the even seeds and on all, 0.75 on
+    #: the odd; the smaller is taken, a rig being further from the catalogue's forms than the
+    #: generator. The search keeps η = 1.
     evidence_tempering: float = 0.7
     #: Power at which a detection limit is stated: an effect of that size would have been
     #: added by the search in this share of records like this one.

@@ -2,50 +2,40 @@
 Out of catalogue: propose a term of the flap equation from the equation error.
 
 When no catalogue effect explains a recording (verdict ``unexplained``), the mismatch may still
-be structured dynamics. This module asks which small physical term, added to every blade's
-flapping equation alike, the data want:
+be structured dynamics. Which small physical term, added to every blade's flapping equation
+alike, do the data want?
 
-1. Reconstruct the states from the measured channels with the baseline model: the iterated
-   equation error's Kalman filter and RTS smoother, with process noise on the
-   parameter-dependent rows chosen by likelihood, so the smoothed states follow the data where
-   the model is wrong (:func:`rotor_id.estimation.equation_error.fit_equation_error`, one pass).
-2. The equation error of the model's parameter-dependent rows, e = x′ − F x − g, against the
-   baseline's own regressors (``equation_error.regression``; always in, so a term is judged
-   for what it adds beyond re-estimating the baseline's unknowns) and a library of named
-   per-blade terms φ_k carried into the model's rows by the model's own blade-force matrix G
-   (x′ += ξ G φ, i.e. β_k″ += ξ φ_k on every blade):
+1. Reconstruct the states with the baseline model: the iterated equation error's Kalman filter
+   and RTS smoother, process noise on the parameter-dependent rows chosen by likelihood, so the
+   smoothed states follow the data where the model is wrong (one pass of
+   :func:`rotor_id.estimation.equation_error.fit_equation_error`).
+2. Regress the equation error of those rows, e = x′ − F x − g, on the baseline's own regressors
+   (always in: a term is judged for what it adds beyond re-estimating the baseline's unknowns)
+   and a library of per-blade terms φ_k carried into the rows by the model's blade-force matrix
+   G (x′ += ξ G φ, i.e. β_k″ += ξ φ_k): β_k, β_k′, θ_k (measured), 1, each alone and times
+   cos ψ_k and sin ψ_k.
+3. Forward stepwise, validated on :data:`N_BLOCKS` held-out contiguous time blocks: a term is
+   kept only if it lowers the held-out error in a one-sided t-test of the blocks' log ratios
+   at level :data:`ALPHA` (Bonferroni over the terms tried at that step), and by at least
+   :data:`MIN_IMPROVEMENT` in all.
+4. The kept terms' regression coefficients, σ by a cluster sandwich over :data:`N_CLUSTERS`
+   contiguous clusters (the smoothed states are serially correlated). Equation error attenuates
+   a coefficient where the smoothed states lean on the wrong model (bench/results/proposal.md),
+   so the baseline with the kept terms (:class:`LibraryTerm`) is fitted by output-error ML:
+   that coefficient and its Cramér-Rao σ are the proposal's.
 
-       β_k, β_k′, θ_k (measured blade pitch), 1,  each alone and times cos ψ_k and sin ψ_k.
-
-3. Forward stepwise regression with held-out time blocks: the record is cut into
-   :data:`N_BLOCKS` contiguous blocks; each candidate set is fitted on all blocks but one and
-   predicts the one left out. A term is kept only if it lowers the held-out equation error in
-   a one-sided t-test of the blocks' log ratios (error without / with the term) at level
-   :data:`ALPHA`, Bonferroni-corrected for the number of terms tried at that step, and by at
-   least :data:`MIN_IMPROVEMENT` of it in all.
-4. The kept terms' coefficients from the whole record, with σ from the regression covariance
-   made robust to the serial correlation of the smoothed states (cluster sandwich over
-   :data:`N_CLUSTERS` contiguous clusters; the plain regression covariance understates it, as
-   the report warns for equation error). Equation error attenuates a coefficient where the
-   smoothed states lean on the wrong model (bench/results/proposal.md), so the
-   baseline with the kept terms (:class:`LibraryTerm`) is then fitted by the same output-error
-   ML as every candidate: that coefficient and its Cramér-Rao σ are the proposal's, the
-   regression's are reported beside them.
-
-What comes out is labelled ``proposal``: a hypothesis for the experimenter (a term, its
-coefficient ± σ, how much it improves the held-out fit), never a catalogue verdict. Terms
-whose held-out error is not worse than the proposed one's beyond chance (the same t-test,
-one-sided 5 %, uncorrected: generous to rivals) are listed as ``alternatives``: e.g. β cos ψ
-and θ cos ψ are nearly collinear where the coning (∝ θ0) dominates the flap, and a small term
-may not tell them apart.
+The result is labelled ``proposal``, a hypothesis for the experimenter, never a catalogue
+verdict. Terms whose held-out error is not worse beyond chance (one-sided 5 %, uncorrected) are
+listed as ``alternatives``: β cos ψ and θ cos ψ are nearly collinear where the coning dominates.
 """
 
 from dataclasses import dataclass, field
 import math
 
 import numpy as np
+from rotor_id.diagnosis.catalogue import augment_runs, FAILURES
 from rotor_id.estimation.equation_error import fit_equation_error, regression
-from rotor_id.estimation.output_error import fit_output_error, IdentificationError
+from rotor_id.estimation.output_error import fit_output_error
 from rotor_id.physics.augmented import Augmented, BladeView
 from rotor_id.physics.models import Parameter
 from rotor_id.physics.stirring import blade_pitch_from_multiblade
@@ -133,8 +123,7 @@ class Regressors:
     rows: list
 
 
-def build_regressors(experiments, unknowns, values, known, n_blocks=N_BLOCKS,
-                     n_clusters=N_CLUSTERS):
+def build_regressors(experiments, unknowns, values, known):
     """Reconstruct the states and build :class:`Regressors` for the baseline's runs."""
     result = fit_equation_error(experiments, unknowns, guess=values, known=known, max_iter=1)
     model = experiments[0].model
@@ -164,10 +153,10 @@ def build_regressors(experiments, unknowns, values, known, n_blocks=N_BLOCKS,
         es.append((e * scale).reshape(-1))
         As.append((A * scale[:, :, None]).reshape(-1, A.shape[2]))
         Ls.append((Lt * scale[:, :, None]).reshape(-1, Lt.shape[2]))
-        b = np.minimum((frac * n_blocks).astype(int), n_blocks - 1)
-        c = np.minimum((frac * n_clusters).astype(int), n_clusters - 1)
+        b = np.minimum((frac * N_BLOCKS).astype(int), N_BLOCKS - 1)
+        c = np.minimum((frac * N_CLUSTERS).astype(int), N_CLUSTERS - 1)
         blocks.append(np.repeat(b, len(rows)))
-        clusters.append(np.repeat(c + n_clusters * len(clusters), len(rows)))
+        clusters.append(np.repeat(c + N_CLUSTERS * len(clusters), len(rows)))
     return Regressors(np.concatenate(es), np.concatenate(As), np.concatenate(Ls),
                       np.concatenate(blocks), np.concatenate(clusters),
                       float(result.process_noise_std), rows)
@@ -177,11 +166,11 @@ def _design(reg, terms):
     return np.concatenate([reg.A, reg.L[:, list(terms)]], axis=1)
 
 
-def heldout_errors(reg, terms, n_blocks=N_BLOCKS):
-    """Return the held-out weighted squared equation error of every block, (n_blocks,)."""
+def heldout_errors(reg, terms):
+    """Return the held-out weighted squared equation error of every block, (N_BLOCKS,)."""
     X = _design(reg, terms)
-    out = np.empty(n_blocks)
-    for b in range(n_blocks):
+    out = np.empty(N_BLOCKS)
+    for b in range(N_BLOCKS):
         test = reg.block == b
         coef = np.linalg.lstsq(X[~test], reg.e[~test], rcond=None)[0]
         out[b] = float(np.sum((reg.e[test] - X[test] @ coef)**2))
@@ -227,10 +216,6 @@ class Proposal:
                           f'{N_BLOCKS} time blocks (t-test of the log ratios, level {ALPHA} '
                           f'over the terms tried, and by >= {MIN_IMPROVEMENT:.0%} in all); '
                           f'coefficient and σ from the output-error ML fit with the term'}
-
-    def text(self):
-        """Return one line for the text report."""
-        return summary_line(self.as_json())
 
 
 def summary_line(proposal):
@@ -297,62 +282,47 @@ def refine(experiments, unknowns, values, known, terms):
     The runs are the baseline's with every term stacked on the model (the catalogue's
     :func:`~rotor_id.diagnosis.catalogue.augment_runs`).
     """
-    from rotor_id.diagnosis.catalogue import augment_runs
     runs = experiments
     for term in terms:
-        runs, _ = augment_runs(runs, lambda m, term=term: LibraryTerm(m, term), None)
+        runs, _ = augment_runs(runs, lambda m, term=term: LibraryTerm(m, term))
     extra = [f'xi[{term}]' for term in terms]
     guess = {**values, **dict.fromkeys(extra, 0.0)}
     return fit_output_error(runs, list(unknowns) + extra, guess=guess, known=known,
                             max_iter=30), extra
 
 
-def _worse(sse, best_sse, t_crit):
-    """Say whether held-out errors ``sse`` are worse than ``best_sse`` beyond chance."""
-    ratio = np.log(np.maximum(sse, 1e-300) / np.maximum(best_sse, 1e-300))
-    spread = float(np.std(ratio, ddof=1))
-    if spread == 0.0:
-        return bool(np.mean(ratio) > 0)
-    return bool(np.mean(ratio) / (spread / math.sqrt(ratio.size)) > t_crit)
-
-
-def propose(experiments, unknowns, values, known, max_terms=MAX_TERMS, n_blocks=N_BLOCKS,
-            alpha=ALPHA):
+def _log_ratio_t(before, after):
     """
-    Propose up to ``max_terms`` library terms of the flap equation (see the module docstring).
+    Return the t statistic of the blocks' log ratios of held-out errors (before/after), and them.
 
-    Parameters
-    ----------
-    experiments : list of Experiment
-        The baseline's runs (model, inputs, t, measured channels).
-    unknowns : list of str
-        The baseline's unknowns (re-estimated alongside every term).
-    values, known : dict
-        The baseline's estimates of the unknowns and the values of the known parameters.
-    max_terms : int
-        Most terms proposed.
-    n_blocks : int
-        Held-out time blocks.
-    alpha : float
-        Family-wise level of the held-out test at each step.
+    Per block log ratio: scale-free, so the blocks of a quiet trim and of the stirring count
+    alike.
+    """
+    ratio = np.log(np.maximum(before, 1e-300) / np.maximum(after, 1e-300))
+    spread = float(np.std(ratio, ddof=1))
+    if not spread > 0:
+        return (math.inf if np.mean(ratio) > 0 else 0.0), ratio
+    return float(np.mean(ratio)) / (spread / math.sqrt(ratio.size)), ratio
 
-    Returns
-    -------
-    Proposal
 
+def propose(experiments, unknowns, values, known):
+    """
+    Propose up to :data:`MAX_TERMS` library terms of the flap equation: :class:`Proposal`.
+
+    ``experiments``: the baseline's runs; ``unknowns`` (re-estimated beside every term), their
+    baseline ``values`` and the ``known`` parameters. The method is the module docstring's.
     """
     names = term_names()
     try:
-        reg = build_regressors(experiments, list(unknowns), dict(values), dict(known),
-                               n_blocks)
-    except (IdentificationError, np.linalg.LinAlgError, FloatingPointError, ValueError) as exc:
+        reg = build_regressors(experiments, list(unknowns), dict(values), dict(known))
+    except FAILURES as exc:
         return Proposal(library=names, reason=f'equation error failed: {exc}')
     current = []
-    sse = heldout_errors(reg, current, n_blocks)
+    sse = heldout_errors(reg, current)
     before = float(math.sqrt(np.sum(sse) / reg.e.size))
     steps = []
-    for _ in range(max_terms):
-        step, best, trial = _forward_step(reg, current, sse, names, n_blocks, alpha)
+    for _ in range(MAX_TERMS):
+        step, best, trial = _forward_step(reg, current, sse, names)
         steps.append(step)
         if not step['kept']:
             break
@@ -365,28 +335,23 @@ def propose(experiments, unknowns, values, known, max_terms=MAX_TERMS, n_blocks=
                     heldout_rms_after=after, steps=steps, reason=reason)
 
 
-def _forward_step(reg, current, sse, names, n_blocks, alpha):
+def _forward_step(reg, current, sse, names):
     """Try each term left beside ``current``; return (step record, best term, its errors)."""
     left = [m for m in range(len(names)) if m not in current]
-    trials = {m: heldout_errors(reg, current + [m], n_blocks) for m in left}
+    trials = {m: heldout_errors(reg, current + [m]) for m in left}
     best = min(trials, key=lambda m: float(np.sum(trials[m])))
-    # per block log ratio: scale-free, so the blocks of a quiet trim and of the stirring
-    # count alike
-    gain = np.log(sse / np.maximum(trials[best], 1e-300))
-    spread = float(np.std(gain, ddof=1))
-    t_stat = float(np.mean(gain)) / (spread / math.sqrt(n_blocks)) if spread > 0 \
-        else (math.inf if np.mean(gain) > 0 else 0.0)
-    t_crit = float(stdtrit(n_blocks - 1, 1.0 - alpha / len(left)))
+    t_stat, gain = _log_ratio_t(sse, trials[best])
+    t_crit = float(stdtrit(N_BLOCKS - 1, 1.0 - ALPHA / len(left)))
     # a rival term is as good within chance unless worse at the one-sided 5 % level
-    t_alternative = float(stdtrit(n_blocks - 1, 0.95))
+    t_alternative = float(stdtrit(N_BLOCKS - 1, 0.95))
     improvement = float(1.0 - np.sum(trials[best]) / np.sum(sse))
     kept = bool(t_stat > t_crit and improvement >= MIN_IMPROVEMENT)
     step = {'term': names[best], 'heldout_improvement': improvement,
             't_statistic': t_stat, 't_critical': t_crit,
             'blocks_improved': int(np.sum(gain > 0)), 'kept': kept,
             'tried': {names[m]: float(1.0 - np.sum(trials[m]) / np.sum(sse)) for m in left},
-            'alternatives': [names[m] for m in left if m != best and not _worse(
-                trials[m], trials[best], t_alternative)]}
+            'alternatives': [names[m] for m in left if m != best
+                             and not _log_ratio_t(trials[m], trials[best])[0] > t_alternative]}
     return step, best, trials[best]
 
 
@@ -400,7 +365,7 @@ def _proposed_terms(reg, current, steps, names, experiments, unknowns, values, k
     try:
         est, extra = refine(experiments, unknowns, values, known, [names[m] for m in current])
         ml = {n: (est.value(n), est.std_of(n)) for n in extra}
-    except (IdentificationError, np.linalg.LinAlgError, FloatingPointError, ValueError) as exc:
+    except FAILURES as exc:
         ml, reason = {}, f'output-error refit failed: {exc}'
     for i, m in enumerate(current):
         step = next(s for s in steps if s['term'] == names[m])

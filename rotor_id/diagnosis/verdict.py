@@ -1,15 +1,9 @@
 """
 The verdict from the selection's table: probabilities, shares, detection limits, adequacy.
 
-* The verdict's explanation is the most probable fitted one; "high confidence" iff its
-  posterior probability is at least :attr:`SelectionPolicy.high_confidence`.
-* Effects the record cannot tell apart (an explanation with one effect swapped for another
-  holds at least :attr:`SelectionPolicy.alternative_share`) are named together with shares.
-* A detection limit per un-named effect: the size at which its likelihood-ratio statistic,
-  noncentral χ²_k with noncentrality δᵀ(I⁻¹)_ee⁻¹δ at the fitted model, would pass the
-  search's acceptance point with :attr:`SelectionPolicy.detection_power`.
-* When the verdict's model leaves residuals that are not noise, the verdict is
-  ``unexplained`` (low confidence) with what each explanation removes of the misfit.
+The rules (the most probable fitted explanation, first-order equivalents as one physics, the
+0.95 confidence line, detection limits from the noncentral χ², ``unexplained`` when the
+verdict's residuals are not noise) are docs/diagnosis.md's §4.
 """
 
 import math
@@ -59,12 +53,9 @@ def physics_of(top, ranked, policy, mu):
     """
     Return (the explanation to name, the probability of its physics).
 
-    Explanations that differ from the top one only by effects that are the same physics to
-    first order in this record (a lag and a delay,
-    :func:`~rotor_id.diagnosis.catalogue.equivalent`) are one physical explanation: their
-    probabilities add. Where the record cannot tell them apart (several hold more than
-    1 − high_confidence of it), the one of the catalogue's established effects (the first in
-    :data:`~rotor_id.diagnosis.catalogue.EFFECTS`) is named, the others with their shares.
+    Explanations that differ from ``top`` only by first-order equivalents are one physics:
+    their probabilities add. Of those holding more than 1 − high_confidence of it, the one of
+    the catalogue's established effects (first in :data:`EFFECTS`) is named.
     """
     group = [(c, p) for c, p in ranked if c.fitted and same_physics(top.names, c.names, mu)]
     total = sum(p for _, p in group)
@@ -93,9 +84,8 @@ def acceptance_noncentrality(result, test, prior, policy, rho):
     """
     Return λ such that an effect of that noncentrality is added with the policy's power.
 
-    The search adds the effect when ρ·2Δlog L > k log(Nρ) − 2 log(prior odds) (posterior odds
-    above 1); 2Δlog L is noncentral χ²_k(λ) under the effect. λ solves
-    P(χ²_k(λ) > c) = power with c that acceptance point.
+    λ solves P(χ²_k(λ) > c) = power, c = (k log(Nρ) − 2 log(prior odds))/ρ the search's
+    acceptance point of 2Δlog L (docs/diagnosis.md §4).
     """
     key = result.effects + ((test.effect, test.variant),)
     c = (test.k * math.log(result.n_obs * rho)

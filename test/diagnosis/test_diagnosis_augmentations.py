@@ -409,7 +409,7 @@ def test_innovations_of_the_true_filter_in_forward_flight_turbulence_are_white()
                                                              ('gamma', 'theta0')))
     setting = Setting(record, description, {}, [], {}, description.window_s)
     setup = noisy.setup_for(setting)
-    runs, rows, _ = noisy.random_inflow_states(setup.experiments, record)
+    runs, rows, _ = noisy.random_inflow_states(setup.experiments)
     truth = {'gamma': cfg.gamma, 'theta0': cfg.theta0,
              'turbulence_corr_rad': cfg.turbulence_corr}
     sigma_v = cfg.turbulence * math.sqrt(2.0 / cfg.turbulence_corr)   # white-noise intensity
