@@ -3,7 +3,7 @@ Model selection over explanations: score-test-guided forward steps, a backward c
 
 One algorithm over the likelihood interface (:class:`rotor_id.diagnosis.likelihood.Likelihood`):
 it never asks whether a model is fitted by output error or by filter error. The evidence
-(:func:`log_posterior`), the prior (:class:`Prior`), the search (:func:`search`) and the
+(:func:`log_evidence`), the prior (:class:`Prior`), the search (:func:`search`) and the
 posterior over every explanation fitted or score-tested are stated in docs/diagnosis.md.
 """
 
@@ -48,6 +48,26 @@ class Candidate:
         if self.result is not None:
             return self.result.n_params
         return self.parent.n_params + self.test.k
+
+    @property
+    def n_obs(self):
+        """Return the observations (samples × channels) of the fit or of the tested parent."""
+        return (self.result if self.result is not None else self.parent).n_obs
+
+    def log_evidence(self, rho):
+        """Return log p(data | explanation) up to a shared constant, at the shared ρ."""
+        return log_evidence(self.loglik, self.n_params, self.n_obs, rho)
+
+
+def log_evidence(loglik, n_params, n_obs, rho):
+    """
+    Return the BIC approximation of log p(data | explanation), up to a shared constant.
+
+    ρ·log L − ½ k log(Nρ): the log-likelihood tempered by the residuals' effective fraction ρ
+    (a quasi-likelihood for correlated residuals) and the Laplace/BIC charge per parameter at
+    the effective sample size Nρ (docs/diagnosis.md).
+    """
+    return rho * loglik - 0.5 * n_params * math.log(n_obs * rho)
 
 
 @dataclass
@@ -116,9 +136,7 @@ def shared_rho(candidates):
 
 def log_posterior(candidate, rho, prior):
     """Return the unnormalised log posterior of one explanation at the shared ρ."""
-    n_obs = candidate.result.n_obs if candidate.fitted else candidate.parent.n_obs
-    return (rho * candidate.loglik - 0.5 * candidate.n_params * math.log(n_obs * rho)
-            + prior.log(candidate.effects))
+    return candidate.log_evidence(rho) + prior.log(candidate.effects)
 
 
 def posterior(candidates, prior, tempering=1.0):
@@ -147,7 +165,7 @@ def _open_effects(current, effects, mu):
 
 def _screen_odds(test, current, key, rho, prior, allowance):
     """Return the log posterior odds of ``key`` against ``current`` at 2Δlog L = allowance·LM."""
-    return (0.5 * (allowance * test.statistic * rho - test.k * math.log(current.n_obs * rho))
+    return (log_evidence(0.5 * allowance * test.statistic, test.k, current.n_obs, rho)
             + prior.log(key) - prior.log(current.effects))
 
 
@@ -236,8 +254,8 @@ class _Search:
             return math.inf                      # no score test: always a contender
         rho = shared_rho(self.candidates.values())
         loglik = cand.parent.loglik + 0.5 * self.policy.score_allowance * cand.test.statistic
-        k = cand.parent.n_params + cand.test.k
-        return rho * loglik - 0.5 * k * math.log(cand.parent.n_obs * rho) + self.prior.log(key)
+        return (log_evidence(loglik, cand.parent.n_params + cand.test.k, cand.parent.n_obs, rho)
+                + self.prior.log(key))
 
     def fit_step(self, requests):
         """Fit a step's requests [(bound, key, start)] by branch and bound; return the fits."""
