@@ -413,9 +413,9 @@ class FilterProblem:
         k = len(theta) if sensitivities else 0
         kp = len(self.base.param_index) if sensitivities else 0
         if kp:
-            dF, dg = on_record(model, 'system_jacobian', tf, p, u)
-            dF = np.ascontiguousarray(dF[:1 if constant else None][:, self.base.param_index])
-            dg = np.ascontiguousarray(dg[:, self.base.param_index])        # (2M+1, kp, n)
+            dF, dg = on_record(model, 'system_jacobian', tf, p, u, self.base.param_index)
+            dF = np.ascontiguousarray(dF[:1 if constant else None])
+            dg = np.ascontiguousarray(dg)                                  # (2M+1, kp, n)
         else:
             dF = np.zeros((1 if constant else F.shape[0], 0, n, n))
             dg = np.zeros((g.shape[0], 0, n))
@@ -429,8 +429,9 @@ class FilterProblem:
                                        times.size)
                 if not kp:
                     return F_at, np.zeros((times.size, 0, n, n))
-                dF_at = on_record(model, 'system_jacobian', times, p, zero)[0]
-                return F_at, full_along_time(dF_at, times.size)[:, self.base.param_index]
+                dF_at = on_record(model, 'system_jacobian', times, p, zero,
+                                  self.base.param_index)[0]
+                return F_at, full_along_time(dF_at, times.size)
             pieces = self._varying_pieces(t, substeps, Fs, dF, h[0], sig_p, k, kp,
                                           stage_matrices)
         Phi, dPhi, Q, dQ = pieces

@@ -168,18 +168,21 @@ def _on_revolution(model, method, t0, samples, p, n_inputs):
 
 
 def on_record(model: LinearModel, method: str, t: npt.ArrayLike, p: npt.ArrayLike,
-              u: npt.ArrayLike) -> tuple[np.ndarray, np.ndarray]:
+              u: npt.ArrayLike, columns: list[int] | None = None
+              ) -> tuple[np.ndarray, np.ndarray]:
     """
     Return :func:`~rotor_id.physics.models.compact` (``model.system`` or ``system_jacobian``).
 
     From one revolution's samples where that pays (a long grid, a model that varies with ψ)
     and holds (the model itself agrees at the checked times); else the model evaluated on t.
+    ``columns``: the parameters of ``system_jacobian`` wanted (all when None).
     """
     t = np.atleast_1d(np.asarray(t, dtype=float))
     p, u = np.asarray(p, dtype=float), np.asarray(u, dtype=float)
-    series = _series(model, method, t, p, u, None)
+    series = _series(model, method, t, p, u, columns)
     if series is None:
-        return compact(model, method, t, p, u)
+        F, g = compact(model, method, t, p, u)
+        return (F, g) if columns is None else (F[:, columns], g[:, columns])
     F, b, B = series
     return (F if isinstance(F, np.ndarray) else F.values(t)), b.values(t) + B.values(t, u)
 
