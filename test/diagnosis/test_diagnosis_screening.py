@@ -16,7 +16,8 @@ from dataclasses import replace
 from diagnosis_scenarios import Scenario, WAKE, WAKE_TRUTH
 import numpy as np
 import pytest
-from rotor_id.diagnosis.catalogue import EQUIVALENT, fit_candidate, Job, screen_candidate
+from rotor_id.diagnosis.catalogue import (
+    EQUIVALENT, fit_candidate, Job, screen_candidate, Setting)
 from rotor_id.diagnosis.diagnose import diagnose
 from rotor_id.pipeline import identify
 from truth_generator import wake_case
@@ -39,8 +40,9 @@ def _job(effect, record, description):
     unknowns = list(description.unknowns)
     values = {n: est.model_parameters[n] for n in unknowns}
     known = {n: v for n, v in est.model_parameters.items() if n not in unknowns}
-    job = Job(effect, '', record, description, values, unknowns, known,
-              tuple(description.window_s), baseline_nll=est.neg_log_likelihood)
+    setting = Setting(record, description, values, unknowns, known,
+                      tuple(description.window_s))
+    job = Job(setting, effect, baseline_nll=est.neg_log_likelihood)
     return job, est
 
 
