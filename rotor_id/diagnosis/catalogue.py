@@ -127,6 +127,12 @@ class CandidateFit:
     bound_limited: list = field(default_factory=list)
 
 
+def split_values(estimate, unknowns):
+    """Return an estimate's ({unknown: value}, {every other model parameter: value})."""
+    have = estimate.model_parameters
+    return {n: have[n] for n in unknowns}, {n: v for n, v in have.items() if n not in unknowns}
+
+
 @dataclass(frozen=True)
 class Setting:
     """What every candidate fit of one diagnosis shares: the record, the run and the values."""
@@ -141,6 +147,13 @@ class Setting:
     verbose: bool = False
     #: convergence of every candidate fit (the policy's ``fit_tolerance``)
     fit_tolerance: float = DEFAULT_POLICY.fit_tolerance
+
+    @classmethod
+    def of(cls, record, ident, **options):
+        """Return the setting of a baseline fit (an :class:`~rotor_id.pipeline.Identification`)."""
+        values, known = split_values(ident.estimate, ident.unknowns)
+        return cls(record, ident.description, values, list(ident.unknowns), known,
+                   tuple(ident.window_s), **options)
 
     def experiments(self, base_model):
         """Return the baseline model's experiments over the record's window."""

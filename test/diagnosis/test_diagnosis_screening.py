@@ -37,13 +37,7 @@ def small_lag():
 def _job(effect, record, description):
     ident = identify(record, description)
     est = ident.estimate
-    unknowns = list(description.unknowns)
-    values = {n: est.model_parameters[n] for n in unknowns}
-    known = {n: v for n, v in est.model_parameters.items() if n not in unknowns}
-    setting = Setting(record, description, values, unknowns, known,
-                      tuple(description.window_s))
-    job = Job(setting, effect, baseline_nll=est.neg_log_likelihood)
-    return job, est
+    return Job(Setting.of(record, ident), effect, baseline_nll=est.neg_log_likelihood), est
 
 
 def test_score_statistic_predicts_the_likelihood_gain(small_lag):
