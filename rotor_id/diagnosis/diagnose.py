@@ -62,8 +62,7 @@ def baseline_channels(ident, part, blade_sigma):
         floors = rs.channel_floor(view.channels(exp.t),
                                   blade_sigma[[b - 1 for b in view.blades]])
         for j, name in enumerate(exp.model.output_names):
-            label = name if len(runs) == 1 or name.startswith('beta_') and len(runs) > 1 \
-                else f'{name}[{exp.name}]'
+            label = name if len(runs) == 1 or name.startswith('beta_') else f'{name}[{exp.name}]'
             channels.append(Channel(label, est.residuals[r][:, j], exp.y[:, j],
                                     est.fitted[r][:, j], float(floors[j]),
                                     len(view.blades), True))
@@ -292,12 +291,13 @@ def diagnose(record, description, progress=None, workers=2, effects=EFFECTS, win
     space, usable, not_tried = _space(record, base, effects, workers, verbose_fits, policy)
     mu = base.ident.model.rotor.advance_ratio
     prior = Prior(usable, policy.max_effects, record.n_blades, mu)
+
+    def adequate(result):
+        return residuals_are_noise(result, base, policy)
     try:
-        selection = search(space, usable, prior, policy, mu, say,
-                           lambda r: residuals_are_noise(r, base, policy))
-        explanation, top, table = explain(
-            space, selection, prior, policy, lambda r: residuals_are_noise(r, base, policy),
-            lambda r: misfit_removed(r, base))
+        selection = search(space, usable, prior, policy, mu, say, adequate)
+        explanation, top, table = explain(space, selection, prior, policy, adequate,
+                                          lambda r: misfit_removed(r, base))
     finally:
         space.output_error.workers.close()
     proposal = _proposal(explanation, base, say)
