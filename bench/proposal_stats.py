@@ -48,11 +48,7 @@ def run_one(name, seed):
     scenario = BY_NAME[name]
     record, description = scenario.record_and_description(seed)
     cpu0, wall0 = time.process_time(), time.perf_counter()
-    ident = identify(record, description)
-    est = ident.estimate
-    values = {n: est.model_parameters[n] for n in description.unknowns}
-    known = {n: v for n, v in est.model_parameters.items() if n not in description.unknowns}
-    proposal = propose(ident.experiments, list(description.unknowns), values, known)
+    proposal = propose(identify(record, description))
     out = {'scenario': name, 'seed': seed, 'terms': proposal.terms, 'steps': proposal.steps,
            'reason': proposal.reason, 'cpu_s': time.process_time() - cpu0,
            'wall_s': time.perf_counter() - wall0}

@@ -102,31 +102,6 @@ class ExtendedInput:
 
 
 @dataclass
-class Job:
-    """One candidate fit: what a worker process needs (all picklable)."""
-
-    effect: str
-    variant: str
-    record: object
-    description: object
-    baseline_values: dict
-    unknowns: list
-    known: dict
-    window_s: tuple
-    verbose: bool = False
-    #: starting values of the augmented model (a bigger or smaller model's estimate)
-    start: dict = None
-    #: the baseline's −log L (a fit at a bound that does not beat it is not widened)
-    baseline_nll: float = math.inf
-    #: widened catalogue ranges {extra parameter: (lower, upper)} (see :func:`fit_candidate`)
-    bounds: dict = None
-    #: effects already kept, [(effect, variant)], fitted together with this one
-    prior: tuple = ()
-    #: convergence of the fit (:attr:`~rotor_id.diagnosis.policy.SelectionPolicy.fit_tolerance`)
-    fit_tolerance: float = DEFAULT_POLICY.fit_tolerance
-
-
-@dataclass
 class CandidateFit:
     """The outcome of fitting one candidate."""
 
@@ -152,13 +127,13 @@ class CandidateFit:
     bound_limited: list = field(default_factory=list)
 
 
-def start_values(fit):
-    """Return a fit's estimated model parameters (a start for a bigger or smaller model)."""
-    est = fit.estimate
-    return {n: est.model_parameters[n] for n in fit.unknowns if n in est.model_parameters}
+def split_values(estimate, unknowns):
+    """Return an estimate's ({unknown: value}, {every other model parameter: value})."""
+    have = estimate.model_parameters
+    return {n: have[n] for n in unknowns}, {n: v for n, v in have.items() if n not in unknowns}
 
 
-@dataclass
+@dataclass(frozen=True)
 class Setting:
     """What every candidate fit of one diagnosis shares: the record, the run and the values."""
 
@@ -172,14 +147,42 @@ class Setting:
     verbose: bool = False
     #: convergence of every candidate fit (the policy's ``fit_tolerance``)
     fit_tolerance: float = DEFAULT_POLICY.fit_tolerance
-    #: the filter-error fits made so far (later ones start from an earlier one's values)
-    filter_fits: list = field(default_factory=list)
 
-    def job(self, effect, variant='', **options):
-        """Return a candidate :class:`Job` on this record, description and values."""
-        return Job(effect, variant, self.record, self.description, self.values,
-                   self.unknowns, self.known, self.window_s, verbose=self.verbose,
-                   fit_tolerance=self.fit_tolerance, **options)
+    @classmethod
+    def of(cls, record, ident, **options):
+        """Return the setting of a baseline fit (an :class:`~rotor_id.pipeline.Identification`)."""
+        values, known = split_values(ident.estimate, ident.unknowns)
+        return cls(record, ident.description, values, list(ident.unknowns), known,
+                   tuple(ident.window_s), **options)
+
+    def experiments(self, base_model):
+        """Return the baseline model's experiments over the record's window."""
+        from rotor_id.pipeline import experiments_from_record
+        return experiments_from_record(self.record, self.description, base_model,
+                                       self.window_s)
+
+
+@dataclass
+class Job:
+    """One candidate fit on a :class:`Setting`: what a worker process needs (all picklable)."""
+
+    setting: Setting
+    effect: str
+    variant: str = ''
+    #: starting values of the augmented model (a bigger or smaller model's estimate)
+    start: dict = None
+    #: the baseline's −log L (a fit at a bound that does not beat it is not widened)
+    baseline_nll: float = math.inf
+    #: widened catalogue ranges {extra parameter: (lower, upper)} (see :func:`fit_candidate`)
+    bounds: dict = None
+    #: effects already kept, [(effect, variant)], fitted together with this one
+    prior: tuple = ()
+
+
+def start_values(fit):
+    """Return a fit's estimated model parameters (a start for a bigger or smaller model)."""
+    est = fit.estimate
+    return {n: est.model_parameters[n] for n in fit.unknowns if n in est.model_parameters}
 
 
 def augment_runs(experiments, make, extra_inputs=None):
@@ -319,8 +322,8 @@ def build(job, baseline_model, experiments):
     stacked in :data:`COMPOSE_ORDER` on the one rotor model. ``extra`` names the candidate's
     own extra parameters; the unknowns are the baseline's and every effect's.
     """
-    record = job.record
-    guess = dict(job.baseline_values)
+    setting = job.setting
+    guess = dict(setting.values)
     unknown = [e for e, _ in list(job.prior) + [(job.effect, job.variant)]
                if e not in COMPOSE_ORDER]
     if unknown:
@@ -329,7 +332,7 @@ def build(job, baseline_model, experiments):
                    key=lambda ev: COMPOSE_ORDER.index(ev[0]))
     runs, model = experiments, None
     for effect, variant in stack:
-        runs, model = _augment_one(effect, variant, record, runs, job.unknowns)
+        runs, model = _augment_one(effect, variant, setting.record, runs, setting.unknowns)
         if job.bounds and isinstance(model, aug.Augmented):
             for exp in runs:
                 exp.model.with_bounds(job.bounds)
@@ -344,7 +347,7 @@ def build(job, baseline_model, experiments):
             guess[par.name] = par.nominal
         if layer.effect in ('sensor_lag', 'pitch_actuator_lag'):
             max_step = min(layer.step(), max_step or math.inf)
-    unknowns = list(job.unknowns) + all_extra
+    unknowns = list(setting.unknowns) + all_extra
     # a start taken from a bigger model (the backward check's refit without an effect, an
     # exchange) carries parameters this model does not have: the fit refused them, so the
     # backward check never ran
@@ -511,18 +514,18 @@ def _printer(label, verbose):
 
 def fit_candidate(job):
     """Fit one candidate (runs in a worker process); never raises for a failed fit."""
-    from rotor_id.pipeline import experiments_from_record, model_for
+    from rotor_id.pipeline import model_for
     t_start = time.perf_counter()
+    setting = job.setting
     label = job.effect + (f' {job.variant}' if job.variant else '')
     out = CandidateFit(effect=job.effect, variant=job.variant, prior=tuple(job.prior))
-    base_model = model_for(job.description)
-    reason = applicable(job.effect, base_model.name, base_model.rotor, job.unknowns)
+    base_model = model_for(setting.description)
+    reason = applicable(job.effect, base_model.name, base_model.rotor, setting.unknowns)
     if reason:
         out.available, out.reason = False, reason
         return out
     try:
-        experiments = experiments_from_record(job.record, job.description, base_model,
-                                              job.window_s)
+        experiments = setting.experiments(base_model)
         if job.effect == 'blade_dissimilarity':
             job = _screen_blade(job, base_model, experiments)
             out.variant = job.variant
@@ -532,11 +535,11 @@ def fit_candidate(job):
                                                                   experiments)
             starts = grid_starts(job, model, guess)
             if starts is not None:
-                guess = _best_start(runs, unknowns, starts, job.known, max_step) or guess
+                guess = _best_start(runs, unknowns, starts, setting.known, max_step) or guess
             est = fit_output_error(
-                runs, unknowns, guess=guess, known=job.known, max_iter=40,
-                step_tol=job.fit_tolerance, max_step=max_step, label=label,
-                progress=stop_at_bound(model, extra, _printer(label, job.verbose)))
+                runs, unknowns, guess=guess, known=setting.known, max_iter=40,
+                step_tol=setting.fit_tolerance, max_step=max_step, label=label,
+                progress=stop_at_bound(model, extra, _printer(label, setting.verbose)))
             at_bound = bound_sides(est.model_parameters, model, extra)
             out.bounds = dict(job.bounds or {})
             out.bound_limited = [name for name, _ in at_bound]
@@ -555,11 +558,11 @@ def fit_candidate(job):
         out.elapsed_s = time.perf_counter() - t_start
         return out
     out.estimate, out.model, out.unknowns, out.extra_names = est, model, unknowns, extra
-    out.n_extra = len(est.names) - len(job.unknowns) - _n_initial(experiments)
+    out.n_extra = len(est.names) - len(setting.unknowns) - _n_initial(experiments)
     out.effect_parameters.update(effect_parameters(est, model))
     out.parameters = out.effect_parameters.get(job.effect, {})
     out.elapsed_s = time.perf_counter() - t_start
-    if job.verbose:
+    if setting.verbose:
         sys.stderr.write(f'  [{label}] done in {out.elapsed_s:.1f} s\n')
         sys.stderr.flush()
     return out
@@ -610,10 +613,10 @@ def screen_candidate(job, noise_var):
     variance here}. A blade dissimilarity is tested per blade; a lag (not nested: τ > 0) by
     its delay d = τ at d = 0 (:data:`SCREENED_AS`; var under the lag's parameter name).
     """
-    from rotor_id.pipeline import experiments_from_record, model_for
-    base_model = model_for(job.description)
-    experiments = experiments_from_record(job.record, job.description, base_model,
-                                          job.window_s)
+    from rotor_id.pipeline import model_for
+    setting = job.setting
+    base_model = model_for(setting.description)
+    experiments = setting.experiments(base_model)
     effect = job.effect
     if effect in LAG_PARAMETER:
         job = _replace(job, effect=SCREENED_AS[effect])
@@ -622,7 +625,7 @@ def screen_candidate(job, noise_var):
     for blade in blades:
         trial = job if blade is None else _replace(job, variant=f'blade_{blade}')
         runs, model, unknowns, extra, guess, max_step = build(trial, base_model, experiments)
-        lm, var = score_statistic(runs, unknowns, guess, job.known, noise_var, max_step, extra)
+        lm, var = score_statistic(runs, unknowns, guess, setting.known, noise_var, max_step, extra)
         if effect in LAG_PARAMETER:
             var = as_lag_variance(effect, var)
         k = len(extra) + _n_initial(runs) - _n_initial(experiments)
@@ -650,8 +653,8 @@ def _screen_blade(job, base_model, experiments):
                              start={**(job.start or {}), 'dgamma_rel': eps})
             runs, _, unknowns, _, guess, max_step = build(trial, base_model, experiments)
             try:
-                est = fit_output_error(runs, unknowns, guess=guess, known=job.known,
-                                       max_iter=2)
+                est = fit_output_error(runs, unknowns, guess=guess,
+                                       known=job.setting.known, max_iter=2)
             except (IdentificationError, np.linalg.LinAlgError, FloatingPointError):
                 continue
             if est.neg_log_likelihood < best_cost:

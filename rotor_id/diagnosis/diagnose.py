@@ -62,8 +62,7 @@ def baseline_channels(ident, part, blade_sigma):
         floors = rs.channel_floor(view.channels(exp.t),
                                   blade_sigma[[b - 1 for b in view.blades]])
         for j, name in enumerate(exp.model.output_names):
-            label = name if len(runs) == 1 or name.startswith('beta_') and len(runs) > 1 \
-                else f'{name}[{exp.name}]'
+            label = name if len(runs) == 1 or name.startswith('beta_') else f'{name}[{exp.name}]'
             channels.append(Channel(label, est.residuals[r][:, j], exp.y[:, j],
                                     est.fitted[r][:, j], float(floors[j]),
                                     len(view.blades), True))
@@ -196,15 +195,12 @@ def _baseline(record, description, window_s, say):
     return Baseline(ident, part, blade_sigma, channels, stats, exp0.t, u)
 
 
-def _space(record, description, base, window_s, effects, workers, verbose, policy):
+def _space(record, base, effects, workers, verbose, policy):
     """Return the model space (output error, filter error) and the effects it may use."""
     ident = base.ident
     est = ident.estimate
-    unknowns = list(description.unknowns)
-    setting = Setting(record, description, {n: est.model_parameters[n] for n in unknowns},
-                      unknowns, {n: v for n, v in est.model_parameters.items()
-                                 if n not in unknowns}, tuple(window_s), verbose=verbose,
-                      fit_tolerance=policy.fit_tolerance)
+    unknowns = list(ident.unknowns)
+    setting = Setting.of(record, ident, verbose=verbose, fit_tolerance=policy.fit_tolerance)
     n_obs = sum(e.t.size * e.model.n_outputs for e in ident.experiments)
     not_tried = {e: applicable(e, ident.model.name, ident.model.rotor, unknowns)
                  for e in effects if e != NOISE}
@@ -251,14 +247,9 @@ def _proposal(explanation, base, say):
     if explanation.effect != 'unexplained' and explanation.names != (NOISE,):
         return None
     from rotor_id.diagnosis.proposal import propose, summary_line
-    ident = base.ident
-    est = ident.estimate
     say('proposal: stepwise regression of the equation error on a library of flap-equation '
         'terms, validated on held-out time blocks')
-    unknowns = list(ident.unknowns)
-    proposal = propose(ident.experiments, unknowns,
-                       {n: est.model_parameters[n] for n in unknowns},
-                       {n: v for n, v in est.model_parameters.items() if n not in unknowns})
+    proposal = propose(base.ident)
     say(summary_line(proposal.as_json()))
     return proposal
 
@@ -297,16 +288,16 @@ def diagnose(record, description, progress=None, workers=2, effects=EFFECTS, win
     say(f'baseline: fitting {description.model} ({", ".join(description.unknowns)})')
     kernels.prefer()                # every candidate simulates: the compiled path from the start
     base = _baseline(record, description, window_s, say)
-    space, usable, not_tried = _space(record, description, base, window_s, effects, workers,
-                                      verbose_fits, policy)
+    space, usable, not_tried = _space(record, base, effects, workers, verbose_fits, policy)
     mu = base.ident.model.rotor.advance_ratio
     prior = Prior(usable, policy.max_effects, record.n_blades, mu)
+
+    def adequate(result):
+        return residuals_are_noise(result, base, policy)
     try:
-        selection = search(space, usable, prior, policy, mu, say,
-                           lambda r: residuals_are_noise(r, base, policy))
-        explanation, top, table = explain(
-            space, selection, prior, policy, lambda r: residuals_are_noise(r, base, policy),
-            lambda r: misfit_removed(r, base))
+        selection = search(space, usable, prior, policy, mu, say, adequate)
+        explanation, top, table = explain(space, selection, prior, policy, adequate,
+                                          lambda r: misfit_removed(r, base))
     finally:
         space.output_error.workers.close()
     proposal = _proposal(explanation, base, say)

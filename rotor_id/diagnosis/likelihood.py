@@ -21,7 +21,7 @@ from rotor_id import residuals as rs
 from rotor_id.diagnosis import noisy
 from rotor_id.diagnosis.catalogue import (
     as_lag_variance, CandidateFit, COMPOSE_ORDER, EFFECTS, FAILURES, fit_candidate,
-    LAG_PARAMETER, NOISE, screen_candidate, SCREENED, SCREENED_AS, start_values)
+    Job, LAG_PARAMETER, NOISE, screen_candidate, SCREENED, SCREENED_AS, start_values)
 from rotor_id.estimation import kernels
 
 
@@ -203,9 +203,9 @@ class OutputError(Likelihood):
             [max(effects, key=lambda ev: COMPOSE_ORDER.index(ev[0]))]
         last = new[-1]
         prior = tuple(ev for ev in effects if ev != last)
-        return self.setting.job(last[0], last[1], prior=prior,
-                                start=None if start is None else start.start_values(),
-                                baseline_nll=-start.loglik if start is not None else math.inf)
+        return Job(self.setting, *last, prior=prior,
+                   start=None if start is None else start.start_values(),
+                   baseline_nll=-start.loglik if start is not None else math.inf)
 
     def fit_many(self, requests):
         """Fit [(effects, start)] (in worker processes); returns results, None where failed."""
@@ -233,8 +233,8 @@ class OutputError(Likelihood):
         """
         noise_var = np.asarray(current.estimate.noise_std, dtype=float)**2
         tested = {e: SCREENED_AS.get(e, e) for e in effects if e in SCREENED}
-        jobs = {t: (self.setting.job(t, '', prior=current.effects,
-                                     start=current.start_values()), noise_var)
+        jobs = {t: (Job(self.setting, t, prior=current.effects,
+                        start=current.start_values()), noise_var)
                 for t in set(tested.values())}
         names = sorted(jobs)
         found = dict(zip(names, self.workers.apply(_screen_job, [jobs[n] for n in names])))
@@ -280,15 +280,13 @@ class FilterError(Likelihood):
         self.base_names = set(baseline_names)
         self.workers = workers if workers is not None else Workers(1)
         self._memo = {}
+        #: the fits made so far (later ones start from an earlier one's values)
+        self.fits = []
 
     @cached_property
     def setup(self):
         """Return the filter problem's shared parts (built on first use)."""
         return noisy.setup_for(self.setting)
-
-    def _shared(self):
-        """Return the setting as a worker needs it (without the fits made so far)."""
-        return replace(self.setting, filter_fits=[])
 
     def _result(self, effects, fit):
         if fit is None or not fit.available:
@@ -308,7 +306,7 @@ class FilterError(Likelihood):
         """
         kept = [ev for ev in key if ev[0] != NOISE]
         if not kept:
-            return None, [], None, None, self._shared(), self.setup
+            return None, [], None, None, self.setting, self.setup
         if start is not None and start.likelihood == self.name:
             new = ([ev for ev in kept if ev not in start.effects] or kept[-1:])[0]
             rest = [ev for ev in kept if ev != new]
@@ -316,8 +314,8 @@ class FilterError(Likelihood):
         else:
             new, rest = None, kept
             (effect, variant), stack = kept[-1], kept[:-1]
-        earlier = noisy.earlier_fit(self.setting.filter_fits, effect, variant, stack)
-        return new, rest, start.fit, earlier, self._shared(), self.setup
+        earlier = noisy.earlier_fit(self.fits, effect, variant, stack)
+        return new, rest, start.fit, earlier, self.setting, self.setup
 
     def fit_many(self, requests):
         """Fit [(effects, start)] with random inflow (in worker processes); None where failed."""
@@ -329,14 +327,14 @@ class FilterError(Likelihood):
         for key, fit in zip(todo, self.workers.apply(_filter_fit_job, todo.values())):
             self._memo[key] = self._result(key, fit)
             if self._memo[key] is not None:
-                self.setting.filter_fits.append(fit)
+                self.fits.append(fit)
         return [self._memo[k] for k in keys]
 
     def score_many(self, current, effects):
         """Score-test effects at a fitted model, in worker processes: {effect: ScoreTest}."""
         kept = [ev for ev in current.effects if ev[0] != NOISE]
         asked = [e for e in effects if e == NOISE or e in SCREENED]
-        items = [(e, kept, current.fit, self._shared(), self.setup) for e in asked]
+        items = [(e, kept, current.fit, self.setting, self.setup) for e in asked]
         out = dict.fromkeys(effects)
         out.update(zip(asked, self.workers.apply(_filter_score_job, items)))
         return out

@@ -16,7 +16,7 @@ import numpy as np
 
 from rotor_id.diagnosis.catalogue import (
     as_lag_variance, augment_runs, bound_sides, build, CandidateFit, effect_parameters,
-    FAILURES, grid_starts, NOISE, SCREENED_AS, start_values, stop_at_bound)
+    FAILURES, grid_starts, Job, NOISE, SCREENED_AS, start_values, stop_at_bound)
 from rotor_id.estimation.filter_error import (
     FilterProblem, fit_filter_error_ml, gradient_information, innovations_cost,
     measurement_noise_name, PROCESS_NOISE)
@@ -45,14 +45,11 @@ class Setup:
 
 def setup_for(ctx):
     """Return what every filter-error fit of one diagnosis shares."""
-    from rotor_id.pipeline import channel_noise, experiments_from_record, model_for
-    description = ctx.description
-    base_model = model_for(description)
-    experiments = experiments_from_record(ctx.record, description, base_model,
-                                          tuple(ctx.window_s))
-    noise = description.noise_std_rad
+    from rotor_id.pipeline import channel_noise, model_for
+    base_model = model_for(ctx.description)
+    noise = ctx.description.noise_std_rad
     fixed = None if noise is None else channel_noise(base_model, float(noise))
-    return Setup(base_model, experiments, fixed)
+    return Setup(base_model, ctx.experiments(base_model), fixed)
 
 
 def _sigma_v(est):
@@ -200,7 +197,7 @@ def fit_filter(effect, variant, kept, start_fit, ctx, setup, earlier=None):
         begin = {n: v for n, v in zip(prob.names, theta)
                  if n != PROCESS_NOISE and n not in unknowns}
         # two iterations at a catalogue bound end the fit: it is reported bound-limited
-        est = fit_filter_error_ml(runs, unknowns, guess=guess, known=job.known,
+        est = fit_filter_error_ml(runs, unknowns, guess=guess, known=ctx.known,
                                   noise_std=setup.noise_std, max_iter=MAX_ITER,
                                   process_noise_std=math.sqrt(theta[prob.i_process]),
                                   rows=rows, max_step=max_step,
@@ -256,7 +253,7 @@ def _best_filter_start(job, model, runs, unknowns, guess, setup, max_step, est0,
     best, best_cost = None, math.inf
     for start, sigma in starts:
         try:
-            prob, theta = _problem(runs, unknowns, start, job.known, setup, sigma,
+            prob, theta = _problem(runs, unknowns, start, job.setting.known, setup, sigma,
                                    max_step, est0, rows, process_sigma=sigma,
                                    refit_states=True)
         except FAILURES:
@@ -266,7 +263,7 @@ def _best_filter_start(job, model, runs, unknowns, guess, setup, max_step, est0,
         if math.isfinite(prob.start_cost) and prob.start_cost < best_cost:
             best, best_cost = (start, prob, theta), prob.start_cost
     if best is None:           # no start evaluates: the neutral one fails as it did before
-        prob, theta = _problem(runs, unknowns, guess, job.known, setup, _sigma_v(est0),
+        prob, theta = _problem(runs, unknowns, guess, job.setting.known, setup, _sigma_v(est0),
                                max_step, est0, rows, process_sigma=max(_sigma_v(est0), 1e-12))
         return guess, prob, theta
     return best
@@ -306,7 +303,7 @@ def _stack(ctx, setup, kept, est, start):
     job, runs, unknowns, extra = None, setup.experiments, list(ctx.unknowns), []
     guess, max_step = dict(start), DEFAULT_MAX_STEP
     if kept:
-        job = ctx.job(kept[-1][0], kept[-1][1], prior=tuple(kept[:-1]), start=start)
+        job = Job(ctx, *kept[-1], prior=tuple(kept[:-1]), start=start)
         runs, _, unknowns, extra, guess, max_step = build(job, setup.base_model,
                                                           setup.experiments)
     runs, rows, shape = random_inflow_states(runs)

@@ -33,7 +33,7 @@ from dataclasses import dataclass, field
 import math
 
 import numpy as np
-from rotor_id.diagnosis.catalogue import augment_runs, FAILURES
+from rotor_id.diagnosis.catalogue import augment_runs, FAILURES, split_values
 from rotor_id.estimation.equation_error import fit_equation_error, regression
 from rotor_id.estimation.output_error import fit_output_error
 from rotor_id.physics.augmented import Augmented, BladeView
@@ -123,8 +123,10 @@ class Regressors:
     rows: list
 
 
-def build_regressors(experiments, unknowns, values, known):
-    """Reconstruct the states and build :class:`Regressors` for the baseline's runs."""
+def build_regressors(ident):
+    """Reconstruct the states and build :class:`Regressors` for the baseline fit's runs."""
+    experiments, unknowns = ident.experiments, list(ident.unknowns)
+    values, known = split_values(ident.estimate, unknowns)
     result = fit_equation_error(experiments, unknowns, guess=values, known=known, max_iter=1)
     model = experiments[0].model
     p = model.parameter_vector({**known, **dict(zip(result.names, result.values))})
@@ -275,19 +277,20 @@ class LibraryTerm(Augmented):
             dg[:, k] = v
 
 
-def refine(experiments, unknowns, values, known, terms):
+def refine(ident, terms):
     """
     Fit the baseline with the proposed terms by output-error ML; return the estimate.
 
-    The runs are the baseline's with every term stacked on the model (the catalogue's
+    The runs are the baseline fit's with every term stacked on the model (the catalogue's
     :func:`~rotor_id.diagnosis.catalogue.augment_runs`).
     """
-    runs = experiments
+    runs = ident.experiments
     for term in terms:
         runs, _ = augment_runs(runs, lambda m, term=term: LibraryTerm(m, term))
     extra = [f'xi[{term}]' for term in terms]
+    values, known = split_values(ident.estimate, ident.unknowns)
     guess = {**values, **dict.fromkeys(extra, 0.0)}
-    return fit_output_error(runs, list(unknowns) + extra, guess=guess, known=known,
+    return fit_output_error(runs, list(ident.unknowns) + extra, guess=guess, known=known,
                             max_iter=30), extra
 
 
@@ -305,16 +308,16 @@ def _log_ratio_t(before, after):
     return float(np.mean(ratio)) / (spread / math.sqrt(ratio.size)), ratio
 
 
-def propose(experiments, unknowns, values, known):
+def propose(ident):
     """
     Propose up to :data:`MAX_TERMS` library terms of the flap equation: :class:`Proposal`.
 
-    ``experiments``: the baseline's runs; ``unknowns`` (re-estimated beside every term), their
-    baseline ``values`` and the ``known`` parameters. The method is the module docstring's.
+    ``ident``: the baseline fit (a :class:`~rotor_id.pipeline.Identification`), its runs and
+    its unknowns (re-estimated beside every term). The method is the module docstring's.
     """
     names = term_names()
     try:
-        reg = build_regressors(experiments, list(unknowns), dict(values), dict(known))
+        reg = build_regressors(ident)
     except FAILURES as exc:
         return Proposal(library=names, reason=f'equation error failed: {exc}')
     current = []
@@ -328,8 +331,7 @@ def propose(experiments, unknowns, values, known):
             break
         current.append(best)
         sse = trial
-    terms, reason = _proposed_terms(reg, current, steps, names, experiments, unknowns, values,
-                                    known)
+    terms, reason = _proposed_terms(reg, current, steps, names, ident)
     after = float(math.sqrt(np.sum(sse) / reg.e.size))
     return Proposal(terms=terms, library=names, heldout_rms_before=before,
                     heldout_rms_after=after, steps=steps, reason=reason)
@@ -355,7 +357,7 @@ def _forward_step(reg, current, sse, names):
     return step, best, trials[best]
 
 
-def _proposed_terms(reg, current, steps, names, experiments, unknowns, values, known):
+def _proposed_terms(reg, current, steps, names, ident):
     """Return (the kept terms with their coefficients, reason the ML refit failed or '')."""
     terms, reason = [], ''
     if not current:
@@ -363,7 +365,7 @@ def _proposed_terms(reg, current, steps, names, experiments, unknowns, values, k
     coef, cov = robust_fit(reg, current)
     k = reg.A.shape[1]
     try:
-        est, extra = refine(experiments, unknowns, values, known, [names[m] for m in current])
+        est, extra = refine(ident, [names[m] for m in current])
         ml = {n: (est.value(n), est.std_of(n)) for n in extra}
     except FAILURES as exc:
         ml, reason = {}, f'output-error refit failed: {exc}'

@@ -26,7 +26,7 @@ def alternatives(ranked, baseline, misfit=None, prior=None):
             likelihood=res.likelihood if res is not None else cand.parent.likelihood,
             misfit_explained=None if misfit is None or res is None else misfit(res),
             log_prior=prior.log(cand.effects) if prior is not None else math.nan,
-            n_obs=(res if res is not None else cand.parent).n_obs, rho=rho))
+            n_obs=cand.n_obs, rho=rho))
     return out
 
 

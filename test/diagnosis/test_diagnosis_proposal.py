@@ -51,11 +51,7 @@ def test_library_term_sensitivities_and_neutral_value(name, mu):
 def _propose(name, seed):
     scenario = BY_NAME[name]
     record, description = scenario.record_and_description(seed)
-    ident = identify(record, description)
-    est = ident.estimate
-    values = {n: est.model_parameters[n] for n in description.unknowns}
-    known = {n: v for n, v in est.model_parameters.items() if n not in description.unknowns}
-    return propose(ident.experiments, list(description.unknowns), values, known)
+    return propose(identify(record, description))
 
 
 @pytest.mark.parametrize('name,truth', [('flap_stiffness_1c', ('beta*cos(psi)', -K_1C)),

@@ -16,7 +16,8 @@ from dataclasses import replace
 from diagnosis_scenarios import Scenario, WAKE, WAKE_TRUTH
 import numpy as np
 import pytest
-from rotor_id.diagnosis.catalogue import EQUIVALENT, fit_candidate, Job, screen_candidate
+from rotor_id.diagnosis.catalogue import (
+    EQUIVALENT, fit_candidate, Job, screen_candidate, Setting)
 from rotor_id.diagnosis.diagnose import diagnose
 from rotor_id.pipeline import identify
 from truth_generator import wake_case
@@ -36,12 +37,7 @@ def small_lag():
 def _job(effect, record, description):
     ident = identify(record, description)
     est = ident.estimate
-    unknowns = list(description.unknowns)
-    values = {n: est.model_parameters[n] for n in unknowns}
-    known = {n: v for n, v in est.model_parameters.items() if n not in unknowns}
-    job = Job(effect, '', record, description, values, unknowns, known,
-              tuple(description.window_s), baseline_nll=est.neg_log_likelihood)
-    return job, est
+    return Job(Setting.of(record, ident), effect, baseline_nll=est.neg_log_likelihood), est
 
 
 def test_score_statistic_predicts_the_likelihood_gain(small_lag):
