@@ -11,7 +11,7 @@ import math
 from rotor_id.diagnosis.catalogue import EFFECTS, equivalent
 from rotor_id.diagnosis.result import Alternative, DetectionLimit, Effect, Explanation, Share
 from rotor_id.diagnosis.selection import posterior, same_physics, shared_rho, tests_at
-from scipy.special import chndtr, chndtrinc
+from rotor_id.estimation.validation import noncentrality_for_power
 
 
 def alternatives(ranked, baseline, misfit=None, prior=None):
@@ -93,11 +93,9 @@ def acceptance_noncentrality(result, test, prior, policy, rho):
     k = max(test.k, 1)
     if not math.isfinite(c):            # the model is as large as the policy allows
         return math.inf
-
-    # P(χ²_k(λ) > c) = 1 − chndtr(c, k, λ); chndtrinc inverts chndtr in λ
-    if c <= 0.0 or 1.0 - chndtr(c, k, 0.0) >= policy.detection_power:
+    if c <= 0.0:
         return 0.0
-    return float(chndtrinc(c, k, 1.0 - policy.detection_power))
+    return noncentrality_for_power(c, k, policy.detection_power)
 
 
 def detection_limits(space, selection, top, prior, policy):

@@ -98,6 +98,68 @@ def chi2_sf(q: npt.ArrayLike, dof: npt.ArrayLike) -> Any:
     return _as_float(_chi2_tail(np.asarray(q, dtype=float), np.asarray(dof, dtype=float)))
 
 
+def _higher_dof_tails(q, dof, count):
+    """P(χ²(dof + 2j) > q) for j = 0 … count−1: Q(a+1, x) = Q(a, x) + xᵃ e⁻ˣ / Γ(a+1)."""
+    a, x = 0.5 * dof, 0.5 * q
+    steps = a + np.arange(count - 1)                     # a, a+1, …: the term of each step
+    log_terms = steps * math.log(x) - x - np.array([math.lgamma(b + 1.0) for b in steps])
+    tails = _gamma_q(a, x) + np.concatenate([[0.0], np.cumsum(np.exp(log_terms))])
+    return np.minimum(tails, 1.0)
+
+
+def _poisson_terms(mean):
+    """Return terms of a Poisson mixture past which its weight is below 1e-30 (of any mean)."""
+    return int(math.ceil(mean + 12.0 * math.sqrt(mean) + 30.0))
+
+
+def _noncentral_tail(q, dof, largest):
+    """
+    Return the function λ ↦ P(χ²_dof(λ) > q) for 0 ≤ λ ≤ ``largest``.
+
+    The Poisson(λ/2) mixture of the central tails with dof + 2j degrees of freedom (computed
+    once), summed until the Poisson weight left is below 1e-30.
+    """
+    tails = _higher_dof_tails(q, dof, _poisson_terms(0.5 * largest))
+    j = np.arange(tails.size)
+    log_factorial = np.array([math.lgamma(i + 1.0) for i in j])
+
+    def tail(noncentrality):
+        if noncentrality <= 0.0:
+            return float(tails[0])
+        half = 0.5 * noncentrality
+        weights = np.exp(-half + j * math.log(half) - log_factorial)
+        return float(min(1.0, weights @ tails))
+    return tail
+
+
+def noncentral_chi2_sf(q: float, dof: float, noncentrality: float) -> float:
+    """Return P(χ²_dof(λ) > q), the upper tail of the noncentral χ² distribution (q > 0)."""
+    return _noncentral_tail(q, dof, max(noncentrality, 0.0))(noncentrality)
+
+
+def noncentrality_for_power(q: float, dof: float, power: float) -> float:
+    """
+    Return λ with P(χ²_dof(λ) > q) = power: a test at the threshold q detects it with power.
+
+    0 when the central tail already reaches ``power``. The tail rises with λ: λ is bracketed
+    by doubling and bisected to 1e-12 of itself.
+    """
+    if chi2_sf(q, dof) >= power:
+        return 0.0
+    high = max(1.0, q)
+    while noncentral_chi2_sf(q, dof, high) < power:
+        high *= 2.0
+    tail = _noncentral_tail(q, dof, high)
+    low = 0.0
+    while high - low > 1e-12 * high:
+        middle = 0.5 * (low + high)
+        if tail(middle) < power:
+            low = middle
+        else:
+            high = middle
+    return 0.5 * (low + high)
+
+
 def normal_sf(z: npt.ArrayLike) -> Any:
     """Return P(N(0, 1) > z), the upper tail of the standard normal."""
     return _as_float(_normal_tail(np.asarray(z, dtype=float)))

@@ -39,3 +39,18 @@ def test_identify_loads_neither_scipy_nor_matplotlib(tmp_path):
     assert not packages & set(NOT_NEEDED), sorted(packages & set(NOT_NEEDED))
     # the adequacy check reads the residuals without the diagnosis (it never imports upward)
     assert not [name for name in modules if name.startswith('rotor_id.diagnosis')]
+
+
+def test_diagnose_starts_without_scipy_special_or_matplotlib():
+    # the diagnosis's detection limits take the noncentral χ² from rotor_id.estimation.validation,
+    # not scipy.special (whose import was a third of `rotor-id diagnose`'s start-up, ~0.13 s)
+    env = dict(os.environ, PYTHONPATH=os.pathsep.join(
+        [str(REPO)] + [p for p in os.environ.get('PYTHONPATH', '').split(os.pathsep) if p]))
+    out = subprocess.run(
+        [sys.executable, '-c', 'import json, sys\nimport rotor_id.commands.diagnose\n'
+         'print(json.dumps(sorted(sys.modules)))\n'],
+        capture_output=True, text=True, env=env, timeout=120)
+    modules = json.loads(out.stdout.strip().splitlines()[-1])
+    assert 'rotor_id.diagnosis.verdict' in modules      # the listing sees the diagnosis
+    assert not [m for m in modules if m.startswith(('scipy.special', 'scipy.signal',
+                                                    'matplotlib'))]

@@ -175,6 +175,26 @@ def test_input_correlation_limit_null_rate():
     assert not caught.uncorrelated_with_input()
 
 
+def test_noncentral_tail_and_its_inverse_are_scipy_numbers():
+    """The noncentral χ² tail (above 1e-10) and the λ of a given power agree with scipy."""
+    from rotor_id.estimation.validation import noncentral_chi2_sf, noncentrality_for_power
+    from scipy.special import chndtr, chndtrinc
+    from scipy.stats import ncx2
+    for q in (0.5, 3.8, 10.0, 40.0, 150.0, 800.0):
+        for dof in (1, 2, 3, 5, 8.5):
+            for lam in (0.3, 2.0, 10.0, 60.0, 300.0, 1500.0):
+                theirs = ncx2.sf(q, dof, lam)
+                if theirs > 1e-10:
+                    assert abs(noncentral_chi2_sf(q, dof, lam) / theirs - 1.0) <= 1e-12
+            for power in (0.5, 0.9, 0.95, 0.99):
+                ours = noncentrality_for_power(q, dof, power)
+                if 1.0 - chndtr(q, dof, 0.0) >= power:
+                    assert ours == 0.0
+                else:
+                    assert abs(ours / chndtrinc(q, dof, 1.0 - power) - 1.0) <= 1e-11
+                    assert abs(noncentral_chi2_sf(q, dof, ours) - power) <= 1e-11
+
+
 def test_tails_are_scipy_stats_numbers():
     """χ² and normal tails (evaluated without scipy) agree with scipy.stats to 1e-12."""
     from rotor_id.estimation.validation import chi2_sf, normal_isf, normal_sf
