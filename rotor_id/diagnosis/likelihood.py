@@ -10,8 +10,9 @@ fitted model. :class:`ModelSpace` sends each explanation to the likelihood that 
 the search (:mod:`rotor_id.diagnosis.selection`) never asks which one it has.
 """
 
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field, replace
-from functools import cached_property
+from functools import cached_property, partial
 import math
 import multiprocessing
 
@@ -32,22 +33,45 @@ class Workers:
     Forked on first use, after the compiled kernels are loaded (:func:`kernels.prefer`), so
     every worker inherits them, and kept until :meth:`close`: a worker holds the record's
     prepared plans from one batch to the next. With one process (or one job) the work runs
-    here.
+    here, except in :meth:`together`.
     """
 
     def __init__(self, processes):
         self.processes = int(processes)
         self._pool = None
+        self._all_in_workers = False
+
+    def _start(self):
+        if self._pool is None:
+            kernels.prefer()
+            self._pool = multiprocessing.get_context('fork').Pool(processes=self.processes)
+        return self._pool
 
     def apply(self, function, items):
         """Return [function(item)] in order, in the workers where that pays."""
         items = list(items)
-        if self.processes <= 1 or len(items) <= 1:
+        if self.processes <= 1 or (len(items) <= 1 and not self._all_in_workers) or not items:
             return [function(item) for item in items]
-        if self._pool is None:
-            kernels.prefer()
-            self._pool = multiprocessing.get_context('fork').Pool(processes=self.processes)
-        return self._pool.map(function, items)
+        return self._start().map(function, items)
+
+    def together(self, calls):
+        """
+        Return [call()] of independent batches, their jobs queued in the workers at once.
+
+        Each call (a likelihood's batch) waits in a thread of this process while the workers
+        run its jobs, a lone job included: the batches overlap, and nothing is computed in
+        this process meanwhile (its caches see one thread).
+        """
+        if self.processes <= 1 or len(calls) <= 1:
+            return [call() for call in calls]
+        self._start()
+        self._all_in_workers = True
+        try:
+            with ThreadPoolExecutor(max_workers=len(calls)) as threads:
+                futures = [threads.submit(call) for call in calls]
+                return [future.result() for future in futures]
+        finally:
+            self._all_in_workers = False
 
     def close(self):
         """Stop the workers (idempotent)."""
@@ -359,14 +383,18 @@ class ModelSpace(Likelihood):
         return self.output_error.baseline()
 
     def fit_many(self, requests):
-        """Fit [(effects, start)], each by its likelihood, each batch in worker processes."""
+        """Fit [(effects, start)], each by its likelihood, the batches at once in the workers."""
         out = [None] * len(requests)
+        batches = []
         for owner in (self.output_error, self.filter_error):
             mine = [i for i, (effects, _) in enumerate(requests)
                     if self._owner(effects) is owner]
             if mine and owner is not None:
-                for i, res in zip(mine, owner.fit_many([requests[i] for i in mine])):
-                    out[i] = res
+                batches.append((mine, partial(owner.fit_many, [requests[i] for i in mine])))
+        results = self.output_error.workers.together([call for _, call in batches])
+        for (mine, _), fits in zip(batches, results):
+            for i, res in zip(mine, fits):
+                out[i] = res
         return out
 
     def refit_from(self, effects, values):
@@ -377,8 +405,11 @@ class ModelSpace(Likelihood):
     def score_many(self, current, effects):
         """Score-test effects at ``current`` with the likelihood of ``current + effect``."""
         out = dict.fromkeys(effects)
+        batches = []
         for owner in (self.output_error, self.filter_error):
             mine = [e for e in effects if self._owner(current.effects + ((e, ''),)) is owner]
             if mine and owner is not None:
-                out.update(owner.score_many(current, mine))
+                batches.append(partial(owner.score_many, current, mine))
+        for tests in self.output_error.workers.together(batches):
+            out.update(tests)
         return out
