@@ -105,14 +105,7 @@ class Series:
         harmonics, n_weights, n_entries = self.coefficients.shape
         if weights is None and self.constant:
             return self.coefficients[0].copy()
-        order = harmonics // 2
-        angle = np.multiply.outer(np.asarray(t, dtype=float) - self.t0,
-                                  np.arange(1, order + 1))
-        basis = np.empty((angle.shape[0], harmonics))
-        basis[:, 0] = 1.0
-        basis[:, 1::2], basis[:, 2::2] = np.cos(angle), np.sin(angle)
-        if weights is not None:                               # Σ_h Σ_j basis_h w_j c_hj
-            basis = (basis[:, :, None] * weights[:, None, :]).reshape(basis.shape[0], -1)
+        basis = _basis(np.asarray(t, dtype=float), self.t0, harmonics, weights)
         return basis @ self.coefficients.reshape(-1, n_entries)
 
     def values(self, t: np.ndarray, weights: np.ndarray | None = None) -> np.ndarray:
@@ -121,6 +114,42 @@ class Series:
         out = np.zeros((t.size, int(np.prod(self.shape))))
         out[:, self.index] = self.entries(t, weights)
         return out.reshape((t.size,) + self.shape)
+
+
+#: the last trigonometric bases (a simulation sums F, g and their derivatives on one grid):
+#: [(t, t0, harmonics, weights, basis)], newest last
+_bases: list[tuple] = []
+BASES_KEPT = 8
+#: grids shorter than this (the check times) are summed without keeping their basis
+SAMPLES_KEPT = 64
+
+
+def _basis(t, t0, harmonics, weights):
+    """
+    Return the (t.size, harmonics·J) basis of :meth:`Series.entries` (read only).
+
+    1, cos hψ, sin hψ (h = 1 … harmonics//2, ψ = t − t0), each times every weight w_j(t)
+    (Σ_h Σ_j basis_h w_j c_hj); the last few are kept, found by their t and weights' values.
+    """
+    for kept_t, kept_t0, kept_h, kept_w, basis in _bases:
+        if kept_t0 == t0 and kept_h == harmonics and kept_t.shape == t.shape \
+                and np.array_equal(kept_t, t) and (
+                    kept_w is None if weights is None else
+                    kept_w is not None and kept_w.shape == weights.shape
+                    and np.array_equal(kept_w, weights)):
+            return basis
+    angle = np.multiply.outer(t - t0, np.arange(1, harmonics // 2 + 1))
+    basis = np.empty((t.size, harmonics))
+    basis[:, 0] = 1.0
+    basis[:, 1::2], basis[:, 2::2] = np.cos(angle), np.sin(angle)
+    if weights is not None:
+        basis = (basis[:, :, None] * weights[:, None, :]).reshape(t.size, -1)
+    if t.size >= SAMPLES_KEPT:
+        basis.flags.writeable = False
+        _bases.append((t.copy(), t0, harmonics, None if weights is None else weights.copy(),
+                       basis))
+        del _bases[:-BASES_KEPT]
+    return basis
 
 
 def series_at(values: np.ndarray, t0: float, t: np.ndarray,
