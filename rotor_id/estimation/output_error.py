@@ -725,10 +725,11 @@ def fit_output_error(experiments: Sequence[Experiment], unknowns: Sequence[str],
     iteration = 0
 
     def trial_cost(trial):
+        # a plain simulation: most trials of a step are rejected, and the accepted one's
+        # sensitivities are simulated once it is (the states are the same either way)
         nonlocal theta_eval
         theta_eval = trial              # the prior term of cost_of is taken at the trial
-        trial_results = evaluate(problem, trial, max_step)
-        return cost_of(trial_results, noise_var), trial_results
+        return cost_of(evaluate(problem, trial, max_step, sensitivities=False), noise_var), None
 
     for iteration in range(1, max_iter + 1):
         status = -1 if compiled is None else compiled.iterate(theta, cost, lm, noise_var[0])
@@ -752,7 +753,7 @@ def fit_output_error(experiments: Sequence[Experiment], unknowns: Sequence[str],
             break
         applied: Any = None if compiled is not None else trial - theta
         theta = trial
-        results = trial_results
+        results = trial_results if compiled is not None else evaluate(problem, theta, max_step)
         if compiled is not None:
             theta_eval = theta
             noise_var = [compiled.var.copy()]
