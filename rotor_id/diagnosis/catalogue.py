@@ -133,6 +133,34 @@ def split_values(estimate, unknowns):
     return {n: have[n] for n in unknowns}, {n: v for n, v in have.items() if n not in unknowns}
 
 
+def record_step(ident, tolerance):
+    """
+    Return the RK4 step of the diagnosis's fits: one step per sample where that is accurate.
+
+    The baseline model at its estimate, integrated with one RK4 step per sample interval,
+    must stay within ``tolerance`` of each channel's residual RMS (its noise) of the same
+    model integrated at the default step; else the default step. A layer with a fast mode
+    (a lag) still takes its own shorter step (:func:`build`).
+    """
+    longest = max(float(np.max(np.diff(exp.t))) for exp in ident.experiments)
+    if longest <= DEFAULT_MAX_STEP:
+        return DEFAULT_MAX_STEP
+    values, known = split_values(ident.estimate, ident.unknowns)
+    problem = Problem(ident.experiments, list(ident.unknowns), values, known)
+    theta = np.concatenate([problem.p_base[problem.param_index],
+                            np.zeros(len(problem.names) - len(problem.param_index))])
+    theta = fit_initial_states(problem, theta, DEFAULT_MAX_STEP)
+    fine = evaluate(problem, theta, DEFAULT_MAX_STEP, sensitivities=False)
+    coarse = evaluate(problem, theta, longest, sensitivities=False)
+    for (residual, _, _), (other, _, _) in zip(fine, coarse):
+        if residual is None:
+            continue
+        noise = np.sqrt(np.nanmean(residual**2, axis=0))
+        if not np.all(np.nanmax(np.abs(other - residual), axis=0) <= tolerance * noise):
+            return DEFAULT_MAX_STEP
+    return longest
+
+
 @dataclass(frozen=True)
 class Setting:
     """What every candidate fit of one diagnosis shares: the record, the run and the values."""
@@ -147,6 +175,8 @@ class Setting:
     verbose: bool = False
     #: convergence of every candidate fit (the policy's ``fit_tolerance``)
     fit_tolerance: float = DEFAULT_POLICY.fit_tolerance
+    #: the RK4 step of every fit where no layer needs a shorter one (:func:`record_step`)
+    max_step: float = DEFAULT_MAX_STEP
 
     @classmethod
     def of(cls, record, ident, **options):
@@ -352,7 +382,7 @@ def build(job, baseline_model, experiments):
     # exchange) carries parameters this model does not have: the fit refused them, so the
     # backward check never ran
     guess.update({n: v for n, v in (job.start or {}).items() if n in unknowns})
-    return runs, model, unknowns, extra, guess, max_step or DEFAULT_MAX_STEP
+    return runs, model, unknowns, extra, guess, max_step or setting.max_step
 
 
 #: Most times a catalogue range is widened when a fit stops at it.

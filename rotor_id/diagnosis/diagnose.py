@@ -21,7 +21,7 @@ import time
 import numpy as np
 
 from rotor_id import residuals as rs
-from rotor_id.diagnosis.catalogue import applicable, EFFECTS, NOISE, Setting
+from rotor_id.diagnosis.catalogue import applicable, EFFECTS, NOISE, record_step, Setting
 from rotor_id.diagnosis.likelihood import FilterError, ModelSpace, OutputError, Workers
 from rotor_id.diagnosis.policy import DEFAULT_POLICY
 from rotor_id.diagnosis.result import Diagnosis
@@ -200,7 +200,8 @@ def _space(record, base, effects, workers, verbose, policy):
     ident = base.ident
     est = ident.estimate
     unknowns = list(ident.unknowns)
-    setting = Setting.of(record, ident, verbose=verbose, fit_tolerance=policy.fit_tolerance)
+    setting = Setting.of(record, ident, verbose=verbose, fit_tolerance=policy.fit_tolerance,
+                         max_step=record_step(ident, policy.integration_error))
     n_obs = sum(e.t.size * e.model.n_outputs for e in ident.experiments)
     not_tried = {e: applicable(e, ident.model.name, ident.model.rotor, unknowns)
                  for e in effects if e != NOISE}

@@ -24,6 +24,8 @@ from rotor_id.diagnosis.catalogue import (
     as_lag_variance, CandidateFit, COMPOSE_ORDER, EFFECTS, FAILURES, fit_candidate,
     Job, LAG_PARAMETER, NOISE, screen_candidate, SCREENED, SCREENED_AS, start_values)
 from rotor_id.estimation import kernels
+from rotor_id.estimation.output_error import fit_output_error
+from rotor_id.estimation.simulate import DEFAULT_MAX_STEP
 
 
 class Workers:
@@ -208,13 +210,28 @@ class OutputError(Likelihood):
         self.setting, self.ident, self.n_obs = setting, ident, n_obs
         self.workers = workers if workers is not None else Workers(1)
         self._memo = {}
+        self._baseline = None
 
     def baseline(self):
-        """Return the run's own fit (the empty explanation)."""
-        ident = self.ident
-        fit = CandidateFit(effect='baseline', estimate=ident.estimate, model=ident.model,
-                           unknowns=list(self.setting.unknowns))
-        return self._result((), fit)
+        """
+        Return the run's own fit (the empty explanation), integrated as every candidate is.
+
+        The run's estimate itself where the diagnosis takes the default RK4 step; else the
+        run's model refitted from it at the diagnosis's step (:func:`record_step`), so that
+        every likelihood of the table comes from one integration.
+        """
+        if self._baseline is None:
+            ident, setting = self.ident, self.setting
+            estimate = ident.estimate
+            if setting.max_step != DEFAULT_MAX_STEP:
+                estimate = fit_output_error(
+                    ident.experiments, list(setting.unknowns), guess=setting.values,
+                    known=setting.known, max_iter=40, step_tol=setting.fit_tolerance,
+                    max_step=setting.max_step, label='baseline')
+            fit = CandidateFit(effect='baseline', estimate=estimate, model=ident.model,
+                               unknowns=list(setting.unknowns))
+            self._baseline = self._result((), fit)
+        return self._baseline
 
     def _result(self, effects, fit):
         n_params = 0 if fit is None else max(int(fit.n_extra), 0)

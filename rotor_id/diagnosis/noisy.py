@@ -21,7 +21,6 @@ from rotor_id.estimation.filter_error import (
     FilterProblem, fit_filter_error_ml, gradient_information, innovations_cost,
     measurement_noise_name, PROCESS_NOISE)
 from rotor_id.estimation.output_error import fit_initial_states
-from rotor_id.estimation.simulate import DEFAULT_MAX_STEP
 from rotor_id.physics import augmented as aug
 
 #: Gauss-Newton (scoring) iterations of a candidate's filter-error fit; it starts at the
@@ -301,7 +300,7 @@ def _stack(ctx, setup, kept, est, start):
     effect, guess, RK4 step, process-noise rows).
     """
     job, runs, unknowns, extra = None, setup.experiments, list(ctx.unknowns), []
-    guess, max_step = dict(start), DEFAULT_MAX_STEP
+    guess, max_step = dict(start), ctx.max_step
     if kept:
         job = Job(ctx, *kept[-1], prior=tuple(kept[:-1]), start=start)
         runs, _, unknowns, extra, guess, max_step = build(job, setup.base_model,

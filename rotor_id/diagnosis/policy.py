@@ -67,6 +67,13 @@ class SelectionPolicy:
     #: (½·k·0.05² ≤ 0.02 for k ≤ 16 parameters): the posterior odds within 5 %, the estimate
     #: within 0.05 σ, inside the digits the verdict prints.
     fit_tolerance: float = 0.05
+    #: The RK4 error allowed in the diagnosis's fits, as a fraction of each channel's noise σ:
+    #: every fit takes one RK4 step per sample where the baseline model, so integrated, stays
+    #: within it of its integration at the default step (:func:`catalogue.record_step`). An
+    #: output error δ ≤ 1e-3 σ moves 2 log L by about 2√N·δ/σ ≈ 0.1 at N = 4000 samples ×
+    #: channels, far below the ½·log(Nρ) ≈ 4 each parameter is charged; and every explanation
+    #: of the record, the baseline included, is integrated alike.
+    integration_error: float = 1e-3
 
 
 DEFAULT_POLICY = SelectionPolicy()
