@@ -106,7 +106,7 @@ class Series:
         if weights is None and self.constant:
             return self.coefficients[0].copy()
         basis = _basis(np.asarray(t, dtype=float), self.t0, harmonics, weights)
-        return basis @ self.coefficients.reshape(-1, n_entries)
+        return basis @ self.coefficients.reshape(harmonics * n_weights, n_entries)
 
     def values(self, t: np.ndarray, weights: np.ndarray | None = None) -> np.ndarray:
         """Return the full values at the times t: (t.size, …) (entries that are zero stay zero)."""

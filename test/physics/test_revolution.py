@@ -149,3 +149,14 @@ def test_a_short_grid_or_a_hover_model_is_evaluated_itself():
     u = _inputs(model, np.random.default_rng(1))[:50]
     on_record(model, 'system', GRID[:50], model.nominal(), u)
     assert '_revolution_samples' not in model.__dict__
+
+
+def test_a_function_zero_at_every_phase_sums_to_zeros_of_its_shape():
+    # e.g. an input matrix whose fitted parameters move no entry: no entries to sum
+    from rotor_id.physics.revolution import Series
+    t = np.linspace(0.0, 20.0, 300)
+    u = np.ones((t.size, 3))
+    for values, weights in ((np.zeros((12, 4, 2)), None), (np.zeros((12, 4, 2, 3)), u)):
+        series = Series.of(values, 0.0, weights is not None)
+        assert series.entries(t, weights).shape[1] == 0
+        np.testing.assert_array_equal(series.values(t, weights), np.zeros((t.size, 4, 2)))
