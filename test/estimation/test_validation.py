@@ -176,7 +176,7 @@ def test_input_correlation_limit_null_rate():
 
 
 def test_noncentral_tail_and_its_inverse_are_scipy_numbers():
-    """The noncentral χ² tail (above 1e-10) and the λ of a given power agree with scipy."""
+    """The noncentral χ² tail (above 1e-10) and the λ of a given power: scipy's numbers."""
     from rotor_id.estimation.validation import noncentral_chi2_sf, noncentrality_for_power
     from scipy.special import chndtr, chndtrinc
     from scipy.stats import ncx2
@@ -191,7 +191,9 @@ def test_noncentral_tail_and_its_inverse_are_scipy_numbers():
                 if 1.0 - chndtr(q, dof, 0.0) >= power:
                     assert ours == 0.0
                 else:
-                    assert abs(ours / chndtrinc(q, dof, 1.0 - power) - 1.0) <= 1e-11
+                    # scipy's inverse (cdflib's search) is good to ~1e-9 in some versions;
+                    # the tail at our λ is the power to 1e-11
+                    assert abs(ours / chndtrinc(q, dof, 1.0 - power) - 1.0) <= 1e-8
                     assert abs(noncentral_chi2_sf(q, dof, ours) - power) <= 1e-11
 
 
