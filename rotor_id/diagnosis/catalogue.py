@@ -147,9 +147,7 @@ def record_step(ident, tolerance):
         return DEFAULT_MAX_STEP
     values, known = split_values(ident.estimate, ident.unknowns)
     problem = Problem(ident.experiments, list(ident.unknowns), values, known)
-    theta = np.concatenate([problem.p_base[problem.param_index],
-                            np.zeros(len(problem.names) - len(problem.param_index))])
-    theta = fit_initial_states(problem, theta, DEFAULT_MAX_STEP)
+    theta = _states_fitted(problem, DEFAULT_MAX_STEP)
     fine = evaluate(problem, theta, DEFAULT_MAX_STEP, sensitivities=False)
     coarse = evaluate(problem, theta, longest, sensitivities=False)
     for (residual, _, _), (other, _, _) in zip(fine, coarse):
@@ -499,12 +497,17 @@ def _wake_starts(model, guess):
             yield start
 
 
-def _evaluated(problem, max_step, sensitivities=True):
-    """Evaluate a problem at its base values, the initial states fitted (y is linear in them)."""
+def _states_fitted(problem, max_step):
+    """Return θ at a problem's base values, the initial states fitted (y is linear in them)."""
     theta = np.concatenate([problem.p_base[problem.param_index],
                             np.zeros(len(problem.names) - len(problem.param_index))])
-    theta = fit_initial_states(problem, theta, max_step)
-    return evaluate(problem, theta, max_step, sensitivities=sensitivities)
+    return fit_initial_states(problem, theta, max_step)
+
+
+def _evaluated(problem, max_step, sensitivities=True):
+    """Evaluate a problem at its base values, the initial states fitted."""
+    return evaluate(problem, _states_fitted(problem, max_step), max_step,
+                    sensitivities=sensitivities)
 
 
 def _best_start(runs, unknowns, starts, known, max_step):
@@ -542,6 +545,13 @@ def _printer(label, verbose):
     return show
 
 
+def fit_runs(setting, runs, unknowns, guess, max_step, label, progress=None):
+    """Fit ``runs`` by output error as every explanation of the diagnosis is fitted."""
+    return fit_output_error(runs, unknowns, guess=guess, known=setting.known, max_iter=40,
+                            step_tol=setting.fit_tolerance, max_step=max_step, label=label,
+                            progress=progress)
+
+
 def fit_candidate(job):
     """Fit one candidate (runs in a worker process); never raises for a failed fit."""
     from rotor_id.pipeline import model_for
@@ -566,10 +576,8 @@ def fit_candidate(job):
             starts = grid_starts(job, model, guess)
             if starts is not None:
                 guess = _best_start(runs, unknowns, starts, setting.known, max_step) or guess
-            est = fit_output_error(
-                runs, unknowns, guess=guess, known=setting.known, max_iter=40,
-                step_tol=setting.fit_tolerance, max_step=max_step, label=label,
-                progress=stop_at_bound(model, extra, _printer(label, setting.verbose)))
+            est = fit_runs(setting, runs, unknowns, guess, max_step, label,
+                           stop_at_bound(model, extra, _printer(label, setting.verbose)))
             at_bound = bound_sides(est.model_parameters, model, extra)
             out.bounds = dict(job.bounds or {})
             out.bound_limited = [name for name, _ in at_bound]
@@ -683,8 +691,8 @@ def _screen_blade(job, base_model, experiments):
                              start={**(job.start or {}), 'dgamma_rel': eps})
             runs, _, unknowns, _, guess, max_step = build(trial, base_model, experiments)
             try:
-                est = fit_output_error(runs, unknowns, guess=guess,
-                                       known=job.setting.known, max_iter=2)
+                est = fit_output_error(runs, unknowns, guess=guess, known=job.setting.known,
+                                       max_iter=2, max_step=max_step)
             except (IdentificationError, np.linalg.LinAlgError, FloatingPointError):
                 continue
             if est.neg_log_likelihood < best_cost:

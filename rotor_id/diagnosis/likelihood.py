@@ -21,10 +21,9 @@ import numpy as np
 from rotor_id import residuals as rs
 from rotor_id.diagnosis import noisy
 from rotor_id.diagnosis.catalogue import (
-    as_lag_variance, CandidateFit, COMPOSE_ORDER, EFFECTS, FAILURES, fit_candidate,
+    as_lag_variance, CandidateFit, COMPOSE_ORDER, EFFECTS, FAILURES, fit_candidate, fit_runs,
     Job, LAG_PARAMETER, NOISE, screen_candidate, SCREENED, SCREENED_AS, start_values)
 from rotor_id.estimation import kernels
-from rotor_id.estimation.output_error import fit_output_error
 from rotor_id.estimation.simulate import DEFAULT_MAX_STEP
 
 
@@ -224,10 +223,8 @@ class OutputError(Likelihood):
             ident, setting = self.ident, self.setting
             estimate = ident.estimate
             if setting.max_step != DEFAULT_MAX_STEP:
-                estimate = fit_output_error(
-                    ident.experiments, list(setting.unknowns), guess=setting.values,
-                    known=setting.known, max_iter=40, step_tol=setting.fit_tolerance,
-                    max_step=setting.max_step, label='baseline')
+                estimate = fit_runs(setting, ident.experiments, list(setting.unknowns),
+                                    setting.values, setting.max_step, 'baseline')
             fit = CandidateFit(effect='baseline', estimate=estimate, model=ident.model,
                                unknowns=list(setting.unknowns))
             self._baseline = self._result((), fit)

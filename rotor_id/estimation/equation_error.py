@@ -362,11 +362,14 @@ def fit_equation_error(experiments: Sequence[Experiment], unknowns: Sequence[str
     rows = _parameter_rows(model, p, experiments[0].inputs, experiments[0].t)
     scale = max(float(np.sqrt(np.mean(np.concatenate([y for _, y, _ in data])**2))), 1e-12)
 
+    def initial_states(p):
+        theta = np.concatenate([p[idx], np.zeros(len(problem.names) - len(idx))])
+        return fit_initial_states(problem, theta, max_step)
+
     def reconstruct(p, q_std, smooth=True, theta=None):
         recs = []
         if theta is None:
-            theta = np.concatenate([p[idx], np.zeros(len(problem.names) - len(idx))])
-            theta = fit_initial_states(problem, theta, max_step)
+            theta = initial_states(p)
         for r, (exp, y, R) in enumerate(data):
             x0 = theta[problem.state_slices[r]]
             P0 = np.eye(model.n_states) * max(scale**2, float(np.max(np.diag(R))))
@@ -377,8 +380,7 @@ def fit_equation_error(experiments: Sequence[Experiment], unknowns: Sequence[str
     if process_noise_std is None:
         # the level of most likelihood (the filter's: no smoothing needed to rank them), all
         # from the same initial states (they depend on p only)
-        theta = fit_initial_states(problem, np.concatenate(
-            [p[idx], np.zeros(len(problem.names) - len(idx))]), max_step)
+        theta = initial_states(p)
         best = -math.inf
         for factor in (1e-3, 3e-3, 1e-2, 3e-2, 0.1, 0.3, 1.0):
             ll = sum(rec.filtered.log_likelihood

@@ -207,13 +207,8 @@ def on_record(model: LinearModel, method: str, t: npt.ArrayLike, p: npt.ArrayLik
     ``columns``: the parameters of ``system_jacobian`` wanted (all when None).
     """
     t = np.atleast_1d(np.asarray(t, dtype=float))
-    p, u = np.asarray(p, dtype=float), np.asarray(u, dtype=float)
-    series = _series(model, method, t, p, u, columns)
-    if series is None:
-        F, g = compact(model, method, t, p, u)
-        return (F, g) if columns is None else (F[:, columns], g[:, columns])
-    F, b, B = series
-    return (F if isinstance(F, np.ndarray) else F.values(t)), b.values(t) + B.values(t, u)
+    F, g = _system(model, method, t, p, u, columns)
+    return (F if isinstance(F, np.ndarray) else F.values(t)), g
 
 
 def entries_on_record(model: LinearModel, method: str, t: npt.ArrayLike, p: npt.ArrayLike,
@@ -222,23 +217,25 @@ def entries_on_record(model: LinearModel, method: str, t: npt.ArrayLike, p: npt.
     """
     :func:`on_record` with F (∂F/∂p) as its non-zero entries, as :func:`nonzero_entries` gives.
 
-    ``columns``: the parameters of ``system_jacobian`` wanted (all when None). The entries come
-    straight from the series where it holds, without the (T, …) array of F.
+    The entries come straight from the series where it holds, without the (T, …) array of F.
     """
     t = np.atleast_1d(np.asarray(t, dtype=float))
-    p, u = np.asarray(p, dtype=float), np.asarray(u, dtype=float)
-    series = _series(model, method, t, p, u, columns)
-    if series is None:
-        F, g = compact(model, method, t, p, u)
-        if columns is not None:
-            F, g = F[:, columns], g[:, columns]
-        return nonzero_entries(F), g
-    F, b, B = series
-    g = b.values(t) + B.values(t, u)
+    F, g = _system(model, method, t, p, u, columns)
     if isinstance(F, np.ndarray):
         return nonzero_entries(F), g
     index = tuple(i.astype(np.int64) for i in np.unravel_index(F.index, F.shape))
     return (np.ascontiguousarray(F.entries(t)), index), g
+
+
+def _system(model, method, t, p, u, columns):
+    """Return F (an array, or its :class:`Series` where that holds) and g on t."""
+    p, u = np.asarray(p, dtype=float), np.asarray(u, dtype=float)
+    series = _series(model, method, t, p, u, columns)
+    if series is not None:
+        F, b, B = series
+        return F, b.values(t) + B.values(t, u)
+    F, g = compact(model, method, t, p, u)
+    return (F, g) if columns is None else (F[:, columns], g[:, columns])
 
 
 def nonzero_entries(A: np.ndarray) -> tuple[np.ndarray, tuple[np.ndarray, ...]]:
