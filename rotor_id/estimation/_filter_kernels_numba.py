@@ -52,8 +52,8 @@ def _sensitivity_stage(F, S, prev, scale, dF, dg_row, xs, out):
 
 
 @njit(cache=True, nogil=True)
-def sensitivity_scan(Fs, g, dFs, dg, h, substeps, Phis, dPhis, Qs, dQs, R, dR, H, d, dd, y, x0,
-                     dx0, steady, B_ss, K_ss, dB_ss, dK_ss, nu, dnu, B, dB):
+def sensitivity_scan(Fs, g, dFs, dg, h, substeps, Phis, dPhis, Qs, dQs, R, dR, covariant, H, d,
+                     dd, y, x0, dx0, steady, B_ss, K_ss, dB_ss, dK_ss, nu, dnu, B, dB):
     """
     Innovations ν_j, B_j and their derivatives ∂ν_j, ∂B_j along k directions of θ.
 
@@ -61,7 +61,9 @@ def sensitivity_scan(Fs, g, dFs, dg, h, substeps, Phis, dPhis, Qs, dQs, R, dR, H
     length h), or (1, n, n) when it is constant; g (2M+1, n) the forcing there; dFs (2M+1 or 1,
     kp, n, n), dg (2M+1, kp, n) their derivatives along the first kp directions; Phis, Qs
     (T-1 or 1, n, n) of each sample interval and dPhis (T-1 or 1, k, n, n) (zero beyond the
-    first kp), dQs (T-1 or 1, k, n, n); R (m, m), dR (k, m, m);
+    first kp), dQs (T-1 or 1, k, n, n); R (m, m), dR (k, m, m); ``covariant`` (int64) the
+    directions along which ∂Φ, ∂Q or ∂R is non-zero: along every other (an initial state, a
+    forcing parameter) ∂P, ∂B and ∂K stay zero from P(t0) = 0 and are not propagated;
     H (T, m, n); d (T, m), dd (T, m, k); y (T, m); x0 (n,), dx0 (n, k). With ``steady``
     the gain is B_ss (m, m), K_ss (n, m) with derivatives dB_ss (k, m, m), dK_ss (k, n, m)
     throughout; else P(t0) = 0 and the covariance and its derivative are propagated.
@@ -90,9 +92,9 @@ def sensitivity_scan(Fs, g, dFs, dg, h, substeps, Phis, dPhis, Qs, dQs, R, dR, H
     Pn = np.empty((n, n))
     KdB = np.empty((n, m))
     Kj = np.empty((n, m))
-    dKj = np.empty((k, n, m))
+    dKj = np.zeros((k, n, m))
     Bj = np.empty((m, m))
-    dBj = np.empty((k, m, m))
+    dBj = np.zeros((k, m, m))
     Binv = np.empty((m, m))
     PHT = np.empty((n, m))
     dPHT = np.empty((n, m))
@@ -131,7 +133,7 @@ def sensitivity_scan(Fs, g, dFs, dg, h, substeps, Phis, dPhis, Qs, dQs, R, dR, H
             logdet = invert_in_place(Bj, Binv)
         else:
             logdet = innovation_gain(P, Ht, R, PHT, Bj, Binv, Kj)
-            for c in range(k):
+            for c in covariant:
                 for i in range(n):
                     for a in range(m):
                         acc = 0.0
@@ -206,7 +208,7 @@ def sensitivity_scan(Fs, g, dFs, dg, h, substeps, Phis, dPhis, Qs, dQs, R, dR, H
                     for a in range(m):
                         acc += Kj[i, a] * Bj[a, b]
                     KB[i, b] = acc
-            for c in range(k):
+            for c in covariant:
                 # K ∂B (n, m), for K ∂B Kᵀ
                 for i in range(n):
                     for b in range(m):
@@ -236,7 +238,7 @@ def sensitivity_scan(Fs, g, dFs, dg, h, substeps, Phis, dPhis, Qs, dQs, R, dR, H
                     for q in range(n):
                         acc += P[i, q] * Phi[j, q]
                     W[i, j] = acc                       # P⁺ Φᵀ
-            for c in range(k):
+            for c in covariant:
                 for i in range(n):
                     for j in range(n):
                         acc = 0.0
@@ -298,7 +300,8 @@ def warm_up():
         sensitivity_scan(np.zeros((1, n, n)), np.zeros((2 * M + 1, n)), np.zeros((1, kp, n, n)),
                          np.zeros((2 * M + 1, kp, n)), 0.1, sub, np.eye(n)[None],
                          np.zeros((1, k, n, n)), np.zeros((1, n, n)), np.zeros((1, k, n, n)),
-                         np.eye(m), np.zeros((k, m, m)), np.ones((T, m, n)), np.zeros((T, m)),
+                         np.eye(m), np.zeros((k, m, m)), np.arange(k), np.ones((T, m, n)),
+                         np.zeros((T, m)),
                          np.zeros((T, m, k)), np.zeros((T, m)), np.zeros(n), np.zeros((n, k)),
                          steady, np.eye(m), np.zeros((n, m)), np.zeros((k, m, m)),
                          np.zeros((k, n, m)), np.empty((T, m)), np.empty((T, m, k)),

@@ -465,7 +465,7 @@ class FilterProblem:
         nu, dnu = np.empty((T, m)), np.empty((T, m, k))
         B, dB = np.empty((T, m, m)), np.empty((T, m, m, k))
         args = (Fs, np.ascontiguousarray(g), dF, dg, float(h[0]), substeps, Phi, dPhi,
-                np.ascontiguousarray(Q), dQ, R, dR, H, d, dd,
+                np.ascontiguousarray(Q), dQ, R, dR, covariant_directions(dPhi, dQ, dR), H, d, dd,
                 np.ascontiguousarray(exp.y, dtype=float), np.asarray(x0, dtype=float), dx0,
                 steady, B_ss, np.ascontiguousarray(K_ss), dB_ss, np.ascontiguousarray(dK_ss),
                 nu, dnu, B, dB)
@@ -479,6 +479,19 @@ class FilterProblem:
         if not sensitivities:
             return nu, B, None, None, float(cost)
         return nu, B, dnu, dB, float(cost)
+
+
+def covariant_directions(dPhi: np.ndarray, dQ: np.ndarray, dR: np.ndarray) -> np.ndarray:
+    """
+    Indices of the directions of θ along which the filter's covariance P moves (int64).
+
+    From P(t0) = 0, ∂P stays zero along a direction with ∂Φ = ∂Q = ∂R = 0 (an initial state, a
+    forcing or output-offset parameter), and so do ∂B and ∂K: only ∂x carries it.
+    dPhi, dQ (T-1 or 1, k, n, n), dR (k, m, m).
+    """
+    moves = (np.any(dPhi != 0.0, axis=(0, 2, 3)) | np.any(dQ != 0.0, axis=(0, 2, 3))
+             | np.any(dR != 0.0, axis=(1, 2)))
+    return np.flatnonzero(moves).astype(np.int64)
 
 
 def steady_gain_sensitivities(Phi: np.ndarray, Q: np.ndarray, H: np.ndarray, R: np.ndarray,
@@ -524,12 +537,16 @@ def steady_gain_sensitivities(Phi: np.ndarray, Q: np.ndarray, H: np.ndarray, R: 
 def sensitivity_scan_numpy(Fs: np.ndarray, g: np.ndarray, dFs: np.ndarray, dg: np.ndarray,
                            h: float, substeps: int, Phis: np.ndarray, dPhis: np.ndarray,
                            Qs: np.ndarray, dQs: np.ndarray, R: np.ndarray, dR: np.ndarray,
-                           H: np.ndarray, d: np.ndarray, dd: np.ndarray, y: np.ndarray,
+                           covariant: np.ndarray, H: np.ndarray, d: np.ndarray, dd: np.ndarray, y: np.ndarray,
                            x0: np.ndarray, dx0: np.ndarray, steady: bool, B_ss: np.ndarray,
                            K_ss: np.ndarray, dB_ss: np.ndarray, dK_ss: np.ndarray,
                            nu: np.ndarray, dnu: np.ndarray, B: np.ndarray,
                            dB: np.ndarray) -> float:
-    """Numpy twin of ``_filter_kernels_numba.sensitivity_scan`` (same arguments and result)."""
+    """
+    Numpy twin of ``_filter_kernels_numba.sensitivity_scan`` (same arguments and result).
+
+    It propagates ∂P along every direction, ``covariant`` or not: the others stay exact zeros.
+    """
     T = y.shape[0]
     n, kp = Fs.shape[1], dFs.shape[1]
     varying, per_interval = Fs.shape[0] > 1, Phis.shape[0] > 1
@@ -601,12 +618,12 @@ def sensitivity_scan_numpy(Fs: np.ndarray, g: np.ndarray, dFs: np.ndarray, dg: n
 
 
 def filter_batch(dms: Sequence[kalman.DiscreteModel], y: np.ndarray, x0: np.ndarray,
-                 R: np.ndarray, gain: str = 'time-varying'
+                 R: np.ndarray, gain: str = 'time-varying', P0: np.ndarray | None = None
                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """
     Run the Kalman filter of :func:`~rotor_id.estimation.kalman.kalman_filter` on K models.
 
-    Same equations and order of operations (P(t0) = 0), vectorised over a stack of K
+    Same equations (P(t0) = ``P0``, zero by default), vectorised over a stack of K
     discretised models so the finite-difference sensitivities cost one pass. Only the
     innovations, their covariances, the gains and the eq.-26 cost are kept.
 
@@ -622,6 +639,8 @@ def filter_batch(dms: Sequence[kalman.DiscreteModel], y: np.ndarray, x0: np.ndar
         Measurement covariances, one per model.
     gain : {'time-varying', 'steady'}
         Time-varying or steady-state gain.
+    P0 : ndarray, shape (K, n, n), optional
+        Covariance of each x0 (time-varying gain only).
 
     Returns
     -------
@@ -644,7 +663,7 @@ def filter_batch(dms: Sequence[kalman.DiscreteModel], y: np.ndarray, x0: np.ndar
     gains = np.empty((K_, T, n, m))
     cost = np.zeros(K_)
     x = np.array(x0, dtype=float)
-    P = np.zeros((K_, n, n))
+    P = np.zeros((K_, n, n)) if P0 is None else np.array(P0, dtype=float)
     if gain == 'steady':
         P_ss = np.stack([kalman.steady_state_covariance(dm, R[i]) for i, dm in enumerate(dms)])
     compiled = kernels.filter_kernel()

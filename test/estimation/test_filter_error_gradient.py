@@ -177,6 +177,25 @@ def test_compiled_scan_equals_numpy(monkeypatch):
         assert compiled[4] == pytest.approx(reference[4], rel=1e-12)
 
 
+def test_the_covariance_moves_along_model_and_noise_parameters_only(monkeypatch):
+    # the compiled scan propagates ∂P along these directions alone; its agreement with the
+    # numpy twin (which propagates every one) above is on this problem, whose free initial
+    # states leave P alone
+    prob, theta = _wake_problem('white', 'positions')
+    seen = []
+
+    def spy(*args):
+        seen.append(args[12])
+        return fe.sensitivity_scan_numpy(*args)
+    monkeypatch.setattr(kernels, 'filter_sensitivity_kernel', lambda: spy)
+    prob.evaluate(theta)
+    states = range(len(prob.base.param_index), prob.n_base)
+    assert seen[0].dtype == np.int64
+    assert seen[0].tolist() == [i for i in range(len(theta)) if i not in states]
+    assert [prob.names[i] for i in states] == ['beta_I(t0)', 'beta_II(t0)', 'lambda_I(t0)',
+                                               'lambda_II(t0)']
+
+
 def test_fit_with_analytic_gradients_lands_on_the_same_optimum():
     """Same joint optimum as finite differences, to well below 1 % of a σ."""
     exp = Experiment(WAKE, PROGRESSING, T_WAKE, wake_data(5, 0.1, 0.05),
