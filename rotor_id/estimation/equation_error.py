@@ -30,7 +30,7 @@ first factor of eq. 12) is far smaller than the actual scatter of θ̂. It is re
 computed, with a warning, and must not be read as a confidence measure.
 """
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 import math
 import time
 from typing import Any, Callable, Mapping, Sequence, TYPE_CHECKING
@@ -38,15 +38,17 @@ from typing import Any, Callable, Mapping, Sequence, TYPE_CHECKING
 import numpy as np
 import numpy.typing as npt
 from rotor_id.estimation import kalman
-from rotor_id.estimation.filter_error import difference_noise_std
+from rotor_id.estimation.filter_error import difference_noise_std, filter_batch
 from rotor_id.estimation.output_error import (
     Estimate, Experiment, fit_initial_states, IdentificationError, Problem)
 from rotor_id.estimation.simulate import DEFAULT_MAX_STEP
-import scipy.signal
 
 if TYPE_CHECKING:
     from rotor_id.physics.models import LinearModel
 
+#: the process-noise σ's tried when none is given, in multiples of the outputs' RMS: a
+#: half-decade grid from a filter that follows the model to one that follows the data
+PROCESS_NOISE_LEVELS = (1e-3, 3e-3, 1e-2, 3e-2, 0.1, 0.3, 1.0)
 COVARIANCE_WARNING = ('equation-error covariance: the regression covariance P_θ (report Ch.2 eq. '
                       '13) is computed from smoothed, correlated states and is NOT a confidence '
                       'measure (it understates the actual scatter); use output or filter error '
@@ -214,6 +216,7 @@ def lowpass(t: npt.ArrayLike, y: npt.ArrayLike, cutoff: float, order: int = 4) -
     if not 0.0 < cutoff < nyquist:
         raise IdentificationError(f'prefilter cutoff {cutoff} must lie between 0 and the Nyquist '
                                   f'frequency {nyquist:.3g} (rad per unit nondimensional time)')
+    import scipy.signal     # on use: its import takes longer than a diagnosis's proposal
     b, a = scipy.signal.butter(order, cutoff / nyquist)
     return scipy.signal.filtfilt(b, a, np.asarray(y, dtype=float), axis=0)
 
@@ -362,6 +365,9 @@ def fit_equation_error(experiments: Sequence[Experiment], unknowns: Sequence[str
     rows = _parameter_rows(model, p, experiments[0].inputs, experiments[0].t)
     scale = max(float(np.sqrt(np.mean(np.concatenate([y for _, y, _ in data])**2))), 1e-12)
 
+    def initial_covariance(R):
+        return np.eye(model.n_states) * max(scale**2, float(np.max(np.diag(R))))
+
     def initial_states(p):
         theta = np.concatenate([p[idx], np.zeros(len(problem.names) - len(idx))])
         return fit_initial_states(problem, theta, max_step)
@@ -371,22 +377,26 @@ def fit_equation_error(experiments: Sequence[Experiment], unknowns: Sequence[str
         if theta is None:
             theta = initial_states(p)
         for r, (exp, y, R) in enumerate(data):
-            x0 = theta[problem.state_slices[r]]
-            P0 = np.eye(model.n_states) * max(scale**2, float(np.max(np.diag(R))))
-            recs.append(kalman.reconstruct_states(exp.model, p, exp.inputs, exp.t, y, R, x0,
-                                                  P0, rows, q_std, 'white', max_step, smooth))
+            recs.append(kalman.reconstruct_states(
+                exp.model, p, exp.inputs, exp.t, y, R, theta[problem.state_slices[r]],
+                initial_covariance(R), rows, q_std, 'white', max_step, smooth))
         return recs
 
     if process_noise_std is None:
         # the level of most likelihood (the filter's: no smoothing needed to rank them), all
-        # from the same initial states (they depend on p only)
+        # from the same initial states (they depend on p only), every level in one batch: Q
+        # is σ² times the unit-intensity Q of one discretisation
         theta = initial_states(p)
-        best = -math.inf
-        for factor in (1e-3, 3e-3, 1e-2, 3e-2, 0.1, 0.3, 1.0):
-            ll = sum(rec.filtered.log_likelihood
-                     for rec in reconstruct(p, factor * scale, False, theta))
-            if ll > best:
-                best, process_noise_std = ll, factor * scale
+        levels = scale * np.array(PROCESS_NOISE_LEVELS)
+        cost = np.zeros(levels.size)
+        for r, (exp, y, R) in enumerate(data):
+            unit = kalman.discretize(exp.model, p, exp.inputs, exp.t, rows, 1.0, 'white',
+                                     max_step)
+            cost += filter_batch([replace(unit, Q=unit.Q * level**2) for level in levels], y,
+                                 np.tile(theta[problem.state_slices[r]], (levels.size, 1)),
+                                 np.tile(R, (levels.size, 1, 1)), 'time-varying',
+                                 np.tile(initial_covariance(R), (levels.size, 1, 1)))[3]
+        process_noise_std = float(levels[np.argmin(cost)])
     t_start = time.perf_counter()
     history = []
     converged = False
