@@ -36,10 +36,10 @@ import numpy as np
 from rotor_id.diagnosis.catalogue import augment_runs, FAILURES, split_values
 from rotor_id.estimation.equation_error import fit_equation_error, regression
 from rotor_id.estimation.output_error import fit_output_error
+from rotor_id.estimation.validation import student_t_isf
 from rotor_id.physics.augmented import Augmented, BladeView
 from rotor_id.physics.models import Parameter
 from rotor_id.physics.stirring import blade_pitch_from_multiblade
-from scipy.special import stdtrit
 
 #: Contiguous time blocks of the held-out validation.
 N_BLOCKS = 8
@@ -343,9 +343,9 @@ def _forward_step(reg, current, sse, names):
     trials = {m: heldout_errors(reg, current + [m]) for m in left}
     best = min(trials, key=lambda m: float(np.sum(trials[m])))
     t_stat, gain = _log_ratio_t(sse, trials[best])
-    t_crit = float(stdtrit(N_BLOCKS - 1, 1.0 - ALPHA / len(left)))
+    t_crit = student_t_isf(ALPHA / len(left), N_BLOCKS - 1)
     # a rival term is as good within chance unless worse at the one-sided 5 % level
-    t_alternative = float(stdtrit(N_BLOCKS - 1, 0.95))
+    t_alternative = student_t_isf(0.05, N_BLOCKS - 1)
     improvement = float(1.0 - np.sum(trials[best]) / np.sum(sse))
     kept = bool(t_stat > t_crit and improvement >= MIN_IMPROVEMENT)
     step = {'term': names[best], 'heldout_improvement': improvement,

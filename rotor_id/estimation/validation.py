@@ -176,6 +176,52 @@ def normal_isf(p: npt.ArrayLike) -> Any:
     return -ndtri(np.asarray(p, dtype=float))
 
 
+def student_t_sf(t: float, dof: int) -> float:
+    """
+    Return P(T > t) for Student's t with an integer number of degrees of freedom.
+
+    The finite series of Abramowitz & Stegun 26.7.3-4 in θ = atan(t/√ν): for odd ν,
+    P(|T| < t) = (2/π)[θ + sin θ (cos θ + ⅔ cos³θ + … )], for even ν,
+    P(|T| < t) = sin θ (1 + ½ cos²θ + ⅜ cos⁴θ + … ), each to the power ν − 2.
+    """
+    if dof < 1 or dof != int(dof):
+        raise ValueError(f'degrees of freedom must be a positive integer, not {dof}')
+    theta = math.atan(abs(t) / math.sqrt(dof))
+    cos2 = math.cos(theta)**2
+    if dof % 2:
+        term, total = math.cos(theta), 0.0
+        for j in range(1, (dof - 1) // 2 + 1):
+            total += term
+            term *= cos2 * 2 * j / (2 * j + 1)
+        inside = 2.0 / math.pi * (theta + math.sin(theta) * total)
+    else:
+        term, total = 1.0, 0.0
+        for j in range(1, dof // 2 + 1):
+            total += term
+            term *= cos2 * (2 * j - 1) / (2 * j)
+        inside = math.sin(theta) * total
+    tail = 0.5 * (1.0 - inside)
+    return tail if t >= 0.0 else 1.0 - tail
+
+
+def student_t_isf(p: float, dof: int) -> float:
+    """Return t with P(T > t) = p for Student's t with integer ``dof`` (bisection, 1e-13)."""
+    if not 0.0 < p < 1.0:
+        raise ValueError(f'a tail probability lies strictly between 0 and 1, not {p}')
+    if p > 0.5:
+        return -student_t_isf(1.0 - p, dof)
+    low, high = 0.0, 1.0
+    while student_t_sf(high, dof) > p:
+        low, high = high, 2.0 * high
+    while high - low > 1e-13 * high:
+        middle = 0.5 * (low + high)
+        if student_t_sf(middle, dof) > p:
+            low = middle
+        else:
+            high = middle
+    return 0.5 * (low + high)
+
+
 #: Two-sided 95 % quantile of the standard normal: the band ±1.96/√N of a white sequence.
 Z95 = 1.959963984540054
 

@@ -42,12 +42,15 @@ def test_identify_loads_neither_scipy_nor_matplotlib(tmp_path):
 
 
 def test_diagnose_starts_without_scipy_special_or_matplotlib():
-    # the diagnosis's detection limits take the noncentral χ² from rotor_id.estimation.validation,
-    # not scipy.special (whose import was a third of `rotor-id diagnose`'s start-up, ~0.13 s)
+    # the diagnosis's detection limits take the noncentral χ² and its proposal Student's t from
+    # rotor_id.estimation.validation, not scipy.special (whose import was a third of
+    # `rotor-id diagnose`'s start-up, ~0.13 s); the proposal's equation error needs no
+    # scipy.signal (0.6 s), which only its optional prefilter imports
     env = dict(os.environ, PYTHONPATH=os.pathsep.join(
         [str(REPO)] + [p for p in os.environ.get('PYTHONPATH', '').split(os.pathsep) if p]))
     out = subprocess.run(
         [sys.executable, '-c', 'import json, sys\nimport rotor_id.commands.diagnose\n'
+         'import rotor_id.diagnosis.proposal\n'
          'print(json.dumps(sorted(sys.modules)))\n'],
         capture_output=True, text=True, env=env, timeout=120)
     modules = json.loads(out.stdout.strip().splitlines()[-1])

@@ -175,6 +175,21 @@ def test_input_correlation_limit_null_rate():
     assert not caught.uncorrelated_with_input()
 
 
+def test_student_t_tail_and_its_inverse_are_scipy_numbers():
+    """The finite series of Student's t tail, and its inverse, against scipy (integer ν)."""
+    from rotor_id.estimation.validation import student_t_isf, student_t_sf
+    from scipy.stats import t as student
+    for dof in range(1, 31):
+        for x in (-5.0, -1.3, 0.0, 0.2, 1.0, 2.5, 7.0, 40.0):
+            # the series' rounding is absolute (1 − P(|T| < t)): ~1e-16 of the tail's scale
+            assert abs(student_t_sf(x, dof) - student.sf(x, dof)) <= 1e-15
+        for p in (1e-4, 1e-3, 0.00625, 0.05, 0.3, 0.5, 0.7, 0.95):
+            assert student_t_isf(p, dof) == pytest.approx(student.isf(p, dof), rel=1e-10,
+                                                          abs=1e-12)
+    with pytest.raises(ValueError, match='positive integer'):
+        student_t_sf(1.0, 2.5)
+
+
 def test_noncentral_tail_and_its_inverse_are_scipy_numbers():
     """The noncentral χ² tail (above 1e-10) and the λ of a given power: scipy's numbers."""
     from rotor_id.estimation.validation import noncentral_chi2_sf, noncentrality_for_power
