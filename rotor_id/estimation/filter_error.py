@@ -122,7 +122,6 @@ class FilterProblem:
                  gradients: str = 'analytic') -> None:
         self.base = Problem(experiments, unknowns, guess, known)
         self.gradients = gradients
-        self.cheap_sensitivities = False        # set by evaluate: all runs analytic
         self.experiments = experiments
         model = experiments[0].model
         self.model = model
@@ -205,14 +204,13 @@ class FilterProblem:
         """Per run: (ν (T,m), B (T,m,m), ∂ν (T,m,k) or None, ∂B (T,m,m,k) or None, cost)."""
         out = []
         k = len(theta)
-        self.cheap_sensitivities = True
         for r, exp in enumerate(self.experiments):
             if self.gradients == 'analytic':
                 analytic = self.analytic_sensitivities(r, theta, sensitivities)
                 if analytic is not None:
                     out.append(analytic)
                     continue
-            self.cheap_sensitivities = False    # finite differences: 2k+1 filter passes
+            # finite differences: 2k+1 filter passes
             # θ and, for the sensitivities, θ ± h_i e_i: one batched filter pass for all
             thetas = [theta]
             spans = []
@@ -863,11 +861,8 @@ def fit_filter_error_ml(experiments: Sequence[Experiment], unknowns: Sequence[st
     lm = 0.0
 
     def trial_cost(trial):
-        # the first trial is usually accepted: where sensitivities are cheap (analytic), take
-        # them with it, so the accepted point need not be filtered again
-        if prob.cheap_sensitivities:
-            results = prob.evaluate(trial)
-            return innovations_cost(results), results
+        # a trial is costed by the filter alone, its sensitivities taken once it is accepted:
+        # with k directions they cost several filter passes, and a step may halve many times
         return innovations_cost(prob.evaluate(trial, sensitivities=False)), None
     iteration = 0
     previous = None
@@ -880,7 +875,7 @@ def fit_filter_error_ml(experiments: Sequence[Experiment], unknowns: Sequence[st
             message = 'converged (the likelihood a further step would gain is below tolerance)'
             iteration -= 1
             break
-        accepted, trial, _, payload, lm = damped_gauss_newton_step(
+        accepted, trial, trial_value, _, lm = damped_gauss_newton_step(
             theta, grad, M, prob.lo, prob.hi, cost, trial_cost, lm,
             free=np.flatnonzero(free), attempts=10, halvings=8)
         if not accepted:
@@ -891,14 +886,12 @@ def fit_filter_error_ml(experiments: Sequence[Experiment], unknowns: Sequence[st
         if loglik_tol is not None and _reverses(applied, previous, M):
             # a zigzag across the optimum: the midpoint of the two iterates, if as likely
             mid = theta + 0.5 * applied
-            mid_cost, mid_payload = trial_cost(mid)
-            if payload is None:
-                payload = prob.evaluate(trial)
-            if math.isfinite(mid_cost) and mid_cost <= innovations_cost(payload):
-                trial, payload, applied = mid, mid_payload, 0.5 * applied
+            mid_cost, _ = trial_cost(mid)
+            if math.isfinite(mid_cost) and mid_cost <= trial_value:
+                trial, applied = mid, 0.5 * applied
         previous = applied
         theta = trial
-        results = payload if payload is not None else prob.evaluate(theta)
+        results = prob.evaluate(theta)
         cost = innovations_cost(results)
         sigma = np.sqrt(np.clip(np.diag(np.linalg.pinv(M)), 0.0, None))
         rms = math.sqrt(np.mean(np.concatenate([r[0] for r in results])**2))
