@@ -60,11 +60,11 @@ def sensitivity_scan(Fs, g, dFs, dg, h, substeps, Phis, dPhis, Qs, dQs, R, dR, c
     Fs (2M+1, n, n) the system matrix at the RK4 stage times (M = (T-1)·substeps steps of
     length h), or (1, n, n) when it is constant; g (2M+1, n) the forcing there; dFs (2M+1 or 1,
     kp, n, n), dg (2M+1, kp, n) their derivatives along the first kp directions; Phis, Qs
-    (T-1 or 1, n, n) of each sample interval and dPhis (T-1 or 1, k, n, n) (zero beyond the
-    first kp), dQs (T-1 or 1, k, n, n); R (m, m), dR (k, m, m); ``covariant`` (int64) the
-    directions along which ∂Φ, ∂Q or ∂R is non-zero: along every other (an initial state, a
-    forcing parameter) ∂P, ∂B and ∂K stay zero from P(t0) = 0 and are not propagated;
-    H (T, m, n); d (T, m), dd (T, m, k); y (T, m); x0 (n,), dx0 (n, k). With ``steady``
+    (T-1 or 1, n, n) of each sample interval and dPhis (T-1 or 1, kp, n, n) along the first
+    kp directions (zero beyond); R (m, m), dR (k, m, m); ``covariant`` (int64) the directions
+    along which ∂Φ, ∂Q or ∂R may be non-zero, and dQs (T-1 or 1, len(covariant), n, n) along
+    them: along every other (an initial state, a forcing parameter) ∂P, ∂B and ∂K stay zero
+    from P(t0) = 0 and are not propagated; H (T, m, n); d (T, m), dd (T, m, k); y (T, m); x0 (n,), dx0 (n, k). With ``steady``
     the gain is B_ss (m, m), K_ss (n, m) with derivatives dB_ss (k, m, m), dK_ss (k, n, m)
     throughout; else P(t0) = 0 and the covariance and its derivative are propagated.
     Fills nu (T, m), dnu (T, m, k), B (T, m, m), dB (T, m, m, k); returns
@@ -238,7 +238,8 @@ def sensitivity_scan(Fs, g, dFs, dg, h, substeps, Phis, dPhis, Qs, dQs, R, dR, c
                     for q in range(n):
                         acc += P[i, q] * Phi[j, q]
                     W[i, j] = acc                       # P⁺ Φᵀ
-            for c in covariant:
+            for ci in range(covariant.shape[0]):
+                c = covariant[ci]
                 for i in range(n):
                     for j in range(n):
                         acc = 0.0
@@ -249,7 +250,7 @@ def sensitivity_scan(Fs, g, dFs, dg, h, substeps, Phis, dPhis, Qs, dQs, R, dR, c
                 # ∂Φ = 0 beyond the first kp directions
                 for i in range(n):
                     for j in range(i, n):
-                        acc = dQ[c, i, j]
+                        acc = dQ[ci, i, j]
                         for q in range(n):
                             acc += Phi[i, q] * W2[q, j]
                         if c < kp:
@@ -299,7 +300,7 @@ def warm_up():
     for steady in (True, False):
         sensitivity_scan(np.zeros((1, n, n)), np.zeros((2 * M + 1, n)), np.zeros((1, kp, n, n)),
                          np.zeros((2 * M + 1, kp, n)), 0.1, sub, np.eye(n)[None],
-                         np.zeros((1, k, n, n)), np.zeros((1, n, n)), np.zeros((1, k, n, n)),
+                         np.zeros((1, kp, n, n)), np.zeros((1, n, n)), np.zeros((1, k, n, n)),
                          np.eye(m), np.zeros((k, m, m)), np.arange(k), np.ones((T, m, n)),
                          np.zeros((T, m)),
                          np.zeros((T, m, k)), np.zeros((T, m)), np.zeros(n), np.zeros((n, k)),

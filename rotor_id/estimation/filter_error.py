@@ -260,9 +260,9 @@ class FilterProblem:
             out.append((nu[0], B[0], dnu, dB, cost[0]))
         return out
 
-    def _noise_derivatives(self, covariance, F, dF, sig_p, k, kp, steps=None):
+    def _noise_derivatives(self, covariance, F, dF, sig_p, directions, kp, steps=None):
         """
-        Return Q and its derivatives ∂Q (…, k, n, n) along θ.
+        Return Q and its derivatives ∂Q (…, len(directions), n, n) along those of θ.
 
         ∂Q/∂q = Q at σ_V = 1 (θ holds q = σ_V²); ∂Q/∂p = ∂Q/∂F along ∂F/∂p.
 
@@ -271,42 +271,49 @@ class FilterProblem:
         so Q at σ_V is σ_V²·Q1): truncation and rounding both ~1e-7 relative, far below what
         moves a scoring step, at one evaluation of Q per parameter. ``steps``: the steps per
         parameter (:func:`_difference_steps`), by default those of F and dF given.
+        ``directions`` (:func:`covariant_directions`): model parameters (the first kp), σ_V²,
+        the measurement σ's (∂Q = 0).
         """
         if steps is None:
             steps = _difference_steps(F, dF, kp)
         Q1 = covariance(F, 1.0)
-        dQ = np.zeros(Q1.shape[:-2] + (k, Q1.shape[-1], Q1.shape[-1]))
-        if k and self.i_process is not None:
-            dQ[..., self.i_process, :, :] = Q1
-        if sig_p > 0.0:
-            for i, eps in enumerate(steps):
-                up = covariance(tuple(Fx + eps * dFx[..., i, :, :] for Fx, dFx in zip(F, dF)),
-                                1.0)
-                dQ[..., i, :, :] = sig_p**2 * (up - Q1) / eps
+        dQ = np.zeros(Q1.shape[:-2] + (len(directions), Q1.shape[-1], Q1.shape[-1]))
+        for slot, i in enumerate(directions):
+            if i == self.i_process:
+                dQ[..., slot, :, :] = Q1
+            elif i < kp and sig_p > 0.0:
+                up = covariance(tuple(Fx + steps[i] * dFx[..., i, :, :]
+                                      for Fx, dFx in zip(F, dF)), 1.0)
+                dQ[..., slot, :, :] = sig_p**2 * (up - Q1) / steps[i]
         return sig_p**2 * Q1, dQ
 
-    def _constant_pieces(self, t, substeps, Fs, dF, step, sig_p, k, kp):
-        """Φ, ∂Φ, Q, ∂Q (leading dimension 1) of a model with a constant system matrix."""
+    def _constant_pieces(self, t, substeps, Fs, dF, step, sig_p, directions, kp):
+        """
+        Φ, ∂Φ (kp directions), Q, ∂Q (``directions``), leading dimension 1, of a constant F.
+        """
         n = Fs.shape[-1]
         dt = float(t[1] - t[0])
         Phi_s = rk4_transition(Fs, np.array([step]))[0]
         dPhi_s = rk4_transition_derivative(Fs, dF, np.array([step]))[0] if kp \
             else np.zeros((0, n, n))                                        # (kp, n, n)
         Phi = np.eye(n)
-        dPhi = np.zeros((k, n, n))
+        dPhi = np.zeros((kp, n, n))
         for _ in range(substeps):
-            dPhi[:kp] = dPhi_s @ Phi + Phi_s @ dPhi[:kp]
+            dPhi = dPhi_s @ Phi + Phi_s @ dPhi
             Phi = Phi_s @ Phi
 
         def covariance(F, sigma):
             return kalman.constant_noise_covariance(F[0], dt, substeps, self.rows, sigma,
                                                     self.noise_model)
-        Q, dQ = self._noise_derivatives(covariance, (Fs[0],), (dF[0],), sig_p, k, kp)
+        Q, dQ = self._noise_derivatives(covariance, (Fs[0],), (dF[0],), sig_p, directions, kp)
         return Phi[None], dPhi[None], Q[None], dQ[None]
 
-    def _varying_pieces(self, t, substeps, Fs, dF, step, sig_p, k, kp, stage_matrices=None):
+    def _varying_pieces(self, t, substeps, Fs, dF, step, sig_p, directions, kp,
+                        stage_matrices=None):
         """
         Φ_j, ∂Φ_j, Q_j, ∂Q_j (leading dimension T-1) of a model whose F varies (periodic).
+
+        ∂Φ along the kp model parameters, ∂Q along ``directions`` (:meth:`_noise_derivatives`).
 
         With equal intervals each is a function of its interval's start azimuth t_j alone, of
         period 2π, smooth: where ``stage_matrices(times)`` gives F and ∂F/∂p at any times,
@@ -318,18 +325,20 @@ class FilterProblem:
         windows = (_windows(Fs, substeps), _windows(dF, substeps))
         steps = _difference_steps((Fs,), (dF,), kp)      # one ∂Q step for every interval
         if stage_matrices is not None and self.noise_model == 'white':
-            pieces = self._phase_series(t, substeps, windows, step, sig_p, k, kp, steps,
-                                        stage_matrices)
+            pieces = self._phase_series(t, substeps, windows, step, sig_p, directions, kp,
+                                        steps, stage_matrices)
             if pieces is not None:
                 return pieces
-        return self._interval_pieces(*windows, t, substeps, step, sig_p, k, kp, steps, Fs, dF)
+        return self._interval_pieces(*windows, t, substeps, step, sig_p, directions, kp, steps,
+                                     Fs, dF)
 
-    def _phase_series(self, t, substeps, windows, step, sig_p, k, kp, steps, stage_matrices):
+    def _phase_series(self, t, substeps, windows, step, sig_p, directions, kp, steps,
+                      stage_matrices):
         """:meth:`_varying_pieces` from one revolution of interval phases, or None."""
         n_intervals = t.size - 1
         check = np.array([n_intervals // 3, (2 * n_intervals) // 3])
         exact = self._interval_pieces(windows[0][check], windows[1][check], t[:3], substeps,
-                                      step, sig_p, k, kp, steps)
+                                      step, sig_p, directions, kp, steps)
         for phases in PHASES:
             if n_intervals < 2 * phases:
                 return None
@@ -339,14 +348,15 @@ class FilterProblem:
             shape = (phases, 2 * substeps + 1)
             sampled = self._interval_pieces(F.reshape(shape + F.shape[1:]),
                                             dF.reshape(shape + dF.shape[1:]),
-                                            t[:3], substeps, step, sig_p, k, kp, steps)
+                                            t[:3], substeps, step, sig_p, directions, kp,
+                                            steps)
             pieces = [series_at(x, float(t[0]), t[:-1]) for x in sampled]
             if all(agree(x[check], e, PHASE_AGREE) for x, e in zip(pieces, exact)):
                 return tuple(np.ascontiguousarray(x) for x in pieces)
         return None
 
-    def _interval_pieces(self, F, dF, t, substeps, step, sig_p, k, kp, steps, Fs=None,
-                         dFs=None):
+    def _interval_pieces(self, F, dF, t, substeps, step, sig_p, directions, kp, steps,
+                         Fs=None, dFs=None):
         """
         Φ_j, ∂Φ_j, Q_j, ∂Q_j of intervals from F (J, 2s+1, n, n), ∂F (J, 2s+1, kp, n, n).
 
@@ -357,14 +367,14 @@ class FilterProblem:
         n_intervals, n = F.shape[0], F.shape[-1]
         h = np.full(n_intervals, step)
         Phi = np.broadcast_to(np.eye(F.shape[-1]), (n_intervals, n, n))
-        dPhi = np.zeros((n_intervals, k, n, n))
+        dPhi = np.zeros((n_intervals, kp, n, n))
         for s in range(substeps):
             F0, Fm, F1 = F[:, 2 * s], F[:, 2 * s + 1], F[:, 2 * s + 2]
             Phi_s = rk4_step_transition(F0, Fm, F1, h)
             if kp:
                 dPhi_s = rk4_step_transition_derivative(
                     F0, Fm, F1, dF[:, 2 * s], dF[:, 2 * s + 1], dF[:, 2 * s + 2], h)
-                dPhi[:, :kp] = dPhi_s @ Phi[:, None] + Phi_s[:, None] @ dPhi[:, :kp]
+                dPhi = dPhi_s @ Phi[:, None] + Phi_s[:, None] @ dPhi
             Phi = Phi_s @ Phi
         # F at the intervals' midpoints (the middle stage of each interval)
         Fmid, dFmid = np.zeros((n_intervals, n, n)), np.zeros((n_intervals, kp, n, n))
@@ -376,8 +386,8 @@ class FilterProblem:
         def covariance(F, sigma):
             return kalman.varying_noise_covariance(F[0], F[1], times, substeps, self.rows,
                                                    sigma, self.noise_model)[0]
-        Q, dQ = self._noise_derivatives(covariance, (Fs, Fmid), (dFs, dFmid), sig_p, k, kp,
-                                        steps)
+        Q, dQ = self._noise_derivatives(covariance, (Fs, Fmid), (dFs, dFmid), sig_p,
+                                        directions, kp, steps)
         return np.ascontiguousarray(Phi), dPhi, Q, np.ascontiguousarray(dQ)
 
     def analytic_sensitivities(self, r: int, theta: np.ndarray, sensitivities: bool = True
@@ -418,8 +428,9 @@ class FilterProblem:
             dF = np.zeros((1 if constant else F.shape[0], 0, n, n))
             dg = np.zeros((g.shape[0], 0, n))
         Fs = np.ascontiguousarray(F[:1] if constant else F)
+        directions = covariant_directions(dF, k, self.i_process, self.i_meas)
         if constant:
-            pieces = self._constant_pieces(t, substeps, Fs, dF, h[0], sig_p, k, kp)
+            pieces = self._constant_pieces(t, substeps, Fs, dF, h[0], sig_p, directions, kp)
         else:
             def stage_matrices(times):
                 zero = np.zeros((times.size, u.shape[1]))
@@ -430,7 +441,7 @@ class FilterProblem:
                 dF_at = on_record(model, 'system_jacobian', times, p, zero,
                                   self.base.param_index)[0]
                 return F_at, full_along_time(dF_at, times.size)
-            pieces = self._varying_pieces(t, substeps, Fs, dF, h[0], sig_p, k, kp,
+            pieces = self._varying_pieces(t, substeps, Fs, dF, h[0], sig_p, directions, kp,
                                           stage_matrices)
         Phi, dPhi, Q, dQ = pieces
         R = np.diag(np.maximum(sig_m, 1e-300)**2)
@@ -446,8 +457,9 @@ class FilterProblem:
                                   Q=np.broadcast_to(Q, (T - 1, n, n)), H=H, d=d)
         steady = self.gain_mode(dm) == 'steady' and constant
         if steady:
-            _, B_ss, K_ss, dB_ss, dK_ss = steady_gain_sensitivities(Phi[0], Q[0], H[0], R,
-                                                                    dPhi[0], dQ[0], dR)
+            _, B_ss, K_ss, dB_ss, dK_ss = steady_gain_sensitivities(
+                Phi[0], Q[0], H[0], R, *along_every_direction(dPhi[0], dQ[0], directions, k),
+                dR)
         else:
             B_ss, K_ss = np.zeros((m, m)), np.zeros((n, m))
             dB_ss, dK_ss = np.zeros((k, m, m)), np.zeros((k, n, m))
@@ -463,7 +475,7 @@ class FilterProblem:
         nu, dnu = np.empty((T, m)), np.empty((T, m, k))
         B, dB = np.empty((T, m, m)), np.empty((T, m, m, k))
         args = (Fs, np.ascontiguousarray(g), dF, dg, float(h[0]), substeps, Phi, dPhi,
-                np.ascontiguousarray(Q), dQ, R, dR, covariant_directions(dPhi, dQ, dR), H, d, dd,
+                np.ascontiguousarray(Q), dQ, R, dR, directions, H, d, dd,
                 np.ascontiguousarray(exp.y, dtype=float), np.asarray(x0, dtype=float), dx0,
                 steady, B_ss, np.ascontiguousarray(K_ss), dB_ss, np.ascontiguousarray(dK_ss),
                 nu, dnu, B, dB)
@@ -479,17 +491,39 @@ class FilterProblem:
         return nu, B, dnu, dB, float(cost)
 
 
-def covariant_directions(dPhi: np.ndarray, dQ: np.ndarray, dR: np.ndarray) -> np.ndarray:
+def covariant_directions(dF: np.ndarray, k: int, i_process: int | None,
+                         i_meas: slice | None) -> np.ndarray:
     """
-    Indices of the directions of θ along which the filter's covariance P moves (int64).
+    Indices of the k directions of θ along which the filter's covariance P moves (int64).
 
-    From P(t0) = 0, ∂P stays zero along a direction with ∂Φ = ∂Q = ∂R = 0 (an initial state, a
-    forcing or output-offset parameter), and so do ∂B and ∂K: only ∂x carries it.
-    dPhi, dQ (T-1 or 1, k, n, n), dR (k, m, m).
+    The model parameters that move F (dF (…, kp, n, n): they move Φ and Q), σ_V² (Q) and the
+    measurement σ's (R). From P(t0) = 0, ∂P stays zero along every other direction (an initial
+    state, a forcing or output-offset parameter), and so do ∂B and ∂K: only ∂x carries it.
     """
-    moves = (np.any(dPhi != 0.0, axis=(0, 2, 3)) | np.any(dQ != 0.0, axis=(0, 2, 3))
-             | np.any(dR != 0.0, axis=(1, 2)))
+    if not k:
+        return np.zeros(0, dtype=np.int64)
+    moves = np.zeros(k, dtype=bool)
+    moves[:dF.shape[-3]] = np.any(dF != 0.0, axis=tuple(range(dF.ndim - 3)) + (-2, -1))
+    if i_process is not None:
+        moves[i_process] = True
+    if i_meas is not None:
+        moves[i_meas] = True
     return np.flatnonzero(moves).astype(np.int64)
+
+
+def along_every_direction(dPhi: np.ndarray, dQ: np.ndarray, directions: np.ndarray, k: int
+                          ) -> tuple[np.ndarray, np.ndarray]:
+    """
+    ∂Φ and ∂Q along all k directions of θ (…, k, n, n), zero beyond those given.
+
+    ``dPhi`` (…, kp, n, n) along the first kp, ``dQ`` (…, len(directions), n, n) along
+    ``directions``, as the filter's pieces carry them.
+    """
+    lead, n = dPhi.shape[:-3], dPhi.shape[-1]
+    full_Phi, full_Q = np.zeros(lead + (k, n, n)), np.zeros(lead + (k, n, n))
+    full_Phi[..., :dPhi.shape[-3], :, :] = dPhi
+    full_Q[..., directions, :, :] = dQ
+    return full_Phi, full_Q
 
 
 def steady_gain_sensitivities(Phi: np.ndarray, Q: np.ndarray, H: np.ndarray, R: np.ndarray,
@@ -545,6 +579,7 @@ def sensitivity_scan_numpy(Fs: np.ndarray, g: np.ndarray, dFs: np.ndarray, dg: n
 
     It propagates ∂P along every direction, ``covariant`` or not: the others stay exact zeros.
     """
+    dPhis, dQs = along_every_direction(dPhis, dQs, covariant, dx0.shape[1])
     T = y.shape[0]
     n, kp = Fs.shape[1], dFs.shape[1]
     varying, per_interval = Fs.shape[0] > 1, Phis.shape[0] > 1
