@@ -64,11 +64,11 @@ def sensitivity_scan(Fs, g, dFs, dg, h, substeps, Phis, dPhis, Qs, dQs, R, dR, c
     kp directions (zero beyond); R (m, m), dR (k, m, m); ``covariant`` (int64) the directions
     along which ∂Φ, ∂Q or ∂R may be non-zero, and dQs (T-1 or 1, len(covariant), n, n) along
     them: along every other (an initial state, a forcing parameter) ∂P, ∂B and ∂K stay zero
-    from P(t0) = 0 and are not propagated; H (T, m, n); d (T, m), dd (T, m, k); y (T, m); x0 (n,), dx0 (n, k). With ``steady``
-    the gain is B_ss (m, m), K_ss (n, m) with derivatives dB_ss (k, m, m), dK_ss (k, n, m)
-    throughout; else P(t0) = 0 and the covariance and its derivative are propagated.
-    Fills nu (T, m), dnu (T, m, k), B (T, m, m), dB (T, m, m, k); returns
-    Σ_j νᵀB⁻¹ν + log|B_j|.
+    from P(t0) = 0 and are not propagated; H (T, m, n); d (T, m), dd (T, m, k); y (T, m);
+    x0 (n,), dx0 (n, k). With ``steady`` the gain is B_ss (m, m), K_ss (n, m) with
+    derivatives dB_ss (k, m, m), dK_ss (k, n, m) throughout; else P(t0) = 0 and the
+    covariance and its derivative are propagated. Fills nu (T, m), dnu (T, m, k),
+    B (T, m, m), dB (T, m, m, k); returns Σ_j νᵀB⁻¹ν + log|B_j|.
 
         ν = y − H x − d                       ∂ν = −H ∂x − ∂d
         B = H P Hᵀ + R                         ∂B = H ∂P Hᵀ + ∂R

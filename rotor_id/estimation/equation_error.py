@@ -436,7 +436,7 @@ def fit_equation_error(experiments: Sequence[Experiment], unknowns: Sequence[str
             break
     recs = reconstruct(p, process_noise_std)
     return EquationErrorResult(names=list(unknowns), values=p[idx].copy(), covariance=P,
-                               process_noise_std=float(process_noise_std),  # type: ignore
+                               process_noise_std=float(process_noise_std),
                                history=history,
                                reconstructions=recs, regressions=regs, iterations=iteration,
                                converged=converged)

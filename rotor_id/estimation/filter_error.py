@@ -288,9 +288,7 @@ class FilterProblem:
         return sig_p**2 * Q1, dQ
 
     def _constant_pieces(self, t, substeps, Fs, dF, step, sig_p, directions, kp):
-        """
-        Φ, ∂Φ (kp directions), Q, ∂Q (``directions``), leading dimension 1, of a constant F.
-        """
+        """Φ, ∂Φ (kp directions), Q, ∂Q (``directions``), leading dimension 1, of a constant F."""
         n = Fs.shape[-1]
         dt = float(t[1] - t[0])
         Phi_s = rk4_transition(Fs, np.array([step]))[0]
@@ -494,7 +492,7 @@ class FilterProblem:
 def covariant_directions(dF: np.ndarray, k: int, i_process: int | None,
                          i_meas: slice | None) -> np.ndarray:
     """
-    Indices of the k directions of θ along which the filter's covariance P moves (int64).
+    Return the k directions of θ along which the filter's covariance P moves (int64).
 
     The model parameters that move F (dF (…, kp, n, n): they move Φ and Q), σ_V² (Q) and the
     measurement σ's (R). From P(t0) = 0, ∂P stays zero along every other direction (an initial
@@ -514,7 +512,7 @@ def covariant_directions(dF: np.ndarray, k: int, i_process: int | None,
 def along_every_direction(dPhi: np.ndarray, dQ: np.ndarray, directions: np.ndarray, k: int
                           ) -> tuple[np.ndarray, np.ndarray]:
     """
-    ∂Φ and ∂Q along all k directions of θ (…, k, n, n), zero beyond those given.
+    Return ∂Φ and ∂Q along all k directions of θ (…, k, n, n), zero beyond those given.
 
     ``dPhi`` (…, kp, n, n) along the first kp, ``dQ`` (…, len(directions), n, n) along
     ``directions``, as the filter's pieces carry them.
@@ -569,8 +567,9 @@ def steady_gain_sensitivities(Phi: np.ndarray, Q: np.ndarray, H: np.ndarray, R: 
 def sensitivity_scan_numpy(Fs: np.ndarray, g: np.ndarray, dFs: np.ndarray, dg: np.ndarray,
                            h: float, substeps: int, Phis: np.ndarray, dPhis: np.ndarray,
                            Qs: np.ndarray, dQs: np.ndarray, R: np.ndarray, dR: np.ndarray,
-                           covariant: np.ndarray, H: np.ndarray, d: np.ndarray, dd: np.ndarray, y: np.ndarray,
-                           x0: np.ndarray, dx0: np.ndarray, steady: bool, B_ss: np.ndarray,
+                           covariant: np.ndarray, H: np.ndarray, d: np.ndarray,
+                           dd: np.ndarray, y: np.ndarray, x0: np.ndarray, dx0: np.ndarray,
+                           steady: bool, B_ss: np.ndarray,
                            K_ss: np.ndarray, dB_ss: np.ndarray, dK_ss: np.ndarray,
                            nu: np.ndarray, dnu: np.ndarray, B: np.ndarray,
                            dB: np.ndarray) -> float:
