@@ -40,14 +40,18 @@ def _sensitivity_stage(F, S, prev, scale, dF, dg_row, xs, out):
     n, k = S.shape
     kp = dF.shape[0]
     for i in range(n):
+        # row i of F (S + scale·prev) for every column at once, each summed over j in order
+        # (independent sums, which the compiler can vectorise; the same sums as one at a time)
         for c in range(k):
-            acc = 0.0
+            out[i, c] = 0.0
+        for j in range(n):
+            f = F[i, j]
+            for c in range(k):
+                out[i, c] += f * (S[j, c] + scale * prev[j, c])
+        for c in range(kp):
+            acc = out[i, c] + dg_row[c, i]
             for j in range(n):
-                acc += F[i, j] * (S[j, c] + scale * prev[j, c])
-            if c < kp:
-                acc += dg_row[c, i]
-                for j in range(n):
-                    acc += dF[c, i, j] * xs[j]
+                acc += dF[c, i, j] * xs[j]
             out[i, c] = acc
 
 
@@ -101,6 +105,8 @@ def sensitivity_scan(Fs, g, dFs, dg, h, substeps, Phis, dPhis, Qs, dQs, R, dR, c
     KB = np.empty((n, m))
     W = np.empty((n, n))
     W2 = np.empty((n, n))
+    PhiT = np.empty((n, n))
+    row = np.empty(n)
     v = np.empty(m)
     dv = np.empty((m, k))
     k1 = np.empty(n)
@@ -238,21 +244,31 @@ def sensitivity_scan(Fs, g, dFs, dg, h, substeps, Phis, dPhis, Qs, dQs, R, dR, c
                     for q in range(n):
                         acc += P[i, q] * Phi[j, q]
                     W[i, j] = acc                       # P⁺ Φᵀ
+            for i in range(n):
+                for j in range(n):
+                    PhiT[i, j] = Phi[j, i]
             for ci in range(covariant.shape[0]):
                 c = covariant[ci]
+                # ∂P⁺ Φᵀ, and Φ times it below, a row at a time: each entry summed over q in
+                # order, all of a row's at once
                 for i in range(n):
                     for j in range(n):
-                        acc = 0.0
-                        for q in range(n):
-                            acc += dP[c, i, q] * Phi[j, q]
-                        W2[i, j] = acc                  # ∂P⁺ Φᵀ
+                        W2[i, j] = 0.0
+                    for q in range(n):
+                        a = dP[c, i, q]
+                        for j in range(n):
+                            W2[i, j] += a * PhiT[q, j]
                 # ∂P' = ∂Q + ∂Φ P⁺ Φᵀ + (∂Φ P⁺ Φᵀ)ᵀ + Φ ∂P⁺ Φᵀ (upper triangle, mirrored);
                 # ∂Φ = 0 beyond the first kp directions
                 for i in range(n):
+                    for j in range(n):
+                        row[j] = dQ[ci, i, j]
+                    for q in range(n):
+                        a = Phi[i, q]
+                        for j in range(n):
+                            row[j] += a * W2[q, j]
                     for j in range(i, n):
-                        acc = dQ[ci, i, j]
-                        for q in range(n):
-                            acc += Phi[i, q] * W2[q, j]
+                        acc = row[j]
                         if c < kp:
                             for q in range(n):
                                 acc += dPhi[c, i, q] * W[q, j] + dPhi[c, j, q] * W[q, i]
