@@ -273,7 +273,10 @@ def _series(model, method, t, p, u, columns):
         if order >= samples // 2 - 1:
             model.__dict__['_revolution_samples'] = 0
             return None
-        model.__dict__['_revolution_samples'] = 2 * order + 4
+        samples = model.__dict__['_revolution_samples'] = 2 * order + 4
+        # summed from those samples, as every later call is: a model's values do not depend
+        # on which call probed it (the two sums differ by rounding)
+        F_rev, b_rev, B_rev = _on_revolution(model, method, t0, samples, p, n_inputs)
     if columns is not None:
         F_rev, b_rev, B_rev = F_rev[:, columns], b_rev[:, columns], B_rev[:, columns]
     F = F_rev if F_rev.shape[0] == 1 else Series.of(F_rev, t0)
