@@ -71,9 +71,12 @@ def _problem(runs, unknowns, guess, known, setup, sigma_v, max_step, start_est, 
     base = prob.base
     theta = np.zeros(k)
     theta[:len(base.param_index)] = base.p_base[base.param_index]
-    theta[:prob.n_base] = fit_initial_states(base, theta[:prob.n_base].copy(), max_step)
-    fitted_states = theta[:prob.n_base].copy()
     have = dict(zip(start_est.names, start_est.values))
+    if refit_states or any(name not in have
+                           for name in prob.names[len(base.param_index):prob.n_base]):
+        # (the initial states the current estimate has are taken from it below)
+        theta[:prob.n_base] = fit_initial_states(base, theta[:prob.n_base].copy(), max_step)
+    fitted_states = theta[:prob.n_base].copy()
     for i, name in enumerate(prob.names):
         if name == PROCESS_NOISE:
             theta[i] = (sigma_v if process_sigma is None else process_sigma)**2
