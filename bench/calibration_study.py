@@ -36,10 +36,15 @@ import sys
 import tempfile
 import time
 
-from common import machine_description, REPO_ROOT, RESULTS_DIR
-import numpy as np
-from run_all import NOTES_MARK, notes_of
-from scipy import stats
+# one BLAS thread, as `rotor-id diagnose` runs (importing rotor_id sets it, but numpy is
+# imported first here): the verdicts are those of the command, to the last bit
+os.environ.setdefault('OPENBLAS_NUM_THREADS', '1')
+os.environ.setdefault('OMP_NUM_THREADS', '1')
+
+from common import machine_description, REPO_ROOT, RESULTS_DIR  # noqa: E402
+import numpy as np  # noqa: E402
+from run_all import NOTES_MARK, notes_of  # noqa: E402
+from scipy import stats  # noqa: E402
 
 sys.path.insert(0, str(REPO_ROOT / 'test' / 'diagnosis'))
 import random_scenarios  # noqa: E402,I100

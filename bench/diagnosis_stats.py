@@ -24,6 +24,11 @@ import sys
 import tempfile
 import time
 
+# one BLAS thread, as `rotor-id diagnose` runs (importing rotor_id sets it, but numpy is
+# imported first here): the verdicts are those of the command, to the last bit
+os.environ.setdefault('OPENBLAS_NUM_THREADS', '1')
+os.environ.setdefault('OMP_NUM_THREADS', '1')
+
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / 'test' / 'diagnosis'))
