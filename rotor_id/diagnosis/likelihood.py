@@ -53,7 +53,9 @@ class Workers:
         items = list(items)
         if self.processes <= 1 or (len(items) <= 1 and not self._all_in_workers) or not items:
             return [function(item) for item in items]
-        return self._start().map(function, items)
+        # one job at a time: jobs differ in cost tenfold (a blade's variant, a lag's short step),
+        # and map's default chunks of several leave one worker idle at a batch's end
+        return self._start().map(function, items, chunksize=1)
 
     def together(self, calls):
         """
