@@ -11,7 +11,7 @@ from dataclasses import dataclass, field
 import math
 
 from rotor_id.diagnosis.catalogue import (
-    equivalent, FIRST_ORDER_START, LAG_PARAMETER, n_choices, parameter_range)
+    equivalent, FIRST_ORDER_START, LAG_PARAMETER, n_choices, NOISE, parameter_range)
 from rotor_id.diagnosis.likelihood import canonical, FitResult, ScoreTest
 
 
@@ -325,16 +325,20 @@ class _Search:
         """
         candidates, log_post = self.candidates, self.log_post
         baseline = candidates[()].result
-        base = log_post(baseline)
         for _ in range(self.policy.max_effects):
-            singles = [c.result for c in candidates.values() if c.fitted and len(c.effects) == 1
-                       and c.result.likelihood == baseline.likelihood
-                       and log_post(c.result) - base >= -math.log(self.policy.fit_share)]
+            rho = shared_rho(candidates.values())
+            base = log_posterior(candidates[()], rho, self.prior)
+            # fitted alone, or score-tested at the baseline only (a branch-and-bound step may
+            # fit the effect that stands in and never the one it stands in for)
+            singles = [c.effects[0] for c in candidates.values() if len(c.effects) == 1
+                       and (c.result.likelihood == baseline.likelihood if c.fitted
+                            else c.parent is baseline and c.names[0] != NOISE)
+                       and log_posterior(c, rho, self.prior) - base
+                       >= -math.log(self.policy.fit_share)]
             requests = {}
             for out in best.effects:
                 rest = tuple(ev for ev in best.effects if ev != out)
-                for single in singles:
-                    new = single.effects[0]
+                for new in singles:
                     if new[0] in best.names \
                             or any(new[0] in equivalent(e, self.mu) for e, _ in rest):
                         continue
