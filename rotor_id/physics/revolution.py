@@ -268,7 +268,8 @@ def _series(model, method, t, p, u, columns):
         return None
     t0 = float(t[0])
     F_rev, b_rev, B_rev = _on_revolution(model, method, t0, samples, p, n_inputs)
-    if _samples(model) is None:             # the probe: the fewest samples that resolve it
+    probing = _samples(model) is None
+    if probing:                             # the probe: the fewest samples that resolve it
         order = max(_highest_harmonic(part) for part in (F_rev, b_rev, B_rev))
         if order >= samples // 2 - 1:
             model.__dict__['_revolution_samples'] = 0
@@ -290,8 +291,9 @@ def _series(model, method, t, p, u, columns):
     same = F_at.shape[0] == F_series.shape[0] and agree(F_series, F_at, AGREE) \
         and agree(g_series, g_at, AGREE)
     if not same:
-        # fewer samples than the probe's: a harmonic the probe's parameters left out, probe
-        # again at these; at the probe's own count the series does not hold for this model
-        model.__dict__['_revolution_samples'] = None if samples < PROBE_SAMPLES else 0
+        # a later call: a harmonic the probe's parameters left out, probe again at these; the
+        # probing call itself (every harmonic its samples resolve summed): the series does not
+        # hold for this model
+        model.__dict__['_revolution_samples'] = 0 if probing else None
         return None
     return F, b, B
