@@ -150,10 +150,14 @@ def noncentrality_for_power(q: float, dof: float, power: float) -> float:
     while noncentral_chi2_sf(q, dof, high) < power:
         high *= 2.0
     tail = _noncentral_tail(q, dof, high)
-    low = 0.0
-    while high - low > 1e-12 * high:
+    return _bisect(lambda lam: tail(lam) < power, 0.0, high, 1e-12)
+
+
+def _bisect(below, low, high, relative):
+    """Return the root in [low, high] of a monotone test: ``below(x)`` while x is under it."""
+    while high - low > relative * high:
         middle = 0.5 * (low + high)
-        if tail(middle) < power:
+        if below(middle):
             low = middle
         else:
             high = middle
@@ -213,13 +217,7 @@ def student_t_isf(p: float, dof: int) -> float:
     low, high = 0.0, 1.0
     while student_t_sf(high, dof) > p:
         low, high = high, 2.0 * high
-    while high - low > 1e-13 * high:
-        middle = 0.5 * (low + high)
-        if student_t_sf(middle, dof) > p:
-            low = middle
-        else:
-            high = middle
-    return 0.5 * (low + high)
+    return _bisect(lambda t: student_t_sf(t, dof) > p, low, high, 1e-13)
 
 
 #: Two-sided 95 % quantile of the standard normal: the band ±1.96/√N of a white sequence.
