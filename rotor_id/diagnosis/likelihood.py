@@ -299,13 +299,13 @@ def _filter_fit_job(item):
 
 
 def _filter_score_job(item):
-    """Return the filter-error score test of one effect (in a worker), None where it fails."""
-    effect, kept, current_fit, setting, setup = item
+    """Return the filter-error score test of one tested variant (in a worker), None: failed."""
+    test, variant, kept, current_fit, setting, setup = item
     try:
-        if effect == NOISE:
+        if test == NOISE:
             lm, var = noisy.noise_score(current_fit, kept, setting, setup)
-            return ScoreTest(NOISE, '', float(lm), 1 + len(noisy.SHAPE), var)
-        return _best_variant(effect, noisy.screen(effect, kept, current_fit, setting, setup))
+            return '', float(lm), 1 + len(noisy.SHAPE), var
+        return noisy.screen(test, variant, kept, current_fit, setting, setup)
     except FAILURES:
         return None
 
@@ -373,10 +373,19 @@ class FilterError(Likelihood):
     def score_many(self, current, effects):
         """Score-test effects at a fitted model, in worker processes: {effect: ScoreTest}."""
         kept = [ev for ev in current.effects if ev[0] != NOISE]
-        asked = [e for e in effects if e == NOISE or e in SCREENED]
-        items = [(e, kept, current.fit, self.setting, self.setup) for e in asked]
+        tested = {e: SCREENED_AS.get(e, e) for e in effects if e == NOISE or e in SCREENED}
+        # each variant its own job: a blade dissimilarity's are the longest, one per blade
+        items = [(t, v, kept, current.fit, self.setting, self.setup)
+                 for t in sorted(set(tested.values()))
+                 for v in noisy.screen_variants(t, self.setup)]
+        found = {}
+        for item, test in zip(items, self.workers.apply(_filter_score_job, items)):
+            if test is not None:
+                found.setdefault(item[0], []).append(test)
         out = dict.fromkeys(effects)
-        out.update(zip(asked, self.workers.apply(_filter_score_job, items)))
+        for effect, test in tested.items():
+            if test in found:
+                out[effect] = _as_lag(effect, _best_variant(effect, found[test]))
         return out
 
 

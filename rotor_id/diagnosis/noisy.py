@@ -15,8 +15,8 @@ import time
 import numpy as np
 
 from rotor_id.diagnosis.catalogue import (
-    as_lag_variance, augment_runs, bound_sides, build, CandidateFit, effect_parameters,
-    FAILURES, grid_starts, Job, NOISE, SCREENED_AS, start_values, stop_at_bound)
+    augment_runs, bound_sides, build, CandidateFit, effect_parameters, FAILURES, grid_starts,
+    Job, NOISE, start_values, stop_at_bound)
 from rotor_id.estimation.filter_error import (
     FilterProblem, fit_filter_error_ml, gradient_information, innovations_cost,
     measurement_noise_name, PROCESS_NOISE)
@@ -150,30 +150,29 @@ def _score(prob, theta, extra=(), one_sided=None):
     return float(g @ cov @ g), var
 
 
-def screen(effect, kept, current, ctx, setup):
-    """
-    Score-test one effect on top of ``current`` (filter error): [(variant, LM, k, var)].
+def screen_variants(effect, setup):
+    """Return the variants of an effect that are score-tested one by one ('' for one)."""
+    if effect == 'blade_dissimilarity':
+        return [f'blade_{blade}' for blade in setup.base_model.blades]
+    return ['']
 
-    A lag (not nested, τ > 0) is tested by its first-order equivalent, a delay nested at
-    d = 0 (:data:`~rotor_id.diagnosis.catalogue.SCREENED_AS`), as output error's screening
-    does; a blade dissimilarity blade by blade.
+
+def screen(test, variant, kept, current, ctx, setup):
     """
-    test = SCREENED_AS.get(effect, effect)
-    blades = list(setup.base_model.blades) if effect == 'blade_dissimilarity' else [None]
+    Score-test one variant of a tested effect on top of ``current`` (filter error).
+
+    Returns (variant, LM, k, {name: variance}). A lag is tested through its first-order
+    equivalent, a delay nested at d = 0 (:data:`~rotor_id.diagnosis.catalogue.SCREENED_AS`),
+    as output error's screening does; a blade dissimilarity blade by blade
+    (:func:`screen_variants`).
+    """
     est = current.estimate
-    out = []
-    for blade in blades:
-        variant = '' if blade is None else f'blade_{blade}'
-        _, runs, unknowns, extra, guess, max_step, rows = _stack(
-            ctx, setup, list(kept) + [(test, variant)], est, start_values(current))
-        prob, theta = _problem(runs, unknowns, guess, ctx.known, setup, _sigma_v(est),
-                               max_step, est, rows)
-        k = len(prob.names) - len(est.names)
-        lm, var = _score(prob, theta, extra)
-        if effect != test:
-            var = as_lag_variance(effect, var)
-        out.append((variant, lm, k, var))
-    return out
+    _, runs, unknowns, extra, guess, max_step, rows = _stack(
+        ctx, setup, list(kept) + [(test, variant)], est, start_values(current))
+    prob, theta = _problem(runs, unknowns, guess, ctx.known, setup, _sigma_v(est),
+                           max_step, est, rows)
+    lm, var = _score(prob, theta, extra)
+    return variant, lm, len(prob.names) - len(est.names), var
 
 
 def fit_filter(effect, variant, kept, start_fit, ctx, setup, earlier=None):
