@@ -257,6 +257,19 @@ class _Search:
         return (log_evidence(loglik, cand.parent.n_params + cand.test.k, cand.parent.n_obs, rho)
                 + self.prior.log(key))
 
+    def swap_bound(self, rest, new):
+        """Return the bound of ``rest`` + ``new`` by ``new``'s score test at ``rest`` (cached)."""
+        smaller = self.candidates.get(rest)
+        if smaller is None or not smaller.fitted:
+            return math.inf
+        test = tests_at(self.space, self, smaller.result).get(new[0])
+        if test is None:
+            return math.inf
+        key = canonical(rest + (new,))
+        if key not in self.candidates:
+            self.candidates[key] = Candidate(key, parent=smaller.result, test=test)
+        return self.bound(key) if not self.candidates[key].fitted else math.inf
+
     def fit_step(self, requests):
         """Fit a step's requests [(bound, key, start)] by branch and bound; return the fits."""
         share = math.log(self.policy.fit_share)
@@ -335,7 +348,7 @@ class _Search:
                             else c.parent is baseline and c.names[0] != NOISE)
                        and log_posterior(c, rho, self.prior) - base
                        >= -math.log(self.policy.fit_share)]
-            requests = {}
+            requests, beat = {}, log_post(best) + math.log(self.policy.fit_share)
             for out in best.effects:
                 rest = tuple(ev for ev in best.effects if ev != out)
                 for new in singles:
@@ -343,7 +356,9 @@ class _Search:
                             or any(new[0] in equivalent(e, self.mu) for e, _ in rest):
                         continue
                     key = canonical(rest + (new,))
-                    if key not in candidates or not candidates[key].fitted:
+                    # branch and bound at the model the swap extends, as in a forward step
+                    if (key not in candidates or not candidates[key].fitted) \
+                            and self.swap_bound(rest, new) >= beat:
                         requests.setdefault(key, (key, best))
             if not requests:
                 return best

@@ -201,6 +201,46 @@ def test_the_backward_check_drops_an_effect_the_others_make_redundant():
     assert set(explanation.names) == {'sensor_bias', 'sensor_gain'}
 
 
+def _stand_in_table(lag_and_bias):
+    # per-blade gains (k = 4) stand in for per-blade offsets (k = 2) beside a lag: the gains
+    # gain most alone, and the offsets are score-tested at the baseline, never fitted there
+    return {frozenset(['sensor_gain']): (224.0, 4), frozenset(['sensor_lag']): (160.0, 1),
+            frozenset(['sensor_bias']): (92.0, 2),
+            frozenset(['sensor_lag', 'sensor_gain']): (283.0, 5),
+            frozenset(['sensor_lag', 'sensor_bias']): (lag_and_bias, 3),
+            frozenset(['sensor_gain', 'sensor_bias']): (224.0, 6),
+            frozenset(['sensor_lag', 'sensor_gain', 'sensor_bias']): (lag_and_bias + 0.5, 7)}
+
+
+STAND_IN = ('sensor_lag', 'sensor_bias', 'sensor_gain')
+
+
+def _greedy(table):
+    # one explanation extended per step (residuals noise: beam of one), so only the exchange
+    # can reach the offsets beside the lag
+    space = TableSpace(table)
+    return search(space, list(STAND_IN), Prior(STAND_IN, POLICY.max_effects, 4), POLICY,
+                  adequate=lambda r: True), space
+
+
+def test_the_exchange_swaps_a_stand_in_for_the_effect_it_stands_in_for():
+    selection, space = _greedy(_stand_in_table(283.1))
+    assert canonical([('sensor_bias', '')]) not in space.fits
+    assert ('exchange', 'sensor_bias') in [(s.action, s.effect) for s in selection.steps]
+    assert set(selection.final.names) == {'sensor_lag', 'sensor_bias'}
+
+
+def test_a_swap_its_score_test_rules_out_is_not_fitted():
+    # beside the lag the offsets' score test (2Δlog L 10, the table's exact gain) cannot
+    # reach the pair the search found: branch and bound at the model the swap extends
+    selection, space = _greedy(_stand_in_table(165.0))
+    assert canonical([('sensor_lag', ''), ('sensor_bias', '')]) not in space.fits
+    assert canonical([('sensor_gain', ''), ('sensor_bias', '')]) not in space.fits
+    assert set(selection.final.names) == {'sensor_lag', 'sensor_gain'}
+    # still in the posterior, by its score-test approximation
+    assert not selection.candidates[canonical([('sensor_lag', ''), ('sensor_bias', '')])].fitted
+
+
 def test_never_more_effects_than_the_policy_allows():
     table = {frozenset([e]): (100.0, 1) for e in ('sensor_bias', 'flap_frequency',
                                                   'sensor_gain', 'sensor_lag')}
