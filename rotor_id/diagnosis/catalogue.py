@@ -23,6 +23,7 @@ from rotor_id.estimation.output_error import (
     evaluate, Experiment, fit_initial_states, fit_output_error, IdentificationError,
     information_matrix, Problem, STOP)
 from rotor_id.estimation.simulate import DEFAULT_MAX_STEP
+from rotor_id.estimation.validation import score_statistic
 from rotor_id.physics import augmented as aug
 from rotor_id.physics.aerodynamics import flap_damping
 
@@ -615,32 +616,24 @@ SCREENED = tuple(e for e in EFFECTS
                  if e not in ('periodic_coefficients', 'dynamic_inflow', NOISE))
 
 
-def score_statistic(runs, unknowns, guess, known, noise_var, max_step=None, extra=()):
+def output_error_score(runs, unknowns, guess, known, noise_var, max_step=None, extra=()):
     """
     Score (Lagrange-multiplier) test of extra parameters at the current estimate: (LM, var).
 
-    LM = gᵀ M⁻¹ g, g the gradient of the output-error cost ½Σ r²/σ² and M the information at
-    ``guess`` (extra parameters neutral, initial states refitted, σ² the current model's):
-    Rao's statistic, χ²(k) without the effect. ``var`` = {name: (M⁻¹)_jj} of the ``extra``
-    parameters, the others profiled (a detection limit follows from it).
+    :func:`~rotor_id.estimation.validation.score_statistic` of the output-error cost ½Σ r²/σ²
+    at ``guess`` (extra parameters neutral, initial states refitted, σ² the current model's),
+    χ²(k) without the effect. ``var`` = {name: (M⁻¹)_jj} of the ``extra`` parameters, the
+    others profiled (a detection limit follows from it).
     """
     max_step = max_step or DEFAULT_MAX_STEP
     problem = Problem(runs, unknowns, guess, known).prepare(max_step)
     results = _evaluated(problem, max_step)
     inv_var = 1.0 / np.asarray(noise_var, dtype=float)
     grad = -sum(np.einsum('tmi,m,tm->i', dy, inv_var, res) for res, dy, _ in results)
-    M = information_matrix([dy for _, dy, _ in results], noise_var)
-    d = np.sqrt(np.maximum(np.diag(M), 1e-300))
-    s, V = np.linalg.eigh(M / np.outer(d, d))
-    kept = s > 1e-12 * s.max()
-    cov = (V[:, kept] / s[kept]) @ V[:, kept].T / np.outer(d, d)
-    # a parameter along a direction the data do not inform has no finite variance (its
-    # detection limit is unbounded), not the zero a truncated inverse would give it
-    unseen = np.sum(V[:, ~kept]**2, axis=1) > 1e-6
-    var = {n: math.inf if unseen[problem.names.index(n)]
-           else float(cov[problem.names.index(n), problem.names.index(n)])
-           for n in extra if n in problem.names}
-    return float(grad @ cov @ grad), var
+    names = problem.names
+    lm, variance = score_statistic(grad, information_matrix([dy for _, dy, _ in results],
+                                                            noise_var))
+    return lm, {n: float(variance[names.index(n)]) for n in extra if n in names}
 
 
 def screen_candidate(job, noise_var):
@@ -663,7 +656,8 @@ def screen_candidate(job, noise_var):
     for blade in blades:
         trial = job if blade is None else _replace(job, variant=f'blade_{blade}')
         runs, model, unknowns, extra, guess, max_step = build(trial, base_model, experiments)
-        lm, var = score_statistic(runs, unknowns, guess, setting.known, noise_var, max_step, extra)
+        lm, var = output_error_score(runs, unknowns, guess, setting.known, noise_var, max_step,
+                                     extra)
         if effect in LAG_PARAMETER:
             var = as_lag_variance(effect, var)
         k = len(extra) + _n_initial(runs) - _n_initial(experiments)

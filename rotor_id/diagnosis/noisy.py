@@ -21,6 +21,7 @@ from rotor_id.estimation.filter_error import (
     FilterProblem, fit_filter_error_ml, gradient_information, innovations_cost,
     measurement_noise_name, PROCESS_NOISE)
 from rotor_id.estimation.output_error import fit_initial_states
+from rotor_id.estimation.validation import score_statistic
 from rotor_id.physics import augmented as aug
 
 #: Gauss-Newton (scoring) iterations of a candidate's filter-error fit; it starts at the
@@ -143,11 +144,8 @@ def _score(prob, theta, extra=(), one_sided=None):
     # e.g. a Lock-number change of a blade whose extra states start at rest) adds nothing
     informed = (np.diag(M) > 1e-12 * np.max(np.diag(M))) & ~at_lower
     names = [n for n, keep in zip(prob.names, informed) if keep]
-    g, M = g[informed], M[np.ix_(informed, informed)]
-    d = np.sqrt(np.diag(M))
-    cov = np.linalg.pinv(M / np.outer(d, d), rcond=1e-10) / np.outer(d, d)
-    var = {n: float(cov[names.index(n), names.index(n)]) for n in extra if n in names}
-    return float(g @ cov @ g), var
+    lm, variance = score_statistic(g[informed], M[np.ix_(informed, informed)])
+    return lm, {n: float(variance[names.index(n)]) for n in extra if n in names}
 
 
 def screen_variants(effect, setup):

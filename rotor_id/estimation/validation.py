@@ -153,6 +153,31 @@ def noncentrality_for_power(q: float, dof: float, power: float) -> float:
     return _bisect(lambda lam: tail(lam) < power, 0.0, high, 1e-12)
 
 
+#: Directions of a scaled information matrix whose eigenvalue is below this fraction of the
+#: largest carry no information: M = JᵀJ squares J's condition, and its small eigenvalues
+#: are rounding of the large ones (relative accuracy ~ k·ε·cond) well before this.
+INFORMATION_CUTOFF = 1e-10
+
+
+def score_statistic(gradient: np.ndarray, information: np.ndarray
+                    ) -> tuple[float, np.ndarray]:
+    """
+    Return Rao's score statistic LM = gᵀ M⁻¹ g and the diagonal of M⁻¹ (each parameter's variance).
+
+    g and M are the gradient and the information of −log L at the restricted estimate: LM is
+    χ²_k where the restriction holds. M is inverted on its informed directions (eigenvalues of
+    M scaled to a unit diagonal above :data:`INFORMATION_CUTOFF` of the largest); a parameter
+    along an uninformed one has no finite variance (inf), not the zero a truncated inverse
+    would give it.
+    """
+    d = np.sqrt(np.maximum(np.diag(information), 1e-300))
+    s, V = np.linalg.eigh(information / np.outer(d, d))
+    kept = s > INFORMATION_CUTOFF * s.max()
+    cov = (V[:, kept] / s[kept]) @ V[:, kept].T / np.outer(d, d)
+    unseen = np.sum(V[:, ~kept]**2, axis=1) > 1e-6
+    return float(gradient @ cov @ gradient), np.where(unseen, np.inf, np.diag(cov))
+
+
 def _bisect(below, low, high, relative):
     """Return the root in [low, high] of a monotone test: ``below(x)`` while x is under it."""
     while high - low > relative * high:

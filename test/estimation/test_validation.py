@@ -18,7 +18,7 @@ import pytest
 from rotor_id.estimation.output_error import fit_output_error
 from rotor_id.estimation.validation import (autocorrelation, channel_statistics,
                                             cross_correlation, ljung_box, predict,
-                                            theil_inequality, validate)
+                                            score_statistic, theil_inequality, validate)
 from rotor_id.report import cases as C
 from scipy.stats import binom
 
@@ -241,3 +241,26 @@ def test_tails_are_scipy_stats_numbers():
     assert normal_sf(-np.inf) == 1.0 and normal_sf(np.inf) == 0.0
     p = np.logspace(-300.0, -1e-3, 3001)
     assert np.array_equal(normal_isf(p), norm.isf(p))
+
+
+def test_score_statistic_of_a_linear_model_is_twice_the_likelihood_gain():
+    # y = X β + ε, σ = 1: at β restricted to 0 in its last two entries (the others refitted),
+    # the score statistic is exactly 2Δlog L of freeing them, and M⁻¹ the covariance of β̂
+    rng = np.random.default_rng(3)
+    X = rng.normal(size=(200, 4))
+    y = X @ np.array([1.0, -0.5, 0.3, 0.2]) + rng.normal(size=200)
+    free = np.linalg.lstsq(X, y, rcond=None)[0]
+    restricted = np.zeros(4)
+    restricted[:2] = np.linalg.lstsq(X[:, :2], y, rcond=None)[0]
+    gain = np.sum((y - X @ restricted)**2) - np.sum((y - X @ free)**2)
+    lm, variance = score_statistic(-X.T @ (y - X @ restricted), X.T @ X)
+    assert lm == pytest.approx(gain, rel=1e-10)
+    assert variance == pytest.approx(np.diag(np.linalg.inv(X.T @ X)), rel=1e-10)
+
+
+def test_score_statistic_gives_an_uninformed_parameter_no_finite_variance():
+    # the third parameter is the sum of the first two: the data inform two directions only
+    X = np.array([[1.0, 0.0, 1.0], [0.0, 1.0, 1.0], [1.0, 1.0, 2.0], [2.0, 1.0, 3.0]])
+    lm, variance = score_statistic(np.array([1.0, 2.0, 3.0]), X.T @ X)
+    assert np.all(np.isinf(variance))
+    assert math.isfinite(lm) and lm > 0.0
