@@ -631,6 +631,12 @@ class RotorModel(LinearModel):
         model._cache, model._constant, model._harmonics = {}, None, None
         return model
 
+    def __getstate__(self) -> dict[str, Any]:
+        """Pickle without the per-grid blocks: a fit's model travels between processes."""
+        state = self.__dict__.copy()
+        state['_cache'] = {}
+        return state
+
     # -- evaluation ---------------------------------------------------------------------------
     _SYSTEM_KEYS = ('F_const', 'aero', 'wake', 'decay', 'wake0', 'decay0')
 

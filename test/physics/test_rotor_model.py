@@ -230,3 +230,28 @@ def test_periodic_blocks_from_their_harmonics_equal_the_blade_by_blade_construct
                     assert np.max(np.abs(got - want)) < 1e-12 * scale, (options, key)
                     zero = np.all(want == 0.0, axis=0)
                     assert np.all(got[:, zero] == 0.0), (options, key)
+
+
+def test_a_pickled_model_leaves_its_per_grid_blocks_behind_and_evaluates_the_same():
+    # a fitted model travels between the diagnosis's worker processes: its blocks kept per
+    # time grid (megabytes on a 1-second record) are recomputed where needed, not sent
+    import pickle
+    from dataclasses import replace
+    from rotor_id.physics.augmented import BladeView, FlapFrequency
+    from rotor_id.physics.models import Multiblade
+    rotor = replace(RotorConstants(), n_blades=4, advance_ratio=0.35)
+    t = np.linspace(0.0, 60.0, 4000)
+    model = Multiblade(rotor)
+    p, u = model.parameter_vector({}), np.full((t.size, 3), 0.01)
+    before, flap = model.system(t, p, u), BladeView(model).flap(t)
+    blocks = pickle.dumps(model._pieces(t))                     # what a filter's steps use
+    assert len(pickle.dumps(model._cache)) > 1e6 and len(pickle.dumps(model)) < 1e4
+    copy = pickle.loads(pickle.dumps(model))
+    for got, want in zip(copy.system(t, p, u), before):
+        assert np.array_equal(got, want)
+    assert np.array_equal(BladeView(copy).flap(t), flap)
+    assert pickle.dumps(copy._pieces(t)) == blocks
+    # and inside an augmentation that keeps a model per value of its parameter
+    wrapped = FlapFrequency(model)
+    wrapped.system(t, wrapped.parameter_vector({'P': 1.1}), u)
+    assert len(pickle.dumps(wrapped)) < 1e5
