@@ -142,16 +142,12 @@ class Likelihood:
 
     A likelihood gives ``fit_many([(effects, start)])`` (results, None where a fit failed) and
     ``score_many(current, effects)`` ({effect: ScoreTest, None where not nested}), each batch
-    in worker processes; :meth:`fit` and :meth:`score` are one of each.
+    in worker processes; :meth:`fit` is one fit.
     """
 
     def fit(self, effects: tuple, start: FitResult | None) -> FitResult | None:
         """Fit the explanation ``effects`` started from ``start``'s values (None: failed)."""
         return self.fit_many([(effects, start)])[0]
-
-    def score(self, current: FitResult, effect: str) -> ScoreTest | None:
-        """Score-test ``effect`` at the fitted ``current`` (None: not nested, fit it)."""
-        return self.score_many(current, [effect])[effect]
 
     def fit_many(self, requests: list) -> list:
         """Fit [(effects, start)]: a result each, None where the fit failed."""
