@@ -258,7 +258,11 @@ class _Search:
                 + self.prior.log(key))
 
     def swap_bound(self, rest, new):
-        """Return the bound of ``rest`` + ``new`` by ``new``'s score test at ``rest`` (cached)."""
+        """
+        Return the bound of the unfitted ``rest`` + ``new`` by a score test (cached).
+
+        ``new``'s test at ``rest`` enters the table where the explanation is not in it yet.
+        """
         smaller = self.candidates.get(rest)
         if smaller is None or not smaller.fitted:
             return math.inf
@@ -266,9 +270,8 @@ class _Search:
         if test is None:
             return math.inf
         key = canonical(rest + (new,))
-        if key not in self.candidates:
-            self.candidates[key] = Candidate(key, parent=smaller.result, test=test)
-        return self.bound(key) if not self.candidates[key].fitted else math.inf
+        self.candidates.setdefault(key, Candidate(key, parent=smaller.result, test=test))
+        return self.bound(key)
 
     def fit_step(self, requests):
         """Fit a step's requests [(bound, key, start)] by branch and bound; return the fits."""
