@@ -27,6 +27,9 @@ one: offline, from the bag, it starts earlier). There every invariant above is s
 growing-window estimate before each complete final, offline agreement of the complete ones),
 but not that two converge: that is asserted only below that load, and the
 load measured is in the failure text and in a warning when the requirement was not applied.
+A stirring input starved of CPU ramps the cyclic to trim when its azimuth goes stale
+(``azimuth_timeout_s``): a test point whose excitation so ended inside its window is
+STATUS_ABORTED, without values, and the recorded stirring commands must show that ramp.
 """
 
 import json
@@ -127,6 +130,8 @@ def test_each_test_point_is_identified_once(three_points):
             ok, text = within_sigma(final.values, final.std, TRUTH, final.names,
                                     family=POINTS * len(final.names))
             assert ok, f'test point {final.test_point}: {text}'
+        elif final.status == ParameterEstimate.STATUS_ABORTED:
+            assert _cut_short(three_points, final), final.message
         else:
             assert final.status == ParameterEstimate.STATUS_INCOMPLETE, final.message
     converged = [m for m in finals if m.status == ParameterEstimate.STATUS_CONVERGED]
@@ -150,6 +155,24 @@ def _complete(final):
     return final.time_base_consistent and not list(final.missing_channels)
 
 
+def _cut_short(run, final):
+    """
+    Whether the schedule that armed the test point ramped down or ended before its window's end.
+
+    A schedule starts with PHASE_TRIM after any other phase (or as the first phase seen), as
+    the identifier follows it; the test point starts at its first flap sample after that.
+    """
+    from rotor_id_msgs.msg import StirringCommand
+    start = _ns(final.test_point_start)
+    phases = [(m.phase, _ns(m.header.stamp)) for m in run['watcher'].messages['stirring']]
+    armed = [stamp for i, (phase, stamp) in enumerate(phases) if stamp <= start
+             and phase == StirringCommand.PHASE_TRIM
+             and (i == 0 or phases[i - 1][0] != StirringCommand.PHASE_TRIM)]
+    ends = [stamp for phase, stamp in phases if armed and stamp > armed[-1] and phase in (
+        StirringCommand.PHASE_RAMP_DOWN, StirringCommand.PHASE_DONE)]
+    return bool(ends) and min(ends) < start + run['description'].window_s[1] * NS
+
+
 def test_windows_are_their_own_test_points(three_points):
     from rotor_id_msgs.msg import ParameterEstimate
     finals = [three_points['watcher'].final_estimate(k) for k in range(1, POINTS + 1)]
@@ -160,6 +183,8 @@ def test_windows_are_their_own_test_points(three_points):
         if _complete(final):          # the samples used are the whole window
             assert start + w0 * NS <= _ns(final.window_start) <= start + w0 * NS + 2e6
             assert start + w1 * NS - 2e6 <= _ns(final.window_end) <= start + w1 * NS
+        elif final.status == ParameterEstimate.STATUS_ABORTED:    # its excitation cut short
+            assert not list(final.values) and _cut_short(three_points, final), final.message
         elif _ns(final.window_end) == 0:      # not one sample of the window was received
             assert list(final.missing_channels) == ['flap', 'pitch', 'azimuth'], final.message
         else:                         # fewer samples, all inside the window
