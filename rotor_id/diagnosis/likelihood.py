@@ -198,6 +198,20 @@ def _as_lag(effect, test):
                      as_lag_variance(effect, test.variance))
 
 
+def _tests_by_effect(effects, tested, found):
+    """
+    Return {effect: ScoreTest or None} of ``effects``.
+
+    ``tested``: {effect: the effect its test is of}; ``found``: {tested effect: its variants'
+    [(variant, LM, k, var)], empty or None where the test failed}.
+    """
+    out = dict.fromkeys(effects)
+    for effect, test in tested.items():
+        if found.get(test):
+            out[effect] = _as_lag(effect, _best_variant(effect, found[test]))
+    return out
+
+
 class OutputError(Likelihood):
     """Deterministic explanations by output-error ML; the baseline is the run's own fit."""
 
@@ -274,11 +288,7 @@ class OutputError(Likelihood):
                 for t in set(tested.values())}
         names = sorted(jobs)
         found = dict(zip(names, self.workers.apply(_screen_job, [jobs[n] for n in names])))
-        out = dict.fromkeys(effects)
-        for effect, test in tested.items():
-            if found[test] is not None:
-                out[effect] = _as_lag(effect, _best_variant(effect, found[test]))
-        return out
+        return _tests_by_effect(effects, tested, found)
 
 
 def _filter_fit_job(item):
@@ -378,11 +388,7 @@ class FilterError(Likelihood):
         for item, test in zip(items, self.workers.apply(_filter_score_job, items)):
             if test is not None:
                 found.setdefault(item[0], []).append(test)
-        out = dict.fromkeys(effects)
-        for effect, test in tested.items():
-            if test in found:
-                out[effect] = _as_lag(effect, _best_variant(effect, found[test]))
-        return out
+        return _tests_by_effect(effects, tested, found)
 
 
 class ModelSpace(Likelihood):
