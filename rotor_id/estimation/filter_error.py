@@ -76,7 +76,8 @@ from rotor_id.estimation.simulate import (
     rk4_step_transition_derivative, rk4_transition, rk4_transition_derivative, substeps_for,
     time_invariant_steps)
 from rotor_id.physics.models import full_along_time
-from rotor_id.physics.revolution import agree, on_record, series_at
+from rotor_id.physics.revolution import (agree, on_record, Series, series_at, system_on_record,
+                                         values_on)
 
 PROCESS_NOISE = 'process_noise_std'
 #: Interval azimuths per revolution from which a periodic model's Φ_j, Q_j and their
@@ -412,15 +413,17 @@ class FilterProblem:
             return None                 # time-stamp jitter or lost samples: uneven steps
         tf = fine_grid(t, substeps)
         u = exp.inputs(tf)
-        F, g = on_record(model, 'system', tf, p, u)        # F of length 1 where constant
+        F_of, g = system_on_record(model, 'system', tf, p, u)
+        F = values_on(F_of, tf)                              # F of length 1 where constant
         h = np.repeat(np.diff(t) / substeps, substeps)
         constant = time_invariant_steps(F, h, t)
         n, m, T = model.n_states, self.m, t.size
         k = len(theta) if sensitivities else 0
         kp = len(self.base.param_index) if sensitivities else 0
         if kp:
-            dF, dg = on_record(model, 'system_jacobian', tf, p, u, self.base.param_index)
-            dF = np.ascontiguousarray(dF[:1 if constant else None])
+            dF_of, dg = system_on_record(model, 'system_jacobian', tf, p, u,
+                                         self.base.param_index)
+            dF = np.ascontiguousarray(values_on(dF_of, tf)[:1 if constant else None])
             dg = np.ascontiguousarray(dg)                                  # (2M+1, kp, n)
         else:
             dF = np.zeros((1 if constant else F.shape[0], 0, n, n))
@@ -431,13 +434,16 @@ class FilterProblem:
             pieces = self._constant_pieces(t, substeps, Fs, dF, h[0], sig_p, directions, kp)
         else:
             def stage_matrices(times):
+                # from the record's series where they hold (the model itself otherwise)
                 zero = np.zeros((times.size, u.shape[1]))
-                F_at = full_along_time(on_record(model, 'system', times, p, zero)[0],
+                F_at = full_along_time(F_of.values(times) if isinstance(F_of, Series) else
+                                       on_record(model, 'system', times, p, zero)[0],
                                        times.size)
                 if not kp:
                     return F_at, np.zeros((times.size, 0, n, n))
-                dF_at = on_record(model, 'system_jacobian', times, p, zero,
-                                  self.base.param_index)[0]
+                dF_at = dF_of.values(times) if isinstance(dF_of, Series) else \
+                    on_record(model, 'system_jacobian', times, p, zero,
+                              self.base.param_index)[0]
                 return F_at, full_along_time(dF_at, times.size)
             pieces = self._varying_pieces(t, substeps, Fs, dF, h[0], sig_p, directions, kp,
                                           stage_matrices)

@@ -207,8 +207,13 @@ def on_record(model: LinearModel, method: str, t: npt.ArrayLike, p: npt.ArrayLik
     ``columns``: the parameters of ``system_jacobian`` wanted (all when None).
     """
     t = np.atleast_1d(np.asarray(t, dtype=float))
-    F, g = _system(model, method, t, p, u, columns)
-    return (F if isinstance(F, np.ndarray) else F.values(t)), g
+    F, g = system_on_record(model, method, t, p, u, columns)
+    return values_on(F, t), g
+
+
+def values_on(F: 'Series | np.ndarray', t: np.ndarray) -> np.ndarray:
+    """Return :func:`system_on_record`'s F on its own times t: the series summed, or the array."""
+    return F if isinstance(F, np.ndarray) else F.values(t)
 
 
 def entries_on_record(model: LinearModel, method: str, t: npt.ArrayLike, p: npt.ArrayLike,
@@ -220,15 +225,22 @@ def entries_on_record(model: LinearModel, method: str, t: npt.ArrayLike, p: npt.
     The entries come straight from the series where it holds, without the (T, …) array of F.
     """
     t = np.atleast_1d(np.asarray(t, dtype=float))
-    F, g = _system(model, method, t, p, u, columns)
+    F, g = system_on_record(model, method, t, p, u, columns)
     if isinstance(F, np.ndarray):
         return nonzero_entries(F), g
     index = tuple(i.astype(np.int64) for i in np.unravel_index(F.index, F.shape))
     return (np.ascontiguousarray(F.entries(t)), index), g
 
 
-def _system(model, method, t, p, u, columns):
-    """Return F (an array, or its :class:`Series` where that holds) and g on t."""
+def system_on_record(model: LinearModel, method: str, t: np.ndarray, p: npt.ArrayLike,
+                     u: npt.ArrayLike, columns: list[int] | None = None
+                     ) -> tuple['Series | np.ndarray', np.ndarray]:
+    """
+    Return :func:`on_record`'s F as its :class:`Series` where that holds (else an array), and g.
+
+    The series gives F at any other time too (``F.values(times)``), as the model would, to the
+    rounding :func:`on_record` checks.
+    """
     p, u = np.asarray(p, dtype=float), np.asarray(u, dtype=float)
     series = _series(model, method, t, p, u, columns)
     if series is not None:

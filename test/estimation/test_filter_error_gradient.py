@@ -17,8 +17,9 @@ import pytest
 from rotor_id.estimation import filter_error as fe
 from rotor_id.estimation import kernels
 from rotor_id.estimation.output_error import Experiment
-from rotor_id.estimation.simulate import simulate
+from rotor_id.estimation.simulate import fine_grid, simulate, substeps_for
 from rotor_id.physics.models import Multiblade, MultibladeConstant, RotorConstants
+from rotor_id.physics.revolution import Series, system_on_record
 from rotor_id.physics.stirring import StirringSchedule
 from test_filter_error import GUESS, PROGRESSING, T_WAKE, UNKNOWNS, WAKE, wake_data
 
@@ -57,15 +58,15 @@ def _constant_problem():
     return prob, theta
 
 
-def _periodic_problem(noise_model):
+def _periodic_problem(noise_model, samples=121):
     model = Multiblade(RotorConstants(advance_ratio=0.4))
     p = model.nominal()
     sched = StirringSchedule(t0=12.0)
-    t = 12.0 + 0.1 * np.arange(121)
+    t = 12.0 + 0.1 * np.arange(samples)
     x0 = model.equilibrium(t[:1], p, sched(t[:1]))
     rng = np.random.default_rng(2)
-    forcing = np.zeros((120, model.n_states))
-    forcing[:, 4:] = 0.2 * rng.standard_normal((120, model.n_states - 4))
+    forcing = np.zeros((samples - 1, model.n_states))
+    forcing[:, 4:] = 0.2 * rng.standard_normal((samples - 1, model.n_states - 4))
     y = simulate(model, p, sched, t, x0, forcing=forcing).y
     y = y + 0.05 * rng.standard_normal(y.shape)
     exp = Experiment(model, sched, t, y, initial_state='equilibrium')
@@ -125,9 +126,20 @@ def test_analytic_gradient_for_a_periodic_model(noise_model):
     assert worst < 1e-5
 
 
-def test_periodic_pieces_from_one_revolution_are_every_interval_s(monkeypatch):
-    """Φ_j, Q_j, ∂Φ_j, ∂Q_j from 32 interval azimuths: the filter's outputs to rounding."""
-    prob, theta = _periodic_problem('white')
+@pytest.mark.parametrize('samples', [121, 161])
+def test_periodic_pieces_from_one_revolution_are_every_interval_s(monkeypatch, samples):
+    """
+    Φ_j, Q_j, ∂Φ_j, ∂Q_j from 32 interval azimuths: the filter's outputs to rounding.
+
+    F and ∂F at those azimuths come from the model (121 samples: too short a record for its
+    revolution series) or from the record's series (161).
+    """
+    prob, theta = _periodic_problem('white', samples)
+    exp = prob.experiments[0]
+    tf = fine_grid(exp.t, substeps_for(exp.t, prob.max_step))
+    p = prob.base.full_parameters(prob.split(theta)[0])
+    F, _ = system_on_record(exp.model, 'system', tf, p, exp.inputs(tf))
+    assert isinstance(F, Series) == (samples == 161)
     used = []
     series = fe.FilterProblem._phase_series
 
