@@ -5,7 +5,8 @@ The package's import structure, read from the source with ast (no module is impo
   alike (a function-level import hides a cycle from Python, not from the design).
 * No private name (``_x``) imported from another module of the diagnosis, nor by it.
 * The layers point one way: the adequacy check and the pipeline do not import the diagnosis.
-* No function of the diagnosis is longer than about 80 lines.
+* No function of the diagnosis is longer than about 80 lines, and none imports: the
+  diagnosis's dependencies are all stated at the top of its modules.
 """
 
 import ast
@@ -129,3 +130,13 @@ def test_no_long_function_in_the_diagnosis():
                 if length > LONGEST_DIAGNOSIS_FUNCTION:
                     long.append(f'{path.name}:{node.lineno} {node.name} ({length} lines)')
     assert not long, long
+
+
+def test_the_diagnosis_imports_at_module_level_only():
+    inside = []
+    for path in sorted((PACKAGE / 'diagnosis').glob('*.py')):
+        for node in ast.walk(ast.parse(path.read_text())):
+            if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef)):
+                inside += [f'{path.name}:{sub.lineno} in {node.name}' for sub in ast.walk(node)
+                           if isinstance(sub, (ast.Import, ast.ImportFrom))]
+    assert not inside, inside

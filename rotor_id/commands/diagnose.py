@@ -22,6 +22,7 @@ from rotor_id.commands.common import check_output_paths, print_warnings, repairs
 from rotor_id.commands.identify import load_inputs
 from rotor_id.diagnosis.catalogue import EFFECTS
 from rotor_id.diagnosis.diagnose import diagnose
+from rotor_id.diagnosis.proposal import summary_line
 
 if TYPE_CHECKING:
     from rotor_id.diagnosis.policy import SelectionPolicy
@@ -94,7 +95,6 @@ def format_summary(diagnosis: 'Diagnosis') -> str:
                      f'band {loc["band_per_rev"][0]:.2f}-{loc["band_per_rev"][1]:.2f} per rev; '
                      f'time {loc["window_s"][0]:.3f}-{loc["window_s"][1]:.3f} s')
     if diagnosis.proposal is not None:
-        from rotor_id.diagnosis.proposal import summary_line
         lines.append(summary_line(diagnosis.proposal))
     lines.append(f'residual RMS [rad]: baseline {fit["baseline_rms"]:.4g}, augmented '
                  f'{fit["augmented_rms"]:.4g}, noise floor {fit["noise_floor"]:.4g} '

@@ -26,6 +26,7 @@ from rotor_id.estimation.simulate import DEFAULT_MAX_STEP
 from rotor_id.estimation.validation import score_statistic
 from rotor_id.physics import augmented as aug
 from rotor_id.physics.aerodynamics import flap_damping
+from rotor_id.pipeline import experiments_from_record, model_for
 
 #: Every effect of the catalogue, in the order they are tried.
 EFFECTS = ('dynamic_inflow', 'periodic_coefficients', 'sensor_lag', 'time_delay',
@@ -186,7 +187,6 @@ class Setting:
 
     def experiments(self, base_model):
         """Return the baseline model's experiments over the record's window."""
-        from rotor_id.pipeline import experiments_from_record
         return experiments_from_record(self.record, self.description, base_model,
                                        self.window_s)
 
@@ -555,7 +555,6 @@ def fit_runs(setting, runs, unknowns, guess, max_step, label, progress=None):
 
 def fit_candidate(job):
     """Fit one candidate (runs in a worker process); never raises for a failed fit."""
-    from rotor_id.pipeline import model_for
     t_start = time.perf_counter()
     setting = job.setting
     label = job.effect + (f' {job.variant}' if job.variant else '')
@@ -644,7 +643,6 @@ def screen_candidate(job, noise_var):
     variance here}. A blade dissimilarity is tested per blade; a lag (not nested: τ > 0) by
     its delay d = τ at d = 0 (:data:`SCREENED_AS`; var under the lag's parameter name).
     """
-    from rotor_id.pipeline import model_for
     setting = job.setting
     base_model = model_for(setting.description)
     experiments = setting.experiments(base_model)

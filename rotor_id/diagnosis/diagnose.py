@@ -24,6 +24,7 @@ from rotor_id import residuals as rs
 from rotor_id.diagnosis.catalogue import applicable, EFFECTS, NOISE, record_step, Setting
 from rotor_id.diagnosis.likelihood import FilterError, ModelSpace, OutputError, Workers
 from rotor_id.diagnosis.policy import DEFAULT_POLICY
+from rotor_id.diagnosis.proposal import propose, summary_line
 from rotor_id.diagnosis.result import Diagnosis
 from rotor_id.diagnosis.selection import Prior, search
 from rotor_id.diagnosis.verdict import explain
@@ -247,7 +248,6 @@ def _proposal(explanation, base, say):
     """Return the equation-error proposal of an out-of-catalogue verdict (or random inflow)."""
     if explanation.effect != 'unexplained' and explanation.names != (NOISE,):
         return None
-    from rotor_id.diagnosis.proposal import propose, summary_line
     say('proposal: stepwise regression of the equation error on a library of flap-equation '
         'terms, validated on held-out time blocks')
     proposal = propose(base.ident)
