@@ -26,10 +26,12 @@ with parameter values that may be wrong (report Ch.2, "updated Kalman filter").
 
 from dataclasses import dataclass
 import math
+import time
 from typing import Callable, Sequence, TYPE_CHECKING
 
 import numpy as np
 import numpy.typing as npt
+from rotor_id.estimation import kernels
 from rotor_id.estimation.simulate import (
     DEFAULT_MAX_STEP, fine_grid, gap_refinement, rk4_constant_forcing, rk4_maps, rk4_transition,
     substeps_for, time_invariant_steps)
@@ -473,6 +475,12 @@ def kalman_filter(dm: DiscreteModel, y: npt.ArrayLike, x0: npt.ArrayLike, P0: np
     -------
     FilterResult
 
+    Notes
+    -----
+    The time-varying filter runs in the compiled kernel where it is loaded
+    (:func:`~rotor_id.estimation.kernels.filter_states_kernel`: the same equations in one
+    call); this loop is its reference.
+
     """
     y = np.asarray(y, dtype=float)
     T, m = y.shape
@@ -499,9 +507,16 @@ def kalman_filter(dm: DiscreteModel, y: npt.ArrayLike, x0: npt.ArrayLike, P0: np
         B_ss = _symmetric(dm.H[0] @ P_ss @ dm.H[0].T + R)
         K_ss = np.linalg.solve(B_ss, dm.H[0] @ P_ss).T
         P_ss_filt = _symmetric((np.eye(n) - K_ss @ dm.H[0]) @ P_ss)
-    eye = np.eye(n)
     x = np.asarray(x0, dtype=float).copy()
     P = np.asarray(P0, dtype=float).copy()
+    compiled = None if steady else kernels.filter_states_kernel()
+    if compiled is not None:
+        cost = float(compiled(dm.Phi, dm.c, dm.Q, dm.H, dm.d, y, x, R, P, x_pred, P_pred, x_filt,
+                              P_filt, nu, B, K))
+        loglik = -0.5 * (cost + T * m * math.log(2.0 * math.pi))
+        return FilterResult(x_pred, P_pred, x_filt, P_filt, nu, B, K, cost, loglik)
+    clock = time.process_time()
+    eye = np.eye(n)
     cost = 0.0
     for j in range(T):
         H = dm.H[j]
@@ -534,6 +549,7 @@ def kalman_filter(dm: DiscreteModel, y: npt.ArrayLike, x0: npt.ArrayLike, P0: np
             # predict the state and its covariance to the next sample (eqs 27-28, discrete)
             x = dm.Phi[j] @ x + dm.c[j]
             P = _symmetric(dm.Phi[j] @ P @ dm.Phi[j].T + dm.Q[j])
+    kernels.note_numpy_seconds(time.process_time() - clock)
     loglik = -0.5 * (cost + T * m * math.log(2.0 * math.pi))
     return FilterResult(x_pred, P_pred, x_filt, P_filt, nu, B, K, cost, loglik)
 
@@ -578,16 +594,16 @@ def rts_smoother(dm: DiscreteModel, filtered: 'FilterResult') -> 'SmootherResult
     T, n = filtered.x_filt.shape
     xs = filtered.x_filt.copy()
     Ps = filtered.P_filt.copy()
-    C = np.zeros((T - 1, n, n))
+    # smoother gains C_j = P(j|j) Φ_jᵀ P(j+1|j)⁻¹ (pseudo-inverse where P(j+1|j) is singular),
+    # all at once: they depend on the filter's covariances alone
+    cross = dm.Phi[:T - 1] @ filtered.P_filt[:-1]
+    C = np.swapaxes(np.linalg.pinv(filtered.P_pred[1:], rcond=1e-12, hermitian=True) @ cross,
+                    -1, -2)
     for j in range(T - 2, -1, -1):
-        Pf = filtered.P_filt[j]
-        Pp = filtered.P_pred[j + 1]
-        # smoother gain C = P(j|j) Φᵀ P(j+1|j)⁻¹ (pseudo-inverse where P(j+1|j) is singular)
-        cross = dm.Phi[j] @ Pf
-        C[j] = np.linalg.lstsq(Pp, cross, rcond=1e-12)[0].T
         # correct the filtered estimate with what the later samples say
         xs[j] = filtered.x_filt[j] + C[j] @ (xs[j + 1] - filtered.x_pred[j + 1])
-        Ps[j] = _symmetric(Pf + C[j] @ (Ps[j + 1] - Pp) @ C[j].T)
+        Ps[j] = _symmetric(filtered.P_filt[j] + C[j] @ (Ps[j + 1] - filtered.P_pred[j + 1])
+                           @ C[j].T)
     return SmootherResult(xs, Ps, C)
 
 

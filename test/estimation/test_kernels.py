@@ -129,6 +129,44 @@ def test_filter_kernel_matches_numpy(gain, monkeypatch):
         _assert_close(a, b, what)
 
 
+@pytest.mark.parametrize('case', ['wake', 'multiblade_periodic'])
+def test_state_filter_kernel_matches_numpy(case, monkeypatch):
+    """
+    The compiled Kalman filter that keeps every state gives kalman_filter's loop's results.
+
+    Every predicted and filtered state and covariance, innovation, B, gain and the cost, to
+    1e-12, from a non-zero P0; and the states reconstructed from them (filter and smoother).
+    """
+    from rotor_id.estimation import kalman
+    model, stirring, t0 = CASES[case]
+    t = t0 + 0.1 * np.arange(201)
+    rows = kalman.default_noise_rows(model)
+    p = model.nominal()
+    rng = np.random.default_rng(7)
+    x0 = 0.1 * rng.standard_normal(model.n_states)
+    y = simulate(model, p, stirring, t, x0).y + 0.05 * rng.standard_normal(
+        (t.size, model.n_outputs))
+    R = np.full(model.n_outputs, 0.05**2)
+    P0 = 0.01 * np.eye(model.n_states)
+    assert kernels.load() is not None, kernels.status()['error']
+    assert kernels.filter_states_kernel() is not None
+
+    def run():
+        dm = kalman.discretize(model, p, stirring, t, rows, 0.1)
+        filtered = kalman.kalman_filter(dm, y, x0, P0, R)
+        rec = kalman.reconstruct_states(model, p, stirring, t, y, R, x0, P0, rows, 0.1)
+        return [filtered.x_pred, filtered.P_pred, filtered.x_filt, filtered.P_filt,
+                filtered.innovations, filtered.B, filtered.K, np.array([filtered.cost]),
+                rec.x_smoothed, rec.P_smoothed]
+    compiled = run()
+    monkeypatch.setattr(kernels, 'filter_states_kernel', lambda: None)
+    reference = run()
+    names = ('x_pred', 'P_pred', 'x_filt', 'P_filt', 'innovations', 'B', 'K', 'cost',
+             'smoothed x', 'smoothed P')
+    for what, a, b in zip(names, reference, compiled):
+        _assert_close(a, b, what)
+
+
 def test_filter_kernel_compiles_nothing_for_read_only_or_strided_inputs():
     """
     Views of any layout reach the one cached specialisation of the filter scan.
@@ -551,10 +589,11 @@ def test_both_compiled_kernels_give_the_same_results(just_in_time, monkeypatch):
     Ahead-of-time and just-in-time kernels agree to rounding on every path that uses them.
 
     Simulation of every model (RK4 scan, affine run), an output-error fit in one call
-    (gn_fit), and the filter with and without sensitivities (filter error's likelihood):
-    whichever module loads, the numbers are numba's.
+    (gn_fit), the filter with and without sensitivities (filter error's likelihood), and the
+    filter that keeps every state (state reconstruction): whichever module loads, the numbers
+    are numba's.
     """
-    from rotor_id.estimation import filter_error as fe
+    from rotor_id.estimation import filter_error as fe, kalman
     from rotor_id.estimation.output_error import Experiment, fit_output_error
 
     def results():
@@ -574,7 +613,10 @@ def test_both_compiled_kernels_give_the_same_results(just_in_time, monkeypatch):
         out += [fit.values, fit.std]
         noisy = fe.fit_filter_error_ml([exp], ['A', 'AL_over_tau', 'inv_tau'], noise_std=0.01,
                                        noise_model='held', max_iter=3)
-        return out + [noisy.values, noisy.std]
+        states = kalman.reconstruct_states(model, truth, stirring, t, y, np.full(2, 1e-4),
+                                           np.zeros(model.n_states),
+                                           1e-4 * np.eye(model.n_states), noise_std=0.1)
+        return out + [noisy.values, noisy.std, states.x_smoothed, states.P_smoothed]
 
     ahead = results()
     just_in_time()
