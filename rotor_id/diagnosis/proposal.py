@@ -47,6 +47,9 @@ N_BLOCKS = 8
 ALPHA = 0.01
 #: Smallest relative reduction of the held-out equation error a proposed term must bring.
 MIN_IMPROVEMENT = 0.02
+#: A block's log ratio of held-out errors this small is rounding (the two least-squares
+#: solutions agree to twelve digits: a term the blocks cannot see), and counts as zero.
+ROUNDING_LOG_RATIO = 1e-12
 #: Most terms proposed.
 MAX_TERMS = 2
 #: Contiguous clusters of the robust coefficient covariance.
@@ -299,9 +302,11 @@ def _log_ratio_t(before, after):
     Return the t statistic of the blocks' log ratios of held-out errors (before/after), and them.
 
     Per block log ratio: scale-free, so the blocks of a quiet trim and of the stirring count
-    alike.
+    alike; a ratio at rounding level is zero (without, a term that changes nothing gets the
+    t of rounding noise, of order one).
     """
     ratio = np.log(np.maximum(before, 1e-300) / np.maximum(after, 1e-300))
+    ratio = np.where(np.abs(ratio) <= ROUNDING_LOG_RATIO, 0.0, ratio)
     spread = float(np.std(ratio, ddof=1))
     if not spread > 0:
         return (math.inf if np.mean(ratio) > 0 else 0.0), ratio

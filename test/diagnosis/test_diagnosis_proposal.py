@@ -73,7 +73,12 @@ def test_proposal_names_the_term_no_candidate_models(name, truth):
 def test_no_proposal_without_an_effect(name, seed):
     proposal = _propose(name, seed)
     assert proposal.terms == [], proposal.steps
-    assert not proposal.steps[0]['kept']
+    step = proposal.steps[0]
+    assert not step['kept']
+    if step['heldout_improvement'] == 0.0:
+        # a term the held-out blocks cannot see (β cos ψ beside the wake in hover): its t is
+        # zero, not the t of the least-squares solutions' rounding
+        assert step['t_statistic'] == 0.0 and step['blocks_improved'] == 0, step
 
 
 def test_diagnose_attaches_the_proposal_to_an_unexplained_verdict(tmp_path):
