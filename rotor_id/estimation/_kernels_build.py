@@ -19,7 +19,6 @@ from rotor_id.estimation import _filter_kernels_numba, _kernels_numba
 
 #: the kernels :mod:`rotor_id.estimation.kernels` calls, by the module that defines them
 EXPORTS = {'rk4_scan': _kernels_numba, 'filter_scan': _kernels_numba,
-           'filter_states': _kernels_numba,
            'initial_state_innovations': _kernels_numba, 'affine_run': _kernels_numba,
            'gn_iteration': _kernels_numba, 'gn_fit': _kernels_numba,
            'clock_ns': _kernels_numba, 'sensitivity_scan': _filter_kernels_numba}

@@ -227,7 +227,8 @@ def innovation_gain(P, Ht, R, PHT, B, Binv, K):
 
 
 @njit(cache=True, nogil=True)
-def filter_scan(Phi, c, Q, H, d, y, x0, R, P0, steady, nu, B, gains, cost, x_last, P_last):
+def filter_scan(Phi, c, Q, H, d, y, x0, R, P0, steady, nu, B, gains, cost, x_last, P_last,
+                x_pred, P_pred, x_filt, P_filt):
     """
     Kalman filters of K stacked discrete models, the equations of filter_error.filter_batch.
 
@@ -236,7 +237,10 @@ def filter_scan(Phi, c, Q, H, d, y, x0, R, P0, steady, nu, B, gains, cost, x_las
     ``steady`` the steady-state covariance used throughout. Fills nu (K, T, m),
     B (K, T, m, m), gains (K, T, n, m), cost (K,) (Σ νᵀB⁻¹ν + log|B|), and the filtered
     state x_last (K, n) and covariance P_last (K, n, n) after the last sample (the live
-    state estimator's batch, :meth:`rotor_id.nodes.live.StreamingKalman.advance`).
+    state estimator's batch, :meth:`rotor_id.nodes.live.StreamingKalman.advance`). Where
+    x_pred (K, T, n) has the T samples (not 0) and the gain is time-varying, also every
+    predicted and filtered state and covariance: x_pred, x_filt (K, T, n), P_pred, P_filt
+    (K, T, n, n) (:func:`rotor_id.estimation.kalman.kalman_filter`'s).
     """
     T = y.shape[0]
     m = y.shape[1]
@@ -252,6 +256,7 @@ def filter_scan(Phi, c, Q, H, d, y, x0, R, P0, steady, nu, B, gains, cost, x_las
     KB = np.empty((n, m))
     PP = np.empty((n, n))
     v = np.empty(m)
+    keep = x_pred.shape[1] > 0
     for kk in range(K_):
         for i in range(n):
             x[i] = x0[kk, i]
@@ -260,6 +265,11 @@ def filter_scan(Phi, c, Q, H, d, y, x0, R, P0, steady, nu, B, gains, cost, x_las
         total = 0.0
         for t in range(T):
             Ht = H[t, kk]
+            if keep:
+                for i in range(n):
+                    x_pred[kk, t, i] = x[i]
+                    for j in range(n):
+                        P_pred[kk, t, i, j] = P[i, j]
             for a in range(m):
                 acc = y[t, a] - d[t, kk, a]
                 for i in range(n):
@@ -294,6 +304,11 @@ def filter_scan(Phi, c, Q, H, d, y, x0, R, P0, steady, nu, B, gains, cost, x_las
                         for b in range(m):
                             acc += KB[i, b] * Kj[j, b]
                         P[i, j] -= acc
+            if keep:
+                for i in range(n):
+                    x_filt[kk, t, i] = x[i]
+                    for j in range(n):
+                        P_filt[kk, t, i, j] = P[i, j]
             if t < T - 1:
                 F = Phi[t, kk]
                 for i in range(n):
@@ -328,124 +343,6 @@ def filter_scan(Phi, c, Q, H, d, y, x0, R, P0, steady, nu, B, gains, cost, x_las
                 P_last[kk, i, j] = P[i, j]
 
 
-@njit(cache=True, nogil=True)
-def filter_states(Phi, c, Q, H, d, y, x0, R, P0, x_pred, P_pred, x_filt, P_filt, nu, B, gains):
-    """
-    Run the Kalman filter of kalman.kalman_filter (time-varying gain), keeping every state.
-
-    Phi (T-1, n, n), c (T-1, n), Q (T-1, n, n), H (T, m, n), d (T, m), y (T, m), x0 (n,),
-    R (m, m), P0 (n, n). Fills x_pred, x_filt (T, n), P_pred, P_filt (T, n, n), nu (T, m),
-    B (T, m, m) and gains (T, n, m); returns Σ νᵀB⁻¹ν + log|B|. The covariance update is the
-    Joseph form (I − KH) P (I − KH)ᵀ + K R Kᵀ, as kalman_filter's; the predicted and the
-    updated covariance are symmetrised.
-    """
-    T = y.shape[0]
-    m = y.shape[1]
-    n = x0.shape[0]
-    x = x0.copy()
-    P = P0.copy()
-    PHT = np.empty((n, m))
-    Bj = np.empty((m, m))
-    Binv = np.empty((m, m))
-    Kj = np.empty((n, m))
-    IKH = np.empty((n, n))
-    W = np.empty((n, n))
-    KR = np.empty((n, m))
-    xn = np.empty(n)
-    v = np.empty(m)
-    total = 0.0
-    for t in range(T):
-        Ht = H[t]
-        for i in range(n):
-            x_pred[t, i] = x[i]
-            for j in range(n):
-                P_pred[t, i, j] = P[i, j]
-        for a in range(m):
-            acc = y[t, a] - d[t, a]
-            for i in range(n):
-                acc -= Ht[a, i] * x[i]
-            v[a] = acc
-            nu[t, a] = acc
-        logdet = innovation_gain(P, Ht, R, PHT, Bj, Binv, Kj)
-        quad = 0.0
-        for a in range(m):
-            for b in range(m):
-                quad += v[a] * Binv[a, b] * v[b]
-                B[t, a, b] = Bj[a, b]
-        for i in range(n):
-            for a in range(m):
-                gains[t, i, a] = Kj[i, a]
-        total += quad + logdet
-        for i in range(n):
-            acc = x[i]
-            for a in range(m):
-                acc += Kj[i, a] * v[a]
-            x[i] = acc
-        # Joseph form: P = (I − KH) P (I − KH)ᵀ + K R Kᵀ
-        for i in range(n):
-            for j in range(n):
-                acc = 1.0 if i == j else 0.0
-                for a in range(m):
-                    acc -= Kj[i, a] * Ht[a, j]
-                IKH[i, j] = acc
-        for i in range(n):
-            for j in range(n):
-                acc = 0.0
-                for q in range(n):
-                    acc += IKH[i, q] * P[q, j]
-                W[i, j] = acc
-        for i in range(n):
-            for b in range(m):
-                acc = 0.0
-                for a in range(m):
-                    acc += Kj[i, a] * R[a, b]
-                KR[i, b] = acc
-        for i in range(n):
-            for j in range(n):
-                acc = 0.0
-                for q in range(n):
-                    acc += W[i, q] * IKH[j, q]
-                for b in range(m):
-                    acc += KR[i, b] * Kj[j, b]
-                P[i, j] = acc
-        for i in range(n):
-            for j in range(i + 1, n):
-                sym = 0.5 * (P[i, j] + P[j, i])
-                P[i, j] = sym
-                P[j, i] = sym
-        for i in range(n):
-            x_filt[t, i] = x[i]
-            for j in range(n):
-                P_filt[t, i, j] = P[i, j]
-        if t < T - 1:
-            F = Phi[t]
-            for i in range(n):
-                acc = c[t, i]
-                for j in range(n):
-                    acc += F[i, j] * x[j]
-                xn[i] = acc
-            for i in range(n):
-                x[i] = xn[i]
-            for i in range(n):
-                for j in range(n):
-                    acc = 0.0
-                    for q in range(n):
-                        acc += F[i, q] * P[q, j]
-                    W[i, j] = acc
-            for i in range(n):
-                for j in range(n):
-                    acc = Q[t, i, j]
-                    for q in range(n):
-                        acc += W[i, q] * F[j, q]
-                    P[i, j] = acc
-            for i in range(n):
-                for j in range(i + 1, n):
-                    sym = 0.5 * (P[i, j] + P[j, i])
-                    P[i, j] = sym
-                    P[j, i] = sym
-    return total
-
-
 def warm_up_filter():
     """Compile (or load from the cache) the filter for the argument types filter_batch passes."""
     K_, T, n, m = 1, 2, 2, 1
@@ -456,14 +353,11 @@ def warm_up_filter():
     R = np.ones((K_, m, m))
     filter_scan(Phi, c, Phi.copy(), H, d, np.zeros((T, m)), np.zeros((K_, n)), R,
                 np.zeros((K_, n, n)), False, np.empty((K_, T, m)), np.empty((K_, T, m, m)),
-                np.empty((K_, T, n, m)), np.empty(K_), np.empty((K_, n)), np.empty((K_, n, n)))
+                np.empty((K_, T, n, m)), np.empty(K_), np.empty((K_, n)), np.empty((K_, n, n)),
+                np.empty((K_, T, n)), np.empty((K_, T, n, n)), np.empty((K_, T, n)),
+                np.empty((K_, T, n, n)))
     initial_state_innovations(Phi[:, 0], np.zeros((T, n, m)), H[:, 0], np.eye(n),
                               np.empty((T, m, n)))
-    filter_states(np.zeros((T - 1, n, n)), np.zeros((T - 1, n)), np.zeros((T - 1, n, n)),
-                  np.ones((T, m, n)), np.zeros((T, m)), np.zeros((T, m)), np.zeros(n),
-                  np.ones((m, m)), np.zeros((n, n)), np.empty((T, n)), np.empty((T, n, n)),
-                  np.empty((T, n)), np.empty((T, n, n)), np.empty((T, m)), np.empty((T, m, m)),
-                  np.empty((T, n, m)))
 
 
 @njit(cache=True, nogil=True)

@@ -477,9 +477,9 @@ def kalman_filter(dm: DiscreteModel, y: npt.ArrayLike, x0: npt.ArrayLike, P0: np
 
     Notes
     -----
-    The time-varying filter runs in the compiled kernel where it is loaded
-    (:func:`~rotor_id.estimation.kernels.filter_states_kernel`: the same equations in one
-    call); this loop is its reference.
+    The time-varying filter runs in the compiled filter scan where it is loaded
+    (:func:`~rotor_id.estimation.kernels.filter_kernel`, one call; its covariance update is
+    P − K B Kᵀ, equal to the Joseph form here to rounding); this loop is its reference.
 
     """
     y = np.asarray(y, dtype=float)
@@ -509,12 +509,17 @@ def kalman_filter(dm: DiscreteModel, y: npt.ArrayLike, x0: npt.ArrayLike, P0: np
         P_ss_filt = _symmetric((np.eye(n) - K_ss @ dm.H[0]) @ P_ss)
     x = np.asarray(x0, dtype=float).copy()
     P = np.asarray(P0, dtype=float).copy()
-    compiled = None if steady else kernels.filter_states_kernel()
+    compiled = None if steady else kernels.filter_kernel()
     if compiled is not None:
-        cost = float(compiled(dm.Phi, dm.c, dm.Q, dm.H, dm.d, y, x, R, P, x_pred, P_pred, x_filt,
-                              P_filt, nu, B, K))
-        loglik = -0.5 * (cost + T * m * math.log(2.0 * math.pi))
-        return FilterResult(x_pred, P_pred, x_filt, P_filt, nu, B, K, cost, loglik)
+        # one model of the stacked filter scan, every state kept (its update P − K B Kᵀ equals
+        # the Joseph form below to rounding)
+        cost = np.empty(1)
+        compiled(dm.Phi[:, None], dm.c[:, None], dm.Q[:, None], dm.H[:, None], dm.d[:, None],
+                 y, x[None], R[None], P[None], False, nu[None], B[None], K[None], cost,
+                 np.empty((1, n)), np.empty((1, n, n)),
+                 states=(x_pred[None], P_pred[None], x_filt[None], P_filt[None]))
+        loglik = -0.5 * (float(cost[0]) + T * m * math.log(2.0 * math.pi))
+        return FilterResult(x_pred, P_pred, x_filt, P_filt, nu, B, K, float(cost[0]), loglik)
     clock = time.process_time()
     eye = np.eye(n)
     cost = 0.0

@@ -116,29 +116,14 @@ def filter_kernel() -> Callable[..., Any] | None:
         return None
     scan = _state['module'].filter_scan
 
-    def canonical_scan(*args):
+    def canonical_scan(*args, states=None):
+        # ``states``: (x_pred, P_pred, x_filt, P_filt) to fill; none kept when not given
         inputs = [np.require(a, np.float64, ('C', 'W')) for a in args[:_FILTER_INPUTS]]
-        return scan(*inputs, *args[_FILTER_INPUTS:])
+        if states is None:
+            K_, n = np.shape(args[6])
+            states = (np.empty((K_, 0, n)), np.empty((K_, 0, n, n))) * 2
+        return scan(*inputs, *args[_FILTER_INPUTS:], *states)
     return canonical_scan
-
-
-def filter_states_kernel() -> Callable[..., Any] | None:
-    """
-    Return the compiled Kalman filter that keeps every state and covariance, or None.
-
-    ``filter_states(Phi, c, Q, H, d, y, x0, R, P0, x_pred, P_pred, x_filt, P_filt, nu, B,
-    gains) -> cost``, the time-varying filter of
-    :func:`~rotor_id.estimation.kalman.kalman_filter`; its inputs are passed on C-contiguous,
-    writable and float64, as :func:`filter_kernel`'s.
-    """
-    if rk4_kernel() is None:
-        return None
-    scan = _state['module'].filter_states
-
-    def canonical_states(*args):
-        inputs = [np.require(a, np.float64, ('C', 'W')) for a in args[:_FILTER_INPUTS]]
-        return scan(*inputs, *args[_FILTER_INPUTS:])
-    return canonical_states
 
 
 def affine_kernels() -> ModuleType | None:

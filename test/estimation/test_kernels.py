@@ -130,12 +130,13 @@ def test_filter_kernel_matches_numpy(gain, monkeypatch):
 
 
 @pytest.mark.parametrize('case', ['wake', 'multiblade_periodic'])
-def test_state_filter_kernel_matches_numpy(case, monkeypatch):
+def test_filter_scan_keeping_every_state_matches_kalman_filter(case, monkeypatch):
     """
-    The compiled Kalman filter that keeps every state gives kalman_filter's loop's results.
+    The compiled filter scan, keeping every state, gives kalman_filter's loop's results.
 
     Every predicted and filtered state and covariance, innovation, B, gain and the cost, to
-    1e-12, from a non-zero P0; and the states reconstructed from them (filter and smoother).
+    1e-12, from a non-zero P0 (the scan's update P − K B Kᵀ, the loop's the Joseph form); and
+    the states reconstructed from them (filter and smoother).
     """
     from rotor_id.estimation import kalman
     model, stirring, t0 = CASES[case]
@@ -149,7 +150,7 @@ def test_state_filter_kernel_matches_numpy(case, monkeypatch):
     R = np.full(model.n_outputs, 0.05**2)
     P0 = 0.01 * np.eye(model.n_states)
     assert kernels.load() is not None, kernels.status()['error']
-    assert kernels.filter_states_kernel() is not None
+    assert kernels.filter_kernel() is not None
 
     def run():
         dm = kalman.discretize(model, p, stirring, t, rows, 0.1)
@@ -159,7 +160,7 @@ def test_state_filter_kernel_matches_numpy(case, monkeypatch):
                 filtered.innovations, filtered.B, filtered.K, np.array([filtered.cost]),
                 rec.x_smoothed, rec.P_smoothed]
     compiled = run()
-    monkeypatch.setattr(kernels, 'filter_states_kernel', lambda: None)
+    monkeypatch.setattr(kernels, 'filter_kernel', lambda: None)
     reference = run()
     names = ('x_pred', 'P_pred', 'x_filt', 'P_filt', 'innovations', 'B', 'K', 'cost',
              'smoothed x', 'smoothed P')
@@ -645,7 +646,8 @@ def test_a_call_off_the_compiled_signature_goes_just_in_time():
 
     def run(scan, y):
         out = (np.empty((K_, T, m)), np.empty((K_, T, m, m)), np.empty((K_, T, n, m)),
-               np.empty(K_), np.empty((K_, n)), np.empty((K_, n, n)))
+               np.empty(K_), np.empty((K_, n)), np.empty((K_, n, n)), np.empty((K_, T, n)),
+               np.empty((K_, T, n, n)), np.empty((K_, T, n)), np.empty((K_, T, n, n)))
         scan(*args[:5], y, *args[6:], *out)
         return out
     reference = run(_kernels_numba.filter_scan, args[5])
