@@ -97,6 +97,17 @@ def test_auto_mode_switches_after_the_numpy_time(monkeypatch):
         kernels.mode()
 
 
+def _noisy_record(model, stirring, t, seed):
+    """Return the noise rows, nominal parameters, a random x0 and its noisy outputs."""
+    from rotor_id.estimation import kalman
+    rng = np.random.default_rng(seed)
+    p = model.nominal()
+    x0 = 0.1 * rng.standard_normal(model.n_states)
+    y = simulate(model, p, stirring, t, x0).y + 0.05 * rng.standard_normal(
+        (t.size, model.n_outputs))
+    return kalman.default_noise_rows(model), p, x0, y
+
+
 @pytest.mark.parametrize('gain', ['time-varying', 'steady'])
 def test_filter_kernel_matches_numpy(gain, monkeypatch):
     """The compiled Kalman filter of filter error gives the numpy filter's ν, B, gains, cost."""
@@ -106,12 +117,7 @@ def test_filter_kernel_matches_numpy(gain, monkeypatch):
         CASES['wake'][0]
     stirring, t0 = (STIR12, 12.0) if gain == 'steady' else CASES['wake'][1:]
     t = t0 + 0.1 * np.arange(201)
-    rows = kalman.default_noise_rows(model)
-    p = model.nominal()
-    rng = np.random.default_rng(5)
-    x0 = 0.1 * rng.standard_normal(model.n_states)
-    y = simulate(model, p, stirring, t, x0).y + 0.05 * rng.standard_normal(
-        (t.size, model.n_outputs))
+    rows, p, x0, y = _noisy_record(model, stirring, t, 5)
     dms = [kalman.discretize(model, p * (1 + 0.01 * i), stirring, t, rows, 0.1 * (1 + i))
            for i in range(3)]
     if gain == 'steady':
@@ -141,12 +147,7 @@ def test_filter_scan_keeping_every_state_matches_kalman_filter(case, monkeypatch
     from rotor_id.estimation import kalman
     model, stirring, t0 = CASES[case]
     t = t0 + 0.1 * np.arange(201)
-    rows = kalman.default_noise_rows(model)
-    p = model.nominal()
-    rng = np.random.default_rng(7)
-    x0 = 0.1 * rng.standard_normal(model.n_states)
-    y = simulate(model, p, stirring, t, x0).y + 0.05 * rng.standard_normal(
-        (t.size, model.n_outputs))
+    rows, p, x0, y = _noisy_record(model, stirring, t, 7)
     R = np.full(model.n_outputs, 0.05**2)
     P0 = 0.01 * np.eye(model.n_states)
     assert kernels.load() is not None, kernels.status()['error']
