@@ -114,7 +114,6 @@ class CandidateFit:
     estimate: object = None
     model: object = None
     unknowns: list = field(default_factory=list)
-    extra_names: list = field(default_factory=list)
     n_extra: int = 0
     parameters: dict = field(default_factory=dict)
     elapsed_s: float = 0.0
@@ -343,7 +342,7 @@ def layers(model):
     return out
 
 
-def build(job, baseline_model, experiments):
+def build(job, experiments):
     """
     Return (experiments, model, unknowns, extra, guess, RK4 step) of a candidate.
 
@@ -571,8 +570,7 @@ def fit_candidate(job):
             out.variant = job.variant
             label = f'{job.effect} {job.variant}'
         for widening in range(MAX_WIDENINGS + 1):
-            runs, model, unknowns, extra, guess, max_step = build(job, base_model,
-                                                                  experiments)
+            runs, model, unknowns, extra, guess, max_step = build(job, experiments)
             starts = grid_starts(job, model, guess)
             if starts is not None:
                 guess = _best_start(runs, unknowns, starts, setting.known, max_step) or guess
@@ -595,7 +593,7 @@ def fit_candidate(job):
         out.available, out.reason = False, f'fit failed: {exc}'
         out.elapsed_s = time.perf_counter() - t_start
         return out
-    out.estimate, out.model, out.unknowns, out.extra_names = est, model, unknowns, extra
+    out.estimate, out.model, out.unknowns = est, model, unknowns
     out.n_extra = len(est.names) - len(setting.unknowns) - _n_initial(experiments)
     out.effect_parameters.update(effect_parameters(est, model))
     out.parameters = out.effect_parameters.get(job.effect, {})
@@ -653,7 +651,7 @@ def screen_candidate(job, noise_var):
     out = []
     for blade in blades:
         trial = job if blade is None else _replace(job, variant=f'blade_{blade}')
-        runs, model, unknowns, extra, guess, max_step = build(trial, base_model, experiments)
+        runs, model, unknowns, extra, guess, max_step = build(trial, experiments)
         lm, var = output_error_score(runs, unknowns, guess, setting.known, noise_var, max_step,
                                      extra)
         if effect in LAG_PARAMETER:
@@ -681,7 +679,7 @@ def _screen_blade(job, base_model, experiments):
         for eps in DISSIMILARITY_STARTS:
             trial = _replace(job, variant=f'blade_{blade}',
                              start={**(job.start or {}), 'dgamma_rel': eps})
-            runs, _, unknowns, _, guess, max_step = build(trial, base_model, experiments)
+            runs, _, unknowns, _, guess, max_step = build(trial, experiments)
             try:
                 est = fit_output_error(runs, unknowns, guess=guess, known=job.setting.known,
                                        max_iter=2, max_step=max_step)

@@ -206,7 +206,7 @@ def fit_filter(effect, variant, kept, start_fit, ctx, setup, earlier=None):
     except FAILURES as exc:
         out.available, out.reason = False, f'filter-error fit failed: {exc}'
         return out
-    _fill(out, est, model, unknowns, extra)
+    _fill(out, est, model, unknowns)
     out.bound_limited = [n for n, _ in bound_sides(est.model_parameters, model, extra)]
     out.elapsed_s = time.perf_counter() - t0
     return out
@@ -268,9 +268,9 @@ def _best_filter_start(job, model, runs, unknowns, guess, setup, max_step, est0,
     return best
 
 
-def _fill(out, est, model, unknowns, extra):
+def _fill(out, est, model, unknowns):
     """Estimate, model and every effect's parameters ± σ (random inflow's σ's included)."""
-    out.estimate, out.model, out.unknowns, out.extra_names = est, model, unknowns, extra
+    out.estimate, out.model, out.unknowns = est, model, unknowns
     out.effect_parameters.update(effect_parameters(est, model))
     out.effect_parameters[NOISE] = {n: (est.value(n), est.std_of(n)) for n in est.names
                                     if n in (PROCESS_NOISE,) + SHAPE
@@ -303,8 +303,7 @@ def _stack(ctx, setup, kept, est, start):
     guess, max_step = dict(start), ctx.max_step
     if kept:
         job = Job(ctx, *kept[-1], prior=tuple(kept[:-1]), start=start)
-        runs, _, unknowns, extra, guess, max_step = build(job, setup.base_model,
-                                                          setup.experiments)
+        runs, _, unknowns, extra, guess, max_step = build(job, setup.experiments)
     runs, rows, shape = random_inflow_states(runs)
     have = {} if est is None else est.model_parameters
     guess.update({name: have.get(name, SHAPE_START[name]) for name in shape})
@@ -329,7 +328,7 @@ def fit_alone(ctx, setup):
     except FAILURES as exc:
         out.available, out.reason = False, f'filter-error fit failed: {exc}'
         return out
-    _fill(out, est, runs[0].model, unknowns, [])
+    _fill(out, est, runs[0].model, unknowns)
     out.elapsed_s = time.perf_counter() - t0
     return out
 
