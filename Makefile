@@ -62,16 +62,23 @@ venv: $(VENV_STAMP)
 $(VENV_STAMP): | sysdeps
 	@$(call locked,.venv.lock) bash $(MAKE_VENV) $(PYTHON) $(VENV) $@ $(INSTALLER)
 
+# The numba kernels are compiled into their cache now, not in a user's first study, and ahead
+# of time into an extension module (1-2 min of one core, once per change of the kernels). They
+# need only the venv, so they compile on the second core while colcon builds the messages; their
+# lines are printed after colcon's.
+KERNELS_LOG := log/kernels_build.log
+
 build: venv | sysdeps
-	@echo "== build: colcon build (rotor_id_msgs, rotor_id)"
-	@$(VENV_ENV) && \
-	  $(call locked,.build.lock) colcon build $(COLCON_PKG_ARGS) $(COLCON_BUILD_ARGS)
+	@echo "== build: colcon build (rotor_id_msgs, rotor_id), the numba kernels beside it"
+	@mkdir -p log
+	@$(VENV_ENV) && { python -m rotor_id.estimation.kernels > $(KERNELS_LOG) 2>&1 & \
+	  kernels=$$!; status=0; \
+	  $(call locked,.build.lock) colcon build $(COLCON_PKG_ARGS) $(COLCON_BUILD_ARGS) \
+	    || status=$$?; \
+	  wait $$kernels || true; cat $(KERNELS_LOG); exit $$status; }
 	@# byte-compile our sources and the generated message code once here, so that starting
 	@# ./rotor-id reads .pyc even where PYTHONDONTWRITEBYTECODE is set (see tools/make_venv.sh)
 	@$(VENV_ENV) && python -m compileall -q rotor_id install > /dev/null
-	@# compile the numba kernels into their cache now (2-6 s once), not in a user's first study,
-	@# and ahead of time into an extension module (about 30 s, once per change of the kernels)
-	@$(WS_ENV) && python -m rotor_id.estimation.kernels
 
 # Both cores (pytest-xdist; tests take their ROS domains from test/ros_domains.py), and the
 # 25 slowest tests listed at the end, so that a slow newcomer is seen in every CI log.

@@ -518,8 +518,21 @@ class StirringInput(LifecycleNode):
         point = self.test_point
         if point is None or self.holding or t is None:
             return [self.trim_collective, 0.0, 0.0], PHASE_DONE, 0.0, 0.0
-        u = point.inputs([t])[0]
-        return (list(u), point.phase(t), point.stirring_phase(t), point.stirring_rate(t))
+        u, phase = point.inputs([t])[0], point.phase(t)
+        last = self.last_u
+        if phase == PHASE_DONE and self.last_phase in (PHASE_CYCLIC_STEP, PHASE_STIRRING) \
+                and last is not None and (last[1] or last[2]):
+            # a command so late (a starved node) that the schedule's ramp is already over: the
+            # cyclic still ramps down from the one last commanded, never steps to trim
+            period_s = 1.0 / self.d['rate_hz']
+            self.ramp = StopRamp(at_s - period_s, self.get_clock().now().nanoseconds,
+                                 self.d['ramp_s'] + period_s, float(last[0]),
+                                 (float(last[1]), float(last[2])), point.stirring_phase(t),
+                                 (f'aborted ({point.aborted})' if point.aborted
+                                  else point.end_reason) + '; ramped from a late command')
+            self.holding, self.trim_collective = True, float(last[0])
+            return self._inputs(t, at_s)
+        return (list(u), phase, point.stirring_phase(t), point.stirring_rate(t))
 
     def _phase_began(self, phase, t, applies, ramp):
         """

@@ -9,7 +9,8 @@ namespace (one or two levels). The nodes are started as ``ros2 run`` would, with
 parameter file and only ``run_description`` (and the plant's rate) changed. What it proves:
 every node exits with 0 and no traceback; the identifier publishes one final estimate of test
 point 1 on the rig's own result topic, converged exactly when its window is complete and then
-within 3σ of the simulated rotor's truth (required below 1-minute load 4 per core); the state
+within 3σ of the simulated rotor's truth (required unless the run had no core to spare:
+the machine's CPU 90 % busy over it, or 1-minute load above 4 per core); the state
 estimator publishes on the rig's state topic; ``rotor-id identify BAG --config RIG --test-point 1``
 on the recorded bag starts the test point at the same flap sample and agrees with the live
 estimate to 0.2σ (the 5-blade, 2 kHz, unwrapped rig's bag was refused as "two streams merged"
@@ -22,13 +23,13 @@ import os
 import subprocess
 import time
 
-from live_helpers import domain_id, REPO_ROOT, require_workspace, RosClient, within_sigma
+from live_helpers import (CpuUse, domain_id, REPO_ROOT, require_workspace, RosClient, starved,
+                          within_sigma)
 import pytest
 import yaml
 
 pytestmark = pytest.mark.slow
 TRUTH = {'A': 0.5, 'AL_over_tau': 0.25, 'inv_tau': 0.125}     # nodes_wake.yaml's plant
-LOADED_PER_CORE = 4.0
 RIGS = {
     # name: (blades, azimuth convention, namespace, sample rate)
     'three_blades_unwrapped_2khz': (3, 'unwrapped', '/stand7', 2000.0),
@@ -96,6 +97,7 @@ def _run_rig(name, work, blades, convention, namespace, rate):
     ros = RosClient(domain)
     out = {'config': config, 'bag': work / 'bag', 'estimates': [], 'states': [],
            'load': os.getloadavg()[0], 'name': name}
+    cpu = CpuUse()
     ros.node.create_subscription(ParameterEstimate, f'{namespace}/results/estimate',
                                  out['estimates'].append, RESULT_QOS)
     # volatile, as the state estimator offers them: the states after discovery
@@ -122,6 +124,7 @@ def _run_rig(name, work, blades, convention, namespace, rate):
         while time.monotonic() < settle:
             rclpy.spin_once(ros.node, timeout_sec=0.1)
         out['load'] = max(out['load'], os.getloadavg()[0])
+        out['busy'] = cpu.busy_share()
     finally:
         out['codes'] = procs.stop_all()
         out['exits'] = procs.exit_summary()
@@ -149,12 +152,13 @@ def test_the_live_estimate_is_right_or_says_it_is_incomplete(rig):
         assert ok, f'{rig["name"]}: {text}'
     else:
         # samples lost, or the plant fell behind the clock so that the excitation ended before
-        # the window (aborted): both said plainly, and only on a machine too loaded to run
-        # the nodes in real time
+        # the window (aborted): both said plainly, and only where the machine had no CPU to
+        # spare for the nodes (measured over the run, not guessed from the load)
         assert final.status in (ParameterEstimate.STATUS_INCOMPLETE,
                                 ParameterEstimate.STATUS_ABORTED), final.message
-        assert rig['load'] > LOADED_PER_CORE * (os.cpu_count() or 1), (
-            f'incomplete at load {rig["load"]:.1f}: {final.message}')
+        assert starved(rig['load'], rig['busy']), (
+            f'incomplete at load {rig["load"]:.1f}, CPU {100 * rig["busy"]:.0f} % busy: '
+            f'{final.message}')
 
 
 def test_offline_identification_of_the_bag_agrees(rig, tmp_path):

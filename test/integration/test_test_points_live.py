@@ -18,15 +18,16 @@ point); every node exits with 0. (The state estimator adopting results: test_liv
 The multi-point bag is also identified per test point by ``rotor-id identify BAG --test-point all``
 (test points found from the recorded stirring phases): each starts at the live test point's first
 flap sample and agrees with its live final estimate to 0.2σ where the live window was complete.
-On a machine loaded far beyond its cores (1-minute load above LOADED_PER_CORE per core during
-the run; 17-25 on two cores while this was written) the identifier falls tens of seconds behind,
+On a machine with no CPU to spare for the nodes (its cores 90 % busy over the run, or 1-minute
+load above 4 per core: live_helpers.starved) the identifier can fall tens of seconds behind,
 the publishers' history no longer holds what it missed, and test points 2 and 3 come out
 STATUS_INCOMPLETE, as they must (a test point whose first flap sample was lost starts at a later
 one: offline, from the bag, it starts earlier). There every invariant above is still asserted
 (one final each, tagged, converged exactly when complete, no window of another test point, a
 growing-window estimate before each complete final, offline agreement of the complete ones),
-but not that two converge: that is asserted only below that load, and the
-load measured is in the failure text and in a warning when the requirement was not applied.
+but not that two converge: that is asserted only where the nodes had CPU to spare, and the
+load and busy share measured are in the failure text and in a warning when the requirement was
+not applied.
 A stirring input starved of CPU ramps the cyclic to trim when its azimuth goes stale
 (``azimuth_timeout_s``): a test point whose excitation so ended inside its window is
 STATUS_ABORTED, without values, and the recorded stirring commands must show that ramp.
@@ -37,15 +38,13 @@ import os
 import time
 import warnings
 
-from live_helpers import domain_id, require_workspace, RosClient, within_sigma
+from live_helpers import CpuUse, domain_id, require_workspace, RosClient, starved, within_sigma
 import pytest
 
 pytestmark = pytest.mark.slow
 TRUTH = {'A': 0.5, 'AL_over_tau': 0.25, 'inv_tau': 0.125}
 NS = 1_000_000_000
 POINTS = 3
-#: 1-minute load per core above which the machine cannot run the five nodes in real time
-LOADED_PER_CORE = 4.0
 
 
 def _call_until_accepted(watcher, client, timeout=60.0):
@@ -84,6 +83,7 @@ def three_points(tmp_path_factory):
     procs = NodeProcesses(isolated_env(domain, tmp / 'ros_log'), tmp / 'logs')
     run = {'bag': tmp / 'bag', 'watcher': watcher, 'config': description_path,
            'description': load_run_description(description_path), 'load': os.getloadavg()[0]}
+    cpu = CpuUse()
     try:
         procs.start('identifier', params_file, {'target_std': [0.02, 0.02, 0.01]})
         procs.start('recorder', params_file, {'output': str(run['bag'])})
@@ -110,6 +110,7 @@ def three_points(tmp_path_factory):
             run['load'] = max(run['load'], os.getloadavg()[0])
             assert done, (f'no final estimate of test point {k}; exited: {procs.dead()}\n'
                           + procs.log('identifier')[-4000:])
+        run['busy'] = cpu.busy_share()
     finally:
         run['codes'] = procs.stop_all()
         run['exits'] = procs.exit_summary()
@@ -135,14 +136,13 @@ def test_each_test_point_is_identified_once(three_points):
         else:
             assert final.status == ParameterEstimate.STATUS_INCOMPLETE, final.message
     converged = [m for m in finals if m.status == ParameterEstimate.STATUS_CONVERGED]
-    load, cores = three_points['load'], os.cpu_count() or 1
-    if load <= LOADED_PER_CORE * cores:
-        assert len(converged) >= 2, (f'load {load:.1f} on {cores} cores: '
-                                     + str([m.message for m in finals]))
+    load, busy = three_points['load'], three_points.get('busy', 0.0)
+    measured = f'load {load:.1f}, CPU {100 * busy:.0f} % busy on {os.cpu_count()} cores'
+    if not starved(load, busy):
+        assert len(converged) >= 2, f'{measured}: ' + str([m.message for m in finals])
     elif len(converged) < 2:
-        warnings.warn(f'{len(converged)} of {POINTS} test points converged at load {load:.1f} on '
-                      f'{cores} cores (above {LOADED_PER_CORE:g} per core: not required); the '
-                      'others were reported incomplete: '
+        warnings.warn(f'{len(converged)} of {POINTS} test points converged at {measured} (no '
+                      'CPU to spare: not required); the others were reported incomplete: '
                       + '; '.join(m.message for m in finals if m not in converged))
     # a growing-window estimate precedes every final one whose window was received
     provisional = {m.test_point for m in watcher.messages['estimate']
@@ -212,7 +212,10 @@ def test_offline_identification_of_each_test_point_agrees(three_points, tmp_path
         # starved one may have missed the first flap sample and started later, incomplete)
         assert offline['found_from'].endswith('(stirring phases)')
         if not _complete(final):
-            assert offline['test_point_start_ns'] <= _ns(final.test_point_start)
+            # (an abort before the test point's first flap sample reached the identifier
+            # leaves its start unset: 0)
+            live_start = _ns(final.test_point_start) or offline['test_point_start_ns']
+            assert offline['test_point_start_ns'] <= live_start
             continue                  # the live fit had fewer samples than the bag
         assert offline['test_point_start_ns'] == _ns(final.test_point_start)
         for name, value, std in zip(final.names, final.values, final.std):

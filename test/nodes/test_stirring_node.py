@@ -329,6 +329,58 @@ def test_a_start_before_the_rotor_turns_is_announced_however_late_the_first_samp
     assert np.ptp(commands[first_command][1]) > 0            # the schedule's cyclic, at its time
 
 
+def test_a_command_late_past_the_ramp_still_ramps_the_cyclic_down(tmp_path):
+    """
+    A tick so late that the schedule's ramp is over still ramps the cyclic, never steps it.
+
+    A starved node (here: no tick for 0.3 s while stirring; the test point ends 0.21 s after
+    its start and ramps over 0.05 s) finds its test point past the end. The cyclic last
+    commanded then goes to trim over ``ramp_s`` from that tick, through PHASE_RAMP_DOWN: the
+    actuator sees no step, however late the node was.
+    """
+    from rotor_id_msgs.msg import StirringCommand as S
+    from std_srvs.srv import Trigger
+
+    node, context = _stirring_node(tmp_path, '/rig10', t0=10.0, step_after_rad=2.0,
+                                   duration_rad=8.0, ramp_s=0.05, omegadot=-1.0,
+                                   max_stirring_rate_rad_s=1e4)
+    stirring, commands = [], []
+    node.pub_stirring.publish = lambda m: stirring.append(m)
+    node.pub_command.publish = lambda m: commands.append(np.asarray(m.position))
+    shaft = {'last': node.get_clock().now().nanoseconds}
+
+    def tick_now():
+        # the shaft's samples up to now, then one command tick
+        now = node.get_clock().now().nanoseconds
+        stamps = np.arange(shaft['last'] + 2_000_000, now, 2_000_000)
+        if stamps.size:
+            node.azimuth.add_batch(stamps, np.mod(OMEGA * stamps / 1e9, 2 * math.pi),
+                                   np.full(stamps.size, OMEGA))
+            shaft['last'] = int(stamps[-1])
+        node.tick()
+        return stirring[-1].phase if stirring else None
+    try:
+        tick_now()
+        assert node.on_start(Trigger.Request(), Trigger.Response()).success
+        deadline = time.monotonic() + 5.0
+        while tick_now() != S.PHASE_STIRRING and time.monotonic() < deadline:
+            time.sleep(0.005)
+        assert stirring[-1].phase == S.PHASE_STIRRING
+        before, late = commands[-1], len(commands)
+        late_messages = len(stirring)
+        time.sleep(0.3)                                   # no tick: past the end and the ramp
+        while tick_now() != S.PHASE_DONE and time.monotonic() < deadline:
+            time.sleep(0.005)
+    finally:
+        node.destroy_node()
+        rclpy.try_shutdown(context=context)
+    phases = [m.phase for m in stirring[late_messages:]]
+    assert phases[0] == S.PHASE_RAMP_DOWN and phases[-1] == S.PHASE_DONE, phases
+    spread = [float(np.ptp(c)) for c in commands[late - 1:]]   # ∝ the cyclic applied
+    assert 0.0 < spread[1] < spread[0] == float(np.ptp(before)), spread[:3]
+    assert spread[-1] < 1e-12 and all(b <= a + 1e-12 for a, b in zip(spread[1:], spread[2:]))
+
+
 def _stirring_node(tmp_path, namespace, **settings):
     """Return (a StirringInput on RIG with these parameters, its own rclpy context)."""
     from rclpy.parameter import Parameter
