@@ -83,19 +83,11 @@ build: venv | sysdeps
 # Both cores (pytest-xdist; tests take their ROS domains from test/ros_domains.py), and the
 # 25 slowest tests listed at the end, so that a slow newcomer is seen in every CI log.
 PYTEST_ARGS ?= -n 2 --durations=25
-STOCK_LOG := log/test_stock.log
 
-# The stock-stack run (test-stock, below) goes beside the main one at the lowest priority: the
-# main run leaves a core partly idle while the live tests wait on the clock, and a niced
-# process takes only what is idle (the live tests count niced CPU as spare: live_helpers.CpuUse).
-# Its output is printed after the main run's; either failing fails the target.
-test: build venv-stock
-	@echo "== test: pytest $(PYTEST_ARGS); the stock-stack tests beside it at nice 19"
-	@mkdir -p log
-	@{ nice -n 19 $(MAKE) test-stock > $(STOCK_LOG) 2>&1 & stock=$$!; status=0; \
-	   ( $(WS_ENV) && python -m pytest $(PYTEST_ARGS) ) || status=$$?; \
-	   stock_status=0; wait $$stock || stock_status=$$?; \
-	   cat $(STOCK_LOG); [ $$status -eq 0 ] && [ $$stock_status -eq 0 ]; }
+test: build
+	@echo "== test: pytest $(PYTEST_ARGS)"
+	@$(WS_ENV) && python -m pytest $(PYTEST_ARGS)
+	@$(MAKE) test-stock
 
 # The library's tests again on the stack of a stock Jazzy install (Ubuntu 24.04: Python 3.12,
 # numpy 1.26, scipy 1.11; no ROS, no numba) in their own venv, .venv-stock (never the main

@@ -26,10 +26,9 @@ class CpuUse:
     """
     The machine's CPU use from its start to :meth:`busy_share` (/proc/stat, every core).
 
-    The share of all cores' time spent busy at normal priority: a run of the nodes at 0.9 or
-    more had no core to spare, so the nodes could be starved, however the 1-minute load (a
-    lagging average) reads. Niced work (``make test`` runs the stock-stack tests at nice 19
-    beside the main run) counts as spare: it yields the CPU to the nodes.
+    The share of all cores' time spent busy (not idle or waiting for I/O): a run of the nodes
+    at 0.9 or more had no core to spare, so the nodes could be starved, however the 1-minute
+    load (a lagging average) reads.
     """
 
     def __init__(self):
@@ -41,9 +40,9 @@ class CpuUse:
             fields = Path('/proc/stat').read_text().split('\n', 1)[0].split()[1:]
         except OSError:
             return None
-        # user nice system idle iowait irq softirq steal: busy = all but nice, idle, iowait
-        ticks = [int(v) for v in fields[:8]]
-        return sum(ticks) - ticks[1] - ticks[3] - ticks[4], sum(ticks)
+        ticks = [int(v) for v in fields]
+        idle = ticks[3] + (ticks[4] if len(ticks) > 4 else 0)       # idle + iowait
+        return sum(ticks[:8]) - idle, sum(ticks[:8])
 
     def busy_share(self):
         """Return the busy share of all cores since the start (0 where /proc/stat is missing)."""
