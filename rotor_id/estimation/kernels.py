@@ -41,6 +41,7 @@ results.
 import hashlib
 import importlib
 import json
+import multiprocessing
 import os
 from pathlib import Path
 import sys
@@ -277,6 +278,20 @@ def prefer() -> Callable[..., Any] | None:
     return load()
 
 
+#: The just-in-time kernels' warm-ups in two groups, compiled side by side by :func:`main`: the
+#: Gauss-Newton kernels with the affine one they call (compiled once, not in both), the others
+#: in the second (on a slow 2-core machine 58 s for both, 84 s one after the other).
+WARM_UP_GROUPS = ((('_kernels_numba', 'warm_up_affine'), ('_kernels_numba', 'warm_up_gn')),
+                  (('_kernels_numba', 'warm_up'), ('_kernels_numba', 'warm_up_filter'),
+                   ('_filter_kernels_numba', 'warm_up')))
+
+
+def _warm_up_group(group: int) -> None:
+    """Compile one group of :data:`WARM_UP_GROUPS` into numba's cache (a worker process)."""
+    for module, function in WARM_UP_GROUPS[group]:
+        getattr(importlib.import_module(f'rotor_id.estimation.{module}'), function)()
+
+
 def main() -> int:
     """
     Compile the kernels (just in time into numba's cache, then ahead of time); say what it took.
@@ -289,6 +304,9 @@ def main() -> int:
         return 0
     start = time.perf_counter()
     try:
+        # compiled into the cache by two processes (numba compiles on one core), then loaded
+        with multiprocessing.get_context('fork').Pool(len(WARM_UP_GROUPS)) as pool:
+            pool.map(_warm_up_group, range(len(WARM_UP_GROUPS)))
         _load_just_in_time()
         from rotor_id.estimation import _filter_kernels_numba
         _filter_kernels_numba.warm_up()
