@@ -80,10 +80,9 @@ build: venv | sysdeps
 	@# ./rotor-id reads .pyc even where PYTHONDONTWRITEBYTECODE is set (see tools/make_venv.sh)
 	@$(VENV_ENV) && python -m compileall -q rotor_id install > /dev/null
 
-# Both cores (pytest-xdist; tests take their ROS domains from test/ros_domains.py; the tests
-# that run the nodes on the clock one at a time, test/conftest.py LIVE_GROUP), and the 25
-# slowest tests listed at the end, so that a slow newcomer is seen in every CI log.
-PYTEST_ARGS ?= -n 2 --dist loadgroup --durations=25
+# Both cores (pytest-xdist; tests take their ROS domains from test/ros_domains.py), and the
+# 25 slowest tests listed at the end, so that a slow newcomer is seen in every CI log.
+PYTEST_ARGS ?= -n 2 --durations=25
 
 # The stock-stack venv (test-stock, below; mostly file copies) is installed while the main venv
 # and the workspace are built; its lines are printed after theirs.

@@ -81,18 +81,8 @@ def ros_env(ros_domain_id, tmp_path):
     return env
 
 
-#: Tests that start the nodes as processes on a DDS graph and run them on the clock: one at a
-#: time (pytest-xdist ``--dist loadgroup``, make test), beside the other worker's tests. Two
-#: such graphs at once on a 2-core machine starve the simulated plant behind the clock.
-LIVE_GROUP = 'live_nodes'
-
-
 def pytest_collection_modifyitems(config, items):
-    """Group the live-graph tests; skip the long studies (``study``) unless ROTOR_ID_SLOW=1."""
-    live = Path(__file__).resolve().parent / 'integration'
-    for item in items:
-        if live in Path(str(item.fspath)).resolve().parents:
-            item.add_marker(pytest.mark.xdist_group(LIVE_GROUP))
+    """Skip the long statistical studies (marker ``study``) unless ROTOR_ID_SLOW=1."""
     if os.environ.get('ROTOR_ID_SLOW'):
         return
     skip = pytest.mark.skip(reason='long statistical study: set ROTOR_ID_SLOW=1 to run it '
