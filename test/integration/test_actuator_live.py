@@ -268,7 +268,7 @@ def _deactivate_mid_stirring(procs, tag):
 def _azimuth_stops_mid_stirring(procs, tag):
     """Stirring, then the rig stops publishing the azimuth."""
     from rotor_id_msgs.msg import StirringCommand as S
-    stand = Stand(procs, f'stale_{tag}', SCHEDULE)       # azimuth_timeout_s: the default
+    stand = Stand(procs, f'stale_{tag}', {**SCHEDULE, 'azimuth_timeout_s': TIMEOUT_S})
     try:
         assert stand.wait(lambda: len(stand.commands) > 0, 60.0), 'no trim command'
         stirring = stand.start()
