@@ -52,10 +52,9 @@ class CpuUse:
         return (end[0] - self.start[0]) / (end[1] - self.start[1])
 
 
-def starved(load, busy_share, cores=None):
+def starved(load, busy_share):
     """Return whether a run at this peak 1-minute load and CPU busy share was starved of CPU."""
-    cores = cores or os.cpu_count() or 1
-    return busy_share >= SATURATED_SHARE or load > LOADED_PER_CORE * cores
+    return busy_share >= SATURATED_SHARE or load > LOADED_PER_CORE * (os.cpu_count() or 1)
 
 
 def domain_id():
