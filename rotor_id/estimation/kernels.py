@@ -23,14 +23,14 @@ the kernel is loaded and used from there on (Monte Carlo studies, diagnosis, lon
 reference). Where numba is missing or fails to compile, the numpy path is used and
 :func:`status` says why.
 
-``make build`` also compiles the kernels ahead of time (numba.pycc, :func:`build_ahead_of_time`)
+``make build`` compiles the kernels ahead of time (numba.pycc, :func:`build_ahead_of_time`)
 into an extension module beside this file, named after a hash of the kernels' sources and the
 numba, numpy and Python versions: it loads without importing numba, where the just-in-time
 kernels cost numba's start-up in every process (bench/results/diagnose_speed.md). Its functions
 check every argument's type, layout and writability against the signature it was compiled for,
 and pass a call that does not match to the just-in-time kernel (compiled code would read such an
-array wrongly). Without that module
-(no C compiler, other sources) the just-in-time kernels load as before.
+array wrongly; numba compiles that one then). Without that module (no C compiler, other sources)
+the just-in-time kernels load instead; ``make build`` compiles them into the cache only then.
 
 The just-in-time machine code is cached next to this file (numba ``cache=True``), or, where that
 directory is read-only, in numba's per-user cache directory (``NUMBA_CACHE_DIR`` overrides both);
@@ -294,14 +294,26 @@ def _warm_up_group(group: int) -> None:
 
 def main() -> int:
     """
-    Compile the kernels (just in time into numba's cache, then ahead of time); say what it took.
+    Compile the kernels for ``make build``: ahead of time, else just in time; say what it took.
 
-    Exits 0 either way (``make build`` calls it): without the just-in-time kernels everything
-    runs on numpy, without the ahead-of-time module on the just-in-time kernels.
+    The module compiled ahead of time is what every process loads; the just-in-time kernels
+    serve only where it cannot be built or loaded (no C compiler, edited kernels not yet
+    rebuilt) and a call off its signature (compiled then, into numba's cache). So they are
+    compiled here only where that module fails: about 2 min of CPU that a machine with a C
+    compiler never needs. Exits 0 either way: without either, everything runs on numpy.
     """
     if mode() == 'numpy':
         print('rotor_id kernels: numpy only (ROTOR_ID_KERNELS=numpy)')
         return 0
+    try:
+        done = build_ahead_of_time()
+        if _load_ahead_of_time() is not None:
+            print(f'rotor_id kernels: ahead of time: {done}')
+            return 0
+        why = _state['ahead_error']
+    except Exception as err:  # noqa: B902 - no compiler etc.: the just-in-time kernels serve
+        why = f'{type(err).__name__}: {err}'
+    print(f'rotor_id kernels: not compiled ahead of time ({why}); compiling them just in time')
     start = time.perf_counter()
     try:
         # compiled into the cache by two processes (numba compiles on one core), then loaded
@@ -314,11 +326,6 @@ def main() -> int:
         print(f'rotor_id kernels: numpy only ({type(err).__name__}: {err})')
         return 0
     print(f'rotor_id kernels: just-in-time kernels ready in {time.perf_counter() - start:.2f} s')
-    try:
-        print(f'rotor_id kernels: ahead of time: {build_ahead_of_time()}')
-    except Exception as err:  # noqa: B902 - no compiler etc.: the just-in-time kernels serve
-        print(f'rotor_id kernels: not compiled ahead of time ({type(err).__name__}: {err}); '
-              'the just-in-time kernels serve')
     return 0
 
 
