@@ -31,12 +31,17 @@ if [ "$installer" = uv ] && \
    "$vpy" -m pip install -q --disable-pip-version-check -c "$cons" uv 2>/dev/null; then
   echo "   installer: uv $("$venv/bin/uv" --version | cut -d' ' -f2)"
   # copy, never hard-link: the CMake-export patch must not reach into uv's shared cache
-  # --compile-bytecode: uv writes no .pyc by default, and without them every start of
-  # ./rotor-id compiles numpy, scipy and rosbags from source again when the environment
-  # sets PYTHONDONTWRITEBYTECODE (0.8 s instead of 0.3 s for `rotor-id identify`); uv then
-  # compiles all of site-packages, also what an earlier install left uncompiled.
   UV_PYTHON_DOWNLOADS=never UV_NO_PROGRESS=1 UV_LINK_MODE=copy \
-    "$venv/bin/uv" pip install -q --compile-bytecode --python "$vpy" -r "$reqs" -c "$cons"
+    "$venv/bin/uv" pip install -q --python "$vpy" -r "$reqs" -c "$cons"
+  # uv writes no .pyc, and without them every start of ./rotor-id compiles numpy, scipy and
+  # rosbags from source again when the environment sets PYTHONDONTWRITEBYTECODE (0.8 s
+  # instead of 0.3 s for `rotor-id identify`): byte-compile site-packages on both cores, but
+  # not the packages that no run imports or one test imports once (pandas and statsmodels:
+  # test_filter_error's reference likelihood), 40 % of its files (about 15 s of a CI run).
+  "$vpy" -m compileall -q -j 0 \
+    -x '/(pandas|statsmodels|pip|mypyc|narwhals|formulaic|snowballstemmer|coverage)/' \
+    "$("$vpy" -c 'import sysconfig; print(sysconfig.get_paths()["purelib"])')" > /dev/null \
+    || echo "   some files of site-packages did not byte-compile (they compile when imported)"
 else
   echo "   installer: pip"
   "$vpy" -m pip install -q --disable-pip-version-check -r "$reqs" -c "$cons"
