@@ -61,15 +61,22 @@ def test_window_read_equals_the_full_read(bags, monkeypatch):
 
 
 def test_memory_and_reading_follow_the_window_not_the_bag(bags, monkeypatch):
-    """A 3x longer bag costs the same to read a window of; the whole read grows with it."""
+    """
+    A 3x longer bag costs the same to read a window of; a whole read grows with the bag.
+
+    The whole read is of the 20 s bag, 2.9 times the 7 s the window read returns: its peak
+    must be at least twice the window read's of the 60 s bag (tracing the 60 s bag's whole
+    read, the same claim, costs three times as much).
+    """
     short_bag, long_bag, _ = bags
     monkeypatch.setattr(bag_module, 'WINDOW_READ_MIN_BYTES', 0)
     short, short_peak = read_traced(short_bag, window_s=WINDOW)
     long, long_peak = read_traced(long_bag, window_s=WINDOW)
     assert len(short) == len(long) == 7001
     assert long_peak < 1.3 * short_peak
-    _, whole_peak = read_traced(long_bag)
-    assert whole_peak > 4 * long_peak
+    whole, whole_peak = read_traced(short_bag)
+    assert len(whole) == 20_000
+    assert whole_peak > 2 * long_peak, (whole_peak, long_peak)
 
 
 def test_small_bags_and_clock_trouble_are_read_whole(bags, tmp_path, monkeypatch):
