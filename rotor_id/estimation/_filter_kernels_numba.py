@@ -309,17 +309,20 @@ def sensitivity_scan(Fs, g, dFs, dg, h, substeps, Phis, dPhis, Qs, dQs, R, dR, c
     return total
 
 
-def warm_up():
-    """Compile (or load from the cache) the scan for the argument types filter_error passes."""
+def sensitivity_scan_example(steady=True):
+    """Return arguments of the types filter_error passes to sensitivity_scan."""
     T, n, m, k, kp, sub = 2, 2, 1, 2, 1, 1
     M = (T - 1) * sub
+    return (np.zeros((1, n, n)), np.zeros((2 * M + 1, n)), np.zeros((1, kp, n, n)),
+            np.zeros((2 * M + 1, kp, n)), 0.1, sub, np.eye(n)[None], np.zeros((1, kp, n, n)),
+            np.zeros((1, n, n)), np.zeros((1, k, n, n)), np.eye(m), np.zeros((k, m, m)),
+            np.arange(k), np.ones((T, m, n)), np.zeros((T, m)), np.zeros((T, m, k)),
+            np.zeros((T, m)), np.zeros(n), np.zeros((n, k)), steady, np.eye(m),
+            np.zeros((n, m)), np.zeros((k, m, m)), np.zeros((k, n, m)), np.empty((T, m)),
+            np.empty((T, m, k)), np.empty((T, m, m)), np.empty((T, m, m, k)))
+
+
+def warm_up():
+    """Compile (or load from the cache) the scan for the argument types filter_error passes."""
     for steady in (True, False):
-        sensitivity_scan(np.zeros((1, n, n)), np.zeros((2 * M + 1, n)), np.zeros((1, kp, n, n)),
-                         np.zeros((2 * M + 1, kp, n)), 0.1, sub, np.eye(n)[None],
-                         np.zeros((1, kp, n, n)), np.zeros((1, n, n)), np.zeros((1, k, n, n)),
-                         np.eye(m), np.zeros((k, m, m)), np.arange(k), np.ones((T, m, n)),
-                         np.zeros((T, m)),
-                         np.zeros((T, m, k)), np.zeros((T, m)), np.zeros(n), np.zeros((n, k)),
-                         steady, np.eye(m), np.zeros((n, m)), np.zeros((k, m, m)),
-                         np.zeros((k, n, m)), np.empty((T, m)), np.empty((T, m, k)),
-                         np.empty((T, m, m)), np.empty((T, m, m, k)))
+        sensitivity_scan(*sensitivity_scan_example(steady))

@@ -135,19 +135,18 @@ def rk4_scan(F_val, F_i, F_j, g, dF_val, dF_p, dF_i, dF_j, dg, h, substeps, x0, 
             Ss[j] = S
 
 
+def rk4_scan_example():
+    """Return arguments of the types simulate passes to rk4_scan (its one signature)."""
+    n, k, kp = 2, 2, 1
+    idx = np.zeros(1, dtype=np.int64)
+    return (np.zeros((1, 1)), idx, idx, np.zeros((3, n)), np.zeros((1, 1)), idx, idx, idx,
+            np.zeros((3, kp, n)), np.ones(1), 1, np.zeros(n), np.zeros((n, k)),
+            np.empty((2, n)), np.empty((2, n, k)))
+
+
 def warm_up():
     """Compile (or load from the cache) for the argument types simulate passes."""
-    n, k, kp = 2, 2, 1
-    F_val = np.zeros((1, 1))
-    g = np.zeros((3, n))
-    dF_val = np.zeros((1, 1))
-    idx = np.zeros(1, dtype=np.int64)
-    dg = np.zeros((3, kp, n))
-    h = np.ones(1)
-    xs = np.empty((2, n))
-    Ss = np.empty((2, n, k))
-    rk4_scan(F_val, idx, idx, g, dF_val, idx, idx, idx, dg, h, 1, np.zeros(n),
-             np.zeros((n, k)), xs, Ss)
+    rk4_scan(*rk4_scan_example())
 
 
 @njit(cache=True, nogil=True)
@@ -343,21 +342,28 @@ def filter_scan(Phi, c, Q, H, d, y, x0, R, P0, steady, nu, B, gains, cost, x_las
                 P_last[kk, i, j] = P[i, j]
 
 
+def filter_scan_example():
+    """Return arguments of the types filter_batch passes to filter_scan (its one signature)."""
+    K_, T, n, m = 1, 2, 2, 1
+    return (np.zeros((T - 1, K_, n, n)), np.zeros((T - 1, K_, n)), np.zeros((T - 1, K_, n, n)),
+            np.ones((T, K_, m, n)), np.zeros((T, K_, m)), np.zeros((T, m)), np.zeros((K_, n)),
+            np.ones((K_, m, m)), np.zeros((K_, n, n)), False, np.empty((K_, T, m)),
+            np.empty((K_, T, m, m)), np.empty((K_, T, n, m)), np.empty(K_), np.empty((K_, n)),
+            np.empty((K_, n, n)), np.empty((K_, T, n)), np.empty((K_, T, n, n)),
+            np.empty((K_, T, n)), np.empty((K_, T, n, n)))
+
+
+def initial_state_innovations_example():
+    """Return arguments of the types filter error passes to initial_state_innovations."""
+    T, n, m = 2, 2, 1
+    return (np.zeros((T - 1, n, n)), np.zeros((T, n, m)), np.ones((T, m, n)), np.eye(n),
+            np.empty((T, m, n)))
+
+
 def warm_up_filter():
     """Compile (or load from the cache) the filter for the argument types filter_batch passes."""
-    K_, T, n, m = 1, 2, 2, 1
-    Phi = np.zeros((T - 1, K_, n, n))
-    c = np.zeros((T - 1, K_, n))
-    H = np.ones((T, K_, m, n))
-    d = np.zeros((T, K_, m))
-    R = np.ones((K_, m, m))
-    filter_scan(Phi, c, Phi.copy(), H, d, np.zeros((T, m)), np.zeros((K_, n)), R,
-                np.zeros((K_, n, n)), False, np.empty((K_, T, m)), np.empty((K_, T, m, m)),
-                np.empty((K_, T, n, m)), np.empty(K_), np.empty((K_, n)), np.empty((K_, n, n)),
-                np.empty((K_, T, n)), np.empty((K_, T, n, n)), np.empty((K_, T, n)),
-                np.empty((K_, T, n, n)))
-    initial_state_innovations(Phi[:, 0], np.zeros((T, n, m)), H[:, 0], np.eye(n),
-                              np.empty((T, m, n)))
+    filter_scan(*filter_scan_example())
+    initial_state_innovations(*initial_state_innovations_example())
 
 
 @njit(cache=True, nogil=True)
@@ -750,17 +756,22 @@ def affine_run(F_probe, g_probe, dF_probe, dg_probe, shift, param_index, h, subs
                 Mc)
 
 
-def warm_up_affine():
-    """Compile (or load from the cache) the time-invariant kernel for the types simulate uses."""
+def affine_run_example(samples=2):
+    """Return arguments of the types simulate passes to affine_run (0 samples: no data)."""
     n, q, P, k, m, T = 2, 1, 1, 2, 1, 2
     L = 3 * q
-    for y in (np.zeros((T, m)), np.zeros((0, m))):
-        affine_run(np.zeros((q + 1, n, n)), np.zeros((q + 1, n)), np.zeros((q + 1, P, n, n)),
-                   np.zeros((q + 1, P, n)), np.zeros(P), np.zeros(1, dtype=np.int64), 0.1, 1,
-                   np.zeros((T - 1, L)), np.zeros(n), np.zeros((n, k)), np.ones((1, m, n)),
-                   np.zeros((0, m)), np.zeros((0, m, P)), y, np.empty((T, n)),
-                   np.empty((T, n, k)), np.empty((T, m)), np.empty((T, m, k)),
-                   np.empty((y.shape[0], m)), np.empty(m), np.empty((m, k)), np.empty((m, k, k)))
+    return (np.zeros((q + 1, n, n)), np.zeros((q + 1, n)), np.zeros((q + 1, P, n, n)),
+            np.zeros((q + 1, P, n)), np.zeros(P), np.zeros(1, dtype=np.int64), 0.1, 1,
+            np.zeros((T - 1, L)), np.zeros(n), np.zeros((n, k)), np.ones((1, m, n)),
+            np.zeros((0, m)), np.zeros((0, m, P)), np.zeros((samples, m)), np.empty((T, n)),
+            np.empty((T, n, k)), np.empty((T, m)), np.empty((T, m, k)),
+            np.empty((samples, m)), np.empty(m), np.empty((m, k)), np.empty((m, k, k)))
+
+
+def warm_up_affine():
+    """Compile (or load from the cache) the time-invariant kernel for the types simulate uses."""
+    for samples in (2, 0):
+        affine_run(*affine_run_example(samples))
 
 
 # -- the Gauss-Newton iteration of output error on one prepared record -----------------------
@@ -1132,26 +1143,44 @@ def gn_fit(F_probe, g_probe, dF_probe, dg_probe, p_ref, p_base, param_index, h, 
     return reason
 
 
-def warm_up_gn():
-    """Compile (or load from the cache) gn_iteration and gn_fit for output error's types."""
-    clock_ns(1)
+def clock_ns_example():
+    """Return arguments of clock_ns's one signature."""
+    return (1,)
+
+
+def gn_iteration_example():
+    """Return arguments of the types output error passes to gn_iteration."""
     n, q, P, k, m, T = 2, 1, 1, 2, 1, 3
     L = 3 * q
     i64 = np.zeros(1, dtype=np.int64)
-    gn_iteration(np.zeros((q + 1, n, n)), np.zeros((q + 1, n)), np.zeros((q + 1, P, n, n)),
-                 np.zeros((q + 1, P, n)), np.zeros(P), np.zeros(P), i64, 0.1, 1,
-                 np.zeros((T - 1, L)), np.zeros(n), i64, np.eye(n, k), np.ones((1, m, n)),
-                 np.zeros((T, m)), np.zeros(k), 1.0, 0.0, np.ones(m), True, 1e-24, np.zeros(k),
-                 np.zeros(k), -np.ones(k), np.ones(k), 1e-6, np.zeros(m), np.zeros((m, k)),
-                 np.eye(k)[None], np.empty((T, n)), np.empty((T, n, k)), np.empty((T, m)),
-                 np.empty((T, m, k)), np.empty((T, m)), np.empty(m), np.empty((m, k)),
-                 np.empty((m, k, k)), np.empty(k), np.empty(m), np.empty((k, k)), np.empty(k),
-                 np.empty(k), np.empty(5))
-    gn_fit(np.zeros((q + 1, n, n)), np.zeros((q + 1, n)), np.zeros((q + 1, P, n, n)),
-           np.zeros((q + 1, P, n)), np.zeros(P), np.zeros(P), i64, 0.1, 1, np.zeros((T - 1, L)),
-           np.zeros(n), i64, np.eye(n, k), np.ones((1, m, n)), np.zeros((T, m)), np.zeros(k),
-           np.ones(m), True, 1e-24, np.zeros(k), np.zeros(k), -np.ones(k), np.ones(k), 1e-6, 1,
-           1e-7, -1, np.empty((T, m)), np.empty((T, m)), np.empty(m), np.empty((m, k)),
-           np.empty((m, k, k)), np.empty((1, k)), np.empty((1, m)), np.empty((1, 4)),
-           np.empty(k), np.empty(m), np.empty((k, k)), np.empty(k), np.empty((k, k)),
-           np.empty(7))
+    return (np.zeros((q + 1, n, n)), np.zeros((q + 1, n)), np.zeros((q + 1, P, n, n)),
+            np.zeros((q + 1, P, n)), np.zeros(P), np.zeros(P), i64, 0.1, 1,
+            np.zeros((T - 1, L)), np.zeros(n), i64, np.eye(n, k), np.ones((1, m, n)),
+            np.zeros((T, m)), np.zeros(k), 1.0, 0.0, np.ones(m), True, 1e-24, np.zeros(k),
+            np.zeros(k), -np.ones(k), np.ones(k), 1e-6, np.zeros(m), np.zeros((m, k)),
+            np.eye(k)[None], np.empty((T, n)), np.empty((T, n, k)), np.empty((T, m)),
+            np.empty((T, m, k)), np.empty((T, m)), np.empty(m), np.empty((m, k)),
+            np.empty((m, k, k)), np.empty(k), np.empty(m), np.empty((k, k)), np.empty(k),
+            np.empty(k), np.empty(5))
+
+
+def gn_fit_example():
+    """Return arguments of the types output error passes to gn_fit."""
+    n, q, P, k, m, T = 2, 1, 1, 2, 1, 3
+    L = 3 * q
+    i64 = np.zeros(1, dtype=np.int64)
+    return (np.zeros((q + 1, n, n)), np.zeros((q + 1, n)), np.zeros((q + 1, P, n, n)),
+            np.zeros((q + 1, P, n)), np.zeros(P), np.zeros(P), i64, 0.1, 1,
+            np.zeros((T - 1, L)), np.zeros(n), i64, np.eye(n, k), np.ones((1, m, n)),
+            np.zeros((T, m)), np.zeros(k), np.ones(m), True, 1e-24, np.zeros(k), np.zeros(k),
+            -np.ones(k), np.ones(k), 1e-6, 1, 1e-7, -1, np.empty((T, m)), np.empty((T, m)),
+            np.empty(m), np.empty((m, k)), np.empty((m, k, k)), np.empty((1, k)),
+            np.empty((1, m)), np.empty((1, 4)), np.empty(k), np.empty(m), np.empty((k, k)),
+            np.empty(k), np.empty((k, k)), np.empty(7))
+
+
+def warm_up_gn():
+    """Compile (or load from the cache) gn_iteration and gn_fit for output error's types."""
+    clock_ns(*clock_ns_example())
+    gn_iteration(*gn_iteration_example())
+    gn_fit(*gn_fit_example())

@@ -211,10 +211,11 @@ def _load_ahead_of_time() -> SimpleNamespace | None:
     if not described.exists():
         _state['ahead_error'] = f'{name} not built (make build compiles it)'
         return None
-    arguments = json.loads(described.read_text())
-    module = importlib.import_module(f'rotor_id.estimation.{name}')
-    return SimpleNamespace(**{function: _checked(function, getattr(module, function), types)
-                              for function, types in arguments.items()})
+    kernels = {}
+    for function, built in json.loads(described.read_text()).items():
+        module = importlib.import_module(f'rotor_id.estimation.{built["module"]}')
+        kernels[function] = _checked(function, getattr(module, function), built['arguments'])
+    return SimpleNamespace(**kernels)
 
 
 def _load_just_in_time() -> ModuleType:

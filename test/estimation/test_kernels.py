@@ -588,48 +588,68 @@ def just_in_time(monkeypatch):
     return switch
 
 
+def _every_compiled_path():
+    """
+    Run every path through the kernels; return the arrays it gives.
+
+    Simulation of every model (RK4 scan, affine run), an output-error fit in one call
+    (gn_fit), the filter with and without sensitivities (filter error's likelihood), and the
+    filter that keeps every state (state reconstruction).
+    """
+    from rotor_id.estimation import filter_error as fe, kalman
+    from rotor_id.estimation.output_error import Experiment, fit_output_error
+    out = []
+    for model, stirring, t0 in CASES.values():
+        t = t0 + 0.1 * np.arange(121)
+        run = simulate(model, model.nominal(), stirring, t, np.zeros(model.n_states),
+                       param_index=[0, 1])
+        out += [run.x, run.dx]
+    model, stirring = MultibladeWake(HOVER), StirringSchedule(collective=2.0, t0=70.0)
+    t = 70.0 + 0.1 * np.arange(121)
+    truth = np.array([0.5, 0.25, 0.125])
+    y = simulate(model, truth, stirring, t, np.zeros(model.n_states)).y
+    y = y + 0.01 * np.random.default_rng(0).standard_normal(y.shape)
+    exp = Experiment(model, stirring, t, y, initial_state=np.zeros(model.n_states))
+    fit = fit_output_error([exp], ['A', 'AL_over_tau', 'inv_tau'], noise_std=0.01)
+    out += [fit.values, fit.std]
+    noisy = fe.fit_filter_error_ml([exp], ['A', 'AL_over_tau', 'inv_tau'], noise_std=0.01,
+                                   noise_model='held', max_iter=3)
+    states = kalman.reconstruct_states(model, truth, stirring, t, y, np.full(2, 1e-4),
+                                       np.zeros(model.n_states),
+                                       1e-4 * np.eye(model.n_states), noise_std=0.1)
+    return out + [noisy.values, noisy.std, states.x_smoothed, states.P_smoothed]
+
+
+def test_every_path_reaches_the_code_compiled_ahead_of_time():
+    """
+    The library's calls match the signatures make build compiled (typed from the examples).
+
+    A call off them would go to the just-in-time kernel: numba compiling for seconds in the
+    middle of a run, in every process.
+    """
+    assert kernels.load() is not None, kernels.status()['error']
+    if kernels.status()['compiled'] != 'ahead of time':
+        pytest.skip('no module compiled ahead of time here (make build compiles it)')
+    before = kernels.status()['just_in_time_calls']
+    _every_compiled_path()
+    assert kernels.status()['just_in_time_calls'] == before, 'a call missed the signatures'
+
+
 def test_both_compiled_kernels_give_the_same_results(just_in_time, monkeypatch):
     """
     Ahead-of-time and just-in-time kernels agree to rounding on every path that uses them.
 
-    Simulation of every model (RK4 scan, affine run), an output-error fit in one call
-    (gn_fit), the filter with and without sensitivities (filter error's likelihood), and the
-    filter that keeps every state (state reconstruction): whichever module loads, the numbers
-    are numba's. It compiles every kernel just in time (about 2 min of CPU, which make build
-    spends only where the ahead-of-time module fails), so it runs with ROTOR_ID_SLOW=1; CI
-    compares the filter scan (test_a_call_off_the_compiled_signature_goes_just_in_time).
+    Whichever module loads, the numbers are numba's. It compiles every kernel just in time
+    (about 2 min of CPU, which make build spends only where the ahead-of-time module fails),
+    so it runs with ROTOR_ID_SLOW=1; CI compares the filter scan
+    (test_a_call_off_the_compiled_signature_goes_just_in_time).
     """
     if not os.environ.get('ROTOR_ID_SLOW'):
         pytest.skip('compiles every kernel just in time (about 2 min of CPU): set '
                     'ROTOR_ID_SLOW=1 to run it (CI compares the filter scan)')
-    from rotor_id.estimation import filter_error as fe, kalman
-    from rotor_id.estimation.output_error import Experiment, fit_output_error
-
-    def results():
-        out = []
-        for model, stirring, t0 in CASES.values():
-            t = t0 + 0.1 * np.arange(121)
-            run = simulate(model, model.nominal(), stirring, t, np.zeros(model.n_states),
-                           param_index=[0, 1])
-            out += [run.x, run.dx]
-        model, stirring = MultibladeWake(HOVER), StirringSchedule(collective=2.0, t0=70.0)
-        t = 70.0 + 0.1 * np.arange(121)
-        truth = np.array([0.5, 0.25, 0.125])
-        y = simulate(model, truth, stirring, t, np.zeros(model.n_states)).y
-        y = y + 0.01 * np.random.default_rng(0).standard_normal(y.shape)
-        exp = Experiment(model, stirring, t, y, initial_state=np.zeros(model.n_states))
-        fit = fit_output_error([exp], ['A', 'AL_over_tau', 'inv_tau'], noise_std=0.01)
-        out += [fit.values, fit.std]
-        noisy = fe.fit_filter_error_ml([exp], ['A', 'AL_over_tau', 'inv_tau'], noise_std=0.01,
-                                       noise_model='held', max_iter=3)
-        states = kalman.reconstruct_states(model, truth, stirring, t, y, np.full(2, 1e-4),
-                                           np.zeros(model.n_states),
-                                           1e-4 * np.eye(model.n_states), noise_std=0.1)
-        return out + [noisy.values, noisy.std, states.x_smoothed, states.P_smoothed]
-
-    ahead = results()
+    ahead = _every_compiled_path()
     just_in_time()
-    again = results()
+    again = _every_compiled_path()
     assert kernels.status()['compiled'] in ('ahead of time', 'just in time')
     for a, b in zip(ahead, again):
         np.testing.assert_allclose(a, b, rtol=1e-9, atol=1e-12 * np.max(np.abs(b)))
