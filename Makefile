@@ -112,12 +112,15 @@ VENV_STOCK_KEY := $(shell { cat $(REQS_STOCK) $(MAKE_VENV_STOCK); \
 VENV_STOCK_STAMP := $(VENV_STOCK)/.stamp-$(VENV_STOCK_KEY)
 STOCK_TESTS := test/physics test/estimation test/io test/commands test/report \
                test/test_adequacy.py test/test_excitation.py test/test_planning.py
-# Left out there (--deselect takes node-id prefixes): the tests of more than ~5 s of CPU without
-# numba (its numpy reference path is several times slower); each of their modules keeps its
-# faster tests in this run, and the main run has them all.
+# Left out there (--deselect takes node-id prefixes): the tests of more than ~2 s there (without
+# numba its numpy reference path is several times slower). This run checks that every path
+# runs on that stack, which the fast tests call; the heavier ones repeat those calls for their
+# statistics. Each of their modules keeps its faster tests here, and the main run has them all.
 STOCK_FE := test/estimation/test_filter_error.py
 STOCK_EE := test/estimation/test_equation_error.py
 STOCK_FEG := test/estimation/test_filter_error_gradient.py
+STOCK_SIM := test/estimation/test_simulate.py
+STOCK_ANY := test/physics/test_any_rotor_identification.py
 STOCK_DESELECT := \
   $(STOCK_FE)::test_steady_state_gain_for_a_time_invariant_model \
   $(STOCK_FE)::test_system_noise_filter_error_beats_output_error_ci \
@@ -135,7 +138,17 @@ STOCK_DESELECT := \
   test/test_planning.py::test_predicted_sigma_matches_identify_spread \
   test/commands/test_campaign.py::test_campaign_identifies_every_bag_flags_the_outlier \
   test/io/test_io_fuzz.py::test_random_mappings_parse_or_raise_run_description_error \
-  test/io/test_io_window.py::test_memory_and_reading_follow_the_window_not_the_bag
+  test/io/test_io_window.py::test_memory_and_reading_follow_the_window_not_the_bag \
+  test/io/test_io_window.py::test_window_read_equals_the_full_read \
+  test/io/test_io_window.py::test_small_bags_and_clock_trouble_are_read_whole \
+  test/io/test_io_fuzz.py::test_mutated_valid_descriptions_parse_or_raise \
+  $(STOCK_SIM)::test_lost_samples_cost_their_own_substeps_not_the_whole_records \
+  $(STOCK_FEG)::test_analytic_gradient_with_output_offsets_and_two_runs \
+  $(STOCK_FEG)::test_fit_with_analytic_gradients_lands_on_the_same_optimum \
+  test/test_adequacy.py::test_false_alarms_and_whiteness_calibration_on_simulated_records \
+  $(STOCK_ANY)::test_independent_blade_by_blade_rotors_identified_within_bounds \
+  $(STOCK_ANY)::test_identify_command_on_a_five_bladed_bag \
+  test/commands/test_identify_runs.py::test_joint_sigma_shrinks_as_the_information_of_the_runs_adds
 
 .PHONY: venv-stock test-stock typecheck
 
