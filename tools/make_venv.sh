@@ -21,20 +21,30 @@ if [ -d "$venv" ] && [ "$(cat "$venv/.origin" 2>/dev/null)" != "$here" ]; then
   rm -rf "$venv"
 fi
 if [ ! -x "$venv/bin/python" ]; then
-  "$python" -m venv "$venv"
+  # without ensurepip's pip (8 s, most of it byte-compiling pip): uv installs pip with the rest
+  "$python" -m venv --without-pip "$venv"
   echo "$here" > "$venv/.origin"
 fi
 rm -f "$venv"/.stamp-*
 
 vpy="$venv/bin/python"
-if [ "$installer" = uv ] && \
-   "$vpy" -m pip install -q --disable-pip-version-check -c "$cons" uv 2>/dev/null; then
+# the venv's own pip, from ensurepip where it has none
+venv_pip() {
+  "$vpy" -m pip --version > /dev/null 2>&1 || "$vpy" -m ensurepip > /dev/null
+  "$vpy" -m pip "$@"
+}
+# uv into the venv: by the system Python's pip (22.3 and later install into another environment
+# with --python), else by the venv's own
+if [ "$installer" = uv ] && {
+     "$python" -m pip --python "$vpy" install -q --disable-pip-version-check -c "$cons" uv \
+       > /dev/null 2>&1 ||
+     venv_pip install -q --disable-pip-version-check -c "$cons" uv 2>/dev/null; }; then
   echo "   installer: uv $("$venv/bin/uv" --version | cut -d' ' -f2)"
   # hard links into uv's cache (7 s where copies took 20 s): the CMake-export patch writes a
   # new file over each one it changes (tools/patch_cmake_exports.py), never through a link,
   # so the cache stays as uv made it; uv copies where the cache is on another file system
   UV_PYTHON_DOWNLOADS=never UV_NO_PROGRESS=1 UV_LINK_MODE=hardlink \
-    "$venv/bin/uv" pip install -q --python "$vpy" -r "$reqs" -c "$cons"
+    "$venv/bin/uv" pip install -q --python "$vpy" -r "$reqs" -c "$cons" pip
   # uv writes no .pyc, and without them every start of ./rotor-id compiles numpy, scipy and
   # rosbags from source again when the environment sets PYTHONDONTWRITEBYTECODE (0.8 s
   # instead of 0.3 s for `rotor-id identify`): byte-compile site-packages on both cores, but
@@ -46,7 +56,7 @@ if [ "$installer" = uv ] && \
     || echo "   some files of site-packages did not byte-compile (they compile when imported)"
 else
   echo "   installer: pip"
-  "$vpy" -m pip install -q --disable-pip-version-check -r "$reqs" -c "$cons"
+  venv_pip install -q --disable-pip-version-check -r "$reqs" -c "$cons"
 fi
 "$vpy" "$patch" --quiet
 "$vpy" "$patch" --check --quiet
