@@ -34,21 +34,29 @@ if [ -d "$venv" ] && [ "$(cat "$venv/.origin" 2>/dev/null)" != "$here" ]; then
   rm -rf "$venv"
 fi
 if [ ! -x "$venv/bin/python" ]; then
-  "$python" -m venv "$venv"
+  # without ensurepip's pip (8 s of CPU beside the main venv's install), as tools/make_venv.sh
+  "$python" -m venv --without-pip "$venv"
   echo "$here" > "$venv/.origin"
 fi
 rm -f "$venv"/.stamp-*
 
 vpy="$venv/bin/python"
+venv_pip() {
+  "$vpy" -m pip --version > /dev/null 2>&1 || "$vpy" -m ensurepip > /dev/null
+  "$vpy" -m pip "$@"
+}
 uv_pin="$(grep -i '^uv==' constraints-jazzy.txt || echo uv)"
-if [ "$installer" = uv ] && \
-   "$vpy" -m pip install -q --disable-pip-version-check "$uv_pin" 2>/dev/null; then
+if [ "$installer" = uv ] && {
+     "$python" -m pip --python "$vpy" install -q --disable-pip-version-check "$uv_pin" \
+       > /dev/null 2>&1 ||
+     venv_pip install -q --disable-pip-version-check "$uv_pin" 2>/dev/null; }; then
   echo "   installer: uv $("$venv/bin/uv" --version | cut -d' ' -f2)"
-  UV_PYTHON_DOWNLOADS=never UV_NO_PROGRESS=1 UV_LINK_MODE=copy \
+  # hard links into uv's cache: nothing here writes through them (compiling adds new files)
+  UV_PYTHON_DOWNLOADS=never UV_NO_PROGRESS=1 UV_LINK_MODE=hardlink \
     "$venv/bin/uv" pip install -q --compile-bytecode --python "$vpy" -r "$reqs"
 else
   echo "   installer: pip"
-  "$vpy" -m pip install -q --disable-pip-version-check -r "$reqs"
+  venv_pip install -q --disable-pip-version-check -r "$reqs"
 fi
 "$vpy" - <<'PY'
 import importlib.util
