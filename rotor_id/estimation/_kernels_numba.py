@@ -1148,35 +1148,41 @@ def clock_ns_example():
     return (1,)
 
 
-def gn_iteration_example():
-    """Return arguments of the types output error passes to gn_iteration."""
-    n, q, P, k, m, T = 2, 1, 1, 2, 1, 3
-    L = 3 * q
+#: sizes of the Gauss-Newton kernels' example arguments: states, intervals, parameters,
+#: unknowns, channels, samples
+_GN_SIZES = (2, 1, 1, 2, 1, 3)
+
+
+def _gn_prepared_record():
+    """Return the leading arguments gn_iteration and gn_fit share: one prepared record."""
+    n, q, P, k, m, T = _GN_SIZES
     i64 = np.zeros(1, dtype=np.int64)
     return (np.zeros((q + 1, n, n)), np.zeros((q + 1, n)), np.zeros((q + 1, P, n, n)),
             np.zeros((q + 1, P, n)), np.zeros(P), np.zeros(P), i64, 0.1, 1,
-            np.zeros((T - 1, L)), np.zeros(n), i64, np.eye(n, k), np.ones((1, m, n)),
-            np.zeros((T, m)), np.zeros(k), 1.0, 0.0, np.ones(m), True, 1e-24, np.zeros(k),
-            np.zeros(k), -np.ones(k), np.ones(k), 1e-6, np.zeros(m), np.zeros((m, k)),
-            np.eye(k)[None], np.empty((T, n)), np.empty((T, n, k)), np.empty((T, m)),
-            np.empty((T, m, k)), np.empty((T, m)), np.empty(m), np.empty((m, k)),
-            np.empty((m, k, k)), np.empty(k), np.empty(m), np.empty((k, k)), np.empty(k),
-            np.empty(k), np.empty(5))
+            np.zeros((T - 1, 3 * q)), np.zeros(n), i64, np.eye(n, k), np.ones((1, m, n)),
+            np.zeros((T, m)), np.zeros(k))
+
+
+def gn_iteration_example():
+    """Return arguments of the types output error passes to gn_iteration."""
+    n, _, _, k, m, T = _GN_SIZES
+    return _gn_prepared_record() + (
+        1.0, 0.0, np.ones(m), True, 1e-24, np.zeros(k), np.zeros(k), -np.ones(k), np.ones(k),
+        1e-6, np.zeros(m), np.zeros((m, k)), np.eye(k)[None], np.empty((T, n)),
+        np.empty((T, n, k)), np.empty((T, m)), np.empty((T, m, k)), np.empty((T, m)),
+        np.empty(m), np.empty((m, k)), np.empty((m, k, k)), np.empty(k), np.empty(m),
+        np.empty((k, k)), np.empty(k), np.empty(k), np.empty(5))
 
 
 def gn_fit_example():
     """Return arguments of the types output error passes to gn_fit."""
-    n, q, P, k, m, T = 2, 1, 1, 2, 1, 3
-    L = 3 * q
-    i64 = np.zeros(1, dtype=np.int64)
-    return (np.zeros((q + 1, n, n)), np.zeros((q + 1, n)), np.zeros((q + 1, P, n, n)),
-            np.zeros((q + 1, P, n)), np.zeros(P), np.zeros(P), i64, 0.1, 1,
-            np.zeros((T - 1, L)), np.zeros(n), i64, np.eye(n, k), np.ones((1, m, n)),
-            np.zeros((T, m)), np.zeros(k), np.ones(m), True, 1e-24, np.zeros(k), np.zeros(k),
-            -np.ones(k), np.ones(k), 1e-6, 1, 1e-7, -1, np.empty((T, m)), np.empty((T, m)),
-            np.empty(m), np.empty((m, k)), np.empty((m, k, k)), np.empty((1, k)),
-            np.empty((1, m)), np.empty((1, 4)), np.empty(k), np.empty(m), np.empty((k, k)),
-            np.empty(k), np.empty((k, k)), np.empty(7))
+    _, _, _, k, m, T = _GN_SIZES
+    return _gn_prepared_record() + (
+        np.ones(m), True, 1e-24, np.zeros(k), np.zeros(k), -np.ones(k), np.ones(k), 1e-6, 1,
+        1e-7, -1, np.empty((T, m)), np.empty((T, m)), np.empty(m), np.empty((m, k)),
+        np.empty((m, k, k)), np.empty((1, k)), np.empty((1, m)), np.empty((1, 4)),
+        np.empty(k), np.empty(m), np.empty((k, k)), np.empty(k), np.empty((k, k)),
+        np.empty(7))
 
 
 def warm_up_gn():
