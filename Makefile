@@ -62,9 +62,9 @@ venv: $(VENV_STAMP)
 $(VENV_STAMP): | sysdeps
 	@$(call locked,.venv.lock) bash $(MAKE_VENV) $(PYTHON) $(VENV) $@ $(INSTALLER)
 
-# The numba kernels are compiled now, not in a user's first study: ahead of time into an
-# extension module (about 1 min of CPU, once per change of the kernels), or where that fails
-# just in time into numba's cache (about 2 min; rotor_id/estimation/kernels.py main). They
+# The numba kernels are compiled now, not in a user's first study: ahead of time into two
+# extension modules (two processes, about 2 min of CPU, once per change of the kernels), or
+# where that fails just in time into numba's cache (rotor_id/estimation/kernels.py main). They
 # need only the venv, so they compile while colcon builds the messages; their lines are printed
 # after colcon's.
 KERNELS_LOG := log/kernels_build.log
