@@ -40,6 +40,7 @@ results.
 
 import hashlib
 import importlib
+import importlib.util
 import json
 import multiprocessing
 import os
@@ -204,6 +205,39 @@ def _checked(function: str, compiled: Callable[..., Any],
     return call
 
 
+#: scipy's modules of BLAS and LAPACK function pointers, through which numba's compiled linear
+#: algebra (np.dot, np.linalg.solve in a kernel) calls the libraries
+_CAPSULE_MODULES = ('cython_blas', 'cython_lapack')
+
+
+def _load_capsule_modules() -> None:
+    """
+    Load scipy's BLAS and LAPACK pointer modules without the scipy.linalg package around them.
+
+    numba's compiled code imports them by their full names at its first matrix product, and
+    that import runs the package's ``__init__`` first: a third of a second, longer than a small
+    diagnosis's whole search. An import by full name is answered by ``sys.modules`` without
+    its package, so they are loaded from their files under those names here. Where scipy is
+    laid out otherwise, nothing is loaded and numba imports them itself, as it always could.
+    """
+    try:
+        import scipy
+        folder = Path(scipy.__file__).parent / 'linalg'
+        for name in _CAPSULE_MODULES:
+            full = f'scipy.linalg.{name}'
+            found = sorted(folder.glob(f'{name}.*.so')) or sorted(folder.glob(f'{name}.*.pyd'))
+            if full in sys.modules or not found:
+                continue
+            spec = importlib.util.spec_from_file_location(full, found[0])
+            if spec is None or spec.loader is None:
+                continue
+            module = importlib.util.module_from_spec(spec)
+            spec.loader.exec_module(module)
+            sys.modules[full] = module
+    except Exception:  # noqa: B902 - anything unexpected: numba's own import, as before
+        return
+
+
 def _load_ahead_of_time() -> SimpleNamespace | None:
     """Return the kernels compiled ahead of time (checked), or None (and why, in the status)."""
     name = ahead_of_time_name()
@@ -211,6 +245,7 @@ def _load_ahead_of_time() -> SimpleNamespace | None:
     if not described.exists():
         _state['ahead_error'] = f'{name} not built (make build compiles it)'
         return None
+    _load_capsule_modules()
     kernels = {}
     for function, built in json.loads(described.read_text()).items():
         module = importlib.import_module(f'rotor_id.estimation.{built["module"]}')

@@ -9,6 +9,8 @@ largest entry. The kernel itself must load (numba is a pinned requirement).
 """
 
 import os
+import subprocess
+import sys
 
 import numpy as np
 import pytest
@@ -693,3 +695,45 @@ def test_a_call_off_the_compiled_signature_goes_just_in_time():
     assert kernels.status()['just_in_time_calls'] == before + 1, 'a matching call went round'
     for a, b in zip(ahead, reference):
         np.testing.assert_allclose(a, b, rtol=1e-12, atol=1e-15)
+
+
+def test_the_compiled_linear_algebra_runs_without_importing_scipy_linalg():
+    """
+    A fit through the compiled kernels leaves the scipy.linalg package unimported.
+
+    numba's compiled matrix products and solves call BLAS and LAPACK through scipy's pointer
+    modules; the package around them takes a third of a second to import, a large share of a
+    short diagnosis. The loader reads the two modules alone; scipy.linalg imported later
+    still finds them.
+    """
+    code = '\n'.join([
+        'import sys',
+        'import numpy as np',
+        'from rotor_id.estimation import kernels',
+        'from rotor_id.estimation.output_error import Experiment, fit_output_error',
+        'from rotor_id.estimation.simulate import simulate',
+        'from rotor_id.physics.models import MultibladeWake, RotorConstants',
+        'from rotor_id.physics.stirring import StirringSchedule',
+        'model = MultibladeWake(RotorConstants(advance_ratio=0.0))',
+        'stirring = StirringSchedule(collective=2.0, t0=70.0)',
+        't = 70.0 + 0.1 * np.arange(121)',
+        'x0 = np.zeros(model.n_states)',
+        'y = simulate(model, np.array([0.5, 0.25, 0.125]), stirring, t, x0).y',
+        'y = y + 0.01 * np.random.default_rng(0).standard_normal(y.shape)',
+        'exp = Experiment(model, stirring, t, y, initial_state=np.zeros(model.n_states))',
+        "fit = fit_output_error([exp], ['A', 'AL_over_tau', 'inv_tau'], noise_std=0.01)",
+        "print(kernels.status()['compiled'])",
+        "print(sorted(m for m in sys.modules if m.startswith('scipy.linalg')))",
+        'import scipy.linalg',
+        'from scipy.linalg import cython_blas, cython_lapack',
+        "print(cython_blas is sys.modules['scipy.linalg.cython_blas'], fit.values.round(2))",
+    ])
+    env = {**os.environ, 'ROTOR_ID_KERNELS': 'numba'}
+    done = subprocess.run([sys.executable, '-c', code], capture_output=True, text=True, env=env,
+                          timeout=120)
+    assert done.returncode == 0, done.stderr
+    compiled, loaded, last = done.stdout.splitlines()
+    if compiled != 'ahead of time':
+        pytest.skip('no module compiled ahead of time here (make build compiles it)')
+    assert loaded == "['scipy.linalg.cython_blas', 'scipy.linalg.cython_lapack']", loaded
+    assert last.startswith('True'), last
