@@ -232,6 +232,19 @@ def entries_on_record(model: LinearModel, method: str, t: npt.ArrayLike, p: npt.
     return (np.ascontiguousarray(F.entries(t)), index), g
 
 
+#: the last results of :func:`system_on_record`, newest last: [(model, method, columns, p, t,
+#: u, (F, g))]. A fit asks for the same ones again (its initial states are fitted by one
+#: simulation and its residuals and sensitivities come from the next, at the same parameters;
+#: the screening's score test repeats the evaluation its fit starts from): a third of a
+#: diagnosis's calls. The model is held, so another never takes its place; the arrays are
+#: returned as they are, which no caller writes into (the compiled kernels read them).
+_results: list[tuple] = []
+RESULTS_KEPT = 6
+#: ... each where its forcing array is at most this large (a short record's; a long record's
+#: chunk of sensitivities is not held)
+RESULT_BYTES_KEPT = 8 * 2**20
+
+
 def system_on_record(model: LinearModel, method: str, t: np.ndarray, p: npt.ArrayLike,
                      u: npt.ArrayLike, columns: list[int] | None = None
                      ) -> tuple['Series | np.ndarray', np.ndarray]:
@@ -242,12 +255,24 @@ def system_on_record(model: LinearModel, method: str, t: np.ndarray, p: npt.Arra
     rounding :func:`on_record` checks.
     """
     p, u = np.asarray(p, dtype=float), np.asarray(u, dtype=float)
+    wanted = None if columns is None else [int(c) for c in columns]
+    for kept_model, kept_method, kept_columns, kept_p, kept_t, kept_u, result in _results:
+        if kept_model is model and kept_method == method and kept_columns == wanted \
+                and kept_t.shape == t.shape and kept_u.shape == u.shape \
+                and np.array_equal(kept_p, p) and np.array_equal(kept_t, t) \
+                and np.array_equal(kept_u, u):
+            return result
     series = _series(model, method, t, p, u, columns)
     if series is not None:
         F, b, B = series
-        return F, b.values(t) + B.values(t, u)
-    F, g = compact(model, method, t, p, u)
-    return (F, g) if columns is None else (F[:, columns], g[:, columns])
+        result = F, b.values(t) + B.values(t, u)
+    else:
+        F, g = compact(model, method, t, p, u)
+        result = (F, g) if columns is None else (F[:, columns], g[:, columns])
+    if result[1].nbytes <= RESULT_BYTES_KEPT:
+        _results.append((model, method, wanted, p.copy(), t.copy(), u.copy(), result))
+        del _results[:-RESULTS_KEPT]
+    return result
 
 
 def nonzero_entries(A: np.ndarray) -> tuple[np.ndarray, tuple[np.ndarray, ...]]:

@@ -178,3 +178,42 @@ def test_a_function_zero_at_every_phase_sums_to_zeros_of_its_shape():
         series = Series.of(values, 0.0, weights is not None)
         assert series.entries(t, weights).shape[1] == 0
         np.testing.assert_array_equal(series.values(t, weights), np.zeros((t.size, 4, 2)))
+
+
+def test_an_evaluation_asked_again_is_kept_and_any_change_evaluates_the_model(monkeypatch):
+    # a fit evaluates the same parameters twice (its initial states, then its residuals): the
+    # second time is answered from the kept result; other parameters, inputs, columns or
+    # another model object are evaluated, and give what the model gives
+    from rotor_id.physics import revolution
+    calls = []
+
+    def counting(*args, **kwargs):
+        calls.append(args[1])
+        return compact(*args, **kwargs)
+    monkeypatch.setattr(revolution, 'compact', counting)
+    rng = np.random.default_rng(5)
+    model = _models()['delay+azimuth']
+    u = _inputs(model, rng)
+    p = _away_from_neutral(model, rng)
+    first = on_record(model, 'system_jacobian', GRID, p, u)
+    count = len(calls)
+    assert count > 0
+    again = on_record(model, 'system_jacobian', GRID, p.copy(), u.copy())
+    assert len(calls) == count
+    for a, b in zip(first, again):
+        assert np.array_equal(a, b)
+    other_p = p.copy()
+    other_p[0] *= 1.01
+    other_u = u.copy()
+    other_u[-1, 0] += 1e-3
+    for changed_model, changed_p, changed_u, columns in (
+            (model, other_p, u, None), (model, p, other_u, None), (model, p, u, [0, 2]),
+            (_models()['delay+azimuth'], p, u, None)):
+        before = len(calls)
+        got = on_record(changed_model, 'system_jacobian', GRID, changed_p, changed_u, columns)
+        assert len(calls) > before
+        F_exact, g_exact = compact(changed_model, 'system_jacobian', GRID, changed_p, changed_u)
+        if columns is not None:
+            F_exact, g_exact = F_exact[:, columns], g_exact[:, columns]
+        np.testing.assert_allclose(got[0], F_exact, rtol=0.0, atol=1e-9 * np.abs(F_exact).max())
+        np.testing.assert_allclose(got[1], g_exact, rtol=0.0, atol=1e-9 * np.abs(g_exact).max())
