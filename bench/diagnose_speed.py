@@ -27,7 +27,7 @@ whether the verdicts of the command and in-process agree. The targets: the comma
 wall on every recording and ≤ 1.5 s median over them (medians of the rounds; the machine is
 shared, so read it beside the load average, the CPU time and the ratio to the peer).
 
-    python bench/diagnose_speed.py [--repeat 3] [--no-write]
+    python bench/diagnose_speed.py [--repeat 3] [--no-write] [--output NAME.md]
 """
 
 import argparse
@@ -106,6 +106,8 @@ def main(argv=None):
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[1])
     parser.add_argument('--repeat', type=int, default=3)
     parser.add_argument('--no-write', action='store_true')
+    parser.add_argument('--output', default='diagnose_speed.md',
+                        help='results file under bench/results/ (another machine: its own name)')
     args = parser.parse_args(argv)
     if not RECORDINGS.is_dir():
         say(f'no practice recordings at {RECORDINGS}: nothing to time')
@@ -178,12 +180,13 @@ def main(argv=None):
               f'({"met" if median <= TARGET_MEDIAN_S else "MISSED"}: ≤ {TARGET_MEDIAN_S} s).']
     load = ' / '.join(f'{v:.2f}' for v in os.getloadavg())
     lines += ['', f'Load average (1/5/15 min) at the end: {load}.']
-    lines += ['', 'Reproduce: `python bench/diagnose_speed.py --repeat 3`.']
+    output = '' if args.output == 'diagnose_speed.md' else f' --output {args.output}'
+    lines += ['', f'Reproduce: `python bench/diagnose_speed.py --repeat {args.repeat}{output}`.']
     text = '\n'.join(lines) + '\n'
     print(text)
     if not args.no_write:
         RESULTS_DIR.mkdir(exist_ok=True)
-        (RESULTS_DIR / 'diagnose_speed.md').write_text(text)
+        (RESULTS_DIR / args.output).write_text(text)
     return 0 if ok else 1
 
 
