@@ -108,7 +108,7 @@ test:
 	@echo "== test: pytest $(PYTEST_ARGS) at the lowest CPU priority, beside the live tests"
 	@$(WS_ENV) && { python -m pytest -p no:cacheprovider --durations=10 $(LIVE_TESTS) \
 	     > $(LIVE_LOG) 2>&1 & live=$$!; \
-	   setsid -w bash -c 'echo 19 > /proc/self/autogroup 2> /dev/null; exec nice -n 19 \
+	   setsid -w bash -c 'echo 19 2> /dev/null > /proc/self/autogroup; exec nice -n 19 \
 	     python -m pytest $(PYTEST_ARGS) $(addprefix --ignore=,$(LIVE_TESTS))' & rest=$$!; \
 	   trap 'kill -INT -- -$$rest 2> /dev/null' INT TERM; status=0; \
 	   wait $$rest || status=$$?; wait $$live || status=1; \
