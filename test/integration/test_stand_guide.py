@@ -23,7 +23,6 @@ import pytest
 
 TRUTH = {'A': 0.5, 'AL_over_tau': 0.25, 'inv_tau': 0.125}    # rotor_plant's defaults
 TRUTH2 = {'A': 0.6, 'AL_over_tau': 0.3, 'inv_tau': 0.15}     # the second stand's rotor
-STAND2_RATE_HZ = 500.0                                       # and its sample rate
 
 
 GUIDE = REPO_ROOT / 'docs' / 'test_stand.md'
@@ -169,15 +168,11 @@ def stand(tmp_path_factory):
             assert words[:3] == ['ros2', 'run', 'rotor_id'] and words[4] == '--ros-args', line
             procs.start(words[3], ros_args=words[5:], cwd=work)
             # "a second stand on the same network gets /stand2 and shares nothing with it":
-            # the same lines in /stand2, its rotor with other true values, sampled at another
-            # rate (the identifier measures it): its plant publishes half as many samples, so
-            # that the eight node processes fit a 2-core machine (at 1 kHz both plants fell
-            # behind the clock there in a CI run, and neither stand's test point could run)
+            # the same lines in /stand2, its rotor with other true values
             if words[3] in ('identifier', 'stirring_input', 'rotor_plant'):
                 other = [w.replace('__ns:=/stand1', '__ns:=/stand2') for w in words[5:]]
                 if words[3] == 'rotor_plant':
-                    other += [a for k, v in {**TRUTH2, 'seed': 5,
-                                             'sample_rate_hz': STAND2_RATE_HZ}.items()
+                    other += [a for k, v in {**TRUTH2, 'seed': 5}.items()
                               for a in ('-p', f'{k}:={v}')]
                 procs.start(f'{words[3]}_2', node=words[3], ros_args=other, cwd=work)
         # every node up: the five statuses on /diagnostics
