@@ -91,8 +91,10 @@ PYTEST_ARGS ?= -n 2 --durations=25
 # behind the clock and a stand could not start its next test point, a 200 Hz command stream
 # ticked late. Linux shares the CPU between sessions before it weighs nice values within one
 # (autogroups), and every node process starts its own session: so the rest run in a session
-# of their own whose autogroup is lowered as well (raising either needs no privilege; Ctrl-C
-# is passed on to that session). The live lines are printed after the others'.
+# of their own whose autogroup is lowered as well (raising either needs no privilege). The
+# live tests run in the foreground, so that Ctrl-C stops them (their nodes torn down); the
+# other session is then terminated (a background job ignores SIGINT). The live lines are
+# printed after the others'.
 LIVE_TESTS := test/integration test/nodes
 LIVE_LOG := log/live_tests.log
 
@@ -106,12 +108,11 @@ test:
 	   $(MAKE) build || status=$$?; wait $$stock || status=1; cat $(STOCK_VENV_LOG); \
 	   exit $$status; }
 	@echo "== test: pytest $(PYTEST_ARGS) at the lowest CPU priority, beside the live tests"
-	@$(WS_ENV) && { python -m pytest -p no:cacheprovider --durations=10 $(LIVE_TESTS) \
-	     > $(LIVE_LOG) 2>&1 & live=$$!; \
-	   setsid -w bash -c 'echo 19 2> /dev/null > /proc/self/autogroup; exec nice -n 19 \
-	     python -m pytest $(PYTEST_ARGS) $(addprefix --ignore=,$(LIVE_TESTS))' & rest=$$!; \
-	   trap 'kill -INT -- -$$rest 2> /dev/null' INT TERM; status=0; \
-	   wait $$rest || status=$$?; wait $$live || status=1; \
+	@$(WS_ENV) && { setsid -w bash -c 'echo 19 2> /dev/null > /proc/self/autogroup; exec \
+	     nice -n 19 python -m pytest $(PYTEST_ARGS) $(addprefix --ignore=,$(LIVE_TESTS))' & \
+	   rest=$$!; trap 'kill -TERM -- -$$rest 2> /dev/null' INT TERM; status=0; \
+	   python -m pytest -p no:cacheprovider --durations=10 $(LIVE_TESTS) > $(LIVE_LOG) 2>&1 \
+	     || status=1; wait $$rest || status=$$?; \
 	   echo "== test: the live tests ($(LIVE_TESTS)), one at a time beside the rest"; \
 	   cat $(LIVE_LOG); exit $$status; }
 	@$(MAKE) test-stock
