@@ -25,13 +25,15 @@ REQS := requirements-jazzy.in
 CONS := constraints-jazzy.txt
 PATCH := tools/patch_cmake_exports.py
 MAKE_VENV := tools/make_venv.sh
+# sourced by both venv scripts
+VENV_COMMON := tools/venv_common.sh
 # uv (fast) or pip; uv falls back to pip by itself if uv cannot be installed.
 INSTALLER ?= uv
 
 # The venv is keyed on the content of the pins and of the install scripts, and on where the
 # clone lives (the venv is not relocatable): a stamp with that key makes `make venv` a no-op.
-VENV_KEY := $(shell { cat $(REQS) $(CONS) $(PATCH) $(MAKE_VENV); echo '$(CURDIR) $(PYTHON)'; } \
-              | sha256sum | cut -c1-16)
+VENV_KEY := $(shell { cat $(REQS) $(CONS) $(PATCH) $(MAKE_VENV) $(VENV_COMMON); \
+              echo '$(CURDIR) $(PYTHON)'; } | sha256sum | cut -c1-16)
 VENV_STAMP := $(VENV)/.stamp-$(VENV_KEY)
 
 COLCON_PKG_ARGS := --base-paths . msg_defs
@@ -126,7 +128,7 @@ PYTHON_STOCK ?= python3.12
 VENV_STOCK := .venv-stock
 REQS_STOCK := requirements-stock.txt
 MAKE_VENV_STOCK := tools/make_stock_venv.sh
-VENV_STOCK_KEY := $(shell { cat $(REQS_STOCK) $(MAKE_VENV_STOCK); \
+VENV_STOCK_KEY := $(shell { cat $(REQS_STOCK) $(MAKE_VENV_STOCK) $(VENV_COMMON); \
                     echo '$(CURDIR) $(PYTHON_STOCK)'; } | sha256sum | cut -c1-16)
 VENV_STOCK_STAMP := $(VENV_STOCK)/.stamp-$(VENV_STOCK_KEY)
 STOCK_TESTS := test/physics test/estimation test/io test/commands test/report \

@@ -28,28 +28,11 @@ if ! "$python" -c '' 2>/dev/null; then
 fi
 
 echo "== venv-stock: installing $reqs into $venv ($(basename "$stamp"))"
-here="$(pwd -P)"
-if [ -d "$venv" ] && [ "$(cat "$venv/.origin" 2>/dev/null)" != "$here" ]; then
-  echo "   $venv was made elsewhere (or is incomplete): recreating it"
-  rm -rf "$venv"
-fi
-if [ ! -x "$venv/bin/python" ]; then
-  # without ensurepip's pip (8 s of CPU beside the main venv's install), as tools/make_venv.sh
-  "$python" -m venv --without-pip "$venv"
-  echo "$here" > "$venv/.origin"
-fi
-rm -f "$venv"/.stamp-*
-
-vpy="$venv/bin/python"
-venv_pip() {
-  "$vpy" -m pip --version > /dev/null 2>&1 || "$vpy" -m ensurepip > /dev/null
-  "$vpy" -m pip "$@"
-}
+# shellcheck source=tools/venv_common.sh
+source tools/venv_common.sh
+fresh_venv
 uv_pin="$(grep -i '^uv==' constraints-jazzy.txt || echo uv)"
-if [ "$installer" = uv ] && {
-     "$python" -m pip --python "$vpy" install -q --disable-pip-version-check "$uv_pin" \
-       > /dev/null 2>&1 ||
-     venv_pip install -q --disable-pip-version-check "$uv_pin" 2>/dev/null; }; then
+if [ "$installer" = uv ] && install_uv "$uv_pin"; then
   echo "   installer: uv $("$venv/bin/uv" --version | cut -d' ' -f2)"
   # hard links into uv's cache: nothing here writes through them (compiling adds new files)
   UV_PYTHON_DOWNLOADS=never UV_NO_PROGRESS=1 UV_LINK_MODE=hardlink \

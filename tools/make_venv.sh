@@ -13,32 +13,10 @@ reqs=requirements-jazzy.in cons=constraints-jazzy.txt patch=tools/patch_cmake_ex
 [ -f "$stamp" ] && exit 0
 
 echo "== venv: installing the pinned wheels into $venv ($(basename "$stamp"))"
-here="$(pwd -P)"
-# The venv is not relocatable (shebangs, patched CMake paths): recreate it if it was made
-# for another directory, or if an earlier attempt died before writing .origin.
-if [ -d "$venv" ] && [ "$(cat "$venv/.origin" 2>/dev/null)" != "$here" ]; then
-  echo "   $venv was made elsewhere (or is incomplete): recreating it"
-  rm -rf "$venv"
-fi
-if [ ! -x "$venv/bin/python" ]; then
-  # without ensurepip's pip (8 s, most of it byte-compiling pip): uv installs pip with the rest
-  "$python" -m venv --without-pip "$venv"
-  echo "$here" > "$venv/.origin"
-fi
-rm -f "$venv"/.stamp-*
-
-vpy="$venv/bin/python"
-# the venv's own pip, from ensurepip where it has none
-venv_pip() {
-  "$vpy" -m pip --version > /dev/null 2>&1 || "$vpy" -m ensurepip > /dev/null
-  "$vpy" -m pip "$@"
-}
-# uv into the venv: by the system Python's pip (22.3 and later install into another environment
-# with --python), else by the venv's own
-if [ "$installer" = uv ] && {
-     "$python" -m pip --python "$vpy" install -q --disable-pip-version-check -c "$cons" uv \
-       > /dev/null 2>&1 ||
-     venv_pip install -q --disable-pip-version-check -c "$cons" uv 2>/dev/null; }; then
+# shellcheck source=tools/venv_common.sh
+source tools/venv_common.sh
+fresh_venv
+if [ "$installer" = uv ] && install_uv -c "$cons" uv; then
   echo "   installer: uv $("$venv/bin/uv" --version | cut -d' ' -f2)"
   # hard links into uv's cache (7 s where copies took 20 s): the CMake-export patch writes a
   # new file over each one it changes (tools/patch_cmake_exports.py), never through a link,
