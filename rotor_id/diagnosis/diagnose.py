@@ -185,7 +185,10 @@ def _baseline(record, description, window_s, say):
     def base_progress(info):
         rms = math.sqrt(float(np.mean(np.square(info['noise_std']))))
         say(f'baseline: iteration {info["iteration"]}, residual RMS {rms:.5g} rad')
-    ident = identify(record, description, progress=base_progress, window_s=window_s)
+    # the residuals are judged here (channel statistics, :func:`residuals_are_noise`): the
+    # identification's own adequacy check would be computed and never read
+    ident = identify(record, description, progress=base_progress, window_s=window_s,
+                     check_adequacy=False)
     part = record.window(*window_s)
     blade_sigma = rs.blade_noise_floor(part.blade_flap)
     exp0 = ident.experiments[0]
