@@ -633,32 +633,33 @@ def output_error_score(runs, unknowns, guess, known, noise_var, max_step=None, e
     return lm, {n: float(variance[names.index(n)]) for n in extra if n in names}
 
 
+def tested_variants(effect, base_model):
+    """Return the variants of a tested effect, each its own score test ('' for one)."""
+    if effect == 'blade_dissimilarity':
+        return [f'blade_{blade}' for blade in base_model.blades]
+    return ['']
+
+
 def screen_candidate(job, noise_var):
     """
-    Return [(variant, LM, k, var)] of a screened effect's score tests at the current model.
+    Return (variant, LM, k, var) of a screened effect's score test at the current model.
 
     k: the extra parameters and estimated extra initial states; var: {extra parameter: its
-    variance here}. A blade dissimilarity is tested per blade; a lag (not nested: τ > 0) by
-    its delay d = τ at d = 0 (:data:`SCREENED_AS`; var under the lag's parameter name).
+    variance here}. A blade dissimilarity is tested per blade (``job.variant``, one of
+    :func:`tested_variants`); a lag (not nested: τ > 0) by its delay d = τ at d = 0
+    (:data:`SCREENED_AS`; var under the lag's parameter name).
     """
     setting = job.setting
-    base_model = model_for(setting.description)
-    experiments = setting.experiments(base_model)
+    experiments = setting.experiments(model_for(setting.description))
     effect = job.effect
     if effect in LAG_PARAMETER:
         job = _replace(job, effect=SCREENED_AS[effect])
-    blades = aug.BladeView(base_model).blades if effect == 'blade_dissimilarity' else [None]
-    out = []
-    for blade in blades:
-        trial = job if blade is None else _replace(job, variant=f'blade_{blade}')
-        runs, model, unknowns, extra, guess, max_step = build(trial, experiments)
-        lm, var = output_error_score(runs, unknowns, guess, setting.known, noise_var, max_step,
-                                     extra)
-        if effect in LAG_PARAMETER:
-            var = as_lag_variance(effect, var)
-        k = len(extra) + _n_initial(runs) - _n_initial(experiments)
-        out.append(('' if blade is None else f'blade_{blade}', lm, k, var))
-    return out
+    runs, model, unknowns, extra, guess, max_step = build(job, experiments)
+    lm, var = output_error_score(runs, unknowns, guess, setting.known, noise_var, max_step,
+                                 extra)
+    if effect in LAG_PARAMETER:
+        var = as_lag_variance(effect, var)
+    return job.variant, lm, len(extra) + _n_initial(runs) - _n_initial(experiments), var
 
 
 #: Starting Lock-number differences: the fit is bilinear (ε multiplies the state), and from

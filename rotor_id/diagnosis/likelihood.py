@@ -15,6 +15,7 @@ from dataclasses import dataclass, field, replace
 from functools import cached_property, partial
 import math
 import multiprocessing
+import time
 
 import numpy as np
 
@@ -22,7 +23,8 @@ from rotor_id import residuals as rs
 from rotor_id.diagnosis import noisy
 from rotor_id.diagnosis.catalogue import (
     as_lag_variance, CandidateFit, COMPOSE_ORDER, EFFECTS, FAILURES, fit_candidate, fit_runs,
-    Job, LAG_PARAMETER, NOISE, screen_candidate, SCREENED, SCREENED_AS, start_values)
+    Job, LAG_PARAMETER, NOISE, screen_candidate, SCREENED, SCREENED_AS, start_values,
+    tested_variants)
 from rotor_id.estimation import kernels
 from rotor_id.estimation.simulate import DEFAULT_MAX_STEP
 
@@ -41,6 +43,8 @@ class Workers:
         self.processes = int(processes)
         self._pool = None
         self._all_in_workers = False
+        #: {job key: CPU seconds of its last run}: the longest jobs are queued first
+        self.costs = {}
 
     def _start(self):
         if self._pool is None:
@@ -48,14 +52,32 @@ class Workers:
             self._pool = multiprocessing.get_context('fork').Pool(processes=self.processes)
         return self._pool
 
-    def apply(self, function, items):
-        """Return [function(item)] in order, in the workers where that pays."""
+    def apply(self, function, items, keys=None):
+        """
+        Return [function(item)] in order, in the workers where that pays.
+
+        ``keys`` name the jobs (a tested effect's variant, a fit's new effect): jobs of the
+        same key cost alike from one model to the next, so the longest known ones are queued
+        first and those never run before them (longest processing time first: a batch ends
+        with its short jobs spread over the workers, not one long job alone).
+        """
         items = list(items)
+        keys = list(keys) if keys is not None else [None] * len(items)
         if self.processes <= 1 or (len(items) <= 1 and not self._all_in_workers) or not items:
-            return [function(item) for item in items]
-        # one job at a time: jobs differ in cost tenfold (a blade's variant, a lag's short step),
-        # and map's default chunks of several leave one worker idle at a batch's end
-        return self._start().map(function, items, chunksize=1)
+            timed = [_timed_call((function, item)) for item in items]
+        else:
+            order = sorted(range(len(items)), key=lambda i: -self.costs.get(keys[i], math.inf))
+            # one job at a time: jobs differ in cost tenfold, and map's default chunks of
+            # several leave one worker idle at a batch's end
+            done = self._start().map(_timed_call, [(function, items[i]) for i in order],
+                                     chunksize=1)
+            timed = [None] * len(items)
+            for i, result in zip(order, done):
+                timed[i] = result
+        for key, (_, cpu_s) in zip(keys, timed):
+            if key is not None:
+                self.costs[key] = cpu_s
+        return [result for result, _ in timed]
 
     def together(self, calls):
         """
@@ -82,6 +104,14 @@ class Workers:
             self._pool.close()
             self._pool.join()
             self._pool = None
+
+
+def _timed_call(function_and_item):
+    """Return (function(item), its CPU seconds): a job as the workers run it."""
+    function, item = function_and_item
+    start = time.process_time()
+    result = function(item)
+    return result, time.process_time() - start
 
 
 def canonical(effects):
@@ -262,7 +292,8 @@ class OutputError(Likelihood):
         keys = [canonical(effects) for effects, _ in requests]
         todo = {k: self._job(k, start) for k, (_, start) in zip(keys, requests)
                 if k and k not in self._memo}
-        fits = self.workers.apply(fit_candidate, todo.values())
+        fits = self.workers.apply(fit_candidate, todo.values(),
+                                  [('fit', job.effect) for job in todo.values()])
         self._memo.update((key, self._result(key, fit)) for key, fit in zip(todo, fits))
         return [self.baseline() if not k else self._memo[k] for k in keys]
 
@@ -283,11 +314,16 @@ class OutputError(Likelihood):
         """
         noise_var = np.asarray(current.estimate.noise_std, dtype=float)**2
         tested = {e: SCREENED_AS.get(e, e) for e in effects if e in SCREENED}
-        jobs = {t: (Job(self.setting, t, prior=current.effects,
-                        start=current.start_values()), noise_var)
-                for t in set(tested.values())}
-        names = sorted(jobs)
-        found = dict(zip(names, self.workers.apply(_screen_job, [jobs[n] for n in names])))
+        start = current.start_values()
+        # each variant its own job: a blade dissimilarity's, one per blade
+        keys = [(t, v) for t in sorted(set(tested.values()))
+                for v in tested_variants(t, self.ident.model)]
+        jobs = [(Job(self.setting, t, v, prior=current.effects, start=start), noise_var)
+                for t, v in keys]
+        found = {}
+        for (t, _), test in zip(keys, self.workers.apply(_screen_job, jobs, keys)):
+            if test is not None:
+                found.setdefault(t, []).append(test)
         return _tests_by_effect(effects, tested, found)
 
 
@@ -370,7 +406,8 @@ class FilterError(Likelihood):
         for key, (_, start) in zip(keys, requests):
             if key not in self._memo and key not in todo:
                 todo[key] = self._request(key, start)
-        for key, fit in zip(todo, self.workers.apply(_filter_fit_job, todo.values())):
+        costs = [('filter fit',) + (item[0] or ('',))[:1] for item in todo.values()]
+        for key, fit in zip(todo, self.workers.apply(_filter_fit_job, todo.values(), costs)):
             self._memo[key] = self._result(key, fit)
             if self._memo[key] is not None:
                 self.fits.append(fit)
@@ -381,11 +418,11 @@ class FilterError(Likelihood):
         kept = [ev for ev in current.effects if ev[0] != NOISE]
         tested = {e: SCREENED_AS.get(e, e) for e in effects if e == NOISE or e in SCREENED}
         # each variant its own job: a blade dissimilarity's are the longest, one per blade
-        items = [(t, v, kept, current.fit, self.setting, self.setup)
-                 for t in sorted(set(tested.values()))
-                 for v in noisy.screen_variants(t, self.setup)]
+        keys = [(NOISE, t, v) for t in sorted(set(tested.values()))
+                for v in tested_variants(t, self.setup.base_model)]
+        items = [(t, v, kept, current.fit, self.setting, self.setup) for _, t, v in keys]
         found = {}
-        for item, test in zip(items, self.workers.apply(_filter_score_job, items)):
+        for item, test in zip(items, self.workers.apply(_filter_score_job, items, keys)):
             if test is not None:
                 found.setdefault(item[0], []).append(test)
         return _tests_by_effect(effects, tested, found)
@@ -402,6 +439,15 @@ class ModelSpace(Likelihood):
         self.output_error, self.filter_error = output_error, filter_error
         self.effects = tuple(effects)
 
+    def _longest_first(self):
+        """
+        Return the likelihoods, filter error first: its jobs are queued first in the workers.
+
+        A filter-error job costs several output-error ones; queued last, it runs alone at
+        the end of its batch while the other worker waits.
+        """
+        return (self.filter_error, self.output_error)
+
     def _owner(self, effects):
         return self.filter_error if any(e == NOISE for e, _ in effects) else self.output_error
 
@@ -413,7 +459,7 @@ class ModelSpace(Likelihood):
         """Fit [(effects, start)], each by its likelihood, the batches at once in the workers."""
         out = [None] * len(requests)
         batches = []
-        for owner in (self.output_error, self.filter_error):
+        for owner in self._longest_first():
             mine = [i for i, (effects, _) in enumerate(requests)
                     if self._owner(effects) is owner]
             if mine and owner is not None:
@@ -433,7 +479,7 @@ class ModelSpace(Likelihood):
         """Score-test effects at ``current`` with the likelihood of ``current + effect``."""
         out = dict.fromkeys(effects)
         batches = []
-        for owner in (self.output_error, self.filter_error):
+        for owner in self._longest_first():
             mine = [e for e in effects if self._owner(current.effects + ((e, ''),)) is owner]
             if mine and owner is not None:
                 batches.append(partial(owner.score_many, current, mine))

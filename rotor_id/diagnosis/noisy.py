@@ -148,13 +148,6 @@ def _score(prob, theta, extra=(), one_sided=None):
     return lm, {n: float(variance[names.index(n)]) for n in extra if n in names}
 
 
-def screen_variants(effect, setup):
-    """Return the variants of an effect that are score-tested one by one ('' for one)."""
-    if effect == 'blade_dissimilarity':
-        return [f'blade_{blade}' for blade in setup.base_model.blades]
-    return ['']
-
-
 def screen(test, variant, kept, current, ctx, setup):
     """
     Score-test one variant of a tested effect on top of ``current`` (filter error).
@@ -162,7 +155,7 @@ def screen(test, variant, kept, current, ctx, setup):
     Returns (variant, LM, k, {name: variance}). A lag is tested through its first-order
     equivalent, a delay nested at d = 0 (:data:`~rotor_id.diagnosis.catalogue.SCREENED_AS`),
     as output error's screening does; a blade dissimilarity blade by blade
-    (:func:`screen_variants`).
+    (:func:`~rotor_id.diagnosis.catalogue.tested_variants`).
     """
     est = current.estimate
     _, runs, unknowns, extra, guess, max_step, rows = _stack(

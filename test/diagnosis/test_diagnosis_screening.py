@@ -43,7 +43,7 @@ def _job(effect, record, description):
 def test_score_statistic_predicts_the_likelihood_gain(small_lag):
     record, description = small_lag
     job, est = _job('time_delay', record, description)
-    [(_, lm, k, var)] = screen_candidate(job, np.asarray(est.noise_std)**2)
+    _, lm, k, var = screen_candidate(job, np.asarray(est.noise_std)**2)
     fit = fit_candidate(job)
     # the information at the baseline is the fit's to first order: σ of the delay within 15 %
     _, std = fit.parameters['delay_rad']

@@ -1,0 +1,45 @@
+"""The worker pool of the diagnosis: results in order, the longest known jobs queued first."""
+
+import time
+
+from rotor_id.diagnosis.likelihood import Workers
+
+
+def _started(seconds):
+    """Sleep (no CPU) and return when this job started, on the clock all processes share."""
+    start = time.monotonic()
+    time.sleep(seconds)
+    return start
+
+
+def _busy(item):
+    """Spend CPU for about ``item`` seconds; return the item."""
+    end = time.process_time() + item
+    while time.process_time() < end:
+        pass
+    return item
+
+
+def test_results_come_in_order_and_each_key_keeps_its_cost():
+    workers = Workers(2)
+    try:
+        items = [0.2, 0.0, 0.1]
+        assert workers.apply(_busy, items, ['a', 'b', 'c']) == items
+    finally:
+        workers.close()
+    # the CPU seconds each job took, measured where it ran
+    assert workers.costs['a'] > workers.costs['c'] > workers.costs['b']
+    assert 0.15 < workers.costs['a'] < 0.5
+
+
+def test_the_longest_known_job_is_queued_before_shorter_ones():
+    workers = Workers(2)
+    workers.costs.update(short=0.01, long=1.0)
+    try:
+        # two workers: the first two jobs queued start at once, the third when one ends
+        starts = dict(zip(['short', 'long', 'new'],
+                          workers.apply(_started, [0.3, 0.3, 0.3], ['short', 'long', 'new'])))
+    finally:
+        workers.close()
+    # a job never run (no cost yet) and the long one first; the short one after them
+    assert starts['short'] - max(starts['long'], starts['new']) > 0.2
