@@ -266,7 +266,7 @@ class _Search:
         smaller = self.candidates.get(rest)
         if smaller is None or not smaller.fitted:
             return math.inf
-        test = tests_at(self.space, self, smaller.result).get(new[0])
+        test = tests_at(self.space, self, smaller.result, [new[0]]).get(new[0])
         if test is None:
             return math.inf
         key = canonical(rest + (new,))
@@ -354,10 +354,12 @@ class _Search:
             requests, beat = {}, log_post(best) + math.log(self.policy.fit_share)
             for out in best.effects:
                 rest = tuple(ev for ev in best.effects if ev != out)
-                for new in singles:
-                    if new[0] in best.names \
-                            or any(new[0] in equivalent(e, self.mu) for e, _ in rest):
-                        continue
+                news = [new for new in singles if new[0] not in best.names
+                        and not any(new[0] in equivalent(e, self.mu) for e, _ in rest)]
+                smaller = self.candidates.get(rest)
+                if smaller is not None and smaller.fitted:     # the swaps' tests in one batch
+                    tests_at(self.space, self, smaller.result, [e for e, _ in news])
+                for new in news:
                     key = canonical(rest + (new,))
                     # branch and bound at the model the swap extends, as in a forward step
                     if (key not in candidates or not candidates[key].fitted) \
@@ -454,14 +456,15 @@ def search(space, effects, prior, policy, mu=0.0, say=None, adequate=None):
                      effects=tuple(effects), mu=mu)
 
 
-def tests_at(space, table, result):
+def tests_at(space, table, result, only=None):
     """
-    Return the score tests of every open effect at a fitted explanation (cached).
+    Return the score tests of every open effect (or of those in ``only``) at a fit (cached).
 
     ``table``: a :class:`Selection` or the search in progress (``tests``, ``effects``, ``mu``).
     """
     here = table.tests.setdefault(result.effects, {})
-    asked = [e for e in _open_effects(result, table.effects, table.mu) if e not in here]
+    asked = [e for e in _open_effects(result, table.effects, table.mu)
+             if e not in here and (only is None or e in only)]
     for effect, test in (space.score_many(result, asked) if asked else {}).items():
         if test is not None:
             here[effect] = test

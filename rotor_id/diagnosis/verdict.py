@@ -98,11 +98,28 @@ def acceptance_noncentrality(result, test, prior, policy, rho):
     return noncentrality_for_power(c, k, policy.detection_power)
 
 
+def _tested_at(selection, top):
+    """
+    Return the fit whose score tests give the detection limits: the verdict's model.
+
+    Where the search score-tested at a first-order equivalent of it instead (it stopped at a
+    delay, a lag is named), that fit: the same information to first order, and the same open
+    effects (equivalence is symmetric).
+    """
+    if top.effects in selection.tests:
+        return top.result
+    return next((c.result for c in selection.candidates.values()
+                 if c.fitted and c.effects in selection.tests
+                 and c.result.likelihood == top.result.likelihood
+                 and same_physics(top.names, c.names, selection.mu)), top.result)
+
+
 def detection_limits(space, selection, top, prior, policy):
     """Return :class:`DetectionLimit` of every open effect at the verdict's model."""
     rho = shared_rho(selection.candidates.values())
     out = []
-    for effect, test in sorted(tests_at(space, selection, top.result).items()):
+    tested = _tested_at(selection, top)
+    for effect, test in sorted(tests_at(space, selection, tested).items()):
         lam = acceptance_noncentrality(top.result, test, prior, policy, rho)
         if not math.isfinite(lam):
             continue

@@ -32,7 +32,7 @@ class TableSpace:
 
     def __init__(self, table, rho=1.0, at_bound=(), variance=1e-4):
         self.table, self.rho, self.at_bound, self.variance = table, rho, at_bound, variance
-        self.fits, self.refits = [], []
+        self.fits, self.refits, self.scored = [], [], []
 
     def _result(self, effects, gain_shift=0.0):
         gain, k = self.table.get(frozenset(e for e, _ in effects), (None, None))
@@ -63,6 +63,7 @@ class TableSpace:
         return self._result(effects, gain_shift=self.table.get('restart_gain', 0.0))
 
     def score_many(self, current, effects):
+        self.scored.append(current.effects)
         return {e: self.score(current, e) for e in effects}
 
     def score(self, current, effect):
@@ -157,6 +158,20 @@ def test_equivalents_share_the_probability_and_the_established_one_is_named():
     assert set(shares) == {'sensor_lag', 'pitch_actuator_lag', 'time_delay'}
     assert sum(shares.values()) == pytest.approx(1.0)
     assert shares['pitch_actuator_lag'] > shares['sensor_lag'] > shares['time_delay']
+
+
+def test_detection_limits_at_a_named_equivalent_come_from_the_tests_the_search_made():
+    table = {frozenset(['sensor_lag']): (80.0, 1), frozenset(['pitch_actuator_lag']): (80.2, 1),
+             frozenset(['time_delay']): (79.9, 1)}
+    explanation, selection, space = _run(table)
+    # the search went on from the most probable form; the established one is named
+    assert selection.final.names == ('pitch_actuator_lag',)
+    assert explanation.effect == 'sensor_lag'
+    # its limits are those of the equivalent's score tests: no test at the named model
+    assert (('sensor_lag', ''),) not in space.scored
+    limits = {d.effect: d.limits for d in explanation.detection_limits}
+    assert set(limits) == {'sensor_bias', 'flap_frequency', 'sensor_gain'}
+    assert all(v > 0.0 for d in limits.values() for v in d.values())
 
 
 def test_rivals_that_are_not_equivalent_take_the_confidence_away():
