@@ -181,14 +181,16 @@ def misfit_removed(result, base):
     return float((before - after) / before) if before > 0.0 else 0.0
 
 
-def _baseline(record, description, window_s, say):
+def _baseline(record, description, window_s, say, policy):
     def base_progress(info):
         rms = math.sqrt(float(np.mean(np.square(info['noise_std']))))
         say(f'baseline: iteration {info["iteration"]}, residual RMS {rms:.5g} rad')
-    # the residuals are judged here (channel statistics, :func:`residuals_are_noise`): the
-    # identification's own adequacy check would be computed and never read
+    # converged as every explanation of the table is (the policy's fit tolerance: its log L
+    # within a few hundredths of the optimum); the residuals are judged here (channel
+    # statistics, :func:`residuals_are_noise`), so the identification's own adequacy check
+    # would be computed and never read
     ident = identify(record, description, progress=base_progress, window_s=window_s,
-                     check_adequacy=False)
+                     step_tol=policy.fit_tolerance, check_adequacy=False)
     part = record.window(*window_s)
     blade_sigma = rs.blade_noise_floor(part.blade_flap)
     exp0 = ident.experiments[0]
@@ -291,7 +293,7 @@ def diagnose(record, description, progress=None, workers=2, effects=EFFECTS, win
             progress(f'{text} ({time.perf_counter() - t_start:.1f} s)')
     say(f'baseline: fitting {description.model} ({", ".join(description.unknowns)})')
     kernels.prefer()                # every candidate simulates: the compiled path from the start
-    base = _baseline(record, description, window_s, say)
+    base = _baseline(record, description, window_s, say, policy)
     space, usable, not_tried = _space(record, base, effects, workers, verbose_fits, policy)
     mu = base.ident.model.rotor.advance_ratio
     prior = Prior(usable, policy.max_effects, record.n_blades, mu)

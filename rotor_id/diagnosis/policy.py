@@ -60,10 +60,10 @@ class SelectionPolicy:
     #: Candidate fits of one step done in full when more pass the screen (a compute budget:
     #: the others enter the posterior by their score-test approximation).
     max_fits_per_step: int = 6
-    #: A candidate's fit has converged when every Gauss-Newton step is below this fraction of
-    #: its parameter's Cramér-Rao σ (output error), or when a further scoring step would gain
-    #: less than this in log-likelihood (filter error, whose scoring can zigzag about a flat
-    #: optimum). Either way the log-likelihood is within a few hundredths of its optimum
+    #: A fit (the baseline's, a candidate's) has converged when every Gauss-Newton step is
+    #: below this fraction of its parameter's Cramér-Rao σ (output error), or when a further
+    #: scoring step would gain less than this in log-likelihood (filter error, whose scoring
+    #: can zigzag about a flat optimum). Either way the log-likelihood is within a few hundredths of its optimum
     #: (½·k·0.05² ≤ 0.02 for k ≤ 16 parameters): the posterior odds within 5 %, the estimate
     #: within 0.05 σ, inside the digits the verdict prints.
     fit_tolerance: float = 0.05
