@@ -232,10 +232,9 @@ class _Search:
             ranked = sorted(here.items(), key=lambda et: -et[1].statistic)
             self.say(f'score tests at {" + ".join(current.names) or "the baseline"}: '
                      + ', '.join(f'{e} {t.statistic:.1f}' for e, t in ranked))
-        base = self.log_post(current)
-        scored.sort(reverse=True)
-        requests = [(base + odds, key, current)
-                    for odds, key in scored[:policy.max_fits_per_step]]
+        # the effects without a score test first: they are the costliest fits (the wake's grid
+        # of starts, a periodic model), and a batch's jobs are queued in this order
+        requests = []
         for effect in unscored:
             key = canonical(current.effects + ((effect, ''),))
             alone = candidates.get(canonical(((effect, ''),)))
@@ -245,7 +244,10 @@ class _Search:
             if (not current.effects or earned) and not (key in candidates
                                                         and candidates[key].fitted):
                 requests.append((math.inf, key, current))
-        return requests
+        base = self.log_post(current)
+        scored.sort(reverse=True)
+        return requests + [(base + odds, key, current)
+                           for odds, key in scored[:policy.max_fits_per_step]]
 
     def bound(self, key):
         """Return the upper bound of a request's log posterior at the table's shared ρ now."""
