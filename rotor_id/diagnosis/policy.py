@@ -63,9 +63,9 @@ class SelectionPolicy:
     #: A fit (the baseline's, a candidate's) has converged when every Gauss-Newton step is
     #: below this fraction of its parameter's Cramér-Rao σ (output error), or when a further
     #: scoring step would gain less than this in log-likelihood (filter error, whose scoring
-    #: can zigzag about a flat optimum). Either way the log-likelihood is within a few hundredths of its optimum
-    #: (½·k·0.05² ≤ 0.02 for k ≤ 16 parameters): the posterior odds within 5 %, the estimate
-    #: within 0.05 σ, inside the digits the verdict prints.
+    #: can zigzag about a flat optimum). Either way the log-likelihood is within a few
+    #: hundredths of its optimum (½·k·0.05² ≤ 0.02 for k ≤ 16 parameters): the posterior odds
+    #: within 5 %, the estimate within 0.05 σ, inside the digits the verdict prints.
     fit_tolerance: float = 0.05
     #: The RK4 error allowed in the diagnosis's fits, as a fraction of each channel's noise σ:
     #: every fit takes one RK4 step per sample where the baseline model, so integrated, stays
