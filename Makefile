@@ -68,14 +68,15 @@ $(VENV_STAMP): | sysdeps
 # extension modules (two processes, about 2 min of CPU, once per change of the kernels), or
 # where that fails just in time into numba's cache (rotor_id/estimation/kernels.py main). They
 # need only the venv, so they compile while colcon builds the messages; their lines are printed
-# after colcon's.
+# after colcon's. They run in a session of their own, terminated on Ctrl-C with their compiler
+# processes (a background job ignores SIGINT: it would compile on to its end).
 KERNELS_LOG := log/kernels_build.log
 
 build: venv | sysdeps
 	@echo "== build: colcon build (rotor_id_msgs, rotor_id), the numba kernels beside it"
 	@mkdir -p log
-	@$(VENV_ENV) && { python -m rotor_id.estimation.kernels > $(KERNELS_LOG) 2>&1 & \
-	  kernels=$$!; status=0; \
+	@$(VENV_ENV) && { setsid -w python -m rotor_id.estimation.kernels > $(KERNELS_LOG) 2>&1 & \
+	  kernels=$$!; trap 'kill -TERM -- -$$kernels 2> /dev/null' INT TERM; status=0; \
 	  $(call locked,.build.lock) colcon build $(COLCON_PKG_ARGS) $(COLCON_BUILD_ARGS) \
 	    || status=$$?; \
 	  wait $$kernels || true; cat $(KERNELS_LOG); exit $$status; }
