@@ -249,13 +249,17 @@ def _fit_block(base, stats_aug):
     }
 
 
-def _proposal(explanation, base, say):
-    """Return the equation-error proposal of an out-of-catalogue verdict (or random inflow)."""
+def _proposal(explanation, base, say, started=None):
+    """
+    Return the equation-error proposal of an out-of-catalogue verdict (or random inflow).
+
+    ``started``: the proposal begun in a worker while the search went on (its result).
+    """
     if explanation.effect != 'unexplained' and explanation.names != (NOISE,):
         return None
     say('proposal: stepwise regression of the equation error on a library of flap-equation '
         'terms, validated on held-out time blocks')
-    proposal = propose(base.ident)
+    proposal = started() if started is not None else propose(base.ident)
     say(summary_line(proposal.as_json()))
     return proposal
 
@@ -300,13 +304,20 @@ def diagnose(record, description, progress=None, workers=2, effects=EFFECTS, win
 
     def adequate(result):
         return residuals_are_noise(result, base, policy)
+    started = {}
+
+    def on_best(result):
+        # random inflow alone asks for the proposal (below): begun now, it runs in a worker
+        # that the search's last batches leave idle
+        if result.names == (NOISE,) and not started:
+            started['proposal'] = space.output_error.workers.submit(propose, base.ident)
     try:
-        selection = search(space, usable, prior, policy, mu, say, adequate)
+        selection = search(space, usable, prior, policy, mu, say, adequate, on_best)
         explanation, top, table = explain(space, selection, prior, policy, adequate,
                                           lambda r: misfit_removed(r, base))
+        proposal = _proposal(explanation, base, say, started.get('proposal'))
     finally:
         space.output_error.workers.close()
-    proposal = _proposal(explanation, base, say)
     if proposal is not None and proposal.terms and explanation.names == (NOISE,):
         # a deterministic term that predicts held-out blocks is not random inflow: a filter
         # tracks any unmodelled dynamics, so the verdict is out of catalogue

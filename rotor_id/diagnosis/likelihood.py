@@ -45,6 +45,7 @@ class Workers:
         self._all_in_workers = False
         #: {job key: CPU seconds of its last run}: the longest jobs are queued first
         self.costs = {}
+        self._unclaimed = []        # submitted jobs whose result no one has asked for
 
     def _start(self):
         if self._pool is None:
@@ -98,12 +99,35 @@ class Workers:
         finally:
             self._all_in_workers = False
 
+    def submit(self, function, item):
+        """
+        Start ``function(item)`` in a worker beside the batches; return a call that waits for it.
+
+        The job is queued behind those already waiting, and fills a worker that a batch leaves
+        idle. With one process it is computed at that call, if ever. A job never waited for is
+        stopped by :meth:`close`.
+        """
+        if self.processes <= 1:
+            return lambda: function(item)
+        handle = self._start().apply_async(function, (item,))
+        self._unclaimed.append(handle)
+
+        def result():
+            if handle in self._unclaimed:
+                self._unclaimed.remove(handle)
+            return handle.get()
+        return result
+
     def close(self):
-        """Stop the workers (idempotent)."""
+        """Stop the workers (idempotent), and any submitted job no one waited for."""
         if self._pool is not None:
-            self._pool.close()
+            if any(not handle.ready() for handle in self._unclaimed):
+                self._pool.terminate()
+            else:
+                self._pool.close()
             self._pool.join()
             self._pool = None
+        self._unclaimed = []
 
 
 def _timed_call(function_and_item):

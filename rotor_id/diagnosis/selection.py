@@ -182,9 +182,9 @@ def same_physics(a, b, mu):
 class _Search:
     """One search: the table of explanations, the score tests and the moves made so far."""
 
-    def __init__(self, space, effects, prior, policy, mu, say, adequate):
+    def __init__(self, space, effects, prior, policy, mu, say, adequate, on_best):
         self.space, self.effects, self.prior, self.policy = space, effects, prior, policy
-        self.mu, self.say, self.adequate = mu, say, adequate
+        self.mu, self.say, self.adequate, self.on_best = mu, say, adequate, on_best
         self.candidates, self.steps, self.tests = {}, [], {}
 
     def log_post(self, result):
@@ -429,21 +429,23 @@ class _Search:
             self.steps.append(Step('add', added[0], added[1], float(odds),
                                    2.0 * (ranked[0].loglik - best.loglik), ranked[0].effects))
             best = self.backward(ranked[0], added)
+            self.on_best(best)
             frontier = self.beam(ranked)
         return best
 
 
-def search(space, effects, prior, policy, mu=0.0, say=None, adequate=None):
+def search(space, effects, prior, policy, mu=0.0, say=None, adequate=None, on_best=None):
     """
     Forward steps guided by score tests, a backward check after each: :class:`Selection`.
 
     ``space``: a :class:`~rotor_id.diagnosis.likelihood.Likelihood` with ``baseline()`` and
     ``refit_from``; ``effects``: the catalogue ids it may use; ``mu``: the advance ratio (which
     effects are first-order equivalents); ``adequate(result)``: whether a fit's residuals are
-    noise. The steps are docs/diagnosis.md's §3.
+    noise; ``on_best(result)`` is told each forward step's new best fit. The steps are
+    docs/diagnosis.md's §3.
     """
     run = _Search(space, effects, prior, policy, mu, say or (lambda text: None),
-                  adequate or (lambda result: False))
+                  adequate or (lambda result: False), on_best or (lambda result: None))
     best = space.baseline()
     run.candidates[()] = Candidate((), best)
     # then an explanation the forward steps did not extend (reached by a drop or a swap) is

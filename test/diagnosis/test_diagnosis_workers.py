@@ -43,3 +43,24 @@ def test_the_longest_known_job_is_queued_before_shorter_ones():
         workers.close()
     # a job never run (no cost yet) and the long one first; the short one after them
     assert starts['short'] - max(starts['long'], starts['new']) > 0.2
+
+
+def test_a_submitted_job_runs_beside_and_one_never_waited_for_is_stopped_at_close():
+    workers = Workers(2)
+    try:
+        result = workers.submit(_started, 0.0)
+        assert result() <= time.monotonic()
+        workers.submit(_started, 60.0)       # asked for by no one
+        closing = time.monotonic()
+    finally:
+        workers.close()
+    # terminated at close, not waited for
+    assert time.monotonic() - closing < 30.0
+
+
+def test_with_one_process_a_submitted_job_is_computed_when_asked_for():
+    workers = Workers(1)
+    result = workers.submit(_started, 0.0)
+    asked = time.monotonic()
+    assert result() >= asked
+    workers.close()
