@@ -15,6 +15,7 @@ from dataclasses import replace as _replace
 import math
 import sys
 import time
+import uuid
 
 import numpy as np
 
@@ -176,6 +177,8 @@ class Setting:
     fit_tolerance: float = DEFAULT_POLICY.fit_tolerance
     #: the RK4 step of every fit where no layer needs a shorter one (:func:`record_step`)
     max_step: float = DEFAULT_MAX_STEP
+    #: names this setting in every process it is sent to (:meth:`prepared`)
+    token: str = field(default_factory=lambda: uuid.uuid4().hex, compare=False)
 
     @classmethod
     def of(cls, record, ident, **options):
@@ -188,6 +191,24 @@ class Setting:
         """Return the baseline model's experiments over the record's window."""
         return experiments_from_record(self.record, self.description, base_model,
                                        self.window_s)
+
+    def prepared(self):
+        """
+        Return (the baseline model, its experiments), built once per process for this setting.
+
+        Every job arrives as a copy of the setting; a model built per job computed its
+        parameter-free blocks (per time grid) again each time. No fit changes them: each
+        candidate wraps them in layers of its own.
+        """
+        key = (self.token, self.window_s)
+        if _PREPARED.get('key') != key:
+            base_model = model_for(self.description)
+            _PREPARED.update(key=key, value=(base_model, self.experiments(base_model)))
+        return _PREPARED['value']
+
+
+#: this process's :meth:`Setting.prepared` (the one setting of the diagnosis under way)
+_PREPARED: dict = {}
 
 
 @dataclass
@@ -558,13 +579,12 @@ def fit_candidate(job):
     setting = job.setting
     label = job.effect + (f' {job.variant}' if job.variant else '')
     out = CandidateFit(effect=job.effect, variant=job.variant, prior=tuple(job.prior))
-    base_model = model_for(setting.description)
+    base_model, experiments = setting.prepared()
     reason = applicable(job.effect, base_model.name, base_model.rotor, setting.unknowns)
     if reason:
         out.available, out.reason = False, reason
         return out
     try:
-        experiments = setting.experiments(base_model)
         if job.effect == 'blade_dissimilarity':
             job = _screen_blade(job, base_model, experiments)
             out.variant = job.variant
@@ -650,7 +670,7 @@ def screen_candidate(job, noise_var):
     (:data:`SCREENED_AS`; var under the lag's parameter name).
     """
     setting = job.setting
-    experiments = setting.experiments(model_for(setting.description))
+    _, experiments = setting.prepared()
     effect = job.effect
     if effect in LAG_PARAMETER:
         job = _replace(job, effect=SCREENED_AS[effect])

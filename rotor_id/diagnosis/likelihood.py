@@ -353,7 +353,8 @@ class OutputError(Likelihood):
 
 def _filter_fit_job(item):
     """Return the filter-error fit of one request (in a worker), None where it fails."""
-    new, rest, start_fit, earlier, setting, setup = item
+    new, rest, start_fit, earlier, setting = item
+    setup = noisy.setup_for(setting)
     try:
         if start_fit is None:
             return noisy.fit_alone(setting, setup)
@@ -366,7 +367,8 @@ def _filter_fit_job(item):
 
 def _filter_score_job(item):
     """Return the filter-error score test of one tested variant (in a worker), None: failed."""
-    test, variant, kept, current_fit, setting, setup = item
+    test, variant, kept, current_fit, setting = item
+    setup = noisy.setup_for(setting)
     try:
         if test == NOISE:
             lm, var = noisy.noise_score(current_fit, kept, setting, setup)
@@ -412,7 +414,7 @@ class FilterError(Likelihood):
         """
         kept = [ev for ev in key if ev[0] != NOISE]
         if not kept:
-            return None, [], None, None, self.setting, self.setup
+            return None, [], None, None, self.setting
         if start is not None and start.likelihood == self.name:
             new = ([ev for ev in kept if ev not in start.effects] or kept[-1:])[0]
             rest = [ev for ev in kept if ev != new]
@@ -421,7 +423,7 @@ class FilterError(Likelihood):
             new, rest = None, kept
             (effect, variant), stack = kept[-1], kept[:-1]
         earlier = noisy.earlier_fit(self.fits, effect, variant, stack)
-        return new, rest, start.fit, earlier, self.setting, self.setup
+        return new, rest, start.fit, earlier, self.setting
 
     def fit_many(self, requests):
         """Fit [(effects, start)] with random inflow (in worker processes); None where failed."""
@@ -444,7 +446,7 @@ class FilterError(Likelihood):
         # each variant its own job: a blade dissimilarity's are the longest, one per blade
         keys = [(NOISE, t, v) for t in sorted(set(tested.values()))
                 for v in tested_variants(t, self.setup.base_model)]
-        items = [(t, v, kept, current.fit, self.setting, self.setup) for _, t, v in keys]
+        items = [(t, v, kept, current.fit, self.setting) for _, t, v in keys]
         found = {}
         for item, test in zip(items, self.workers.apply(_filter_score_job, items, keys)):
             if test is not None:

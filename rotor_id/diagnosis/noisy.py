@@ -23,7 +23,7 @@ from rotor_id.estimation.filter_error import (
 from rotor_id.estimation.output_error import fit_initial_states
 from rotor_id.estimation.validation import score_statistic
 from rotor_id.physics import augmented as aug
-from rotor_id.pipeline import channel_noise, model_for
+from rotor_id.pipeline import channel_noise
 
 #: Gauss-Newton (scoring) iterations of a candidate's filter-error fit; it starts at the
 #: current estimate with the extra parameters neutral, a few steps from its optimum.
@@ -45,11 +45,11 @@ class Setup:
 
 
 def setup_for(ctx):
-    """Return what every filter-error fit of one diagnosis shares."""
-    base_model = model_for(ctx.description)
+    """Return what every filter-error fit of one diagnosis shares (built once per process)."""
+    base_model, experiments = ctx.prepared()
     noise = ctx.description.noise_std_rad
     fixed = None if noise is None else channel_noise(base_model, float(noise))
-    return Setup(base_model, ctx.experiments(base_model), fixed)
+    return Setup(base_model, experiments, fixed)
 
 
 def _sigma_v(est):
