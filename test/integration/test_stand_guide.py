@@ -48,7 +48,12 @@ def test_the_guide_holds_what_this_test_follows():
     assert len(re.findall(r'ros2 param set (\S+) (\w+) "?([^`"]+)"?`', section)) >= 2
 
 
-RETRIES = 2        # further test points after one that lost samples or was aborted
+#: further test points after one that lost samples or was aborted. Beside the full suite on
+#: this 2-core VM the ten node processes of the two stands starve each other now and then:
+#: in one clean-clone CI run of three, stand 2's stirring node found its azimuth 0.25 s
+#: old three test points in a row and stopped each (ABORTED, as it must); an engineer runs
+#: the next one
+RETRIES = 4
 
 
 def finals(estimates):
