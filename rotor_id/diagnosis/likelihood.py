@@ -432,8 +432,9 @@ class FilterError(Likelihood):
         for key, (_, start) in zip(keys, requests):
             if key not in self._memo and key not in todo:
                 todo[key] = self._request(key, start)
-        costs = [('filter fit',) + (item[0] or ('',))[:1] for item in todo.values()]
-        for key, fit in zip(todo, self.workers.apply(_filter_fit_job, todo.values(), costs)):
+        # named by the effect added (random inflow alone: '')
+        names = [('filter fit', item[0][0] if item[0] else '') for item in todo.values()]
+        for key, fit in zip(todo, self.workers.apply(_filter_fit_job, todo.values(), names)):
             self._memo[key] = self._result(key, fit)
             if self._memo[key] is not None:
                 self.fits.append(fit)
