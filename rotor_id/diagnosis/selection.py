@@ -359,7 +359,7 @@ class _Search:
                 news = [new for new in singles if new[0] not in best.names
                         and not any(new[0] in equivalent(e, self.mu) for e, _ in rest)]
                 smaller = self.candidates.get(rest)
-                if smaller is not None and smaller.fitted:     # the swaps' tests in one batch
+                if news and smaller is not None and smaller.fitted:  # their tests, one batch
                     tests_at(self.space, self, smaller.result, [e for e, _ in news])
                 for new in news:
                     key = canonical(rest + (new,))
