@@ -373,12 +373,12 @@ def build(job, experiments):
     """
     setting = job.setting
     guess = dict(setting.values)
-    unknown = [e for e, _ in list(job.prior) + [(job.effect, job.variant)]
-               if e not in COMPOSE_ORDER]
+    # (no effect of its own: the model the prior effects make, e.g. a score test's)
+    own = [(job.effect, job.variant)] if job.effect else []
+    unknown = [e for e, _ in list(job.prior) + own if e not in COMPOSE_ORDER]
     if unknown:
         raise IdentificationError(f'{unknown[0]!r} is not an augmented model of the rotor')
-    stack = sorted(list(job.prior) + [(job.effect, job.variant)],
-                   key=lambda ev: COMPOSE_ORDER.index(ev[0]))
+    stack = sorted(list(job.prior) + own, key=lambda ev: COMPOSE_ORDER.index(ev[0]))
     runs, model = experiments, None
     for effect, variant in stack:
         runs, model = _augment_one(effect, variant, setting.record, runs, setting.unknowns)
@@ -633,24 +633,89 @@ SCREENED = tuple(e for e in EFFECTS
                  if e not in ('periodic_coefficients', 'dynamic_inflow', NOISE))
 
 
-def output_error_score(runs, unknowns, guess, known, noise_var, max_step=None, extra=()):
+def output_error_score(runs, unknowns, guess, known, noise_var, max_step=None, extra=(),
+                       current=None):
     """
     Score (Lagrange-multiplier) test of extra parameters at the current estimate: (LM, var).
 
     :func:`~rotor_id.estimation.validation.score_statistic` of the output-error cost ½Σ r²/σ²
     at ``guess`` (extra parameters neutral, initial states refitted, σ² the current model's),
     χ²(k) without the effect. ``var`` = {name: (M⁻¹)_jj} of the ``extra`` parameters, the
-    others profiled (a detection limit follows from it).
+    others profiled (a detection limit follows from it). ``current``: the current model's
+    :class:`CurrentSensitivities`; at the neutral extra parameters this model's output is
+    that one's, so only the extra parameters' sensitivities are integrated.
     """
     max_step = max_step or DEFAULT_MAX_STEP
     problem = Problem(runs, unknowns, guess, known).prepare(max_step)
-    results = _evaluated(problem, max_step)
+    results = _evaluated(problem, max_step) if current is None else \
+        current.extended(problem, extra, max_step)
     inv_var = 1.0 / np.asarray(noise_var, dtype=float)
     grad = -sum(np.einsum('tmi,m,tm->i', dy, inv_var, res) for res, dy, _ in results)
     names = problem.names
     lm, variance = score_statistic(grad, information_matrix([dy for _, dy, _ in results],
                                                             noise_var))
     return lm, {n: float(variance[names.index(n)]) for n in extra if n in names}
+
+
+@dataclass
+class CurrentSensitivities:
+    """The current model's θ (initial states fitted) and dy/dθ per run, at a score test."""
+
+    names: tuple
+    theta: np.ndarray
+    dys: list
+
+    @classmethod
+    def of(cls, runs, unknowns, guess, known, max_step):
+        """Integrate the current model's sensitivities at ``guess``, its states fitted."""
+        problem = Problem(runs, unknowns, guess, known).prepare(max_step)
+        theta = _states_fitted(problem, max_step)
+        return cls(tuple(problem.names), theta,
+                   [dy for _, dy, _ in evaluate(problem, theta, max_step)])
+
+    def extended(self, problem, extra, max_step):
+        """
+        Return :func:`evaluate` of a model with ``extra`` parameters at their neutral values.
+
+        Its other columns of θ are the current model's (same output there), so only the extra
+        parameters' sensitivities are integrated. The current initial states are θ's.
+        """
+        names = list(problem.names)
+        theta = np.concatenate([problem.p_base[problem.param_index],
+                                np.zeros(len(names) - len(problem.param_index))])
+        mine = [i for i, n in enumerate(names) if n in self.names]
+        theirs = [self.names.index(names[i]) for i in mine]
+        states = [i for i in mine if i >= len(problem.param_index)]
+        theta[states] = self.theta[[self.names.index(names[i]) for i in states]]
+        columns = [names.index(n) for n in extra]
+        results = evaluate(problem, theta, max_step, columns=columns)
+        for (_, dy, _), current in zip(results, self.dys):
+            dy[:, :, mine] = current[:, :, theirs]
+        return results
+
+
+def current_sensitivities(job, experiments, runs, max_step):
+    """
+    Return the :class:`CurrentSensitivities` of a score-test job's current model, or None.
+
+    The current model is the job's ``prior`` effects at its ``start``; kept per process for
+    the next test at the same model. None where the tested model (``runs``, ``max_step``)
+    has another RK4 step or more initial states (its test integrates every column).
+    """
+    here = _replace(job, effect='', variant='')
+    key = (job.setting.token, here.prior, tuple(sorted((here.start or {}).items())))
+    if _CURRENT.get('key') != key:
+        c_runs, _, c_unknowns, _, c_guess, c_step = build(here, experiments)
+        _CURRENT.update(key=key, step=c_step, n_initial=_n_initial(c_runs),
+                        value=CurrentSensitivities.of(c_runs, c_unknowns, c_guess,
+                                                      job.setting.known, c_step))
+    if _CURRENT['step'] != max_step or _CURRENT['n_initial'] != _n_initial(runs):
+        return None
+    return _CURRENT['value']
+
+
+#: this process's current model of the score tests under way (:func:`current_sensitivities`)
+_CURRENT: dict = {}
 
 
 def tested_variants(effect, base_model):
@@ -676,7 +741,7 @@ def screen_candidate(job, noise_var):
         job = _replace(job, effect=SCREENED_AS[effect])
     runs, model, unknowns, extra, guess, max_step = build(job, experiments)
     lm, var = output_error_score(runs, unknowns, guess, setting.known, noise_var, max_step,
-                                 extra)
+                                 extra, current_sensitivities(job, experiments, runs, max_step))
     if effect in LAG_PARAMETER:
         var = as_lag_variance(effect, var)
     return job.variant, lm, len(extra) + _n_initial(runs) - _n_initial(experiments), var

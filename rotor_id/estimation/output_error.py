@@ -380,7 +380,8 @@ def _plan(problem, r, max_step):
 
 
 def evaluate(problem: Problem, theta: np.ndarray, max_step: float = DEFAULT_MAX_STEP,
-             sensitivities: bool = True) -> list[tuple[Any, Any, Simulation]]:
+             sensitivities: bool = True, columns: Sequence[int] | None = None
+             ) -> list[tuple[Any, Any, Simulation]]:
     """
     Residuals and output sensitivities of every run at θ.
 
@@ -388,7 +389,11 @@ def evaluate(problem: Problem, theta: np.ndarray, max_step: float = DEFAULT_MAX_
     (residual None for a run without measurements, dy/dθ None without ``sensitivities``).
     Runs with a prepared plan (:meth:`Problem.prepare`) also carry the residuals' sums in
     ``simulation.residual_sums`` (run-local columns, :meth:`Problem.run_columns`).
+    ``columns`` (positions among θ's model parameters): only those sensitivities are
+    integrated, the other columns of dy/dθ are left zero.
     """
+    if columns is not None:
+        return _evaluate_columns(problem, theta, max_step, list(columns))
     p = problem.full_parameters(theta)
     k_par = len(problem.param_index)
     out = []
@@ -416,6 +421,28 @@ def evaluate(problem: Problem, theta: np.ndarray, max_step: float = DEFAULT_MAX_
             dy[:, :, problem.state_slices[r]] = sim.dy[:, :, k_par:]  # type: ignore[index]
         else:
             dy = None
+        out.append((res, dy, sim))
+    return out
+
+
+def _evaluate_columns(problem, theta, max_step, columns):
+    """:func:`evaluate` with the sensitivities along some model parameters of θ only."""
+    p = problem.full_parameters(theta)
+    index = [problem.param_index[c] for c in columns]
+    out = []
+    for r, exp in enumerate(problem.experiments):
+        x0, jac = problem.initial_state(r, theta, p)
+        S0 = np.ascontiguousarray(jac[:, columns])
+        plan = _plan(problem, r, max_step)
+        if plan is not None:
+            sim = plan.run(p, x0, index, S0, exp.y)
+            res = sim.residual
+        else:
+            sim = simulate(exp.model, p, exp.inputs, exp.t, x0, param_index=index,
+                           x0_jacobian=S0, max_step=max_step)
+            res = None if exp.y is None else exp.y - sim.y
+        dy = np.zeros(sim.y.shape + (len(theta),))
+        dy[:, :, columns] = sim.dy
         out.append((res, dy, sim))
     return out
 

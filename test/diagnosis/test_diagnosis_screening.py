@@ -9,6 +9,9 @@ Score-test screening and catalogue bounds of the diagnosis (pins #16).
   at its limit, beside its first-order equivalent delay d ≈ τ_s; the lag's physics is named.
 * The score test's variance of the extra parameter is the delay's Cramér-Rao variance at the
   fitted model: the detection limit's scale.
+* A score test that integrates only its extra parameters' sensitivities (the others the
+  current model's) gives every effect's statistic and variances of the full integration, at
+  the baseline and at an augmented model.
 """
 
 from dataclasses import replace
@@ -16,8 +19,10 @@ from dataclasses import replace
 from diagnosis_scenarios import Scenario, WAKE, WAKE_TRUTH
 import numpy as np
 import pytest
+from rotor_id.diagnosis import catalogue
 from rotor_id.diagnosis.catalogue import (
-    EQUIVALENT, fit_candidate, Job, screen_candidate, Setting)
+    EQUIVALENT, fit_candidate, Job, screen_candidate, SCREENED, SCREENED_AS, Setting,
+    start_values, tested_variants)
 from rotor_id.diagnosis.diagnose import diagnose
 from rotor_id.pipeline import identify
 from truth_generator import wake_case
@@ -84,3 +89,25 @@ def test_widened_bound_is_refitted(small_lag):
     assert fit.bounds['delay_rad'][1] > 0.01
     value, std = fit.parameters['delay_rad']
     assert abs(value - 0.025) < 3.0 * std
+
+
+def test_score_test_of_the_extra_columns_is_the_full_one(small_lag, monkeypatch):
+    record, description = small_lag
+    job, est = _job('time_delay', record, description)
+    noise_var = np.asarray(est.noise_std)**2
+    lag = fit_candidate(job)
+    at_lag = {'prior': (('time_delay', ''),), 'start': start_values(lag)}
+    whole = []
+    for where in ({}, at_lag):
+        for effect in sorted({SCREENED_AS.get(e, e) for e in SCREENED} - {'time_delay'}):
+            for variant in tested_variants(effect, job.setting.prepared()[0]):
+                tested = replace(job, effect=effect, variant=variant, **where)
+                shared = screen_candidate(tested, noise_var)
+                with monkeypatch.context() as patch:      # every column integrated
+                    patch.setattr(catalogue, 'current_sensitivities', lambda *a: None)
+                    full = screen_candidate(tested, noise_var)
+                whole.append(effect)
+                assert shared[1] == pytest.approx(full[1], rel=1e-6, abs=1e-9), (effect, where)
+                assert shared[2] == full[2]
+                assert shared[3] == pytest.approx(full[3], rel=1e-6), (effect, where)
+    assert len(whole) >= 2 * 8
