@@ -31,7 +31,7 @@ setup(
             'state_estimator = rotor_id.nodes.state_estimator:main',
             'identifier = rotor_id.nodes.identifier:main',
             'recorder = rotor_id.nodes.recorder:main',
-            'rotor-id = rotor_id.cli:main',
+            'rotor-id = rotor_id.cli:entry',
         ],
     },
 )

@@ -11,11 +11,13 @@ re-run with ``--debug`` for the traceback (exit code 3).
 """
 
 import argparse
+import atexit
 import importlib
 import importlib.util
 import os
 import sys
-from typing import Sequence
+import threading
+from typing import NoReturn, Sequence
 
 #: command name -> (module, one-line help)
 COMMANDS = {
@@ -123,5 +125,30 @@ def _stdout_closed() -> bool:
     return gone
 
 
+def exit_with(code: int) -> NoReturn:
+    """
+    End the process with ``code``, skipping the interpreter's teardown of its modules.
+
+    The at-exit functions run and the standard streams are flushed as at any exit; what is
+    skipped is freeing every object one by one, which the system does at once (after a
+    diagnosis that teardown took 0.17 s, 0.01 s without: bench/results/diagnose_speed*.md).
+    Where another thread is alive the exit is the ordinary one, which waits for it.
+    """
+    if threading.active_count() > 1:
+        sys.exit(code)
+    atexit._run_exitfuncs()      # (CPython's own call at exit; no public name)
+    for stream in (sys.stdout, sys.stderr):
+        try:
+            stream.flush()
+        except (OSError, ValueError):       # a reader that left, a closed stream
+            pass
+    os._exit(code)
+
+
+def entry() -> NoReturn:
+    """Run the console script: :func:`main` on the process's arguments, then :func:`exit_with`."""
+    exit_with(main())
+
+
 if __name__ == '__main__':
-    sys.exit(main())
+    entry()
