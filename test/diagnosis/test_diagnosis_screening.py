@@ -22,7 +22,7 @@ import pytest
 from rotor_id.diagnosis import catalogue
 from rotor_id.diagnosis.catalogue import (
     EQUIVALENT, fit_candidate, Job, screen_candidate, SCREENED, SCREENED_AS, Setting,
-    start_values, tested_variants)
+    start_values)
 from rotor_id.diagnosis.diagnose import diagnose
 from rotor_id.pipeline import identify
 from truth_generator import wake_case
@@ -100,7 +100,7 @@ def test_score_test_of_the_extra_columns_is_the_full_one(small_lag, monkeypatch)
     whole = []
     for where in ({}, at_lag):
         for effect in sorted({SCREENED_AS.get(e, e) for e in SCREENED} - {'time_delay'}):
-            for variant in tested_variants(effect, job.setting.prepared()[0]):
+            for variant in catalogue.tested_variants(effect, job.setting.prepared()[0]):
                 tested = replace(job, effect=effect, variant=variant, **where)
                 shared = screen_candidate(tested, noise_var)
                 with monkeypatch.context() as patch:      # every column integrated
