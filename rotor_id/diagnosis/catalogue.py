@@ -502,9 +502,11 @@ def _wake_starts(model, guess):
     """
     Yield starting points for the wake.
 
-    Gains L and time constants τ; γ raised so that the quasi-steady damping γ/(1+AL) stays at
-    the baseline's.
+    No wake first (AL/τ = 0: the model without it, so that the fit never ends below it),
+    then gains L and time constants τ; γ raised so that the quasi-steady damping γ/(1+AL)
+    stays at the baseline's.
     """
+    yield {**guess, 'AL_over_tau': 0.0, 'inv_tau': 0.5}
     a1 = flap_damping(1.0, model.rotor.tip_loss)           # A/γ, Ch.2 eq. 27
     gamma_b = guess['gamma']
     for L in (0.5, 1.5, 3.0):
