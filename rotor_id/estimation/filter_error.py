@@ -201,13 +201,19 @@ class FilterProblem:
                                    x0[None], R[None], self.gain_mode(dm))
         return nu[0]
 
-    def evaluate(self, theta: np.ndarray, sensitivities: bool = True) -> list[RunInnovations]:
-        """Per run: (ν (T,m), B (T,m,m), ∂ν (T,m,k) or None, ∂B (T,m,m,k) or None, cost)."""
+    def evaluate(self, theta: np.ndarray, sensitivities: bool = True,
+                 columns: Sequence[int] | None = None) -> list[RunInnovations]:
+        """
+        Per run: (ν (T,m), B (T,m,m), ∂ν (T,m,k) or None, ∂B (T,m,m,k) or None, cost).
+
+        ``columns`` (positions in θ of model parameters, then of initial states): the
+        sensitivities along those alone, k = len(columns).
+        """
         out = []
         k = len(theta)
         for r, exp in enumerate(self.experiments):
             if self.gradients == 'analytic':
-                analytic = self.analytic_sensitivities(r, theta, sensitivities)
+                analytic = self.analytic_sensitivities(r, theta, sensitivities, columns)
                 if analytic is not None:
                     out.append(analytic)
                     continue
@@ -258,7 +264,8 @@ class FilterProblem:
                     dnu[j, :, cols] = -dm.H[j] @ Psi
                     if j < T - 1:
                         Psi = dm.Phi[j] @ (eye - gains[0, j] @ dm.H[j]) @ Psi
-            out.append((nu[0], B[0], dnu, dB, cost[0]))
+            out.append((nu[0], B[0], dnu, dB, cost[0]) if columns is None else
+                       (nu[0], B[0], dnu[:, :, columns], dB[..., columns], cost[0]))
         return out
 
     def _noise_derivatives(self, covariance, F, dF, sig_p, directions, kp, steps=None):
@@ -389,10 +396,12 @@ class FilterProblem:
                                         directions, kp, steps)
         return np.ascontiguousarray(Phi), dPhi, Q, np.ascontiguousarray(dQ)
 
-    def analytic_sensitivities(self, r: int, theta: np.ndarray, sensitivities: bool = True
-                               ) -> RunInnovations | None:
+    def analytic_sensitivities(self, r: int, theta: np.ndarray, sensitivities: bool = True,
+                               columns: Sequence[int] | None = None) -> RunInnovations | None:
         """
         Return (ν, B, ∂ν, ∂B, cost) of run r from the filter's analytic sensitivities.
+
+        ``columns``: along those of θ's model parameters alone (see :meth:`evaluate`).
 
         For equal sample intervals, with F constant (one Φ, Q; H may rotate, as the wake
         model's eq.-30 measurement does) or varying (periodic models: Φ_j, Q_j per interval);
@@ -418,18 +427,21 @@ class FilterProblem:
         h = np.repeat(np.diff(t) / substeps, substeps)
         constant = time_invariant_steps(F, h, t)
         n, m, T = model.n_states, self.m, t.size
-        k = len(theta) if sensitivities else 0
-        kp = len(self.base.param_index) if sensitivities else 0
+        n_par = len(self.base.param_index)
+        index = list(self.base.param_index) if columns is None else \
+            [self.base.param_index[c] for c in columns if c < n_par]
+        i_process, i_meas = (self.i_process, self.i_meas) if columns is None else (None, None)
+        k = (len(theta) if columns is None else len(columns)) if sensitivities else 0
+        kp = len(index) if sensitivities else 0
         if kp:
-            dF_of, dg = system_on_record(model, 'system_jacobian', tf, p, u,
-                                         self.base.param_index)
+            dF_of, dg = system_on_record(model, 'system_jacobian', tf, p, u, index)
             dF = np.ascontiguousarray(values_on(dF_of, tf)[:1 if constant else None])
             dg = np.ascontiguousarray(dg)                                  # (2M+1, kp, n)
         else:
             dF = np.zeros((1 if constant else F.shape[0], 0, n, n))
             dg = np.zeros((g.shape[0], 0, n))
         Fs = np.ascontiguousarray(F[:1] if constant else F)
-        directions = covariant_directions(dF, k, self.i_process, self.i_meas)
+        directions = covariant_directions(dF, k, i_process, i_meas)
         if constant:
             pieces = self._constant_pieces(t, substeps, Fs, dF, h[0], sig_p, directions, kp)
         else:
@@ -442,16 +454,15 @@ class FilterProblem:
                 if not kp:
                     return F_at, np.zeros((times.size, 0, n, n))
                 dF_at = dF_of.values(times) if isinstance(dF_of, Series) else \
-                    on_record(model, 'system_jacobian', times, p, zero,
-                              self.base.param_index)[0]
+                    on_record(model, 'system_jacobian', times, p, zero, index)[0]
                 return F_at, full_along_time(dF_at, times.size)
             pieces = self._varying_pieces(t, substeps, Fs, dF, h[0], sig_p, directions, kp,
                                           stage_matrices)
         Phi, dPhi, Q, dQ = pieces
         R = np.diag(np.maximum(sig_m, 1e-300)**2)
         dR = np.zeros((k, m, m))
-        if k and self.i_meas is not None:
-            for a, i in enumerate(range(self.i_meas.start, self.i_meas.stop)):
+        if k and i_meas is not None:
+            for a, i in enumerate(range(i_meas.start, i_meas.stop)):
                 dR[i, a, a] = 2.0 * sig_m[a]
         H = np.ascontiguousarray(model.output_matrix(t), dtype=float)
         d = np.ascontiguousarray(model.output_offset(t, p), dtype=float)
@@ -469,11 +480,15 @@ class FilterProblem:
             dB_ss, dK_ss = np.zeros((k, m, m)), np.zeros((k, n, m))
         dd = np.zeros((T, m, k))
         if kp:
-            dd[:, :, :kp] = model.output_offset_jacobian(t, p)[:, :, self.base.param_index]
+            dd[:, :, :kp] = model.output_offset_jacobian(t, p)[:, :, index]
         x0, jac = self.base.initial_state(r, base, p)
         dx0 = np.zeros((n, k))
-        if k:
-            n_par = len(self.base.param_index)
+        if k and columns is not None:
+            mine = self.base.state_slices[r]
+            for j, c in enumerate(columns):     # (another run's initial state: zero)
+                if c < n_par or mine.start <= c < mine.stop:
+                    dx0[:, j] = jac[:, c if c < n_par else n_par + c - mine.start]
+        elif k:
             dx0[:, :n_par] = jac[:, :n_par]
             dx0[:, self.base.state_slices[r]] = jac[:, n_par:]
         nu, dnu = np.empty((T, m)), np.empty((T, m, k))
