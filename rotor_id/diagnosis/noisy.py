@@ -125,7 +125,7 @@ def _problem(runs, unknowns, guess, known, setup, sigma_v, max_step, start_est, 
     return prob, theta
 
 
-def _score(prob, theta, extra=(), one_sided=None):
+def _score(prob, theta, extra=(), one_sided=None, current=None):
     """
     Score statistic LM = gᵀ M⁻¹ g of the innovations likelihood at θ, and {name: (M⁻¹)_jj}.
 
@@ -133,8 +133,9 @@ def _score(prob, theta, extra=(), one_sided=None):
     rises with it) carry no evidence: their gradient is set to zero. ``one_sided`` names a θ
     index whose positive gradient (the cost rises) carries none either. The variances are of
     the ``extra`` parameters (names of ``prob``), their information taken as it is there.
+    ``current``: the current model's :class:`CurrentInnovations`, for the columns it has.
     """
-    results = prob.evaluate(theta)
+    results = prob.evaluate(theta) if current is None else current.extended(prob, theta, extra)
     g, M = gradient_information(results, len(theta))
     if one_sided is not None and g[one_sided] >= 0.0:
         g = g.copy()
@@ -146,6 +147,66 @@ def _score(prob, theta, extra=(), one_sided=None):
     names = [n for n, keep in zip(prob.names, informed) if keep]
     lm, variance = score_statistic(g[informed], M[np.ix_(informed, informed)])
     return lm, {n: float(variance[names.index(n)]) for n in extra if n in names}
+
+
+@dataclass
+class CurrentInnovations:
+    """The current model's θ and its (∂ν, ∂B) per run, at a filter-error score test."""
+
+    names: tuple
+    theta: np.ndarray
+    parts: list
+    max_step: float
+
+    def extended(self, prob, theta, extra):
+        """
+        Return ``prob.evaluate(theta)`` of a model with ``extra`` parameters at neutral values.
+
+        Where its θ is the current one beside them (new initial states at rest), so are ν and
+        B, and the other columns are the current model's: only the new columns' sensitivities
+        are integrated. Else (another step, new states started elsewhere) every column is.
+        """
+        names = list(prob.names)
+        mine = [i for i, n in enumerate(names) if n in self.names]
+        theirs = [self.names.index(names[i]) for i in mine]
+        columns = [i for i, n in enumerate(names) if n not in self.names]
+        if (prob.max_step != self.max_step or not set(extra) <= set(names)
+                or any(theta[i] != 0.0 for i in columns if names[i] not in extra)
+                or any(i >= prob.n_base for i in columns)
+                or not np.array_equal(theta[mine], self.theta[theirs])):
+            return prob.evaluate(theta)
+        out = []
+        for (nu, B, dnu, dB, cost), (had_nu, had_B) in zip(
+                prob.evaluate(theta, columns=columns), self.parts):
+            full_nu = np.zeros(nu.shape + (len(names),))
+            full_B = np.zeros(B.shape + (len(names),))
+            full_nu[..., columns], full_B[..., columns] = dnu, dB
+            full_nu[..., mine], full_B[..., mine] = had_nu[..., theirs], had_B[..., theirs]
+            out.append((nu, B, full_nu, full_B, cost))
+        return out
+
+
+def current_innovations(kept, current, ctx, setup):
+    """
+    Return the :class:`CurrentInnovations` of ``current`` (kept per process for the next test).
+
+    ``kept``: its deterministic effects.
+    """
+    est = current.estimate
+    key = (ctx.token, tuple(kept), tuple(np.asarray(est.values, dtype=float).tolist()))
+    if _CURRENT.get('key') != key:
+        _, runs, unknowns, _, guess, max_step, rows = _stack(ctx, setup, list(kept), est,
+                                                             start_values(current))
+        prob, theta = _problem(runs, unknowns, guess, ctx.known, setup, _sigma_v(est),
+                               max_step, est, rows)
+        parts = [(dnu, dB) for _, _, dnu, dB, _ in prob.evaluate(theta)]
+        _CURRENT.update(key=key, value=CurrentInnovations(tuple(prob.names), theta, parts,
+                                                          prob.max_step))
+    return _CURRENT['value']
+
+
+#: this process's current model of the filter-error score tests (:func:`current_innovations`)
+_CURRENT: dict = {}
 
 
 def screen(test, variant, kept, current, ctx, setup):
@@ -162,7 +223,7 @@ def screen(test, variant, kept, current, ctx, setup):
         ctx, setup, list(kept) + [(test, variant)], est, start_values(current))
     prob, theta = _problem(runs, unknowns, guess, ctx.known, setup, _sigma_v(est),
                            max_step, est, rows)
-    lm, var = _score(prob, theta, extra)
+    lm, var = _score(prob, theta, extra, current=current_innovations(kept, current, ctx, setup))
     return variant, lm, len(prob.names) - len(est.names), var
 
 

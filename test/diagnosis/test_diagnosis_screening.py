@@ -11,7 +11,8 @@ Score-test screening and catalogue bounds of the diagnosis (pins #16).
   fitted model: the detection limit's scale.
 * A score test that integrates only its extra parameters' sensitivities (the others the
   current model's) gives every effect's statistic and variances of the full integration, at
-  the baseline and at an augmented model.
+  the baseline and at an augmented model; by output error, and by filter error at a fit with
+  random inflow in forward flight.
 """
 
 from dataclasses import replace
@@ -19,12 +20,15 @@ from dataclasses import replace
 from diagnosis_scenarios import Scenario, WAKE, WAKE_TRUTH
 import numpy as np
 import pytest
-from rotor_id.diagnosis import catalogue
+from rotor_id.diagnosis import catalogue, noisy
 from rotor_id.diagnosis.catalogue import (
     EQUIVALENT, fit_candidate, Job, screen_candidate, SCREENED, SCREENED_AS, Setting,
     start_values)
 from rotor_id.diagnosis.diagnose import diagnose
+from rotor_id.estimation.filter_error import FilterProblem
+from rotor_id.io.run_description import parse_run_description
 from rotor_id.pipeline import identify
+import truth_generator
 from truth_generator import wake_case
 
 SMALL_LAG = Scenario('small_sensor_lag', 'sensor_lag',
@@ -111,3 +115,46 @@ def test_score_test_of_the_extra_columns_is_the_full_one(small_lag, monkeypatch)
                 assert shared[2] == full[2]
                 assert shared[3] == pytest.approx(full[3], rel=1e-6), (effect, where)
     assert len(whole) >= 2 * 8
+
+
+def test_filter_error_score_test_of_the_extra_columns_is_the_full_one(monkeypatch):
+    # (a flap read late: misfit that random inflow takes up; a turbulent record takes 10 s to
+    # generate, and the identity holds at any fit)
+    cfg = truth_generator.mu04_case(seed=5, mu=0.35, t0=truth_generator.TruthConfig.t0,
+                                    time_delay_s=0.0003)
+    record = truth_generator.generate(cfg)
+    description = parse_run_description(
+        truth_generator.run_description_text(cfg, 'multiblade', ('gamma', 'theta0')))
+    setting = Setting.of(record, identify(record, description))
+    setup = noisy.setup_for(setting)
+    current = noisy.fit_alone(setting, setup)
+    assert current.available, current.reason
+    # a delay of the output, of the pitch, a change of the flap equation, an output offset, a
+    # blade's Lock number (which adds initial states: theirs integrated too where they start
+    # at rest, all columns where they start at their output-error fit)
+    tested = ('time_delay', 'pitch_delay', 'flap_frequency', 'sensor_bias',
+              'blade_dissimilarity')
+    shared_ones = 0
+    for effect in tested:
+        for variant in catalogue.tested_variants(effect, setup.base_model)[:1]:
+            calls = []
+            monkeypatch.setattr(FilterProblem, 'evaluate', _counted(calls))
+            shared = noisy.screen(effect, variant, [], current, setting, setup)
+            monkeypatch.undo()
+            shared_ones += 'columns' in calls
+            with monkeypatch.context() as patch:       # every column integrated
+                patch.setattr(noisy, 'current_innovations', lambda *a: None)
+                full = noisy.screen(effect, variant, [], current, setting, setup)
+            assert shared[1] == pytest.approx(full[1], rel=1e-6, abs=1e-9), effect
+            assert shared[2] == full[2]
+            assert shared[3] == pytest.approx(full[3], rel=1e-6), effect
+    assert shared_ones >= len(tested) - 1
+
+
+def _counted(calls):
+    evaluate = FilterProblem.evaluate
+
+    def counted(self, theta, sensitivities=True, columns=None):
+        calls.append('all' if columns is None else 'columns')
+        return evaluate(self, theta, sensitivities, columns)
+    return counted
