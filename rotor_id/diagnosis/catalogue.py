@@ -644,80 +644,106 @@ def output_error_score(runs, unknowns, guess, known, noise_var, max_step=None, e
     at ``guess`` (extra parameters neutral, initial states refitted, σ² the current model's),
     χ²(k) without the effect. ``var`` = {name: (M⁻¹)_jj} of the ``extra`` parameters, the
     others profiled (a detection limit follows from it). ``current``: the current model's
-    :class:`CurrentSensitivities`; at the neutral extra parameters this model's output is
-    that one's, so only the extra parameters' sensitivities are integrated.
+    :class:`CurrentColumns` (dy/dθ), whose initial states and columns are this model's.
     """
     max_step = max_step or DEFAULT_MAX_STEP
     problem = Problem(runs, unknowns, guess, known).prepare(max_step)
-    results = _evaluated(problem, max_step) if current is None else \
-        current.extended(problem, extra, max_step)
+    theta = np.concatenate([problem.p_base[problem.param_index],
+                            np.zeros(len(problem.names) - len(problem.param_index))])
+    new = None
+    if current is not None:                 # its values, initial states included
+        mine, theirs = current.shared(problem.names)
+        theta[mine] = current.theta[theirs]
+        new = current.new_columns(problem.names, theta, extra, len(theta), max_step, False)
+    if new is None:
+        results = _evaluated(problem, max_step)
+        dys = [dy for _, dy, _ in results]
+    else:
+        results = evaluate(problem, theta, max_step, columns=new)
+        dys = [dy for dy, in current.filled(problem.names, new, [(dy,) for _, dy, _ in results])]
     inv_var = 1.0 / np.asarray(noise_var, dtype=float)
-    grad = -sum(np.einsum('tmi,m,tm->i', dy, inv_var, res) for res, dy, _ in results)
+    grad = -sum(np.einsum('tmi,m,tm->i', dy, inv_var, res)
+                for (res, _, _), dy in zip(results, dys))
     names = problem.names
-    lm, variance = score_statistic(grad, information_matrix([dy for _, dy, _ in results],
-                                                            noise_var))
+    lm, variance = score_statistic(grad, information_matrix(dys, noise_var))
     return lm, {n: float(variance[names.index(n)]) for n in extra if n in names}
 
 
 @dataclass
-class CurrentSensitivities:
-    """The current model's θ (initial states fitted) and dy/dθ per run, at a score test."""
+class CurrentColumns:
+    """
+    The current model's θ and its sensitivities per run, kept for the score tests at it.
+
+    At a nested model's neutral extra parameters (and new initial states at rest) its output
+    is the current model's, and so are its sensitivities along the current θ: a score test
+    integrates only its new columns. ``parts``: per run, the arrays whose last axis is θ
+    (output error's dy/dθ; filter error's ∂ν and ∂B).
+    """
 
     names: tuple
     theta: np.ndarray
-    dys: list
+    parts: list
+    max_step: float
 
-    @classmethod
-    def of(cls, runs, unknowns, guess, known, max_step):
-        """Integrate the current model's sensitivities at ``guess``, its states fitted."""
-        problem = Problem(runs, unknowns, guess, known).prepare(max_step)
-        theta = _states_fitted(problem, max_step)
-        return cls(tuple(problem.names), theta,
-                   [dy for _, dy, _ in evaluate(problem, theta, max_step)])
-
-    def extended(self, problem, extra, max_step):
-        """
-        Return :func:`evaluate` of a model with ``extra`` parameters at their neutral values.
-
-        Its other columns of θ are the current model's (same output there), so only the extra
-        parameters' sensitivities are integrated. The current initial states are θ's.
-        """
-        names = list(problem.names)
-        theta = np.concatenate([problem.p_base[problem.param_index],
-                                np.zeros(len(names) - len(problem.param_index))])
+    def shared(self, names):
+        """Return (positions in a nested model's θ ``names``, in the current θ) of shared ones."""
         mine = [i for i, n in enumerate(names) if n in self.names]
-        theirs = [self.names.index(names[i]) for i in mine]
-        states = [i for i in mine if i >= len(problem.param_index)]
-        theta[states] = self.theta[[self.names.index(names[i]) for i in states]]
-        columns = [names.index(n) for n in extra]
-        results = evaluate(problem, theta, max_step, columns=columns)
-        for (_, dy, _), current in zip(results, self.dys):
-            dy[:, :, mine] = current[:, :, theirs]
-        return results
+        return mine, [self.names.index(names[i]) for i in mine]
+
+    def new_columns(self, names, theta, extra, n_base, max_step, at_rest):
+        """
+        Return the positions of a nested model's θ to integrate, or None: all of them.
+
+        None where its output at ``theta`` is not the current model's: another RK4 step, an
+        entry it shares at another value, or a new entry that is neither an ``extra``
+        parameter nor (``at_rest``) an initial state at zero among θ's first ``n_base``.
+        """
+        mine, theirs = self.shared(names)
+        new = [i for i, n in enumerate(names) if n not in self.names]
+        if max_step != self.max_step or not np.array_equal(theta[mine], self.theta[theirs]) \
+                or any(names[i] not in extra and not (at_rest and i < n_base and theta[i] == 0)
+                       for i in new):
+            return None
+        return new
+
+    def filled(self, names, new, parts):
+        """Return a nested model's arrays per run: ``parts`` in ``new`` columns, others current."""
+        mine, theirs = self.shared(names)
+        out = []
+        for given, had in zip(parts, self.parts):
+            arrays = []
+            for part, current in zip(given, had):
+                full = np.zeros(part.shape[:-1] + (len(names),))
+                full[..., new], full[..., mine] = part, current[..., theirs]
+                arrays.append(full)
+            out.append(tuple(arrays))
+        return out
 
 
-def current_sensitivities(job, experiments, runs, max_step):
-    """
-    Return the :class:`CurrentSensitivities` of a score-test job's current model, or None.
-
-    The current model is the job's ``prior`` effects at its ``start``; kept per process for
-    the next test at the same model. None where the tested model (``runs``, ``max_step``)
-    has another RK4 step or more initial states (its test integrates every column).
-    """
-    here = _replace(job, effect='', variant='')
-    key = (job.setting.token, here.prior, tuple(sorted((here.start or {}).items())))
+def kept_current(key, compute):
+    """Return this process's :class:`CurrentColumns` under ``key`` (``compute()`` for another)."""
     if _CURRENT.get('key') != key:
-        c_runs, _, c_unknowns, _, c_guess, c_step = build(here, experiments)
-        _CURRENT.update(key=key, step=c_step, n_initial=_n_initial(c_runs),
-                        value=CurrentSensitivities.of(c_runs, c_unknowns, c_guess,
-                                                      job.setting.known, c_step))
-    if _CURRENT['step'] != max_step or _CURRENT['n_initial'] != _n_initial(runs):
-        return None
+        _CURRENT.update(key=key, value=compute())
     return _CURRENT['value']
 
 
-#: this process's current model of the score tests under way (:func:`current_sensitivities`)
+#: this process's current model of the score tests under way (:func:`kept_current`)
 _CURRENT: dict = {}
+
+
+def current_columns(job, experiments):
+    """Return the :class:`CurrentColumns` of a job's current model (``prior`` at ``start``)."""
+    here = _replace(job, effect='', variant='')
+
+    def compute():
+        runs, _, unknowns, _, guess, max_step = build(here, experiments)
+        problem = Problem(runs, unknowns, guess, job.setting.known).prepare(max_step)
+        theta = _states_fitted(problem, max_step)
+        return CurrentColumns(tuple(problem.names), theta,
+                              [(dy,) for _, dy, _ in evaluate(problem, theta, max_step)],
+                              max_step)
+    return kept_current(('output error', job.setting.token, here.prior,
+                         tuple(sorted((here.start or {}).items()))), compute)
 
 
 def tested_variants(effect, base_model):
@@ -743,7 +769,7 @@ def screen_candidate(job, noise_var):
         job = _replace(job, effect=SCREENED_AS[effect])
     runs, model, unknowns, extra, guess, max_step = build(job, experiments)
     lm, var = output_error_score(runs, unknowns, guess, setting.known, noise_var, max_step,
-                                 extra, current_sensitivities(job, experiments, runs, max_step))
+                                 extra, current_columns(job, experiments))
     if effect in LAG_PARAMETER:
         var = as_lag_variance(effect, var)
     return job.variant, lm, len(extra) + _n_initial(runs) - _n_initial(experiments), var

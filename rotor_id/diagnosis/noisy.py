@@ -15,8 +15,8 @@ import time
 import numpy as np
 
 from rotor_id.diagnosis.catalogue import (
-    augment_runs, bound_sides, build, CandidateFit, effect_parameters, FAILURES, grid_starts,
-    Job, NOISE, start_values, stop_at_bound)
+    augment_runs, bound_sides, build, CandidateFit, CurrentColumns, effect_parameters, FAILURES,
+    grid_starts, Job, kept_current, NOISE, start_values, stop_at_bound)
 from rotor_id.estimation.filter_error import (
     FilterProblem, fit_filter_error_ml, gradient_information, innovations_cost,
     measurement_noise_name, PROCESS_NOISE)
@@ -133,9 +133,16 @@ def _score(prob, theta, extra=(), one_sided=None, current=None):
     rises with it) carry no evidence: their gradient is set to zero. ``one_sided`` names a θ
     index whose positive gradient (the cost rises) carries none either. The variances are of
     the ``extra`` parameters (names of ``prob``), their information taken as it is there.
-    ``current``: the current model's :class:`CurrentInnovations`, for the columns it has.
+    ``current``: the current model's :class:`~rotor_id.diagnosis.catalogue.CurrentColumns`.
     """
-    results = prob.evaluate(theta) if current is None else current.extended(prob, theta, extra)
+    new = None if current is None else \
+        current.new_columns(prob.names, theta, extra, prob.n_base, prob.max_step, True)
+    if new is None:
+        results = prob.evaluate(theta)
+    else:                                   # only the new columns integrated
+        some = prob.evaluate(theta, columns=new)
+        results = [(nu, B, dnu, dB, cost) for (nu, B, _, _, cost), (dnu, dB) in zip(
+            some, current.filled(prob.names, new, [(dnu, dB) for _, _, dnu, dB, _ in some]))]
     g, M = gradient_information(results, len(theta))
     if one_sided is not None and g[one_sided] >= 0.0:
         g = g.copy()
@@ -149,64 +156,24 @@ def _score(prob, theta, extra=(), one_sided=None, current=None):
     return lm, {n: float(variance[names.index(n)]) for n in extra if n in names}
 
 
-@dataclass
-class CurrentInnovations:
-    """The current model's θ and its (∂ν, ∂B) per run, at a filter-error score test."""
-
-    names: tuple
-    theta: np.ndarray
-    parts: list
-    max_step: float
-
-    def extended(self, prob, theta, extra):
-        """
-        Return ``prob.evaluate(theta)`` of a model with ``extra`` parameters at neutral values.
-
-        Where its θ is the current one beside them (new initial states at rest), so are ν and
-        B, and the other columns are the current model's: only the new columns' sensitivities
-        are integrated. Else (another step, new states started elsewhere) every column is.
-        """
-        names = list(prob.names)
-        mine = [i for i, n in enumerate(names) if n in self.names]
-        theirs = [self.names.index(names[i]) for i in mine]
-        columns = [i for i, n in enumerate(names) if n not in self.names]
-        if (prob.max_step != self.max_step or not set(extra) <= set(names)
-                or any(theta[i] != 0.0 for i in columns if names[i] not in extra)
-                or any(i >= prob.n_base for i in columns)
-                or not np.array_equal(theta[mine], self.theta[theirs])):
-            return prob.evaluate(theta)
-        out = []
-        for (nu, B, dnu, dB, cost), (had_nu, had_B) in zip(
-                prob.evaluate(theta, columns=columns), self.parts):
-            full_nu = np.zeros(nu.shape + (len(names),))
-            full_B = np.zeros(B.shape + (len(names),))
-            full_nu[..., columns], full_B[..., columns] = dnu, dB
-            full_nu[..., mine], full_B[..., mine] = had_nu[..., theirs], had_B[..., theirs]
-            out.append((nu, B, full_nu, full_B, cost))
-        return out
-
-
 def current_innovations(kept, current, ctx, setup):
     """
-    Return the :class:`CurrentInnovations` of ``current`` (kept per process for the next test).
+    Return the :class:`~rotor_id.diagnosis.catalogue.CurrentColumns` (∂ν, ∂B) of ``current``.
 
-    ``kept``: its deterministic effects.
+    ``kept``: its deterministic effects. Kept per process for the next score test at it.
     """
     est = current.estimate
-    key = (ctx.token, tuple(kept), tuple(np.asarray(est.values, dtype=float).tolist()))
-    if _CURRENT.get('key') != key:
+
+    def compute():
         _, runs, unknowns, _, guess, max_step, rows = _stack(ctx, setup, list(kept), est,
                                                              start_values(current))
         prob, theta = _problem(runs, unknowns, guess, ctx.known, setup, _sigma_v(est),
                                max_step, est, rows)
-        parts = [(dnu, dB) for _, _, dnu, dB, _ in prob.evaluate(theta)]
-        _CURRENT.update(key=key, value=CurrentInnovations(tuple(prob.names), theta, parts,
-                                                          prob.max_step))
-    return _CURRENT['value']
-
-
-#: this process's current model of the filter-error score tests (:func:`current_innovations`)
-_CURRENT: dict = {}
+        return CurrentColumns(tuple(prob.names), theta,
+                              [(dnu, dB) for _, _, dnu, dB, _ in prob.evaluate(theta)],
+                              prob.max_step)
+    return kept_current(('filter error', ctx.token, tuple(kept),
+                         tuple(np.asarray(est.values, dtype=float).tolist())), compute)
 
 
 def screen(test, variant, kept, current, ctx, setup):

@@ -390,7 +390,7 @@ def evaluate(problem: Problem, theta: np.ndarray, max_step: float = DEFAULT_MAX_
     Runs with a prepared plan (:meth:`Problem.prepare`) also carry the residuals' sums in
     ``simulation.residual_sums`` (run-local columns, :meth:`Problem.run_columns`).
     ``columns`` (positions among θ's model parameters): only those sensitivities are
-    integrated, the other columns of dy/dθ are left zero.
+    integrated, and dy/dθ has those columns alone.
     """
     if columns is not None:
         return _evaluate_columns(problem, theta, max_step, list(columns))
@@ -441,9 +441,7 @@ def _evaluate_columns(problem, theta, max_step, columns):
             sim = simulate(exp.model, p, exp.inputs, exp.t, x0, param_index=index,
                            x0_jacobian=S0, max_step=max_step)
             res = None if exp.y is None else exp.y - sim.y
-        dy = np.zeros(sim.y.shape + (len(theta),))
-        dy[:, :, columns] = sim.dy
-        out.append((res, dy, sim))
+        out.append((res, sim.dy, sim))
     return out
 
 

@@ -108,7 +108,7 @@ def test_score_test_of_the_extra_columns_is_the_full_one(small_lag, monkeypatch)
                 tested = replace(job, effect=effect, variant=variant, **where)
                 shared = screen_candidate(tested, noise_var)
                 with monkeypatch.context() as patch:      # every column integrated
-                    patch.setattr(catalogue, 'current_sensitivities', lambda *a: None)
+                    patch.setattr(catalogue, 'current_columns', lambda *a: None)
                     full = screen_candidate(tested, noise_var)
                 whole.append(effect)
                 assert shared[1] == pytest.approx(full[1], rel=1e-6, abs=1e-9), (effect, where)
