@@ -16,6 +16,7 @@ from functools import cached_property, partial
 import math
 import multiprocessing
 import time
+from typing import Callable
 
 import numpy as np
 
@@ -46,6 +47,7 @@ class Workers:
         #: {job key: CPU seconds of its last run}: the longest jobs are queued first
         self.costs = {}
         self._unclaimed = []        # submitted jobs whose result no one has asked for
+        self._beside = []           # batches under way in threads of this process (beside)
 
     def _start(self):
         if self._pool is None:
@@ -64,7 +66,8 @@ class Workers:
         """
         items = list(items)
         keys = list(keys) if keys is not None else [None] * len(items)
-        if self.processes <= 1 or (len(items) <= 1 and not self._all_in_workers) or not items:
+        alone_here = len(items) <= 1 and not self._all_in_workers and not self._beside
+        if self.processes <= 1 or not items or alone_here:
             timed = [_timed_call((function, item)) for item in items]
         else:
             order = sorted(range(len(items)), key=lambda i: -self.costs.get(keys[i], math.inf))
@@ -99,6 +102,31 @@ class Workers:
         finally:
             self._all_in_workers = False
 
+    def beside(self, call):
+        """
+        Start ``call()`` (a batch) in a thread beside what this process does next.
+
+        Return a call that waits for its result. Until then every job, a lone one included,
+        is queued in the workers (this process's caches see one thread). With one process,
+        ``call`` is made when its result is asked for.
+        """
+        if self.processes <= 1:
+            return call
+        self._start()
+        handle = []
+        self._beside.append(handle)           # (before the thread asks for its first job)
+        thread = ThreadPoolExecutor(max_workers=1)
+        handle.append(thread.submit(call))
+        thread.shutdown(wait=False)
+
+        def result():
+            try:
+                return handle[0].result()
+            finally:
+                if handle in self._beside:
+                    self._beside.remove(handle)
+        return result
+
     def submit(self, function, item):
         """
         Start ``function(item)`` in a worker beside the batches; return a call that waits for it.
@@ -120,6 +148,9 @@ class Workers:
 
     def close(self):
         """Stop the workers (idempotent), and any submitted job no one waited for."""
+        for handle in self._beside:     # a batch begun beside (a search that failed) ends first
+            handle[0].exception()
+        self._beside = []
         if self._pool is not None:
             if any(not handle.ready() for handle in self._unclaimed):
                 self._pool.terminate()
@@ -206,6 +237,10 @@ class Likelihood:
     def fit_many(self, requests: list) -> list:
         """Fit [(effects, start)]: a result each, None where the fit failed."""
         raise NotImplementedError
+
+    def fit_later(self, requests: list) -> Callable[[], list]:
+        """Begin :meth:`fit_many` beside the batches that follow; return a call that waits."""
+        return partial(self.fit_many, requests)
 
     def score_many(self, current: FitResult, effects: list) -> dict:
         """Score-test several effects at ``current``: {effect: ScoreTest or None}."""
@@ -496,6 +531,10 @@ class ModelSpace(Likelihood):
             for i, res in zip(mine, fits):
                 out[i] = res
         return out
+
+    def fit_later(self, requests):
+        """Begin fitting [(effects, start)] in the workers beside the next batches."""
+        return self.output_error.workers.beside(partial(self.fit_many, requests))
 
     def refit_from(self, effects, values):
         """Fit an explanation again from ``values``; the better of the two (output error)."""

@@ -11,7 +11,7 @@ from dataclasses import dataclass, field
 import math
 
 from rotor_id.diagnosis.catalogue import (
-    equivalent, FIRST_ORDER_START, LAG_PARAMETER, n_choices, NOISE, parameter_range)
+    equivalent, FIRST_ORDER_START, LAG_PARAMETER, n_choices, NOISE, parameter_range, SCREENED)
 from rotor_id.diagnosis.likelihood import canonical, FitResult, ScoreTest
 
 
@@ -186,16 +186,41 @@ class _Search:
         self.space, self.effects, self.prior, self.policy = space, effects, prior, policy
         self.mu, self.say, self.adequate, self.on_best = mu, say, adequate, on_best
         self.candidates, self.steps, self.tests = {}, [], {}
+        #: the first step's fits begun before its score tests: (their keys, a call that waits)
+        self.early = None
 
     def log_post(self, result):
         """Return a fit's unnormalised log posterior at the table's shared ρ now."""
         return log_posterior(Candidate(result.effects, result),
                              shared_rho(self.candidates.values()), self.prior)
 
-    def fit(self, requests, label):
-        """Fit [(effects, start)] and enter the fits into the table; return them (None: failed)."""
+    def fit(self, requests, label, later=False):
+        """
+        Fit [(effects, start)] and enter the fits into the table; return them (None: failed).
+
+        ``later``: the fits run beside what the search does next; a call is returned that
+        waits for them, enters and returns them.
+        """
         self.say(label + ', '.join(' + '.join(e for e, _ in k) for k, _ in requests))
-        fitted = self.space.fit_many(requests)
+        if later:
+            wait = self.space.fit_later(requests)
+            return lambda: self._enter(wait())
+        return self._enter(self.space.fit_many(requests))
+
+    def begin_unscored(self, baseline):
+        """
+        Begin the first step's fits of the effects without a score test (always requested).
+
+        They are the costliest (the wake's grid of starts) and need no test: they run beside
+        the score tests at the baseline, and the first step takes them (:meth:`fit_step`).
+        """
+        keys = [canonical(((e, ''),)) for e in _open_effects(baseline, self.effects, self.mu)
+                if e not in SCREENED and e != NOISE]
+        if keys:
+            self.early = set(keys), self.fit([(k, baseline) for k in keys], '  fitting ',
+                                             later=True)
+
+    def _enter(self, fitted):
         base = self.candidates[()].result
         for res in fitted:
             if res is not None:
@@ -280,9 +305,12 @@ class _Search:
         share = math.log(self.policy.fit_share)
         bounds = {key: self.bound(key) for _, key, _ in requests}
         top = max((b for b in bounds.values() if math.isfinite(b)), default=-math.inf)
-        first = [(key, start) for _, key, start in requests if bounds[key] >= top + share]
+        begun, wait = self.early or (set(), list)
+        self.early = None
+        first = [(key, start) for _, key, start in requests
+                 if bounds[key] >= top + share and key not in begun]
         rest = [(key, start) for _, key, start in requests if bounds[key] < top + share]
-        fitted = self.fit(first, '  fitting ')
+        fitted = (self.fit(first, '  fitting ') if first else []) + wait()
         size = len(requests[0][1])
         best = max((self.log_post(c.result) for c in self.candidates.values()
                     if c.fitted and len(c.effects) == size), default=-math.inf)
@@ -448,6 +476,7 @@ def search(space, effects, prior, policy, mu=0.0, say=None, adequate=None, on_be
                   adequate or (lambda result: False), on_best or (lambda result: None))
     best = space.baseline()
     run.candidates[()] = Candidate((), best)
+    run.begin_unscored(best)
     # then an explanation the forward steps did not extend (reached by a drop or a swap) is
     # extended from in turn: the selection ends where no score test asks for more
     for _ in range(policy.max_effects + 1):

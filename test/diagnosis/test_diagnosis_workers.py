@@ -1,4 +1,4 @@
-"""The worker pool of the diagnosis: results in order, the longest known jobs queued first."""
+"""The diagnosis's worker pool: results in order, the longest known jobs first, batches beside."""
 
 import time
 
@@ -64,3 +64,38 @@ def test_with_one_process_a_submitted_job_is_computed_when_asked_for():
     asked = time.monotonic()
     assert result() >= asked
     workers.close()
+
+
+def _pid(_):
+    import os
+    return os.getpid()
+
+
+def test_a_batch_begun_beside_runs_while_this_process_goes_on():
+    import os
+    workers = Workers(2)
+    try:
+        begun = time.monotonic()
+        wait = workers.beside(lambda: workers.apply(_started, [0.5, 0.5]))
+        # meanwhile a lone job goes to a worker too (this process computes nothing)
+        assert workers.apply(_pid, [None]) != [os.getpid()]
+        started = wait()
+        assert max(started) - begun < 0.4        # both began at once, not after a wait
+        assert workers.apply(_pid, [None]) == [os.getpid()]   # ended: a lone job here again
+    finally:
+        workers.close()
+
+
+def test_with_one_process_a_batch_begun_beside_is_computed_when_asked_for():
+    workers = Workers(1)
+    wait = workers.beside(lambda: workers.apply(_started, [0.0]))
+    asked = time.monotonic()
+    assert wait()[0] >= asked
+    workers.close()
+
+
+def test_close_lets_a_batch_begun_beside_end():
+    workers = Workers(2)
+    wait = workers.beside(lambda: workers.apply(_started, [0.3]))
+    workers.close()                             # the search failed before it waited
+    assert wait()[0] <= time.monotonic()
