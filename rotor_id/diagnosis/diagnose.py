@@ -316,8 +316,11 @@ def diagnose(record, description, progress=None, workers=2, effects=EFFECTS, win
         explanation, top, table = explain(space, selection, prior, policy, adequate,
                                           lambda r: misfit_removed(r, base))
         proposal = _proposal(explanation, base, say, started.get('proposal'))
-    finally:
-        space.output_error.workers.close()
+    except BaseException:
+        # (Ctrl-C among them: the workers were interrupted too) stopped, not waited for
+        space.output_error.workers.close(stop=True)
+        raise
+    space.output_error.workers.close()
     if proposal is not None and proposal.terms and explanation.names == (NOISE,):
         # a deterministic term that predicts held-out blocks is not random inflow: a filter
         # tracks any unmodelled dynamics, so the verdict is out of catalogue

@@ -10,11 +10,12 @@ fitted model. :class:`ModelSpace` sends each explanation to the likelihood that 
 the search (:mod:`rotor_id.diagnosis.selection`) never asks which one it has.
 """
 
-from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field, replace
 from functools import cached_property, partial
 import math
 import multiprocessing
+import signal
+import threading
 import time
 from typing import Callable
 
@@ -37,13 +38,12 @@ class Workers:
     Forked on first use, after the compiled kernels are loaded (:func:`kernels.prefer`), so
     every worker inherits them, and kept until :meth:`close`: a worker holds the record's
     prepared plans from one batch to the next. With one process (or one job) the work runs
-    here, except in :meth:`together`.
+    here, except while a batch runs beside (:meth:`beside`, :meth:`together`).
     """
 
     def __init__(self, processes):
         self.processes = int(processes)
         self._pool = None
-        self._all_in_workers = False
         #: {job key: CPU seconds of its last run}: the longest jobs are queued first
         self.costs = {}
         self._unclaimed = []        # submitted jobs whose result no one has asked for
@@ -52,7 +52,8 @@ class Workers:
     def _start(self):
         if self._pool is None:
             kernels.prefer()
-            self._pool = multiprocessing.get_context('fork').Pool(processes=self.processes)
+            self._pool = multiprocessing.get_context('fork').Pool(
+                processes=self.processes, initializer=_leave_interrupts)
         return self._pool
 
     def apply(self, function, items, keys=None):
@@ -66,7 +67,7 @@ class Workers:
         """
         items = list(items)
         keys = list(keys) if keys is not None else [None] * len(items)
-        alone_here = len(items) <= 1 and not self._all_in_workers and not self._beside
+        alone_here = len(items) <= 1 and not self._beside
         if self.processes <= 1 or not items or alone_here:
             timed = [_timed_call((function, item)) for item in items]
         else:
@@ -93,14 +94,8 @@ class Workers:
         """
         if self.processes <= 1 or len(calls) <= 1:
             return [call() for call in calls]
-        self._start()
-        self._all_in_workers = True
-        try:
-            with ThreadPoolExecutor(max_workers=len(calls)) as threads:
-                futures = [threads.submit(call) for call in calls]
-                return [future.result() for future in futures]
-        finally:
-            self._all_in_workers = False
+        waits = [self.beside(call) for call in calls]
+        return [wait() for wait in waits]
 
     def beside(self, call):
         """
@@ -108,23 +103,31 @@ class Workers:
 
         Return a call that waits for its result. Until then every job, a lone one included,
         is queued in the workers (this process's caches see one thread). With one process,
-        ``call`` is made when its result is asked for.
+        ``call`` is made when its result is asked for. A batch no one waited for is stopped
+        by :meth:`close` (its thread is a daemon: it never holds up the exit).
         """
         if self.processes <= 1:
             return call
         self._start()
-        handle = []
-        self._beside.append(handle)           # (before the thread asks for its first job)
-        thread = ThreadPoolExecutor(max_workers=1)
-        handle.append(thread.submit(call))
-        thread.shutdown(wait=False)
+        done, out = threading.Event(), {}
+
+        def run():
+            try:
+                out['value'] = call()
+            except BaseException as exc:  # noqa: B902 - raised again where it is waited for
+                out['error'] = exc
+            finally:
+                done.set()
+        self._beside.append(done)           # (before the thread asks for its first job)
+        threading.Thread(target=run, daemon=True).start()
 
         def result():
-            try:
-                return handle[0].result()
-            finally:
-                if handle in self._beside:
-                    self._beside.remove(handle)
+            done.wait()
+            if done in self._beside:
+                self._beside.remove(done)
+            if 'error' in out:
+                raise out['error']
+            return out['value']
         return result
 
     def submit(self, function, item):
@@ -146,19 +149,32 @@ class Workers:
             return handle.get()
         return result
 
-    def close(self):
-        """Stop the workers (idempotent), and any submitted job no one waited for."""
-        for handle in self._beside:     # a batch begun beside (a search that failed) ends first
-            handle[0].exception()
-        self._beside = []
+    def close(self, stop=False):
+        """
+        End the workers (idempotent); stop them where a job or batch is still under way.
+
+        ``stop``: whatever is under way (a search that failed or was interrupted, whose
+        workers may have died with a job: waiting for it would never end).
+        """
         if self._pool is not None:
-            if any(not handle.ready() for handle in self._unclaimed):
+            if stop or any(not handle.ready() for handle in self._unclaimed) \
+                    or any(not done.is_set() for done in self._beside):
                 self._pool.terminate()
             else:
                 self._pool.close()
             self._pool.join()
             self._pool = None
-        self._unclaimed = []
+        self._unclaimed, self._beside = [], []
+
+
+def _leave_interrupts():
+    """
+    Make a worker ignore Ctrl-C: the diagnosis that forked it is interrupted and stops it.
+
+    Interrupted itself, a worker could die inside the pool's task queue and leave it locked:
+    the diagnosis then waited forever to stop the pool.
+    """
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
 
 
 def _timed_call(function_and_item):

@@ -3,13 +3,20 @@
 
 :func:`rotor_id.cli.exit_with`: the exit code is the command's, what was printed (buffered,
 to a pipe) arrives, the at-exit functions run; with another thread alive the exit waits for
-it, as an ordinary exit does.
+it, as an ordinary exit does. Ctrl-C in the middle of a diagnosis (the terminal interrupts
+the command and its worker processes alike) ends it at once with exit code 130 and no
+process left behind: before, the command waited forever for the jobs its interrupted
+workers had been running.
 """
 
 import os
 from pathlib import Path
+import signal
 import subprocess
 import sys
+import time
+
+from practice import require_practice
 
 REPO = Path(__file__).resolve().parents[2]
 
@@ -51,3 +58,27 @@ def test_the_command_line_exits_with_its_code():
                           '/nonexistent.yaml'], capture_output=True, text=True, timeout=120)
     assert out.returncode == 2
     assert out.stderr.count('\n') == 1 and 'error' in out.stderr
+
+
+def test_ctrl_c_during_a_diagnosis_ends_it_and_its_workers():
+    recordings = require_practice()
+    name = str(recordings / 'dx_sensor_lag')
+    command = subprocess.Popen([str(REPO / 'rotor-id'), 'diagnose', name, '--config',
+                                name + '.yaml'], stdout=subprocess.DEVNULL,
+                               stderr=subprocess.PIPE, text=True, start_new_session=True)
+    try:
+        for line in command.stderr:             # the first step's fits under way in the workers
+            if line.startswith('    fitting '):
+                break
+        os.killpg(command.pid, signal.SIGINT)   # as Ctrl-C: the command and its workers
+        interrupted = time.monotonic()
+        rest = command.communicate(timeout=60)[1]
+        assert time.monotonic() - interrupted < 10.0
+    finally:
+        if command.poll() is None:
+            os.killpg(command.pid, signal.SIGKILL)
+    assert command.returncode == 130, rest
+    assert rest.strip().splitlines()[-1] == 'rotor-id diagnose: interrupted'
+    time.sleep(0.5)
+    left = subprocess.run(['pgrep', '-g', str(command.pid)], capture_output=True, text=True)
+    assert not left.stdout.split(), 'processes of the command left behind'

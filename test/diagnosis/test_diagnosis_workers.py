@@ -2,6 +2,7 @@
 
 import time
 
+import pytest
 from rotor_id.diagnosis.likelihood import Workers
 
 
@@ -94,8 +95,19 @@ def test_with_one_process_a_batch_begun_beside_is_computed_when_asked_for():
     workers.close()
 
 
-def test_close_lets_a_batch_begun_beside_end():
+def test_a_batch_begun_beside_and_never_waited_for_is_stopped_at_close():
     workers = Workers(2)
-    wait = workers.beside(lambda: workers.apply(_started, [0.3]))
-    workers.close()                             # the search failed before it waited
-    assert wait()[0] <= time.monotonic()
+    workers.beside(lambda: workers.apply(_started, [60.0, 60.0]))    # the search failed
+    closing = time.monotonic()
+    workers.close()
+    assert time.monotonic() - closing < 30.0     # terminated, not waited for
+
+
+def test_an_error_in_a_batch_begun_beside_is_raised_where_it_is_waited_for():
+    workers = Workers(2)
+    try:
+        wait = workers.beside(lambda: workers.apply(_started, ['not a number']))
+        with pytest.raises(TypeError):
+            wait()
+    finally:
+        workers.close()
