@@ -63,9 +63,12 @@ def test_the_command_line_exits_with_its_code():
 def test_ctrl_c_during_a_diagnosis_ends_it_and_its_workers():
     recordings = require_practice()
     name = str(recordings / 'dx_sensor_lag')
+    # Ctrl-C's disposition as in a terminal (make test runs this lane as a background job,
+    # which ignores SIGINT, and a child inherits that)
     command = subprocess.Popen([str(REPO / 'rotor-id'), 'diagnose', name, '--config',
                                 name + '.yaml'], stdout=subprocess.DEVNULL,
-                               stderr=subprocess.PIPE, text=True, start_new_session=True)
+                               stderr=subprocess.PIPE, text=True, start_new_session=True,
+                               preexec_fn=_default_interrupt)
     try:
         for line in command.stderr:             # the first step's fits under way in the workers
             if line.startswith('    fitting '):
@@ -82,3 +85,7 @@ def test_ctrl_c_during_a_diagnosis_ends_it_and_its_workers():
     time.sleep(0.5)
     left = subprocess.run(['pgrep', '-g', str(command.pid)], capture_output=True, text=True)
     assert not left.stdout.split(), 'processes of the command left behind'
+
+
+def _default_interrupt():
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
