@@ -392,56 +392,35 @@ def evaluate(problem: Problem, theta: np.ndarray, max_step: float = DEFAULT_MAX_
     ``columns`` (positions among θ's model parameters): only those sensitivities are
     integrated, and dy/dθ has those columns alone.
     """
-    if columns is not None:
-        return _evaluate_columns(problem, theta, max_step, list(columns))
     p = problem.full_parameters(theta)
     k_par = len(problem.param_index)
+    index = problem.param_index if columns is None else \
+        [problem.param_index[c] for c in columns]
     out = []
     for r, exp in enumerate(problem.experiments):
         x0, jac = problem.initial_state(r, theta, p)
+        if columns is not None:
+            jac = np.ascontiguousarray(jac[:, list(columns)])
+        # as integrated: every column of θ of this run, or the ``columns`` alone
+        whole = columns is not None or problem.run_columns(r) is None
         plan = _plan(problem, r, max_step)
         if plan is not None:
-            sim = plan.run(p, x0, problem.param_index if sensitivities else (),
+            sim = plan.run(p, x0, index if sensitivities else (),
                            jac if sensitivities else None, exp.y)
             res = sim.residual
-            if sensitivities and problem.run_columns(r) is None:
-                out.append((res, sim.dy, sim))
-                continue
-        elif sensitivities:
-            sim = simulate(exp.model, p, exp.inputs, exp.t, x0,
-                           param_index=problem.param_index, x0_jacobian=jac, max_step=max_step)
         else:
-            sim = simulate(exp.model, p, exp.inputs, exp.t, x0, max_step=max_step)
-        if plan is None:
+            sim = simulate(exp.model, p, exp.inputs, exp.t, x0,
+                           param_index=index if sensitivities else (),
+                           x0_jacobian=jac if sensitivities else None, max_step=max_step)
             res = None if exp.y is None else exp.y - sim.y
-        if sensitivities:
+        if sensitivities and not whole:
             dy = np.zeros(sim.y.shape + (len(theta),))
             # (a simulation with sensitivities has dy)
             dy[:, :, :k_par] = sim.dy[:, :, :k_par]  # type: ignore[index]
             dy[:, :, problem.state_slices[r]] = sim.dy[:, :, k_par:]  # type: ignore[index]
         else:
-            dy = None
+            dy = sim.dy if sensitivities else None
         out.append((res, dy, sim))
-    return out
-
-
-def _evaluate_columns(problem, theta, max_step, columns):
-    """:func:`evaluate` with the sensitivities along some model parameters of θ only."""
-    p = problem.full_parameters(theta)
-    index = [problem.param_index[c] for c in columns]
-    out = []
-    for r, exp in enumerate(problem.experiments):
-        x0, jac = problem.initial_state(r, theta, p)
-        S0 = np.ascontiguousarray(jac[:, columns])
-        plan = _plan(problem, r, max_step)
-        if plan is not None:
-            sim = plan.run(p, x0, index, S0, exp.y)
-            res = sim.residual
-        else:
-            sim = simulate(exp.model, p, exp.inputs, exp.t, x0, param_index=index,
-                           x0_jacobian=S0, max_step=max_step)
-            res = None if exp.y is None else exp.y - sim.y
-        out.append((res, sim.dy, sim))
     return out
 
 
