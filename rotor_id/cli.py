@@ -130,9 +130,8 @@ def exit_with(code: int) -> NoReturn:
     End the process with ``code``, skipping the interpreter's teardown of its modules.
 
     The at-exit functions run and the standard streams are flushed as at any exit; what is
-    skipped is freeing every object one by one, which the system does at once (after a
-    diagnosis that teardown took 0.17 s, 0.01 s without: bench/results/diagnose_speed*.md).
-    Where another thread is alive the exit is the ordinary one, which waits for it.
+    skipped is freeing every object one by one, which the system does at once. Where
+    another thread is alive the exit is the ordinary one, which waits for it.
     """
     if threading.active_count() > 1:
         sys.exit(code)

@@ -506,6 +506,7 @@ def _wake_starts(model, guess):
     then gains L and time constants τ; γ raised so that the quasi-steady damping γ/(1+AL)
     stays at the baseline's.
     """
+    # (at AL/τ = 0 the wake is unforced whatever τ: the grid's middle τ = 2 to leave from)
     yield {**guess, 'AL_over_tau': 0.0, 'inv_tau': 0.5}
     a1 = flap_damping(1.0, model.rotor.tip_loss)           # A/γ, Ch.2 eq. 27
     gamma_b = guess['gamma']

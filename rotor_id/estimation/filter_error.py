@@ -401,7 +401,8 @@ class FilterProblem:
         """
         Return (ν, B, ∂ν, ∂B, cost) of run r from the filter's analytic sensitivities.
 
-        ``columns``: along those of θ's model parameters alone (see :meth:`evaluate`).
+        ``columns``: along those of θ's model parameters and initial states alone (see
+        :meth:`evaluate`).
 
         For equal sample intervals, with F constant (one Φ, Q; H may rotate, as the wake
         model's eq.-30 measurement does) or varying (periodic models: Φ_j, Q_j per interval);
