@@ -3,7 +3,7 @@
 Out-of-catalogue proposals: right term, coefficient within 3σ, false proposals.
 
 For every seed, the independent truth generator makes a recording, the baseline is fitted
-(:func:`rotor_id.pipeline.identify`) and :func:`rotor_id.diagnosis.proposal.propose` is asked
+(:func:`rotor_id.pipeline.identify`) and :func:`rotor_id.estimation.term_search.propose` is asked
 directly, whatever the diagnosis would say, on
 
 * ``flap_stiffness_1c``, ``flap_damping_1s``: a once-per-rev flap stiffness (damping) no
@@ -32,7 +32,7 @@ sys.path.insert(0, str(ROOT / 'test' / 'diagnosis'))
 
 from common import machine_markdown  # noqa: E402 (bench/ is on sys.path as a script's dir)
 from diagnosis_scenarios import BY_NAME  # noqa: E402
-from rotor_id.diagnosis.proposal import propose  # noqa: E402
+from rotor_id.estimation.term_search import propose  # noqa: E402
 from rotor_id.pipeline import identify  # noqa: E402
 
 RESULTS = ROOT / 'bench' / 'results'

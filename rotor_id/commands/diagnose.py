@@ -22,7 +22,7 @@ from rotor_id.commands.common import check_output_paths, print_warnings, repairs
 from rotor_id.commands.identify import load_inputs
 from rotor_id.diagnosis.catalogue import EFFECTS
 from rotor_id.diagnosis.diagnose import diagnose
-from rotor_id.diagnosis.proposal import summary_line
+from rotor_id.estimation.term_search import summary_line
 
 if TYPE_CHECKING:
     from rotor_id.diagnosis.policy import SelectionPolicy

@@ -26,7 +26,7 @@ from typing import Any, TYPE_CHECKING, Union
 import numpy as np
 
 from rotor_id import residuals as rs
-from rotor_id.diagnosis.proposal import MIN_IMPROVEMENT
+from rotor_id.estimation.term_search import MIN_IMPROVEMENT
 
 if TYPE_CHECKING:
     from rotor_id.diagnosis.result import Diagnosis

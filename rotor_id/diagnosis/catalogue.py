@@ -21,8 +21,8 @@ import numpy as np
 
 from rotor_id.diagnosis.policy import DEFAULT_POLICY
 from rotor_id.estimation.output_error import (
-    evaluate, Experiment, fit_initial_states, fit_output_error, IdentificationError,
-    information_matrix, Problem, STOP)
+    augment_runs, evaluate, Experiment, ExtendedInput, FIT_FAILURES, fit_initial_states,
+    fit_output_error, IdentificationError, information_matrix, Problem, split_values, STOP)
 from rotor_id.estimation.simulate import DEFAULT_MAX_STEP
 from rotor_id.estimation.validation import score_statistic
 from rotor_id.physics import augmented as aug
@@ -36,8 +36,6 @@ EFFECTS = ('dynamic_inflow', 'periodic_coefficients', 'sensor_lag', 'time_delay'
            'azimuth_offset')
 #: Random inflow: the one effect fitted by filter error.
 NOISE = 'process_noise'
-#: The exceptions of a fit or a score test that fails (reported, never raised).
-FAILURES = (IdentificationError, np.linalg.LinAlgError, FloatingPointError, ValueError)
 
 #: Effects that a recording cannot tell apart at small size (the same physics to first
 #: order): a first-order sensor lag τ and a pure delay d = τ give the same flap to O(τ²); a
@@ -77,34 +75,6 @@ def equivalent(effect, advance_ratio=0.0):
 
 
 @dataclass
-class AugmentedExperiment(Experiment):
-    """An Experiment whose estimated initial states are given explicitly (``free``)."""
-
-    free: list = None
-
-    def free_states(self):
-        """Return the baseline's free states plus the augmentation's free ones."""
-        if self.free is not None:
-            return list(self.free)
-        return super().free_states()
-
-
-class ExtendedInput:
-    """u = [θ0, θI, θII, extra…]: the baseline input with extra sampled columns."""
-
-    def __init__(self, base_input, t, extra):
-        self.base = base_input
-        self.t = np.asarray(t, dtype=float)
-        self.extra = np.asarray(extra, dtype=float)
-
-    def __call__(self, t):
-        """Return u at times t, shape (len(t), 3 + k)."""
-        t = np.atleast_1d(np.asarray(t, dtype=float))
-        cols = [np.interp(t, self.t, self.extra[:, j]) for j in range(self.extra.shape[1])]
-        return np.column_stack([self.base(t)] + cols)
-
-
-@dataclass
 class CandidateFit:
     """The outcome of fitting one candidate."""
 
@@ -127,12 +97,6 @@ class CandidateFit:
     #: extra parameters still at a catalogue bound after widening: the likelihood is capped,
     #: so the candidate is reported but not compared
     bound_limited: list = field(default_factory=list)
-
-
-def split_values(estimate, unknowns):
-    """Return an estimate's ({unknown: value}, {every other model parameter: value})."""
-    have = estimate.model_parameters
-    return {n: have[n] for n in unknowns}, {n: v for n, v in have.items() if n not in unknowns}
 
 
 def record_step(ident, tolerance):
@@ -232,23 +196,6 @@ def start_values(fit):
     """Return a fit's estimated model parameters (a start for a bigger or smaller model)."""
     est = fit.estimate
     return {n: est.model_parameters[n] for n in fit.unknowns if n in est.model_parameters}
-
-
-def augment_runs(experiments, make, extra_inputs=None):
-    """One augmented experiment per baseline run; returns (experiments, model of run 1)."""
-    runs = []
-    for exp in experiments:
-        model = make(exp.model)
-        inputs = exp.inputs
-        if getattr(model, 'extra_inputs', ()):
-            inputs = ExtendedInput(exp.inputs, *extra_inputs(exp, model))
-        free = list(exp.free_states())
-        if isinstance(exp.initial_state, str) and exp.initial_state == 'estimate':
-            free += [model.state_names.index(s) for s in model.free_extra_states]
-        runs.append(AugmentedExperiment(model, inputs, exp.t, exp.y,
-                                        initial_state=exp.initial_state, name=exp.name,
-                                        free=free))
-    return runs, runs[0].model
 
 
 def _pitch_rates(exp, model):
@@ -549,7 +496,7 @@ def _best_start(runs, unknowns, starts, known, max_step):
                                  sensitivities=False)
             cost = 0.5 * sum(res.shape[0] * float(np.sum(np.log(np.mean(res**2, axis=0))))
                              for res, _, _ in results)
-        except FAILURES:
+        except FIT_FAILURES:
             continue
         if math.isfinite(cost) and cost < best_cost:
             best, best_cost = start, cost

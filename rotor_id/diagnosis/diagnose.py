@@ -22,14 +22,15 @@ import numpy as np
 
 from rotor_id import residuals as rs
 from rotor_id.diagnosis.catalogue import applicable, EFFECTS, NOISE, record_step, Setting
-from rotor_id.diagnosis.likelihood import FilterError, ModelSpace, OutputError, Workers
+from rotor_id.diagnosis.likelihood import FilterError, ModelSpace, OutputError
 from rotor_id.diagnosis.policy import DEFAULT_POLICY
-from rotor_id.diagnosis.proposal import propose, summary_line
 from rotor_id.diagnosis.result import Diagnosis
 from rotor_id.diagnosis.selection import Prior, search
 from rotor_id.diagnosis.verdict import explain
 from rotor_id.estimation import kernels
 from rotor_id.estimation.simulate import simulate
+from rotor_id.estimation.term_search import propose, summary_line
+from rotor_id.estimation.workers import Workers
 from rotor_id.physics.augmented import BladeView
 from rotor_id.physics.multiblade import coordinate_names, multiblade_from_blade_matrix
 from rotor_id.pipeline import identify

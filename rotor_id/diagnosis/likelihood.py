@@ -13,10 +13,6 @@ the search (:mod:`rotor_id.diagnosis.selection`) never asks which one it has.
 from dataclasses import dataclass, field, replace
 from functools import cached_property, partial
 import math
-import multiprocessing
-import signal
-import threading
-import time
 from typing import Callable
 
 import numpy as np
@@ -24,165 +20,12 @@ import numpy as np
 from rotor_id import residuals as rs
 from rotor_id.diagnosis import noisy
 from rotor_id.diagnosis.catalogue import (
-    as_lag_variance, CandidateFit, COMPOSE_ORDER, EFFECTS, FAILURES, fit_candidate, fit_runs,
+    as_lag_variance, CandidateFit, COMPOSE_ORDER, EFFECTS, fit_candidate, fit_runs,
     Job, LAG_PARAMETER, NOISE, screen_candidate, SCREENED, SCREENED_AS, start_values,
     tested_variants)
-from rotor_id.estimation import kernels
+from rotor_id.estimation.output_error import FIT_FAILURES
 from rotor_id.estimation.simulate import DEFAULT_MAX_STEP
-
-
-class Workers:
-    """
-    Worker processes for the candidate fits and score tests, forked once per diagnosis.
-
-    Forked on first use, after the compiled kernels are loaded (:func:`kernels.prefer`), so
-    every worker inherits them, and kept until :meth:`close`: a worker holds the record's
-    prepared plans from one batch to the next. With one process (or one job) the work runs
-    here, except while a batch runs beside (:meth:`beside`, :meth:`together`).
-    """
-
-    def __init__(self, processes):
-        self.processes = int(processes)
-        self._pool = None
-        #: {job key: CPU seconds of its last run}: the longest jobs are queued first
-        self.costs = {}
-        self._unclaimed = []        # submitted jobs whose result no one has asked for
-        self._beside = []           # batches under way in threads of this process (beside)
-
-    def _start(self):
-        if self._pool is None:
-            kernels.prefer()
-            self._pool = multiprocessing.get_context('fork').Pool(
-                processes=self.processes, initializer=_leave_interrupts)
-        return self._pool
-
-    def apply(self, function, items, keys=None):
-        """
-        Return [function(item)] in order, in the workers where that pays.
-
-        ``keys`` name the jobs (a tested effect's variant, a fit's new effect): jobs of the
-        same key cost alike from one model to the next, so the longest known ones are queued
-        first and those never run before them (longest processing time first: a batch ends
-        with its short jobs spread over the workers, not one long job alone).
-        """
-        items = list(items)
-        keys = list(keys) if keys is not None else [None] * len(items)
-        alone_here = len(items) <= 1 and not self._beside
-        if self.processes <= 1 or not items or alone_here:
-            timed = [_timed_call((function, item)) for item in items]
-        else:
-            order = sorted(range(len(items)), key=lambda i: -self.costs.get(keys[i], math.inf))
-            # one job at a time: jobs differ in cost tenfold, and map's default chunks of
-            # several leave one worker idle at a batch's end
-            done = self._start().map(_timed_call, [(function, items[i]) for i in order],
-                                     chunksize=1)
-            timed = [None] * len(items)
-            for i, result in zip(order, done):
-                timed[i] = result
-        for key, (_, cpu_s) in zip(keys, timed):
-            if key is not None:
-                self.costs[key] = cpu_s
-        return [result for result, _ in timed]
-
-    def together(self, calls):
-        """
-        Return [call()] of independent batches, their jobs queued in the workers at once.
-
-        Each call (a likelihood's batch) waits in a thread of this process while the workers
-        run its jobs, a lone job included: the batches overlap, and nothing is computed in
-        this process meanwhile (its caches see one thread).
-        """
-        if self.processes <= 1 or len(calls) <= 1:
-            return [call() for call in calls]
-        waits = [self.beside(call) for call in calls]
-        return [wait() for wait in waits]
-
-    def beside(self, call):
-        """
-        Start ``call()`` (a batch) in a thread beside what this process does next.
-
-        Return a call that waits for its result. Until then every job, a lone one included,
-        is queued in the workers (this process's caches see one thread). With one process,
-        ``call`` is made when its result is asked for. A batch no one waited for is stopped
-        by :meth:`close` (its thread is a daemon: it never holds up the exit).
-        """
-        if self.processes <= 1:
-            return call
-        self._start()
-        done, out = threading.Event(), {}
-
-        def run():
-            try:
-                out['value'] = call()
-            except BaseException as exc:  # noqa: B902 - raised again where it is waited for
-                out['error'] = exc
-            finally:
-                done.set()
-        self._beside.append(done)           # (before the thread asks for its first job)
-        threading.Thread(target=run, daemon=True).start()
-
-        def result():
-            done.wait()
-            if done in self._beside:
-                self._beside.remove(done)
-            if 'error' in out:
-                raise out['error']
-            return out['value']
-        return result
-
-    def submit(self, function, item):
-        """
-        Start ``function(item)`` in a worker beside the batches; return a call that waits for it.
-
-        The job is queued behind those already waiting, and fills a worker that a batch leaves
-        idle. With one process it is computed at that call, if ever. A job never waited for is
-        stopped by :meth:`close`.
-        """
-        if self.processes <= 1:
-            return lambda: function(item)
-        handle = self._start().apply_async(function, (item,))
-        self._unclaimed.append(handle)
-
-        def result():
-            if handle in self._unclaimed:
-                self._unclaimed.remove(handle)
-            return handle.get()
-        return result
-
-    def close(self, stop=False):
-        """
-        End the workers (idempotent); stop them where a job or batch is still under way.
-
-        ``stop``: whatever is under way (a search that failed or was interrupted, whose
-        workers may have died with a job: waiting for it would never end).
-        """
-        if self._pool is not None:
-            if stop or any(not handle.ready() for handle in self._unclaimed) \
-                    or any(not done.is_set() for done in self._beside):
-                self._pool.terminate()
-            else:
-                self._pool.close()
-            self._pool.join()
-            self._pool = None
-        self._unclaimed, self._beside = [], []
-
-
-def _leave_interrupts():
-    """
-    Make a worker ignore Ctrl-C: the diagnosis that forked it is interrupted and stops it.
-
-    Interrupted itself, a worker could die inside the pool's task queue and leave it locked:
-    the diagnosis then waited forever to stop the pool.
-    """
-    signal.signal(signal.SIGINT, signal.SIG_IGN)
-
-
-def _timed_call(function_and_item):
-    """Return (function(item), its CPU seconds): a job as the workers run it."""
-    function, item = function_and_item
-    start = time.process_time()
-    result = function(item)
-    return result, time.process_time() - start
+from rotor_id.estimation.workers import Workers
 
 
 def canonical(effects):
@@ -291,7 +134,7 @@ def _screen_job(job_and_variance):
     """Return screen_candidate of (job, noise variance), None where it fails (a worker)."""
     try:
         return screen_candidate(*job_and_variance)
-    except FAILURES:
+    except FIT_FAILURES:
         return None
 
 
@@ -412,7 +255,7 @@ def _filter_fit_job(item):
         effect, variant = new if new is not None else (None, None)
         return noisy.fit_filter(effect, variant, rest, start_fit, setting, setup,
                                 earlier=earlier)
-    except FAILURES:
+    except FIT_FAILURES:
         return None
 
 
@@ -425,7 +268,7 @@ def _filter_score_job(item):
             lm, var = noisy.noise_score(current_fit, kept, setting, setup)
             return '', float(lm), 1 + len(noisy.SHAPE), var
         return noisy.screen(test, variant, kept, current_fit, setting, setup)
-    except FAILURES:
+    except FIT_FAILURES:
         return None
 
 

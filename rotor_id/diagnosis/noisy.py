@@ -15,12 +15,12 @@ import time
 import numpy as np
 
 from rotor_id.diagnosis.catalogue import (
-    augment_runs, bound_sides, build, CandidateFit, CurrentColumns, effect_parameters, FAILURES,
-    grid_starts, Job, kept_current, NOISE, start_values, stop_at_bound)
+    bound_sides, build, CandidateFit, CurrentColumns, effect_parameters, grid_starts, Job,
+    kept_current, NOISE, start_values, stop_at_bound)
 from rotor_id.estimation.filter_error import (
     FilterProblem, fit_filter_error_ml, gradient_information, innovations_cost,
     measurement_noise_name, PROCESS_NOISE)
-from rotor_id.estimation.output_error import fit_initial_states
+from rotor_id.estimation.output_error import augment_runs, FIT_FAILURES, fit_initial_states
 from rotor_id.estimation.validation import score_statistic
 from rotor_id.physics import augmented as aug
 from rotor_id.pipeline import channel_noise
@@ -224,7 +224,7 @@ def fit_filter(effect, variant, kept, start_fit, ctx, setup, earlier=None):
                                   label=f'{effect} + random inflow', start_values=begin,
                                   loglik_tol=ctx.fit_tolerance, step_tol=ctx.fit_tolerance,
                                   progress=stop_at_bound(model, extra, None))
-    except FAILURES as exc:
+    except FIT_FAILURES as exc:
         out.available, out.reason = False, f'filter-error fit failed: {exc}'
         return out
     _fill(out, est, model, unknowns)
@@ -276,7 +276,7 @@ def _best_filter_start(job, model, runs, unknowns, guess, setup, max_step, est0,
             prob, theta = _problem(runs, unknowns, start, job.setting.known, setup, sigma,
                                    max_step, est0, rows, process_sigma=sigma,
                                    refit_states=True)
-        except FAILURES:
+        except FIT_FAILURES:
             continue
         if len(starts) == 1:
             return start, prob, theta
@@ -346,7 +346,7 @@ def fit_alone(ctx, setup):
                                   noise_std=setup.noise_std, max_iter=MAX_ITER, rows=rows,
                                   label='process_noise (pitch-like random inflow)',
                                   loglik_tol=ctx.fit_tolerance, step_tol=ctx.fit_tolerance)
-    except FAILURES as exc:
+    except FIT_FAILURES as exc:
         out.available, out.reason = False, f'filter-error fit failed: {exc}'
         return out
     _fill(out, est, runs[0].model, unknowns)

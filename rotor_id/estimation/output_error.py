@@ -102,6 +102,65 @@ class Experiment:
         return []
 
 
+#: The exceptions of a fit, or of a test at a fit, that fails on its data: a caller that tries
+#: many models reports them for the model concerned and goes on.
+FIT_FAILURES = (IdentificationError, np.linalg.LinAlgError, FloatingPointError, ValueError)
+
+
+@dataclass
+class AugmentedExperiment(Experiment):
+    """An Experiment whose estimated initial states are given explicitly (``free``)."""
+
+    free: list | None = None
+
+    def free_states(self) -> list[int]:
+        """Return the baseline's free states plus the augmentation's free ones."""
+        if self.free is not None:
+            return list(self.free)
+        return super().free_states()
+
+
+class ExtendedInput:
+    """u = [θ0, θI, θII, extra…]: the baseline input with extra sampled columns."""
+
+    def __init__(self, base_input: Callable[[np.ndarray], np.ndarray], t: npt.ArrayLike,
+                 extra: npt.ArrayLike) -> None:
+        self.base = base_input
+        self.t = np.asarray(t, dtype=float)
+        self.extra = np.asarray(extra, dtype=float)
+
+    def __call__(self, t: npt.ArrayLike) -> np.ndarray:
+        """Return u at times t, shape (len(t), 3 + k)."""
+        t = np.atleast_1d(np.asarray(t, dtype=float))
+        cols = [np.interp(t, self.t, self.extra[:, j]) for j in range(self.extra.shape[1])]
+        return np.column_stack([self.base(t)] + cols)
+
+
+def augment_runs(experiments: Sequence[Experiment], make: Callable[[Any], Any],
+                 extra_inputs: Callable[[Experiment, Any], tuple] | None = None,
+                 ) -> tuple[list[AugmentedExperiment], Any]:
+    """
+    One experiment per run with its model augmented (``make(model)``): (runs, model of run 1).
+
+    An augmentation's extra inputs are sampled by ``extra_inputs(run, model)`` -> (t, columns);
+    its extra states are free initial states where the run estimates its initial state.
+    """
+    runs = []
+    for exp in experiments:
+        model = make(exp.model)
+        inputs = exp.inputs
+        if getattr(model, 'extra_inputs', ()):
+            assert extra_inputs is not None, 'an augmentation with extra inputs needs them'
+            inputs = ExtendedInput(exp.inputs, *extra_inputs(exp, model))
+        free = list(exp.free_states())
+        if isinstance(exp.initial_state, str) and exp.initial_state == 'estimate':
+            free += [model.state_names.index(s) for s in model.free_extra_states]
+        runs.append(AugmentedExperiment(model, inputs, exp.t, exp.y,
+                                        initial_state=exp.initial_state, name=exp.name,
+                                        free=free))
+    return runs, runs[0].model
+
+
 @dataclass
 class Estimate:
     """Result of an identification, with everything a user or a message needs."""
@@ -174,6 +233,13 @@ class Estimate:
             'warnings': list(self.warnings),
             'n_samples': int(self.n_samples),
         }
+
+
+def split_values(estimate: 'Estimate', unknowns: Sequence[str],
+                 ) -> tuple[dict[str, float], dict[str, float]]:
+    """Return an estimate's ({unknown: value}, {every other model parameter: value})."""
+    have = estimate.model_parameters
+    return {n: have[n] for n in unknowns}, {n: v for n, v in have.items() if n not in unknowns}
 
 
 def _initial_state_name(state, run_index, n_runs):

@@ -12,6 +12,10 @@ The link between a model's states and the blades is :class:`BladeView`: per blad
 from blade values to the model's output channels (y = C·[β_1..β_N], e.g. report eq. 30 or the
 multiblade transform, docs/models.md §0). Extra inputs (measured pitch rates, measured flap for the
 cubic spring) ride in extra columns of u after the report's [θ0, θI, θII].
+
+Beyond the catalogue, :class:`LibraryTerm` adds one term of a small library (flap, flap rate,
+measured pitch or a constant, each alone or times cos ψ_k or sin ψ_k) to every blade's flap
+equation: the models of the out-of-catalogue search (:mod:`rotor_id.estimation.term_search`).
 """
 
 import copy
@@ -1474,3 +1478,111 @@ class PitchLikeRandomInflow(Augmented):
         for j, column in enumerate(self._pitch_columns(t, pb, self._u_full, jacobian=True)):
             dF[:, :n_pb, :nb, nb + j] = column
             dF[:, -1, nb + j, nb + j] = 1.0 / pe[0]**2
+
+
+# ------------------------------------------------------------------------------------------------
+# Out of catalogue: a library term on every blade's flap equation
+# ------------------------------------------------------------------------------------------------
+
+#: Per-blade factors of the out-of-catalogue term library (name, what it is).
+FACTORS = (('beta', 'flap β_k'), ('beta_dot', 'flap rate β_k′'),
+           ('theta', 'measured blade pitch θ_k'), ('1', 'a constant moment'))
+#: First harmonics of the blade's azimuth multiplying each factor.
+HARMONICS = (('', None), ('cos(psi)', np.cos), ('sin(psi)', np.sin))
+
+
+def term_names() -> list[str]:
+    """Return the names of the library's terms, in library order."""
+    out = []
+    for factor, _ in FACTORS:
+        for harmonic, _ in HARMONICS:
+            if factor == '1':
+                out.append(harmonic or '1')
+            else:
+                out.append(f'{factor}*{harmonic}' if harmonic else factor)
+    return out
+
+
+def _split_term(name: str) -> tuple[str, str]:
+    """Return (factor, harmonic) of a term name ('beta*cos(psi)' -> ('beta', 'cos(psi)'))."""
+    if name in ('1', 'cos(psi)', 'sin(psi)'):
+        return '1', '' if name == '1' else name
+    factor, _, harmonic = name.partition('*')
+    return factor, harmonic
+
+
+def term_pieces(view: 'BladeView', term: str, t: np.ndarray, u: np.ndarray,
+                ) -> tuple[np.ndarray | None, np.ndarray | None]:
+    """
+    Return one library term per blade as φ_k = Φ x + φ0: (Φ (T, N_b, n) or None, φ0 or None).
+
+    The one definition of the terms (``view`` a :class:`BladeView` of the model): flap and flap
+    rate from the model's own blade matrices (linear in the states), the blade pitch from the
+    measured multiblade pitch by eq. 3, the azimuth from the model.
+    """
+    factor, harmonic = _split_term(term)
+    psi = view.azimuth(t)
+    trig = dict(HARMONICS)[harmonic]
+    h = np.ones_like(psi) if trig is None else trig(psi)
+    if factor in ('beta', 'beta_dot'):
+        H = view.flap(t) if factor == 'beta' else view.flap_rate(t)
+        return h[:, :, None] * H, None
+    if factor == 'theta':
+        blades = [k - 1 for k in view.blades]
+        h = h * blade_pitch_from_multiblade(t, u[:, :3], int(view.model.rotor.n_blades))[
+            :, blades]
+    return None, h
+
+
+def library(model: RotorLike, t: np.ndarray, x: np.ndarray, u: np.ndarray) -> np.ndarray:
+    """Return the library's per-blade values φ (T, N_b, M) at states x (T, n) and inputs u."""
+    view = BladeView(model)
+    columns: list[np.ndarray] = []
+    for term in term_names():
+        Phi, phi0 = term_pieces(view, term, t, u)
+        columns.append(np.einsum('tkn,tn->tk', Phi, x) if Phi is not None
+                       else np.asarray(phi0))
+    return np.stack(columns, axis=2)
+
+
+class LibraryTerm(Augmented):
+    """
+    The baseline with one library term on every blade: β_k″ += ξ φ_k (x′ += ξ G φ).
+
+    φ_k is a flap, flap rate (linear in the states: F += ξ G diag(h) Hb) or measured pitch or
+    constant (g += ξ G (h θ_k) or ξ G h), h = 1, cos ψ_k or sin ψ_k. Linear in ξ, so the
+    sensitivities are exact; ξ = 0 is the baseline.
+    """
+
+    effect = 'proposed_term'
+
+    def __init__(self, base: RotorLike, term: str) -> None:
+        self.term = term
+        harmonic = _split_term(term)[1]
+        self.extra_parameters = (Parameter(f'xi[{term}]', 'ξ', 'per rev²', 0.0, -1e3, 1e3,
+                                           f"proposed β'' += ξ·{term}"),)
+        super().__init__(base)
+        self.name = f'{base.name}+{term}'
+        self.time_invariant = base.time_invariant and not harmonic
+
+    def _pieces(self, t, u):
+        Phi, phi0 = term_pieces(self.view, self.term, t, u)
+        G = self.view.force(t)
+        if Phi is not None:
+            return np.einsum('tnk,tkm->tnm', G, Phi), None
+        return None, np.einsum('tnk,tk->tn', G, phi0)
+
+    def _extra(self, t, pb, pe, u, F, g):
+        M, v = self._pieces(t, u)
+        if M is not None:
+            F += pe[0] * M
+        else:
+            g += pe[0] * v
+
+    def _extra_jacobian(self, t, pb, pe, u, dF, dg):
+        M, v = self._pieces(t, u)
+        k = self.n_base_parameters
+        if M is not None:
+            dF[:, k] = M
+        else:
+            dg[:, k] = v

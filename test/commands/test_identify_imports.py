@@ -50,7 +50,7 @@ def test_diagnose_starts_without_scipy_special_or_matplotlib():
         [str(REPO)] + [p for p in os.environ.get('PYTHONPATH', '').split(os.pathsep) if p]))
     out = subprocess.run(
         [sys.executable, '-c', 'import json, sys\nimport rotor_id.commands.diagnose\n'
-         'import rotor_id.diagnosis.proposal\n'
+         'import rotor_id.estimation.term_search\n'
          'print(json.dumps(sorted(sys.modules)))\n'],
         capture_output=True, text=True, env=env, timeout=120)
     modules = json.loads(out.stdout.strip().splitlines()[-1])

@@ -16,7 +16,7 @@ import pickle
 import numpy as np
 import pytest
 
-from rotor_id.diagnosis.catalogue import ExtendedInput
+from rotor_id.estimation.output_error import ExtendedInput
 from rotor_id.estimation.simulate import simulate
 from rotor_id.physics import augmented as aug
 from rotor_id.physics.models import build_model, RotorConstants

@@ -19,8 +19,9 @@ import pytest
 from rotor_id.commands.diagnose import format_summary
 from rotor_id.commands.diagnose_figures import write_report
 from rotor_id.diagnosis.diagnose import diagnose
-from rotor_id.diagnosis.proposal import LibraryTerm, propose, term_names
 from rotor_id.estimation.simulate import simulate
+from rotor_id.estimation.term_search import propose
+from rotor_id.physics.augmented import LibraryTerm, term_names
 from rotor_id.pipeline import identify
 from test_diagnosis_augmentations import _base, _inputs, check_sensitivities, T
 

@@ -236,7 +236,7 @@ def test_plan_only_for_time_invariant_models():
 
 def _augmented_cases():
     from rotor_id.physics import augmented as aug
-    from rotor_id.diagnosis.catalogue import ExtendedInput
+    from rotor_id.estimation.output_error import ExtendedInput
     from rotor_id.physics.models import build_model
     t = 8.0 + 0.1 * np.arange(161)
     schedule = StirringSchedule(collective=0.035, amplitude=0.026, t0=8.0, t_step=1.0)

@@ -1,9 +1,9 @@
 """
-Out of catalogue: propose a term of the flap equation from the equation error.
+Which term of the flap equation do the data want? A search by equation error.
 
-When no catalogue effect explains a recording (verdict ``unexplained``), the mismatch may still
-be structured dynamics. Which small physical term, added to every blade's flapping equation
-alike, do the data want?
+When no model of a catalogue explains a recording, the mismatch may still be structured
+dynamics. Which small physical term, added to every blade's flapping equation alike, do the
+data want? (The diagnosis's out-of-catalogue proposal, ``explanation.proposal``.)
 
 1. Reconstruct the states with the baseline model: the iterated equation error's Kalman filter
    and RTS smoother, process noise on the parameter-dependent rows chosen by likelihood, so the
@@ -21,8 +21,8 @@ alike, do the data want?
 4. The kept terms' regression coefficients, σ by a cluster sandwich over :data:`N_CLUSTERS`
    contiguous clusters (the smoothed states are serially correlated). Equation error attenuates
    a coefficient where the smoothed states lean on the wrong model (bench/results/proposal.md),
-   so the baseline with the kept terms (:class:`LibraryTerm`) is fitted by output-error ML:
-   that coefficient and its Cramér-Rao σ are the proposal's.
+   so the baseline with the kept terms (:class:`rotor_id.physics.augmented.LibraryTerm`) is
+   fitted by output-error ML: that coefficient and its Cramér-Rao σ are the proposal's.
 
 The result is labelled ``proposal``, a hypothesis for the experimenter, never a catalogue
 verdict. Terms whose held-out error is not worse beyond chance (one-sided 5 %, uncorrected) are
@@ -30,16 +30,17 @@ listed as ``alternatives``: β cos ψ and θ cos ψ are nearly collinear where t
 """
 
 from dataclasses import dataclass, field
+from functools import partial
 import math
+from typing import Any, Protocol, Sequence
 
 import numpy as np
-from rotor_id.diagnosis.catalogue import augment_runs, FAILURES, split_values
+
 from rotor_id.estimation.equation_error import fit_equation_error, regression
-from rotor_id.estimation.output_error import fit_output_error
+from rotor_id.estimation.output_error import (
+    augment_runs, Estimate, Experiment, FIT_FAILURES, fit_output_error, split_values)
 from rotor_id.estimation.validation import student_t_isf
-from rotor_id.physics.augmented import Augmented, BladeView
-from rotor_id.physics.models import Parameter
-from rotor_id.physics.stirring import blade_pitch_from_multiblade
+from rotor_id.physics.augmented import library, LibraryTerm, term_names
 
 #: Contiguous time blocks of the held-out validation.
 N_BLOCKS = 8
@@ -54,63 +55,14 @@ ROUNDING_LOG_RATIO = 1e-12
 MAX_TERMS = 2
 #: Contiguous clusters of the robust coefficient covariance.
 N_CLUSTERS = 32
-#: Per-blade factors of the library (name, what it is).
-FACTORS = (('beta', 'flap β_k'), ('beta_dot', 'flap rate β_k′'),
-           ('theta', 'measured blade pitch θ_k'), ('1', 'a constant moment'))
-#: First harmonics of the blade's azimuth multiplying each factor.
-HARMONICS = (('', None), ('cos(psi)', np.cos), ('sin(psi)', np.sin))
 
 
-def term_names():
-    """Return the names of the library's terms, in library order."""
-    out = []
-    for factor, _ in FACTORS:
-        for harmonic, _ in HARMONICS:
-            if factor == '1':
-                out.append(harmonic or '1')
-            else:
-                out.append(f'{factor}*{harmonic}' if harmonic else factor)
-    return out
+class Baseline(Protocol):
+    """The fit a term is searched beside (e.g. :class:`rotor_id.pipeline.Identification`)."""
 
-
-def _split_term(name):
-    """Return (factor, harmonic) of a term name ('beta*cos(psi)' -> ('beta', 'cos(psi)'))."""
-    if name in ('1', 'cos(psi)', 'sin(psi)'):
-        return '1', '' if name == '1' else name
-    factor, _, harmonic = name.partition('*')
-    return factor, harmonic
-
-
-def term_pieces(view, term, t, u):
-    """
-    Return one library term per blade as φ_k = Φ x + φ0: (Φ (T, N_b, n) or None, φ0 or None).
-
-    The one definition of the terms (``view`` a :class:`BladeView` of the model): flap and flap
-    rate from the model's own blade matrices (linear in the states), the blade pitch from the
-    measured multiblade pitch by eq. 3, the azimuth from the model.
-    """
-    factor, harmonic = _split_term(term)
-    psi = view.azimuth(t)
-    trig = dict(HARMONICS)[harmonic]
-    h = np.ones_like(psi) if trig is None else trig(psi)
-    if factor in ('beta', 'beta_dot'):
-        H = view.flap(t) if factor == 'beta' else view.flap_rate(t)
-        return h[:, :, None] * H, None
-    if factor == 'theta':
-        blades = [k - 1 for k in view.blades]
-        h = h * blade_pitch_from_multiblade(t, u[:, :3], int(view.model.rotor.n_blades))[
-            :, blades]
-    return None, h
-
-
-def library(model, t, x, u):
-    """Return the library's per-blade values φ (T, N_b, M) at states x (T, n) and inputs u."""
-    view = BladeView(model)
-    columns = []
-    for term in term_names():
-        Phi, phi0 = term_pieces(view, term, t, u)
-        columns.append(np.einsum('tkn,tn->tk', Phi, x) if Phi is not None else phi0)
-    return np.stack(columns, axis=2)
+    experiments: Sequence[Experiment]   # its runs
+    unknowns: Sequence[str]             # re-estimated beside every term
+    estimate: Estimate
 
 
 @dataclass
@@ -126,10 +78,10 @@ class Regressors:
     rows: list
 
 
-def build_regressors(ident):
+def build_regressors(baseline: Baseline) -> Regressors:
     """Reconstruct the states and build :class:`Regressors` for the baseline fit's runs."""
-    experiments, unknowns = ident.experiments, list(ident.unknowns)
-    values, known = split_values(ident.estimate, unknowns)
+    experiments, unknowns = baseline.experiments, list(baseline.unknowns)
+    values, known = split_values(baseline.estimate, unknowns)
     result = fit_equation_error(experiments, unknowns, guess=values, known=known, max_iter=1)
     model = experiments[0].model
     p = model.parameter_vector({**known, **dict(zip(result.names, result.values))})
@@ -140,7 +92,8 @@ def build_regressors(ident):
         x, xdot = rec.x_smoothed, rec.derivatives
         reg = regression(exp.model, p, exp.inputs, t, x, xdot, idx)
         e = reg.zeta - reg.A @ p[idx]                                  # (T, r)
-        G = exp.model.blade_force_matrix(t)[:, reg.rows]               # (T, r, N_b)
+        rotor: Any = exp.model                                           # a rotor model
+        G = rotor.blade_force_matrix(t)[:, reg.rows]                   # (T, r, N_b)
         Lt = np.einsum('trk,tkm->trm', G, library(exp.model, t, x, exp.inputs(t)))
         frac = (t - t[0]) / max(t[-1] - t[0], 1e-12)
         parts.append((e, reg.A, Lt, reg.weights, frac))
@@ -152,7 +105,8 @@ def build_regressors(ident):
     for r in range(len(rows)):
         coef = np.linalg.lstsq(A_all[:, r, :], e_all[:, r], rcond=None)[0]
         row_var[r] = max(float(np.mean((e_all[:, r] - A_all[:, r, :] @ coef)**2)), 1e-300)
-    es, As, Ls, blocks, clusters = [], [], [], [], []
+    es, As, Ls, blocks = [], [], [], []
+    clusters: list[np.ndarray] = []
     for e, A, Lt, w, frac in parts:
         scale = np.sqrt(w[:, None] / row_var[None, :])                # (T, r)
         es.append((e * scale).reshape(-1))
@@ -171,7 +125,7 @@ def _design(reg, terms):
     return np.concatenate([reg.A, reg.L[:, list(terms)]], axis=1)
 
 
-def heldout_errors(reg, terms):
+def heldout_errors(reg: Regressors, terms: Sequence[int]) -> np.ndarray:
     """Return the held-out weighted squared equation error of every block, (N_BLOCKS,)."""
     X = _design(reg, terms)
     out = np.empty(N_BLOCKS)
@@ -182,7 +136,7 @@ def heldout_errors(reg, terms):
     return out
 
 
-def robust_fit(reg, terms):
+def robust_fit(reg: Regressors, terms: Sequence[int]) -> tuple[np.ndarray, np.ndarray]:
     """Coefficients of [baseline unknowns, terms] and their cluster-sandwich covariance."""
     X = _design(reg, terms)
     coef, *_ = np.linalg.lstsq(X, reg.e, rcond=None)
@@ -203,12 +157,12 @@ class Proposal:
 
     terms: list = field(default_factory=list)
     library: list = field(default_factory=list)
-    heldout_rms_before: float = None
-    heldout_rms_after: float = None
+    heldout_rms_before: float | None = None
+    heldout_rms_after: float | None = None
     steps: list = field(default_factory=list)
     reason: str = ''
 
-    def as_json(self):
+    def as_json(self) -> dict[str, Any]:
         """JSON under ``explanation.proposal``."""
         return {'label': 'proposal', 'terms': list(self.terms), 'library': list(self.library),
                 'equation': "beta_k'' += coefficient * term_k on every blade k",
@@ -223,7 +177,7 @@ class Proposal:
                           f'coefficient and σ from the output-error ML fit with the term'}
 
 
-def summary_line(proposal):
+def summary_line(proposal: dict[str, Any]) -> str:
     """One line of the text report from ``explanation.proposal`` (JSON)."""
     if not proposal['terms']:
         why = f' ({proposal["reason"]})' if proposal.get('reason') else ''
@@ -237,63 +191,20 @@ def summary_line(proposal):
     return 'proposal (a hypothesis, not a catalogue verdict): ' + '; '.join(parts)
 
 
-class LibraryTerm(Augmented):
-    """
-    The baseline with one library term on every blade: β_k″ += ξ φ_k (x′ += ξ G φ).
-
-    φ_k is a flap, flap rate (linear in the states: F += ξ G diag(h) Hb) or measured pitch or
-    constant (g += ξ G (h θ_k) or ξ G h), h = 1, cos ψ_k or sin ψ_k. Linear in ξ, so the
-    sensitivities are exact; ξ = 0 is the baseline.
-    """
-
-    effect = 'proposed_term'
-
-    def __init__(self, base, term):
-        self.term = term
-        harmonic = _split_term(term)[1]
-        self.extra_parameters = (Parameter(f'xi[{term}]', 'ξ', 'per rev²', 0.0, -1e3, 1e3,
-                                           f"proposed β'' += ξ·{term}"),)
-        super().__init__(base)
-        self.name = f'{base.name}+{term}'
-        self.time_invariant = base.time_invariant and not harmonic
-
-    def _pieces(self, t, u):
-        Phi, phi0 = term_pieces(self.view, self.term, t, u)
-        G = self.view.force(t)
-        if Phi is not None:
-            return np.einsum('tnk,tkm->tnm', G, Phi), None
-        return None, np.einsum('tnk,tk->tn', G, phi0)
-
-    def _extra(self, t, pb, pe, u, F, g):
-        M, v = self._pieces(t, u)
-        if M is not None:
-            F += pe[0] * M
-        else:
-            g += pe[0] * v
-
-    def _extra_jacobian(self, t, pb, pe, u, dF, dg):
-        M, v = self._pieces(t, u)
-        k = self.n_base_parameters
-        if M is not None:
-            dF[:, k] = M
-        else:
-            dg[:, k] = v
-
-
-def refine(ident, terms):
+def refine(baseline: Baseline, terms: Sequence[str]) -> tuple[Estimate, list[str]]:
     """
     Fit the baseline with the proposed terms by output-error ML; return the estimate.
 
-    The runs are the baseline fit's with every term stacked on the model (the catalogue's
-    :func:`~rotor_id.diagnosis.catalogue.augment_runs`).
+    The runs are the baseline fit's with every term stacked on the model
+    (:func:`~rotor_id.estimation.output_error.augment_runs`).
     """
-    runs = ident.experiments
+    runs: Sequence[Experiment] = baseline.experiments
     for term in terms:
-        runs, _ = augment_runs(runs, lambda m, term=term: LibraryTerm(m, term))
+        runs, _ = augment_runs(runs, partial(LibraryTerm, term=term))
     extra = [f'xi[{term}]' for term in terms]
-    values, known = split_values(ident.estimate, ident.unknowns)
+    values, known = split_values(baseline.estimate, baseline.unknowns)
     guess = {**values, **dict.fromkeys(extra, 0.0)}
-    return fit_output_error(runs, list(ident.unknowns) + extra, guess=guess, known=known,
+    return fit_output_error(runs, list(baseline.unknowns) + extra, guess=guess, known=known,
                             max_iter=30), extra
 
 
@@ -313,19 +224,19 @@ def _log_ratio_t(before, after):
     return float(np.mean(ratio)) / (spread / math.sqrt(ratio.size)), ratio
 
 
-def propose(ident):
+def propose(baseline: Baseline) -> Proposal:
     """
     Propose up to :data:`MAX_TERMS` library terms of the flap equation: :class:`Proposal`.
 
-    ``ident``: the baseline fit (a :class:`~rotor_id.pipeline.Identification`), its runs and
-    its unknowns (re-estimated beside every term). The method is the module docstring's.
+    ``baseline``: the fit searched beside (:class:`Baseline`), its unknowns re-estimated
+    beside every term. The method is the module docstring's.
     """
     names = term_names()
     try:
-        reg = build_regressors(ident)
-    except FAILURES as exc:
+        reg = build_regressors(baseline)
+    except FIT_FAILURES as exc:
         return Proposal(library=names, reason=f'equation error failed: {exc}')
-    current = []
+    current: list[int] = []
     sse = heldout_errors(reg, current)
     before = float(math.sqrt(np.sum(sse) / reg.e.size))
     steps = []
@@ -336,7 +247,7 @@ def propose(ident):
             break
         current.append(best)
         sse = trial
-    terms, reason = _proposed_terms(reg, current, steps, names, ident)
+    terms, reason = _proposed_terms(reg, current, steps, names, baseline)
     after = float(math.sqrt(np.sum(sse) / reg.e.size))
     return Proposal(terms=terms, library=names, heldout_rms_before=before,
                     heldout_rms_after=after, steps=steps, reason=reason)
@@ -362,7 +273,7 @@ def _forward_step(reg, current, sse, names):
     return step, best, trials[best]
 
 
-def _proposed_terms(reg, current, steps, names, ident):
+def _proposed_terms(reg, current, steps, names, baseline):
     """Return (the kept terms with their coefficients, reason the ML refit failed or '')."""
     terms, reason = [], ''
     if not current:
@@ -370,9 +281,9 @@ def _proposed_terms(reg, current, steps, names, ident):
     coef, cov = robust_fit(reg, current)
     k = reg.A.shape[1]
     try:
-        est, extra = refine(ident, [names[m] for m in current])
+        est, extra = refine(baseline, [names[m] for m in current])
         ml = {n: (est.value(n), est.std_of(n)) for n in extra}
-    except FAILURES as exc:
+    except FIT_FAILURES as exc:
         ml, reason = {}, f'output-error refit failed: {exc}'
     for i, m in enumerate(current):
         step = next(s for s in steps if s['term'] == names[m])

@@ -1,9 +1,9 @@
-"""The diagnosis's worker pool: results in order, the longest known jobs first, batches beside."""
+"""The worker pool: results in order, the longest known jobs first, batches beside."""
 
 import time
 
 import pytest
-from rotor_id.diagnosis.likelihood import Workers
+from rotor_id.estimation.workers import Workers
 
 
 def _started(seconds):
