@@ -148,3 +148,32 @@ def test_launcher_environment_imports_the_messages(install_prefix, tmp_path):
     # the source tree comes first, so edits apply without a rebuild
     assert Path(module_file).parent == REPO_ROOT / 'rotor_id'
     assert int(size) > 0
+
+
+def _environment(script, tmp_path):
+    result = subprocess.run(['bash', '-c', script + ' && env -0', 'env.sh', str(REPO_ROOT)],
+                            capture_output=True, text=True, timeout=60, cwd=tmp_path,
+                            env={'HOME': str(tmp_path), 'PATH': '/usr/bin:/bin',
+                                 'LD_LIBRARY_PATH': '/opt/inherited'},
+                            stdin=subprocess.DEVNULL)
+    assert result.returncode == 0, result.stderr
+    return dict(line.split('=', 1) for line in result.stdout.split('\0') if '=' in line)
+
+
+def test_kept_setup_commands_give_what_local_setup_gives(install_prefix, tmp_path):
+    # env.sh keeps colcon's setup commands beside the install tree (made by the first source,
+    # read by the second); the environment must be the one install/local_setup.sh sets itself
+    _environment('. "$1/tools/env.sh"', tmp_path)
+    assert (REPO_ROOT / 'install' / '.setup_commands.sh').is_file()
+    ours = _environment('. "$1/tools/env.sh"', tmp_path)
+    theirs = _environment('. "$1/tools/env.sh" --venv-only && COLCON_CURRENT_PREFIX="$1/install"'
+                          ' && export COLCON_CURRENT_PREFIX && . "$1/install/local_setup.sh"',
+                          tmp_path)
+
+    def parts(env, name):
+        return [p for p in env.get(name, '').split(':') if p]
+    for name in ('AMENT_PREFIX_PATH', 'CMAKE_PREFIX_PATH', 'LD_LIBRARY_PATH',
+                 'COLCON_PREFIX_PATH'):
+        assert parts(ours, name) == parts(theirs, name), name
+    assert parts(ours, 'PYTHONPATH') == [str(REPO_ROOT)] + parts(theirs, 'PYTHONPATH')
+    assert str(REPO_ROOT / 'install' / 'rotor_id_msgs' / 'lib') in parts(ours, 'LD_LIBRARY_PATH')

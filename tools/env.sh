@@ -39,9 +39,40 @@ if [ "${1:-}" != "--venv-only" ]; then
   # the tree was moved after the build.
   case "$-" in *u*) _rid_nounset=1; set +u ;; *) _rid_nounset= ;; esac
   export COLCON_CURRENT_PREFIX="$_rid_root/install"
-  # shellcheck disable=SC1091
-  . "$_rid_root/install/local_setup.sh"
-  unset COLCON_CURRENT_PREFIX
+  # local_setup.sh asks Python for its commands, a tenth of a second that every `rotor-id`
+  # paid. They depend on the install tree alone: kept beside it (install/.setup_commands.sh)
+  # until a build rewrites local_setup.sh or a package's hooks, and used where they are plain
+  # exports (else local_setup.sh runs as it is).
+  _rid_commands="$_rid_root/install/.setup_commands.sh"
+  _rid_fresh=1
+  for _rid_f in "$_rid_root/install/local_setup.sh" "$_rid_root"/install/*/share/*/package.dsv; do
+    [ "$_rid_commands" -nt "$_rid_f" ] || _rid_fresh=
+  done
+  # (made for this tree where it is now: a copied tree has copied paths in them)
+  _rid_f=
+  [ -n "$_rid_fresh" ] && read -r _rid_f < "$_rid_commands"
+  [ "$_rid_f" = "# $_rid_root" ] || _rid_fresh=
+  if [ -z "$_rid_fresh" ]; then
+    # made where the variables hold nothing yet: colcon leaves out a path already there
+    if env -u LD_LIBRARY_PATH -u PYTHONPATH -u AMENT_PREFIX_PATH -u CMAKE_PREFIX_PATH \
+        "$_rid_venv/bin/python" "$_rid_root/install/_local_setup_util_sh.py" sh \
+        > "$_rid_commands.$$" 2>/dev/null && ! grep -qv '^export ' "$_rid_commands.$$"; then
+      { printf '# %s\n' "$_rid_root"; cat "$_rid_commands.$$"; } > "$_rid_commands.$$.kept" \
+        && mv -f "$_rid_commands.$$.kept" "$_rid_commands" && _rid_fresh=1
+      rm -f "$_rid_commands.$$"
+    else
+      rm -f "$_rid_commands.$$"
+    fi
+  fi
+  if [ -n "$_rid_fresh" ]; then
+    # shellcheck disable=SC1090
+    . "$_rid_commands"
+    export COLCON_PREFIX_PATH="$_rid_root/install"      # what local_setup.sh adds itself
+  else
+    # shellcheck disable=SC1091
+    . "$_rid_root/install/local_setup.sh"
+  fi
+  unset COLCON_CURRENT_PREFIX _rid_commands _rid_fresh _rid_f
   [ -n "$_rid_nounset" ] && set -u
   unset _rid_nounset
   export PYTHONPATH="$_rid_root${PYTHONPATH:+:$PYTHONPATH}"
