@@ -7,7 +7,8 @@ Filter error's analytic sensitivities against finite differences.
   measurement σ's and free initial states; with the rotating measurement and the time-varying
   gain (wake model), and with the steady-state gain (constant-coefficient model);
 * the same for a periodic model (μ = .4: Φ_j, Q_j per interval), whose Φ_j, Q_j and their
-  derivatives summed as Fourier series of the interval's azimuth equal the intervals' own;
+  derivatives summed as Fourier series of the interval's azimuth equal the intervals' own
+  (∂Q, a forward difference of Q, to that difference's rounding);
 * the compiled scan and its numpy twin give the same numbers;
 * the sensitivities along some of the model parameters alone are those columns of all of them
   (wake, steady gain, periodic; equilibrium initial states, whose ∂x0 moves with them);
@@ -270,3 +271,32 @@ def test_analytic_gradient_with_output_offsets_and_two_runs():
     assert all(prob.analytic_sensitivities(r, theta) is not None for r in range(2))
     worst, _ = _gradient_check(prob, theta)
     assert worst < 1e-5
+
+
+def test_series_noise_derivative_is_judged_against_its_difference_s_rounding():
+    """
+    A series of ∂Q is judged against the rounding of the difference it is.
+
+    ∂Q along a parameter of F is a forward difference of two Q's over the step: a series of it
+    equals the intervals' own to that difference's rounding (eps·|Q|/step), which is far
+    above PHASE_AGREE of ∂Q where the parameter hardly moves Q; along σ_V² it is Q itself.
+    """
+    rng = np.random.default_rng(4)
+    Q = np.abs(rng.standard_normal((2, 3, 3)))
+    step = 1e-7
+    rounding = np.finfo(float).eps * np.max(Q) / step
+    exact = np.zeros((2, 2, 3, 3))
+    exact[:, 0] = 1e-3 * rounding * rng.standard_normal((2, 3, 3))   # F's parameter: tiny ∂Q
+    exact[:, 1] = Q                                                   # σ_V²: ∂Q = Q
+    directions, kp = np.array([0, 5]), 1
+
+    def agrees(error_0, error_1=0.0):
+        series = exact.copy()
+        series[:, 0] += error_0
+        series[:, 1] += error_1
+        return fe._noise_derivatives_agree(series, exact, Q, [step], directions, kp)
+    assert agrees(0.5 * rounding)                           # rounding of the difference
+    assert 0.5 * rounding > 1e3 * fe.PHASE_AGREE * np.max(np.abs(exact[:, 0]))
+    assert not agrees(2.0 * fe.DIFFERENCE_ROUNDINGS * rounding)
+    assert not agrees(0.0, 1e3 * fe.PHASE_AGREE * np.max(Q))    # Q's own: PHASE_AGREE
+    assert agrees(0.0, 0.1 * fe.PHASE_AGREE * np.max(Q))
