@@ -589,26 +589,31 @@ def output_error_score(runs, unknowns, guess, known, noise_var, max_step=None, e
     Score (Lagrange-multiplier) test of extra parameters at the current estimate: (LM, var).
 
     :func:`~rotor_id.estimation.validation.score_statistic` of the output-error cost ½Σ r²/σ²
-    at ``guess`` (extra parameters neutral, initial states refitted, σ² the current model's),
-    χ²(k) without the effect. ``var`` = {name: (M⁻¹)_jj} of the ``extra`` parameters, the
-    others profiled (a detection limit follows from it). ``current``: the current model's
-    :class:`CurrentColumns` (dy/dθ), whose initial states and columns are this model's.
+    at ``guess`` (extra parameters neutral, σ² the current model's), χ²(k) without the effect.
+    ``var`` = {name: (M⁻¹)_jj} of the ``extra`` parameters, the others profiled (a detection
+    limit follows from it). ``current``: the current model's :class:`CurrentColumns` (dy/dθ):
+    the test is at its estimate, its initial states included, and the effect's new initial
+    states at rest, where the output is the current model's (their gradient is in the test,
+    as they are in its k); without, at ``guess`` with every initial state fitted.
     """
     max_step = max_step or DEFAULT_MAX_STEP
     problem = Problem(runs, unknowns, guess, known).prepare(max_step)
     theta = np.concatenate([problem.p_base[problem.param_index],
                             np.zeros(len(problem.names) - len(problem.param_index))])
-    new = None
-    if current is not None:                 # its values, initial states included
-        mine, theirs = current.shared(problem.names)
-        theta[mine] = current.theta[theirs]
-        new = current.new_columns(problem.names, theta, extra, len(theta), max_step, False)
-    if new is None:
+    if current is None:
         results = _evaluated(problem, max_step)
         dys = [dy for _, dy, _ in results]
     else:
-        results = evaluate(problem, theta, max_step, columns=new)
-        dys = [dy for dy, in current.filled(problem.names, new, [(dy,) for _, dy, _ in results])]
+        mine, theirs = current.shared(problem.names)
+        theta[mine] = current.theta[theirs]
+        new = current.new_columns(problem.names, theta, extra, len(theta), max_step)
+        if new is None:
+            results = evaluate(problem, theta, max_step)
+            dys = [dy for _, dy, _ in results]
+        else:
+            results = evaluate(problem, theta, max_step, columns=new)
+            dys = [dy for dy, in current.filled(problem.names, new,
+                                                [(dy,) for _, dy, _ in results])]
     inv_var = 1.0 / np.asarray(noise_var, dtype=float)
     grad = -sum(np.einsum('tmi,m,tm->i', dy, inv_var, res)
                 for (res, _, _), dy in zip(results, dys))
@@ -638,18 +643,18 @@ class CurrentColumns:
         mine = [i for i, n in enumerate(names) if n in self.names]
         return mine, [self.names.index(names[i]) for i in mine]
 
-    def new_columns(self, names, theta, extra, n_base, max_step, at_rest):
+    def new_columns(self, names, theta, extra, n_base, max_step):
         """
         Return the positions of a nested model's θ to integrate, or None: all of them.
 
         None where its output at ``theta`` is not the current model's: another RK4 step, an
         entry it shares at another value, or a new entry that is neither an ``extra``
-        parameter nor (``at_rest``) an initial state at zero among θ's first ``n_base``.
+        parameter nor an initial state at rest (zero, among θ's first ``n_base``).
         """
         mine, theirs = self.shared(names)
         new = [i for i, n in enumerate(names) if n not in self.names]
         if max_step != self.max_step or not np.array_equal(theta[mine], self.theta[theirs]) \
-                or any(names[i] not in extra and not (at_rest and i < n_base and theta[i] == 0)
+                or any(names[i] not in extra and not (i < n_base and theta[i] == 0)
                        for i in new):
             return None
         return new

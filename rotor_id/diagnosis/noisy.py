@@ -136,7 +136,7 @@ def _score(prob, theta, extra=(), one_sided=None, current=None):
     ``current``: the current model's :class:`~rotor_id.diagnosis.catalogue.CurrentColumns`.
     """
     new = None if current is None else \
-        current.new_columns(prob.names, theta, extra, prob.n_base, prob.max_step, True)
+        current.new_columns(prob.names, theta, extra, prob.n_base, prob.max_step)
     if new is None:
         results = prob.evaluate(theta)
     else:                                   # only the new columns integrated

@@ -455,18 +455,27 @@ def evaluate(problem: Problem, theta: np.ndarray, max_step: float = DEFAULT_MAX_
     (residual None for a run without measurements, dy/dθ None without ``sensitivities``).
     Runs with a prepared plan (:meth:`Problem.prepare`) also carry the residuals' sums in
     ``simulation.residual_sums`` (run-local columns, :meth:`Problem.run_columns`).
-    ``columns`` (positions among θ's model parameters): only those sensitivities are
-    integrated, and dy/dθ has those columns alone.
+    ``columns`` (positions in θ, its model parameters first): only those sensitivities are
+    integrated, and dy/dθ has those columns alone (another run's initial state: zero).
     """
     p = problem.full_parameters(theta)
     k_par = len(problem.param_index)
     index = problem.param_index if columns is None else \
-        [problem.param_index[c] for c in columns]
+        [problem.param_index[c] for c in columns if c < k_par]
+    if columns is not None and list(columns[:len(index)]) != [c for c in columns if c < k_par]:
+        raise ValueError('columns: the model parameters come before the initial states')
     out = []
     for r, exp in enumerate(problem.experiments):
         x0, jac = problem.initial_state(r, theta, p)
         if columns is not None:
-            jac = np.ascontiguousarray(jac[:, list(columns)])
+            mine = problem.state_slices[r]
+            picked = np.zeros((jac.shape[0], len(columns)))
+            for j, c in enumerate(columns):
+                if c < k_par:
+                    picked[:, j] = jac[:, c]
+                elif mine.start <= c < mine.stop:
+                    picked[:, j] = jac[:, k_par + c - mine.start]
+            jac = picked
         # as integrated: every column of θ of this run, or the ``columns`` alone
         whole = columns is not None or problem.run_columns(r) is None
         plan = _plan(problem, r, max_step)

@@ -136,6 +136,29 @@ def test_equilibrium_start_and_two_runs_have_exact_sensitivities():
     assert est.std_of('A') < 0.0228
 
 
+def test_sensitivities_along_some_columns_are_those_columns():
+    # model parameters and initial states (each run's own; another run's is zero)
+    from rotor_id.estimation.output_error import Problem, evaluate
+    prog, regr = C.SCENARIOS['wake_progressing'], C.SCENARIOS['wake_regressing']
+    t = C.sample_times(70.0, 82.0)
+    runs = [C.make_experiment(prog, y=C.noisy_outputs(prog, t, 1), initial_state='equilibrium'),
+            C.make_experiment(regr, y=C.noisy_outputs(regr, t, 2), initial_state='positions')]
+    problem = Problem(runs, list(C.WAKE), None, None)
+    theta = np.array([0.45, 0.22, 0.14, 0.5, 0.2, -0.8, -0.3])
+    everything = evaluate(problem, theta)
+    columns = [1, 2, 4, 6]
+    some = evaluate(problem, theta, columns=columns)
+    for (res, dy, _), (res1, dy1, _) in zip(everything, some):
+        np.testing.assert_array_equal(res1, res)
+        assert dy1.shape == dy.shape[:2] + (len(columns),)
+        np.testing.assert_allclose(dy1, dy[:, :, columns], rtol=0.0,
+                                   atol=1e-12 * np.max(np.abs(dy)))
+    assert np.max(np.abs(everything[0][1][:, :, 4])) == 0.0     # run 2's state in run 1
+    assert np.max(np.abs(everything[1][1][:, :, 4])) > 0.0
+    with pytest.raises(ValueError, match='model parameters come before'):
+        evaluate(problem, theta, columns=[4, 1])
+
+
 def test_progress_can_stop_the_fit_after_an_iteration():
     """A caller that must publish now stops Gauss-Newton and gets that iterate's estimate."""
     case = ITER['single_blade_2par']
