@@ -57,14 +57,16 @@ def _sigma_v(est):
 
 
 def _problem(runs, unknowns, guess, known, setup, sigma_v, max_step, start_est, rows,
-             process_sigma=None, refit_states=False):
+             process_sigma=None, refit_states=False, at_rest=False):
     """
     Filter problem of a candidate and its θ at the current estimate (extra parts neutral).
 
     θ takes every entry the current estimate has; the extra parameters are neutral, the extra
-    initial states at their output-error fit or at rest. σ_V² is ``process_sigma``² if given.
-    ``refit_states``: a fit's start, whose initial states are refitted where the current ones
-    make it absurd. ``prob.start_cost``: the filter's cost at θ when evaluated here.
+    initial states at rest (``at_rest``: a score test's null) or at their output-error fit or
+    at rest, whichever the filter finds more likely (a fit's start). σ_V² is
+    ``process_sigma``² if given. ``refit_states``: a fit's start, whose initial states are
+    refitted where the current ones make it absurd. ``prob.start_cost``: the filter's cost at
+    θ when evaluated here.
     """
     prob = FilterProblem(runs, unknowns, guess, known, setup.noise_std, sigma_v, True, rows,
                          'white', 'auto', max_step)
@@ -73,8 +75,8 @@ def _problem(runs, unknowns, guess, known, setup, sigma_v, max_step, start_est, 
     theta = np.zeros(k)
     theta[:len(base.param_index)] = base.p_base[base.param_index]
     have = dict(zip(start_est.names, start_est.values))
-    if refit_states or any(name not in have
-                           for name in prob.names[len(base.param_index):prob.n_base]):
+    if refit_states or not at_rest and any(
+            name not in have for name in prob.names[len(base.param_index):prob.n_base]):
         # (the initial states the current estimate has are taken from it below)
         theta[:prob.n_base] = fit_initial_states(base, theta[:prob.n_base].copy(), max_step)
     fitted_states = theta[:prob.n_base].copy()
@@ -95,13 +97,16 @@ def _problem(runs, unknowns, guess, known, setup, sigma_v, max_step, start_est, 
                                  np.full(k - prob.n_base, scale_meas)])
     if prob.i_process is not None:
         prob.scale[prob.i_process] = scale_meas**2
-    # the extra states' initial values: their output-error fit, or at rest, whichever the
+    # the extra states' initial values: at rest for a score test (the null: the current
+    # model's innovations); a fit starts at their output-error fit or at rest, whichever the
     # filter finds more likely (a state the effect's neutral value leaves unobservable, as
     # a dissimilar blade's at ε = 0, gets an arbitrary output-error value)
     new = [i for i, n in enumerate(prob.names[:prob.n_base])
            if i >= len(base.param_index) and n not in have]
     tries = [theta]
-    if new:
+    if new and at_rest:
+        theta[new] = 0.0
+    elif new:
         rest = theta.copy()
         rest[new] = 0.0
         tries.append(rest)
@@ -189,7 +194,7 @@ def screen(test, variant, kept, current, ctx, setup):
     _, runs, unknowns, extra, guess, max_step, rows = _stack(
         ctx, setup, list(kept) + [(test, variant)], est, start_values(current))
     prob, theta = _problem(runs, unknowns, guess, ctx.known, setup, _sigma_v(est),
-                           max_step, est, rows)
+                           max_step, est, rows, at_rest=True)
     lm, var = _score(prob, theta, extra, current=current_innovations(kept, current, ctx, setup))
     return variant, lm, len(prob.names) - len(est.names), var
 
