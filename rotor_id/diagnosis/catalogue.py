@@ -445,16 +445,20 @@ def grid_starts(job, model, guess):
     return None
 
 
+#: The wake's neutral values: no wake (AL/τ = 0), the model it extends whatever τ (the
+#: grid's middle τ = 2 to leave from).
+NO_WAKE = {'AL_over_tau': 0.0, 'inv_tau': 0.5}
+
+
 def _wake_starts(model, guess):
     """
     Yield starting points for the wake.
 
-    No wake first (AL/τ = 0: the model without it, so that the fit never ends below it),
-    then gains L and time constants τ; γ raised so that the quasi-steady damping γ/(1+AL)
-    stays at the baseline's.
+    Gains L and time constants τ; γ raised so that the quasi-steady damping γ/(1+AL) stays at
+    the baseline's. (Not :data:`NO_WAKE`: the most likely start is fitted, and no wake, as
+    likely as the model it extends, is often the most likely while its fit stalls where a
+    wake exists; a fit that ends below that model is restarted there, :func:`fit_candidate`.)
     """
-    # (at AL/τ = 0 the wake is unforced whatever τ: the grid's middle τ = 2 to leave from)
-    yield {**guess, 'AL_over_tau': 0.0, 'inv_tau': 0.5}
     a1 = flap_damping(1.0, model.rotor.tip_loss)           # A/γ, Ch.2 eq. 27
     gamma_b = guess['gamma']
     for L in (0.5, 1.5, 3.0):
@@ -542,10 +546,16 @@ def fit_candidate(job):
         for widening in range(MAX_WIDENINGS + 1):
             runs, model, unknowns, extra, guess, max_step = build(job, experiments)
             starts = grid_starts(job, model, guess)
+            start = guess
             if starts is not None:
-                guess = _best_start(runs, unknowns, starts, setting.known, max_step) or guess
-            est = fit_runs(setting, runs, unknowns, guess, max_step, label,
+                start = _best_start(runs, unknowns, starts, setting.known, max_step) or guess
+            est = fit_runs(setting, runs, unknowns, start, max_step, label,
                            stop_at_bound(model, extra, _printer(label, setting.verbose)))
+            if job.effect == 'dynamic_inflow' and est.neg_log_likelihood > job.baseline_nll:
+                # ended below the model it extends: restarted from it (no wake), whence a
+                # fit never ends below it
+                est = fit_runs(setting, runs, unknowns, {**guess, **NO_WAKE}, max_step, label,
+                               stop_at_bound(model, extra, _printer(label, setting.verbose)))
             at_bound = bound_sides(est.model_parameters, model, extra)
             out.bounds = dict(job.bounds or {})
             out.bound_limited = [name for name, _ in at_bound]
