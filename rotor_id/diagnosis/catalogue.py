@@ -593,37 +593,33 @@ SCREENED = tuple(e for e in EFFECTS
                  if e not in ('periodic_coefficients', 'dynamic_inflow', NOISE))
 
 
-def output_error_score(runs, unknowns, guess, known, noise_var, max_step=None, extra=(),
-                       current=None):
+def output_error_score(runs, unknowns, guess, known, noise_var, current, max_step=None,
+                       extra=()):
     """
     Score (Lagrange-multiplier) test of extra parameters at the current estimate: (LM, var).
 
     :func:`~rotor_id.estimation.validation.score_statistic` of the output-error cost ½Σ r²/σ²
-    at ``guess`` (extra parameters neutral, σ² the current model's), χ²(k) without the effect.
+    at the current model's estimate (``current``, its :class:`CurrentColumns`; its initial
+    states included), the extra parameters neutral and the effect's new initial states at
+    rest: there the output is the current model's (the null), and the new states' gradient is
+    in the test as they are in its k. σ² the current model's; χ²(k) without the effect.
     ``var`` = {name: (M⁻¹)_jj} of the ``extra`` parameters, the others profiled (a detection
-    limit follows from it). ``current``: the current model's :class:`CurrentColumns` (dy/dθ):
-    the test is at its estimate, its initial states included, and the effect's new initial
-    states at rest, where the output is the current model's (their gradient is in the test,
-    as they are in its k); without, at ``guess`` with every initial state fitted.
+    limit follows from it).
     """
     max_step = max_step or DEFAULT_MAX_STEP
     problem = Problem(runs, unknowns, guess, known).prepare(max_step)
     theta = np.concatenate([problem.p_base[problem.param_index],
                             np.zeros(len(problem.names) - len(problem.param_index))])
-    if current is None:
-        results = _evaluated(problem, max_step)
+    mine, theirs = current.shared(problem.names)
+    theta[mine] = current.theta[theirs]
+    new = current.new_columns(problem.names, theta, extra, len(theta), max_step)
+    if new is None:                         # every column integrated
+        results = evaluate(problem, theta, max_step)
         dys = [dy for _, dy, _ in results]
     else:
-        mine, theirs = current.shared(problem.names)
-        theta[mine] = current.theta[theirs]
-        new = current.new_columns(problem.names, theta, extra, len(theta), max_step)
-        if new is None:
-            results = evaluate(problem, theta, max_step)
-            dys = [dy for _, dy, _ in results]
-        else:
-            results = evaluate(problem, theta, max_step, columns=new)
-            dys = [dy for dy, in current.filled(problem.names, new,
-                                                [(dy,) for _, dy, _ in results])]
+        results = evaluate(problem, theta, max_step, columns=new)
+        dys = [dy for dy, in current.filled(problem.names, new,
+                                            [(dy,) for _, dy, _ in results])]
     inv_var = 1.0 / np.asarray(noise_var, dtype=float)
     grad = -sum(np.einsum('tmi,m,tm->i', dy, inv_var, res)
                 for (res, _, _), dy in zip(results, dys))
@@ -731,8 +727,8 @@ def screen_candidate(job, noise_var):
     if effect in LAG_PARAMETER:
         job = _replace(job, effect=SCREENED_AS[effect])
     runs, model, unknowns, extra, guess, max_step = build(job, experiments)
-    lm, var = output_error_score(runs, unknowns, guess, setting.known, noise_var, max_step,
-                                 extra, current_columns(job, experiments))
+    lm, var = output_error_score(runs, unknowns, guess, setting.known, noise_var,
+                                 current_columns(job, experiments), max_step, extra)
     if effect in LAG_PARAMETER:
         var = as_lag_variance(effect, var)
     return job.variant, lm, len(extra) + _n_initial(runs) - _n_initial(experiments), var
