@@ -88,37 +88,24 @@ build: venv | sysdeps
 # 25 slowest tests listed at the end, so that a slow newcomer is seen in every CI log.
 PYTEST_ARGS ?= -n 2 --durations=25
 # The live tests (nodes on the clock: as processes on a DDS graph, or in the test process) run
-# one at a time at normal priority, beside the rest, which run on both cores at the lowest
-# (nice 19): a CPU-bound test then takes only the CPU the live ones leave. Side by side on
-# this 2-core VM they starved each other: eight node processes of the two-stand guide test fell
-# behind the clock and a stand could not start its next test point, a 200 Hz command stream
-# ticked late. Linux shares the CPU between sessions before it weighs nice values within one
-# (autogroups), and every node process starts its own session: so the rest run in a session
-# of their own whose autogroup is lowered as well (raising either needs no privilege). The
-# live tests run in the foreground, so that Ctrl-C stops them (their nodes torn down); the
-# other session is then terminated (a background job ignores SIGINT). The live lines are
-# printed after the others'.
+# one at a time at normal priority, beside the rest, which run at the lowest; the source checks
+# (linters, mypy, the package's import structure: they need only the venv) run beside the
+# build. tools/test_lanes.sh arranges the lanes and says why.
 LIVE_TESTS := test/integration test/nodes
+SOURCE_TESTS := test/test_flake8.py test/test_pep257.py test/test_types.py \
+                test/test_package_shape.py
 LIVE_LOG := log/live_tests.log
+SOURCE_LOG := log/source_checks.log
+STOCK_LOG := log/test_stock.log
 
 # The stock-stack venv (test-stock, below; mostly file copies) is installed while the main venv
 # and the workspace are built; its lines are printed after theirs.
 STOCK_VENV_LOG := log/venv_stock.log
 
 test:
-	@mkdir -p log
-	@{ $(MAKE) venv-stock > $(STOCK_VENV_LOG) 2>&1 & stock=$$!; status=0; \
-	   $(MAKE) build || status=$$?; wait $$stock || status=1; cat $(STOCK_VENV_LOG); \
-	   exit $$status; }
-	@echo "== test: pytest $(PYTEST_ARGS) at the lowest CPU priority, beside the live tests"
-	@$(WS_ENV) && { setsid -w bash -c 'echo 19 2> /dev/null > /proc/self/autogroup; exec \
-	     nice -n 19 python -m pytest $(PYTEST_ARGS) $(addprefix --ignore=,$(LIVE_TESTS))' & \
-	   rest=$$!; trap 'kill -TERM -- -$$rest 2> /dev/null' INT TERM; status=0; \
-	   python -m pytest -p no:cacheprovider --durations=10 $(LIVE_TESTS) > $(LIVE_LOG) 2>&1 \
-	     || status=1; wait $$rest || status=$$?; \
-	   echo "== test: the live tests ($(LIVE_TESTS)), one at a time beside the rest"; \
-	   cat $(LIVE_LOG); exit $$status; }
-	@$(MAKE) test-stock
+	@MAKE='$(MAKE)' PYTEST_ARGS='$(PYTEST_ARGS)' LIVE_TESTS='$(LIVE_TESTS)' \
+	  SOURCE_TESTS='$(SOURCE_TESTS)' SOURCE_LOG=$(SOURCE_LOG) LIVE_LOG=$(LIVE_LOG) \
+	  STOCK_LOG=$(STOCK_LOG) STOCK_VENV_LOG=$(STOCK_VENV_LOG) bash tools/test_lanes.sh
 
 # The library's tests again on the stack of a stock Jazzy install (Ubuntu 24.04: Python 3.12,
 # numpy 1.26, scipy 1.11; no ROS, no numba) in their own venv, .venv-stock (never the main
