@@ -737,3 +737,9 @@ def test_the_compiled_linear_algebra_runs_without_importing_scipy_linalg():
         pytest.skip('no module compiled ahead of time here (make build compiles it)')
     assert loaded == "['scipy.linalg.cython_blas', 'scipy.linalg.cython_lapack']", loaded
     assert last.startswith('True'), last
+
+
+def test_numba_version_for_the_module_key_is_the_installed_one():
+    """The ahead-of-time module's key names numba's version, read without importing it."""
+    from importlib.metadata import version
+    assert kernels._numba_version() == version('numba')
