@@ -22,7 +22,7 @@
 # low-priority lane runs in a session of its own whose autogroup is lowered as well (raising
 # either needs no privilege). The foreground lane takes Ctrl-C; the sessions in the background
 # are then terminated (a background job ignores SIGINT). Each lane's lines are printed after
-# the rest's, and the exit status is that of the first lane to fail.
+# the rest's; the exit status is not 0 if any lane failed.
 set -uo pipefail
 cd "$(dirname "$0")/.."
 mkdir -p log
