@@ -89,7 +89,7 @@ def aborted(estimate):
 
 def at_physical_bound(estimate):
     """
-    Say whether a final estimate has a parameter on its physical bound, and says so.
+    Say whether a final estimate has a parameter on its physical bound (its message names it).
 
     On a loaded machine the stirring of a stand can reach its identifier late in the window
     (the test point then records from its start without the excitation's beginning): the
