@@ -546,16 +546,19 @@ def fit_candidate(job):
         for widening in range(MAX_WIDENINGS + 1):
             runs, model, unknowns, extra, guess, max_step = build(job, experiments)
             starts = grid_starts(job, model, guess)
+
+            def fit_from(start):
+                # (a callback per fit: it counts that fit's iterations at a bound)
+                return fit_runs(setting, runs, unknowns, start, max_step, label,
+                                stop_at_bound(model, extra, _printer(label, setting.verbose)))
             start = guess
             if starts is not None:
                 start = _best_start(runs, unknowns, starts, setting.known, max_step) or guess
-            est = fit_runs(setting, runs, unknowns, start, max_step, label,
-                           stop_at_bound(model, extra, _printer(label, setting.verbose)))
+            est = fit_from(start)
             if job.effect == 'dynamic_inflow' and est.neg_log_likelihood > job.baseline_nll:
                 # ended below the model it extends: restarted from it (no wake), whence a
                 # fit never ends below it
-                est = fit_runs(setting, runs, unknowns, {**guess, **NO_WAKE}, max_step, label,
-                               stop_at_bound(model, extra, _printer(label, setting.verbose)))
+                est = fit_from({**guess, **NO_WAKE})
             at_bound = bound_sides(est.model_parameters, model, extra)
             out.bounds = dict(job.bounds or {})
             out.bound_limited = [name for name, _ in at_bound]
