@@ -68,6 +68,9 @@ class BladeView:
         self.kind = model.name
         self.blades = tuple(model.blades)
         self.n_blades = len(self.blades)
+        #: the blades' values are periodic in ψ (a rotor in multiblade coordinates): a term of
+        #: one blade apart from the others makes F or g periodic even in hover
+        self.rotating = model.blade is None and self.n_blades > 1
 
     def azimuth(self, t: npt.ArrayLike) -> np.ndarray:
         """Return every blade's azimuth ψ_k at times t (T, N), as the model defines it."""
@@ -123,6 +126,9 @@ class Augmented(LinearModel):
     free_extra_states: tuple[str, ...] = ()
     #: columns of u beyond [θ0, θI, θII] the augmentation needs (see ExtendedInput)
     extra_inputs: tuple[str, ...] = ()
+    #: F or g carries terms of single blades (not the same for every blade), which the
+    #: multiblade transform makes periodic in ψ (:attr:`BladeView.rotating`)
+    per_blade_terms: bool = False
 
     def __init__(self, base: RotorLike) -> None:
         self.base = base
@@ -132,7 +138,8 @@ class Augmented(LinearModel):
         self.parameters = tuple(base.parameters) + tuple(self.extra_parameters)
         self.state_names = tuple(base.state_names) + tuple(self.extra_states)
         self.output_names = base.output_names
-        self.time_invariant = base.time_invariant and not self.extra_inputs
+        self.time_invariant = base.time_invariant and not self.extra_inputs and not (
+            self.per_blade_terms and self.view.rotating)
         #: columns of u the base model reads: [θ0, θI, θII] and every inner extra input
         self.n_base_inputs = 3 + len(getattr(base, 'all_extra_inputs', ()))
         self.all_extra_inputs = tuple(getattr(base, 'all_extra_inputs', ())) + \
@@ -840,6 +847,7 @@ class BladeDissimilarity(Augmented):
     """
 
     effect = 'blade_dissimilarity'
+    per_blade_terms = True
     extra_parameters = (
         Parameter('dgamma_rel', 'ε = γ_j/γ − 1', '-', 0.0, -0.9, 3.0,
                   'relative Lock-number difference of the odd blade'),
@@ -1172,6 +1180,7 @@ class SensorGain(Augmented):
     """
 
     effect = 'sensor_gain'
+    per_blade_terms = True
     #: samples either side averaged for the flap at the start of a run
     SMOOTH = 10
 
