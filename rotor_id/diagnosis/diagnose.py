@@ -308,10 +308,12 @@ def diagnose(record, description, progress=None, workers=2, effects=EFFECTS, win
     started = {}
 
     def on_best(result):
-        # random inflow alone asks for the proposal (below): begun now, it runs in a worker
-        # that the search's last batches leave idle
+        # random inflow alone asks for the proposal (below): queued behind the search's next
+        # batch (the score tests at this model), it runs in a worker that the search's last
+        # batches leave idle
         if result.names == (NOISE,) and not started:
-            started['proposal'] = space.output_error.workers.submit(propose, base.ident)
+            started['proposal'] = space.output_error.workers.submit(propose, base.ident,
+                                                                    behind=True)
     try:
         selection = search(space, usable, prior, policy, mu, say, adequate, on_best)
         explanation, top, table = explain(space, selection, prior, policy, adequate,

@@ -33,6 +33,10 @@ class Workers:
         self.costs = {}
         self._unclaimed = []        # submitted jobs whose result no one has asked for
         self._beside = []           # batches under way in threads of this process (beside)
+        #: jobs submitted to queue behind the next batch, not queued yet: [[function, item,
+        #: handle or None]] (a lock: batches are queued from threads too)
+        self._behind = []
+        self._lock = threading.Lock()
 
     def _start(self):
         if self._pool is None:
@@ -59,8 +63,10 @@ class Workers:
             order = sorted(range(len(items)), key=lambda i: -self.costs.get(keys[i], math.inf))
             # one job at a time: jobs differ in cost tenfold, and map's default chunks of
             # several leave one worker idle at a batch's end
-            done = self._start().map(_timed_call, [(function, items[i]) for i in order],
-                                     chunksize=1)
+            queued = self._start().map_async(_timed_call,
+                                             [(function, items[i]) for i in order], chunksize=1)
+            self._queue_behind()
+            done = queued.get()
             timed = [None] * len(items)
             for i, result in zip(order, done):
                 timed[i] = result
@@ -115,24 +121,39 @@ class Workers:
             return out['value']
         return result
 
-    def submit(self, function, item):
+    def submit(self, function, item, behind=False):
         """
         Start ``function(item)`` in a worker beside the batches; return a call that waits for it.
 
         The job is queued behind those already waiting, and fills a worker that a batch leaves
-        idle. With one process it is computed at that call, if ever. A job never waited for is
-        stopped by :meth:`close`.
+        idle. ``behind``: queued only once the next batch's jobs are (a result wanted last
+        then waits behind that batch instead of holding it up), or when it is asked for if no
+        batch comes first. With one process it is computed at that call, if ever. A job never
+        waited for is stopped by :meth:`close`.
         """
         if self.processes <= 1:
             return lambda: function(item)
-        handle = self._start().apply_async(function, (item,))
-        self._unclaimed.append(handle)
+        entry = [function, item, None]
+        with self._lock:
+            self._behind.append(entry)
+        if not behind:
+            self._queue_behind()
 
         def result():
+            self._queue_behind()
+            handle = entry[2]
             if handle in self._unclaimed:
                 self._unclaimed.remove(handle)
             return handle.get()
         return result
+
+    def _queue_behind(self):
+        """Queue the submitted jobs that wait for a batch (:meth:`submit`), in their order."""
+        with self._lock:
+            waiting, self._behind = self._behind, []
+            for entry in waiting:
+                entry[2] = self._start().apply_async(entry[0], (entry[1],))
+                self._unclaimed.append(entry[2])
 
     def close(self, stop=False):
         """
@@ -149,7 +170,7 @@ class Workers:
                 self._pool.close()
             self._pool.join()
             self._pool = None
-        self._unclaimed, self._beside = [], []
+        self._unclaimed, self._beside, self._behind = [], [], []
 
 
 def _leave_interrupts():

@@ -111,3 +111,18 @@ def test_an_error_in_a_batch_begun_beside_is_raised_where_it_is_waited_for():
             wait()
     finally:
         workers.close()
+
+
+def test_a_job_submitted_behind_waits_for_the_next_batch_to_be_queued():
+    workers = Workers(2)
+    try:
+        later = workers.submit(_started, 0.0, behind=True)
+        time.sleep(0.3)
+        # queued behind this batch: its two jobs take both workers first
+        starts = workers.apply(_started, [0.4, 0.4])
+        assert later() - max(starts) > 0.3
+        # with no batch before its result is asked for, it is queued then
+        asked = time.monotonic()
+        assert workers.submit(_started, 0.0, behind=True)() >= asked
+    finally:
+        workers.close()
