@@ -178,22 +178,30 @@ def _highest_harmonic(values: np.ndarray) -> int:
     return int(present[-1]) if present.size else 0
 
 
-def _on_revolution(model, method, t0, samples, p, n_inputs):
+def _on_revolution(model, method, t0, samples, p, n_inputs, also_t=None, also_u=None):
     """
     Return the method on one revolution from t0: F, b and B, sampled (R, …) each.
 
     The model is evaluated once on the revolution repeated 1 + n_inputs times: at zero input
-    and at each unit input; B_j is the difference (the forcing is affine in u).
+    and at each unit input; B_j is the difference (the forcing is affine in u). ``also_t``,
+    ``also_u``: further times and inputs evaluated in the same call, whose F and g follow
+    (F of length 1 where the model gives it constant).
     """
     psi = t0 + 2.0 * np.pi * np.arange(samples) / samples
     grid = np.tile(psi, n_inputs + 1)
     units = np.zeros((grid.size, n_inputs))
     for j in range(n_inputs):
         units[(j + 1) * samples:(j + 2) * samples, j] = 1.0
+    n_rev = grid.size
+    if also_t is not None:
+        grid, units = np.concatenate([grid, also_t]), np.concatenate([units, also_u])
     F, g = compact(model, method, grid, p, units)
+    F_also = F if F.shape[0] == 1 else F[n_rev:]
+    g_also = g[n_rev:]
     F = F[:samples] if F.shape[0] > 1 else F
-    g = g.reshape((n_inputs + 1, samples) + g.shape[1:])
-    return F, g[0], np.moveaxis(g[1:] - g[0], 0, -1)       # B: (R, …, n_inputs)
+    g = g[:n_rev].reshape((n_inputs + 1, samples) + g.shape[1:])
+    out = F, g[0], np.moveaxis(g[1:] - g[0], 0, -1)        # B: (R, …, n_inputs)
+    return out if also_t is None else out + (F_also, g_also)
 
 
 def on_record(model: LinearModel, method: str, t: npt.ArrayLike, p: npt.ArrayLike,
@@ -304,9 +312,11 @@ def _series(model, method, t, p, u, columns):
     if t.size < 2 * samples * (n_inputs + 1):
         return None
     t0 = float(t[0])
-    F_rev, b_rev, B_rev = _on_revolution(model, method, t0, samples, p, n_inputs)
+    # the series is checked against the model at these record times, evaluated in the same call
+    check = np.unique(np.linspace(0, t.size - 1, CHECKED_TIMES + 1).astype(int)[1:])
     probing = _samples(model) is None
     if probing:                             # the probe: the fewest samples that resolve it
+        F_rev, b_rev, B_rev = _on_revolution(model, method, t0, samples, p, n_inputs)
         order = max(_highest_harmonic(part) for part in (F_rev, b_rev, B_rev))
         if order >= samples // 2 - 1:
             model.__dict__['_revolution_samples'] = 0
@@ -314,13 +324,12 @@ def _series(model, method, t, p, u, columns):
         samples = model.__dict__['_revolution_samples'] = 2 * order + 4
         # summed from those samples, as every later call is: a model's values do not depend
         # on which call probed it (the two sums differ by rounding)
-        F_rev, b_rev, B_rev = _on_revolution(model, method, t0, samples, p, n_inputs)
+    F_rev, b_rev, B_rev, F_at, g_at = _on_revolution(model, method, t0, samples, p, n_inputs,
+                                                     t[check], u[check])
     if columns is not None:
         F_rev, b_rev, B_rev = F_rev[:, columns], b_rev[:, columns], B_rev[:, columns]
     F = F_rev if F_rev.shape[0] == 1 else Series.of(F_rev, t0)
     b, B = Series.of(b_rev, t0), Series.of(B_rev, t0, weighted=True)
-    check = np.unique(np.linspace(0, t.size - 1, CHECKED_TIMES + 1).astype(int)[1:])
-    F_at, g_at = compact(model, method, t[check], p, u[check])
     if columns is not None:
         F_at, g_at = F_at[:, columns], g_at[:, columns]
     F_series = F if isinstance(F, np.ndarray) else F.values(t[check])
