@@ -22,7 +22,8 @@ import numpy as np
 from rotor_id.diagnosis.policy import DEFAULT_POLICY
 from rotor_id.estimation.output_error import (
     augment_runs, evaluate, Experiment, ExtendedInput, FIT_FAILURES, fit_initial_states,
-    fit_output_error, IdentificationError, information_matrix, Problem, split_values, STOP)
+    fit_output_error, IdentificationError, Problem, split_values, STOP,
+    weighted_products)
 from rotor_id.estimation.simulate import DEFAULT_MAX_STEP
 from rotor_id.estimation.validation import score_statistic
 from rotor_id.physics import augmented as aug
@@ -624,10 +625,9 @@ def output_error_score(runs, unknowns, guess, known, noise_var, current, max_ste
         dys = [dy for dy, in current.filled(problem.names, new,
                                             [(dy,) for _, dy, _ in results])]
     inv_var = 1.0 / np.asarray(noise_var, dtype=float)
-    grad = -sum(np.einsum('tmi,m,tm->i', dy, inv_var, res)
-                for (res, _, _), dy in zip(results, dys))
+    products = [weighted_products(dy, inv_var, res) for (res, _, _), dy in zip(results, dys)]
     names = problem.names
-    lm, variance = score_statistic(grad, information_matrix(dys, noise_var))
+    lm, variance = score_statistic(-sum(g for _, g in products), sum(M for M, _ in products))
     return lm, {n: float(variance[names.index(n)]) for n in extra if n in names}
 
 

@@ -521,8 +521,9 @@ def _weighted_sums(problem, results, noise_var):
         w = 1.0 / np.asarray(var, dtype=float)
         sums = sim.residual_sums
         if sums is None or sums[2].shape[-1] == 0:
-            M += np.einsum('tmi,m,tmj->ij', dy, w, dy)
-            grad -= np.einsum('tmi,m,tm->i', dy, w, res)
+            Mr, gr = weighted_products(dy, w, res)
+            M += Mr
+            grad -= gr
             continue
         _, gc, Mc = sums
         cols = problem.run_columns(r)
@@ -547,8 +548,23 @@ def information_matrix(dys: Sequence[np.ndarray],
     M = np.zeros((k, k))
     per_run = _per_run(noise_var, len(dys))
     for dy, var in zip(dys, per_run):
-        M += np.einsum('tmi,m,tmj->ij', dy, 1.0 / np.asarray(var, dtype=float), dy)
+        M += weighted_products(dy, 1.0 / np.asarray(var, dtype=float))[0]
     return M
+
+
+def weighted_products(dy: np.ndarray, weights: np.ndarray, res: np.ndarray | None = None
+                      ) -> tuple[np.ndarray, np.ndarray | None]:
+    """
+    Return (Σ_t dy_tᵀ W dy_t, Σ_t dy_tᵀ W res_t) of one run, W = diag(weights) (None: no res).
+
+    dy (T, m, k), res (T, m). As one product of (T·m, k) matrices (BLAS), not a loop over t.
+    """
+    k = dy.shape[-1]
+    scaled = (dy * np.sqrt(weights)[:, None]).reshape(-1, k)
+    gram = scaled.T @ scaled
+    if res is None:
+        return gram, None
+    return gram, (res * weights).reshape(-1) @ dy.reshape(-1, k)
 
 
 def _per_run(noise_var, n_runs):
