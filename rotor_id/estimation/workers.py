@@ -135,25 +135,33 @@ class Workers:
             return lambda: function(item)
         entry = [function, item, None]
         with self._lock:
-            self._behind.append(entry)
-        if not behind:
-            self._queue_behind()
+            if behind:
+                self._behind.append(entry)
+            else:
+                self._queue(entry)
 
         def result():
-            self._queue_behind()
+            with self._lock:
+                if entry in self._behind:       # no batch came: queued now
+                    self._behind.remove(entry)
+                    self._queue(entry)
             handle = entry[2]
             if handle in self._unclaimed:
                 self._unclaimed.remove(handle)
             return handle.get()
         return result
 
+    def _queue(self, entry):
+        """Queue a submitted job [function, item, None] in the pool; its handle fills the None."""
+        entry[2] = self._start().apply_async(entry[0], (entry[1],))
+        self._unclaimed.append(entry[2])
+
     def _queue_behind(self):
         """Queue the submitted jobs that wait for a batch (:meth:`submit`), in their order."""
         with self._lock:
-            waiting, self._behind = self._behind, []
-            for entry in waiting:
-                entry[2] = self._start().apply_async(entry[0], (entry[1],))
-                self._unclaimed.append(entry[2])
+            for entry in self._behind:
+                self._queue(entry)
+            self._behind = []
 
     def close(self, stop=False):
         """
