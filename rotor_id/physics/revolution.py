@@ -178,14 +178,14 @@ def _highest_harmonic(values: np.ndarray) -> int:
     return int(present[-1]) if present.size else 0
 
 
-def _on_revolution(model, method, t0, samples, p, n_inputs, also_t=None, also_u=None):
+def _on_revolution(model, method, t0, samples, p, n_inputs, also_t, also_u):
     """
-    Return the method on one revolution from t0: F, b and B, sampled (R, …) each.
+    Return the method on one revolution from t0: F, b and B, sampled (R, …) each; then F, g.
 
     The model is evaluated once on the revolution repeated 1 + n_inputs times: at zero input
-    and at each unit input; B_j is the difference (the forcing is affine in u). ``also_t``,
-    ``also_u``: further times and inputs evaluated in the same call, whose F and g follow
-    (F of length 1 where the model gives it constant).
+    and at each unit input; B_j is the difference (the forcing is affine in u). In the same
+    call it is evaluated at the times ``also_t`` and inputs ``also_u`` (possibly none), whose F
+    and g are returned after B (F of length 1 where the model gives it constant).
     """
     psi = t0 + 2.0 * np.pi * np.arange(samples) / samples
     grid = np.tile(psi, n_inputs + 1)
@@ -193,15 +193,13 @@ def _on_revolution(model, method, t0, samples, p, n_inputs, also_t=None, also_u=
     for j in range(n_inputs):
         units[(j + 1) * samples:(j + 2) * samples, j] = 1.0
     n_rev = grid.size
-    if also_t is not None:
-        grid, units = np.concatenate([grid, also_t]), np.concatenate([units, also_u])
+    grid, units = np.concatenate([grid, also_t]), np.concatenate([units, also_u])
     F, g = compact(model, method, grid, p, units)
     F_also = F if F.shape[0] == 1 else F[n_rev:]
     g_also = g[n_rev:]
     F = F[:samples] if F.shape[0] > 1 else F
     g = g[:n_rev].reshape((n_inputs + 1, samples) + g.shape[1:])
-    out = F, g[0], np.moveaxis(g[1:] - g[0], 0, -1)        # B: (R, …, n_inputs)
-    return out if also_t is None else out + (F_also, g_also)
+    return F, g[0], np.moveaxis(g[1:] - g[0], 0, -1), F_also, g_also   # B: (R, …, n_inputs)
 
 
 def on_record(model: LinearModel, method: str, t: npt.ArrayLike, p: npt.ArrayLike,
@@ -316,7 +314,8 @@ def _series(model, method, t, p, u, columns):
     check = np.unique(np.linspace(0, t.size - 1, CHECKED_TIMES + 1).astype(int)[1:])
     probing = _samples(model) is None
     if probing:                             # the probe: the fewest samples that resolve it
-        F_rev, b_rev, B_rev = _on_revolution(model, method, t0, samples, p, n_inputs)
+        F_rev, b_rev, B_rev, _, _ = _on_revolution(model, method, t0, samples, p, n_inputs,
+                                                   t[:0], u[:0])
         order = max(_highest_harmonic(part) for part in (F_rev, b_rev, B_rev))
         if order >= samples // 2 - 1:
             model.__dict__['_revolution_samples'] = 0
