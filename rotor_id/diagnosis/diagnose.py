@@ -254,9 +254,11 @@ def _proposal(explanation, base, say, started=None):
     """
     Return the equation-error proposal of an out-of-catalogue verdict (or random inflow).
 
-    ``started``: the proposal begun in a worker while the search went on (its result).
+    ``started``: the proposal submitted to the workers while the search went on.
     """
     if explanation.effect != 'unexplained' and explanation.names != (NOISE,):
+        if started is not None:
+            started.cancel()
         return None
     say('proposal: stepwise regression of the equation error on a library of flap-equation '
         'terms, validated on held-out time blocks')
@@ -307,15 +309,14 @@ def diagnose(record, description, progress=None, workers=2, effects=EFFECTS, win
         return residuals_are_noise(result, base, policy)
     started = {}
 
-    def on_best(result):
-        # random inflow alone asks for the proposal (below): queued behind the search's next
-        # batch (the score tests at this model), it runs in a worker that the search's last
-        # batches leave idle
-        if result.names == (NOISE,) and not started:
+    def on_fit(explanations):
+        # random inflow alone, if the verdict, asks for the proposal (below): from its fit on
+        # the proposal fills a worker that the search leaves idle (given up if not asked for)
+        if ((NOISE, ''),) in explanations and not started:
             started['proposal'] = space.output_error.workers.submit(propose, base.ident,
-                                                                    behind=True)
+                                                                    filler=True)
     try:
-        selection = search(space, usable, prior, policy, mu, say, adequate, on_best)
+        selection = search(space, usable, prior, policy, mu, say, adequate, on_fit)
         explanation, top, table = explain(space, selection, prior, policy, adequate,
                                           lambda r: misfit_removed(r, base))
         proposal = _proposal(explanation, base, say, started.get('proposal'))

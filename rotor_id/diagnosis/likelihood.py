@@ -101,6 +101,16 @@ class Likelihood:
         """Begin :meth:`fit_many` beside the batches that follow; return a call that waits."""
         return partial(self.fit_many, requests)
 
+    def fit_ahead(self, requests: list) -> Callable[[list], None]:
+        """
+        Begin fits [(effects, start)] that may be asked for next, where workers would idle.
+
+        Return a call that is passed the requests still wanted: it queues them and gives up
+        the others. Until asked for by :meth:`fit_many`, a fit begun ahead is nowhere in the
+        results: what the search sees never depends on what ran ahead. (Here: none is.)
+        """
+        return lambda wanted: None
+
     def score_many(self, current: FitResult, effects: list) -> dict:
         """Score-test several effects at ``current``: {effect: ScoreTest or None}."""
         raise NotImplementedError
@@ -169,6 +179,8 @@ class OutputError(Likelihood):
         self.setting, self.ident, self.n_obs = setting, ident, n_obs
         self.workers = workers if workers is not None else Workers(1)
         self._memo = {}
+        #: {explanation: its fit submitted ahead (:meth:`fit_ahead`), not asked for yet}
+        self._ahead = {}
         self._baseline = None
 
     def baseline(self):
@@ -209,11 +221,36 @@ class OutputError(Likelihood):
         """Fit [(effects, start)] (in worker processes); returns results, None where failed."""
         keys = [canonical(effects) for effects, _ in requests]
         todo = {k: self._job(k, start) for k, (_, start) in zip(keys, requests)
-                if k and k not in self._memo}
+                if k and k not in self._memo and k not in self._ahead}
         fits = self.workers.apply(fit_candidate, todo.values(),
                                   [('fit', job.effect) for job in todo.values()])
         self._memo.update((key, self._result(key, fit)) for key, fit in zip(todo, fits))
+        for key in keys:
+            if key in self._ahead:
+                self._memo[key] = self._result(key, self._ahead.pop(key)())
         return [self.baseline() if not k else self._memo[k] for k in keys]
+
+    def fit_ahead(self, requests):
+        """
+        Submit fits that may be asked for next, to fill workers idle before a batch ends.
+
+        A fit's job is the same whether it runs ahead or in the batch that asks for it, so
+        its result is too. The call returned queues those still wanted and gives up the rest.
+        """
+        for effects, start in requests:
+            key = canonical(effects)
+            if key and key not in self._memo and key not in self._ahead:
+                self._ahead[key] = self.workers.submit(fit_candidate, self._job(key, start),
+                                                       filler=True)
+
+        def keep(wanted):
+            wanted = {canonical(effects) for effects, _ in wanted}
+            for key in list(self._ahead):
+                if key in wanted:
+                    self._ahead[key].release()
+                else:
+                    self._ahead.pop(key).cancel()
+        return keep
 
     def refit_from(self, effects, values):
         """Fit an explanation again from the start ``values``; return the better of the two."""
@@ -394,6 +431,16 @@ class ModelSpace(Likelihood):
     def fit_later(self, requests):
         """Begin fitting [(effects, start)] in the workers beside the next batches."""
         return self.output_error.workers.beside(partial(self.fit_many, requests))
+
+    def fit_ahead(self, requests):
+        """
+        Begin the output-error fits among ``requests`` ahead (:meth:`Likelihood.fit_ahead`).
+
+        A filter-error fit starts from the fits made before it, so it is made only when asked.
+        """
+        return self.output_error.fit_ahead(
+            [(effects, start) for effects, start in requests
+             if self._owner(effects) is self.output_error])
 
     def refit_from(self, effects, values):
         """Fit an explanation again from ``values``; the better of the two (output error)."""

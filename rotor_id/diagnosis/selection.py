@@ -182,9 +182,9 @@ def same_physics(a, b, mu):
 class _Search:
     """One search: the table of explanations, the score tests and the moves made so far."""
 
-    def __init__(self, space, effects, prior, policy, mu, say, adequate, on_best):
+    def __init__(self, space, effects, prior, policy, mu, say, adequate, on_fit):
         self.space, self.effects, self.prior, self.policy = space, effects, prior, policy
-        self.mu, self.say, self.adequate, self.on_best = mu, say, adequate, on_best
+        self.mu, self.say, self.adequate, self.on_fit = mu, say, adequate, on_fit
         self.candidates, self.steps, self.tests = {}, [], {}
         #: the first step's fits begun before its score tests: (their keys, a call that waits)
         self.early = None
@@ -202,6 +202,7 @@ class _Search:
         waits for them, enters and returns them.
         """
         self.say(label + ', '.join(' + '.join(e for e, _ in k) for k, _ in requests))
+        self.on_fit([key for key, _ in requests])
         if later:
             wait = self.space.fit_later(requests)
             return lambda: self._enter(wait())
@@ -310,11 +311,15 @@ class _Search:
         first = [(key, start) for _, key, start in requests
                  if bounds[key] >= top + share and key not in begun]
         rest = [(key, start) for _, key, start in requests if bounds[key] < top + share]
+        # the rest begin ahead where the first leave a worker idle; those the first's fits
+        # bound out are given up (never entered)
+        keep = self.space.fit_ahead(rest)
         fitted = (self.fit(first, '  fitting ') if first else []) + wait()
         size = len(requests[0][1])
         best = max((self.log_post(c.result) for c in self.candidates.values()
                     if c.fitted and len(c.effects) == size), default=-math.inf)
         rest = [(key, start) for key, start in rest if self.bound(key) >= best + share]
+        keep(rest)
         if rest:
             fitted += self.fit(rest, '  then ')
         return fitted
@@ -457,23 +462,22 @@ class _Search:
             self.steps.append(Step('add', added[0], added[1], float(odds),
                                    2.0 * (ranked[0].loglik - best.loglik), ranked[0].effects))
             best = self.backward(ranked[0], added)
-            self.on_best(best)
             frontier = self.beam(ranked)
         return best
 
 
-def search(space, effects, prior, policy, mu=0.0, say=None, adequate=None, on_best=None):
+def search(space, effects, prior, policy, mu=0.0, say=None, adequate=None, on_fit=None):
     """
     Forward steps guided by score tests, a backward check after each: :class:`Selection`.
 
     ``space``: a :class:`~rotor_id.diagnosis.likelihood.Likelihood` with ``baseline()`` and
     ``refit_from``; ``effects``: the catalogue ids it may use; ``mu``: the advance ratio (which
     effects are first-order equivalents); ``adequate(result)``: whether a fit's residuals are
-    noise; ``on_best(result)`` is told each forward step's new best fit. The steps are
+    noise; ``on_fit(explanations)`` is told each batch of fits before it begins. The steps are
     docs/diagnosis.md's §3.
     """
     run = _Search(space, effects, prior, policy, mu, say or (lambda text: None),
-                  adequate or (lambda result: False), on_best or (lambda result: None))
+                  adequate or (lambda result: False), on_fit or (lambda keys: None))
     best = space.baseline()
     run.candidates[()] = Candidate((), best)
     run.begin_unscored(best)

@@ -4,9 +4,11 @@ Worker processes for batches of fits and tests, with the compiled kernels in eve
 Forked once (after :func:`rotor_id.estimation.kernels.prefer` has loaded the kernels) and kept
 until closed, so a worker keeps what it prepared from one batch to the next. Jobs are queued
 longest known first; batches can run beside each other (threads of this process waiting on the
-pool); Ctrl-C stops the caller, which stops the pool.
+pool); a job submitted as a filler takes a worker that a batch leaves idle before its end;
+Ctrl-C stops the caller, which stops the pool.
 """
 
+from functools import partial
 import math
 import multiprocessing
 import signal
@@ -33,10 +35,12 @@ class Workers:
         self.costs = {}
         self._unclaimed = []        # submitted jobs whose result no one has asked for
         self._beside = []           # batches under way in threads of this process (beside)
-        #: jobs submitted to queue behind the next batch, not queued yet: [[function, item,
-        #: handle or None]] (a lock: batches are queued from threads too)
-        self._behind = []
-        self._lock = threading.Lock()
+        #: submitted fillers of idle workers not queued yet (:class:`Submitted`; a lock: jobs
+        #: end in the pool's result thread, and batches are queued from threads too)
+        self._fillers = []
+        self._lock = threading.RLock()
+        #: jobs in the pool (queued or running), and those of them from batches (:meth:`apply`)
+        self._in_pool, self._batch_jobs = 0, 0
 
     def _start(self):
         if self._pool is None:
@@ -56,20 +60,21 @@ class Workers:
         """
         items = list(items)
         keys = list(keys) if keys is not None else [None] * len(items)
-        alone_here = len(items) <= 1 and not self._beside
+        alone_here = len(items) <= 1 and not self._beside and not self._fillers
         if self.processes <= 1 or not items or alone_here:
             timed = [_timed_call((function, item)) for item in items]
         else:
             order = sorted(range(len(items)), key=lambda i: -self.costs.get(keys[i], math.inf))
-            # one job at a time: jobs differ in cost tenfold, and map's default chunks of
-            # several leave one worker idle at a batch's end
-            queued = self._start().map_async(_timed_call,
-                                             [(function, items[i]) for i in order], chunksize=1)
-            self._queue_behind()
-            done = queued.get()
+            self._start()
+            # one job at a time: jobs differ in cost tenfold, and chunks of several leave one
+            # worker idle at a batch's end
+            with self._lock:
+                handles = [self._put(_timed_call, (function, items[i]), batch=True)
+                           for i in order]
+                self._fill_idle()
             timed = [None] * len(items)
-            for i, result in zip(order, done):
-                timed[i] = result
+            for i, handle in zip(order, handles):
+                timed[i] = handle.get()
         for key, (_, cpu_s) in zip(keys, timed):
             if key is not None:
                 self.costs[key] = cpu_s
@@ -121,47 +126,57 @@ class Workers:
             return out['value']
         return result
 
-    def submit(self, function, item, behind=False):
+    def submit(self, function, item, filler=False):
         """
-        Start ``function(item)`` in a worker beside the batches; return a call that waits for it.
+        Start ``function(item)`` in a worker beside the batches: a :class:`Submitted` job.
 
-        The job is queued behind those already waiting, and fills a worker that a batch leaves
-        idle. ``behind``: queued only once the next batch's jobs are (a result wanted last
-        then waits behind that batch instead of holding it up), or when it is asked for if no
-        batch comes first. With one process it is computed at that call, if ever. A job never
-        waited for is stopped by :meth:`close`.
+        Calling it waits for the result. The job is queued behind those already waiting.
+        ``filler``: work that may not be wanted, queued only where a worker is idle while a
+        batch is under way (it costs the batches no time), in the order submitted; else when
+        released or asked for. With one process the job is computed when asked for, if ever.
+        A job never waited for is stopped by :meth:`close`.
         """
-        if self.processes <= 1:
-            return lambda: function(item)
-        entry = [function, item, None]
-        with self._lock:
-            if behind:
-                self._behind.append(entry)
-            else:
-                self._queue(entry)
-
-        def result():
+        job = Submitted(self, function, item)
+        if self.processes > 1:
             with self._lock:
-                if entry in self._behind:       # no batch came: queued now
-                    self._behind.remove(entry)
-                    self._queue(entry)
-            handle = entry[2]
-            if handle in self._unclaimed:
-                self._unclaimed.remove(handle)
-            return handle.get()
-        return result
+                if filler:
+                    self._fillers.append(job)       # (filled from the next batch on)
+                else:
+                    self._queue(job)
+        return job
 
-    def _queue(self, entry):
-        """Queue a submitted job [function, item, None] in the pool; its handle fills the None."""
-        entry[2] = self._start().apply_async(entry[0], (entry[1],))
-        self._unclaimed.append(entry[2])
+    def _put(self, function, argument, batch=False):
+        """Queue ``function(argument)`` in the pool (holding the lock); return its handle."""
+        self._in_pool += 1
+        self._batch_jobs += batch
+        ended = partial(self._ended, batch)
+        return self._start().apply_async(function, (argument,), callback=ended,
+                                         error_callback=ended)
 
-    def _queue_behind(self):
-        """Queue the submitted jobs that wait for a batch (:meth:`submit`), in their order."""
+    def _ended(self, batch, _result):
+        """Count a job out of the pool (in the pool's result thread); fill an idle worker."""
         with self._lock:
-            for entry in self._behind:
-                self._queue(entry)
-            self._behind = []
+            self._in_pool -= 1
+            self._batch_jobs -= batch
+            self._fill_idle()
+
+    def _fill_idle(self):
+        """Queue fillers while a batch is under way and a worker has nothing queued for it."""
+        while self._fillers and self._batch_jobs > 0 and self._in_pool < self.processes \
+                and self._pool is not None:
+            self._queue(self._fillers.pop(0))
+
+    def _queue(self, job):
+        """Queue a submitted job in the pool (holding the lock)."""
+        job.handle = self._put(job.function, job.item)
+        self._unclaimed.append(job.handle)
+
+    def _release(self, job):
+        """Queue a submitted filler now if it still waits for an idle worker."""
+        with self._lock:
+            if job in self._fillers:
+                self._fillers.remove(job)
+                self._queue(job)
 
     def close(self, stop=False):
         """
@@ -178,7 +193,38 @@ class Workers:
                 self._pool.close()
             self._pool.join()
             self._pool = None
-        self._unclaimed, self._beside, self._behind = [], [], []
+        self._unclaimed, self._beside, self._fillers = [], [], []
+        self._in_pool, self._batch_jobs = 0, 0
+
+
+class Submitted:
+    """A job submitted to the workers (:meth:`Workers.submit`): call it for its result."""
+
+    def __init__(self, workers, function, item):
+        self.workers, self.function, self.item = workers, function, item
+        self.handle = None
+
+    def __call__(self):
+        """Return the job's result: queue it if it still waits, and wait for it."""
+        workers = self.workers
+        if workers.processes <= 1:
+            return self.function(self.item)
+        workers._release(self)
+        if self.handle in workers._unclaimed:
+            workers._unclaimed.remove(self.handle)
+        return self.handle.get()
+
+    def release(self):
+        """Queue the job now if it still waits for an idle worker."""
+        if self.workers.processes > 1:
+            self.workers._release(self)
+
+    def cancel(self):
+        """Give the job up: never queued if it still waits; if queued, its result is unread."""
+        workers = self.workers
+        with workers._lock:
+            if self in workers._fillers:
+                workers._fillers.remove(self)
 
 
 def _leave_interrupts():

@@ -14,7 +14,7 @@ from types import SimpleNamespace
 
 import numpy as np
 import pytest
-from rotor_id.diagnosis.likelihood import canonical, FitResult, ScoreTest
+from rotor_id.diagnosis.likelihood import canonical, FitResult, Likelihood, ScoreTest
 from rotor_id.diagnosis.policy import SelectionPolicy
 from rotor_id.diagnosis.selection import Prior, search
 from rotor_id.diagnosis.verdict import acceptance_noncentrality, explain
@@ -27,7 +27,7 @@ EFFECTS = ('sensor_lag', 'time_delay', 'sensor_bias', 'flap_frequency', 'sensor_
            'pitch_actuator_lag')
 
 
-class TableSpace:
+class TableSpace(Likelihood):
     """A likelihood that answers from a table {frozenset(effects): (gain, k)}."""
 
     def __init__(self, table, rho=1.0, at_bound=(), variance=1e-4):
@@ -54,9 +54,6 @@ class TableSpace:
     def fit_many(self, requests):
         self.fits += [canonical(e) for e, _ in requests]
         return [self._result(e) for e, _ in requests]
-
-    def fit(self, effects, start):
-        return self.fit_many([(effects, start)])[0]
 
     def refit_from(self, effects, values):
         self.refits.append((canonical(effects), dict(values)))
@@ -317,3 +314,42 @@ def test_the_prior_weighs_physics_and_shares_it_among_equivalent_forms():
     blade = Prior(EFFECTS + ('blade_dissimilarity',), 3, 4)
     assert math.exp(blade.log((('blade_dissimilarity', 'blade_2'),))) == pytest.approx(
         math.exp(blade.log((('sensor_bias', ''),))) / 4)
+
+
+class AheadTableSpace(TableSpace):
+    """The table, with the fits a step may ask for next begun ahead (and some given up)."""
+
+    def __init__(self, table, **options):
+        super().__init__(table, **options)
+        self.begun, self.given_up, self._ahead = [], [], {}
+
+    def fit_ahead(self, requests):
+        for effects, _ in requests:
+            self._ahead[canonical(effects)] = self._result(effects)
+            self.begun.append(canonical(effects))
+
+        def keep(wanted):
+            kept = {canonical(e) for e, _ in wanted}
+            self.given_up += [k for k in self._ahead if k not in kept]
+            self._ahead = {k: v for k, v in self._ahead.items() if k in kept}
+        return keep
+
+
+def test_fits_begun_ahead_and_given_up_never_enter_the_table():
+    # a step whose first fit bounds the others out: they were begun ahead, then given up
+    table = {frozenset(['sensor_bias']): (90.0, 2), frozenset(['sensor_gain']): (8.0, 4),
+             frozenset(['flap_frequency']): (9.0, 1),
+             ('score', frozenset(['flap_frequency'])): 40.0,
+             ('score', frozenset(['sensor_gain'])): 40.0}
+    plain = _run(table, policy=UNTEMPERED)
+    space = AheadTableSpace(table)
+    prior = Prior(EFFECTS, POLICY.max_effects, 4)
+    selection = search(space, list(EFFECTS), prior, UNTEMPERED)
+    assert space.given_up and set(space.given_up) <= set(space.begun)
+    fitted = {k for k, c in selection.candidates.items() if c.fitted}
+    # in the table only as asked for; one given up and never asked for later is not in it
+    assert fitted - {()} <= set(space.fits)
+    assert set(space.given_up) - set(space.fits) and not fitted & (set(space.given_up)
+                                                                   - set(space.fits))
+    assert fitted == {k for k, c in plain[1].candidates.items() if c.fitted}
+    assert selection.final.effects == plain[1].final.effects

@@ -113,16 +113,38 @@ def test_an_error_in_a_batch_begun_beside_is_raised_where_it_is_waited_for():
         workers.close()
 
 
-def test_a_job_submitted_behind_waits_for_the_next_batch_to_be_queued():
+def test_a_filler_takes_a_worker_a_batch_leaves_idle_and_no_other():
     workers = Workers(2)
     try:
-        later = workers.submit(_started, 0.0, behind=True)
+        filler = workers.submit(_started, 0.0, filler=True)
         time.sleep(0.3)
-        # queued behind this batch: its two jobs take both workers first
-        starts = workers.apply(_started, [0.4, 0.4])
-        assert later() - max(starts) > 0.3
-        # with no batch before its result is asked for, it is queued then
+        assert filler.handle is None        # no batch under way: it waits
+        # a batch of one long job and one short: the filler takes the short one's worker
+        # while the long one still runs
+        queued = time.monotonic()
+        starts = workers.apply(_started, [1.0, 0.2])
+        assert filler() - queued > 0.15 and filler() < starts[0] + 0.9
+        # never ahead of a batch's own jobs: with four on two workers, from the tail on
+        filler = workers.submit(_started, 0.0, filler=True)
+        starts = workers.apply(_started, [0.3] * 4)
+        assert filler() - max(starts) > 0.2
+        # none idle (no batch under way): it waits, and is queued when asked for
+        waiting = workers.submit(_started, 0.0, filler=True)
+        time.sleep(0.3)
+        assert waiting.handle is None
         asked = time.monotonic()
-        assert workers.submit(_started, 0.0, behind=True)() >= asked
+        assert waiting() >= asked
+        # one given up is never queued
+        given_up = workers.submit(_started, 0.0, filler=True)
+        given_up.cancel()
+        workers.apply(_started, [0.3, 0.0])
+        assert given_up.handle is None
     finally:
         workers.close()
+
+
+def test_with_one_process_a_filler_is_computed_only_when_asked_for():
+    workers = Workers(1)
+    given_up = workers.submit(_busy, 60.0, filler=True)
+    given_up.cancel()                       # never computed (the test would take a minute)
+    assert workers.submit(_busy, 0.0, filler=True)() == 0.0
