@@ -185,6 +185,8 @@ class Workers:
         ``stop``: whatever is under way (a search that failed or was interrupted, whose
         workers may have died with a job: waiting for it would never end).
         """
+        with self._lock:
+            self._fillers = []              # (a job ending now queues none in a closing pool)
         if self._pool is not None:
             if stop or any(not handle.ready() for handle in self._unclaimed) \
                     or any(not done.is_set() for done in self._beside):
