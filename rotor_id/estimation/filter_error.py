@@ -197,14 +197,6 @@ class FilterProblem:
             return 'steady' if dm.time_invariant else 'time-varying'
         return self.gain
 
-    def innovations(self, r: int, theta: np.ndarray) -> np.ndarray:
-        """Innovations ν (T, m) of run r at θ (process noise as its variance, as optimised)."""
-        dm, x0, R = self.discretized(r, theta)
-        # (a run that is filtered has measurements)
-        nu, _, _, _ = filter_batch([dm], self.experiments[r].y,  # type: ignore[arg-type]
-                                   x0[None], R[None], self.gain_mode(dm))
-        return nu[0]
-
     def evaluate(self, theta: np.ndarray, sensitivities: bool = True,
                  columns: Sequence[int] | None = None) -> list[RunInnovations]:
         """
@@ -1004,8 +996,8 @@ def fit_filter_error_ml(experiments: Sequence[Experiment], unknowns: Sequence[st
     if not converged:
         warnings.append(message)
     base_theta, sig_p, sig_m = prob.split(theta)
-    # before θ reports σ in place of the variance q that split() expects
-    residuals = [prob.innovations(r, theta) for r in range(len(experiments))]
+    # the innovations of the last evaluation, at θ: those of the likelihood reported
+    residuals = [run[0] for run in results]
     theta = _reported(prob, theta)
     p_final = base.full_parameters(base_theta)
     n_total = sum(exp.t.size for exp in experiments)
