@@ -39,6 +39,9 @@ class Workers:
         #: end in the pool's result thread, and batches are queued from threads too)
         self._fillers = []
         self._lock = threading.RLock()
+        #: batches queued so far, told to :meth:`together` as each is (on the same lock)
+        self._batches = 0
+        self._queued = threading.Condition(self._lock)
         #: jobs in the pool (queued or running), and those of them from batches (:meth:`apply`)
         self._in_pool, self._batch_jobs = 0, 0
 
@@ -72,6 +75,8 @@ class Workers:
                 handles = [self._put(_timed_call, (function, items[i]), batch=True)
                            for i in order]
                 self._fill_idle()
+                self._batches += 1
+                self._queued.notify_all()
             timed = [None] * len(items)
             for i, handle in zip(order, handles):
                 timed[i] = handle.get()
@@ -86,11 +91,18 @@ class Workers:
 
         Each call (a likelihood's batch) waits in a thread of this process while the workers
         run its jobs, a lone job included: the batches overlap, and nothing is computed in
-        this process meanwhile (its caches see one thread).
+        this process meanwhile (its caches see one thread). A batch's jobs are queued before
+        the next call begins, so they are queued in the order of the calls (the caller puts
+        the longest first).
         """
         if self.processes <= 1 or len(calls) <= 1:
             return [call() for call in calls]
-        waits = [self.beside(call) for call in calls]
+        waits = []
+        for call in calls:
+            with self._queued:
+                before = self._batches
+                waits.append(self.beside(call))
+                self._queued.wait_for(lambda: self._batches != before or waits[-1].done.is_set())
         return [wait() for wait in waits]
 
     def beside(self, call):
@@ -114,6 +126,8 @@ class Workers:
                 out['error'] = exc
             finally:
                 done.set()
+                with self._queued:
+                    self._queued.notify_all()
         self._beside.append(done)           # (before the thread asks for its first job)
         threading.Thread(target=run, daemon=True).start()
 
@@ -124,6 +138,7 @@ class Workers:
             if 'error' in out:
                 raise out['error']
             return out['value']
+        result.done = done
         return result
 
     def submit(self, function, item, filler=False):

@@ -148,3 +148,17 @@ def test_with_one_process_a_filler_is_computed_only_when_asked_for():
     given_up = workers.submit(_busy, 60.0, filler=True)
     given_up.cancel()                       # never computed (the test would take a minute)
     assert workers.submit(_busy, 0.0, filler=True)() == 0.0
+
+
+def test_batches_run_together_are_queued_in_the_order_of_the_calls():
+    workers = Workers(2)
+
+    def first():
+        time.sleep(0.3)                     # its preparation: the next batch still waits
+        return workers.apply(_started, [0.4, 0.4])
+    try:
+        (a, b), (c,) = workers.together([first, lambda: workers.apply(_started, [0.0])])
+    finally:
+        workers.close()
+    # the first call's two jobs took both workers; the second's waited for one of them
+    assert c - max(a, b) > 0.3
