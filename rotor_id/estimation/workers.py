@@ -25,7 +25,8 @@ class Workers:
     Forked on first use, after the compiled kernels are loaded (:func:`kernels.prefer`), so
     every worker inherits them, and kept until :meth:`close`: a worker holds the record's
     prepared plans from one batch to the next. With one process (or one job) the work runs
-    here, except while a batch runs beside (:meth:`beside`, :meth:`together`).
+    here, except while a batch runs beside (:meth:`beside`, :meth:`together`) or a filler
+    waits for the worker it would leave idle (:meth:`submit`).
     """
 
     def __init__(self, processes):
